@@ -1,0 +1,34 @@
+# Two entry points for a fresh machine: `make demo` and `make test`. Both build .venv first.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+OUT ?= visemeflow-out
+
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export PREFECT_LOGGING_LEVEL ?= WARNING
+
+.PHONY: venv demo test bench clean
+
+venv: $(STAMP)
+
+# torch goes in first, pinned, from the machine's local CPU wheel: an unpinned torch pulls GBs of CUDA.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+demo: venv
+	$(BIN)/visemeflow pipeline examples/corpus --out $(OUT)
+
+# pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
+test: venv
+	$(BIN)/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
+
+bench: venv
+	$(BIN)/python bench/ingest_procedural.py
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

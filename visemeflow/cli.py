@@ -1,0 +1,216 @@
+"""The `visemeflow` command."""
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+# Analytics in embedded mode cause "database is locked" errors; set before Prefect is imported.
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+import typer  # noqa: E402
+
+app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True)
+curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True)
+app.add_typer(curves_app, name="curves")
+
+StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.")]
+ShardsOpt = Annotated[int, typer.Option("--shards", help="Tasks per cheap stage (utterances are hashed into shards).")]
+DEFAULT_STORE = Path("visemeflow-out/store")
+
+
+def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: float, fps: float):
+    from visemeflow.ingest import IngestConfig
+
+    kwargs = {"inventory": inventory, "alignment_tolerance_s": tolerance, "fps": fps}
+    if phone_tier:
+        kwargs["phone_tiers"] = tuple(phone_tier)
+    return IngestConfig(**kwargs)
+
+
+def _print_summary(title: str, summary: dict) -> None:
+    typer.echo(f"{title}: " + ", ".join(f"{k} {v}" for k, v in summary.items()))
+
+
+@app.command()
+def ingest(
+    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")],
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+    inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa or pinyin.")] = "auto",
+    phone_tier: Annotated[Optional[list[str]], typer.Option(help="Phone tier name (repeatable).")] = None,
+    tolerance: Annotated[float, typer.Option(help="Allowed alignment/audio length difference, s.")] = 0.1,
+    fps: Annotated[float, typer.Option(help="Curve frame rate for audio-only utterances.")] = 30.0,
+) -> None:
+    """Read alignments and audio into the `utterances` and `phones` tables."""
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams
+
+    params = IngestParams(corpus=corpus, store=store, n_shards=shards,
+                          config=_ingest_config(inventory, phone_tier, tolerance, fps))
+    _print_summary("ingest", ingest_flow(params))
+    _print_rejects_hint(store)
+
+
+@app.command()
+def procedural(
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+    fps: Annotated[Optional[float], typer.Option(help="Curve frame rate; default: each utterance's own.")] = None,
+    variant: Annotated[Optional[str], typer.Option(help="Name of this curve variant.")] = None,
+) -> None:
+    """Generate JALI-like procedural viseme curves for every ingested utterance."""
+    from visemeflow.flows.params import ProceduralParams
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.procedural import ProceduralConfig
+
+    params = ProceduralParams(store=store, n_shards=shards, config=ProceduralConfig(fps=fps), variant=variant)
+    _print_summary("procedural", procedural_flow(params))
+
+
+@app.command()
+def pipeline(
+    corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.")],
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+) -> None:
+    """Run every stage on a corpus: ingest, procedural curves."""
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards))
+    for stage, summary in result.items():
+        _print_summary(stage, summary)
+    _print_outputs(store)
+
+
+@app.command()
+def rerun(
+    utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
+    stage: Annotated[str, typer.Option(help="ingest or procedural.")] = "procedural",
+    store: StoreOpt = DEFAULT_STORE,
+    force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
+) -> None:
+    """Rerun one utterance through one stage, with the settings that stage last ran with."""
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    _print_summary(f"rerun {stage} {utterance_id}", rerun_flow(RerunParams(
+        utterance_id=utterance_id, stage=stage, store=store, force=force)))
+
+
+@app.command()
+def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typer.Option()] = None) -> None:
+    """List rejected inputs with their reasons."""
+    from visemeflow.storage import Store
+
+    table = Store(store).read_table("rejects", stage)
+    if table.num_rows == 0:
+        typer.echo("no rejects")
+        return
+    for r in table.to_pylist():
+        typer.echo(f"[{r['stage']}] {r['error_type']}: {r['message']}")
+
+
+def _load_curves(utterance_id: str, store: Path, source: str, variant: str | None):
+    from visemeflow.storage import Store
+
+    try:
+        return Store(store).read_curves(utterance_id, source, variant)
+    except LookupError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+@curves_app.command("show")
+def curves_show(
+    utterance_id: str, store: StoreOpt = DEFAULT_STORE,
+    source: Annotated[str, typer.Option(help="procedural, tracked, predicted or ground_truth.")] = "procedural",
+    variant: Annotated[Optional[str], typer.Option()] = None,
+) -> None:
+    """Print a short summary of one utterance's curves."""
+    import numpy as np
+
+    from visemeflow.schemas import C, curves_array
+    from visemeflow.visemes import VISEMES
+
+    table = _load_curves(utterance_id, store, source, variant)
+    curves = curves_array(table)
+    times = table.column(C.TIME_S).to_numpy()
+    variant_name = table.column(C.VARIANT)[0].as_py()
+    duration = times[-1] if len(times) else 0.0
+    typer.echo(f"{utterance_id}  source {source}  variant {variant_name}  {len(curves)} frames  {duration:.2f} s")
+    top = np.argmax(curves, axis=1)
+    active = curves.max(axis=1) > 0.05
+    typer.echo(f"{'viseme':<7}{'max':>6}{'mean':>7}{'frames on top':>15}")
+    for i, v in enumerate(VISEMES):
+        typer.echo(f"{v:<7}{curves[:, i].max():6.2f}{curves[:, i].mean():7.3f}{int(((top == i) & active).sum()):15d}")
+
+
+@curves_app.command("export")
+def curves_export(
+    utterance_id: str, store: StoreOpt = DEFAULT_STORE,
+    source: Annotated[str, typer.Option()] = "procedural",
+    variant: Annotated[Optional[str], typer.Option()] = None,
+    format: Annotated[str, typer.Option("--format", help="csv or json.")] = "csv",
+    out: Annotated[Optional[Path], typer.Option(help="Output file; default: standard output.")] = None,
+) -> None:
+    """Write one utterance's curves as CSV (one row per frame) or JSON (one list per viseme)."""
+    from visemeflow.schemas import C
+    from visemeflow.visemes import VISEMES
+
+    table = _load_curves(utterance_id, store, source, variant)
+    if format == "csv":
+        import io
+
+        import pyarrow.csv as pacsv
+
+        buf = io.BytesIO()
+        pacsv.write_csv(table.select([C.FRAME, C.TIME_S, *VISEMES]), buf)
+        text = buf.getvalue().decode()
+    elif format == "json":
+        times = table.column(C.TIME_S).to_numpy()
+        fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else None
+        text = json.dumps({
+            "utterance_id": utterance_id, "source": source, "variant": table.column(C.VARIANT)[0].as_py(),
+            "fps": fps, "visemes": list(VISEMES), "time_s": times.tolist(),
+            "curves": {v: [round(x, 6) for x in table.column(v).to_pylist()] for v in VISEMES},
+        })
+    else:
+        typer.echo(f"error: unknown format {format!r}; use csv or json", err=True)
+        raise typer.Exit(2)
+    if out is None:
+        sys.stdout.write(text)
+    else:
+        out.write_text(text)
+        typer.echo(f"wrote {out}")
+
+
+def _print_rejects_hint(store: Path) -> None:
+    from visemeflow.storage import Store
+
+    n = Store(store).read_table("rejects").num_rows
+    if n:
+        typer.echo(f"{n} rejected: see `visemeflow rejects --store {store}`")
+
+
+def _print_outputs(store: Path) -> None:
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    utterances = s.read_table("utterances").num_rows
+    typer.echo(f"store: {s.root}")
+    typer.echo(f"  tables/utterances  {utterances} utterances")
+    typer.echo(f"  tables/phones      {s.read_table('phones').num_rows} phone rows")
+    for source_dir in sorted((s.root / "curves").glob("*/*")) if (s.root / "curves").exists() else []:
+        typer.echo(f"  curves/{source_dir.parent.name}/{source_dir.name}  {len(s.curve_files(source_dir.parent.name, source_dir.name))} files")
+    _print_rejects_hint(store)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Prefect artifacts (run summaries, rejects) and, later, the static HTML report."""

@@ -1,0 +1,1 @@
+"""Prefect flows: the wiring of tasks, one module per stage plus `pipeline` and `rerun`."""

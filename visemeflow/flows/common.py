@@ -1,0 +1,45 @@
+"""Helpers the flows share: shard grouping, waiting with progress, failure accounting."""
+
+from collections import defaultdict
+from collections.abc import Iterable
+
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.futures import PrefectFuture, as_completed
+
+from visemeflow.schemas import shard_of
+
+
+def group_by_shard(items: Iterable[dict], key: str, n_shards: int) -> dict[int, list[dict]]:
+    groups: dict[int, list[dict]] = defaultdict(list)
+    for item in items:
+        groups[shard_of(item[key], n_shards)].append(item)
+    return dict(sorted(groups.items()))
+
+
+def collect(futures: list[PrefectFuture], stage: str) -> tuple[list[dict], list[str]]:
+    """Wait for all futures, updating a progress artifact; (reports of the ones that worked, errors)."""
+    progress_id = create_progress_artifact(progress=0.0, description=f"{stage}: shards done") if futures else None
+    reports, errors = [], []
+    for done, future in enumerate(as_completed(futures), start=1):
+        try:
+            report = dict(future.result())
+        except Exception as exc:  # a failed task: count it, let the other shards finish
+            errors.append(f"{type(exc).__name__}: {exc}")
+        else:
+            # A cache hit returns the report of the run that computed it: this run did no work.
+            cached = future.state.name == "Cached"
+            reports.append({"shard": report["shard"], "utterances": report["utterances"], "cached_shards": 1}
+                           if cached else {**report, "cached_shards": 0})
+        if progress_id is not None:
+            update_progress_artifact(progress_id, progress=100.0 * done / len(futures))
+    return sorted(reports, key=lambda r: r["shard"]), errors
+
+
+def totals(reports: list[dict]) -> dict[str, int]:
+    out: dict[str, int] = defaultdict(int)
+    for r in reports:
+        for k, v in r.items():
+            if k != "shard":
+                out[k] += v
+    out["shards"] = len(reports)
+    return dict(out)

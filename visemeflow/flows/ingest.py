@@ -1,0 +1,47 @@
+"""The `ingest` flow: corpus to the `utterances`, `phones` and `rejects` tables."""
+
+import pyarrow as pa
+from prefect import flow, get_run_logger
+
+from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.common import collect, group_by_shard, totals
+from visemeflow.flows.params import IngestParams
+from visemeflow.schemas import REJECTS, table_from_rows
+from visemeflow.storage import Store
+from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.tasks.ingest import STAGE, discover_corpus_task, ingest_shard, remove_stale_shards, shard_files_present
+
+DISCOVER_STAGE = "discover"
+
+
+@flow(name="ingest", flow_run_name="ingest[{params.corpus}]")
+def ingest_flow(params: IngestParams) -> dict[str, int]:
+    """Discover the corpus and ingest it shard by shard; unchanged shards are cache hits."""
+    store = Store(params.store)
+    store.write_run_config(STAGE, {
+        "corpus": str(params.corpus.resolve()), "n_shards": params.n_shards,
+        "config": params.config.model_dump(mode="json"),
+    })
+    found = discover_corpus_task(str(params.corpus.resolve()))
+    shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)
+    futures = [
+        ingest_shard.with_options(
+            result_storage=result_storage(store.root), refresh_cache=not shard_files_present(store, shard),
+        ).submit(str(store.root), shard, entries, params.config)
+        for shard, entries in shards.items()
+    ]
+    reports, errors = collect(futures, STAGE)
+    removed = remove_stale_shards(store, set(shards))
+    discovery_rejects = [
+        reject_row(r["utterance_id"], DISCOVER_STAGE, r["error_type"], r["message"], r["path"]) for r in found["rejects"]
+    ]
+    store.write_shard("rejects", 0, table_from_rows(discovery_rejects, REJECTS), stage=DISCOVER_STAGE)
+    summary = {**totals(reports), "discovery_rejected": len(discovery_rejects), "stale_shards_removed": removed}
+    publish_stage_summary(STAGE, summary)
+    publish_rejects(STAGE, pa.concat_tables([
+        store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE),
+    ]))
+    get_run_logger().info("ingest: %s", summary)
+    if errors:
+        raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
+    return summary

@@ -1,0 +1,64 @@
+"""Flow parameters as pydantic models, so the Prefect UI shows them as forms and bad values fail first."""
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from visemeflow.ingest import IngestConfig
+from visemeflow.procedural import ProceduralConfig
+from visemeflow.schemas import validate_name, validate_utterance_id
+
+DEFAULT_STORE = Path("visemeflow-out/store")
+
+
+class StoreParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    n_shards: int = Field(
+        8, ge=1, le=4096,
+        description="Cheap stages run one task per shard of utterances (a stable hash of the id).",
+    )
+
+
+class IngestParams(StoreParams):
+    corpus: Path = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")
+    config: IngestConfig = Field(default_factory=IngestConfig)
+
+    @field_validator("corpus")
+    @classmethod
+    def _corpus_exists(cls, corpus: Path) -> Path:
+        if not corpus.exists():
+            raise ValueError(f"corpus {corpus} does not exist")
+        return corpus
+
+
+class ProceduralParams(StoreParams):
+    config: ProceduralConfig = Field(default_factory=ProceduralConfig)
+    variant: str | None = Field(None, description="Name of this curve variant; by default derived from the config.")
+
+    @field_validator("variant")
+    @classmethod
+    def _safe_variant(cls, variant: str | None) -> str | None:
+        return None if variant is None else validate_name(variant, "variant")
+
+
+class PipelineParams(StoreParams):
+    corpus: Path = Field(..., description="Corpus folder or manifest CSV.")
+    ingest: IngestConfig = Field(default_factory=IngestConfig)
+    procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
+
+
+class RerunParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
+    stage: Literal["ingest", "procedural"] = Field("procedural", description="The stage to rerun.")
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    force: bool = Field(True, description="Recompute even when a cached result is valid.")
+
+    @field_validator("utterance_id")
+    @classmethod
+    def _valid_id(cls, utterance_id: str) -> str:
+        return validate_utterance_id(utterance_id)

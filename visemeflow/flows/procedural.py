@@ -1,0 +1,51 @@
+"""The `procedural` flow: JALI-like viseme curves for every ingested utterance."""
+
+from prefect import flow, get_run_logger
+
+from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.common import collect, group_by_shard, totals
+from visemeflow.flows.params import ProceduralParams
+from visemeflow.schemas import C
+from visemeflow.storage import Store
+from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_shard
+
+UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.ALIGNMENT_PATH]
+
+
+def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, rejected: set[str]) -> bool:
+    """Whether the shard's curve files and rejects file exist, so a cached result still describes the store."""
+    if not store.shard_path("rejects", shard, STAGE).exists():
+        return False
+    return all(store.has_curves(SOURCE, variant, u[C.UTTERANCE_ID]) or u[C.UTTERANCE_ID] in rejected for u in items)
+
+
+@flow(name="procedural", flow_run_name="procedural[{params.store}]")
+def procedural_flow(params: ProceduralParams) -> dict[str, int]:
+    """Generate procedural curves shard by shard; utterances whose inputs and config are unchanged are skipped."""
+    store = Store(params.store)
+    variant = params.variant or default_variant(params.config)
+    store.write_run_config(STAGE, {
+        "variant": variant, "n_shards": params.n_shards, "config": params.config.model_dump(mode="json"),
+    })
+    utterances = store.read_table("utterances").select(UTTERANCE_FIELDS).to_pylist()
+    rejected = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    shards = group_by_shard(utterances, C.UTTERANCE_ID, params.n_shards)
+    futures = [
+        procedural_shard.with_options(
+            result_storage=result_storage(store.root),
+            refresh_cache=not _outputs_present(store, shard, items, variant, rejected),
+        ).submit(str(store.root), shard, items, params.config, variant)
+        for shard, items in shards.items()
+    ]
+    reports, errors = collect(futures, STAGE)
+    for path in store.table_dir("rejects", STAGE).glob("shard-*.parquet"):
+        if int(path.stem.split("-")[1]) not in shards:
+            path.unlink()
+    summary = totals(reports)
+    publish_stage_summary(STAGE, summary, {"variant": variant})
+    publish_rejects(STAGE, store.read_table("rejects", STAGE))
+    get_run_logger().info("procedural (%s): %s", variant, summary)
+    if errors:
+        raise RuntimeError(f"procedural: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
+    return {**summary, "variant": variant}

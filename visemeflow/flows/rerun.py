@@ -1,0 +1,48 @@
+"""The `rerun` flow: one utterance through one stage, by hand, even when its cache is valid."""
+
+from prefect import flow, get_run_logger
+
+from visemeflow.flows.params import RerunParams
+from visemeflow.ingest import IngestConfig
+from visemeflow.procedural import ProceduralConfig
+from visemeflow.schemas import C, shard_of
+from visemeflow.storage import Store
+from visemeflow.tasks import ingest as ingest_tasks
+from visemeflow.tasks import procedural as procedural_tasks
+from visemeflow.tasks.common import result_storage
+
+
+class RerunError(LookupError):
+    """The utterance or the stage's earlier run cannot be found; the message says what to run first."""
+
+
+@flow(name="rerun", flow_run_name="rerun[{params.utterance_id}:{params.stage}]")
+def rerun_flow(params: RerunParams) -> dict[str, int]:
+    """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
+    store = Store(params.store)
+    uid = params.utterance_id
+    run = store.read_run_config(params.stage)
+    if params.stage == "ingest":
+        if run is None:
+            raise RerunError(f"{store.root} has no ingest run to repeat; run `visemeflow ingest CORPUS` first")
+        config = IngestConfig(**run["config"])
+        found = ingest_tasks.discover_corpus_task(run["corpus"], only=uid)
+        if not found["entries"]:
+            reasons = "; ".join(r["message"] for r in found["rejects"]) or "no files for it"
+            raise RerunError(f"{uid} is not in the corpus {run['corpus']}: {reasons}")
+        task = ingest_tasks.ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
+        report = task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
+    else:
+        run = run or {"n_shards": 8, "config": ProceduralConfig().model_dump(mode="json"), "variant": None}
+        config = ProceduralConfig(**run["config"])
+        variant = run["variant"] or procedural_tasks.default_variant(config)
+        rows = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
+        if not rows:
+            raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+        utterance = {k: rows[0][k] for k in (C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.ALIGNMENT_PATH)}
+        task = procedural_tasks.procedural_one.with_options(
+            result_storage=result_storage(store.root), refresh_cache=params.force
+        )
+        report = task(str(store.root), shard_of(uid, run["n_shards"]), utterance, config, variant)
+    get_run_logger().info("rerun %s %s: %s", params.stage, uid, report)
+    return report

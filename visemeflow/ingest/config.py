@@ -1,0 +1,38 @@
+"""Ingestion settings, validated before any work starts."""
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class IngestConfig(BaseModel):
+    """How alignments and audio are read and checked."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    phone_tiers: tuple[str, ...] = Field(
+        ("phones", "phone", "phons", "phonemes"),
+        description="Names of the TextGrid tier holding phones, tried in order (case-insensitive).",
+    )
+    word_tiers: tuple[str, ...] = Field(
+        ("words", "word"), description="Names of the TextGrid tier holding words, tried in order."
+    )
+    inventory: Literal["auto", "arpabet", "ipa", "pinyin"] = Field(
+        "auto", description="Phoneme inventory of the labels; 'auto' detects it per utterance."
+    )
+    language: str | None = Field(
+        None, description="Language of the corpus (e.g. 'en', 'zh'); by default taken from the manifest or inferred."
+    )
+    alignment_tolerance_s: float = Field(
+        0.1, ge=0, description="Largest allowed difference between the alignment's end and the audio duration."
+    )
+    fps: float = Field(30.0, gt=0, description="Curve frame rate for utterances without video.")
+    val_fraction: float = Field(
+        0.1, ge=0, le=1, description="Share of utterances (by a stable hash of the id) put in the 'val' split."
+    )
+    vowel_weight: float = Field(
+        2.0, gt=0, description="Share of a vowel relative to a consonant when word spans are split into phones."
+    )
+    grid_time_unit_s: float = Field(
+        1.0 / 25000.0, gt=0, description="Time unit of word alignment files (`start end word`); GRID uses 1/25000 s."
+    )

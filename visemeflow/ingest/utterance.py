@@ -1,0 +1,172 @@
+"""Ingest one utterance: read its alignment and audio header, check them, map phones to visemes."""
+
+import math
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import soundfile as sf
+
+from visemeflow.ingest.config import IngestConfig
+from visemeflow.ingest.corpus import CorpusEntry
+from visemeflow.phonetics.inventory import UnknownPhonemeError, detect_inventory, map_phone, split_interval
+from visemeflow.phonetics.textgrid import TextGridError, decode_textgrid_bytes, parse_textgrid
+from visemeflow.phonetics.types import Alignment, PhoneInterval, WordInterval
+from visemeflow.phonetics.wordalign import (
+    WordAlignmentError,
+    load_cmudict,
+    parse_word_alignment,
+    spread_words_to_phones,
+)
+from visemeflow.schemas import C
+from visemeflow.timebase import frame_count
+
+LANGUAGE_OF_INVENTORY = {"arpabet": "en", "ipa": "en", "pinyin": "zh"}
+
+
+class IngestError(ValueError):
+    """Bad input for one utterance; names the utterance, the file and what was expected."""
+
+    def __init__(self, utterance_id: str, path: str, error_type: str, reason: str):
+        super().__init__(f"{utterance_id}: {path}: {reason}")
+        self.utterance_id, self.path, self.error_type, self.reason = utterance_id, path, error_type, reason
+
+
+@dataclass(frozen=True, slots=True)
+class IngestedUtterance:
+    utterance: dict[str, object]
+    phones: list[dict[str, object]]
+
+
+def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
+    """The phone alignment of an entry from its TextGrid or word alignment file."""
+    path = entry.alignment_path
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise IngestError(entry.utterance_id, path, "UnreadableAlignment", f"cannot read: {exc.strerror}") from exc
+    try:
+        if entry.alignment_format == "word_align":
+            text = data.decode("utf-8", errors="strict")
+            words = parse_word_alignment(text, path, config.grid_time_unit_s)
+            phones = spread_words_to_phones(words, load_cmudict(), path, config.vowel_weight)
+            return Alignment(phones, words, words[0].start_s, words[-1].end_s, path)
+        grid = parse_textgrid(decode_textgrid_bytes(data), path)
+    except (TextGridError, WordAlignmentError) as exc:
+        raise IngestError(entry.utterance_id, path, type(exc).__name__, str(exc).removeprefix(f"{path}: ")) from exc
+    except UnicodeDecodeError as exc:
+        raise IngestError(entry.utterance_id, path, "BadEncoding", f"not UTF-8 text: {exc}") from exc
+    tier = grid.tier(config.phone_tiers)
+    if tier is None:
+        names = [t.name for t in grid.tiers]
+        raise IngestError(entry.utterance_id, path, "MissingPhoneTier",
+                          f"no interval tier named {' or '.join(config.phone_tiers)}; tiers are {names}")
+    word_tier = grid.tier(config.word_tiers)
+    words = tuple(WordInterval(t, a, b) for a, b, t in (word_tier.items if word_tier else ()))
+    return Alignment(_attach_words(tier.items, words), words, grid.start_s, grid.end_s, path)
+
+
+def _attach_words(items, words: tuple[WordInterval, ...]) -> tuple[PhoneInterval, ...]:
+    """Phone intervals with the word whose span contains each phone's midpoint."""
+    spoken = [(i, w) for i, w in enumerate(words) if w.label.strip()]
+    phones: list[PhoneInterval] = []
+    j = 0
+    for start, end, label in items:
+        mid = 0.5 * (start + end)
+        while j < len(spoken) and spoken[j][1].end_s <= mid:
+            j += 1
+        if j < len(spoken) and spoken[j][1].start_s <= mid:
+            phones.append(PhoneInterval(label, start, end, spoken[j][1].label, j))
+        else:
+            phones.append(PhoneInterval(label, start, end))
+    return tuple(phones)
+
+
+def check_intervals(entry: CorpusEntry, alignment: Alignment) -> None:
+    """Times must be finite, ordered and not overlapping."""
+    prev_end = -math.inf
+    for i, p in enumerate(alignment.phones):
+        if not (math.isfinite(p.start_s) and math.isfinite(p.end_s)):
+            raise IngestError(entry.utterance_id, entry.alignment_path, "NonFiniteTime",
+                              f"interval {i + 1} ({p.label!r}) has a non-finite time ({p.start_s}, {p.end_s})")
+        if p.end_s < p.start_s:
+            raise IngestError(entry.utterance_id, entry.alignment_path, "NegativeDuration",
+                              f"interval {i + 1} ({p.label!r}) ends at {p.end_s:.3f} s before it starts at {p.start_s:.3f} s")
+        if p.start_s < prev_end - 1e-6:
+            raise IngestError(entry.utterance_id, entry.alignment_path, "OverlappingIntervals",
+                              f"interval {i + 1} ({p.label!r}) starts at {p.start_s:.3f} s, before the previous one ends at {prev_end:.3f} s")
+        prev_end = p.end_s
+    if not alignment.phones:
+        raise IngestError(entry.utterance_id, entry.alignment_path, "EmptyAlignment", "the phone tier has no intervals")
+
+
+def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
+    """(sample rate, duration in seconds) from the audio header."""
+    try:
+        info = sf.info(entry.audio_path)
+    except (RuntimeError, OSError) as exc:
+        raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
+    if info.frames <= 0 or info.samplerate <= 0:
+        raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples")
+    return int(info.samplerate), info.frames / info.samplerate
+
+
+def map_phones(entry: CorpusEntry, alignment: Alignment, config: IngestConfig) -> tuple[str, list[dict[str, object]]]:
+    """(inventory, phone rows) with compound phones split into one row per viseme."""
+    labels = [p.label.strip() for p in alignment.phones]
+    if config.inventory == "auto":
+        inventory = detect_inventory(labels, entry.language or config.language)
+    else:
+        inventory = config.inventory
+    rows: list[dict[str, object]] = []
+    for index, (p, label) in enumerate(zip(alignment.phones, labels)):
+        if p.end_s <= p.start_s:
+            continue
+        try:
+            m = map_phone(label, inventory)
+        except UnknownPhonemeError as exc:
+            raise IngestError(
+                entry.utterance_id, entry.alignment_path, "UnknownPhoneme",
+                f"unknown {inventory} phoneme {label!r} at {p.start_s:.3f} s (interval {index + 1}); "
+                "fix the label or choose another inventory",
+            ) from exc
+        visemes = m.visemes or ((None, 1.0),)
+        spans = split_interval(p.start_s, p.end_s, [w for _, w in visemes])
+        for part, ((viseme, _), (a, b)) in enumerate(zip(visemes, spans)):
+            rows.append({
+                C.UTTERANCE_ID: entry.utterance_id, C.INDEX: index, C.PART: part, C.LABEL: p.label,
+                C.PHONEME: m.phoneme or None, C.VISEME: viseme, C.START_S: a, C.END_S: b,
+                C.WORD: p.word, C.WORD_INDEX: p.word_index, C.STRESS: m.stress,
+            })
+    return inventory, rows
+
+
+def assign_split(utterance_id: str, val_fraction: float) -> str:
+    """'val' for a stable pseudo-random `val_fraction` of ids, else 'train'."""
+    return "val" if zlib.crc32(b"split:" + utterance_id.encode()) / 2**32 < val_fraction else "train"
+
+
+def ingest_utterance(entry: CorpusEntry, config: IngestConfig) -> IngestedUtterance:
+    """Rows of the `utterances` and `phones` tables for one corpus entry."""
+    alignment = read_alignment(entry, config)
+    check_intervals(entry, alignment)
+    sample_rate, duration = read_audio_info(entry)
+    align_end = max(alignment.end_s, alignment.phones[-1].end_s)
+    if abs(align_end - duration) > config.alignment_tolerance_s:
+        raise IngestError(
+            entry.utterance_id, entry.alignment_path, "AlignmentAudioMismatch",
+            f"alignment ends at {align_end:.3f} s but the audio {entry.audio_path} lasts {duration:.3f} s "
+            f"(tolerance {config.alignment_tolerance_s} s)",
+        )
+    inventory, phones = map_phones(entry, alignment, config)
+    fps = config.fps
+    utterance = {
+        C.UTTERANCE_ID: entry.utterance_id, C.SPEAKER: entry.speaker,
+        C.LANGUAGE: entry.language or config.language or LANGUAGE_OF_INVENTORY[inventory],
+        C.INVENTORY: inventory, C.AUDIO_PATH: entry.audio_path, C.VIDEO_PATH: entry.video_path,
+        C.ALIGNMENT_PATH: entry.alignment_path, C.ALIGNMENT_FORMAT: entry.alignment_format,
+        C.LANDMARK_PATH: entry.landmark_path, C.SAMPLE_RATE: sample_rate, C.DURATION_S: duration,
+        C.FPS: fps, C.N_FRAMES: frame_count(duration, fps), C.CONTENT_HASH: entry.content_hash,
+        C.SPLIT: entry.split or assign_split(entry.utterance_id, config.val_fraction),
+    }
+    return IngestedUtterance(utterance, phones)

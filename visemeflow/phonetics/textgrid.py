@@ -1,0 +1,153 @@
+"""Praat TextGrid reader for the long and the short text formats (UTF-8 or UTF-16).
+
+Praat's text format is a stream of values: quoted strings (with "" for a literal quote), numbers and
+<flags>; everything else (``xmin =``, ``item [1]:``) is decoration that Praat itself ignores. Reading
+the value stream instead of the lines therefore handles both formats, and any mix of them, with one
+small tokenizer. The `textgrid` package is used as the reference in tests and benchmarks.
+"""
+
+import re
+from dataclasses import dataclass
+
+from visemeflow.phonetics.types import Seconds
+
+_TOKEN = re.compile(
+    r'"((?:[^"]|"")*)"'                          # quoted string
+    r"|\[[^\]\n]*\]"                             # bracketed index, ignored: item [1], intervals [3]
+    r"|<(exists|absent)>"                        # flags
+    r"|(?<![\w.])([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])"  # number
+    r"|!\S[^\n]*"                                # Praat comment line
+)
+
+
+class TextGridError(ValueError):
+    """A TextGrid that cannot be read; the message names the file and what was expected."""
+
+
+@dataclass(frozen=True, slots=True)
+class Tier:
+    """One tier: intervals as (start, end, text) or points as (time, time, text)."""
+
+    name: str
+    kind: str
+    start_s: Seconds
+    end_s: Seconds
+    items: tuple[tuple[Seconds, Seconds, str], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class TextGridData:
+    start_s: Seconds
+    end_s: Seconds
+    tiers: tuple[Tier, ...]
+
+    def tier(self, names: tuple[str, ...]) -> Tier | None:
+        """The first interval tier whose name matches one of `names` (case-insensitive, in order)."""
+        by_name = {t.name.strip().lower(): t for t in reversed(self.tiers) if t.kind == "IntervalTier"}
+        for name in names:
+            if name.lower() in by_name:
+                return by_name[name.lower()]
+        return None
+
+
+def decode_textgrid_bytes(data: bytes) -> str:
+    """Text of a TextGrid file: UTF-16 when it has a byte-order mark (Praat writes it so), else UTF-8."""
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return data.decode("utf-16")
+    if data.startswith(b"\xef\xbb\xbf"):
+        return data[3:].decode("utf-8")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _tokens(text: str) -> list[object]:
+    out: list[object] = []
+    for m in _TOKEN.finditer(text):
+        string, flag, number = m.group(1), m.group(2), m.group(3)
+        if string is not None:
+            out.append(_Str(string.replace('""', '"')))
+        elif flag is not None:
+            out.append(_Flag(flag))
+        elif number is not None:
+            out.append(float(number))
+    return out
+
+
+class _Str(str):
+    pass
+
+
+class _Flag(str):
+    pass
+
+
+class _Cursor:
+    def __init__(self, tokens: list[object], source: str):
+        self.tokens, self.pos, self.source = tokens, 0, source
+
+    def _next(self, expected: str) -> object:
+        if self.pos >= len(self.tokens):
+            raise TextGridError(f"{self.source}: file ends early, expected {expected}")
+        tok = self.tokens[self.pos]
+        self.pos += 1
+        return tok
+
+    def number(self, what: str) -> float:
+        tok = self._next(what)
+        if not isinstance(tok, float):
+            raise TextGridError(f"{self.source}: expected a number for {what}, found {tok!r}")
+        return tok
+
+    def string(self, what: str) -> str:
+        tok = self._next(what)
+        if not isinstance(tok, _Str):
+            raise TextGridError(f"{self.source}: expected a quoted string for {what}, found {tok!r}")
+        return str(tok)
+
+    def flag(self, what: str) -> str:
+        tok = self._next(what)
+        if not isinstance(tok, _Flag):
+            raise TextGridError(f"{self.source}: expected <exists> or <absent> for {what}, found {tok!r}")
+        return str(tok)
+
+
+def parse_textgrid(text: str, source: str = "<string>") -> TextGridData:
+    """Parse TextGrid text in Praat's long or short format into tiers of (start, end, label)."""
+    cur = _Cursor(_tokens(text), source)
+    file_type = cur.string("the file type")
+    object_class = cur.string("the object class")
+    if file_type != "ooTextFile" or object_class != "TextGrid":
+        raise TextGridError(
+            f"{source}: not a Praat TextGrid text file (file type {file_type!r}, class {object_class!r})"
+        )
+    start, end = cur.number("xmin"), cur.number("xmax")
+    tiers: list[Tier] = []
+    if cur.flag("tiers") == "exists":
+        n_tiers = int(cur.number("the tier count"))
+        for t in range(n_tiers):
+            tiers.append(_parse_tier(cur, t + 1))
+    return TextGridData(start, end, tuple(tiers))
+
+
+def _parse_tier(cur: _Cursor, number: int) -> Tier:
+    kind = cur.string(f"the class of tier {number}")
+    name = cur.string(f"the name of tier {number}")
+    start, end = cur.number(f"xmin of tier {name!r}"), cur.number(f"xmax of tier {name!r}")
+    count = cur.number(f"the item count of tier {name!r}")
+    if count < 0 or count != int(count):
+        raise TextGridError(f"{cur.source}: tier {name!r} has an invalid item count {count}")
+    items: list[tuple[float, float, str]] = []
+    if kind == "IntervalTier":
+        for i in range(int(count)):
+            a = cur.number(f"xmin of interval {i + 1} in tier {name!r}")
+            b = cur.number(f"xmax of interval {i + 1} in tier {name!r}")
+            items.append((a, b, cur.string(f"the text of interval {i + 1} in tier {name!r}")))
+    elif kind == "TextTier":
+        for i in range(int(count)):
+            a = cur.number(f"the time of point {i + 1} in tier {name!r}")
+            items.append((a, a, cur.string(f"the mark of point {i + 1} in tier {name!r}")))
+    else:
+        raise TextGridError(f"{cur.source}: tier {name!r} has unknown class {kind!r}")
+    return Tier(name, kind, start, end, tuple(items))

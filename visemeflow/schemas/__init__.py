@@ -1,0 +1,31 @@
+"""Table schemas (the only place column names are written) and identifier rules."""
+
+from visemeflow.schemas.ids import InvalidIdError, shard_of, split_utterance_id, validate_name, validate_utterance_id
+from visemeflow.schemas.tables import (
+    CURVES,
+    PHONES,
+    REJECTS,
+    TABLE_SCHEMAS,
+    UTTERANCES,
+    C,
+    curves_array,
+    curves_table,
+    table_from_rows,
+)
+
+__all__ = [
+    "C",
+    "CURVES",
+    "PHONES",
+    "REJECTS",
+    "TABLE_SCHEMAS",
+    "UTTERANCES",
+    "InvalidIdError",
+    "curves_array",
+    "curves_table",
+    "shard_of",
+    "split_utterance_id",
+    "table_from_rows",
+    "validate_name",
+    "validate_utterance_id",
+]

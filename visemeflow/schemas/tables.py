@@ -1,0 +1,142 @@
+"""pyarrow schemas of every table; the single source of column names and dtypes."""
+
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+import pyarrow as pa
+
+from visemeflow.visemes import N_VISEMES, VISEMES
+
+
+class C:
+    """Column names."""
+
+    UTTERANCE_ID = "utterance_id"
+    SPEAKER = "speaker"
+    LANGUAGE = "language"
+    INVENTORY = "inventory"
+    AUDIO_PATH = "audio_path"
+    VIDEO_PATH = "video_path"
+    ALIGNMENT_PATH = "alignment_path"
+    ALIGNMENT_FORMAT = "alignment_format"
+    LANDMARK_PATH = "landmark_path"
+    SAMPLE_RATE = "sample_rate"
+    DURATION_S = "duration_s"
+    FPS = "fps"
+    N_FRAMES = "n_frames"
+    CONTENT_HASH = "content_hash"
+    SPLIT = "split"
+
+    INDEX = "index"
+    PART = "part"
+    LABEL = "label"
+    PHONEME = "phoneme"
+    VISEME = "viseme"
+    START_S = "start_s"
+    END_S = "end_s"
+    WORD = "word"
+    WORD_INDEX = "word_index"
+    STRESS = "stress"
+
+    SOURCE = "source"
+    VARIANT = "variant"
+    FRAME = "frame"
+    TIME_S = "time_s"
+
+    STAGE = "stage"
+    ERROR_TYPE = "error_type"
+    MESSAGE = "message"
+    PATH = "path"
+    TIME = "time"
+
+
+CURVE_SOURCES = ("procedural", "tracked", "predicted", "ground_truth")
+
+UTTERANCES = pa.schema([
+    pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),
+    pa.field(C.SPEAKER, pa.string(), nullable=False),
+    pa.field(C.LANGUAGE, pa.string()),
+    pa.field(C.INVENTORY, pa.string()),
+    pa.field(C.AUDIO_PATH, pa.string(), nullable=False),
+    pa.field(C.VIDEO_PATH, pa.string()),
+    pa.field(C.ALIGNMENT_PATH, pa.string(), nullable=False),
+    pa.field(C.ALIGNMENT_FORMAT, pa.string(), nullable=False),
+    pa.field(C.LANDMARK_PATH, pa.string()),
+    pa.field(C.SAMPLE_RATE, pa.int32(), nullable=False),
+    pa.field(C.DURATION_S, pa.float64(), nullable=False),
+    pa.field(C.FPS, pa.float32(), nullable=False),
+    pa.field(C.N_FRAMES, pa.int32(), nullable=False),
+    pa.field(C.CONTENT_HASH, pa.string(), nullable=False),
+    pa.field(C.SPLIT, pa.string(), nullable=False),
+])
+
+PHONES = pa.schema([
+    pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),
+    pa.field(C.INDEX, pa.int32(), nullable=False),   # interval number in the alignment file
+    pa.field(C.PART, pa.int16(), nullable=False),    # sub-span of an interval mapped to several visemes
+    pa.field(C.LABEL, pa.string(), nullable=False),
+    pa.field(C.PHONEME, pa.string()),
+    pa.field(C.VISEME, pa.string()),                 # null for silence and transparent phones
+    pa.field(C.START_S, pa.float64(), nullable=False),
+    pa.field(C.END_S, pa.float64(), nullable=False),
+    pa.field(C.WORD, pa.string()),
+    pa.field(C.WORD_INDEX, pa.int32()),
+    pa.field(C.STRESS, pa.int8()),                   # ARPAbet stress digit or pinyin tone
+])
+
+CURVES = pa.schema(
+    [
+        pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),
+        pa.field(C.SOURCE, pa.string(), nullable=False),
+        pa.field(C.VARIANT, pa.string(), nullable=False),
+        pa.field(C.FRAME, pa.int32(), nullable=False),
+        pa.field(C.TIME_S, pa.float64(), nullable=False),
+    ]
+    + [pa.field(v, pa.float32(), nullable=False) for v in VISEMES]
+)
+
+REJECTS = pa.schema([
+    pa.field(C.UTTERANCE_ID, pa.string()),
+    pa.field(C.STAGE, pa.string(), nullable=False),
+    pa.field(C.ERROR_TYPE, pa.string(), nullable=False),
+    pa.field(C.MESSAGE, pa.string(), nullable=False),
+    pa.field(C.PATH, pa.string()),
+    pa.field(C.TIME, pa.timestamp("us", tz="UTC"), nullable=False),
+])
+
+TABLE_SCHEMAS: dict[str, pa.Schema] = {
+    "utterances": UTTERANCES,
+    "phones": PHONES,
+    "rejects": REJECTS,
+}
+
+
+def table_from_rows(rows: Iterable[Mapping[str, object]], schema: pa.Schema) -> pa.Table:
+    """A table of `schema` from row dicts keyed by column name; missing nullable columns become null."""
+    rows = list(rows)
+    columns = {f.name: [r.get(f.name) for r in rows] for f in schema}
+    return pa.Table.from_pydict(columns, schema=schema)
+
+
+def curves_table(utterance_id: str, source: str, variant: str, curves: np.ndarray, fps: float) -> pa.Table:
+    """The wide `curves` table of one utterance from a (frames, 16) array sampled at frame k / fps."""
+    curves = np.asarray(curves)
+    if curves.ndim != 2 or curves.shape[1] != N_VISEMES:
+        raise ValueError(f"{utterance_id}: curves must have shape (frames, {N_VISEMES}), got {curves.shape}")
+    if source not in CURVE_SOURCES:
+        raise ValueError(f"{utterance_id}: curve source {source!r} is not one of {CURVE_SOURCES}")
+    n = curves.shape[0]
+    frames = np.arange(n, dtype=np.int32)
+    columns = [
+        pa.array(np.full(n, utterance_id, dtype=object), pa.string()),
+        pa.array(np.full(n, source, dtype=object), pa.string()),
+        pa.array(np.full(n, variant, dtype=object), pa.string()),
+        pa.array(frames),
+        pa.array(frames / float(fps)),
+    ] + [pa.array(np.ascontiguousarray(curves[:, i], dtype=np.float32)) for i in range(N_VISEMES)]
+    return pa.Table.from_arrays(columns, schema=CURVES)
+
+
+def curves_array(table: pa.Table) -> np.ndarray:
+    """(frames, 16) float32 array of a curves table, in frame order as stored."""
+    return np.stack([table.column(v).to_numpy() for v in VISEMES], axis=1).astype(np.float32, copy=False)

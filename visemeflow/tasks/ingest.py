@@ -1,0 +1,124 @@
+"""Ingestion tasks: discover the corpus, ingest one shard of utterances, or one utterance."""
+
+from dataclasses import asdict
+
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+from prefect import get_run_logger, task
+from prefect.cache_policies import NONE
+
+from visemeflow.hashing import stable_hash
+from visemeflow.ingest import CorpusEntry, IngestConfig, IngestError, discover_corpus, ingest_utterance
+from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
+from visemeflow.storage import Store
+from visemeflow.tasks.common import CACHE_POLICY, reject_row
+
+STAGE = "ingest"
+CONFIG_KEY = b"visemeflow.ingest_config"
+
+
+@task(cache_policy=NONE, task_run_name="discover[{corpus}]")
+def discover_corpus_task(corpus: str, only: str | None = None) -> dict[str, list[dict]]:
+    """Entries and discovery rejects of a corpus, as plain dicts (hashes of the current files)."""
+    found = discover_corpus(corpus, only)
+    return {
+        "entries": [asdict(e) for e in found.entries],
+        "rejects": [asdict(r) for r in found.rejects],
+    }
+
+
+def ingest_entries(
+    entries: list[CorpusEntry], config: IngestConfig, previous: dict[str, tuple[str, dict, list[dict]]] | None = None
+) -> tuple[list[dict], list[dict], list[dict], int]:
+    """(utterance rows, phone rows, reject rows, number reused) for entries, reusing unchanged ones."""
+    utterances, phones, rejects, reused = [], [], [], 0
+    for entry in entries:
+        prior = (previous or {}).get(entry.utterance_id)
+        if prior is not None and prior[0] == entry.content_hash:
+            utterances.append(prior[1])
+            phones.extend(prior[2])
+            reused += 1
+            continue
+        try:
+            result = ingest_utterance(entry, config)
+        except IngestError as exc:
+            rejects.append(reject_row(exc.utterance_id, STAGE, exc.error_type, str(exc), exc.path))
+            continue
+        utterances.append(result.utterance)
+        phones.extend(result.phones)
+    return utterances, phones, rejects, reused
+
+
+def _previous_rows(store: Store, shard: int, config_hash: str) -> dict[str, tuple[str, dict, list[dict]]]:
+    """Rows stored for a shard by the same ingest config, by utterance id."""
+    path = store.shard_path("utterances", shard)
+    if not path.exists() or (pq.read_schema(path).metadata or {}).get(CONFIG_KEY, b"").decode() != config_hash:
+        return {}
+    utts = store.read_shard("utterances", shard).to_pylist()
+    phone_table = store.read_shard("phones", shard)
+    by_id: dict[str, list[dict]] = {}
+    for row in phone_table.to_pylist():
+        by_id.setdefault(row[C.UTTERANCE_ID], []).append(row)
+    return {u[C.UTTERANCE_ID]: (u[C.CONTENT_HASH], u, by_id.get(u[C.UTTERANCE_ID], [])) for u in utts}
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="ingest[shard-{shard:02d}]")
+def ingest_shard(store_root: str, shard: int, entries: list[dict], config: IngestConfig) -> dict[str, int]:
+    """Ingest one shard of the corpus into the `utterances`, `phones` and `rejects` tables."""
+    store = Store(store_root)
+    config_hash = stable_hash(config)
+    objs = [CorpusEntry(**e) for e in entries]
+    utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
+    meta = {CONFIG_KEY: config_hash.encode()}
+    store.write_shard("phones", shard, table_from_rows(phones, PHONES))
+    store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
+    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES).replace_schema_metadata(meta))
+    logger = get_run_logger()
+    for r in rejects:
+        logger.warning("rejected %s", r[C.MESSAGE])
+    report = {"shard": shard, "utterances": len(objs), "ingested": len(utterances) - reused,
+              "reused": reused, "rejected": len(rejects)}
+    logger.info("shard %02d: %d utterances, %d ingested, %d reused, %d rejected", shard, len(objs),
+                report["ingested"], reused, len(rejects))
+    return report
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="ingest[{entry[utterance_id]}]")
+def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -> dict[str, int]:
+    """Ingest one utterance and replace its rows in its shard (a rerun by hand)."""
+    store = Store(store_root)
+    obj = CorpusEntry(**entry)
+    utterances, phones, rejects, _ = ingest_entries([obj], config)
+    uid = obj.utterance_id
+    store.replace_utterance_rows("phones", shard, uid, table_from_rows(phones, PHONES))
+    store.replace_utterance_rows("rejects", shard, uid, table_from_rows(rejects, REJECTS), stage=STAGE)
+    store.replace_utterance_rows("utterances", shard, uid, table_from_rows(utterances, UTTERANCES))
+    if rejects:
+        get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
+    return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects)}
+
+
+def shard_files_present(store: Store, shard: int) -> bool:
+    """Whether all outputs of an ingest shard are in the store (else its cache entry is stale)."""
+    return all(p.exists() for p in (
+        store.shard_path("utterances", shard), store.shard_path("phones", shard),
+        store.shard_path("rejects", shard, STAGE),
+    ))
+
+
+def remove_stale_shards(store: Store, live: set[int]) -> int:
+    """Delete shard files of shards that no longer hold any utterance; returns how many shards went."""
+    removed = set()
+    for table, stage in (("utterances", None), ("phones", None), ("rejects", STAGE)):
+        folder = store.table_dir(table, stage)
+        for path in folder.glob("shard-*.parquet") if folder.exists() else ():
+            shard = int(path.stem.split("-")[1])
+            if shard not in live:
+                path.unlink()
+                removed.add(shard)
+    return len(removed)
+
+
+def rejected_ids(store: Store, stage: str) -> set[str]:
+    table = store.read_table("rejects", stage)
+    return set(pc.unique(table.column(C.UTTERANCE_ID)).to_pylist()) - {None}

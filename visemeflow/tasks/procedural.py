@@ -1,0 +1,114 @@
+"""Procedural-curve tasks: JALI-like curves for a shard of utterances, or for one utterance."""
+
+import numpy as np
+import pyarrow as pa
+from prefect import get_run_logger, task
+
+from visemeflow.hashing import stable_hash
+from visemeflow.phonetics.types import VisemeSegment
+from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
+from visemeflow.schemas import REJECTS, C, curves_table, table_from_rows
+from visemeflow.storage import Store
+from visemeflow.tasks.common import CACHE_POLICY, reject_row
+from visemeflow.timebase import frame_count
+
+STAGE = "procedural"
+SOURCE = "procedural"
+
+
+def default_variant(config: ProceduralConfig) -> str:
+    """`jali` for the default rules at each utterance's frame rate (`jali-25fps` when fixed); a config hash
+    is appended when other constants differ from the defaults."""
+    name = "jali" if config.fps is None else f"jali-{config.fps:g}fps"
+    if config != ProceduralConfig(fps=config.fps):
+        name += "-" + stable_hash(config, size=4)
+    return name
+
+
+def segments_from_phones(phones: pa.Table) -> list[VisemeSegment]:
+    """Viseme segments (silence and transparent phones dropped) of one utterance's phone rows, in time order."""
+    rows = phones.select([C.VISEME, C.START_S, C.END_S, C.WORD_INDEX, C.PHONEME]).to_pylist()
+    rows.sort(key=lambda r: r[C.START_S])
+    return [
+        VisemeSegment(r[C.VISEME], r[C.START_S], r[C.END_S], r[C.WORD_INDEX], r[C.PHONEME] or "")
+        for r in rows if r[C.VISEME] is not None
+    ]
+
+
+def provenance(content_hash: str, config: ProceduralConfig) -> str:
+    return f"procedural:{content_hash}:{stable_hash(config)}"
+
+
+def generate_for_utterance(
+    store: Store, utterance: dict, phones: pa.Table, config: ProceduralConfig, variant: str
+) -> None:
+    """Generate and store the procedural curves of one ingested utterance."""
+    uid = utterance[C.UTTERANCE_ID]
+    fps = float(utterance[C.FPS]) if config.fps is None else config.fps
+    n_frames = frame_count(utterance[C.DURATION_S], fps)
+    curves = generate_procedural_curves(segments_from_phones(phones), n_frames, fps, config)
+    if not np.isfinite(curves).all():
+        raise FloatingPointError(f"{uid}: procedural curves are not finite")
+    store.write_curves(
+        curves_table(uid, SOURCE, variant, curves, fps),
+        provenance=provenance(utterance[C.CONTENT_HASH], config), fps=fps,
+    )
+
+
+def _generate_many(
+    store: Store, utterances: list[dict], config: ProceduralConfig, variant: str, force: bool
+) -> tuple[int, int, list[dict]]:
+    ids = [u[C.UTTERANCE_ID] for u in utterances]
+    phones = store.read_table("phones", utterance_ids=ids)
+    phones = phones.sort_by([(C.UTTERANCE_ID, "ascending"), (C.START_S, "ascending")])
+    id_col = phones.column(C.UTTERANCE_ID).to_numpy(zero_copy_only=False)
+    bounds = {}
+    if len(id_col):
+        change = np.flatnonzero(id_col[1:] != id_col[:-1]) + 1
+        starts = np.concatenate([[0], change])
+        ends = np.concatenate([change, [len(id_col)]])
+        bounds = {id_col[s]: (s, e) for s, e in zip(starts, ends)}
+    generated, reused, rejects = 0, 0, []
+    for u in utterances:
+        uid = u[C.UTTERANCE_ID]
+        if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u[C.CONTENT_HASH], config):
+            reused += 1
+            continue
+        s, e = bounds.get(uid, (0, 0))
+        try:
+            generate_for_utterance(store, u, phones.slice(s, e - s), config, variant)
+        except (ValueError, FloatingPointError) as exc:
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, str(exc), u[C.ALIGNMENT_PATH]))
+            continue
+        generated += 1
+    return generated, reused, rejects
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="procedural[shard-{shard:02d}]")
+def procedural_shard(
+    store_root: str, shard: int, utterances: list[dict], config: ProceduralConfig, variant: str
+) -> dict[str, int]:
+    """Procedural curves for one shard; utterances whose stored curves match are left as they are."""
+    store = Store(store_root)
+    generated, reused, rejects = _generate_many(store, utterances, config, variant, force=False)
+    store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
+    logger = get_run_logger()
+    for r in rejects:
+        logger.warning("rejected %s", r[C.MESSAGE])
+    logger.info("shard %02d: %d generated, %d reused, %d rejected", shard, generated, reused, len(rejects))
+    return {"shard": shard, "utterances": len(utterances), "generated": generated, "reused": reused,
+            "rejected": len(rejects)}
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="procedural[{utterance[utterance_id]}]")
+def procedural_one(
+    store_root: str, shard: int, utterance: dict, config: ProceduralConfig, variant: str
+) -> dict[str, int]:
+    """Regenerate the procedural curves of one utterance (a rerun by hand), whatever is stored."""
+    store = Store(store_root)
+    generated, _, rejects = _generate_many(store, [utterance], config, variant, force=True)
+    uid = utterance[C.UTTERANCE_ID]
+    store.replace_utterance_rows("rejects", shard, uid, table_from_rows(rejects, REJECTS), stage=STAGE)
+    if rejects:
+        get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
+    return {"shard": shard, "utterances": 1, "generated": generated, "reused": 0, "rejected": len(rejects)}
