@@ -74,9 +74,14 @@ class Store:
             raise StoreError(exc.errno or 0, f"cannot write {path}: {reason}; stored data is unchanged") from exc
         return path
 
-    def write_shard(self, table_name: str, shard: int, table: pa.Table, stage: str | None = None) -> Path:
-        """Replace one shard file of a table with `table` (cast to the table's schema)."""
+    def write_shard(
+        self, table_name: str, shard: int, table: pa.Table, stage: str | None = None,
+        metadata: dict[bytes, bytes] | None = None,
+    ) -> Path:
+        """Replace one shard file of a table with `table` (cast to the table's schema) and file metadata."""
         table = table.cast(TABLE_SCHEMAS[table_name])
+        if metadata:
+            table = table.replace_schema_metadata(metadata)
         return self._write_atomic(table, self.shard_path(table_name, shard, stage))
 
     def write_curves(

@@ -69,10 +69,10 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     config_hash = stable_hash(config)
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
-    meta = {CONFIG_KEY: config_hash.encode()}
     store.write_shard("phones", shard, table_from_rows(phones, PHONES))
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
-    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES).replace_schema_metadata(meta))
+    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),
+                      metadata={CONFIG_KEY: config_hash.encode()})
     logger = get_run_logger()
     for r in rejects:
         logger.warning("rejected %s", r[C.MESSAGE])

@@ -1,0 +1,197 @@
+"""Real flow runs under the session's Prefect harness: caching, changed files, reruns, kill and resume."""
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow as pa
+import pytest
+
+from tests.conftest import DEMO_CORPUS, REPO
+from visemeflow.schemas import C, validate_utterance_id
+from visemeflow.storage import Store
+
+pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
+
+LJ_NAMES = ["LJ001-0002", "LJ001-0003", "LJ001-0005", "LJ001-0008", "LJ001-0010", "LJ001-0012"]
+
+
+def make_corpus(root: Path, speakers: int = 2, names: list[str] = LJ_NAMES) -> Path:
+    """A corpus of demo LJSpeech utterances (hard links) under several speakers, plus the Mandarin one."""
+    for s in range(speakers):
+        folder = root / f"spk{s}"
+        folder.mkdir(parents=True)
+        for name in names:
+            for ext in (".wav", ".TextGrid"):
+                src = DEMO_CORPUS / "LJ" / f"{name}{ext}"
+                # TextGrids are copied (tests edit them); audio is linked to save disk.
+                (shutil.copyfile if ext == ".TextGrid" else os.link)(src, folder / f"{name}{ext}")
+    zh = root / "zh"
+    zh.mkdir()
+    for ext in (".wav", ".TextGrid"):
+        shutil.copyfile(DEMO_CORPUS / "SSB1624" / f"SSB16240001{ext}", zh / f"SSB16240001{ext}")
+    return root
+
+
+def run_pipeline(corpus: Path, store: Path, n_shards: int = 4) -> dict:
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    return pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=n_shards))
+
+
+def curve_mtimes(store: Path) -> dict[str, int]:
+    return {p: os.stat(p).st_mtime_ns for p in Store(store).curve_files()}
+
+
+def snapshot(store: Path) -> dict[str, list[dict]]:
+    """Every table and every curve file's rows, sorted, without reject timestamps: what 'identical' means."""
+    s = Store(store)
+    out = {}
+    for table in ("utterances", "phones"):
+        out[table] = sorted(s.read_table(table).to_pylist(), key=lambda r: tuple(str(v) for v in r.values()))
+    out["rejects"] = sorted(
+        ({k: v for k, v in r.items() if k != C.TIME} for r in s.read_table("rejects").to_pylist()), key=str
+    )
+    out["curves"] = sorted(s.scan_curves().to_pylist(), key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
+    out["curve_files"] = sorted(os.path.relpath(p, s.root) for p in s.curve_files())
+    return out
+
+
+def test_second_run_on_unchanged_corpus_is_all_cache_hits(tmp_path):
+    corpus = make_corpus(tmp_path / "corpus")
+    store = tmp_path / "store"
+    first = run_pipeline(corpus, store)
+    n = 2 * len(LJ_NAMES) + 1
+    assert first["ingest"]["utterances"] == n and first["ingest"]["ingested"] == n
+    assert first["procedural"]["generated"] == n and first["ingest"]["cached_shards"] == 0
+    before = curve_mtimes(store)
+    assert len(before) == n
+
+    second = run_pipeline(corpus, store)
+    for stage in ("ingest", "procedural"):
+        assert second[stage]["cached_shards"] == second[stage]["shards"] == first[stage]["shards"]
+        assert second[stage].get("ingested", 0) == 0 and second[stage].get("generated", 0) == 0
+    assert curve_mtimes(store) == before
+
+
+def test_changed_textgrid_recomputes_only_that_utterance(tmp_path):
+    corpus = make_corpus(tmp_path / "corpus")
+    store = tmp_path / "store"
+    run_pipeline(corpus, store)
+    before = curve_mtimes(store)
+    old_curves = Store(store).read_curves("spk1/LJ001-0003", "procedural").to_pylist()
+
+    grid = corpus / "spk1" / "LJ001-0003.TextGrid"
+    text = grid.read_text()
+    # Relabel the first vowel: same timing, different viseme.
+    grid.write_text(text.replace('"AH0"', '"IY1"', 1) if '"AH0"' in text else text.replace('"IH0"', '"AA1"', 1))
+    assert grid.read_text() != text
+
+    again = run_pipeline(corpus, store)
+    assert again["ingest"]["ingested"] == 1
+    assert again["procedural"]["generated"] == 1
+    # The rest of the changed shard is reused, every other shard is a cache hit.
+    assert again["ingest"]["cached_shards"] == again["ingest"]["shards"] - 1
+    after = curve_mtimes(store)
+    changed = {p for p in after if after[p] != before[p]}
+    assert changed == {str(Store(store).curve_path("procedural", "jali", "spk1/LJ001-0003"))}
+    assert Store(store).read_curves("spk1/LJ001-0003", "procedural").to_pylist() != old_curves
+
+
+def test_rerun_one_utterance_even_when_cache_is_valid(tmp_path):
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    store = tmp_path / "store"
+    run_pipeline(corpus, store)
+    before = curve_mtimes(store)
+    content = snapshot(store)
+
+    report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="procedural", store=store))
+    assert report["generated"] == 1
+    after = curve_mtimes(store)
+    target = str(Store(store).curve_path("procedural", "jali", "zh/SSB16240001"))
+    assert {p for p in after if after[p] != before[p]} == {target}
+    assert snapshot(store) == content  # regenerated, and deterministic
+
+    report = rerun_flow(RerunParams(utterance_id="spk0/LJ001-0002", stage="ingest", store=store))
+    assert report["ingested"] == 1
+    assert snapshot(store) == content
+
+
+def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    broken = corpus / "spk0" / "LJ001-0005.TextGrid"
+    good_text = broken.read_text()
+    broken.write_text(good_text[: len(good_text) // 3])
+    unknown = corpus / "spk0" / "LJ001-0008.TextGrid"
+    unknown.write_text(unknown.read_text().replace('"N"', '"QQ9"', 1))
+    store = tmp_path / "store"
+
+    result = run_pipeline(corpus, store)
+    assert result["ingest"]["rejected"] == 2
+    rejects = {r[C.UTTERANCE_ID]: r for r in Store(store).read_table("rejects").to_pylist()}
+    assert set(rejects) == {"spk0/LJ001-0005", "spk0/LJ001-0008"}
+    assert rejects["spk0/LJ001-0008"][C.ERROR_TYPE] == "UnknownPhoneme"
+    assert "'QQ9'" in rejects["spk0/LJ001-0008"][C.MESSAGE]
+    assert str(unknown) in rejects["spk0/LJ001-0008"][C.MESSAGE]
+    assert "spk0/LJ001-0005" in rejects["spk0/LJ001-0005"][C.MESSAGE] and str(broken) in rejects["spk0/LJ001-0005"][C.PATH]
+    assert result["procedural"]["generated"] == len(LJ_NAMES) + 1 - 2
+
+    # Fixing the file and rerunning that one utterance by hand clears its reject.
+    broken.write_text(good_text)
+    rerun_flow(RerunParams(utterance_id="spk0/LJ001-0005", stage="ingest", store=store))
+    rerun_flow(RerunParams(utterance_id="spk0/LJ001-0005", stage="procedural", store=store))
+    s = Store(store)
+    assert "spk0/LJ001-0005" in s.read_table("utterances").column(C.UTTERANCE_ID).to_pylist()
+    assert {r[C.UTTERANCE_ID] for r in s.read_table("rejects").to_pylist()} == {"spk0/LJ001-0008"}
+    assert s.has_curves("procedural", "jali", "spk0/LJ001-0005")
+
+
+def test_kill_minus_nine_then_rerun_gives_the_uninterrupted_store(tmp_path, prefect_api_url):
+    corpus = make_corpus(tmp_path / "corpus", speakers=8)
+    killed_store, clean_store = tmp_path / "killed", tmp_path / "clean"
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visemeflow.cli", "pipeline", str(corpus), "--store", str(killed_store), "--shards", "8"],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    curves_dir = killed_store / "curves"
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if curves_dir.exists() and any(curves_dir.rglob("*.parquet")):
+                break
+            time.sleep(0.002)
+        assert proc.poll() is None, "the pipeline ended before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    n_total = 8 * len(LJ_NAMES) + 1
+    assert len(Store(killed_store).curve_files()) < n_total, "killed after all work was done: the test proves nothing"
+
+    run_pipeline(corpus, killed_store, n_shards=8)
+    run_pipeline(corpus, clean_store, n_shards=8)
+    assert not list(killed_store.rglob("*.tmp")) or all(p.parts[-2] == ".prefect-results" for p in killed_store.rglob("*.tmp"))
+    killed, clean = snapshot(killed_store), snapshot(clean_store)
+    # Paths differ only by the store folder; the data must be the same.
+    assert killed == clean
+    assert len(killed["curve_files"]) == n_total
+
+
+def test_utterance_ids_in_the_store_are_valid(tmp_path):
+    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    store = tmp_path / "store"
+    run_pipeline(corpus, store)
+    ids = Store(store).read_table("utterances").column(C.UTTERANCE_ID).to_pylist()
+    assert all(validate_utterance_id(i) == i for i in ids)
+    assert isinstance(Store(store).scan_curves(), pa.Table)
