@@ -21,7 +21,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: venv
-	$(BIN)/visemeflow pipeline examples/corpus --out $(OUT)
+	$(BIN)/visemeflow pipeline examples/corpus --store $(OUT)/store
+	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
 test: venv
