@@ -18,6 +18,9 @@ DISCOVER_STAGE = "discover"
 def ingest_flow(params: IngestParams) -> dict[str, int]:
     """Discover the corpus and ingest it shard by shard; unchanged shards are cache hits."""
     store = Store(params.store)
+    swept = store.sweep_temporary_files()
+    if swept:
+        get_run_logger().info("removed %d temporary files left by killed runs", swept)
     store.write_run_config(STAGE, {
         "corpus": str(params.corpus.resolve()), "n_shards": params.n_shards,
         "config": params.config.model_dump(mode="json"),

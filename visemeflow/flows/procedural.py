@@ -25,6 +25,9 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     """Generate procedural curves shard by shard; utterances whose inputs and config are unchanged are skipped."""
     store = Store(params.store)
     variant = params.variant or default_variant(params.config)
+    swept = store.sweep_temporary_files()
+    if swept:
+        get_run_logger().info("removed %d temporary files left by killed runs", swept)
     store.write_run_config(STAGE, {
         "variant": variant, "n_shards": params.n_shards, "config": params.config.model_dump(mode="json"),
     })

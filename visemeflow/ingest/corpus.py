@@ -94,6 +94,15 @@ def _with_hash(entry: CorpusEntry) -> CorpusEntry:
     return replace(entry, content_hash=digest)
 
 
+def _priority(filename: str) -> int:
+    """Rank of a file among those of the same kind: earlier extensions in each list rank higher."""
+    for exts in (AUDIO_EXTS, ALIGNMENT_EXTS, VIDEO_EXTS, LANDMARK_SUFFIXES):
+        for rank, ext in enumerate(exts):
+            if filename.endswith(ext):
+                return len(exts) - rank
+    return 0
+
+
 def _discover_folder(root: Path, only: str | None = None) -> Discovery:
     entries: list[CorpusEntry] = []
     rejects: list[DiscoveryReject] = []
@@ -107,7 +116,9 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         if only is not None:
             files = {n: p for n, p in files.items() if n.startswith(name + ".")}
         stems: dict[str, dict[str, Path]] = {}
-        for name, path in files.items():
+        # Sorted by extension priority, highest last, so the choice does not depend on listing order:
+        # a TextGrid wins over an .align, a .wav over a .flac, and so on.
+        for name, path in sorted(files.items(), key=lambda item: _priority(item[0])):
             for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
                 for ext in exts:
                     if name.endswith(ext):
@@ -123,7 +134,7 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
             try:
                 validate_utterance_id(utterance_id)
             except InvalidIdError as exc:
-                rejects.append(DiscoveryReject(None, "InvalidId", str(exc), any_path))
+                rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}", any_path))
                 continue
             if "alignment" not in kinds:
                 rejects.append(DiscoveryReject(utterance_id, "MissingAlignment",

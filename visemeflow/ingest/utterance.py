@@ -31,6 +31,9 @@ class IngestError(ValueError):
         super().__init__(f"{utterance_id}: {path}: {reason}")
         self.utterance_id, self.path, self.error_type, self.reason = utterance_id, path, error_type, reason
 
+    def __reduce__(self):  # keeps the four-argument constructor picklable (Prefect ships exceptions)
+        return (type(self), (self.utterance_id, self.path, self.error_type, self.reason))
+
 
 @dataclass(frozen=True, slots=True)
 class IngestedUtterance:

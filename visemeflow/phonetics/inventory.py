@@ -13,7 +13,7 @@ import re
 import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, lru_cache
 from importlib import resources
 from types import MappingProxyType
 from typing import Final
@@ -185,8 +185,9 @@ def _map_pinyin(label: str) -> PhonemeMapping | None:
 _MAPPERS = {"arpabet": _map_arpabet, "ipa": _map_ipa, "pinyin": _map_pinyin}
 
 
+@lru_cache(maxsize=65536)
 def _try_map(label: str, inventory: str) -> PhonemeMapping | None:
-    """The mapping, a silence mapping, or None when the symbol is unknown."""
+    """The mapping, a silence mapping, or None when the symbol is unknown (memoised: corpora reuse few labels)."""
     _check_inventory(inventory)
     if is_silence(label):
         return PhonemeMapping(label, "", None, (), True)
@@ -206,8 +207,13 @@ def detect_inventory(labels: Iterable[str], language: str | None = None) -> str:
     labels = [label for label in labels if not is_silence(label)]
     chinese = language is not None and language.strip().lower().startswith(("zh", "cmn"))
     order = ("pinyin", "arpabet", "ipa") if chinese else INVENTORIES
-    unknowns = {inv: sum(_try_map(label, inv) is None for label in labels) for inv in order}
-    return min(order, key=lambda inv: unknowns[inv])  # min keeps the earliest on ties, so 0 wins in order
+    distinct = set(labels)
+    unknowns: dict[str, int] = {}
+    for inv in order:
+        unknowns[inv] = sum(_try_map(label, inv) is None for label in distinct)
+        if unknowns[inv] == 0:
+            return inv
+    return min(order, key=lambda inv: unknowns[inv])  # min keeps the earliest on ties
 
 
 def split_interval(start_s: float, end_s: float, weights: Sequence[float]) -> list[tuple[float, float]]:

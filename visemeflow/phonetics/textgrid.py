@@ -6,6 +6,7 @@ the value stream instead of the lines therefore handles both formats, and any mi
 small tokenizer. The `textgrid` package is used as the reference in tests and benchmarks.
 """
 
+import math
 import re
 from dataclasses import dataclass
 
@@ -15,7 +16,9 @@ _TOKEN = re.compile(
     r'"((?:[^"]|"")*)"'                          # quoted string
     r"|\[[^\]\n]*\]"                             # bracketed index, ignored: item [1], intervals [3]
     r"|<(exists|absent)>"                        # flags
-    r"|(?<![\w.])([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])"  # number
+    r"|(?<![\w.])([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|(?i:nan|[-+]?inf))(?![\w.])"  # number
+    # nan/inf (as Python writers put them) are read as numbers, so the interval checks downstream
+    # can name the bad interval instead of the stream going out of step.
     r"|!\S[^\n]*"                                # Praat comment line
 )
 
@@ -100,6 +103,12 @@ class _Cursor:
             raise TextGridError(f"{self.source}: expected a number for {what}, found {tok!r}")
         return tok
 
+    def count(self, what: str) -> int:
+        value = self.number(what)
+        if not (math.isfinite(value) and value >= 0 and value == int(value)):
+            raise TextGridError(f"{self.source}: {what} must be a whole number >= 0, found {value}")
+        return int(value)
+
     def string(self, what: str) -> str:
         tok = self._next(what)
         if not isinstance(tok, _Str):
@@ -125,9 +134,15 @@ def parse_textgrid(text: str, source: str = "<string>") -> TextGridData:
     start, end = cur.number("xmin"), cur.number("xmax")
     tiers: list[Tier] = []
     if cur.flag("tiers") == "exists":
-        n_tiers = int(cur.number("the tier count"))
+        n_tiers = cur.count("the tier count")
         for t in range(n_tiers):
             tiers.append(_parse_tier(cur, t + 1))
+    if cur.pos < len(cur.tokens):
+        # values left over mean the stream went out of step (e.g. a non-numeric time was skipped)
+        raise TextGridError(
+            f"{source}: unexpected value {cur.tokens[cur.pos]!r} after the last of {len(tiers)} tier(s); "
+            "a time, count or label is missing or not a number"
+        )
     return TextGridData(start, end, tuple(tiers))
 
 
@@ -135,17 +150,15 @@ def _parse_tier(cur: _Cursor, number: int) -> Tier:
     kind = cur.string(f"the class of tier {number}")
     name = cur.string(f"the name of tier {number}")
     start, end = cur.number(f"xmin of tier {name!r}"), cur.number(f"xmax of tier {name!r}")
-    count = cur.number(f"the item count of tier {name!r}")
-    if count < 0 or count != int(count):
-        raise TextGridError(f"{cur.source}: tier {name!r} has an invalid item count {count}")
+    count = cur.count(f"the item count of tier {name!r}")
     items: list[tuple[float, float, str]] = []
     if kind == "IntervalTier":
-        for i in range(int(count)):
+        for i in range(count):
             a = cur.number(f"xmin of interval {i + 1} in tier {name!r}")
             b = cur.number(f"xmax of interval {i + 1} in tier {name!r}")
             items.append((a, b, cur.string(f"the text of interval {i + 1} in tier {name!r}")))
     elif kind == "TextTier":
-        for i in range(int(count)):
+        for i in range(count):
             a = cur.number(f"the time of point {i + 1} in tier {name!r}")
             items.append((a, a, cur.string(f"the mark of point {i + 1} in tier {name!r}")))
     else:

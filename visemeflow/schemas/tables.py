@@ -115,7 +115,11 @@ def table_from_rows(rows: Iterable[Mapping[str, object]], schema: pa.Schema) -> 
     """A table of `schema` from row dicts keyed by column name; missing nullable columns become null."""
     rows = list(rows)
     columns = {f.name: [r.get(f.name) for r in rows] for f in schema}
-    return pa.Table.from_pydict(columns, schema=schema)
+    table = pa.Table.from_pydict(columns, schema=schema)
+    for f in schema:
+        if not f.nullable and table.column(f.name).null_count:
+            raise ValueError(f"column {f.name!r} may not be null ({table.column(f.name).null_count} null rows)")
+    return table
 
 
 def curves_table(utterance_id: str, source: str, variant: str, curves: np.ndarray, fps: float) -> pa.Table:

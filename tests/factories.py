@@ -1,0 +1,100 @@
+"""Small builders of test inputs: wav files, Praat TextGrid text (long and short format), corpora.
+
+Interval lists for the TextGrid builders are `(start, end, label)` tuples, the order Praat writes and
+`Tier.items` holds; `make_corpus` takes `(label, start, end)` phones per utterance id.
+"""
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+
+Interval = tuple[float, float, str]
+
+
+def write_wav(path: Path | str, seconds: float, rate: int = 16000) -> Path:
+    """A quiet 220 Hz tone of `seconds` (rounded to whole samples) as 16-bit PCM; parent folders are made."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    n = int(round(seconds * rate))
+    t = np.arange(n, dtype=np.float64) / rate
+    sf.write(path, 0.05 * np.sin(2 * np.pi * 220.0 * t), rate, subtype="PCM_16")
+    return path
+
+
+def _quote(text: str) -> str:
+    return '"' + text.replace('"', '""') + '"'
+
+
+def _tiers(intervals: Sequence[Interval], tier: str, words: Sequence[Interval] | None) -> list[tuple[str, Sequence[Interval]]]:
+    tiers: list[tuple[str, Sequence[Interval]]] = []
+    if words is not None:
+        tiers.append(("words", words))
+    tiers.append((tier, intervals))
+    return tiers
+
+
+def textgrid_long(
+    intervals: Sequence[Interval], xmax: float, tier: str = "phones", words: Sequence[Interval] | None = None,
+    xmin: float = 0.0,
+) -> str:
+    """Praat long-format TextGrid text: an optional `words` interval tier, then `tier` with `intervals`."""
+    tiers = _tiers(intervals, tier, words)
+    out = [
+        'File type = "ooTextFile"', 'Object class = "TextGrid"', "",
+        f"xmin = {xmin!r}", f"xmax = {xmax!r}", "tiers? <exists> ", f"size = {len(tiers)} ", "item []: ",
+    ]
+    for i, (name, items) in enumerate(tiers, start=1):
+        out += [
+            f"    item [{i}]:", '        class = "IntervalTier" ', f"        name = {_quote(name)} ",
+            f"        xmin = {xmin!r} ", f"        xmax = {xmax!r} ", f"        intervals: size = {len(items)} ",
+        ]
+        for j, (a, b, text) in enumerate(items, start=1):
+            out += [
+                f"        intervals [{j}]:", f"            xmin = {a!r} ", f"            xmax = {b!r} ",
+                f"            text = {_quote(text)} ",
+            ]
+    return "\n".join(out) + "\n"
+
+
+def textgrid_short(
+    intervals: Sequence[Interval], xmax: float, tier: str = "phones", words: Sequence[Interval] | None = None,
+    xmin: float = 0.0,
+) -> str:
+    """The same TextGrid as `textgrid_long`, in Praat's short text format."""
+    tiers = _tiers(intervals, tier, words)
+    out = ['File type = "ooTextFile"', 'Object class = "TextGrid"', "", repr(xmin), repr(xmax), "<exists>", str(len(tiers))]
+    for name, items in tiers:
+        out += ['"IntervalTier"', _quote(name), repr(xmin), repr(xmax), str(len(items))]
+        for a, b, text in items:
+            out += [repr(a), repr(b), _quote(text)]
+    return "\n".join(out) + "\n"
+
+
+def make_corpus(
+    root: Path | str,
+    utterances: Mapping[str, Sequence[tuple[str, float, float]]],
+    *,
+    duration: float | Mapping[str, float] | None = None,
+    rate: int = 16000,
+    fmt: str = "long",
+    tier: str = "phones",
+) -> Path:
+    """A folder corpus: `<speaker>/<name>.wav` + `.TextGrid` per utterance id `speaker/name`.
+
+    Phones are `(label, start, end)`. The audio lasts `duration` (one value, or one per id), by default
+    the end of the last phone, which is also the TextGrid's xmax.
+    """
+    root = Path(root)
+    build = textgrid_long if fmt == "long" else textgrid_short
+    for utterance_id, phones in utterances.items():
+        speaker, name = utterance_id.split("/")
+        end = max((e for _, _, e in phones), default=1.0)
+        seconds = duration.get(utterance_id, end) if isinstance(duration, Mapping) else (duration or end)
+        folder = root / speaker
+        folder.mkdir(parents=True, exist_ok=True)
+        write_wav(folder / f"{name}.wav", seconds, rate)
+        text = build([(s, e, label) for label, s, e in phones], end, tier=tier)
+        (folder / f"{name}.TextGrid").write_text(text, encoding="utf-8")
+    return root

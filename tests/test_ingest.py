@@ -1,0 +1,476 @@
+"""Corpus discovery and per-utterance ingestion, on built corpora, bad inputs and the shared real data."""
+
+import csv
+import math
+import os
+import pickle
+import shutil
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from factories import make_corpus, textgrid_long, textgrid_short, write_wav
+from visemeflow.ingest import CorpusEntry, DiscoveryReject, IngestConfig, IngestError, discover_corpus, ingest_utterance
+from visemeflow.phonetics.textgrid import decode_textgrid_bytes, parse_textgrid
+from visemeflow.schemas import PHONES, UTTERANCES, C, table_from_rows
+from visemeflow.visemes import VISEMES
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+CONFIG = IngestConfig()
+
+HELLO = [("sil", 0.0, 0.2), ("HH", 0.2, 0.3), ("AH0", 0.3, 0.45), ("L", 0.45, 0.55), ("OW1", 0.55, 0.8), ("", 0.8, 1.0)]
+
+
+def entry_of(corpus: Path, utterance_id: str) -> CorpusEntry:
+    found = discover_corpus(corpus, only=utterance_id)
+    assert not found.rejects, found.rejects
+    (entry,) = found.entries
+    return entry
+
+
+def write_manifest(path: Path, rows: list[dict[str, str]]) -> Path:
+    columns = ["utterance_id", "audio", "alignment", "video", "landmarks", "language", "split"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=columns)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({c: row.get(c, "") for c in columns})
+    return path
+
+
+def assert_names(exc: IngestError, utterance_id: str, path: Path) -> str:
+    message = str(exc)
+    assert utterance_id in message and str(path) in message, message
+    assert exc.utterance_id == utterance_id and exc.path == str(path)
+    return message
+
+
+# ---- discovery ---------------------------------------------------------------------------------
+
+def test_discover_folder_layout(tmp_path):
+    make_corpus(tmp_path, {"spk1/a": HELLO, "spk1/b": HELLO, "spk2/a": HELLO})
+    (tmp_path / "spk1" / "a.mp4").write_bytes(b"video")
+    (tmp_path / "spk1" / "a.landmarks.csv").write_text("frame,time_s\n")
+    (tmp_path / "spk1" / "notes.txt").write_text("ignored")
+    (tmp_path / ".hidden").mkdir()
+    write_wav(tmp_path / ".hidden" / "x.wav", 0.1)
+    found = discover_corpus(tmp_path)
+    assert found.rejects == ()
+    assert [e.utterance_id for e in found.entries] == ["spk1/a", "spk1/b", "spk2/a"]
+    a = found.entries[0]
+    assert a.speaker == "spk1" and a.alignment_format == "textgrid"
+    assert a.audio_path == str((tmp_path / "spk1" / "a.wav").resolve())
+    assert a.alignment_path == str((tmp_path / "spk1" / "a.TextGrid").resolve())
+    assert a.video_path == str((tmp_path / "spk1" / "a.mp4").resolve())
+    assert a.landmark_path == str((tmp_path / "spk1" / "a.landmarks.csv").resolve())
+    assert found.entries[1].video_path is None and found.entries[1].landmark_path is None
+    assert all(len(e.content_hash) == 32 for e in found.entries)
+    # identical files give identical hashes, whatever the id
+    assert found.entries[1].content_hash == found.entries[2].content_hash
+    assert a.content_hash != found.entries[1].content_hash  # a has a video
+
+
+def test_discover_manifest(tmp_path):
+    make_corpus(tmp_path / "files", {"s/one": HELLO, "s/two": HELLO})
+    rows = [
+        {"utterance_id": "spkA/u1", "audio": "files/s/one.wav", "alignment": "files/s/one.TextGrid",
+         "language": "en", "split": "val"},
+        {"utterance_id": "spkB/u2", "audio": "files/s/two.wav", "alignment": "files/s/two.TextGrid",
+         "video": "files/s/two.wav"},
+    ]
+    manifest = write_manifest(tmp_path / "list.csv", rows)
+    found = discover_corpus(manifest)
+    assert found.rejects == ()
+    u1, u2 = found.entries
+    assert (u1.utterance_id, u1.speaker, u1.language, u1.split) == ("spkA/u1", "spkA", "en", "val")
+    assert u1.audio_path == str((tmp_path / "files" / "s" / "one.wav").resolve())
+    assert (u2.language, u2.split, u2.video_path) == (None, None, str((tmp_path / "files/s/two.wav").resolve()))
+    # a corpus folder holding manifest.csv is read through the manifest, not the folder layout
+    shutil.copy(manifest, tmp_path / "manifest.csv")
+    assert [e.utterance_id for e in discover_corpus(tmp_path).entries] == ["spkA/u1", "spkB/u2"]
+    assert discover_corpus(tmp_path, only="spkB/u2").entries == (u2,)
+    # the manifest's language and split reach the utterance row
+    row = ingest_utterance(u1, CONFIG).utterance
+    assert row[C.LANGUAGE] == "en" and row[C.SPLIT] == "val" and row[C.SPEAKER] == "spkA"
+
+
+def test_manifest_rejects_duplicates_and_missing_files(tmp_path):
+    make_corpus(tmp_path, {"s/one": HELLO})
+    manifest = write_manifest(tmp_path / "m.csv", [
+        {"utterance_id": "s/one", "audio": "s/one.wav", "alignment": "s/one.TextGrid"},
+        {"utterance_id": "s/one", "audio": "s/one.wav", "alignment": "s/one.TextGrid"},
+        {"utterance_id": "s/two", "audio": "s/two.wav", "alignment": "s/one.TextGrid"},
+        {"utterance_id": "s/three", "audio": "s/one.wav", "alignment": ""},
+    ])
+    found = discover_corpus(manifest)
+    assert [e.utterance_id for e in found.entries] == ["s/one"]
+    assert [(r.utterance_id, r.error_type) for r in found.rejects] == [
+        ("s/one", "DuplicateId"), ("s/two", "MissingAudio"), ("s/three", "MissingInput")]
+    assert str(manifest) in found.rejects[0].message and ":3:" in found.rejects[0].message
+    assert found.rejects[1].path == str((tmp_path / "s" / "two.wav").resolve())
+
+
+def test_manifest_without_required_columns(tmp_path):
+    (tmp_path / "m.csv").write_text("id,wav\nx/y,y.wav\n")
+    with pytest.raises(ValueError, match="alignment"):
+        discover_corpus(tmp_path / "m.csv")
+
+
+def test_missing_corpus_and_invalid_only(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        discover_corpus(tmp_path / "nowhere")
+    make_corpus(tmp_path, {"s/a": HELLO})
+    with pytest.raises(ValueError, match=r"\.\./a"):
+        discover_corpus(tmp_path, only="../a")
+
+
+def test_content_hash_changes_with_the_files_only(tmp_path):
+    make_corpus(tmp_path, {"s/a": HELLO, "s/b": HELLO})
+    (tmp_path / "s" / "b.mp4").write_bytes(b"\x00" * 64)
+    before = {e.utterance_id: e.content_hash for e in discover_corpus(tmp_path).entries}
+    assert before == {e.utterance_id: e.content_hash for e in discover_corpus(tmp_path).entries}
+    os.utime(tmp_path / "s" / "a.wav", (1, 1))  # a touch alone changes nothing
+    assert discover_corpus(tmp_path).entries[0].content_hash == before["s/a"]
+
+    tg = tmp_path / "s" / "a.TextGrid"
+    tg.write_text(tg.read_text().replace('"HH"', '"HH "'))
+    after = {e.utterance_id: e.content_hash for e in discover_corpus(tmp_path).entries}
+    assert after["s/a"] != before["s/a"] and after["s/b"] == before["s/b"]
+
+    write_wav(tmp_path / "s" / "b.wav", 1.01)
+    after2 = {e.utterance_id: e.content_hash for e in discover_corpus(tmp_path).entries}
+    assert after2["s/b"] != after["s/b"] and after2["s/a"] == after["s/a"]
+
+    (tmp_path / "s" / "b.mp4").write_bytes(b"\x01" + b"\x00" * 63)
+    assert discover_corpus(tmp_path, only="s/b").entries[0].content_hash != after2["s/b"]
+
+
+def test_only_finds_just_one_utterance(tmp_path):
+    make_corpus(tmp_path, {"s/a": HELLO, "s/ab": HELLO, "s/a.b": HELLO, "t/a": HELLO})
+    (tmp_path / "s" / "b.wav").write_bytes(b"broken, no alignment either")
+    for uid in ("s/a", "s/ab", "s/a.b", "t/a"):
+        found = discover_corpus(tmp_path, only=uid)
+        assert [e.utterance_id for e in found.entries] == [uid] and found.rejects == ()
+        assert found.entries[0].audio_path.endswith(uid + ".wav")
+    assert discover_corpus(tmp_path, only="s/zz").entries == ()
+    assert discover_corpus(tmp_path, only="u/a").entries == ()
+    # the one utterance's hash is the hash a full discovery gives
+    full = {e.utterance_id: e.content_hash for e in discover_corpus(tmp_path).entries}
+    assert discover_corpus(tmp_path, only="s/ab").entries[0].content_hash == full["s/ab"]
+
+
+# ---- ingestion of good input ----------------------------------------------------------------------
+
+def test_ingest_rows_fit_the_schemas(tmp_path):
+    make_corpus(tmp_path, {"spk/hello": HELLO}, duration=1.02, rate=22050)
+    result = ingest_utterance(entry_of(tmp_path, "spk/hello"), IngestConfig(fps=25))
+    u = result.utterance
+    assert (u[C.SAMPLE_RATE], u[C.FPS], u[C.N_FRAMES], u[C.INVENTORY], u[C.LANGUAGE]) == (22050, 25, 26, "arpabet", "en")
+    assert u[C.DURATION_S] == pytest.approx(1.02, abs=1e-4)
+    assert u[C.SPLIT] in ("train", "val") and u[C.ALIGNMENT_FORMAT] == "textgrid"
+    assert [p[C.PHONEME] for p in result.phones] == [None, "HH", "AH", "L", "OW", None]
+    assert [p[C.STRESS] for p in result.phones] == [None, None, 0, None, 1, None]
+    assert result.phones[0][C.VISEME] is None and result.phones[-1][C.VISEME] is None
+    assert all(p[C.VISEME] in VISEMES for p in result.phones[1:-1])
+    assert [p[C.INDEX] for p in result.phones] == list(range(6))
+    table_from_rows([u], UTTERANCES)
+    table_from_rows(result.phones, PHONES)
+
+
+def test_words_are_attached_to_phones(tmp_path):
+    phones = [(0.0, 0.2, ""), (0.2, 0.3, "HH"), (0.3, 0.5, "AY1"), (0.5, 0.6, "")]
+    words = [(0.0, 0.2, ""), (0.2, 0.5, "hi"), (0.5, 0.6, "")]
+    (tmp_path / "s").mkdir()
+    write_wav(tmp_path / "s" / "hi.wav", 0.6)
+    (tmp_path / "s" / "hi.TextGrid").write_text(textgrid_short(phones, 0.6, words=words))
+    rows = ingest_utterance(entry_of(tmp_path, "s/hi"), CONFIG).phones
+    assert [(r[C.WORD], r[C.WORD_INDEX]) for r in rows] == [(None, None), ("hi", 0), ("hi", 0), (None, None)]
+
+
+def test_alignment_within_tolerance_is_accepted(tmp_path):
+    make_corpus(tmp_path, {"s/a": HELLO}, duration=1.08)
+    assert ingest_utterance(entry_of(tmp_path, "s/a"), CONFIG).utterance[C.DURATION_S] == pytest.approx(1.08)
+
+
+# ---- one test per bad-input class ------------------------------------------------------------------
+
+def test_broken_textgrid(tmp_path):
+    make_corpus(tmp_path, {"s/cut": HELLO})
+    tg = tmp_path / "s" / "cut.TextGrid"
+    tg.write_text(tg.read_text()[:300])
+    entry = entry_of(tmp_path, "s/cut")
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry, CONFIG)
+    assert_names(info.value, "s/cut", tg.resolve())
+    assert info.value.error_type == "TextGridError"
+    assert "ends early" in str(info.value)
+
+
+def test_missing_phone_tier(tmp_path):
+    make_corpus(tmp_path, {"s/tiers": HELLO}, fmt="short", tier="segments")
+    tg = tmp_path / "s" / "tiers.TextGrid"
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/tiers"), CONFIG)
+    message = assert_names(info.value, "s/tiers", tg.resolve())
+    assert info.value.error_type == "MissingPhoneTier"
+    assert "'segments'" in message and "phones" in message
+    # the same file is fine when the tier name is configured
+    ok = ingest_utterance(entry_of(tmp_path, "s/tiers"), IngestConfig(phone_tiers=("SEGMENTS",)))
+    assert len(ok.phones) == len(HELLO)
+
+
+def test_unknown_phoneme(tmp_path):
+    make_corpus(tmp_path, {"s/unk": HELLO[:3] + [("QX7", 0.45, 0.55)] + HELLO[4:]})
+    tg = tmp_path / "s" / "unk.TextGrid"
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/unk"), CONFIG)
+    message = assert_names(info.value, "s/unk", tg.resolve())
+    assert info.value.error_type == "UnknownPhoneme"
+    assert "'QX7'" in message and "0.450" in message
+
+
+def test_corrupt_audio(tmp_path):
+    make_corpus(tmp_path, {"s/noise": HELLO})
+    wav = tmp_path / "s" / "noise.wav"
+    wav.write_bytes(b"RIFF" + bytes(range(256)) * 8)
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/noise"), CONFIG)
+    assert_names(info.value, "s/noise", wav.resolve())
+    assert info.value.error_type == "UnreadableAudio"
+
+
+def test_nan_time(tmp_path):
+    make_corpus(tmp_path, {"s/nan": HELLO})
+    tg = tmp_path / "s" / "nan.TextGrid"
+    tg.write_text(tg.read_text().replace("xmax = 0.45 ", "xmax = nan ", 1))
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/nan"), CONFIG)
+    message = assert_names(info.value, "s/nan", tg.resolve())
+    assert info.value.error_type == "NonFiniteTime"
+    assert "interval 3" in message and "'AH0'" in message
+
+
+def test_overlapping_intervals(tmp_path):
+    overlapping = [("sil", 0.0, 0.2), ("HH", 0.2, 0.35), ("AH0", 0.3, 0.45), ("", 0.45, 1.0)]
+    make_corpus(tmp_path, {"s/over": overlapping})
+    tg = tmp_path / "s" / "over.TextGrid"
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/over"), CONFIG)
+    message = assert_names(info.value, "s/over", tg.resolve())
+    assert info.value.error_type == "OverlappingIntervals"
+    assert "interval 3" in message and "'AH0'" in message
+
+
+def test_interval_ending_before_it_starts(tmp_path):
+    backwards = [("sil", 0.0, 0.2), ("HH", 0.3, 0.2), ("AH0", 0.3, 0.45), ("", 0.45, 1.0)]
+    make_corpus(tmp_path, {"s/back": backwards})
+    tg = tmp_path / "s" / "back.TextGrid"
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/back"), CONFIG)
+    message = assert_names(info.value, "s/back", tg.resolve())
+    assert info.value.error_type == "NegativeDuration"
+    assert "interval 2" in message and "'HH'" in message
+
+
+def test_alignment_longer_than_audio(tmp_path):
+    make_corpus(tmp_path, {"s/long": HELLO}, duration=0.7)
+    tg, wav = tmp_path / "s" / "long.TextGrid", tmp_path / "s" / "long.wav"
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/long"), CONFIG)
+    message = assert_names(info.value, "s/long", tg.resolve())
+    assert info.value.error_type == "AlignmentAudioMismatch"
+    assert str(wav.resolve()) in message and "1.000" in message and "0.700" in message
+    # a looser tolerance accepts it
+    ingest_utterance(entry_of(tmp_path, "s/long"), IngestConfig(alignment_tolerance_s=0.5))
+
+
+def test_manifest_path_outside_corpus(tmp_path):
+    make_corpus(tmp_path / "outside", {"s/a": HELLO})
+    root = tmp_path / "corpus"
+    make_corpus(root, {"s/a": HELLO})
+    manifest = write_manifest(root / "manifest.csv", [
+        {"utterance_id": "s/a", "audio": "s/a.wav", "alignment": "s/a.TextGrid"},
+        {"utterance_id": "s/x", "audio": "../x.wav", "alignment": "s/a.TextGrid"},
+        {"utterance_id": "s/y", "audio": "s/a.wav", "alignment": "../outside/s/a.TextGrid"},
+        {"utterance_id": "s/z", "audio": str((tmp_path / "outside" / "s" / "a.wav").resolve()),
+         "alignment": "s/a.TextGrid"},
+    ])
+    write_wav(tmp_path / "x.wav", 1.0)
+    found = discover_corpus(root)
+    assert [e.utterance_id for e in found.entries] == ["s/a"]
+    assert all(isinstance(r, DiscoveryReject) and r.error_type == "PathOutsideCorpus" for r in found.rejects)
+    assert [r.utterance_id for r in found.rejects] == ["s/x", "s/y", "s/z"]
+    x = found.rejects[0]
+    assert "s/x" in x.message and "../x.wav" in x.message and str(manifest) in x.message
+    assert x.path == "../x.wav"
+
+
+def test_invalid_utterance_id(tmp_path):
+    make_corpus(tmp_path, {"good/a": HELLO})
+    bad = tmp_path / "bad speaker"
+    bad.mkdir()
+    write_wav(bad / "a.wav", 1.0)
+    (bad / "a.TextGrid").write_text(textgrid_long([(0.0, 1.0, "AA1")], 1.0))
+    found = discover_corpus(tmp_path)
+    assert [e.utterance_id for e in found.entries] == ["good/a"]
+    (reject,) = found.rejects
+    assert reject.error_type == "InvalidId"
+    assert "bad speaker/a" in reject.message
+    assert reject.path.startswith(str(bad)) and reject.path in reject.message
+    # in a manifest too
+    manifest = write_manifest(tmp_path / "m.csv", [{"utterance_id": "a b/c", "audio": "good/a.wav",
+                                                     "alignment": "good/a.TextGrid"}])
+    (reject,) = discover_corpus(manifest).rejects
+    assert reject.error_type == "InvalidId" and "a b/c" in reject.message and str(manifest) in reject.message
+
+
+def test_wav_without_textgrid(tmp_path):
+    make_corpus(tmp_path, {"s/a": HELLO})
+    write_wav(tmp_path / "s" / "lonely.wav", 0.5)
+    (tmp_path / "s" / "orphan.TextGrid").write_text(textgrid_long([(0.0, 1.0, "AA1")], 1.0))
+    found = discover_corpus(tmp_path)
+    assert [e.utterance_id for e in found.entries] == ["s/a"]
+    by_id = {r.utterance_id: r for r in found.rejects}
+    lonely = by_id["s/lonely"]
+    assert lonely.error_type == "MissingAlignment"
+    assert "s/lonely" in lonely.message and str(tmp_path / "s" / "lonely.wav") in lonely.message
+    assert by_id["s/orphan"].error_type == "MissingAudio"
+
+
+def test_ingest_error_survives_pickling(tmp_path):
+    make_corpus(tmp_path, {"s/long": HELLO}, duration=0.5)
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/long"), CONFIG)
+    copy = pickle.loads(pickle.dumps(info.value))
+    assert (copy.utterance_id, copy.path, copy.error_type, copy.reason, str(copy)) == (
+        info.value.utterance_id, info.value.path, info.value.error_type, info.value.reason, str(info.value))
+
+
+def test_config_is_validated():
+    with pytest.raises(ValidationError):
+        IngestConfig(alignment_tolerance_s=-1)
+    with pytest.raises(ValidationError):
+        IngestConfig(phone_tier="phones")
+    with pytest.raises(ValidationError):
+        IngestConfig(inventory="klingon")
+
+
+# ---- real data -----------------------------------------------------------------------------------
+
+def ingest_all(corpus: Path, config: IngestConfig = CONFIG) -> dict[str, object]:
+    found = discover_corpus(corpus)
+    assert found.rejects == (), found.rejects
+    return {e.utterance_id: ingest_utterance(e, config) for e in found.entries}
+
+
+def check_phone_rows(result) -> None:
+    rows = result.phones
+    assert rows, result.utterance
+    for a, b in zip(rows, rows[1:]):
+        assert (a[C.INDEX], a[C.PART]) < (b[C.INDEX], b[C.PART])
+        assert a[C.END_S] <= b[C.START_S] + 1e-9
+    assert all(r[C.VISEME] is None or r[C.VISEME] in VISEMES for r in rows)
+    assert rows[-1][C.END_S] <= result.utterance[C.DURATION_S] + CONFIG.alignment_tolerance_s
+    table_from_rows(rows, PHONES)
+    table_from_rows([result.utterance], UTTERANCES)
+
+
+def test_ljspeech_mfa_via_manifest(tmp_path):
+    src = DATA / "ljspeech_mfa"
+    grids = sorted((src / "TextGrid").glob("*.TextGrid"))
+    assert len(grids) == 24, f"shared data missing under {src}"
+    rows = []
+    for tg in grids:
+        for sub, path in (("align", tg), ("audio", src / "wav" / f"{tg.stem}.wav")):
+            (tmp_path / sub).mkdir(exist_ok=True)
+            shutil.copy(path, tmp_path / sub / path.name)
+        rows.append({"utterance_id": f"LJ/{tg.stem}", "audio": f"audio/{tg.stem}.wav",
+                     "alignment": f"align/{tg.name}", "language": "en"})
+    write_manifest(tmp_path / "manifest.csv", rows)
+    results = ingest_all(tmp_path)
+    assert len(results) == 24
+    for result in results.values():
+        u = result.utterance
+        assert (u[C.INVENTORY], u[C.SAMPLE_RATE], u[C.LANGUAGE]) == ("arpabet", 22050, "en")
+        check_phone_rows(result)
+        spoken = [r for r in result.phones if r[C.VISEME] is not None]
+        assert len(spoken) > 5 and all(r[C.WORD] for r in spoken)
+
+
+def copy_charsiu(root: Path) -> Path:
+    src = DATA / "charsiu_mandarin"
+    (root / "SSB1624").mkdir(parents=True)
+    shutil.copy(src / "SSB16240001_16k.wav", root / "SSB1624" / "SSB16240001.wav")
+    shutil.copy(src / "SSB16240001.TextGrid", root / "SSB1624" / "SSB16240001.TextGrid")
+    return root
+
+
+def check_compound_final(result, alignment_path: str) -> None:
+    items = parse_textgrid(decode_textgrid_bytes(Path(alignment_path).read_bytes())).tier(("phones",)).items
+    index = [x[2] for x in items].index("ing2")
+    start, end = items[index][:2]
+    parts = [r for r in result.phones if r[C.LABEL] == "ing2"]
+    assert [(r[C.INDEX], r[C.PART]) for r in parts] == [(index, 0), (index, 1)]
+    assert [r[C.VISEME] for r in parts] == ["IEE", "GK"]
+    assert {r[C.PHONEME] for r in parts} == {"ing"} and {r[C.STRESS] for r in parts} == {2}
+    assert parts[0][C.START_S] == start and parts[-1][C.END_S] == end
+    assert parts[0][C.END_S] == parts[1][C.START_S]
+    assert start < parts[0][C.END_S] < end
+
+
+def test_charsiu_mandarin(tmp_path):
+    (result,) = ingest_all(copy_charsiu(tmp_path)).values()
+    assert result.utterance[C.INVENTORY] == "pinyin" and result.utterance[C.LANGUAGE] == "zh"
+    check_phone_rows(result)
+    check_compound_final(result, result.utterance[C.ALIGNMENT_PATH])
+
+
+GRID_CLIPS = ("bwbg8n", "lrik4p", "sbwo1s")
+
+
+def test_grid_word_alignments(tmp_path):
+    for clip in GRID_CLIPS:
+        src = DATA / "grid_s1" / "align" / f"{clip}.align"
+        assert src.is_file(), f"shared data missing: {src}"
+        (tmp_path / "s1").mkdir(exist_ok=True)
+        shutil.copy(src, tmp_path / "s1" / src.name)
+        write_wav(tmp_path / "s1" / f"{clip}.wav", 2.98, rate=16000)
+    results = ingest_all(tmp_path)
+    assert sorted(results) == sorted(f"s1/{c}" for c in GRID_CLIPS)
+    for uid, result in results.items():
+        u = result.utterance
+        assert (u[C.INVENTORY], u[C.LANGUAGE], u[C.ALIGNMENT_FORMAT]) == ("arpabet", "en", "word_align")
+        check_phone_rows(result)
+        assert result.phones[0][C.LABEL] == "sil" and result.phones[0][C.VISEME] is None
+        assert math.isclose(result.phones[-1][C.END_S], 2.98)
+        spoken = [r for r in result.phones if r[C.LABEL] != "sil"]
+        assert all(r[C.VISEME] in VISEMES and r[C.WORD] for r in spoken)
+    bin_rows = [r for r in results["s1/bwbg8n"].phones if r[C.WORD] == "bin"]
+    assert [r[C.LABEL] for r in bin_rows] == ["B", "IH1", "N"]
+    assert [r[C.VISEME] for r in bin_rows] == ["MBP", "IEE", "LNTD"]
+    assert bin_rows[0][C.START_S] == pytest.approx(17250 / 25000) and bin_rows[-1][C.END_S] == pytest.approx(23000 / 25000)
+    assert {r[C.WORD_INDEX] for r in bin_rows} == {0}
+
+
+def test_grid_unknown_word(tmp_path):
+    (tmp_path / "s1").mkdir()
+    align = tmp_path / "s1" / "odd.align"
+    align.write_text("0 25000 sil\n25000 50000 blorfquux\n50000 74500 sil\n")
+    write_wav(tmp_path / "s1" / "odd.wav", 2.98)
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s1/odd"), CONFIG)
+    message = assert_names(info.value, "s1/odd", align.resolve())
+    assert info.value.error_type == "WordAlignmentError" and "blorfquux" in message
+
+
+def test_shipped_demo_corpus():
+    corpus = REPO / "examples" / "corpus"
+    results = ingest_all(corpus)
+    assert len(results) == 25
+    assert {r.utterance[C.INVENTORY] for r in results.values()} == {"arpabet", "pinyin"}
+    for result in results.values():
+        check_phone_rows(result)
+    mandarin = results["SSB1624/SSB16240001"]
+    check_compound_final(mandarin, mandarin.utterance[C.ALIGNMENT_PATH])
