@@ -1,17 +1,11 @@
-"""Session-wide settings: one Prefect test harness for every flow test, and the shared data folder."""
+"""Session-wide settings: one Prefect test harness for every flow test."""
 
 import os
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
-from pathlib import Path  # noqa: E402
-
 import pytest  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
-DEMO_CORPUS = REPO / "examples" / "corpus"
 
 
 @pytest.fixture(scope="session")

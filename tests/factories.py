@@ -10,6 +10,10 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+DEMO_CORPUS = REPO / "examples" / "corpus"
+
 Interval = tuple[float, float, str]
 
 

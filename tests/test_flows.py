@@ -11,7 +11,7 @@ from pathlib import Path
 import pyarrow as pa
 import pytest
 
-from tests.conftest import DEMO_CORPUS, REPO
+from factories import DEMO_CORPUS, REPO
 from visemeflow.schemas import C, validate_utterance_id
 from visemeflow.storage import Store
 

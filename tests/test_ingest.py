@@ -474,3 +474,24 @@ def test_shipped_demo_corpus():
         check_phone_rows(result)
     mandarin = results["SSB1624/SSB16240001"]
     check_compound_final(mandarin, mandarin.utterance[C.ALIGNMENT_PATH])
+
+
+def test_every_shared_textgrid_reads_and_maps_with_no_unknown_symbol():
+    """Every TextGrid under ../shared/data with a phone tier: our reader, detected inventory, no unknown label."""
+    from visemeflow.phonetics.inventory import detect_inventory, map_phone
+
+    grids = sorted(DATA.rglob("*.TextGrid"))
+    assert len(grids) >= 27, f"expected the shared TextGrids under {DATA}, found {len(grids)}"
+    with_phones = 0
+    for path in grids:
+        grid = parse_textgrid(decode_textgrid_bytes(path.read_bytes()), str(path))
+        tier = grid.tier(CONFIG.phone_tiers)
+        if tier is None:
+            assert path.name == "bobby_words.TextGrid", f"{path}: no phone tier in {[t.name for t in grid.tiers]}"
+            continue
+        labels = [text.strip() for _, _, text in tier.items]
+        inventory = detect_inventory(labels)
+        mapped = [map_phone(label, inventory) for label in labels]  # raises on an unknown symbol
+        assert any(m.visemes for m in mapped), path
+        with_phones += 1
+    assert with_phones >= 27
