@@ -2,6 +2,7 @@
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 from prefect import get_run_logger, task
 
 from visemeflow.hashing import stable_hash
@@ -55,11 +56,22 @@ def generate_for_utterance(
     )
 
 
+def _read_phones(store: Store, shard: int, ids: list[str]) -> pa.Table:
+    """Phone rows of `ids`: from the same-numbered phones shard when ingest used the same sharding (one
+    file read), else by a filtered scan of all phone shards."""
+    table = store.read_shard("phones", shard)
+    table = table.filter(pc.is_in(table.column(C.UTTERANCE_ID), pa.array(ids, pa.string())))
+    missing = sorted(set(ids) - set(pc.unique(table.column(C.UTTERANCE_ID)).to_pylist()))
+    if missing:
+        table = pa.concat_tables([table, store.read_table("phones", utterance_ids=missing)])
+    return table
+
+
 def _generate_many(
-    store: Store, utterances: list[dict], config: ProceduralConfig, variant: str, force: bool
+    store: Store, shard: int, utterances: list[dict], config: ProceduralConfig, variant: str, force: bool
 ) -> tuple[int, int, list[dict]]:
     ids = [u[C.UTTERANCE_ID] for u in utterances]
-    phones = store.read_table("phones", utterance_ids=ids)
+    phones = _read_phones(store, shard, ids)
     phones = phones.sort_by([(C.UTTERANCE_ID, "ascending"), (C.START_S, "ascending")])
     id_col = phones.column(C.UTTERANCE_ID).to_numpy(zero_copy_only=False)
     bounds = {}
@@ -90,7 +102,7 @@ def procedural_shard(
 ) -> dict[str, int]:
     """Procedural curves for one shard; utterances whose stored curves match are left as they are."""
     store = Store(store_root)
-    generated, reused, rejects = _generate_many(store, utterances, config, variant, force=False)
+    generated, reused, rejects = _generate_many(store, shard, utterances, config, variant, force=False)
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
     logger = get_run_logger()
     for r in rejects:
@@ -106,7 +118,7 @@ def procedural_one(
 ) -> dict[str, int]:
     """Regenerate the procedural curves of one utterance (a rerun by hand), whatever is stored."""
     store = Store(store_root)
-    generated, _, rejects = _generate_many(store, [utterance], config, variant, force=True)
+    generated, _, rejects = _generate_many(store, shard, [utterance], config, variant, force=True)
     uid = utterance[C.UTTERANCE_ID]
     store.replace_utterance_rows("rejects", shard, uid, table_from_rows(rejects, REJECTS), stage=STAGE)
     if rejects:
