@@ -131,9 +131,11 @@ def second_order_response(target: np.ndarray, rate_hz: float, stiffness_hz: floa
     return out
 
 
-def band_limited_noise(rng: np.random.Generator, n: int, rate_hz: float, cutoff_hz: float) -> np.ndarray:
-    """(n, 16) zero-mean noise of unit std. dev. low-passed to `cutoff_hz` (a one-pole filter run both ways)."""
-    white = rng.standard_normal((n, N_VISEMES))
+def band_limited_noise(
+    rng: np.random.Generator, n: int, rate_hz: float, cutoff_hz: float, dims: int = N_VISEMES
+) -> np.ndarray:
+    """(n, dims) zero-mean noise of unit std. dev. low-passed to `cutoff_hz` (a one-pole filter run both ways)."""
+    white = rng.standard_normal((n, dims))
     a = np.exp(-2.0 * np.pi * cutoff_hz / rate_hz)
     out = white.copy()
     for direction in (1, -1):

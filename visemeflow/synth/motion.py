@@ -1,0 +1,46 @@
+"""Small natural head motion and lighting changes for the rendered ground-truth videos."""
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from visemeflow.synth.dynamics import band_limited_noise
+
+
+class SceneConfig(BaseModel):
+    """How much the head moves and the light changes over an utterance."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    rotation_deg: float = Field(2.5, ge=0, description="Std. dev. of head rotation about each axis, degrees.")
+    translation_cm: float = Field(0.4, ge=0, description="Std. dev. of head translation along each axis, cm.")
+    motion_hz: float = Field(0.4, gt=0, description="Bandwidth of the head motion.")
+    light_deg: float = Field(12.0, ge=0, description="Std. dev. of the light direction's wander, degrees.")
+    brightness: tuple[float, float] = Field((0.85, 1.1), description="Range of the overall light intensity.")
+
+
+@dataclass(frozen=True)
+class SceneTrack:
+    """Per-frame head pose and light: rotations (T, 3) axis-angle rad, translations (T, 3) cm,
+    light directions (T, 3) unit vectors toward the light, intensities (T,)."""
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    light_dirs: np.ndarray
+    intensities: np.ndarray
+
+
+def scene_track(n_frames: int, fps: float, rng: np.random.Generator, config: SceneConfig = SceneConfig()) -> SceneTrack:
+    """A smooth random head-pose and lighting trajectory of `n_frames` frames."""
+    n = max(n_frames, 2)
+    motion = band_limited_noise(rng, n, fps, config.motion_hz, dims=9)
+    rotations = np.deg2rad(config.rotation_deg) * motion[:n_frames, 0:3]
+    translations = config.translation_cm * motion[:n_frames, 3:6]
+    base = np.array([0.3, 0.4, 1.0])
+    wander = np.deg2rad(config.light_deg) * motion[:n_frames, 6:9]
+    light = base / np.linalg.norm(base) + wander
+    light /= np.linalg.norm(light, axis=1, keepdims=True)
+    lo, hi = config.brightness
+    intensity = np.full(n_frames, rng.uniform(lo, hi))
+    return SceneTrack(rotations, translations, light, intensity)
