@@ -1,0 +1,349 @@
+"""Video and its audio track through PyAV (FFmpeg): probe, decode RGB frames, decode audio, encode.
+
+Frames are RGB uint8 arrays (H, W, 3) everywhere. Frame ``i`` is the ``i``-th decoded frame in presentation
+order, the index landmark tracks use.
+
+Frame counts: many containers store no frame count or a wrong one (MPEG-1 program streams such as the GRID .mpg
+report 0), so :func:`probe_video` trusts the stored count only when it agrees with the stream duration and
+otherwise counts by decoding. fps is the stream's average frame rate (GRID: 25; its "base" rate r_frame_rate is
+50, the field rate, and must not be used).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+import av
+
+# Encoders in order of preference, by container. The first one this PyAV build can open is used.
+MP4_VIDEO_CODECS = ("libx264", "libopenh264", "mpeg4")
+AVI_VIDEO_CODECS = ("mjpeg", "ffv1")
+MP4_AUDIO_CODECS = ("aac",)
+AVI_AUDIO_CODECS = ("pcm_s16le",)
+_CONTAINERS = {".mp4": "mp4", ".m4v": "mp4", ".mov": "mov", ".avi": "avi", ".mkv": "matroska"}
+
+
+class VideoError(ValueError):
+    """A video that cannot be read or written; the message names the file."""
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    path: Path
+    width: int
+    height: int
+    fps: float
+    n_frames: int
+    duration_s: float           # n_frames / fps: the span the frames cover
+    has_audio: bool
+    audio_rate: int | None
+    audio_channels: int | None
+    video_codec: str = ""
+    audio_codec: str | None = None
+    container_duration_s: float | None = None   # what the container header says (GRID: 2.98 for 75 frames at 25)
+
+
+def _open(path: Path):
+    if not path.is_file():
+        raise VideoError(f"{path}: video file not found")
+    try:
+        return av.open(str(path))
+    except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as exc:
+        raise VideoError(f"{path}: not a readable video ({exc})") from exc
+
+
+def _video_stream(container, path: Path):
+    if not container.streams.video:
+        raise VideoError(f"{path}: no video stream")
+    stream = container.streams.video[0]
+    if stream.codec_context is None or not stream.codec_context.name:
+        raise VideoError(f"{path}: video stream has no decodable codec")
+    return stream
+
+
+def _stream_fps(stream) -> float | None:
+    for rate in (stream.average_rate, stream.guessed_rate, stream.base_rate):
+        if rate is not None and rate > 0:
+            return float(rate)
+    return None
+
+
+def _decode_video(container, stream, path: Path) -> Iterator[av.VideoFrame]:
+    try:
+        yield from container.decode(stream)
+    except av.error.FFmpegError as exc:
+        raise VideoError(f"{path}: video decoding failed ({exc})") from exc
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Size, fps, frame count, audio format of a video; raises :class:`VideoError` naming the file if unreadable."""
+    path = Path(path)
+    with _open(path) as container:
+        stream = _video_stream(container, path)
+        width, height = stream.codec_context.width, stream.codec_context.height
+        fps = _stream_fps(stream)
+        stored = int(stream.frames or 0)
+        stream_dur = (float(stream.duration * stream.time_base)
+                      if stream.duration is not None and stream.time_base is not None else None)
+        trusted = (stored > 0 and fps is not None and stream_dur is not None
+                   and abs(stored - stream_dur * fps) <= 1.0)
+        if trusted:
+            n_frames = stored
+        else:
+            n_frames = 0
+            for frame in _decode_video(container, stream, path):
+                n_frames += 1
+                if not width:
+                    width, height = frame.width, frame.height
+        if fps is None:
+            raise VideoError(f"{path}: video stream has no frame rate")
+        if not width or not height:
+            raise VideoError(f"{path}: video stream has no frame size")
+        audio = container.streams.audio[0] if container.streams.audio else None
+        container_dur = None if container.duration is None else container.duration / av.time_base
+        return VideoInfo(
+            path=path, width=int(width), height=int(height), fps=fps, n_frames=n_frames,
+            duration_s=n_frames / fps, has_audio=audio is not None,
+            audio_rate=None if audio is None else int(audio.codec_context.sample_rate),
+            audio_channels=None if audio is None else int(audio.codec_context.channels),
+            video_codec=stream.codec_context.name,
+            audio_codec=None if audio is None else audio.codec_context.name,
+            container_duration_s=container_dur,
+        )
+
+
+def iter_video_frames(path: str | os.PathLike) -> Iterator[np.ndarray]:
+    """Decoded frames one at a time, RGB uint8 (H, W, 3)."""
+    path = Path(path)
+    with _open(path) as container:
+        stream = _video_stream(container, path)
+        stream.thread_type = "AUTO"
+        for frame in _decode_video(container, stream, path):
+            yield frame.to_ndarray(format="rgb24")
+
+
+def read_video_frames(path: str | os.PathLike, start: int = 0, count: int | None = None) -> np.ndarray:
+    """Frames ``start .. start+count-1`` (all from ``start`` when count is None) as (frames, H, W, 3) uint8 RGB.
+    Fewer frames come back when the video ends first; none past the end gives shape (0, H, W, 3)."""
+    if start < 0 or (count is not None and count < 0):
+        raise ValueError(f"start and count must be >= 0, got {start}, {count}")
+    path = Path(path)
+    out: list[np.ndarray] = []
+    with _open(path) as container:
+        stream = _video_stream(container, path)
+        stream.thread_type = "AUTO"
+        shape = (0, stream.codec_context.height, stream.codec_context.width, 3)
+        if count != 0:
+            for i, frame in enumerate(_decode_video(container, stream, path)):
+                if i < start:
+                    continue
+                out.append(frame.to_ndarray(format="rgb24"))
+                if count is not None and len(out) >= count:
+                    break
+    if not out:
+        return np.zeros(shape, dtype=np.uint8)
+    return np.stack(out)
+
+
+def read_video_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, int]:
+    """The first audio track as float32 in [-1, 1] and its sample rate: (samples,) when ``mono`` (channel mean),
+    else (samples, channels). :class:`VideoError` if there is no audio track."""
+    path = Path(path)
+    chunks: list[np.ndarray] = []
+    with _open(path) as container:
+        if not container.streams.audio:
+            raise VideoError(f"{path}: no audio stream")
+        stream = container.streams.audio[0]
+        rate = int(stream.codec_context.sample_rate)
+        resampler = None
+        try:
+            for frame in container.decode(stream):
+                if resampler is None:
+                    # Same rate and layout, planar float: to_ndarray() gives (channels, samples).
+                    resampler = av.AudioResampler(format="fltp", layout=frame.layout.name, rate=frame.sample_rate)
+                    rate = int(frame.sample_rate)
+                for out in resampler.resample(frame):
+                    chunks.append(out.to_ndarray())
+            if resampler is not None:
+                for out in resampler.resample(None):
+                    chunks.append(out.to_ndarray())
+        except av.error.FFmpegError as exc:
+            raise VideoError(f"{path}: audio decoding failed ({exc})") from exc
+    if not chunks:
+        raise VideoError(f"{path}: audio stream holds no samples")
+    audio = np.concatenate(chunks, axis=1).astype(np.float32).T   # (samples, channels)
+    np.clip(audio, -1.0, 1.0, out=audio)
+    if mono:
+        audio = audio.mean(axis=1, dtype=np.float32)
+    return audio, rate
+
+
+def _encoder_available(name: str) -> bool:
+    try:
+        av.codec.Codec(name, "w")
+    except (av.error.FFmpegError, ValueError, KeyError):
+        return False
+    return True
+
+
+def choose_video_codec(container_format: str) -> str:
+    """The video encoder :func:`write_video` uses for a container: h264 (libx264, else libopenh264) or MPEG-4 part 2
+    for mp4/mov/mkv; MJPEG (else FFV1) for avi."""
+    prefs = AVI_VIDEO_CODECS if container_format == "avi" else MP4_VIDEO_CODECS
+    for name in prefs:
+        if _encoder_available(name):
+            return name
+    raise VideoError(f"none of the video encoders {prefs} is available in this PyAV build")
+
+
+def choose_audio_codec(container_format: str) -> str:
+    prefs = AVI_AUDIO_CODECS if container_format == "avi" else MP4_AUDIO_CODECS
+    for name in prefs + ("pcm_s16le",):
+        if _encoder_available(name) and not (name.startswith("pcm") and container_format == "mp4"):
+            return name
+    raise VideoError(f"none of the audio encoders {prefs} is available in this PyAV build")
+
+
+def _as_rate(fps: float) -> Fraction:
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    return Fraction(fps).limit_denominator(1001)
+
+
+def _audio_2d(audio: np.ndarray) -> np.ndarray:
+    """(samples, channels) float32 in [-1, 1] from float or int16 input of shape (samples,) or (samples, ch)."""
+    a = np.asarray(audio)
+    if a.ndim == 1:
+        a = a[:, None]
+    if a.ndim != 2 or a.shape[1] not in (1, 2):
+        raise ValueError(f"audio must be (samples,) or (samples, 1|2), got shape {np.asarray(audio).shape}")
+    if a.dtype == np.int16:
+        a = a.astype(np.float32) / 32768.0
+    a = np.clip(a.astype(np.float32), -1.0, 1.0)
+    return np.ascontiguousarray(a)
+
+
+def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float,
+                audio: np.ndarray | None = None, audio_rate: int | None = None,
+                video_codec: str | None = None) -> Path:
+    """Encode RGB uint8 frames (H, W, 3) to ``path`` and mux ``audio`` (float in [-1, 1] or int16; (samples,) or
+    (samples, channels)) at ``audio_rate`` if given.
+
+    ``.mp4``/``.m4v``/``.mov``/``.mkv``: H.264 (libx264 crf 18, else libopenh264) or MPEG-4 part 2, yuv420p (even
+    sizes needed; odd sizes use yuv444p with libx264), audio AAC. ``.avi``: MJPEG (else FFV1), audio 16-bit PCM.
+    ``video_codec`` overrides the choice (e.g. ``"ffv1"``: lossless RGB, in .avi or .mkv).
+    Written to a temporary name in the same folder and renamed, so a failed write leaves no half file.
+    """
+    path = Path(path)
+    fmt = _CONTAINERS.get(path.suffix.lower())
+    if fmt is None:
+        raise VideoError(f"{path}: unsupported video extension; use one of {sorted(_CONTAINERS)}")
+    rate = _as_rate(fps)
+    if audio is not None and (audio_rate is None or int(audio_rate) <= 0):
+        raise ValueError("audio_rate is required with audio")
+    samples = _audio_2d(audio) if audio is not None else None
+    if video_codec is not None and not _encoder_available(video_codec):
+        raise VideoError(f"{path}: video encoder {video_codec!r} is not available in this PyAV build")
+    vcodec = video_codec or choose_video_codec(fmt)
+    acodec = choose_audio_codec(fmt) if samples is not None else None
+
+    it = iter(frames)
+    try:
+        first = _check_frame(next(it), None)
+    except StopIteration:
+        raise ValueError("write_video needs at least one frame") from None
+    height, width = first.shape[:2]
+    odd = (width % 2) or (height % 2)
+    if odd and vcodec not in ("libx264", "mjpeg", "ffv1"):
+        raise VideoError(f"{path}: {vcodec} needs even frame sizes, got {width}x{height}")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        with av.open(str(tmp), mode="w", format=fmt) as out:
+            vs = out.add_stream(vcodec, rate=rate)
+            vs.width, vs.height = width, height
+            if vcodec in ("libx264", "libopenh264"):
+                vs.pix_fmt = "yuv444p" if odd else "yuv420p"
+                if vcodec == "libx264":
+                    vs.options = {"crf": "18", "preset": "fast"}
+            elif vcodec == "mpeg4":
+                vs.pix_fmt = "yuv420p"
+                vs.codec_context.qscale = 2
+                vs.codec_context.flags |= "QSCALE"
+            elif vcodec == "mjpeg":
+                vs.pix_fmt = "yuvj444p"
+                vs.options = {"q:v": "2"}
+            elif vcodec == "ffv1":
+                vs.pix_fmt = "bgr0"     # 8-bit RGB: lossless round trip of RGB frames
+            else:
+                vs.pix_fmt = "yuv420p"
+            vs.codec_context.time_base = Fraction(1, 1) / rate
+
+            astream = None
+            layout = None
+            if samples is not None:
+                layout = "mono" if samples.shape[1] == 1 else "stereo"
+                astream = out.add_stream(acodec, rate=int(audio_rate), layout=layout)
+            a_pos = 0
+            n_samples = 0 if samples is None else samples.shape[0]
+
+            def push_audio(upto: int) -> None:
+                nonlocal a_pos
+                upto = min(upto, n_samples)
+                step = 4096
+                while a_pos < upto:
+                    chunk = samples[a_pos:min(upto, a_pos + step)]
+                    frame = av.AudioFrame.from_ndarray(np.ascontiguousarray(chunk.T), format="fltp",
+                                                       layout=layout)
+                    frame.sample_rate = int(audio_rate)
+                    frame.pts = a_pos
+                    frame.time_base = Fraction(1, int(audio_rate))
+                    out.mux(astream.encode(frame))
+                    a_pos += chunk.shape[0]
+
+            index = 0
+            frame_rgb = first
+            while True:
+                vf = av.VideoFrame.from_ndarray(frame_rgb, format="rgb24")
+                vf.pts = index
+                vf.time_base = vs.codec_context.time_base
+                out.mux(vs.encode(vf))
+                index += 1
+                if astream is not None:
+                    push_audio(int(round(index / float(rate) * int(audio_rate))))
+                try:
+                    frame_rgb = _check_frame(next(it), (height, width))
+                except StopIteration:
+                    break
+            out.mux(vs.encode(None))
+            if astream is not None:
+                push_audio(n_samples)
+                out.mux(astream.encode(None))
+        os.replace(tmp, path)
+    except av.error.FFmpegError as exc:
+        raise VideoError(f"{path}: video encoding failed ({exc})") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _check_frame(frame: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
+    a = np.asarray(frame)
+    if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"frames must be RGB uint8 (H, W, 3), got {a.dtype} {a.shape}")
+    if size is not None and a.shape[:2] != size:
+        raise ValueError(f"all frames must have the first frame's size {size}, got {a.shape[:2]}")
+    return np.ascontiguousarray(a)
+
+
+__all__ = [
+    "VideoError", "VideoInfo", "choose_audio_codec", "choose_video_codec", "iter_video_frames", "probe_video",
+    "read_video_audio", "read_video_frames", "write_video",
+]
