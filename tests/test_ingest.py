@@ -7,6 +7,7 @@ import pickle
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
@@ -495,3 +496,32 @@ def test_every_shared_textgrid_reads_and_maps_with_no_unknown_symbol():
         assert any(m.visemes for m in mapped), path
         with_phones += 1
     assert with_phones >= 27
+
+
+def test_grid_clip_with_audio_inside_the_video_and_landmarks(tmp_path):
+    """A GRID clip laid out as a corpus: .mpg (audio inside) + .align + MediaPipe landmarks, no wav."""
+    clip = "bbaf2n"
+    folder = tmp_path / "s1"
+    folder.mkdir()
+    shutil.copyfile(DATA / "grid_s1" / "video" / f"{clip}.mpg", folder / f"{clip}.mpg")
+    shutil.copyfile(DATA / "grid_s1" / "align" / f"{clip}.align", folder / f"{clip}.align")
+    shutil.copyfile(DATA / "grid_s1" / "landmarks" / f"{clip}.mediapipe478.csv", folder / f"{clip}.mediapipe478.csv")
+    entry = entry_of(tmp_path, f"s1/{clip}")
+    assert entry.audio_path == entry.video_path and entry.landmark_path.endswith(".mediapipe478.csv")
+    result = ingest_utterance(entry, CONFIG)
+    u = result.utterance
+    assert u[C.FPS] == 25 and u[C.N_FRAMES] == 75 and u[C.SAMPLE_RATE] == 44100
+    assert [p[C.VISEME] for p in result.phones if p[C.WORD] == "bin"] == ["MBP", "IEE", "LNTD"]
+
+
+def test_video_shorter_than_alignment(tmp_path):
+    from visemeflow.tracking.video import write_video
+
+    corpus = make_corpus(tmp_path, {"spk/u1": HELLO})
+    frames = np.zeros((10, 32, 32, 3), dtype=np.uint8)  # 0.4 s at 25 fps, alignment is 1.0 s
+    video = write_video(corpus / "spk" / "u1.mp4", frames, 25.0)
+    entry = entry_of(corpus, "spk/u1")
+    with pytest.raises(IngestError) as err:
+        ingest_utterance(entry, CONFIG)
+    assert err.value.error_type == "VideoShorterThanAlignment"
+    assert_names(err.value, "spk/u1", video)

@@ -10,7 +10,7 @@ from visemeflow.schemas import InvalidIdError, validate_utterance_id
 AUDIO_EXTS = (".wav", ".flac", ".ogg")
 ALIGNMENT_EXTS = (".TextGrid", ".textgrid", ".align")
 VIDEO_EXTS = (".mp4", ".avi", ".mpg", ".mov")
-LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet")
+LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet", ".mediapipe478.csv", ".openface.csv")
 MANIFEST_COLUMNS = ("utterance_id", "audio", "alignment", "video", "landmarks", "language", "split")
 
 
@@ -140,6 +140,8 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                 rejects.append(DiscoveryReject(utterance_id, "MissingAlignment",
                                                f"{utterance_id}: no .TextGrid or .align file next to {any_path}", any_path))
                 continue
+            if "audio" not in kinds and "video" in kinds:
+                kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
             if "audio" not in kinds:
                 rejects.append(DiscoveryReject(utterance_id, "MissingAudio",
                                                f"{utterance_id}: no {'/'.join(AUDIO_EXTS)} file next to {kinds['alignment']}",
@@ -195,6 +197,8 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
                                           f"{where}: {utterance_id}: {col} file {path} does not exist", str(path))
                     break
                 paths[col] = str(path)
+            if bad is None and paths["audio"] is None and paths["video"] is not None:
+                paths["audio"] = paths["video"]  # the audio track inside the video
             if bad is None and (paths["audio"] is None or paths["alignment"] is None):
                 bad = DiscoveryReject(utterance_id, "MissingInput", f"{where}: {utterance_id}: audio and alignment are required", str(manifest))
             if bad is not None:

@@ -20,6 +20,7 @@ from visemeflow.phonetics.wordalign import (
 )
 from visemeflow.schemas import C
 from visemeflow.timebase import frame_count
+from visemeflow.tracking.video import VideoError, VideoInfo, probe_video
 
 LANGUAGE_OF_INVENTORY = {"arpabet": "en", "ipa": "en", "pinyin": "zh"}
 
@@ -104,7 +105,13 @@ def check_intervals(entry: CorpusEntry, alignment: Alignment) -> None:
 
 
 def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
-    """(sample rate, duration in seconds) from the audio header."""
+    """(sample rate, duration in seconds) from the audio header (or the video's audio track)."""
+    if entry.video_path is not None and entry.audio_path == entry.video_path:
+        info = read_video_info(entry)
+        if not info.has_audio or not info.audio_rate:
+            raise IngestError(entry.utterance_id, entry.video_path, "MissingAudio",
+                              "no audio file beside the video and no audio track in it")
+        return int(info.audio_rate), float(info.container_duration_s or info.duration_s)
     try:
         info = sf.info(entry.audio_path)
     except (RuntimeError, OSError) as exc:
@@ -112,6 +119,14 @@ def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
     if info.frames <= 0 or info.samplerate <= 0:
         raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples")
     return int(info.samplerate), info.frames / info.samplerate
+
+
+def read_video_info(entry: CorpusEntry) -> VideoInfo:
+    """Frame size, rate and count of the entry's video (decoded to count when the header has no count)."""
+    try:
+        return probe_video(entry.video_path)
+    except VideoError as exc:
+        raise IngestError(entry.utterance_id, entry.video_path, "UnreadableVideo", str(exc).removeprefix(f"{entry.video_path}: ")) from exc
 
 
 def map_phones(entry: CorpusEntry, alignment: Alignment, config: IngestConfig) -> tuple[str, list[dict[str, object]]]:
@@ -161,15 +176,24 @@ def ingest_utterance(entry: CorpusEntry, config: IngestConfig) -> IngestedUttera
             f"alignment ends at {align_end:.3f} s but the audio {entry.audio_path} lasts {duration:.3f} s "
             f"(tolerance {config.alignment_tolerance_s} s)",
         )
+    fps, n_frames = config.fps, frame_count(duration, config.fps)
+    if entry.video_path is not None:
+        video = read_video_info(entry)
+        if video.duration_s < align_end - config.alignment_tolerance_s:
+            raise IngestError(
+                entry.utterance_id, entry.video_path, "VideoShorterThanAlignment",
+                f"the video has {video.n_frames} frames ({video.duration_s:.3f} s at {video.fps:g} fps) but the "
+                f"alignment {entry.alignment_path} runs to {align_end:.3f} s",
+            )
+        fps, n_frames = video.fps, video.n_frames
     inventory, phones = map_phones(entry, alignment, config)
-    fps = config.fps
     utterance = {
         C.UTTERANCE_ID: entry.utterance_id, C.SPEAKER: entry.speaker,
         C.LANGUAGE: entry.language or config.language or LANGUAGE_OF_INVENTORY[inventory],
         C.INVENTORY: inventory, C.AUDIO_PATH: entry.audio_path, C.VIDEO_PATH: entry.video_path,
         C.ALIGNMENT_PATH: entry.alignment_path, C.ALIGNMENT_FORMAT: entry.alignment_format,
         C.LANDMARK_PATH: entry.landmark_path, C.SAMPLE_RATE: sample_rate, C.DURATION_S: duration,
-        C.FPS: fps, C.N_FRAMES: frame_count(duration, fps), C.CONTENT_HASH: entry.content_hash,
+        C.FPS: fps, C.N_FRAMES: n_frames, C.CONTENT_HASH: entry.content_hash,
         C.SPLIT: entry.split or assign_split(entry.utterance_id, config.val_fraction),
     }
     return IngestedUtterance(utterance, phones)
