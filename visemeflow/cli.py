@@ -86,6 +86,27 @@ def pipeline(
 
 
 @app.command()
+def synth(
+    corpus: Annotated[Path, typer.Argument(help="Source corpus: audio + alignments.")],
+    out: Annotated[Path, typer.Option(help="Folder of the synthetic corpus.")] = Path("visemeflow-out/synth-corpus"),
+    store: StoreOpt = DEFAULT_STORE,
+    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig (folder, GLB, npz); default: the ICT demo rig.")] = None,
+    width: Annotated[int, typer.Option(help="Frame width.")] = 360,
+    height: Annotated[int, typer.Option(help="Frame height.")] = 288,
+    fps: Annotated[float, typer.Option(help="Video frame rate.")] = 25.0,
+    seed: Annotated[int, typer.Option(help="Seed of the true dynamics, motion and landmark noise.")] = 0,
+) -> None:
+    """Render talking-face videos with known true viseme curves from a corpus of audio + alignments."""
+    from visemeflow.flows.params import SynthParams
+    from visemeflow.flows.synth import synth_flow
+    from visemeflow.synth.dynamics import GroundTruthConfig
+    from visemeflow.synth.take import SynthConfig
+
+    config = SynthConfig(width=width, height=height, fps=fps, truth=GroundTruthConfig(seed=seed))
+    _print_summary("synth", synth_flow(SynthParams(corpus=corpus, out=out, store=store, rig=rig, config=config)))
+
+
+@app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
     stage: Annotated[str, typer.Option(help="ingest or procedural.")] = "procedural",

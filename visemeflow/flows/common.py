@@ -16,23 +16,30 @@ def group_by_shard(items: Iterable[dict], key: str, n_shards: int) -> dict[int, 
     return dict(sorted(groups.items()))
 
 
-def collect(futures: list[PrefectFuture], stage: str) -> tuple[list[dict], list[str]]:
-    """Wait for all futures, updating a progress artifact; (reports of the ones that worked, errors)."""
-    progress_id = create_progress_artifact(progress=0.0, description=f"{stage}: shards done") if futures else None
+def collect(
+    futures: list[PrefectFuture], stage: str, kept_when_cached: tuple[str, ...] = ("shard", "utterances"),
+    cached_key: str = "cached_shards",
+) -> tuple[list[dict], list[str]]:
+    """Wait for all futures, updating a progress artifact; (reports of the ones that worked, errors).
+
+    A cache hit returns the report of the run that computed it, though this run did no work: only the
+    `kept_when_cached` fields of such a report are kept, and `cached_key` says whether it was one.
+    """
+    progress_id = create_progress_artifact(progress=0.0, description=f"{stage}: tasks done") if futures else None
     reports, errors = [], []
     for done, future in enumerate(as_completed(futures), start=1):
         try:
             report = dict(future.result())
-        except Exception as exc:  # a failed task: count it, let the other shards finish
+        except Exception as exc:  # a failed task: count it, let the others finish
             errors.append(f"{type(exc).__name__}: {exc}")
         else:
-            # A cache hit returns the report of the run that computed it: this run did no work.
-            cached = future.state.name == "Cached"
-            reports.append({"shard": report["shard"], "utterances": report["utterances"], "cached_shards": 1}
-                           if cached else {**report, "cached_shards": 0})
+            if future.state.name == "Cached":
+                reports.append({**{k: report[k] for k in kept_when_cached if k in report}, cached_key: 1})
+            else:
+                reports.append({**report, cached_key: 0})
         if progress_id is not None:
             update_progress_artifact(progress_id, progress=100.0 * done / len(futures))
-    return sorted(reports, key=lambda r: r["shard"]), errors
+    return sorted(reports, key=lambda r: r.get("shard", 0)), errors
 
 
 def totals(reports: list[dict]) -> dict[str, int]:

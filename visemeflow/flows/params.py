@@ -8,6 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import validate_name, validate_utterance_id
+from visemeflow.synth.take import SynthConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 
@@ -48,6 +49,23 @@ class PipelineParams(StoreParams):
     corpus: Path = Field(..., description="Corpus folder or manifest CSV.")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
+
+
+class SynthParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    corpus: Path = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
+    out: Path = Field(Path("visemeflow-out/synth-corpus"), description="Folder of the synthetic corpus written.")
+    store: Path = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth').")
+    rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")
+    config: SynthConfig = Field(default_factory=SynthConfig)
+
+    @field_validator("corpus")
+    @classmethod
+    def _corpus_exists(cls, corpus: Path) -> Path:
+        if not corpus.exists():
+            raise ValueError(f"corpus {corpus} does not exist")
+        return corpus
 
 
 class RerunParams(BaseModel):

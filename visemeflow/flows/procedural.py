@@ -10,7 +10,7 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_shard
 
-UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.ALIGNMENT_PATH]
+UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.N_FRAMES, C.ALIGNMENT_PATH]
 
 
 def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, rejected: set[str]) -> bool:

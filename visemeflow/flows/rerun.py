@@ -3,6 +3,7 @@
 from prefect import flow, get_run_logger
 
 from visemeflow.flows.params import RerunParams
+from visemeflow.flows.procedural import UTTERANCE_FIELDS
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import C, shard_of
@@ -39,7 +40,7 @@ def rerun_flow(params: RerunParams) -> dict[str, int]:
         rows = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
         if not rows:
             raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
-        utterance = {k: rows[0][k] for k in (C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.ALIGNMENT_PATH)}
+        utterance = {k: rows[0][k] for k in UTTERANCE_FIELDS}
         task = procedural_tasks.procedural_one.with_options(
             result_storage=result_storage(store.root), refresh_cache=params.force
         )

@@ -45,8 +45,10 @@ def generate_for_utterance(
 ) -> None:
     """Generate and store the procedural curves of one ingested utterance."""
     uid = utterance[C.UTTERANCE_ID]
-    fps = float(utterance[C.FPS]) if config.fps is None else config.fps
-    n_frames = frame_count(utterance[C.DURATION_S], fps)
+    if config.fps is None:  # the utterance's own clock: its video's frames, or the ingest default rate
+        fps, n_frames = float(utterance[C.FPS]), int(utterance[C.N_FRAMES])
+    else:
+        fps, n_frames = config.fps, frame_count(utterance[C.DURATION_S], config.fps)
     curves = generate_procedural_curves(segments_from_phones(phones), n_frames, fps, config)
     if not np.isfinite(curves).all():
         raise FloatingPointError(f"{uid}: procedural curves are not finite")

@@ -1,0 +1,75 @@
+"""Synthetic-corpus task: one utterance's true curves, video, audio, landmarks and camera."""
+
+import json
+import shutil
+from pathlib import Path
+
+import soundfile as sf
+from prefect import get_run_logger, task
+
+from visemeflow.hashing import stable_hash
+from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
+from visemeflow.phonetics.types import VisemeSegment
+from visemeflow.rig import load_rig
+from visemeflow.schemas import C, curves_table, split_utterance_id
+from visemeflow.storage import Store
+from visemeflow.synth.take import SynthConfig, camera_record, make_take, render_take
+from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.timebase import frame_count
+from visemeflow.tracking.landmarks import write_landmarks
+from visemeflow.tracking.video import write_video
+
+SOURCE = "ground_truth"
+
+
+def truth_variant(config: SynthConfig) -> str:
+    """`cm-seed0`: Cohen-Massaro dynamics with the seed; a hash is added when other constants differ."""
+    name = f"cm-seed{config.truth.seed}"
+    if config.truth != type(config.truth)(seed=config.truth.seed):
+        name += "-" + stable_hash(config.truth, size=4)
+    return name
+
+
+def _atomic_json(path: Path, data: object) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    tmp.replace(path)
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="synth[{entry[utterance_id]}]", retries=0)
+def synth_utterance(
+    entry: dict, out_root: str, rig_path: str, rig_hash: str, config: SynthConfig, store_root: str
+) -> dict[str, object]:
+    """Render one utterance of the source corpus into the synthetic corpus, true curves into the store."""
+    source = CorpusEntry(**entry)
+    ingested = ingest_utterance(source, IngestConfig())
+    segments = [
+        VisemeSegment(p[C.VISEME], p[C.START_S], p[C.END_S], p[C.WORD_INDEX], p[C.PHONEME] or "")
+        for p in ingested.phones if p[C.VISEME] is not None
+    ]
+    n_frames = frame_count(ingested.utterance[C.DURATION_S], config.fps)
+    rig = load_rig(rig_path)
+    take = make_take(rig, segments, n_frames, source.speaker, source.utterance_id, config)
+
+    speaker, name = split_utterance_id(source.utterance_id)
+    folder = Path(out_root) / speaker
+    folder.mkdir(parents=True, exist_ok=True)
+    alignment = folder / (name + Path(source.alignment_path).suffix)
+    audio = folder / f"{name}.wav"
+    shutil.copyfile(source.alignment_path, alignment)
+    samples, rate = sf.read(source.audio_path, dtype="float32", always_2d=False)
+    if samples.ndim > 1:
+        samples = samples.mean(axis=1)
+    sf.write(audio, samples, rate, subtype="PCM_16")
+    video = write_video(folder / f"{name}.{config.video_ext}", render_take(rig, take), config.fps, samples, rate)
+    landmarks = write_landmarks(take.landmarks, folder / f"{name}.landmarks.parquet")
+    _atomic_json(folder / f"{name}.camera.json", camera_record(take))
+
+    variant = truth_variant(config)
+    Store(store_root).write_curves(
+        curves_table(source.utterance_id, SOURCE, variant, take.curves, config.fps),
+        provenance=f"{SOURCE}:{source.content_hash}:{stable_hash(config)}:{rig_hash}", fps=config.fps,
+    )
+    get_run_logger().info("%s: %d frames -> %s", source.utterance_id, n_frames, video)
+    return {"utterance_id": source.utterance_id, "frames": n_frames, "video": str(video),
+            "landmarks": str(landmarks), "variant": variant}
