@@ -20,9 +20,13 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
+# then run the pipeline on those videos.
 demo: venv
-	$(BIN)/visemeflow pipeline examples/corpus --store $(OUT)/store
-	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store
+	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
+	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
+	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source ground_truth
+	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source procedural
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
 test: venv

@@ -1,0 +1,137 @@
+"""Benchmark: the ground-truth renderer and rig evaluation on the shipped ICT demo rig, on one CPU core.
+
+Run:  .venv/bin/python bench/rendering.py [--frames N]
+
+Prints one table (metric, value, target, met?) and never asserts; the exit status is 0 whatever the figures are.
+Threads are pinned to one (OMP/MKL/OpenBLAS env set before numpy is imported, torch.set_num_threads(1)).
+
+1. Rendering at 360x288 (the GRID video size), face framed as the synthetic corpus frames it (landmark span = 45% of
+   the image height, so the head fills about 60%): N frames of the rig under random viseme weights (one weight
+   set per frame, meshes evaluated beforehand and not timed), each rendered by
+     fast       `render_mesh`: all triangles' bounding-box pixels enumerated at once in numpy, np.maximum.at z-buffer;
+     reference  `render_mesh(..., reference=True)`: the plain per-triangle loop with a running z-buffer (same
+                pixels; it is the faithful path the fast one is tested against), on a few frames only.
+   Split of the fast path: rasterisation (`rasterize_fragments`) and shading (vertex normals + Lambert) alone.
+   Also 640x480 and a close-up (landmark span = 90% of the height), where more pixels are covered.
+2. Rig evaluation for 1,000 frames of weights: the 68 landmark vertices (`evaluate_rig(rig, w, rig.landmark_ids)`,
+   what a tracker's landmark loss needs per iteration) against the full mesh; best of repeats, the tensors cache
+   warm; the cold first call (which builds the cached torch tensors) is shown apart.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_name] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from visemeflow.rig import evaluate_rig, load_demo_rig  # noqa: E402
+from visemeflow.rig.model import VisemeRig  # noqa: E402
+from visemeflow.synth.render import (  # noqa: E402
+    Camera,
+    frontal_pose,
+    rasterize_fragments,
+    render_mesh,
+    shade_vertices,
+    to_camera,
+)
+
+
+def best_of(fn, repeats: int) -> float:
+    """Smallest wall time of `repeats` calls, seconds."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def per_frame(fn, meshes: np.ndarray) -> float:
+    """Mean seconds per frame of fn(mesh) over all meshes (one warm-up call first)."""
+    fn(meshes[0])
+    start = time.perf_counter()
+    for mesh in meshes:
+        fn(mesh)
+    return (time.perf_counter() - start) / len(meshes)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=100, help="frames rendered per fast-path row")
+    parser.add_argument("--reference-frames", type=int, default=3)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    rig: VisemeRig = load_demo_rig()
+    rng = np.random.default_rng(0)
+    weights = (rng.uniform(0, 1, (args.frames, 16)) * (rng.uniform(0, 1, (args.frames, 16)) < 0.2)).astype(np.float32)
+    meshes = evaluate_rig(rig, weights).numpy()
+    print(f"rig {rig.name}: {rig.n_vertices} vertices, {len(rig.faces)} triangles; torch threads {torch.get_num_threads()}")
+
+    rows: list[tuple[str, str, str, str]] = []
+
+    def add(metric: str, value: str, target: str = "", met: bool | None = None) -> None:
+        rows.append((metric, value, target, "" if met is None else ("yes" if met else "NO")))
+
+    views = {}
+    for label, (width, height, fill) in {
+        "360x288": (360, 288, 0.45),
+        "640x480": (640, 480, 0.45),
+        "360x288 close-up": (360, 288, 0.9),
+    }.items():
+        camera = Camera.default(width, height)
+        views[label] = (camera, frontal_pose(rig.neutral[rig.landmark_ids], camera, fill=fill))
+
+    camera, pose = views["360x288"]
+    fast = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, camera, pose), meshes)
+    reference = per_frame(
+        lambda m: render_mesh(m, rig.faces, rig.vertex_colors, camera, pose, reference=True),
+        meshes[: args.reference_frames],
+    )
+    raster = per_frame(lambda m: rasterize_fragments(m, rig.faces, camera, pose), meshes)
+    shade = per_frame(lambda m: shade_vertices(to_camera(m, pose), rig.faces, rig.vertex_colors), meshes)
+    covered = rasterize_fragments(meshes[0], rig.faces, camera, pose).pixel.size
+    add("render 360x288, fast path (frames/s)", f"{1 / fast:.1f}", ">= 30", 1 / fast >= 30)
+    add("render 360x288, per-triangle reference (frames/s)", f"{1 / reference:.2f}")
+    add("  fast / reference speed-up", f"{reference / fast:.0f}x")
+    add("  of which rasterisation (ms/frame)", f"{raster * 1e3:.1f}")
+    add("  of which vertex normals + shading (ms/frame)", f"{shade * 1e3:.1f}")
+    add("  face pixels covered", f"{covered} ({covered / (camera.width * camera.height):.0%})")
+    for label in ("640x480", "360x288 close-up"):
+        cam, view = views[label]
+        seconds = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, cam, view), meshes[:30])
+        add(f"render {label}, fast path (frames/s)", f"{1 / seconds:.1f}")
+
+    frames = rng.uniform(0, 1, (1000, 16)).astype(np.float32)
+    tensor = torch.from_numpy(frames)
+    fresh = VisemeRig(rig.name, rig.neutral, rig.deltas, rig.faces, rig.landmark_ids)
+    start = time.perf_counter()
+    evaluate_rig(fresh, tensor, fresh.landmark_ids)
+    cold = time.perf_counter() - start
+    landmarks = best_of(lambda: evaluate_rig(rig, tensor, rig.landmark_ids), 20)
+    full = best_of(lambda: evaluate_rig(rig, tensor), 3)
+    add("rig eval, 68 landmarks x 1,000 frames (ms)", f"{landmarks * 1e3:.3f}", "< 10", landmarks < 0.010)
+    add("rig eval, full mesh x 1,000 frames (ms)", f"{full * 1e3:.1f}")
+    add("  full / landmarks", f"{full / landmarks:.0f}x")
+    add("rig eval, landmarks, first call incl. tensor cache (ms)", f"{cold * 1e3:.1f}")
+
+    width = max(len(r[0]) for r in rows)
+    print(f"{'metric':<{width}}  {'value':>16}  {'target':>7}  met?")
+    for metric, value, target, met in rows:
+        print(f"{metric:<{width}}  {value:>16}  {target:>7}  {met}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,575 @@
+"""Rig readers and writers: a folder of meshes (OBJ/PLY/GLB), one GLB with morph targets, the compact npz.
+
+Vertex order is the rig's identity (landmark ids and deltas index it), so every reader keeps the file's order:
+OBJ and glTF are parsed here, PLY goes through trimesh with `process=False, maintain_order=True` (the default
+processing merges and reorders vertices).
+"""
+
+from __future__ import annotations
+
+import base64
+import gzip
+import json
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from visemeflow.rig.model import N_LANDMARKS, RigError, VisemeRig, validate_rig
+from visemeflow.visemes import N_VISEMES, VISEMES
+
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf")
+NPZ_FORMAT = "visemeflow-rig/1"
+
+
+@dataclass(frozen=True)
+class MeshData:
+    """One mesh as read from a file: (V, 3) float64 vertices, (F, 3) int32 triangles, optional (V, 3) RGB in [0, 1]."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray | None = None
+
+
+# ---------------------------------------------------------------------------------------------- meshes
+
+def _mesh_suffix(path: Path) -> str:
+    """Lower-case mesh suffix, looking through a trailing .gz (`a.obj.gz` -> `.obj`)."""
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return suffixes[-1] if suffixes else ""
+
+
+def _mesh_stem(path: Path) -> str:
+    name = path.name
+    if name.lower().endswith(".gz"):
+        name = name[:-3]
+    return name.rsplit(".", 1)[0]
+
+
+def read_obj(path: Path | str) -> MeshData:
+    """Wavefront OBJ (optionally gzip-compressed): `v` lines (with optional r g b), polygons split into fans."""
+    path = Path(path)
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace") as handle:
+            lines = handle.read().splitlines()
+    except OSError as error:
+        raise RigError(f"{path}: cannot read OBJ: {error}") from None
+    vertex_rows: list[list[str]] = []
+    polygons: list[list[str]] = []
+    for line in lines:
+        if line.startswith("v "):
+            vertex_rows.append(line.split()[1:])
+        elif line.startswith("f "):
+            polygons.append(line.split()[1:])
+    if not vertex_rows:
+        raise RigError(f"{path}: OBJ has no vertices ('v' lines)")
+    widths = {len(row) for row in vertex_rows}
+    try:
+        if widths == {6} or widths == {7}:
+            table = np.array(vertex_rows, dtype=np.float64)
+            vertices, colors = table[:, :3], table[:, 3:6]
+            if colors.max(initial=0.0) > 1.0:
+                colors = colors / 255.0
+        else:
+            vertices = np.array([row[:3] for row in vertex_rows], dtype=np.float64)
+            colors = None
+    except ValueError as error:
+        raise RigError(f"{path}: malformed OBJ vertex line: {error}") from None
+    n_vertices = len(vertices)
+    triangles: list[np.ndarray] = []
+    by_size: dict[int, list[list[int]]] = {}
+    try:
+        for polygon in polygons:
+            ids = [int(token.split("/", 1)[0]) for token in polygon]
+            by_size.setdefault(len(ids), []).append(ids)
+    except ValueError as error:
+        raise RigError(f"{path}: malformed OBJ face line: {error}") from None
+    for size, group in sorted(by_size.items()):
+        if size < 3:
+            raise RigError(f"{path}: OBJ face with {size} vertices (need at least 3)")
+        ids = np.array(group, dtype=np.int64)
+        ids = np.where(ids < 0, ids + n_vertices, ids - 1)  # 1-based, negatives count back from the end
+        fan = np.stack([ids[:, [0, k, k + 1]] for k in range(1, size - 1)], axis=1).reshape(-1, 3)
+        triangles.append(fan)
+    faces = np.concatenate(triangles) if triangles else np.zeros((0, 3), np.int64)
+    # fans were grouped by polygon size; restore the file's polygon order so face ids are stable
+    if len(by_size) > 1:
+        order_key = np.concatenate(
+            [np.repeat(np.flatnonzero([len(p) == size for p in polygons]), size - 2) for size in sorted(by_size)]
+        )
+        faces = faces[np.argsort(order_key, kind="stable")]
+    if faces.size and (faces.min() < 0 or faces.max() >= n_vertices):
+        raise RigError(f"{path}: OBJ face refers to a vertex outside 1..{n_vertices}")
+    return MeshData(vertices, faces.astype(np.int32), colors)
+
+
+def read_ply(path: Path | str) -> MeshData:
+    """PLY through trimesh, vertex order kept; vertex colours when the file has them."""
+    import trimesh
+
+    path = Path(path)
+    try:
+        mesh = trimesh.load(path, file_type="ply", process=False, maintain_order=True, force="mesh")
+    except Exception as error:  # trimesh raises many types for a bad file; name the file either way
+        raise RigError(f"{path}: cannot read PLY: {error}") from None
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int32).reshape(-1, 3)
+    colors = None
+    visual = getattr(mesh, "visual", None)
+    if visual is not None and getattr(visual, "kind", None) == "vertex":
+        rgba = np.asarray(visual.vertex_colors)
+        if rgba.shape[0] == len(vertices):
+            colors = rgba[:, :3].astype(np.float64) / 255.0
+    return MeshData(vertices, faces, colors)
+
+
+def read_mesh(path: Path | str) -> MeshData:
+    """Any supported mesh file (.obj[.gz], .ply, .glb, .gltf); a glTF gives its first mesh, morph targets ignored."""
+    path = Path(path)
+    suffix = _mesh_suffix(path)
+    if suffix == ".obj":
+        return read_obj(path)
+    if suffix == ".ply":
+        return read_ply(path)
+    if suffix in (".glb", ".gltf"):
+        gltf = _GltfFile.open(path)
+        if not gltf.meshes:
+            raise RigError(f"{path}: glTF has no mesh")
+        vertices, faces, _, _ = gltf.read_mesh(0)
+        return MeshData(vertices, faces)
+    raise RigError(f"{path}: unsupported mesh format {suffix or '(none)'}; expected one of {', '.join(MESH_SUFFIXES)}")
+
+
+# ---------------------------------------------------------------------------------------------- glTF
+
+_COMPONENT_DTYPES = {
+    5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
+}
+_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_GLB_MAGIC = b"glTF"
+_CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
+
+
+class _GltfFile:
+    """The parts of a glTF 2.0 asset a rig needs: mesh primitives (triangles), their morph targets and names."""
+
+    def __init__(self, path: Path, document: dict, buffers: list[bytes]):
+        self.path = path
+        self.document = document
+        self.buffers = buffers
+        self.meshes: list[dict] = document.get("meshes", [])
+
+    @classmethod
+    def open(cls, path: Path) -> _GltfFile:
+        try:
+            data = path.read_bytes()
+        except OSError as error:
+            raise RigError(f"{path}: cannot read glTF: {error}") from None
+        if data[:4] == _GLB_MAGIC:
+            document, binary = cls._split_glb(path, data)
+        else:
+            try:
+                document = json.loads(data.decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as error:
+                raise RigError(f"{path}: neither a GLB (magic 'glTF') nor glTF JSON: {error}") from None
+            binary = None
+        buffers = []
+        for index, buffer in enumerate(document.get("buffers", [])):
+            uri = buffer.get("uri")
+            if uri is None:
+                if binary is None:
+                    raise RigError(f"{path}: buffer {index} has no uri and the file has no GLB binary chunk")
+                buffers.append(binary)
+            elif uri.startswith("data:"):
+                buffers.append(base64.b64decode(uri.split(",", 1)[1]))
+            else:
+                try:
+                    buffers.append((path.parent / uri).read_bytes())
+                except OSError as error:
+                    raise RigError(f"{path}: cannot read buffer {uri!r}: {error}") from None
+        return cls(path, document, buffers)
+
+    @staticmethod
+    def _split_glb(path: Path, data: bytes) -> tuple[dict, bytes | None]:
+        if len(data) < 20:
+            raise RigError(f"{path}: GLB shorter than its header")
+        _, version, _ = struct.unpack_from("<4sII", data, 0)
+        if version != 2:
+            raise RigError(f"{path}: GLB version {version}; only glTF 2.0 is supported")
+        offset, document, binary = 12, None, None
+        while offset + 8 <= len(data):
+            length, kind = struct.unpack_from("<II", data, offset)
+            chunk = data[offset + 8 : offset + 8 + length]
+            if kind == _CHUNK_JSON and document is None:
+                try:
+                    document = json.loads(chunk.decode("utf-8"))
+                except (UnicodeDecodeError, json.JSONDecodeError) as error:
+                    raise RigError(f"{path}: GLB JSON chunk is not valid JSON: {error}") from None
+            elif kind == _CHUNK_BIN and binary is None:
+                binary = chunk
+            offset += 8 + length
+        if document is None:
+            raise RigError(f"{path}: GLB has no JSON chunk")
+        return document, binary
+
+    def accessor(self, index: int) -> np.ndarray:
+        """(count, width) array of accessor `index` (strided views and sparse substitution handled)."""
+        try:
+            accessor = self.document["accessors"][index]
+            dtype = np.dtype(_COMPONENT_DTYPES[accessor["componentType"]]).newbyteorder("<")
+            width = _TYPE_WIDTHS[accessor["type"]]
+            count = int(accessor["count"])
+        except (KeyError, IndexError, TypeError) as error:
+            raise RigError(f"{self.path}: bad glTF accessor {index}: {error!r}") from None
+        if "bufferView" in accessor:
+            values = self._view(accessor["bufferView"], accessor.get("byteOffset", 0), dtype, width, count)
+        else:
+            values = np.zeros((count, width), dtype)
+        sparse = accessor.get("sparse")
+        if sparse:
+            n = int(sparse["count"])
+            ids_spec, values_spec = sparse["indices"], sparse["values"]
+            ids_dtype = np.dtype(_COMPONENT_DTYPES[ids_spec["componentType"]]).newbyteorder("<")
+            ids = self._view(ids_spec["bufferView"], ids_spec.get("byteOffset", 0), ids_dtype, 1, n)[:, 0]
+            replaced = self._view(values_spec["bufferView"], values_spec.get("byteOffset", 0), dtype, width, n)
+            values = values.copy()
+            values[ids.astype(np.int64)] = replaced
+        return values
+
+    def _view(self, view_index: int, byte_offset: int, dtype: np.dtype, width: int, count: int) -> np.ndarray:
+        try:
+            view = self.document["bufferViews"][view_index]
+            buffer = self.buffers[view["buffer"]]
+        except (KeyError, IndexError) as error:
+            raise RigError(f"{self.path}: bad glTF bufferView {view_index}: {error!r}") from None
+        start = view.get("byteOffset", 0) + byte_offset
+        element = dtype.itemsize * width
+        stride = view.get("byteStride") or element
+        needed = start + (count - 1) * stride + element if count else start
+        if needed > len(buffer) or needed > view.get("byteOffset", 0) + view.get("byteLength", 0):
+            raise RigError(f"{self.path}: glTF bufferView {view_index} is shorter than its accessor")
+        if count == 0:
+            return np.zeros((0, width), dtype)
+        raw = np.frombuffer(buffer, dtype=np.uint8, count=needed - start, offset=start)
+        if stride == element:
+            return raw.view(dtype).reshape(count, width).astype(dtype.newbyteorder("="))
+        rows = np.lib.stride_tricks.as_strided(raw, shape=(count, element), strides=(stride, 1))
+        return np.ascontiguousarray(rows).view(dtype).reshape(count, width).astype(dtype.newbyteorder("="))
+
+    def target_names(self, mesh_index: int) -> list[str] | None:
+        mesh = self.meshes[mesh_index]
+        names = (mesh.get("extras") or {}).get("targetNames")
+        if names is None:
+            for primitive in mesh.get("primitives", []):
+                names = (primitive.get("extras") or {}).get("targetNames")
+                if names is not None:
+                    break
+        return None if names is None else [str(n) for n in names]
+
+    def read_mesh(self, mesh_index: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
+        """Vertices (V, 3), triangles (F, 3), per-target position deltas [(V, 3)], mesh extras; primitives joined."""
+        mesh = self.meshes[mesh_index]
+        primitives = mesh.get("primitives", [])
+        if not primitives:
+            raise RigError(f"{self.path}: glTF mesh {mesh_index} has no primitives")
+        vertices, faces, targets = [], [], None
+        offset = 0
+        for p_index, primitive in enumerate(primitives):
+            mode = primitive.get("mode", 4)
+            if mode != 4:
+                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index} has mode {mode}; only triangles (4)")
+            attributes = primitive.get("attributes", {})
+            if "POSITION" not in attributes:
+                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index} has no POSITION")
+            positions = self.accessor(attributes["POSITION"]).astype(np.float64)
+            if "indices" in primitive:
+                ids = self.accessor(primitive["indices"])[:, 0].astype(np.int64)
+            else:
+                ids = np.arange(len(positions), dtype=np.int64)
+            if len(ids) % 3:
+                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index}: index count {len(ids)} is not a multiple of 3")
+            prim_targets = [
+                self.accessor(t["POSITION"]).astype(np.float64) if "POSITION" in t else np.zeros_like(positions)
+                for t in primitive.get("targets", [])
+            ]
+            if targets is None:
+                targets = [[t] for t in prim_targets]
+            elif len(prim_targets) != len(targets):
+                raise RigError(
+                    f"{self.path}: mesh {mesh_index} primitives have different morph target counts "
+                    f"({len(targets)} vs {len(prim_targets)})"
+                )
+            else:
+                for bucket, t in zip(targets, prim_targets):
+                    bucket.append(t)
+            vertices.append(positions)
+            faces.append(ids.reshape(-1, 3) + offset)
+            offset += len(positions)
+        all_vertices = np.concatenate(vertices)
+        all_faces = np.concatenate(faces)
+        if all_faces.size and (all_faces.min() < 0 or all_faces.max() >= len(all_vertices)):
+            raise RigError(f"{self.path}: glTF mesh {mesh_index} indices refer past its {len(all_vertices)} vertices")
+        deltas = [np.concatenate(bucket) for bucket in (targets or [])]
+        return all_vertices, all_faces.astype(np.int32), deltas, mesh.get("extras") or {}
+
+
+# ---------------------------------------------------------------------------------------------- landmarks
+
+def read_landmarks_json(path: Path | str) -> np.ndarray:
+    """(68,) int64 vertex ids from a JSON list (null or -1 = none) or an object with a "landmark_ids" list."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text("utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise RigError(f"{path}: cannot read landmark ids: {error}") from None
+    if isinstance(data, dict):
+        data = data.get("landmark_ids")
+    if not isinstance(data, list):
+        raise RigError(f"{path}: expected a JSON list of {N_LANDMARKS} vertex ids (or {{\"landmark_ids\": [...]}})")
+    if len(data) != N_LANDMARKS:
+        raise RigError(f"{path}: expected {N_LANDMARKS} landmark vertex ids (Multi-PIE order), got {len(data)}")
+    try:
+        return np.array([-1 if v is None else int(v) for v in data], dtype=np.int64)
+    except (TypeError, ValueError):
+        raise RigError(f"{path}: landmark ids must be integers or null") from None
+
+
+def _check_landmarks(landmarks: np.ndarray, n_vertices: int, source: Path) -> None:
+    if landmarks.min() < -1 or landmarks.max() >= n_vertices:
+        raise RigError(
+            f"{source}: landmark ids must lie in [0, {n_vertices}) or be -1, got {landmarks.min()}..{landmarks.max()}"
+        )
+
+
+def _no_landmarks() -> np.ndarray:
+    return np.full(N_LANDMARKS, -1, dtype=np.int64)
+
+
+def _check_finite(vertices: np.ndarray, source: Path) -> None:
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        raise RigError(f"{source}: non-finite vertex coordinates (first at vertex {int(np.flatnonzero(~finite)[0])})")
+
+
+# ---------------------------------------------------------------------------------------------- rigs
+
+def load_rig_folder(path: Path | str, name: str | None = None) -> VisemeRig:
+    """A folder of `neutral.<ext>` and one mesh per viseme (`AAA.obj`, `mbp.ply`, ...; obj/ply/glb, any case).
+
+    All meshes must share the neutral's vertex count and triangles. Optional `landmarks.json`: 68 vertex ids.
+    Other mesh files are an error (a misspelt viseme would otherwise be silently missing); non-mesh files are ignored.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise RigError(f"{folder}: not a folder")
+    expected = {v.lower(): v for v in VISEMES}
+    found: dict[str, Path] = {}
+    for file in sorted(folder.iterdir()):
+        if not file.is_file() or _mesh_suffix(file) not in MESH_SUFFIXES:
+            continue
+        key = _mesh_stem(file).lower()
+        if key != "neutral" and key not in expected:
+            raise RigError(
+                f"{file}: unknown mesh name {_mesh_stem(file)!r}; expected 'neutral' or one of {', '.join(VISEMES)}"
+            )
+        if key in found:
+            raise RigError(f"{file}: a second mesh for {key!r} (first: {found[key].name})")
+        found[key] = file
+    if "neutral" not in found:
+        raise RigError(f"{folder}: no neutral mesh (neutral.obj, neutral.ply or neutral.glb)")
+    missing = [v for v in VISEMES if v.lower() not in found]
+    if missing:
+        raise RigError(f"{folder}: missing viseme mesh(es) {', '.join(missing)} (e.g. {missing[0]}.obj)")
+
+    neutral_file = found["neutral"]
+    neutral = read_mesh(neutral_file)
+    _check_finite(neutral.vertices, neutral_file)
+    n_vertices = len(neutral.vertices)
+    deltas = np.empty((N_VISEMES, n_vertices, 3), np.float32)
+    for i, viseme in enumerate(VISEMES):
+        file = found[viseme.lower()]
+        mesh = read_mesh(file)
+        if len(mesh.vertices) != n_vertices:
+            raise RigError(
+                f"{file}: {len(mesh.vertices)} vertices, but {neutral_file.name} has {n_vertices}; "
+                "every viseme must share the neutral's topology"
+            )
+        if mesh.faces.shape != neutral.faces.shape or not np.array_equal(mesh.faces, neutral.faces):
+            raise RigError(
+                f"{file}: topology differs from {neutral_file.name} ({len(mesh.faces)} vs {len(neutral.faces)} "
+                "triangles, or different vertex ids)"
+            )
+        _check_finite(mesh.vertices, file)
+        deltas[i] = mesh.vertices - neutral.vertices
+
+    landmark_file = next((f for f in folder.iterdir() if f.name.lower() == "landmarks.json"), None)
+    landmarks = _no_landmarks()
+    if landmark_file is not None:
+        landmarks = read_landmarks_json(landmark_file)
+        _check_landmarks(landmarks, n_vertices, landmark_file)
+    colors = None if neutral.colors is None else np.clip(neutral.colors, 0.0, 1.0).astype(np.float32)
+    rig = VisemeRig(
+        name=name or folder.name,
+        neutral=neutral.vertices.astype(np.float32),
+        deltas=deltas,
+        faces=neutral.faces.astype(np.int32),
+        landmark_ids=landmarks,
+        vertex_colors=colors,
+    )
+    _validate(rig, folder)
+    return rig
+
+
+def load_rig_glb(path: Path | str, name: str | None = None, landmarks: Path | str | None = None) -> VisemeRig:
+    """One glTF/GLB whose morph targets are named by viseme (mesh `extras.targetNames`, any case).
+
+    The mesh used is the first one with morph targets; its primitives are joined, node transforms are not applied.
+    Every morph target must be a viseme and all 16 must be there. Landmark ids come from `landmarks` (a JSON file),
+    else `<stem>.landmarks.json` beside the file, else mesh `extras.landmark_ids`, else none (-1).
+    """
+    path = Path(path)
+    gltf = _GltfFile.open(path)
+    mesh_index = next((i for i, m in enumerate(gltf.meshes) if any(p.get("targets") for p in m.get("primitives", []))), None)
+    if mesh_index is None:
+        raise RigError(f"{path}: no mesh with morph targets; the 16 visemes must be morph targets of one mesh")
+    vertices, faces, targets, extras = gltf.read_mesh(mesh_index)
+    names = gltf.target_names(mesh_index)
+    if names is None:
+        raise RigError(f"{path}: mesh {mesh_index} morph targets have no names (extras.targetNames)")
+    if len(names) != len(targets):
+        raise RigError(f"{path}: {len(names)} target names for {len(targets)} morph targets")
+    _check_finite(vertices, path)
+    expected = {v.lower(): v for v in VISEMES}
+    by_viseme: dict[str, np.ndarray] = {}
+    for target_name, delta in zip(names, targets):
+        key = target_name.lower()
+        if key not in expected:
+            raise RigError(f"{path}: unknown morph target name {target_name!r}; expected one of {', '.join(VISEMES)}")
+        if expected[key] in by_viseme:
+            raise RigError(f"{path}: morph target {target_name!r} appears twice")
+        if not np.isfinite(delta).all():
+            raise RigError(f"{path}: morph target {target_name!r} has non-finite coordinates")
+        by_viseme[expected[key]] = delta
+    missing = [v for v in VISEMES if v not in by_viseme]
+    if missing:
+        raise RigError(f"{path}: missing viseme morph target(s) {', '.join(missing)}")
+    deltas = np.stack([by_viseme[v] for v in VISEMES]).astype(np.float32)
+
+    landmark_ids = _no_landmarks()
+    sidecar = Path(landmarks) if landmarks is not None else path.with_name(f"{path.name.split('.')[0]}.landmarks.json")
+    if landmarks is not None or sidecar.is_file():
+        landmark_ids = read_landmarks_json(sidecar)
+        _check_landmarks(landmark_ids, len(vertices), sidecar)
+    elif "landmark_ids" in extras:
+        ids = extras["landmark_ids"]
+        if not isinstance(ids, list) or len(ids) != N_LANDMARKS:
+            raise RigError(f"{path}: extras.landmark_ids must list {N_LANDMARKS} vertex ids")
+        landmark_ids = np.array([-1 if v is None else int(v) for v in ids], dtype=np.int64)
+        _check_landmarks(landmark_ids, len(vertices), path)
+    rig = VisemeRig(
+        name=name or path.name.split(".")[0],
+        neutral=vertices.astype(np.float32),
+        deltas=deltas,
+        faces=faces,
+        landmark_ids=landmark_ids,
+    )
+    _validate(rig, path)
+    return rig
+
+
+def save_rig_npz(rig: VisemeRig, path: Path | str) -> Path:
+    """The compact rig file: float16 deltas, float32 neutral, int32 faces, zip-compressed. Returns the path."""
+    validate_rig(rig)
+    path = Path(path)
+    peak = float(np.abs(rig.deltas).max(initial=0.0))
+    if peak > 6.0e4:
+        raise RigError(f"rig {rig.name!r}: deltas up to {peak:g} overflow float16; rescale the mesh units")
+    arrays = {
+        "format": np.array(NPZ_FORMAT),
+        "name": np.array(rig.name),
+        "visemes": np.array(VISEMES),
+        "neutral": rig.neutral.astype(np.float32),
+        "deltas": rig.deltas.astype(np.float16),
+        "faces": rig.faces.astype(np.int32),
+        "landmark_ids": rig.landmark_ids.astype(np.int32),
+    }
+    if rig.vertex_colors is not None:
+        arrays["vertex_colors"] = np.round(np.asarray(rig.vertex_colors) * 255.0).astype(np.uint8)
+    for region, ids in rig.regions.items():
+        arrays[f"region/{region}"] = np.asarray(ids).astype(np.int32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_npz(path, arrays)
+    return path
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """np.savez_compressed's format with fixed entry timestamps, so one rig always gives the same bytes."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for key, array in arrays.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            with archive.open(info, "w", force_zip64=True) as handle:
+                np.lib.format.write_array(handle, np.asanyarray(array), allow_pickle=False)
+
+
+def load_rig_npz(path: Path | str) -> VisemeRig:
+    """A rig written by `save_rig_npz`; arrays come back as float32 / int32 / int64 as VisemeRig documents."""
+    path = Path(path)
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise RigError(f"{path}: cannot read rig npz: {error}") from None
+    with archive:
+        keys = set(archive.files)
+        missing = [k for k in ("neutral", "deltas", "faces", "landmark_ids") if k not in keys]
+        if missing:
+            raise RigError(f"{path}: not a visemeflow rig npz (missing {', '.join(missing)})")
+        deltas = archive["deltas"].astype(np.float32)
+        if "visemes" in keys:
+            names = [str(v) for v in archive["visemes"]]
+            if sorted(names) != sorted(VISEMES) or len(names) != N_VISEMES:
+                raise RigError(f"{path}: viseme list {names} is not the 16 visemes {', '.join(VISEMES)}")
+            if deltas.shape[0] == N_VISEMES:
+                deltas = deltas[[names.index(v) for v in VISEMES]]
+        colors = archive["vertex_colors"] if "vertex_colors" in keys else None
+        if colors is not None:
+            colors = colors.astype(np.float32) / (255.0 if colors.dtype == np.uint8 else 1.0)
+        rig = VisemeRig(
+            name=str(archive["name"]) if "name" in keys else path.stem,
+            neutral=archive["neutral"].astype(np.float32),
+            deltas=deltas,
+            faces=archive["faces"].astype(np.int32),
+            landmark_ids=archive["landmark_ids"].astype(np.int64),
+            vertex_colors=colors,
+            regions={k.split("/", 1)[1]: archive[k].astype(np.int64) for k in sorted(keys) if k.startswith("region/")},
+        )
+    _validate(rig, path)
+    return rig
+
+
+def load_rig(path: Path | str) -> VisemeRig:
+    """Any rig: a folder of meshes, a .glb/.gltf with morph targets, or a .npz from `save_rig_npz`."""
+    path = Path(path)
+    if path.is_dir():
+        return load_rig_folder(path)
+    if not path.exists():
+        raise RigError(f"{path}: no such rig file or folder")
+    suffix = path.suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        return load_rig_glb(path)
+    if suffix == ".npz":
+        return load_rig_npz(path)
+    raise RigError(f"{path}: unknown rig format {suffix or '(none)'}; expected a folder, .glb, .gltf or .npz")
+
+
+def _validate(rig: VisemeRig, source: Path) -> None:
+    try:
+        validate_rig(rig)
+    except RigError as error:
+        raise RigError(f"{source}: {error}") from None
