@@ -106,6 +106,26 @@ def synth(
     _print_summary("synth", synth_flow(SynthParams(corpus=corpus, out=out, store=store, rig=rig, config=config)))
 
 
+@app.command("espeak-corpus")
+def espeak_corpus(
+    out: Annotated[Path, typer.Argument(help="Folder of the corpus to write (<speaker>/<name>.wav + .TextGrid).")],
+    english: Annotated[int, typer.Option(help="GRID-grammar English sentences.")] = 600,
+    mandarin: Annotated[int, typer.Option(help="Mandarin pinyin sentences.")] = 400,
+    seed: Annotated[int, typer.Option(help="Seed of the sentence generators.")] = 0,
+) -> None:
+    """Synthesise a scale corpus with espeak-ng: many voices and rates, exact phone timings as TextGrids."""
+    from visemeflow.synth.espeak import EspeakUnavailableError, espeak_available
+    from visemeflow.synth.sentences import write_espeak_corpus
+
+    if not espeak_available():
+        typer.echo(f"error: {EspeakUnavailableError.__doc__ or ''} Install it with: apt-get install espeak-ng", err=True)
+        raise typer.Exit(2)
+    ids = write_espeak_corpus(out, english, mandarin, seed)
+    speakers = sorted({i.split("/")[0] for i in ids})
+    typer.echo(f"espeak corpus: {len(ids)} utterances, {len(speakers)} speakers in {out}")
+    typer.echo(f"next: visemeflow synth {out} --out {out}-video   (renders videos with true curves)")
+
+
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],

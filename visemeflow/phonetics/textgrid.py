@@ -164,3 +164,38 @@ def _parse_tier(cur: _Cursor, number: int) -> Tier:
     else:
         raise TextGridError(f"{cur.source}: tier {name!r} has unknown class {kind!r}")
     return Tier(name, kind, start, end, tuple(items))
+
+
+def format_textgrid(tiers: tuple[Tier, ...] | list[Tier], xmin: float, xmax: float) -> str:
+    """Praat long-format TextGrid text of `tiers` (interval and point tiers); `parse_textgrid` reads it back exactly.
+
+    Times are written with `repr`, the shortest text that reads back as the same float; quotes in labels
+    are doubled as Praat does. A point tier ("TextTier") writes the first time of each (time, time, mark) item.
+    """
+    def num(value: float) -> str:
+        return repr(float(value))
+
+    def quoted(text: str) -> str:
+        return '"' + str(text).replace('"', '""') + '"'
+
+    lines = ['File type = "ooTextFile"', 'Object class = "TextGrid"', "", f"xmin = {num(xmin)} ", f"xmax = {num(xmax)} "]
+    if not tiers:
+        lines.append("tiers? <absent> ")
+        return "\n".join(lines) + "\n"
+    lines += ["tiers? <exists> ", f"size = {len(tiers)} ", "item []: "]
+    for t, tier in enumerate(tiers, start=1):
+        if tier.kind not in ("IntervalTier", "TextTier"):
+            raise ValueError(f"tier {tier.name!r} has unknown class {tier.kind!r}; expected IntervalTier or TextTier")
+        interval = tier.kind == "IntervalTier"
+        lines += [
+            f"    item [{t}]:", f"        class = {quoted(tier.kind)} ", f"        name = {quoted(tier.name)} ",
+            f"        xmin = {num(tier.start_s)} ", f"        xmax = {num(tier.end_s)} ",
+            f"        {'intervals' if interval else 'points'}: size = {len(tier.items)} ",
+        ]
+        for i, (a, b, text) in enumerate(tier.items, start=1):
+            if interval:
+                lines += [f"        intervals [{i}]:", f"            xmin = {num(a)} ", f"            xmax = {num(b)} ",
+                          f"            text = {quoted(text)} "]
+            else:
+                lines += [f"        points [{i}]:", f"            number = {num(a)} ", f"            mark = {quoted(text)} "]
+    return "\n".join(lines) + "\n"
