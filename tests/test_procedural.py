@@ -16,6 +16,7 @@ from visemeflow.procedural import (
     generate_procedural_curves,
     key_envelopes,
     merge_repeated_visemes,
+    merge_with_holds,
     peak_amplitudes,
     segment_keys,
     smoothstep,
@@ -267,10 +268,10 @@ def utterances(draw):
 def dense_reference(segments, n_frames, fps):
     """The same keys evaluated at every frame (keys x frames), without the per-key frame windows."""
     curves = np.zeros((n_frames, N_VISEMES))
-    merged = merge_repeated_visemes(segments, CFG.merge_max_gap_s)
+    merged, last_part_start = merge_with_holds(segments, CFG.merge_max_gap_s)
     if not merged:
         return curves
-    keys = apply_word_lookahead(bridge_tongue_only(segment_keys(merged, fps, CFG), CFG), CFG)
+    keys = apply_word_lookahead(bridge_tongue_only(segment_keys(merged, fps, CFG, last_part_start), CFG), CFG)
     times = np.arange(n_frames) / fps
     for i, c in enumerate(keys.channel):
         curves[:, c] = np.maximum(curves[:, c], key_envelopes(keys, np.full(n_frames, i), times))
@@ -292,6 +293,14 @@ def test_curves_well_formed_zero_in_silence_and_deterministic(utterance):
     assert np.all(curves[distance > 0.5] == 0.0)
     np.testing.assert_array_equal(curves, generate_procedural_curves(list(segments), n_frames, fps))
     np.testing.assert_allclose(curves, dense_reference(segments, n_frames, fps), atol=1e-6)
+
+
+def test_merged_closure_holds_through_its_last_part():
+    """A long f then a short f (merged): the lips are still fully closed at the second f's start."""
+    segments = [VisemeSegment("FFF", 0.0, 0.5, 0), VisemeSegment("FFF", 0.5, 0.625, 0), VisemeSegment("AAA", 0.625, 1.1, 0)]
+    curves = generate_procedural_curves(segments, 30, 25.0)
+    assert curves[12:15, viseme_index("FFF")].max() == 1.0
+    assert curves[:15, viseme_index("FFF")].min() == 1.0  # one closure, no dip between the parts
 
 
 @settings(max_examples=100, deadline=None)

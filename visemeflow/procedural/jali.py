@@ -68,18 +68,30 @@ def channel_table(config: ProceduralConfig) -> ChannelTable:
     )
 
 
-def merge_repeated_visemes(segments: Sequence[VisemeSegment], max_gap_s: float) -> list[VisemeSegment]:
-    """Merge consecutive segments of one viseme at most `max_gap_s` apart ("pop man": one MBP closure)."""
+def merge_with_holds(segments: Sequence[VisemeSegment], max_gap_s: float) -> tuple[list[VisemeSegment], np.ndarray]:
+    """Merged segments (see `merge_repeated_visemes`) and, per merged segment, the start of its last part (s).
+
+    The articulation is held through every part: the sustain of a merged segment lasts at least as long as its
+    last part's own sustain would, so "pop man" keeps the lips closed from the p to the m.
+    """
     merged: list[VisemeSegment] = []
+    last_start: list[float] = []
     for seg in segments:
         prev = merged[-1] if merged else None
         if prev is not None and prev.viseme == seg.viseme and seg.start_s - prev.end_s <= max_gap_s:
             phoneme = "+".join(p for p in (prev.phoneme, seg.phoneme) if p)
             merged[-1] = VisemeSegment(prev.viseme, prev.start_s, max(prev.end_s, seg.end_s),
                                        prev.word_index, phoneme)
+            last_start[-1] = seg.start_s
         else:
             merged.append(seg)
-    return merged
+            last_start.append(seg.start_s)
+    return merged, np.asarray(last_start, np.float64)
+
+
+def merge_repeated_visemes(segments: Sequence[VisemeSegment], max_gap_s: float) -> list[VisemeSegment]:
+    """Merge consecutive segments of one viseme at most `max_gap_s` apart ("pop man": one MBP closure)."""
+    return merge_with_holds(segments, max_gap_s)[0]
 
 
 def peak_amplitudes(channel: np.ndarray, duration_s: np.ndarray, config: ProceduralConfig) -> np.ndarray:
@@ -90,8 +102,13 @@ def peak_amplitudes(channel: np.ndarray, duration_s: np.ndarray, config: Procedu
     return np.where(table.is_closure[channel], 1.0, peak)
 
 
-def segment_keys(segments: Sequence[VisemeSegment], fps: float, config: ProceduralConfig) -> ArticulationKeys:
-    """One articulation key per segment, with class-dependent onset, sustain, decay and peak."""
+def segment_keys(
+    segments: Sequence[VisemeSegment], fps: float, config: ProceduralConfig, last_part_start_s: np.ndarray | None = None
+) -> ArticulationKeys:
+    """One articulation key per segment, with class-dependent onset, sustain, decay and peak.
+
+    `last_part_start_s` (from `merge_with_holds`) keeps a merged segment at its peak through its last part.
+    """
     n = len(segments)
     channel = np.fromiter((viseme_index(s.viseme) for s in segments), np.intp, n)
     start = np.fromiter((s.start_s for s in segments), np.float64, n)
@@ -102,8 +119,12 @@ def segment_keys(segments: Sequence[VisemeSegment], fps: float, config: Procedur
     table = channel_table(config)
     duration = end - start
     sustain_end = start + table.sustain_fraction[channel] * duration
+    apex = start
+    if last_part_start_s is not None:
+        apex = np.asarray(last_part_start_s, np.float64)
+        sustain_end = np.maximum(sustain_end, apex + table.sustain_fraction[channel] * (end - apex))
     # A closure shorter than a frame would otherwise fall between two samples and never show.
-    held = start + 1.0 / fps + _FRAME_HOLD_SLACK_S
+    held = apex + 1.0 / fps + _FRAME_HOLD_SLACK_S
     sustain_end = np.where(table.is_closure[channel], np.maximum(sustain_end, held), sustain_end)
     return ArticulationKeys(
         channel=channel, start_s=start, end_s=end, word=word,
@@ -200,10 +221,10 @@ def generate_procedural_curves(
     """
     if n_frames < 0 or not fps > 0:
         raise ValueError(f"need n_frames >= 0 and fps > 0, got n_frames={n_frames}, fps={fps}")
-    merged = merge_repeated_visemes(segments, config.merge_max_gap_s)
+    merged, last_part_start = merge_with_holds(segments, config.merge_max_gap_s)
     if not merged or n_frames == 0:
         return np.zeros((n_frames, N_VISEMES), dtype=np.float32)
-    keys = segment_keys(merged, fps, config)
+    keys = segment_keys(merged, fps, config, last_part_start)
     keys = bridge_tongue_only(keys, config)
     keys = apply_word_lookahead(keys, config)
     samples = key_frames(keys, n_frames, fps)
