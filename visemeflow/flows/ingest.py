@@ -9,7 +9,13 @@ from visemeflow.flows.params import IngestParams
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
-from visemeflow.tasks.ingest import STAGE, discover_corpus_task, ingest_shard, remove_stale_shards, shard_files_present
+from visemeflow.tasks.ingest import (
+    STAGE,
+    discover_corpus_task,
+    ingest_shard,
+    remove_stale_shards,
+    shard_files_present,
+)
 
 DISCOVER_STAGE = "discover"
 

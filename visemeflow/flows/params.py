@@ -9,6 +9,7 @@ from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import validate_name, validate_utterance_id
 from visemeflow.synth.take import SynthConfig
+from visemeflow.tracking.solver import TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 
@@ -49,6 +50,8 @@ class PipelineParams(StoreParams):
     corpus: Path = Field(..., description="Corpus folder or manifest CSV.")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
+    tracking: TrackingConfig = Field(default_factory=TrackingConfig)
+    rig: Path | None = Field(None, description="Viseme rig for tracking; default: the shipped ICT demo rig.")
 
 
 class SynthParams(BaseModel):
@@ -68,11 +71,19 @@ class SynthParams(BaseModel):
         return corpus
 
 
+class TrackParams(StoreParams):
+    config: TrackingConfig = Field(default_factory=TrackingConfig)
+    rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")
+    procedural_variant: str | None = Field(
+        None, description="Procedural curves that guide tracking; default: those the procedural stage last wrote."
+    )
+
+
 class RerunParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
-    stage: Literal["ingest", "procedural"] = Field("procedural", description="The stage to rerun.")
+    stage: Literal["ingest", "procedural", "track"] = Field("procedural", description="The stage to rerun.")
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     force: bool = Field(True, description="Recompute even when a cached result is valid.")
 

@@ -6,7 +6,7 @@ from visemeflow.flows.params import RerunParams
 from visemeflow.flows.procedural import UTTERANCE_FIELDS
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
-from visemeflow.schemas import C, shard_of
+from visemeflow.schemas import shard_of
 from visemeflow.storage import Store
 from visemeflow.tasks import ingest as ingest_tasks
 from visemeflow.tasks import procedural as procedural_tasks

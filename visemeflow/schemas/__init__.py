@@ -3,9 +3,11 @@
 from visemeflow.schemas.ids import InvalidIdError, shard_of, split_utterance_id, validate_name, validate_utterance_id
 from visemeflow.schemas.tables import (
     CURVES,
+    LOSS_TERMS,
     PHONES,
     REJECTS,
     TABLE_SCHEMAS,
+    TRACKING_FRAMES,
     UTTERANCES,
     C,
     curves_array,
@@ -16,9 +18,11 @@ from visemeflow.schemas.tables import (
 __all__ = [
     "C",
     "CURVES",
+    "LOSS_TERMS",
     "PHONES",
     "REJECTS",
     "TABLE_SCHEMAS",
+    "TRACKING_FRAMES",
     "UTTERANCES",
     "InvalidIdError",
     "curves_array",

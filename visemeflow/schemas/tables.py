@@ -43,6 +43,12 @@ class C:
     FRAME = "frame"
     TIME_S = "time_s"
 
+    MOUTH_ERROR_PX = "mouth_error_px"
+    LANDMARKS_VALID = "landmarks_valid"
+    FLOW_VALID_FRACTION = "flow_valid_fraction"
+    LOSS_PREFIX = "loss_"
+    POSE_COLUMNS = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
+
     STAGE = "stage"
     ERROR_TYPE = "error_type"
     MESSAGE = "message"
@@ -93,6 +99,21 @@ CURVES = pa.schema(
         pa.field(C.TIME_S, pa.float64(), nullable=False),
     ]
     + [pa.field(v, pa.float32(), nullable=False) for v in VISEMES]
+)
+
+LOSS_TERMS = ("lmk", "rgb", "sup", "act", "flow", "diff", "range")
+
+TRACKING_FRAMES = pa.schema(
+    [
+        pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),
+        pa.field(C.VARIANT, pa.string(), nullable=False),
+        pa.field(C.FRAME, pa.int32(), nullable=False),
+        pa.field(C.MOUTH_ERROR_PX, pa.float32()),          # null where no mouth landmark was detected
+        pa.field(C.LANDMARKS_VALID, pa.bool_(), nullable=False),
+        pa.field(C.FLOW_VALID_FRACTION, pa.float32()),     # null when L_flow is off
+    ]
+    + [pa.field(C.LOSS_PREFIX + t, pa.float32()) for t in LOSS_TERMS]   # unweighted; null when the term is off
+    + [pa.field(c, pa.float32(), nullable=False) for c in C.POSE_COLUMNS]
 )
 
 REJECTS = pa.schema([

@@ -26,7 +26,7 @@ import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from visemeflow.schemas import CURVES, TABLE_SCHEMAS, C, split_utterance_id, validate_name
+from visemeflow.schemas import CURVES, TABLE_SCHEMAS, TRACKING_FRAMES, C, split_utterance_id, validate_name
 
 PROVENANCE_KEY = b"visemeflow.provenance"
 # Curve files are small and many: dictionary-encode only the constant id columns and keep statistics only
@@ -91,6 +91,10 @@ class Store:
             / speaker / f"{name}.parquet"
         )
 
+    def tracking_frames_path(self, variant: str, utterance_id: str) -> Path:
+        speaker, name = split_utterance_id(utterance_id)
+        return self.root / "tracking_frames" / validate_name(variant, "variant") / speaker / f"{name}.parquet"
+
     # ---- writes ------------------------------------------------------------------------------
     def _write_atomic(self, table: pa.Table, path: Path, **parquet_options: object) -> Path:
         tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
@@ -136,6 +140,27 @@ class Store:
             meta[FPS_KEY] = repr(float(fps)).encode()
         table = table.replace_schema_metadata(meta)
         return self._write_atomic(table, self.curve_path(sources[0], variants[0], ids[0]), **CURVE_FILE_OPTIONS)
+
+    def write_tracking_frames(self, table: pa.Table) -> Path:
+        """Per-frame tracking diagnostics of one (variant, utterance), replacing what was stored."""
+        table = table.cast(TRACKING_FRAMES)
+        ids = table.column(C.UTTERANCE_ID).unique().to_pylist()
+        variants = table.column(C.VARIANT).unique().to_pylist()
+        if len(ids) != 1 or len(variants) != 1:
+            raise ValueError(f"a tracking_frames file holds one utterance and variant; got {ids[:3]}, {variants[:3]}")
+        return self._write_atomic(table, self.tracking_frames_path(variants[0], ids[0]))
+
+    def read_tracking_frames(self, variant: str | None = None, utterance_ids: list[str] | None = None) -> pa.Table:
+        """Stored tracking diagnostics (of one variant, some utterances) as one table."""
+        folder = self.root / "tracking_frames"
+        if variant:
+            folder = folder / validate_name(variant, "variant")
+        files = self._files(folder)
+        if not files or utterance_ids == []:
+            return TRACKING_FRAMES.empty_table()
+        dataset = ds.dataset(files, schema=TRACKING_FRAMES, format="parquet")
+        flt = pc.field(C.UTTERANCE_ID).isin(utterance_ids) if utterance_ids is not None else None
+        return dataset.to_table(filter=flt)
 
     @contextmanager
     def locked(self, name: str) -> Iterator[None]:

@@ -8,7 +8,13 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import NONE
 
 from visemeflow.hashing import stable_hash
-from visemeflow.ingest import CorpusEntry, IngestConfig, IngestError, discover_corpus, ingest_utterance
+from visemeflow.ingest import (
+    CorpusEntry,
+    IngestConfig,
+    IngestError,
+    discover_corpus,
+    ingest_utterance,
+)
 from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, reject_row

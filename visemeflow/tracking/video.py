@@ -17,9 +17,8 @@ from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 
-import numpy as np
-
 import av
+import numpy as np
 
 # Encoders in order of preference, by container. The first one this PyAV build can open is used.
 MP4_VIDEO_CODECS = ("libx264", "libopenh264", "mpeg4")

@@ -1,0 +1,534 @@
+"""visemeflow.tracking.flow: DIS optical flow, the forward-backward check, flow sampling, the per-utterance
+FlowField and the optical-flow loss of Eq. 6. Synthetic frames with known motion, and two frames of a real GRID
+clip (fails, not skips, when ../shared/data is missing)."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from visemeflow.tracking.flow import (
+    PRESETS,
+    FlowConfig,
+    FlowField,
+    bidirectional_flow,
+    clip_roi,
+    consistency_mask,
+    dis_flow,
+    flow_masks,
+    photometric_mask,
+    roi_around,
+    sample_flow,
+    track_flow,
+)
+from visemeflow.tracking.losses import flow_loss
+from visemeflow.tracking.video import read_video_frames
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+GRID_CLIP = SHARED_DATA / "grid_s1" / "video" / "bbaf2n.mpg"
+GRID_FACE = (87, 99, 139, 139)   # x, y, w, h: the Haar-cascade face box of bbaf2n (the speaker barely moves)
+
+H, W = 160, 200
+INNER = (slice(16, H - 16), slice(16, W - 16))   # away from the borders the warp fills by reflection
+
+
+def texture(h=H, w=W, seed=0, sigma=2.0) -> np.ndarray:
+    """Smooth random RGB texture, full 0..255 range: every patch has gradients to track."""
+    noise = np.random.default_rng(seed).normal(size=(h, w, 3)).astype(np.float32)
+    img = cv2.GaussianBlur(noise, (0, 0), sigma)
+    img = (img - img.min()) / (img.max() - img.min()) * 255.0
+    return img.astype(np.uint8)
+
+
+def shifted(img: np.ndarray, tx: float, ty: float) -> np.ndarray:
+    """``img`` with its content moved by (tx, ty) pixels: out(x, y) = img(x - tx, y - ty)."""
+    m = np.float32([[1, 0, tx], [0, 1, ty]])
+    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Config and regions of interest
+
+
+def test_config_defaults_and_validation():
+    cfg = FlowConfig()
+    assert (cfg.preset, cfg.fb_threshold_px, cfg.grayscale) == ("medium", 1.0, True)
+    assert cfg.cv_preset == cv2.DISOPTICAL_FLOW_PRESET_MEDIUM
+    assert FlowConfig(preset="ULTRAFAST").cv_preset == cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST
+    assert FlowConfig(preset="fast").cv_preset == cv2.DISOPTICAL_FLOW_PRESET_FAST
+    with pytest.raises(ValueError, match="preset"):
+        FlowConfig(preset="slow")
+    with pytest.raises(ValueError, match="fb_threshold_px"):
+        FlowConfig(fb_threshold_px=0.0)
+    with pytest.raises(ValueError, match="storage_dtype"):
+        FlowConfig(storage_dtype="int8")
+    with pytest.raises(ValueError, match="photometric_threshold"):
+        FlowConfig(photometric_threshold=-1.0)
+    with pytest.raises(ValueError, match="photometric_window"):
+        FlowConfig(photometric_window=4)
+
+
+def test_clip_roi_and_roi_around():
+    assert clip_roi(None, 360, 288) == (0, 0, 360, 288)
+    assert clip_roi((10, 20, 30, 40), 360, 288) == (10, 20, 30, 40)
+    assert clip_roi((-10, -5, 30, 40), 360, 288) == (0, 0, 20, 35)
+    assert clip_roi((350, 280, 30, 40), 360, 288) == (350, 280, 10, 8)
+    with pytest.raises(ValueError, match="outside"):
+        clip_roi((400, 0, 10, 10), 360, 288)
+    with pytest.raises(ValueError, match="positive"):
+        clip_roi((0, 0, 0, 10), 360, 288)
+    pts = np.array([[100.0, 120.0], [140.0, 160.0], [np.nan, np.nan]])
+    x0, y0, w, h = roi_around(pts, 360, 288, margin=0.25)
+    assert x0 <= 100 - 10 and y0 <= 120 - 10 and x0 + w >= 140 + 10 and y0 + h >= 160 + 10
+    assert roi_around(pts, 360, 288, margin=10.0) == (0, 0, 360, 288)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# DIS flow on synthetic motion
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_subpixel_translation_is_recovered(preset):
+    t = np.array([1.3, -0.7], dtype=np.float32)
+    a = texture()
+    b = shifted(a, *t)
+    cfg = FlowConfig(preset=preset)
+    fwd, bwd = bidirectional_flow(a, b, cfg)
+    assert fwd.shape == bwd.shape == (H, W, 2) and fwd.dtype == np.float32
+    err_f = np.linalg.norm(fwd - t, axis=-1)[INNER]
+    err_b = np.linalg.norm(bwd + t, axis=-1)[INNER]
+    # medium (the default) refines variationally; ultrafast / fast stop at a coarser scale
+    bound = 0.2 if preset == "medium" else 0.5
+    assert err_f.max() < bound and err_b.max() < bound
+    if preset == "medium":
+        assert err_f.mean() < 0.08
+    np.testing.assert_array_equal(dis_flow(a, b, cfg), fwd)
+    mask = consistency_mask(fwd, bwd, cfg.fb_threshold_px)
+    assert mask.shape == (H, W) and mask.dtype == bool
+    assert mask[INNER].all()
+    # right border: where p + f(p) leaves the image the check fails
+    assert not mask[:, W - 1].any()
+
+
+def test_identical_frames_give_zero_flow():
+    a = texture(seed=4)
+    fwd = dis_flow(a, a)
+    assert np.abs(fwd).max() < 0.05
+
+
+def test_flow_input_validation():
+    a = texture()
+    with pytest.raises(ValueError, match="differ in size"):
+        dis_flow(a, a[:-1])
+    with pytest.raises(ValueError, match="uint8"):
+        dis_flow(a.astype(np.float32), a.astype(np.float32))
+    with pytest.raises(ValueError, match="one channel"):
+        dis_flow(a, a, FlowConfig(grayscale=False))
+    gray = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)
+    assert dis_flow(gray, gray, FlowConfig(grayscale=False)).shape == (H, W, 2)
+    with pytest.raises(ValueError, match="too small"):
+        dis_flow(a[:4, :4], a[:4, :4])
+
+
+def test_roi_flow_is_in_full_image_pixels():
+    t = np.array([0.8, 1.1], dtype=np.float32)
+    a = texture(seed=2)
+    b = shifted(a, *t)
+    roi = (40, 30, 100, 90)
+    fwd, bwd = bidirectional_flow(a, b, roi=roi)
+    assert fwd.shape == bwd.shape == (90, 100, 2)
+    assert np.linalg.norm(fwd - t, axis=-1)[8:-8, 8:-8].max() < 0.2
+
+
+def test_moving_occluder_fails_forward_backward_check():
+    """A patch moving (+8, +6) over a background moving (+1, +0.5): background pixels it covers have no
+    correspondence in the next frame, and the check rejects them; the open background keeps its flow."""
+    bg, patch = texture(seed=1), texture(40, 40, seed=7)
+    a = bg.copy()
+    a[60:100, 60:100] = patch
+    b = shifted(bg, 1.0, 0.5)
+    b[66:106, 68:108] = patch
+    fwd, bwd = bidirectional_flow(a, b, FlowConfig(preset="medium"))
+    mask = consistency_mask(fwd, bwd, 1.0)
+    covered = np.zeros((H, W), dtype=bool)   # background of frame a hidden under the patch in frame b
+    covered[66:105, 67:107] = True
+    covered[60:100, 60:100] = False
+    assert covered.sum() > 300
+    assert mask[covered].mean() < 0.4
+    assert mask[120:150, 20:180].mean() > 0.95
+
+
+def test_region_turning_dark_fails_forward_backward_check():
+    """Content that vanishes (a mouth opening: a textured region turns dark) has no correspondence."""
+    a = texture()
+    b = shifted(a, 1.3, -0.7)
+    b[60:100, 80:130] = 30
+    fwd, bwd = bidirectional_flow(a, b)
+    mask = consistency_mask(fwd, bwd, 1.0)
+    assert mask[64:96, 84:126].mean() < 0.1
+    assert mask[16:50, 16:-16].mean() > 0.95
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_arbitrarily_changed_region_fails_with_photometric_check(preset):
+    """A region replaced by unrelated texture: DIS propagates smooth flow into it both ways, so the
+    forward-backward check alone may pass it; the photometric check rejects it at every preset."""
+    a = texture()
+    b = shifted(a, 1.3, -0.7)
+    b[60:100, 80:130] = texture(40, 50, seed=9)
+    cfg = FlowConfig(preset=preset, photometric_threshold=10.0)
+    fwd, bwd = bidirectional_flow(a, b, cfg)
+    fmask, bmask = flow_masks(a, b, fwd, bwd, cfg)
+    core = (slice(64, 96), slice(84, 126))
+    assert fmask[core].mean() < 0.2
+    assert bmask[core].mean() < 0.2
+    assert fmask[16:50, 16:-16].mean() > 0.95
+    fb_only, _ = flow_masks(a, b, fwd, bwd, FlowConfig(preset=preset))
+    assert not (fmask & ~fb_only).any()   # the photometric check only removes pixels
+
+
+def test_photometric_mask_on_exact_flow():
+    a = cv2.cvtColor(texture(), cv2.COLOR_RGB2GRAY)
+    b = np.roll(a, 2, axis=1)   # content moves +2 px in x, exactly
+    flow = np.zeros((H, W, 2), np.float32)
+    flow[..., 0] = 2.0
+    ok = photometric_mask(a, b, flow, threshold=1.0, window=1)
+    assert ok[:, : W - 2].all() and not ok[:, W - 2:].any()
+    wrong = photometric_mask(a, b, np.zeros_like(flow), threshold=5.0, window=5)
+    assert wrong[INNER].mean() < 0.2
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Forward-backward check and sampling on hand-made fields
+
+
+def test_consistency_mask_hand_made():
+    h, w = 6, 8
+    fwd = np.zeros((h, w, 2), np.float32)
+    fwd[..., 0] = 2.0
+    bwd = np.zeros((h, w, 2), np.float32)
+    bwd[..., 0] = -1.5
+    m = consistency_mask(fwd, bwd, 1.0)   # |2 - 1.5| = 0.5 < 1
+    assert m[:, : w - 2].all() and not m[:, w - 2:].any()   # x + 2 > 7 leaves the image
+    assert not consistency_mask(fwd, bwd, 0.4).any()
+    # the backward flow is sampled at p + f(p), bilinearly
+    fwd[...] = 0.0
+    fwd[..., 0] = 0.5
+    bwd[...] = 0.0
+    bwd[:, :, 0] = -np.arange(w, dtype=np.float32)[None, :]   # b(x) = -x: b(x + 0.5) = -x - 0.5
+    m = consistency_mask(fwd, bwd, 0.1)
+    assert m[:, 0].all() and not m[:, 1:].any()   # |0.5 - x - 0.5| = x
+    fwd[2, 3] = np.nan
+    assert not consistency_mask(fwd, bwd, 100.0)[2, 3]
+    with pytest.raises(ValueError):
+        consistency_mask(fwd, bwd[:-1], 1.0)
+
+
+def test_sample_flow_bilinear_by_hand():
+    flow = np.zeros((2, 3, 2), np.float32)
+    flow[..., 0] = [[0.0, 1.0, 2.0], [4.0, 5.0, 6.0]]
+    flow[..., 1] = [[1.0, -1.0, 0.0], [3.0, 3.0, 3.0]]
+    pts = np.array([[0.25, 0.5], [1.0, 0.0], [2.0, 1.0], [1.5, 0.75]])
+    disp, ok = sample_flow(flow, None, pts)
+    assert ok.all() and disp.dtype == np.float32 and disp.shape == (4, 2)
+    # (0.25, 0.5): x: 0.5 * (0.75*0 + 0.25*1) + 0.5 * (0.75*4 + 0.25*5) = 2.25;
+    #              y: 0.5 * (0.75*1 + 0.25*-1) + 0.5 * 3 = 1.75
+    np.testing.assert_allclose(disp[0], [2.25, 1.75], atol=1e-6)
+    np.testing.assert_allclose(disp[1], [1.0, -1.0], atol=1e-6)
+    np.testing.assert_allclose(disp[2], [6.0, 3.0], atol=1e-6)   # the last pixel, clamped neighbours
+    # (1.5, 0.75): x: 0.25 * 1.5 + 0.75 * 5.5 = 4.5; y: 0.25 * -0.5 + 0.75 * 3 = 2.125
+    np.testing.assert_allclose(disp[3], [4.5, 2.125], atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(coef=st.lists(st.floats(-3, 3), min_size=8, max_size=8),
+       pts=st.lists(st.tuples(st.floats(0, 9), st.floats(0, 6)), min_size=1, max_size=20))
+def test_sample_flow_reproduces_bilinear_fields(coef, pts):
+    """Bilinear interpolation is exact on any field a + b x + c y + d x y."""
+    h, w = 7, 10
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    c = np.asarray(coef)
+    fx = c[0] + c[1] * xs + c[2] * ys + c[3] * xs * ys
+    fy = c[4] + c[5] * xs + c[6] * ys + c[7] * xs * ys
+    flow = np.stack([fx, fy], axis=-1)
+    p = np.asarray(pts, dtype=np.float64)
+    disp, ok = sample_flow(flow, np.ones((h, w), bool), p)
+    assert ok.all()
+    x, y = p[:, 0], p[:, 1]
+    want = np.stack([c[0] + c[1] * x + c[2] * y + c[3] * x * y, c[4] + c[5] * x + c[6] * y + c[7] * x * y], axis=1)
+    np.testing.assert_allclose(disp, want, atol=1e-4)
+
+
+def test_sample_flow_validity():
+    h, w = 5, 6
+    flow = np.ones((h, w, 2), np.float32)
+    valid = np.ones((h, w), bool)
+    valid[2, 3] = False
+    pts = np.array([
+        [3.0, 2.0],      # on the invalid pixel
+        [2.5, 1.5],      # its cell touches (3, 2)
+        [3.9, 2.9],      # so does this one
+        [1.2, 1.2],      # far from it
+        [4.0, 3.0],      # the cell right-below: (4, 3), (5, 3), (4, 4), (5, 4): fine
+        [-0.01, 1.0],    # outside, left
+        [5.01, 1.0],     # outside, right
+        [1.0, 4.5],      # outside, bottom
+        [5.0, 4.0],      # the last pixel: inside
+        [np.nan, 1.0],   # not a point
+    ])
+    disp, ok = sample_flow(flow, valid, pts)
+    np.testing.assert_array_equal(ok, [False, False, False, True, True, False, False, False, True, False])
+    np.testing.assert_array_equal(disp[~ok], 0.0)
+    np.testing.assert_array_equal(disp[ok], 1.0)
+    flow[1, 1] = np.nan
+    _, ok = sample_flow(flow, None, np.array([[1.5, 1.5], [3.5, 3.5]]))
+    np.testing.assert_array_equal(ok, [False, True])
+    empty_disp, empty_ok = sample_flow(flow, valid, np.zeros((0, 2)))
+    assert empty_disp.shape == (0, 2) and empty_ok.shape == (0,)
+    with pytest.raises(ValueError):
+        sample_flow(flow, valid, np.zeros((3, 3)))
+    with pytest.raises(ValueError):
+        sample_flow(flow, valid[:-1], pts)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Per-utterance flow
+
+
+POSITIONS = np.array([[0.0, 0.0], [1.25, -0.5], [2.0, 1.0], [0.5, 1.75], [-0.75, 0.25]])   # content offset per frame
+
+
+def moving_frames(seed=3) -> np.ndarray:
+    base = texture(seed=seed)
+    return np.stack([shifted(base, *pos) for pos in POSITIONS])
+
+
+@pytest.fixture(scope="module")
+def field() -> FlowField:
+    return track_flow(moving_frames())
+
+
+def _grid_points(lo=30.0, hi_x=W - 30.0, hi_y=H - 30.0, n=7):
+    xs, ys = np.meshgrid(np.linspace(lo, hi_x, n) + 0.37, np.linspace(lo, hi_y, n) + 0.61)
+    return np.stack([xs.ravel(), ys.ravel()], axis=1)
+
+
+def test_track_flow_layout(field):
+    assert field.n_frames == 5 and field.n_pairs == 4
+    assert field.forward.shape == field.backward.shape == (4, H, W, 2)
+    assert field.forward.dtype == np.float16
+    assert field.forward_valid.shape == (4, H, W) and field.forward_valid.dtype == bool
+    assert (field.roi, field.width, field.height) == ((0, 0, W, H), W, H)
+    assert field.nbytes == 4 * H * W * (2 * 2 * 2 + 2)
+    assert field.forward_flow(1).dtype == np.float32
+    assert 0.9 < field.valid_fraction(1) <= 1.0
+    for bad in (0, 5):
+        with pytest.raises(IndexError):
+            field.correspondences(bad, _grid_points())
+    for bad in (-1, 4):
+        with pytest.raises(IndexError):
+            field.backward_correspondences(bad, _grid_points())
+
+
+def test_track_flow_correspondences_per_pair(field):
+    pts = _grid_points()
+    for j in range(1, 5):
+        disp, ok = field.correspondences(j, pts)
+        assert ok.all()
+        np.testing.assert_allclose(disp, np.broadcast_to(POSITIONS[j] - POSITIONS[j - 1], disp.shape), atol=0.2)
+    for j in range(0, 4):
+        disp, ok = field.backward_correspondences(j, pts)
+        assert ok.all()
+        np.testing.assert_allclose(disp, np.broadcast_to(POSITIONS[j] - POSITIONS[j + 1], disp.shape), atol=0.2)
+
+
+def test_track_flow_correspondences_chain(field):
+    """Following the flow frame to frame carries points along the pattern, and the backward flows bring them
+    back: the forward and the backward pass of the tracker see the same motion."""
+    start = _grid_points()
+    pts = start.copy()
+    for j in range(1, 5):
+        disp, ok = field.correspondences(j, pts)
+        assert ok.all()
+        pts = pts + disp
+        np.testing.assert_allclose(pts, start + (POSITIONS[j] - POSITIONS[0]), atol=0.3)
+    for j in range(3, -1, -1):
+        disp, ok = field.backward_correspondences(j, pts)
+        assert ok.all()
+        pts = pts + disp
+    np.testing.assert_allclose(pts, start, atol=0.3)
+
+
+def test_track_flow_roi_matches_full_frame(field):
+    frames = moving_frames()
+    roi = (50, 40, 110, 80)
+    cropped = track_flow(list(frames), FlowConfig(storage_dtype="float32"), roi=roi)
+    assert cropped.roi == roi and cropped.forward.shape == (4, 80, 110, 2)
+    assert cropped.forward.dtype == np.float32
+    assert cropped.nbytes < field.nbytes
+    pts = _grid_points(lo=62.0, hi_x=145.0, hi_y=105.0, n=5)   # inside the ROI, away from its border
+    outside = np.array([[20.0, 20.0], [49.5, 60.0], [170.0, 60.0], [100.0, 130.0]])
+    for j in range(1, 5):
+        disp, ok = cropped.correspondences(j, pts)
+        full, full_ok = field.correspondences(j, pts)
+        assert ok.all() and full_ok.all()
+        np.testing.assert_allclose(disp, np.broadcast_to(POSITIONS[j] - POSITIONS[j - 1], disp.shape), atol=0.2)
+        np.testing.assert_allclose(disp, full, atol=0.2)
+        d_out, ok_out = cropped.correspondences(j, outside)
+        assert not ok_out.any() and not d_out.any()
+
+
+def test_track_flow_edge_cases():
+    one = track_flow(moving_frames()[:1])
+    assert one.n_frames == 1 and one.n_pairs == 0
+    with pytest.raises(ValueError, match="at least one frame"):
+        track_flow(np.zeros((0, H, W, 3), np.uint8))
+    frames = list(moving_frames()[:2])
+    frames[1] = frames[1][:-2]
+    with pytest.raises(ValueError, match="frame 1"):
+        track_flow(frames)
+    pts = torch.tensor(_grid_points(), requires_grad=True)   # torch points are accepted (detached)
+    disp, ok = track_flow(moving_frames()[:2]).correspondences(1, pts)
+    assert ok.all() and disp.shape == (49, 2)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Eq. 6
+
+
+def test_flow_loss_by_hand():
+    cur = torch.tensor([[1.0, 2.0], [3.0, 4.0], [0.0, 0.0]], requires_grad=True)
+    prev = torch.tensor([[0.0, 0.0], [1.0, 1.0], [5.0, 5.0]])
+    u = np.array([[0.5, 1.0], [1.0, 1.0], [np.nan, np.nan]], dtype=np.float32)   # the invalid one holds NaN
+    valid = np.array([True, True, False])
+    loss = flow_loss(cur, prev, u, valid)
+    # k=0: (1 - 0.5)^2 + (2 - 1)^2 = 1.25; k=1: (3 - 2)^2 + (4 - 2)^2 = 5; mean over the 2 valid = 3.125
+    assert loss.shape == ()
+    assert loss.item() == pytest.approx(3.125)
+    loss.backward()
+    # d/dcur_k = 2 (cur_k - prev_k - u_k) / |K|
+    np.testing.assert_allclose(cur.grad.numpy(), [[0.5, 1.0], [1.0, 2.0], [0.0, 0.0]], atol=1e-6)
+
+
+def test_flow_loss_zero_at_exact_correspondence():
+    g = torch.Generator().manual_seed(0)
+    prev = torch.rand(50, 2, generator=g) * 300
+    u = torch.randn(50, 2, generator=g)
+    cur = (prev + u).clone().requires_grad_(True)
+    loss = flow_loss(cur, prev, u, torch.ones(50, dtype=torch.bool))
+    assert loss.item() == 0.0
+    loss.backward()
+    assert torch.count_nonzero(cur.grad) == 0
+
+
+def test_flow_loss_masks_invalid_points():
+    g = torch.Generator().manual_seed(1)
+    cur, prev, u = (torch.randn(20, 2, generator=g) for _ in range(3))
+    valid = torch.rand(20, generator=g) > 0.4
+    base = flow_loss(cur, prev, u, valid)
+    u2 = u.clone()
+    u2[~valid] = 1e6   # whatever the invalid entries hold
+    assert flow_loss(cur, prev, u2, valid).item() == pytest.approx(base.item())
+    want = ((cur - prev - u)[valid] ** 2).sum(dim=1).mean()
+    assert base.item() == pytest.approx(want.item(), rel=1e-6)
+
+
+def test_flow_loss_nothing_valid_is_zero_with_gradient():
+    cur = torch.randn(6, 2, requires_grad=True)
+    loss = flow_loss(cur, torch.zeros(6, 2), torch.full((6, 2), float("nan")), torch.zeros(6, dtype=torch.bool))
+    assert loss.item() == 0.0 and loss.requires_grad
+    loss.backward()
+    assert torch.equal(cur.grad, torch.zeros(6, 2))
+
+
+def test_flow_loss_gradcheck():
+    g = torch.Generator().manual_seed(2)
+    cur = torch.randn(4, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    prev = torch.randn(4, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    u = torch.randn(4, 2, dtype=torch.float64, generator=g)
+    valid = torch.tensor([True, False, True, True])
+    assert torch.autograd.gradcheck(lambda c, p: flow_loss(c, p, u, valid), (cur, prev))
+    batched_cur = torch.randn(3, 4, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    bvalid = torch.tensor([[True, False, True, True], [False] * 4, [True] * 4])
+    assert torch.autograd.gradcheck(lambda c: flow_loss(c, prev.detach().expand(3, 4, 2),
+                                                        u.expand(3, 4, 2), bvalid), (batched_cur,))
+
+
+def test_flow_loss_batched_matches_per_frame():
+    g = torch.Generator().manual_seed(3)
+    cur, prev, u = (torch.randn(5, 30, 2, generator=g) for _ in range(3))
+    valid = torch.rand(5, 30, generator=g) > 0.3
+    valid[2] = False
+    losses = flow_loss(cur, prev, u, valid)
+    assert losses.shape == (5,)
+    for t in range(5):
+        assert losses[t].item() == pytest.approx(flow_loss(cur[t], prev[t], u[t], valid[t]).item(), rel=1e-6)
+    assert losses[2].item() == 0.0
+
+
+def test_flow_loss_shape_errors():
+    cur = torch.zeros(4, 2)
+    with pytest.raises(ValueError, match="proj_prev"):
+        flow_loss(cur, torch.zeros(3, 2), torch.zeros(4, 2), torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="displacement"):
+        flow_loss(cur, torch.zeros(4, 2), torch.zeros(4, 3), torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="valid"):
+        flow_loss(cur, torch.zeros(4, 2), torch.zeros(4, 2), torch.ones(5, dtype=torch.bool))
+    with pytest.raises(TypeError):
+        flow_loss(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros((4, 2)), np.ones(4, bool))
+
+
+def test_flow_loss_drives_projections_to_flow_targets(field):
+    """End to end: correspondences from the tracked flow, then minimising Eq. 6 moves the current projections to
+    where the flow carries the previous ones."""
+    prev = _grid_points()
+    disp, ok = field.correspondences(2, prev)
+    cur = torch.tensor(prev, dtype=torch.float32, requires_grad=True)
+    opt = torch.optim.Adam([cur], lr=0.1)
+    for _ in range(200):
+        opt.zero_grad()
+        loss = flow_loss(cur, prev, disp, ok)
+        loss.backward()
+        opt.step()
+    moved = cur.detach().numpy() - prev
+    np.testing.assert_allclose(moved, np.broadcast_to(POSITIONS[2] - POSITIONS[1], moved.shape), atol=0.25)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A real GRID clip
+
+
+@pytest.fixture(scope="module")
+def grid_pair() -> np.ndarray:
+    assert GRID_CLIP.is_file(), f"shared test data missing: {GRID_CLIP}"
+    frames = read_video_frames(GRID_CLIP, start=30, count=2)
+    assert frames.shape == (2, 288, 360, 3)
+    return frames
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_grid_consecutive_frames(grid_pair, preset):
+    cfg = FlowConfig(preset=preset)
+    fwd, bwd = bidirectional_flow(grid_pair[0], grid_pair[1], cfg)
+    mask = consistency_mask(fwd, bwd, cfg.fb_threshold_px)
+    x0, y0, w, h = GRID_FACE
+    face = (slice(y0, y0 + h), slice(x0, x0 + w))
+    assert mask[face].mean() > 0.5
+    assert np.median(np.linalg.norm(fwd[face], axis=-1)) < 2.0
+    # the same on the face region only
+    ff = track_flow(grid_pair, cfg, roi=GRID_FACE)
+    assert ff.valid_fraction(1) > 0.5
+    assert np.median(np.linalg.norm(ff.forward_flow(1), axis=-1)) < 2.0
+    # landmarks-like points on the face mostly find a correspondence
+    ys, xs = np.mgrid[y0 + 20:y0 + h - 20:10, x0 + 20:x0 + w - 20:10]
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64) + 0.5
+    disp, ok = ff.correspondences(1, pts)
+    assert ok.mean() > 0.5
+    assert np.median(np.linalg.norm(disp[ok], axis=1)) < 2.0
+    photo = track_flow(grid_pair, FlowConfig(preset=preset, photometric_threshold=10.0), roi=GRID_FACE)
+    assert photo.valid_fraction(1) > 0.5

@@ -1,0 +1,93 @@
+"""The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each)."""
+
+import hashlib
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.futures import as_completed
+
+from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.params import TrackParams
+from visemeflow.rig import demo_rig_path
+from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
+from visemeflow.storage import Store
+from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.tasks.procedural import SOURCE as PROCEDURAL, default_variant
+from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance
+
+TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]
+
+
+def rig_and_hash(rig: Path | None) -> tuple[Path, str]:
+    path = (rig or demo_rig_path()).resolve()
+    return path, hashlib.blake2b(path.read_bytes(), digest_size=16).hexdigest()
+
+
+def procedural_variant_of(store: Store, given: str | None) -> str:
+    """The procedural curves that guide tracking: as given, else those the procedural stage last wrote."""
+    if given:
+        return given
+    run = store.read_run_config("procedural")
+    if run and run.get("variant"):
+        return run["variant"]
+    from visemeflow.procedural import ProceduralConfig
+
+    return default_variant(ProceduralConfig())
+
+
+@flow(name="track", flow_run_name="track[{params.store}]")
+def track_flow(params: TrackParams) -> dict[str, object]:
+    """Track every utterance that has a video; failures become rejects and the rest goes on."""
+    store = Store(params.store)
+    rig_path, rig_hash = rig_and_hash(params.rig)
+    procedural_variant = procedural_variant_of(store, params.procedural_variant)
+    config = params.config
+    store.write_run_config(STAGE, {
+        "rig": str(rig_path), "procedural_variant": procedural_variant, "n_shards": params.n_shards,
+        "config": config.model_dump(mode="json"),
+    })
+    rows = [r for r in store.read_table("utterances").select(TRACK_FIELDS).to_pylist() if r[C.VIDEO_PATH]]
+    rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    futures = {}
+    for row in rows:
+        uid = row[C.UTTERANCE_ID]
+        present = store.has_curves(SOURCE, config.variant, uid) or uid in rejected_before
+        provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
+        future = track_utterance.with_options(
+            result_storage=result_storage(store.root), refresh_cache=not present,
+        ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
+        futures[future] = uid
+    progress = create_progress_artifact(0.0, description=f"{STAGE}: utterances done") if futures else None
+    reports, rejects = [], []
+    for done, future in enumerate(as_completed(list(futures)), start=1):
+        uid = futures[future]
+        try:
+            report = dict(future.result())
+            report["cached"] = int(future.state.name == "Cached")
+            reports.append(report)
+        except TrackError as exc:
+            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
+        except Exception as exc:  # an unexpected failure of one utterance must not stop the others
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}", None))
+        if progress is not None:
+            update_progress_artifact(progress, 100.0 * done / len(futures))
+    by_shard: dict[int, list[dict]] = {}
+    for r in rejects:
+        by_shard.setdefault(shard_of(r[C.UTTERANCE_ID], params.n_shards), []).append(r)
+    for path in store.table_dir("rejects", STAGE).glob("shard-*.parquet"):
+        path.unlink()
+    for shard, items in by_shard.items():
+        store.write_shard("rejects", shard, table_from_rows(items, REJECTS), stage=STAGE)
+    errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
+    summary = {
+        "utterances": len(rows), "tracked": sum(1 for r in reports if not r["cached"]),
+        "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
+        "frames": sum(r["frames"] for r in reports),
+    }
+    extra = {"variant": config.variant,
+             "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
+    publish_stage_summary(STAGE, summary, extra)
+    publish_rejects(STAGE, store.read_table("rejects", STAGE))
+    get_run_logger().info("track (%s): %s", config.variant, summary)
+    return {**summary, **extra}

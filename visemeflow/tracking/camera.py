@@ -1,0 +1,54 @@
+"""Pinhole camera and per-frame head pose in torch, in the convention of `visemeflow.synth.render`.
+
+Camera coordinates: p_cam = R(rotation) p_mesh + translation, x right, y up, the camera looking down -z.
+Pixels: u = cx + fx x / (-z) to the right, v = cy - fy y / (-z) downward; pixel centres at integers.
+"""
+
+import math
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_deg: float = 25.0) -> "Intrinsics":
+        """Square pixels, centred principal point, `fov_deg` the vertical field of view (a guess for unknown cameras)."""
+        focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2.0)
+        return cls(focal, focal, (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Intrinsics":
+        """From a `<name>.camera.json` record (as `visemeflow synth` writes)."""
+        return cls(float(record["fx"]), float(record["fy"]), float(record["cx"]), float(record["cy"]),
+                   int(record["width"]), int(record["height"]))
+
+
+def rotation_matrices(rotation: torch.Tensor) -> torch.Tensor:
+    """(T, 3) axis-angle (rad) -> (T, 3, 3) rotation matrices, differentiable (also at zero)."""
+    return axis_angle_to_rotation_matrix(rotation)
+
+
+def to_camera(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+    """(T, N, 3) mesh points, (T, 3) axis-angle, (T, 3) translation -> (T, N, 3) camera coordinates."""
+    return points @ rotation_matrices(rotation).transpose(1, 2) + translation[:, None, :]
+
+
+def project(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, camera: Intrinsics) -> torch.Tensor:
+    """(T, N, 3) mesh points -> (T, N, 2) pixels (u right, v down)."""
+    cam = to_camera(points, rotation, translation)
+    depth = (-cam[..., 2]).clamp_min(1e-6)
+    u = camera.cx + camera.fx * cam[..., 0] / depth
+    v = camera.cy - camera.fy * cam[..., 1] / depth
+    return torch.stack([u, v], dim=-1)
