@@ -27,6 +27,7 @@ demo: venv
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source ground_truth
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source procedural
+	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source tracked
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
 test: venv

@@ -70,12 +70,32 @@ def procedural(
 
 
 @app.command()
+def track(
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+    solver: Annotated[str, typer.Option(help="fast (whole utterance at once) or faithful (the paper's per-frame schedule).")] = "fast",
+    guidance: Annotated[bool, typer.Option(help="Phoneme guidance (L_sup, L_act).")] = True,
+    rgb: Annotated[bool, typer.Option(help="Include the photo loss L_rgb (slower).")] = False,
+    flow: Annotated[bool, typer.Option(help="Include the optical-flow loss L_flow.")] = True,
+    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig; default: the ICT demo rig.")] = None,
+) -> None:
+    """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
+    from visemeflow.flows.params import TrackParams
+    from visemeflow.flows.track import track_flow
+    from visemeflow.tracking.solver import TrackingConfig
+
+    config = TrackingConfig(solver=solver, guidance=guidance, use_rgb=rgb, use_flow=flow)
+    _print_summary("track", track_flow(TrackParams(store=store, n_shards=shards, config=config, rig=rig)))
+    _print_rejects_hint(store)
+
+
+@app.command()
 def pipeline(
     corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.")],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
 ) -> None:
-    """Run every stage on a corpus: ingest, procedural curves."""
+    """Run every stage on a corpus: ingest, procedural curves, tracking of the videos."""
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
@@ -129,7 +149,7 @@ def espeak_corpus(
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    stage: Annotated[str, typer.Option(help="ingest or procedural.")] = "procedural",
+    stage: Annotated[str, typer.Option(help="ingest, procedural or track.")] = "procedural",
     store: StoreOpt = DEFAULT_STORE,
     force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
 ) -> None:

@@ -3,7 +3,12 @@
 from prefect import flow
 
 from visemeflow.flows.ingest import ingest_flow
-from visemeflow.flows.params import IngestParams, PipelineParams, ProceduralParams, TrackParams
+from visemeflow.flows.params import (
+    IngestParams,
+    PipelineParams,
+    ProceduralParams,
+    TrackParams,
+)
 from visemeflow.flows.procedural import procedural_flow
 from visemeflow.flows.track import track_flow
 from visemeflow.schemas import C

@@ -1,9 +1,12 @@
 """The `rerun` flow: one utterance through one stage, by hand, even when its cache is valid."""
 
+from pathlib import Path
+
 from prefect import flow, get_run_logger
 
 from visemeflow.flows.params import RerunParams
 from visemeflow.flows.procedural import UTTERANCE_FIELDS
+from visemeflow.flows.track import TRACK_FIELDS, procedural_variant_of, rig_and_hash
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import shard_of
@@ -11,6 +14,8 @@ from visemeflow.storage import Store
 from visemeflow.tasks import ingest as ingest_tasks
 from visemeflow.tasks import procedural as procedural_tasks
 from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.track import track_utterance
+from visemeflow.tracking.solver import TrackingConfig
 
 
 class RerunError(LookupError):
@@ -33,6 +38,17 @@ def rerun_flow(params: RerunParams) -> dict[str, int]:
             raise RerunError(f"{uid} is not in the corpus {run['corpus']}: {reasons}")
         task = ingest_tasks.ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
         report = task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
+    elif params.stage == "track":
+        rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
+        if not rows:
+            raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+        run = run or {"rig": None, "procedural_variant": None, "config": TrackingConfig().model_dump(mode="json")}
+        rig_path, rig_hash = rig_and_hash(Path(run["rig"]) if run.get("rig") else None)
+        variant = procedural_variant_of(store, run.get("procedural_variant"))
+        provenance = store.curves_provenance("procedural", variant, uid) or ""
+        task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
+        report = task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash,
+                      TrackingConfig(**run["config"]))
     else:
         run = run or {"n_shards": 8, "config": ProceduralConfig().model_dump(mode="json"), "variant": None}
         config = ProceduralConfig(**run["config"])

@@ -13,7 +13,8 @@ from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
-from visemeflow.tasks.procedural import SOURCE as PROCEDURAL, default_variant
+from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
+from visemeflow.tasks.procedural import default_variant
 from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance
 
 TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]

@@ -131,19 +131,33 @@ def second_order_response(target: np.ndarray, rate_hz: float, stiffness_hz: floa
     return out
 
 
+def _smooth(values: np.ndarray, a: float) -> np.ndarray:
+    """One-pole low-pass y_k = a y_{k-1} + (1 - a) x_k run forward then backward (zero phase), along axis 0."""
+    out = values.copy()
+    for direction in (1, -1):
+        seq = out[::direction]
+        for k in range(1, len(seq)):
+            seq[k] = a * seq[k - 1] + (1 - a) * seq[k]
+    return out
+
+
 def band_limited_noise(
     rng: np.random.Generator, n: int, rate_hz: float, cutoff_hz: float, dims: int = N_VISEMES
 ) -> np.ndarray:
-    """(n, dims) zero-mean noise of unit std. dev. low-passed to `cutoff_hz` (a one-pole filter run both ways)."""
-    white = rng.standard_normal((n, dims))
-    a = np.exp(-2.0 * np.pi * cutoff_hz / rate_hz)
-    out = white.copy()
-    for direction in (1, -1):
-        seq = out[::direction]
-        for k in range(1, n):
-            seq[k] = a * seq[k - 1] + (1 - a) * seq[k]
-    std = out.std(axis=0, keepdims=True)
-    return out / np.where(std > 0, std, 1.0)
+    """(n, dims) zero-mean noise low-passed to `cutoff_hz`, scaled to unit standard deviation in expectation.
+
+    The scale comes from the filter's impulse response, not from the sample: a short clip gets a short stretch of
+    the same process (slowly varying, small), not noise blown up to unit variance.
+    """
+    a = float(np.exp(-2.0 * np.pi * cutoff_hz / rate_hz))
+    span = int(np.ceil(20.0 / max(1.0 - a, 1e-6)))
+    impulse = np.zeros((2 * span + 1, 1))
+    impulse[span] = 1.0
+    gain = float(np.sqrt((_smooth(impulse, a) ** 2).sum()))
+    # warm-up stretches on both sides, cut off again, so the kept samples are stationary (the filter's start-up
+    # transient would otherwise leave raw white noise in the first samples)
+    padded = _smooth(rng.standard_normal((n + 2 * span, dims)), a)
+    return padded[span:span + n] / gain
 
 
 def generate_ground_truth(

@@ -20,8 +20,15 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY
 from visemeflow.tracking.camera import Intrinsics
 from visemeflow.tracking.flow import FlowConfig, roi_around, track_flow
-from visemeflow.tracking.identity import apply_identity, demo_identity_path, fit_identity, load_identity_modes, neutral_frames
+from visemeflow.tracking.identity import (
+    apply_identity,
+    demo_identity_path,
+    fit_identity,
+    load_identity_modes,
+    neutral_frames,
+)
 from visemeflow.tracking.landmarks import LandmarkError, LandmarkTrack, read_landmarks
+from visemeflow.tracking.photo import PhotoTerm
 from visemeflow.tracking.solver import (
     FlowTerm,
     TrackingConfig,
@@ -98,16 +105,13 @@ def rig_and_camera(utterance: dict, rig: VisemeRig, track: LandmarkTrack) -> tup
     return fitted, fit.camera, {"identity": "fitted", "identity_rms_px": round(float(fit.rms_px), 3)}
 
 
-def flow_term(utterance: dict, rig: VisemeRig, track: LandmarkTrack, n_frames: int) -> tuple[FlowTerm, np.ndarray]:
+def flow_term(frames: np.ndarray, rig: VisemeRig, track: LandmarkTrack) -> tuple[FlowTerm, np.ndarray]:
     """Optical-flow correspondences over the face region of the video, and the valid fraction per frame."""
-    frames = read_video_frames(utterance[C.VIDEO_PATH], 0, n_frames)
     height, width = frames.shape[1:3]
-    pts = track.points[track.valid]
-    roi = roi_around(pts.reshape(-1, 2), width, height, margin=0.15)
+    roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
     field = track_flow(frames, FlowConfig(), roi)
     valid_fraction = np.array([np.nan] + [field.valid_fraction(j) for j in range(1, len(frames))], np.float32)
-    term = FlowTerm(flow_vertices(rig), field.correspondences, field.backward_correspondences)
-    return term, valid_fraction
+    return FlowTerm(flow_vertices(rig), field.correspondences, field.backward_correspondences), valid_fraction
 
 
 def diagnostics_table(uid: str, variant: str, result: TrackingResult, track: LandmarkTrack,
@@ -147,8 +151,16 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
         if len(procedural) != n_frames:
             raise TrackError(uid, None, "FrameMismatch",
                              f"procedural curves have {len(procedural)} frames, the video {n_frames}: rerun procedural")
-        flow, flow_valid = (flow_term(utterance, rig, track, n_frames) if config.use_flow and n_frames > 1 else (None, None))
-        problem = TrackingProblem(rig, camera, track.points, track.valid, procedural, flow=flow)
+        flow = flow_valid = photo = None
+        if (config.use_flow and n_frames > 1) or config.use_rgb:
+            frames = read_video_frames(video, 0, n_frames)
+            if len(frames) < n_frames:
+                raise TrackError(uid, video, "ShortVideo", f"decoded {len(frames)} frames, expected {n_frames}")
+            if config.use_flow and n_frames > 1:
+                flow, flow_valid = flow_term(frames, rig, track)
+            if config.use_rgb:
+                photo = PhotoTerm(rig, camera, frames, track.points)
+        problem = TrackingProblem(rig, camera, track.points, track.valid, procedural, flow=flow, rgb=photo)
         result = (solve_fast if config.solver == "fast" else solve_faithful)(problem, config)
     except VideoError as exc:
         raise TrackError(uid, video, "UnreadableVideo", str(exc)) from exc

@@ -20,7 +20,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 import torch
@@ -114,11 +114,13 @@ class FlowTerm:
     correspond_back: Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-@dataclass
-class RgbTerm:
-    """Photo loss for a set of frames: `loss(j, vertices (V, 3), rotation (3,), translation (3,)) -> scalar`."""
+class RgbTerm(Protocol):
+    """Photo loss (Eq. 3): `prepare` once a pose estimate exists, then `loss(j, vertices (V, 3), rotation (3,),
+    translation (3,)) -> scalar` per frame (see `visemeflow.tracking.photo.PhotoTerm`)."""
 
-    loss: Callable[[int, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+    def prepare(self, curves: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> None: ...
+
+    def loss(self, j: int, vertices: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor: ...
 
 
 @dataclass
@@ -235,7 +237,7 @@ def initial_pose(problem: TrackingProblem, config: TrackingConfig) -> tuple[torc
         rotation = torch.as_tensor(problem.initial_rotation, dtype=torch.float32).clone()
         translation = torch.as_tensor(problem.initial_translation, dtype=torch.float32).clone()
     else:
-        rotation, translation = _pose_guess(points, target, valid, cam)
+        rotation, translation = _pose_guess(points, target, valid, cam, np.flatnonzero(has))
     rotation.requires_grad_(True)
     translation.requires_grad_(True)
     if config.pose_iterations:
@@ -249,28 +251,41 @@ def initial_pose(problem: TrackingProblem, config: TrackingConfig) -> tuple[torc
     return rotation.detach(), translation.detach()
 
 
-def _pose_guess(points: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, cam: Intrinsics):
-    """Frontal pose whose projected landmark spread and centre match the detections (per frame)."""
+def _pose_guess(points: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, cam: Intrinsics,
+                landmark_index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-frame head pose by OpenCV's PnP on the rigid landmarks (brows, eyes, nose: 17-47) of the model.
+
+    Frames with too few detections take the nearest solved frame's pose.
+    """
+    import cv2
+
     t = len(points)
-    rotation = torch.zeros(t, 3)
-    translation = torch.zeros(t, 3)
+    rigid = (landmark_index >= 17) & (landmark_index <= 47)
+    K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+    flip = np.diag([1.0, -1.0, -1.0])  # OpenCV's camera looks down +z with y down; ours down -z with y up
+    rotation = np.full((t, 3), np.nan)
+    translation = np.full((t, 3), np.nan)
+    pts, tgt, ok_all = points.numpy().astype(np.float64), target.numpy().astype(np.float64), valid.numpy()
     for j in range(t):
-        ok = valid[j]
-        if ok.sum() < 3:
-            ok = valid.any(dim=0) if valid.any() else torch.ones_like(ok)
-        p = points[j][ok]
-        q = target[j][ok] if valid[j].sum() >= 3 else target[valid.any(dim=1)].reshape(-1, 2) if valid.any() else None
-        if q is None or len(q) == 0:
-            translation[j] = torch.tensor([0.0, 0.0, -80.0])
+        ok = ok_all[j] & rigid
+        if ok.sum() < 6:
             continue
-        spread_mesh = (p[:, :2] - p[:, :2].mean(0)).norm(dim=1).mean()
-        spread_img = (q - q.mean(0)).norm(dim=1).mean().clamp_min(1.0)
-        depth = cam.fy * spread_mesh / spread_img
-        centre = q.mean(0)
-        x = (centre[0] - cam.cx) * depth / cam.fx
-        y = -(centre[1] - cam.cy) * depth / cam.fy
-        translation[j] = torch.stack([x - p[:, 0].mean(), y - p[:, 1].mean(), -depth - p[:, 2].mean()])
-    return rotation, translation
+        found, rvec, tvec = cv2.solvePnP(pts[j][ok], tgt[j][ok], K, None, flags=cv2.SOLVEPNP_EPNP)
+        if not found:
+            continue
+        found, rvec, tvec = cv2.solvePnP(pts[j][ok], tgt[j][ok], K, None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
+        r_cv, _ = cv2.Rodrigues(rvec)
+        r_ours, _ = cv2.Rodrigues(flip @ r_cv)
+        rotation[j], translation[j] = r_ours.reshape(3), flip @ tvec.reshape(3)
+    solved = np.flatnonzero(np.isfinite(rotation[:, 0]))
+    if len(solved) == 0:
+        rotation[:] = 0.0
+        translation[:] = (0.0, 0.0, -80.0)
+    else:
+        for j in np.flatnonzero(~np.isfinite(rotation[:, 0])):
+            k = solved[np.argmin(np.abs(solved - j))]
+            rotation[j], translation[j] = rotation[k], translation[k]
+    return torch.as_tensor(rotation, dtype=torch.float32), torch.as_tensor(translation, dtype=torch.float32)
 
 
 class _Objective:
@@ -366,7 +381,9 @@ def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig
             if it % 50 == 0:
                 flow_state.refresh(x, rot, trans)
             terms["flow"] = flow_state.loss(x, rot, trans)
-        if it >= config.fast_iterations and problem.rgb is not None:
+        if it >= config.fast_iterations and obj.config.w_rgb and problem.rgb is not None:
+            if it == config.fast_iterations:
+                problem.rgb.prepare(x.detach().numpy(), rot.detach().numpy(), trans.detach().numpy())
             terms["rgb"] = _rgb_all(problem, obj, x, rot, trans)
         loss = obj.weighted(terms).sum()
         if not torch.isfinite(loss):
@@ -426,6 +443,8 @@ def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingCo
     t = problem.n_frames
     x_all = torch.tensor(problem.procedural, dtype=torch.float32)
     rot_all, trans_all = rot0.clone(), trans0.clone()
+    if obj.config.w_rgb and problem.rgb is not None:
+        problem.rgb.prepare(x_all.numpy(), rot_all.numpy(), trans_all.numpy())
     terms_all: dict[str, np.ndarray] = {}
     for direction in config.passes:
         order = range(t) if direction == "forward" else range(t - 1, -1, -1)

@@ -1,0 +1,202 @@
+"""Phoneme-guided tracking: loss terms, guidance sets, solvers on synthetic takes, and the track flow."""
+
+import dataclasses
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from factories import DEMO_CORPUS
+from visemeflow.phonetics.types import VisemeSegment
+from visemeflow.procedural import generate_procedural_curves
+from visemeflow.rig import load_demo_rig
+from visemeflow.synth.take import SynthConfig, make_take
+from visemeflow.tracking.camera import Intrinsics, project
+from visemeflow.tracking.losses import (
+    activation_loss,
+    diff_loss,
+    guidance_sets,
+    landmark_loss,
+    range_loss,
+    suppression_loss,
+)
+from visemeflow.tracking.solver import TrackingConfig, TrackingProblem, solve_faithful, solve_fast
+from visemeflow.visemes import VISEMES, viseme_index
+
+SEGMENTS = [
+    VisemeSegment("MBP", 0.20, 0.28, 0), VisemeSegment("AHH", 0.28, 0.50, 0), VisemeSegment("UUU", 0.50, 0.72, 0),
+    VisemeSegment("IEE", 0.90, 1.10, 1), VisemeSegment("FFF", 1.10, 1.18, 1), VisemeSegment("OHH", 1.18, 1.40, 1),
+]
+N_FRAMES, FPS = 40, 25.0
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_demo_rig()
+
+
+def problem_for(rig, take, procedural):
+    cam = take.camera
+    camera = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+    return TrackingProblem(rig, camera, take.landmarks.points, take.landmarks.valid, procedural)
+
+
+# ---- loss terms ---------------------------------------------------------------------------------------------------
+def test_each_loss_term_has_correct_gradients():
+    torch.manual_seed(0)
+    x = torch.rand(3, 16, dtype=torch.float64) * 1.4 - 0.2
+    mask = torch.rand(3, 16) > 0.5
+    for fn in (lambda w: suppression_loss(w, mask), lambda w: activation_loss(w, mask), range_loss,
+               lambda w: diff_loss(w[1:], w[:-1])):
+        assert torch.autograd.gradcheck(lambda w: fn(w).sum(), (x.clone().requires_grad_(True),))
+    proj = torch.rand(2, 5, 2, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(2, 5, 2, dtype=torch.float64)
+    valid = torch.tensor([[True, True, False, True, True], [False] * 5])
+    beta = torch.tensor([1.0, 0.5, 1.0, 0.3, 2.0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda p: landmark_loss(p, target, valid, beta).sum(), (proj,))
+
+
+def test_loss_terms_by_hand():
+    x = torch.tensor([[0.5, -0.2, 1.5] + [0.0] * 13])
+    assert range_loss(x).item() == pytest.approx(0.25 + 0.04)  # (1.5-1)^2 + (-0.2)^2, each set of size 1
+    sup = torch.zeros(1, 16, dtype=torch.bool)
+    sup[0, :2] = True
+    assert suppression_loss(x, sup).item() == pytest.approx((0.25 + 0.04) / 2)
+    assert activation_loss(x, sup).item() == pytest.approx(-(0.25 + 0.04) / 2)
+    proj = torch.tensor([[[0.0, 0.0], [3.0, 4.0]]])
+    target = torch.zeros(1, 2, 2)
+    valid = torch.tensor([[True, True]])
+    assert landmark_loss(proj, target, valid, torch.tensor([1.0, 1.0])).item() == pytest.approx(12.5)
+    assert landmark_loss(proj, target, torch.tensor([[True, False]]), torch.tensor([1.0, 1.0])).item() == 0.0
+
+
+def test_guidance_sets_follow_the_paper_rule():
+    curves = np.zeros((5, 16))
+    a, b, c, d = (viseme_index(v) for v in ("MBP", "AHH", "UUU", "IEE"))
+    curves[1, [a, b, c, d]] = [0.9, 0.5, 0.3, 0.1]   # top 3 at frame 1: MBP, AHH, UUU
+    curves[2, [b, c]] = [0.8, 0.6]
+    sets = guidance_sets(curves, m=3, n=2, radius=1)
+    assert set(np.flatnonzero(sets.activate[1])) == {a, b}
+    assert not sets.suppress[0, a] and not sets.suppress[2, a]  # MBP is top-3 at frame 1, a neighbour
+    assert sets.suppress[3, a] and not sets.suppress[3, b]      # frame 3's neighbours are 2..4: AHH top there
+    assert sets.suppress[0, d] and sets.suppress[2, d]          # IEE never reaches a top 3
+    assert sets.suppress[4].all() and not sets.activate[4].any()  # silence: all suppressed, none activated
+
+
+# ---- solvers ------------------------------------------------------------------------------------------------------
+def test_recovers_noiseless_landmarks_and_guidance_recovers_the_right_visemes(rig):
+    take = make_take(rig, SEGMENTS, N_FRAMES, "spk", "spk/clean", SynthConfig(landmark_noise_px=0.0, landmark_miss_rate=0.0))
+    procedural = generate_procedural_curves(SEGMENTS, N_FRAMES, FPS)
+    problem = problem_for(rig, take, procedural)
+    unguided = solve_fast(problem, TrackingConfig(guidance=False, use_flow=False, fast_iterations=800))
+    guided = solve_fast(problem, TrackingConfig(guidance=True, use_flow=False, fast_iterations=800))
+    assert np.nanmean(unguided.mouth_error_px) < 0.35  # the landmarks are reproduced almost exactly
+    assert np.nanmean(guided.mouth_error_px) < 0.8
+    # landmarks alone do not identify the visemes (several move the lips alike): guidance picks the right ones
+    speaking = take.curves.max(axis=1) > 0.2
+
+    def top2(curves):
+        return np.mean([take.curves[k].argmax() in np.argsort(-curves[k])[:2] for k in np.flatnonzero(speaking)])
+
+    assert top2(guided.curves) >= top2(unguided.curves) and top2(guided.curves) > 0.9
+    assert np.abs(guided.curves - take.curves).mean() < np.abs(unguided.curves - take.curves).mean()
+    assert guided.curves.min() >= 0 and guided.curves.max() <= 1
+
+
+def test_guidance_decides_between_visemes_with_the_same_landmarks(rig):
+    """Two visemes whose landmark motion is identical: only the phonemes can tell them apart."""
+    ahh, clone = viseme_index("AHH"), viseme_index("AAA")
+    deltas = rig.deltas.copy()
+    deltas[clone] = deltas[ahh]
+    twin = dataclasses.replace(rig, deltas=deltas)
+    segments = [VisemeSegment("AHH", 0.2, 0.9, 0)]
+    take = make_take(twin, segments, 30, "spk", "spk/twin", SynthConfig(landmark_noise_px=0.0, landmark_miss_rate=0.0))
+    for guide, expected in (("AHH", ahh), ("AAA", clone)):
+        procedural = generate_procedural_curves([VisemeSegment(guide, 0.2, 0.9, 0)], 30, FPS)
+        result = solve_fast(problem_for(twin, take, procedural), TrackingConfig(use_flow=False))
+        other = clone if expected == ahh else ahh
+        mid = slice(10, 20)
+        assert result.curves[mid, expected].mean() > result.curves[mid, other].mean() + 0.3
+        assert np.nanmean(result.mouth_error_px) < 1.0
+
+
+def test_faithful_solver_runs_the_paper_schedule_on_a_few_frames(rig):
+    take = make_take(rig, SEGMENTS, 6, "spk", "spk/few", SynthConfig(landmark_noise_px=0.0, landmark_miss_rate=0.0))
+    procedural = generate_procedural_curves(SEGMENTS, 6, FPS)
+    config = TrackingConfig(solver="faithful", guidance=False, use_flow=False, iterations=60)
+    result = solve_faithful(problem_for(rig, take, procedural), config)
+    assert result.iterations == 60 * 6 * 2  # forward then backward pass
+    assert result.curves.shape == (6, 16) and np.isfinite(result.curves).all()
+    assert np.nanmean(result.mouth_error_px) < 1.0
+
+
+def test_frames_without_landmarks_are_masked_not_zeroed(rig):
+    take = make_take(rig, SEGMENTS, N_FRAMES, "spk", "spk/gap", SynthConfig(landmark_noise_px=0.0, landmark_miss_rate=0.0))
+    points, valid = take.landmarks.points.copy(), take.landmarks.valid.copy()
+    points[8:12], valid[8:12] = np.nan, False
+    procedural = generate_procedural_curves(SEGMENTS, N_FRAMES, FPS)
+    problem = dataclasses.replace(problem_for(rig, take, procedural), landmarks=points, valid=valid)
+    result = solve_fast(problem, TrackingConfig(use_flow=False))
+    assert np.isnan(result.mouth_error_px[8:12]).all() and np.isfinite(result.mouth_error_px[:8]).all()
+    assert result.curves[8:12].max() > 0.2  # the gap is bridged by guidance and L_diff, not left at zero
+
+
+def test_camera_projection_matches_the_synthetic_renderer(rig):
+    from visemeflow.synth.render import Camera, Pose
+    from visemeflow.synth.render import project as project_np
+
+    cam = Camera.default(360, 288)
+    pose = Pose((0.05, -0.1, 0.02), (0.5, -1.0, -70.0))
+    pts = rig.neutral[rig.landmark_ids]
+    expected = project_np(pts, cam, pose)
+    got = project(torch.as_tensor(pts)[None], torch.tensor([pose.rotation], dtype=torch.float32),
+                  torch.tensor([pose.translation], dtype=torch.float32),
+                  Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height))[0].numpy()
+    assert np.abs(got - expected).max() < 1e-3
+
+
+# ---- the flow -----------------------------------------------------------------------------------------------------
+@pytest.mark.flow
+def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
+    from visemeflow.flows.params import PipelineParams, RerunParams, SynthParams
+    from visemeflow.flows.pipeline import pipeline_flow
+    from visemeflow.flows.rerun import rerun_flow
+    from visemeflow.flows.synth import synth_flow
+    from visemeflow.schemas import C
+    from visemeflow.storage import Store
+
+    source = tmp_path / "source" / "zh"
+    source.mkdir(parents=True)
+    for ext in (".wav", ".TextGrid"):
+        shutil.copyfile(DEMO_CORPUS / "SSB1624" / f"SSB16240001{ext}", source / f"SSB16240001{ext}")
+    out, store = tmp_path / "synth", tmp_path / "store"
+    synth_flow(SynthParams(corpus=source.parent, out=out, store=store))
+    # a second utterance with a video but no landmark file: a clear reject, the other goes on
+    for ext in (".wav", ".TextGrid", ".mp4"):
+        shutil.copyfile(out / "zh" / f"SSB16240001{ext}", out / "zh" / f"nolandmarks{ext}")
+
+    params = PipelineParams(corpus=out, store=store, n_shards=2)
+    first = pipeline_flow(params)
+    assert first["track"]["tracked"] == 1 and first["track"]["rejected"] == 1
+    s = Store(store)
+    (reject,) = s.read_table("rejects", "track").to_pylist()
+    assert reject[C.UTTERANCE_ID] == "zh/nolandmarks" and reject[C.ERROR_TYPE] == "NoLandmarks"
+    tracked = s.read_curves("zh/SSB16240001", "tracked", "guided-fast")
+    truth = s.read_curves("zh/SSB16240001", "ground_truth")
+    assert tracked.num_rows == truth.num_rows == 43
+    frames = s.read_tracking_frames("guided-fast").to_pylist()
+    assert len(frames) == 43 and all(r[C.LANDMARKS_VALID] is not None for r in frames)
+    assert np.nanmean([r[C.MOUTH_ERROR_PX] for r in frames if r[C.MOUTH_ERROR_PX] is not None]) < 4.0
+    assert any(r[C.FLOW_VALID_FRACTION] for r in frames)
+
+    path = s.curve_path("tracked", "guided-fast", "zh/SSB16240001")
+    before = path.stat().st_mtime_ns
+    second = pipeline_flow(params)
+    assert second["track"]["cached"] == 1 and second["track"]["tracked"] == 0
+    assert path.stat().st_mtime_ns == before
+
+    report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="track", store=store))
+    assert report["frames"] == 43
+    assert path.stat().st_mtime_ns != before
+    assert VISEMES  # the 16 names are what the tracked table's columns are
