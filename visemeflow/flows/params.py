@@ -1,9 +1,9 @@
 """Flow parameters as pydantic models, so the Prefect UI shows them as forms and bad values fail first."""
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
@@ -12,6 +12,15 @@ from visemeflow.synth.take import SynthConfig
 from visemeflow.tracking.solver import TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
+
+
+def _existing(corpus: Path) -> Path:
+    if not corpus.exists():
+        raise ValueError(f"corpus {corpus} does not exist")
+    return corpus
+
+
+CorpusPath = Annotated[Path, AfterValidator(_existing)]
 
 
 class StoreParams(BaseModel):
@@ -25,15 +34,9 @@ class StoreParams(BaseModel):
 
 
 class IngestParams(StoreParams):
-    corpus: Path = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")
+    corpus: CorpusPath = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")
     config: IngestConfig = Field(default_factory=IngestConfig)
 
-    @field_validator("corpus")
-    @classmethod
-    def _corpus_exists(cls, corpus: Path) -> Path:
-        if not corpus.exists():
-            raise ValueError(f"corpus {corpus} does not exist")
-        return corpus
 
 
 class ProceduralParams(StoreParams):
@@ -57,18 +60,12 @@ class PipelineParams(StoreParams):
 class SynthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    corpus: Path = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
+    corpus: CorpusPath = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
     out: Path = Field(Path("visemeflow-out/synth-corpus"), description="Folder of the synthetic corpus written.")
     store: Path = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth').")
     rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")
     config: SynthConfig = Field(default_factory=SynthConfig)
 
-    @field_validator("corpus")
-    @classmethod
-    def _corpus_exists(cls, corpus: Path) -> Path:
-        if not corpus.exists():
-            raise ValueError(f"corpus {corpus} does not exist")
-        return corpus
 
 
 class TrackParams(StoreParams):

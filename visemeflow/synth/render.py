@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visemeflow.tracking.camera import Intrinsics
+
 DEFAULT_LIGHT = (0.35, 0.45, 1.0)
 """Light direction in camera coordinates (toward the light): from the viewer's upper right, mostly frontal."""
 DEFAULT_BACKGROUND = (60, 62, 70)
@@ -36,27 +38,8 @@ _EDGE_EPS = 1e-7
 _BATCH_PIXELS = 1 << 21
 
 
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole intrinsics in pixels; (cx, cy) is the principal point, pixel centres at integer coordinates."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @classmethod
-    def default(cls, width: int = 360, height: int = 288, fov_deg: float = 25.0) -> Camera:
-        """Square pixels, centred principal point, `fov_deg` the vertical field of view."""
-        focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2.0)
-        return cls(focal, focal, (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
-
-    @property
-    def matrix(self) -> np.ndarray:
-        """(3, 3) intrinsic matrix K (OpenCV layout)."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+# The same pinhole model as the tracker's (intrinsics are plain data; the renderers stay separate).
+Camera = Intrinsics
 
 
 @dataclass(frozen=True)

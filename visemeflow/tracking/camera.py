@@ -7,6 +7,7 @@ Pixels: u = cx + fx x / (-z) to the right, v = cy - fy y / (-z) downward; pixel 
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
@@ -23,10 +24,17 @@ class Intrinsics:
     height: int
 
     @classmethod
-    def from_fov(cls, width: int, height: int, fov_deg: float = 25.0) -> "Intrinsics":
+    def from_fov(cls, width: int = 360, height: int = 288, fov_deg: float = 25.0) -> "Intrinsics":
         """Square pixels, centred principal point, `fov_deg` the vertical field of view (a guess for unknown cameras)."""
         focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2.0)
         return cls(focal, focal, (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
+
+    default = from_fov
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix K (OpenCV layout)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @classmethod
     def from_record(cls, record: dict) -> "Intrinsics":
