@@ -41,6 +41,7 @@ class PhotoTerm:
         self.rasterizer: CropRasterizer | None = None
         self.albedo: torch.Tensor | None = None
         self._fragments: dict[int, tuple[int, object]] = {}
+        self.vertex_ids = np.zeros(0, np.int64)
 
     def prepare(self, curves: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> None:
         """Triangles in the crop and albedo from the current estimate (curves (T, 16), pose (T, 3) + (T, 3))."""
@@ -51,6 +52,7 @@ class PhotoTerm:
         faces = triangles_in_crop(self.rig.faces, pix, self.crop)
         self.rasterizer = CropRasterizer(self.rig.faces[faces], self.crop)
         ids = self.rasterizer.vertex_ids
+        self.vertex_ids = np.asarray(ids)
         picks = np.unique(np.linspace(0, len(meshes) - 1, min(ALBEDO_FRAMES, len(meshes))).round().astype(int))
         images, pixels, seen = [], [], []
         for j in picks:
@@ -63,13 +65,14 @@ class PhotoTerm:
         self._fragments.clear()
 
     def loss(self, j: int, vertices: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+        """Eq. 3 for frame j; `vertices` (R, 3) are the rows `vertex_ids` of the posed rig's mesh."""
         if self.rasterizer is None or self.albedo is None:
             raise RuntimeError("PhotoTerm.prepare must run before loss")
         count, fragments = self._fragments.get(j, (0, None))
         if fragments is None or count % self.refresh == 0:
             fragments = None
         image, mask, fragments = render_crop(
-            vertices[self.rasterizer.vertex_ids], rotation, translation, self.camera, self.crop, None, self.albedo,
+            vertices, rotation, translation, self.camera, self.crop, None, self.albedo,
             self.light, rasterizer=self.rasterizer, return_fragments=True, fragments=fragments,
         )
         self._fragments[j] = (count + 1, fragments)

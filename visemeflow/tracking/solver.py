@@ -8,8 +8,10 @@ weights to [0, 1] at the end.
   exponentially every 10 iterations; the previous frame's solution is fixed in L_diff and L_flow; a forward pass
   through the frames, then a backward pass in reverse order (the neighbour is then the next frame).
 - Fast: the same objective over the whole utterance at once, all frames one batch, L_diff and L_flow linking
-  neighbouring frames in both directions, projected Adam (weights clamped to [0, 1] after every step, so the
-  truncation at the end changes nothing) with a cosine-decayed learning rate.
+  neighbouring frames in both directions, Adam with a cosine-decayed learning rate.
+
+Both keep the weights in [0, 1] by projection after every step by default (`box="projected"`); `box="soft"` is the
+paper's L_range penalty with truncation at the end (see `TrackingConfig.box` for why it is not the default).
 
 Pixel errors are measured as if the face were `reference_face_px` tall (brow to chin), so that the paper's loss
 weights keep their balance whatever the video's size and framing: landmark and flow residuals are multiplied by
@@ -72,6 +74,15 @@ class TrackingConfig(BaseModel):
     face_weight: float = Field(0.3, ge=0, description="beta_k of brows, eyes and nose (17-47).")
     jaw_weight: float = Field(0.0, ge=0, description="beta_k of the jaw contour (0-16): 2D silhouette points.")
     pose_iterations: int = Field(200, ge=0, description="Rigid pose initialisation iterations.")
+    box: Literal["projected", "soft"] = Field(
+        "projected",
+        description=(
+            "How weights are kept in [0, 1]: 'projected' clamps after every optimiser step (L_range is then zero); "
+            "'soft' is the paper's L_range penalty and a truncation at the end. With the paper's weights the soft "
+            "form is unbounded below once two activated visemes exceed 1 (L_act gives each -150/2 x^2, L_range only "
+            "+100/2 (x-1)^2), so only the landmarks hold the weights back."
+        ),
+    )
     pose_lr_factor: float = Field(
         0.1, gt=0, description="Learning rate of the head pose (rad, cm) relative to the viseme weights' rate."
     )
@@ -115,8 +126,11 @@ class FlowTerm:
 
 
 class RgbTerm(Protocol):
-    """Photo loss (Eq. 3): `prepare` once a pose estimate exists, then `loss(j, vertices (V, 3), rotation (3,),
-    translation (3,)) -> scalar` per frame (see `visemeflow.tracking.photo.PhotoTerm`)."""
+    """Photo loss (Eq. 3): `prepare` once a pose estimate exists; then `vertex_ids` (R,) are the rig vertices it
+    renders and `loss(j, vertices (R, 3), rotation (3,), translation (3,)) -> scalar` is frame j's term (see
+    `visemeflow.tracking.photo.PhotoTerm`)."""
+
+    vertex_ids: np.ndarray
 
     def prepare(self, curves: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> None: ...
 
@@ -390,9 +404,9 @@ def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig
             raise FloatingPointError(f"non-finite tracking loss at iteration {it}")
         loss.backward()
         opt.step()
-        with torch.no_grad():
-            # projected gradient: the box constraint held exactly (L_range is then zero, the truncation a no-op)
-            x.clamp_(0.0, 1.0)
+        if config.box == "projected":
+            with torch.no_grad():
+                x.clamp_(0.0, 1.0)
     with torch.no_grad():
         final = obj.frame_terms(all_frames, x, rot, trans)
         if t > 1:
@@ -402,8 +416,11 @@ def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig
 
 
 def _rgb_all(problem, obj, x, rot, trans) -> torch.Tensor:
-    vertices = evaluate_rig(problem.rig, x)
-    return torch.stack([problem.rgb.loss(j, vertices[j], rot[j], trans[j]) for j in range(problem.n_frames)])
+    # only the vertices the photo term renders, split once: per-frame indexing of one (T, V, 3) tensor would
+    # make every frame's backward pass touch all T frames
+    vertices = evaluate_rig(problem.rig, x, problem.rgb.vertex_ids).unbind(0)
+    rots, transes = rot.unbind(0), trans.unbind(0)
+    return torch.stack([problem.rgb.loss(j, vertices[j], rots[j], transes[j]) for j in range(problem.n_frames)])
 
 
 class _FastFlow:
@@ -488,6 +505,9 @@ def _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, dir
         loss.backward()
         opt.step()
         sched.step()
+        if config.box == "projected":
+            with torch.no_grad():
+                x.clamp_(0.0, 1.0)
     with torch.no_grad():
         x_all[j] = x[0]
         rot_all[j] = rot[0]
@@ -505,6 +525,6 @@ def _frame_objective(problem, obj, frames, x, rot, trans, prev_x, flow) -> dict[
         proj = project(obj.points(x, obj.flow_ids), rot, trans, problem.camera)
         terms["flow"] = flow_loss(proj * obj.scale, prev_proj * obj.scale, disp * obj.scale, valid)
     if obj.config.w_rgb and problem.rgb is not None:
-        vertices = evaluate_rig(problem.rig, x)
+        vertices = evaluate_rig(problem.rig, x, problem.rgb.vertex_ids)
         terms["rgb"] = problem.rgb.loss(int(frames[0]), vertices[0], rot[0], trans[0])[None]
     return terms
