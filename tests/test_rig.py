@@ -556,7 +556,6 @@ def test_demo_rounded_visemes_protrude_and_fff_raises_the_lower_lip(demo_landmar
     assert abs(fff[8, 1] - neutral[8, 1]) < 0.3  # with the jaw nearly closed
 
 
-@pytest.mark.skipif(not ICT.is_dir(), reason="needs ../shared/data/ict_facekit")
 def test_shipped_demo_rig_matches_a_rebuild_from_the_recipes(demo):
     spec = importlib.util.spec_from_file_location("build_demo_rig", REPO / "examples" / "build_demo_rig.py")
     module = importlib.util.module_from_spec(spec)
