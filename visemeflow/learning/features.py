@@ -1,0 +1,574 @@
+"""Audio features for the audio-to-viseme mapping (paper section 5.1, Table 1 ablation).
+
+Pure torch/numpy; no Prefect and no file paths except the explicit Wav2Vec2 model path.
+
+Conventions (all kinds)
+-----------------------
+* Input: ``audio`` (B, samples) float32 at ``config.sample_rate`` and ``lengths`` (B,) valid
+  samples per row; samples at index >= length are padding and are ignored (zeroed first).
+* Output: ``features`` (B, T_feat, D) and ``feat_lengths`` (B,); rows ``t >= feat_lengths[b]``
+  are zero.  A shorter utterance in a batch gets the same valid-frame features as when run alone.
+
+Hand-crafted kinds (fbank, mfcc, lpc) use Kaldi-style "snip edges" framing: frame ``t`` covers
+samples ``[t*hop, t*hop + win)`` (its centre is at ``t*hop + win/2``), so
+``T = 1 + (n - win) // hop`` for ``n >= win`` and 0 otherwise.  A valid frame therefore never
+reads a padded sample (no leakage at all).  ``frame_rate_hz = 1000 / hop_ms`` (100 Hz by default).
+
+* fbank: periodic Hann window of ``win_ms``, zero-padded to the next power-of-two FFT, power
+  spectrum, ``n_mels`` triangular filters on the HTK mel scale between 0 Hz and Nyquist,
+  ``log(max(energy, 1e-10))``.  No dither, no pre-emphasis (deterministic).
+* mfcc: orthonormal DCT-II of that log-mel, first ``n_mfcc`` coefficients (c0 included).  With
+  ``mfcc_deltas=True`` the first and second regression deltas (window 2, edges replicated at each
+  utterance's own last valid frame) are appended: D = 3 * n_mfcc.  Default: no deltas, D = n_mfcc.
+* lpc: we output LPC *predictor coefficients* (not Karras et al. 2017's raw autocorrelation):
+  per Hann-windowed frame, autocorrelation lags 0..p (lag 0 with a 1e-9 relative white-noise
+  correction plus an absolute floor so silence gives all-zero coefficients), then batched
+  Levinson-Durbin.  Convention ``x[n] ~= sum_k a_k x[n-k]``; D = ``lpc_order``.
+* ``normalize=True`` (default False) applies per-utterance mean/variance normalisation (CMVN)
+  of each feature dimension over that utterance's valid frames only (so batching is invariant).
+
+wav2vec2: ``transformers.Wav2Vec2Model.from_pretrained(config.wav2vec2_model)`` (hub id or a
+local directory).  The CNN feature encoder is frozen when ``freeze_feature_encoder`` (the paper
+fixes phi and fine-tunes the transformer phi'); the feature projection and transformer stay
+trainable.  The waveform is zero-mean/unit-variance normalised per utterance over valid samples
+(as the XLSR feature extractor's ``do_normalize``), padding zeroed, and an attention mask built
+from ``lengths``.  ``D = model.config.hidden_size``; ``feat_lengths`` from the model's own conv
+length formula; ``frame_rate_hz = sample_rate / prod(conv_stride)`` (50 Hz for real models).
+Padding invariance holds for "layer"-norm feature encoders (large / XLSR models); group-norm
+encoders (wav2vec2-base) normalise over the whole padded time axis and are not invariant.
+"""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, model_validator
+from torch import nn
+
+__all__ = [
+    "FeatureConfig",
+    "FeatureExtractor",
+    "FilterbankExtractor",
+    "LpcExtractor",
+    "Wav2Vec2Extractor",
+    "build_feature_extractor",
+    "dct_matrix",
+    "levinson_durbin",
+    "make_tiny_wav2vec2",
+    "mel_filterbank",
+    "resample_audio",
+]
+
+_LOG_FLOOR = 1e-10
+
+
+class FeatureConfig(BaseModel):
+    """Which audio feature to compute, and its parameters (see the module docstring)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: Literal["fbank", "mfcc", "lpc", "wav2vec2"]
+    sample_rate: int = 16000
+    n_mels: int = 80
+    win_ms: float = 25.0
+    hop_ms: float = 10.0
+    n_mfcc: int = 13
+    mfcc_deltas: bool = False
+    lpc_order: int = 12
+    normalize: bool = False
+    wav2vec2_model: str = "facebook/wav2vec2-large-xlsr-53"
+    freeze_feature_encoder: bool = True
+
+    @model_validator(mode="after")
+    def _check(self) -> FeatureConfig:
+        if self.sample_rate <= 0 or self.win_ms <= 0 or self.hop_ms <= 0:
+            raise ValueError("sample_rate, win_ms and hop_ms must be positive")
+        if self.win_length < 2 or self.hop_length < 1:
+            raise ValueError("window must span >= 2 samples and hop >= 1 sample")
+        if self.n_mfcc > self.n_mels:
+            raise ValueError("n_mfcc must not exceed n_mels")
+        if not 1 <= self.lpc_order < self.win_length:
+            raise ValueError("lpc_order must be in [1, window length)")
+        if self.kind == "wav2vec2" and self.sample_rate != 16000:
+            raise ValueError(
+                "wav2vec2 models are pretrained on 16 kHz audio; resample first"
+            )
+        return self
+
+    @property
+    def win_length(self) -> int:
+        return round(self.sample_rate * self.win_ms / 1000.0)
+
+    @property
+    def hop_length(self) -> int:
+        return round(self.sample_rate * self.hop_ms / 1000.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Resampling
+# --------------------------------------------------------------------------------------------
+
+
+def _to_mono(audio: np.ndarray | torch.Tensor) -> torch.Tensor:
+    x = torch.as_tensor(
+        np.asarray(audio) if not isinstance(audio, torch.Tensor) else audio
+    )
+    x = x.detach().to(torch.float64)
+    if x.ndim == 2:
+        x = x.mean(dim=1)
+    elif x.ndim != 1:
+        raise ValueError(
+            f"audio must be (samples,) or (samples, channels), got {tuple(x.shape)}"
+        )
+    return x
+
+
+def _sinc_kernels(
+    up: int, down: int, zero_crossings: int, rolloff: float
+) -> tuple[torch.Tensor, int]:
+    """Hann-windowed sinc low-pass kernels, one per output phase (polyphase bank).
+
+    Output sample ``m = q*up + j`` sits at input time ``(q*down) + j*down/up``; kernel ``j`` is
+    applied at stride ``down`` to the padded input.
+    """
+    cutoff = (
+        min(up, down) * rolloff
+    )  # in units of the gcd rate; < Nyquist of both rates
+    half = math.ceil(zero_crossings * down / cutoff)  # half width, input samples
+    taps = torch.arange(
+        -half, half + down, dtype=torch.float64
+    )  # input offsets, this block
+    phase = (
+        torch.arange(up, dtype=torch.float64)[:, None] * down / up
+    )  # output positions
+    t = (taps[None, :] - phase) * (cutoff / down)  # distance, in cutoff periods
+    window = torch.where(
+        t.abs() < zero_crossings,
+        torch.cos(t * math.pi / (2 * zero_crossings)) ** 2,
+        torch.zeros_like(t),
+    )
+    kernels = torch.special.sinc(t) * window * (cutoff / down)
+    return kernels, half
+
+
+def _sinc_direct(
+    x: torch.Tensor,
+    rate: int,
+    target_rate: int,
+    n_out: int,
+    zero_crossings: int = 6,
+    rolloff: float = 0.99,
+    chunk: int = 16384,
+) -> torch.Tensor:
+    """Windowed-sinc interpolation evaluated at arbitrary output positions (any rate ratio)."""
+    scale = (
+        min(1.0, target_rate / rate) * rolloff
+    )  # cut-off relative to the input Nyquist
+    half = math.ceil(zero_crossings / scale)
+    offsets = torch.arange(-half, half + 2, dtype=torch.float64)
+    out = torch.empty(n_out, dtype=torch.float64)
+    n = x.shape[0]
+    for start in range(0, n_out, chunk):
+        pos = torch.arange(start, min(n_out, start + chunk), dtype=torch.float64) * (
+            rate / target_rate
+        )
+        idx = torch.floor(pos)[:, None] + offsets[None, :]
+        t = (idx - pos[:, None]) * scale
+        window = torch.where(
+            t.abs() < zero_crossings,
+            torch.cos(t * math.pi / (2 * zero_crossings)) ** 2,
+            torch.zeros_like(t),
+        )
+        valid = (idx >= 0) & (idx < n)
+        vals = x[idx.clamp(0, n - 1).to(torch.long)] * valid.to(x.dtype)
+        out[start : start + pos.shape[0]] = (vals * torch.special.sinc(t) * window).sum(
+            1
+        ) * scale
+    return out
+
+
+def resample_audio(
+    audio: np.ndarray | torch.Tensor, rate: int, target_rate: int
+) -> np.ndarray:
+    """Resample to ``target_rate`` and downmix to mono (channel mean).
+
+    ``audio``: (samples,) or (samples, channels), any float dtype.  Returns (samples',) float32
+    numpy, ``samples' = ceil(samples * target_rate / rate)``.  Band-limited polyphase
+    windowed-sinc (6 zero crossings, cut-off 0.99 x the lower Nyquist) in torch; for awkward
+    rate ratios (reduced up-factor > 1024) the same kernel is evaluated directly at each output
+    position (chunked) instead of through a polyphase bank.
+    """
+    if rate <= 0 or target_rate <= 0:
+        raise ValueError("rates must be positive")
+    x = _to_mono(audio)
+    n = x.shape[0]
+    if rate == target_rate or n == 0:
+        return x.to(torch.float32).numpy().copy()
+    ratio = Fraction(int(target_rate), int(rate))
+    up, down = ratio.numerator, ratio.denominator
+    n_out = math.ceil(n * up / down)
+    if up > 1024:
+        return _sinc_direct(x, rate, target_rate, n_out).to(torch.float32).numpy()
+    kernels, half = _sinc_kernels(up, down, zero_crossings=6, rolloff=0.99)
+    padded = torch.nn.functional.pad(x[None, None, :], (half, half + down))
+    out = torch.nn.functional.conv1d(
+        padded, kernels[:, None, :], stride=down
+    )  # (1, up, blocks)
+    y = out[0].transpose(0, 1).reshape(-1)[:n_out]
+    return y.to(torch.float32).numpy()
+
+
+# --------------------------------------------------------------------------------------------
+# Hand-crafted features
+# --------------------------------------------------------------------------------------------
+
+
+def _hz_to_mel(f: torch.Tensor | float) -> torch.Tensor:
+    return 2595.0 * torch.log10(1.0 + torch.as_tensor(f, dtype=torch.float64) / 700.0)
+
+
+def _mel_to_hz(m: torch.Tensor) -> torch.Tensor:
+    return 700.0 * (10.0 ** (m / 2595.0) - 1.0)
+
+
+def mel_filterbank(
+    n_mels: int,
+    n_fft: int,
+    sample_rate: int,
+    f_min: float = 0.0,
+    f_max: float | None = None,
+) -> torch.Tensor:
+    """(n_fft//2 + 1, n_mels) triangular HTK-mel filters (peak 1), float32."""
+    f_max = sample_rate / 2.0 if f_max is None else f_max
+    mel_pts = torch.linspace(
+        float(_hz_to_mel(f_min)),
+        float(_hz_to_mel(f_max)),
+        n_mels + 2,
+        dtype=torch.float64,
+    )
+    hz_pts = _mel_to_hz(mel_pts)
+    bins = torch.arange(n_fft // 2 + 1, dtype=torch.float64) * sample_rate / n_fft
+    lower, centre, upper = hz_pts[:-2], hz_pts[1:-1], hz_pts[2:]
+    rising = (bins[:, None] - lower[None, :]) / (centre - lower)[None, :]
+    falling = (upper[None, :] - bins[:, None]) / (upper - centre)[None, :]
+    return torch.clamp(torch.minimum(rising, falling), min=0.0).to(torch.float32)
+
+
+def dct_matrix(n_in: int, n_out: int) -> torch.Tensor:
+    """(n_in, n_out) orthonormal DCT-II: ``c = x @ dct_matrix``."""
+    n = torch.arange(n_in, dtype=torch.float64)[:, None]
+    k = torch.arange(n_out, dtype=torch.float64)[None, :]
+    mat = torch.cos(math.pi / n_in * (n + 0.5) * k) * math.sqrt(2.0 / n_in)
+    mat[:, 0] /= math.sqrt(2.0)
+    return mat.to(torch.float32)
+
+
+def levinson_durbin(r: torch.Tensor, order: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched Levinson-Durbin.  ``r``: (..., >= order+1) autocorrelation lags 0..order.
+
+    Returns predictor coefficients ``a`` (..., order) with ``x[n] ~= sum_k a[k-1] x[n-k]`` and the
+    final prediction-error energy (...,).  Requires r[..., 0] > 0.
+    """
+    a = torch.zeros(*r.shape[:-1], order, dtype=r.dtype, device=r.device)
+    err = r[..., 0]
+    for i in range(order):
+        acc = r[..., i + 1] - (a[..., :i] * r[..., 1 : i + 1].flip(-1)).sum(-1)
+        k = acc / err
+        prev = a[..., :i].clone()
+        a[..., :i] = prev - k[..., None] * prev.flip(-1)
+        a[..., i] = k
+        err = err * (1.0 - k * k)
+    return a, err
+
+
+def _frame_lengths(lengths: torch.Tensor, win: int, hop: int) -> torch.Tensor:
+    lengths = lengths.to(torch.long)
+    return torch.where(
+        lengths >= win,
+        1 + torch.div(lengths - win, hop, rounding_mode="floor"),
+        torch.zeros_like(lengths),
+    )
+
+
+def _valid_mask(lengths: torch.Tensor, total: int) -> torch.Tensor:
+    return torch.arange(total, device=lengths.device)[None, :] < lengths[:, None]
+
+
+def _cmvn(feats: torch.Tensor, feat_lengths: torch.Tensor) -> torch.Tensor:
+    mask = _valid_mask(feat_lengths, feats.shape[1])[..., None].to(feats.dtype)
+    count = mask.sum(1, keepdim=True).clamp(min=1.0)
+    mean = (feats * mask).sum(1, keepdim=True) / count
+    var = (((feats - mean) * mask) ** 2).sum(1, keepdim=True) / count
+    return (feats - mean) / torch.sqrt(var + 1e-5)
+
+
+def _deltas(
+    feats: torch.Tensor, feat_lengths: torch.Tensor, width: int = 2
+) -> torch.Tensor:
+    """Regression deltas over time, edges replicated at each utterance's own ends."""
+    T = feats.shape[1]
+    t = torch.arange(T, device=feats.device)[None, :]
+    last = (feat_lengths.to(torch.long) - 1).clamp(min=0)[:, None]
+    out = torch.zeros_like(feats)
+    for k in range(1, width + 1):
+        ahead = torch.minimum(t + k, last).clamp(min=0)
+        behind = torch.minimum((t - k).clamp(min=0), last)
+        ahead_vals = torch.gather(
+            feats, 1, ahead[..., None].expand(-1, -1, feats.shape[2])
+        )
+        behind_vals = torch.gather(
+            feats, 1, behind[..., None].expand(-1, -1, feats.shape[2])
+        )
+        out = out + k * (ahead_vals - behind_vals)
+    return out / (2 * sum(k * k for k in range(1, width + 1)))
+
+
+class FeatureExtractor(nn.Module):
+    """Base: ``forward(audio (B, S), lengths (B,)) -> (features (B, T, D), feat_lengths (B,))``."""
+
+    dim: int
+    frame_rate_hz: float
+
+    def __init__(self, config: FeatureConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _prepare(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        if audio.ndim != 2:
+            raise ValueError(f"audio must be (B, samples), got {tuple(audio.shape)}")
+        if lengths is None:
+            lengths = torch.full((audio.shape[0],), audio.shape[1], dtype=torch.long)
+        lengths = torch.as_tensor(lengths, device=audio.device).to(torch.long)
+        if (
+            lengths.shape != (audio.shape[0],)
+            or bool((lengths > audio.shape[1]).any())
+            or bool((lengths < 0).any())
+        ):
+            raise ValueError("lengths must be (B,) with 0 <= length <= samples")
+        audio = audio.to(torch.float32) * _valid_mask(lengths, audio.shape[1]).to(
+            torch.float32
+        )
+        return audio, lengths
+
+    def _frames(self, audio: torch.Tensor) -> torch.Tensor:
+        win, hop = self.config.win_length, self.config.hop_length
+        if audio.shape[1] < win:
+            return audio.new_zeros(audio.shape[0], 0, win)
+        return audio.unfold(1, win, hop)  # (B, T, win)
+
+    def _finish(
+        self, feats: torch.Tensor, feat_lengths: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.config.normalize:
+            feats = _cmvn(feats, feat_lengths)
+        mask = _valid_mask(feat_lengths, feats.shape[1])[..., None].to(feats.dtype)
+        return feats * mask, feat_lengths
+
+
+class FilterbankExtractor(FeatureExtractor):
+    """Log-mel filterbank ("fbank") or MFCC features (see module docstring)."""
+
+    def __init__(self, config: FeatureConfig) -> None:
+        super().__init__(config)
+        if config.kind not in ("fbank", "mfcc"):
+            raise ValueError(f"FilterbankExtractor does not compute {config.kind!r}")
+        self.n_fft = 1 << (config.win_length - 1).bit_length()
+        self.register_buffer(
+            "window",
+            torch.hann_window(config.win_length, periodic=True),
+            persistent=False,
+        )
+        self.register_buffer(
+            "mel_fb",
+            mel_filterbank(config.n_mels, self.n_fft, config.sample_rate),
+            persistent=False,
+        )
+        self.register_buffer(
+            "dct", dct_matrix(config.n_mels, config.n_mfcc), persistent=False
+        )
+        if config.kind == "fbank":
+            self.dim = config.n_mels
+        else:
+            self.dim = config.n_mfcc * (3 if config.mfcc_deltas else 1)
+        self.frame_rate_hz = 1000.0 / config.hop_ms
+
+    def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
+        return _frame_lengths(
+            torch.as_tensor(lengths), self.config.win_length, self.config.hop_length
+        )
+
+    def log_mel(self, audio: torch.Tensor) -> torch.Tensor:
+        """(B, S) -> (B, T, n_mels) log-mel energies (no masking, no normalisation)."""
+        frames = self._frames(audio) * self.window
+        power = torch.fft.rfft(frames, n=self.n_fft).abs() ** 2
+        return torch.log(torch.clamp(power @ self.mel_fb, min=_LOG_FLOOR))
+
+    def forward(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        audio, lengths = self._prepare(audio, lengths)
+        feat_lengths = self.output_lengths(lengths)
+        feats = self.log_mel(audio)
+        if self.config.kind == "mfcc":
+            feats = feats @ self.dct
+            if self.config.mfcc_deltas:
+                d1 = _deltas(feats, feat_lengths)
+                d2 = _deltas(d1, feat_lengths)
+                feats = torch.cat([feats, d1, d2], dim=-1)
+        return self._finish(feats, feat_lengths)
+
+
+class LpcExtractor(FeatureExtractor):
+    """Per-frame LPC predictor coefficients by batched Levinson-Durbin (see module docstring)."""
+
+    def __init__(self, config: FeatureConfig) -> None:
+        super().__init__(config)
+        if config.kind != "lpc":
+            raise ValueError(f"LpcExtractor does not compute {config.kind!r}")
+        self.register_buffer(
+            "window",
+            torch.hann_window(config.win_length, periodic=True),
+            persistent=False,
+        )
+        self.dim = config.lpc_order
+        self.frame_rate_hz = 1000.0 / config.hop_ms
+
+    def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
+        return _frame_lengths(
+            torch.as_tensor(lengths), self.config.win_length, self.config.hop_length
+        )
+
+    def forward(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        audio, lengths = self._prepare(audio, lengths)
+        feat_lengths = self.output_lengths(lengths)
+        p = self.config.lpc_order
+        frames = (self._frames(audio) * self.window).to(torch.float64)
+        n = frames.shape[-1]
+        spec = torch.fft.rfft(
+            frames, n=1 << (2 * n - 1).bit_length()
+        )  # linear, not circular
+        r = torch.fft.irfft(spec.abs() ** 2)[..., : p + 1]
+        r[..., 0] = r[..., 0] * (1.0 + 1e-9) + 1e-12
+        a, _ = levinson_durbin(r, p)
+        return self._finish(a.to(torch.float32), feat_lengths)
+
+
+# --------------------------------------------------------------------------------------------
+# Wav2Vec2
+# --------------------------------------------------------------------------------------------
+
+
+class Wav2Vec2Extractor(FeatureExtractor):
+    """Pretrained Wav2Vec2 (paper: XLSR-53) contextual features; transformer trainable."""
+
+    def __init__(self, config: FeatureConfig, model: nn.Module | None = None) -> None:
+        super().__init__(config)
+        if config.kind != "wav2vec2":
+            raise ValueError(f"Wav2Vec2Extractor does not compute {config.kind!r}")
+        self.model = (
+            model if model is not None else load_wav2vec2(config.wav2vec2_model)
+        )
+        if config.freeze_feature_encoder:
+            self.model.freeze_feature_encoder()
+        self.dim = int(self.model.config.hidden_size)
+        self.frame_rate_hz = config.sample_rate / float(
+            np.prod(self.model.config.conv_stride)
+        )
+
+    def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
+        lengths = torch.as_tensor(lengths).to(torch.long)
+        return (
+            self.model._get_feat_extract_output_lengths(lengths)
+            .to(torch.long)
+            .clamp(min=0)
+        )
+
+    def forward(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        audio, lengths = self._prepare(audio, lengths)
+        mask = _valid_mask(lengths, audio.shape[1])
+        maskf = mask.to(audio.dtype)
+        count = maskf.sum(1, keepdim=True).clamp(min=1.0)
+        mean = (audio * maskf).sum(1, keepdim=True) / count
+        var = (((audio - mean) * maskf) ** 2).sum(1, keepdim=True) / count
+        audio = (audio - mean) / torch.sqrt(var + 1e-7) * maskf
+        out = self.model(audio, attention_mask=mask.to(torch.long))
+        feats = out.last_hidden_state
+        feat_lengths = self.output_lengths(lengths).clamp(max=feats.shape[1])
+        return self._finish(feats, feat_lengths)
+
+
+def load_wav2vec2(path_or_id: str | Path) -> nn.Module:
+    """``Wav2Vec2Model.from_pretrained`` with a clear error when the model is unavailable."""
+    try:
+        from transformers import Wav2Vec2Model
+    except ImportError as exc:  # pragma: no cover - dependency missing
+        raise ImportError(
+            "the wav2vec2 feature needs `transformers` (pip install 'transformers>=4.40,<6')"
+        ) from exc
+    try:
+        return Wav2Vec2Model.from_pretrained(str(path_or_id))
+    except (
+        Exception
+    ) as exc:  # network errors, missing dirs, invalid ids all surface differently
+        raise RuntimeError(
+            f"could not load Wav2Vec2 model {str(path_or_id)!r}: {type(exc).__name__}: {exc}. "
+            "If this machine has no internet access, download the model elsewhere "
+            "(e.g. `huggingface-cli download facebook/wav2vec2-large-xlsr-53 --local-dir DIR`), "
+            "copy DIR here and set FeatureConfig(wav2vec2_model='DIR') to the local directory "
+            "(set HF_HUB_OFFLINE=1 to skip the hub's network retries)."
+        ) from exc
+
+
+def make_tiny_wav2vec2(path: str | Path, seed: int = 0, **overrides: Any) -> Path:
+    """Save a tiny randomly initialised Wav2Vec2 (for tests/benchmarks) to ``path``.
+
+    Same architecture family as XLSR-53 ("layer" feature-encoder norm, stable layer norm) so it is
+    padding invariant; conv strides multiply to 320, giving the real 50 Hz frame rate at 16 kHz.
+    Load it through the normal path: ``FeatureConfig(kind="wav2vec2", wav2vec2_model=str(path))``.
+    """
+    from transformers import Wav2Vec2Config, Wav2Vec2Model
+
+    kwargs: dict[str, Any] = {
+        "hidden_size": 32,
+        "num_hidden_layers": 2,
+        "num_attention_heads": 2,
+        "intermediate_size": 64,
+        "conv_dim": (32, 32, 32),
+        "conv_kernel": (10, 8, 4),
+        "conv_stride": (5, 8, 8),
+        "feat_extract_norm": "layer",
+        "do_stable_layer_norm": True,
+        "num_conv_pos_embeddings": 16,
+        "num_conv_pos_embedding_groups": 2,
+        "mask_time_prob": 0.0,
+        "layerdrop": 0.0,
+    }
+    kwargs.update(overrides)
+    torch.manual_seed(seed)
+    model = Wav2Vec2Model(Wav2Vec2Config(**kwargs))
+    path = Path(path)
+    model.save_pretrained(str(path))
+    return path
+
+
+def build_feature_extractor(config: FeatureConfig) -> FeatureExtractor:
+    """The extractor for ``config.kind``."""
+    if config.kind in ("fbank", "mfcc"):
+        return FilterbankExtractor(config)
+    if config.kind == "lpc":
+        return LpcExtractor(config)
+    return Wav2Vec2Extractor(config)
