@@ -28,6 +28,8 @@ demo: venv
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source ground_truth
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source procedural
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source tracked
+	$(BIN)/visemeflow train --store $(OUT)/store --preset fbank-blstm --epochs 5 --d-model 128 --name demo-fbank-blstm
+	$(BIN)/visemeflow predict examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --out $(OUT)/predicted
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
 test: venv

@@ -147,6 +147,77 @@ def espeak_corpus(
 
 
 @app.command()
+def train(
+    store: StoreOpt = DEFAULT_STORE,
+    preset: Annotated[str, typer.Option(help="Model preset, e.g. fbank-blstm, wav2vec2-blstm, mean-curve.")] = "fbank-blstm",
+    epochs: Annotated[int, typer.Option(help="Passes over the training utterances (one utterance per step).")] = 10,
+    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth or procedural.")] = "tracked",
+    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (when several exist).")] = None,
+    name: Annotated[Optional[str], typer.Option(help="Model name in the store.")] = None,
+    d_model: Annotated[Optional[int], typer.Option(help="Model width (default: the preset's, 512).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of initialisation, order and augmentation.")] = 0,
+    wav2vec2: Annotated[Optional[str], typer.Option(help="wav2vec2 model path or hub id (wav2vec2 presets).")] = None,
+) -> None:
+    """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
+    from visemeflow.flows.params import TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+
+    config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2)
+    _print_summary("train", train_flow(TrainParams(store=store, config=config, source=source, variant=variant,
+                                                   model_name=name)))
+
+
+@app.command()
+def predict(
+    audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
+    model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models).")],
+    store: StoreOpt = DEFAULT_STORE,
+    fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
+    out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
+) -> None:
+    """Predict viseme curves from audio with a trained model; curves go to the store (source predicted)."""
+    import time
+
+    import soundfile as sf
+
+    from visemeflow.learning.train import load_model, predict_curves
+    from visemeflow.schemas import curves_table
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    path = s.model_dir(model) / "model.pt"
+    if not path.exists():
+        typer.echo(f"error: no model {model!r} in {s.root} ({path} missing); train one with `visemeflow train`", err=True)
+        raise typer.Exit(2)
+    net, _, _ = load_model(path)
+    for item in audio:
+        started = time.perf_counter()
+        try:
+            samples, rate = sf.read(item, dtype="float32", always_2d=False)
+        except (RuntimeError, OSError):
+            from visemeflow.tracking.video import read_video_audio
+
+            samples, rate = read_video_audio(item)
+        curves = predict_curves(net, samples, rate, fps)
+        seconds = time.perf_counter() - started
+        uid = f"predict/{_safe_stem(item)}"
+        s.write_curves(curves_table(uid, "predicted", model, curves, fps), provenance=f"predicted:{model}:{item}", fps=fps)
+        duration = len(samples) / rate
+        typer.echo(f"{item}: {len(curves)} frames -> {uid} (real-time factor {seconds / max(duration, 1e-9):.4f})")
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            curves_export(uid, store, "predicted", model, "csv", out / f"{_safe_stem(item)}.csv")
+            curves_export(uid, store, "predicted", model, "json", out / f"{_safe_stem(item)}.json")
+
+
+def _safe_stem(path: Path) -> str:
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem).lstrip(".") or "audio"
+
+
+@app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
     stage: Annotated[str, typer.Option(help="ingest, procedural or track.")] = "procedural",

@@ -6,6 +6,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.ingest import IngestConfig
+from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import validate_name, validate_utterance_id
 from visemeflow.synth.take import SynthConfig
@@ -74,6 +75,21 @@ class TrackParams(StoreParams):
     procedural_variant: str | None = Field(
         None, description="Procedural curves that guide tracking; default: those the procedural stage last wrote."
     )
+
+
+class TrainParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    config: TrainConfig = Field(default_factory=TrainConfig)
+    source: Literal["tracked", "ground_truth", "procedural"] = Field("tracked", description="Curves to learn.")
+    variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
+    model_name: str | None = Field(None, description="Name of the model in the store; default: preset + a hash.")
+
+    @field_validator("model_name")
+    @classmethod
+    def _safe_model(cls, name: str | None) -> str | None:
+        return None if name is None else validate_name(name, "model name")
 
 
 class RerunParams(BaseModel):

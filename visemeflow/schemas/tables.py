@@ -49,6 +49,14 @@ class C:
     LOSS_PREFIX = "loss_"
     POSE_COLUMNS = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
 
+    RUN = "run"
+    MODEL = "model"
+    CONDITION = "condition"
+    EPOCH = "epoch"
+    L1 = "l1"
+    L1_X100 = "l1_x100"
+    L1_PREFIX = "l1_"
+
     STAGE = "stage"
     ERROR_TYPE = "error_type"
     MESSAGE = "message"
@@ -114,6 +122,19 @@ TRACKING_FRAMES = pa.schema(
     ]
     + [pa.field(C.LOSS_PREFIX + t, pa.float32()) for t in LOSS_TERMS]   # unweighted; null when the term is off
     + [pa.field(c, pa.float32(), nullable=False) for c in C.POSE_COLUMNS]
+)
+
+METRICS = pa.schema(
+    [
+        pa.field(C.RUN, pa.string(), nullable=False),          # what produced the row: a training run, an evaluation
+        pa.field(C.MODEL, pa.string(), nullable=False),
+        pa.field(C.CONDITION, pa.string(), nullable=False),    # validation, train, volume, pitch, speed, noise, ...
+        pa.field(C.UTTERANCE_ID, pa.string()),                  # null: the aggregate over the condition's utterances
+        pa.field(C.EPOCH, pa.int32()),                          # null outside training
+        pa.field(C.L1, pa.float64(), nullable=False),
+        pa.field(C.L1_X100, pa.float64(), nullable=False),
+    ]
+    + [pa.field(C.L1_PREFIX + v, pa.float64()) for v in VISEMES]
 )
 
 REJECTS = pa.schema([

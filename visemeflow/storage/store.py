@@ -12,8 +12,8 @@ two writers cannot lose each other's rows.
 """
 
 import errno
-import json
 import fcntl
+import json
 import os
 import time
 import uuid
@@ -26,7 +26,15 @@ import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from visemeflow.schemas import CURVES, TABLE_SCHEMAS, TRACKING_FRAMES, C, split_utterance_id, validate_name
+from visemeflow.schemas import (
+    CURVES,
+    METRICS,
+    TABLE_SCHEMAS,
+    TRACKING_FRAMES,
+    C,
+    split_utterance_id,
+    validate_name,
+)
 
 PROVENANCE_KEY = b"visemeflow.provenance"
 # Curve files are small and many: dictionary-encode only the constant id columns and keep statistics only
@@ -95,6 +103,13 @@ class Store:
         speaker, name = split_utterance_id(utterance_id)
         return self.root / "tracking_frames" / validate_name(variant, "variant") / speaker / f"{name}.parquet"
 
+    def model_dir(self, model: str) -> Path:
+        """Folder of a trained model: weights, config and lineage, checkpoints."""
+        return self.root / "models" / validate_name(model, "model name")
+
+    def metrics_path(self, model: str, run: str) -> Path:
+        return self.root / "metrics" / validate_name(model, "model name") / f"{validate_name(run, 'run name')}.parquet"
+
     # ---- writes ------------------------------------------------------------------------------
     def _write_atomic(self, table: pa.Table, path: Path, **parquet_options: object) -> Path:
         tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
@@ -161,6 +176,17 @@ class Store:
         dataset = ds.dataset(files, schema=TRACKING_FRAMES, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(utterance_ids) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
+
+    def write_metrics(self, model: str, run: str, table: pa.Table) -> Path:
+        """The metrics rows of one (model, run), replacing what that run wrote before."""
+        return self._write_atomic(table.cast(METRICS), self.metrics_path(model, run))
+
+    def read_metrics(self, model: str | None = None) -> pa.Table:
+        folder = self.root / "metrics"
+        if model:
+            folder = folder / validate_name(model, "model name")
+        files = self._files(folder)
+        return ds.dataset(files, schema=METRICS, format="parquet").to_table() if files else METRICS.empty_table()
 
     @contextmanager
     def locked(self, name: str) -> Iterator[None]:

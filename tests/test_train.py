@@ -1,0 +1,256 @@
+"""Training loop, exact resume, evaluation, inference and model files (visemeflow.learning.train)."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from visemeflow.learning import train as T
+from visemeflow.learning.features import make_tiny_wav2vec2, resample_audio
+from visemeflow.learning.train import (
+    EpochReport,
+    Example,
+    TrainConfig,
+    apply_audio_augment,
+    build_training_model,
+    evaluate,
+    load_model,
+    predict_curves,
+    save_model,
+    train_model,
+)
+
+SR = 16000
+FPS = 25.0
+
+
+def _envelope(t: np.ndarray, freq: float, phase: float) -> np.ndarray:
+    return 0.05 + 0.95 * (0.5 + 0.5 * np.sin(2 * np.pi * freq * t + phase))
+
+
+def make_examples(n: int, seed: int, learnable: bool = True) -> list[Example]:
+    """Noise whose loudness follows a slow envelope; targets = fixed affine map of that envelope."""
+    rng = np.random.default_rng(seed)
+    w = np.random.default_rng(123).uniform(0.2, 1.0, 16)
+    b = np.random.default_rng(321).uniform(0.0, 0.2, 16)
+    out = []
+    for i in range(n):
+        dur = float(rng.uniform(1.0, 2.0))
+        samples = int(dur * SR)
+        n_frames = round(dur * FPS)
+        freq, phase = float(rng.uniform(0.7, 2.0)), float(rng.uniform(0, 2 * np.pi))
+        t = np.arange(samples) / SR
+        audio = (0.3 * _envelope(t, freq, phase) * rng.standard_normal(samples)).astype(np.float32)
+        if learnable:
+            env = _envelope(np.arange(n_frames) / FPS, freq, phase)
+            curves = np.clip(env[:, None] * w[None] + b[None], 0, 1)
+        else:
+            curves = rng.uniform(0, 1, (n_frames, 16))
+        out.append(Example(f"utt{seed}_{i}", audio, curves.astype(np.float32), FPS))
+    return out
+
+
+@pytest.fixture(scope="module")
+def data() -> tuple[list[Example], list[Example]]:
+    return make_examples(4, seed=1), make_examples(2, seed=2)
+
+
+def test_training_reduces_l1(data):
+    train, val = data
+    cfg = TrainConfig(preset="fbank-blstm", epochs=8, d_model=16, lr=3e-3, seed=0)
+    before, _, _ = evaluate(build_training_model(cfg, FPS), train)
+    seen: list[EpochReport] = []
+    res = train_model(train, val, cfg, on_epoch=seen.append)
+    assert [r.epoch for r in res.history] == list(range(1, 9)) == [r.epoch for r in seen]
+    assert all(r.steps == len(train) and r.val_l1_x100 is not None and r.frames_per_s > 0 for r in res.history)
+    after, per_utt, per_vis = evaluate(res.model, train)
+    assert after < 0.6 * before
+    assert res.history[-1].train_l1_x100 < 0.6 * res.history[0].train_l1_x100
+    assert set(per_utt) == {ex.utterance_id for ex in train} and per_vis.shape == (16,)
+    assert res.checkpoint is None
+
+
+def _params(model: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for k, v in a.items():
+        assert torch.equal(v, b[k]), k
+
+
+@pytest.mark.parametrize("preset", ["fbank-blstm", "fbank-tcn"])
+def test_exact_resume(preset, tmp_path):
+    train = make_examples(3, seed=5, learnable=False)
+    val = make_examples(1, seed=6, learnable=False)
+    cfg = TrainConfig(preset=preset, epochs=3, d_model=16, lr=1e-3, seed=7)
+    full = train_model(train, val, cfg, checkpoint_dir=tmp_path / "full")
+    ref = _params(full.model)
+    assert (tmp_path / "full" / "last.pt").exists()
+
+    class Interrupt(Exception):
+        pass
+
+    def boom(report: EpochReport) -> None:
+        if report.epoch == 1:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        train_model(train, val, cfg, checkpoint_dir=tmp_path / "int", on_epoch=boom)
+    resumed = train_model(train, val, cfg, checkpoint_dir=tmp_path / "int")
+    _assert_same(ref, _params(resumed.model))
+    assert [h.epoch for h in resumed.history] == [1, 2, 3]
+    assert resumed.history[-1].train_l1_x100 == full.history[-1].train_l1_x100
+
+    # epochs=2 first, then epochs=3 on the same directory
+    train_model(train, val, cfg.model_copy(update={"epochs": 2}), checkpoint_dir=tmp_path / "two")
+    again = train_model(train, val, cfg, checkpoint_dir=tmp_path / "two")
+    _assert_same(ref, _params(again.model))
+    # a finished run does nothing more
+    done = train_model(train, val, cfg, checkpoint_dir=tmp_path / "two")
+    _assert_same(ref, _params(done.model))
+
+    # the checkpoint is loadable with weights_only and a different config is refused
+    ck = torch.load(tmp_path / "full" / "last.pt", weights_only=True)
+    assert ck["epoch"] == 3 and ck["step"] == 9
+    with pytest.raises(ValueError, match="different training config"):
+        train_model(train, val, cfg.model_copy(update={"seed": 8}), checkpoint_dir=tmp_path / "full")
+
+
+def test_wav2vec2_preset_trains_and_round_trips(tmp_path):
+    w2v_dir = make_tiny_wav2vec2(tmp_path / "w2v")
+    train = make_examples(2, seed=3)
+    cfg = TrainConfig(preset="wav2vec2-blstm", epochs=1, d_model=16, wav2vec2_model=str(w2v_dir))
+    init = _params(build_training_model(cfg, FPS))
+    res = train_model(train, train[:1], cfg)
+    after = _params(res.model)
+    assert res.history[0].steps == 2 and np.isfinite(res.history[0].train_l1_x100)
+    enc = [k for k in after if k.startswith("features.model.feature_extractor.")]
+    tf = [k for k in after if k.startswith("features.model.encoder.") and k.endswith("weight")]
+    assert enc and tf
+    assert all(torch.equal(init[k], after[k]) for k in enc)  # CNN encoder frozen
+    assert any(not torch.equal(init[k], after[k]) for k in tf)  # transformer fine-tuned
+    path = save_model(res.model, cfg, tmp_path / "w2v_model.pt", {"run": "x"})
+    loaded, cfg2, lineage = load_model(path)
+    assert cfg2 == cfg and lineage == {"run": "x"}
+    a = predict_curves(res.model, train[0].audio, SR, FPS)
+    assert np.array_equal(a, predict_curves(loaded, train[0].audio, SR, FPS))
+
+
+def test_wav2vec2_needs_model_path():
+    with pytest.raises(ValueError, match="wav2vec2_model"):
+        train_model(make_examples(1, seed=0), [], TrainConfig(preset="wav2vec2-blstm", epochs=1))
+
+
+def test_mean_curve_is_the_mean(data):
+    train, val = data
+    res = train_model(train, val, TrainConfig(preset="mean-curve"))
+    mean = np.concatenate([ex.curves for ex in train]).astype(np.float64).mean(0)
+    np.testing.assert_allclose(res.model.head.mean.numpy(), mean, atol=1e-6)
+    assert len(res.history) == 1 and res.history[0].steps == 0
+    pred = predict_curves(res.model, val[0].audio, SR, FPS)
+    np.testing.assert_allclose(pred, np.broadcast_to(np.clip(mean, 0, 1), pred.shape), atol=1e-6)
+
+
+class _Oracle(nn.Module):
+    """Returns each example's targets (+ offset), looked up by audio length."""
+
+    def __init__(self, examples: list[Example], offset: float) -> None:
+        super().__init__()
+        self.by_len = {len(ex.audio): torch.from_numpy(ex.curves) for ex in examples}
+        self.offset = offset
+
+    def forward(self, audio, lengths, n_frames, targets=None, fps=None):
+        t = int(n_frames.max())
+        out = torch.zeros(audio.shape[0], t, 16)
+        for j, n in enumerate(lengths.tolist()):
+            c = self.by_len[n]
+            out[j, : c.shape[0]] = c + self.offset
+        mask = torch.arange(t)[None] < n_frames[:, None]
+        return out, mask
+
+
+@pytest.mark.parametrize("batch_size", [1, 3])
+def test_evaluate_exact_and_offset(data, batch_size):
+    examples = data[0] + data[1]
+    overall, per_utt, per_vis = evaluate(_Oracle(examples, 0.0), examples, batch_size=batch_size)
+    assert overall == 0.0 and all(v == 0.0 for v in per_utt.values()) and np.all(per_vis == 0.0)
+    overall, per_utt, per_vis = evaluate(_Oracle(examples, -0.25), examples, batch_size=batch_size)
+    assert overall == pytest.approx(25.0, abs=1e-4)
+    assert len(per_utt) == len(examples) and all(v == pytest.approx(25.0, abs=1e-4) for v in per_utt.values())
+    np.testing.assert_allclose(per_vis, 25.0, atol=1e-4)
+
+
+def test_save_load_round_trip_and_weights_only(data, tmp_path, monkeypatch):
+    train, val = data
+    cfg = TrainConfig(preset="fbank-tcn", epochs=1, d_model=16, lr=1e-3)
+    res = train_model(train, val, cfg)
+    path = save_model(res.model, cfg, tmp_path / "m.pt", {"data": "synthetic", "epochs": 1})
+    calls = []
+    real_load = torch.load
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs.get("weights_only"))
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(T.torch, "load", spy)
+    model, cfg2, lineage = load_model(path)
+    assert calls == [True]
+    assert cfg2 == cfg and lineage == {"data": "synthetic", "epochs": 1}
+    for ex in val:
+        np.testing.assert_array_equal(
+            predict_curves(res.model, ex.audio, SR, FPS), predict_curves(model, ex.audio, SR, FPS)
+        )
+    _assert_same(_params(res.model), _params(model))
+
+    class Evil:
+        def __reduce__(self):
+            return (print, ("unpickled!",))
+
+    bad = tmp_path / "bad.pt"
+    with open(bad, "wb") as f:
+        torch.save({"format": "visemeflow-curve-model/1", "x": Evil()}, f)
+    with pytest.raises(pickle.UnpicklingError):
+        load_model(bad)
+
+
+def test_predict_curves_any_rate_stereo():
+    model = build_training_model(TrainConfig(preset="fbank-blstm", d_model=16), FPS)
+    with torch.no_grad():
+        model.head.f_fc.bias.copy_(torch.linspace(-3, 3, 16))  # outputs well outside [0, 1]
+    rate, dur = 44100, 1.3
+    rng = np.random.default_rng(0)
+    stereo = (0.1 * rng.standard_normal((int(rate * dur), 2))).astype(np.float32)
+    out = predict_curves(model, stereo, rate, FPS)
+    assert out.shape == (round(stereo.shape[0] / rate * FPS), 16) and out.dtype == np.float32
+    assert out.min() >= 0.0 and out.max() <= 1.0 and out.min() == 0.0 and out.max() == 1.0
+    assert predict_curves(model, stereo, rate, 30.0, n_frames=7).shape == (7, 16)
+    assert model.training  # mode restored
+
+
+def _speed_up(audio: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    # play 1.25x faster: treat 16 kHz as 20 kHz and resample back to 16 kHz
+    return resample_audio(audio, 20000, SR), 1.25
+
+
+def test_speed_augment_shortens_targets(data):
+    train, val = data
+    ex = Example("ramp", train[0].audio, np.tile(np.linspace(0, 1, 40, dtype=np.float32)[:, None], (1, 16)), FPS)
+    audio, curves = apply_audio_augment(ex, _speed_up, np.random.default_rng(0))
+    assert len(audio) == int(np.ceil(len(ex.audio) / 1.25))
+    assert curves.shape == (32, 16)  # round(40 / 1.25)
+    # new frame k shows what original frame 1.25 k showed (linear ramp: exact)
+    np.testing.assert_allclose(curves[:, 0], np.minimum(np.arange(32) * 1.25, 39) / 39, atol=1e-6)
+
+    cfg = TrainConfig(preset="fbank-blstm", epochs=1, d_model=16, train_augment=True)
+    res = train_model(train, val, cfg, augment_audio=_speed_up)
+    expected = sum(round(len(e.curves) / 1.25) for e in train)
+    r = res.history[0]
+    assert r.frames_per_s * r.seconds == pytest.approx(expected, rel=1e-6)
+    with pytest.raises(ValueError, match="augment_audio"):
+        train_model(train, val, cfg)

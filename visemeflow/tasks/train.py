@@ -1,0 +1,92 @@
+"""Training task: one audio-to-curves model trained on curves and audio from the store."""
+
+import numpy as np
+import pyarrow as pa
+import soundfile as sf
+from prefect import get_run_logger, task
+from prefect.artifacts import create_table_artifact
+
+from visemeflow.learning.features import resample_audio
+from visemeflow.learning.train import (
+    EpochReport,
+    Example,
+    TrainConfig,
+    evaluate,
+    save_model,
+    train_model,
+)
+from visemeflow.schemas import METRICS, C, curves_array
+from visemeflow.storage import Store
+from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.visemes import VISEMES
+
+SAMPLE_RATE = 16000
+
+
+def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> list[Example]:
+    """Audio (16 kHz mono) and target curves of the given utterance rows."""
+    examples = []
+    for row in rows:
+        uid = row[C.UTTERANCE_ID]
+        table = store.read_curves(uid, source, variant)
+        fps = float(len(table) - 1) / float(table.column(C.TIME_S)[-1].as_py()) if len(table) > 1 else float(row[C.FPS])
+        audio, rate = sf.read(row[C.AUDIO_PATH], dtype="float32", always_2d=False) if not row[C.AUDIO_PATH].endswith(
+            (".mp4", ".mpg", ".avi", ".mov")) else _video_audio(row[C.AUDIO_PATH])
+        examples.append(Example(uid, resample_audio(audio, rate, SAMPLE_RATE), curves_array(table), round(fps, 6)))
+    return examples
+
+
+def _video_audio(path: str) -> tuple[np.ndarray, int]:
+    from visemeflow.tracking.video import read_video_audio
+
+    return read_video_audio(path)
+
+
+def metrics_rows(run: str, model: str, condition: str, overall: float, per_utterance: dict[str, float],
+                 per_viseme: np.ndarray, epoch: int | None = None) -> list[dict]:
+    """Rows of the `metrics` table: the aggregate (with per-viseme L1) and one per utterance."""
+    aggregate = {C.RUN: run, C.MODEL: model, C.CONDITION: condition, C.UTTERANCE_ID: None, C.EPOCH: epoch,
+                 C.L1: overall / 100.0, C.L1_X100: overall}
+    aggregate.update({C.L1_PREFIX + v: float(per_viseme[i]) for i, v in enumerate(VISEMES)})
+    rows = [aggregate]
+    for uid, value in sorted(per_utterance.items()):
+        rows.append({C.RUN: run, C.MODEL: model, C.CONDITION: condition, C.UTTERANCE_ID: uid, C.EPOCH: epoch,
+                     C.L1: value / 100.0, C.L1_X100: value})
+    return rows
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="train[{model_name}]")
+def train_model_task(
+    store_root: str, model_name: str, train_rows: list[dict], val_rows: list[dict], source: str, variant: str,
+    lineage: dict, config: TrainConfig,
+) -> dict:
+    """Train (or resume) one model; its checkpoints, weights, lineage and per-epoch validation metrics go to the store."""
+    store = Store(store_root)
+    logger = get_run_logger()
+    train = load_examples(store, train_rows, source, variant)
+    val = load_examples(store, val_rows, source, variant)
+    folder = store.model_dir(model_name)
+    history: list[EpochReport] = []
+
+    def report(epoch: EpochReport) -> None:
+        history.append(epoch)
+        logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %.3f, %.0f frames/s", model_name, epoch.epoch,
+                    epoch.train_l1_x100, epoch.val_l1_x100, epoch.frames_per_s)
+
+    result = train_model(train, val, config, checkpoint_dir=folder / "checkpoints", on_epoch=report)
+    save_model(result.model, config, folder / "model.pt", lineage)
+    rows = []
+    for epoch in result.history:
+        rows.append({C.RUN: "train", C.MODEL: model_name, C.CONDITION: "validation", C.UTTERANCE_ID: None,
+                     C.EPOCH: epoch.epoch, C.L1: epoch.val_l1_x100 / 100.0, C.L1_X100: epoch.val_l1_x100})
+    overall, per_utt, per_vis = evaluate(result.model, val) if val else (float("nan"), {}, np.full(16, np.nan))
+    rows += metrics_rows("final", model_name, "validation", overall, per_utt, per_vis)
+    store.write_metrics(model_name, "train", pa.Table.from_pylist(rows, schema=METRICS))
+    create_table_artifact(
+        key=f"loss-curve-{model_name.lower().replace('_', '-').replace('.', '-')}",
+        table=[{"epoch": e.epoch, "train_l1_x100": round(e.train_l1_x100, 3), "val_l1_x100": round(e.val_l1_x100, 3),
+                "frames_per_s": round(e.frames_per_s)} for e in result.history],
+        description=f"{model_name}: L1 x 100 per epoch",
+    )
+    return {"model": model_name, "epochs": len(result.history), "val_l1_x100": overall,
+            "train": len(train), "val": len(val), "path": str(folder / "model.pt")}
