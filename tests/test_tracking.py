@@ -22,7 +22,7 @@ from visemeflow.tracking.losses import (
     suppression_loss,
 )
 from visemeflow.tracking.solver import TrackingConfig, TrackingProblem, solve_faithful, solve_fast
-from visemeflow.visemes import VISEMES, viseme_index
+from visemeflow.visemes import viseme_index
 
 SEGMENTS = [
     VisemeSegment("MBP", 0.20, 0.28, 0), VisemeSegment("AHH", 0.28, 0.50, 0), VisemeSegment("UUU", 0.50, 0.72, 0),
@@ -199,4 +199,3 @@ def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
     report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="track", store=store))
     assert report["frames"] == 43
     assert path.stat().st_mtime_ns != before
-    assert VISEMES  # the 16 names are what the tracked table's columns are
