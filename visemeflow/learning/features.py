@@ -339,7 +339,8 @@ class FeatureExtractor(nn.Module):
         self.config = config
 
     def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """(B,) feature frames produced for (B,) sample lengths; every extractor defines its own framing."""
+        raise NotImplementedError(f"{type(self).__name__} does not define its framing")
 
     def _prepare(
         self, audio: torch.Tensor, lengths: torch.Tensor | None
