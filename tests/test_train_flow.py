@@ -4,9 +4,8 @@ import shutil
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from factories import DEMO_CORPUS
+from typer.testing import CliRunner
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -61,3 +60,44 @@ def test_train_flow_writes_model_metrics_and_is_cached_then_predicts(tmp_path):
     values = np.stack([predicted.column(v).to_numpy() for v in ("AAA", "MBP")])
     assert np.isfinite(values).all() and values.min() >= 0 and values.max() <= 1
     assert (tmp_path / "pred" / "SSB16240001.csv").exists()
+
+
+def test_sweep_subsets_are_nested_and_disjoint_from_validation():
+    from visemeflow.flows.sweep import nested_subsets
+
+    rows = [{"utterance_id": f"s/u{i:03d}"} for i in range(50)]
+    val = {f"s/v{i}" for i in range(5)}
+    subsets = nested_subsets(rows, [40, 10, 25, 100, 0])
+    assert sorted(subsets) == [10, 25, 40]  # sizes beyond the training set or empty are left out
+    ids = {k: [r["utterance_id"] for r in v] for k, v in subsets.items()}
+    assert ids[10] == ids[25][:10] and ids[25] == ids[40][:25]
+    assert all(len(set(v)) == len(v) and not set(v) & val for v in ids.values())
+    assert nested_subsets(list(reversed(rows)), [10]) == {10: subsets[10]}  # order-independent
+
+
+def test_sweep_flow_trains_each_size_and_plots(tmp_path):
+    from factories import write_wav
+
+    from visemeflow.flows.params import SweepParams
+    from visemeflow.flows.sweep import sweep_flow
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.schemas import UTTERANCES, C, curves_table, table_from_rows
+    from visemeflow.storage import Store
+
+    s = Store(tmp_path / "store")
+    rows = []
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        uid = f"spk/u{i}"
+        wav = write_wav(tmp_path / "audio" / f"u{i}.wav", 1.0)
+        rows.append({C.UTTERANCE_ID: uid, C.SPEAKER: "spk", C.AUDIO_PATH: str(wav), C.ALIGNMENT_PATH: "x",
+                     C.ALIGNMENT_FORMAT: "textgrid", C.SAMPLE_RATE: 16000, C.DURATION_S: 1.0, C.FPS: 25.0,
+                     C.N_FRAMES: 25, C.CONTENT_HASH: str(i), C.SPLIT: "val" if i < 2 else "train"})
+        s.write_curves(curves_table(uid, "ground_truth", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
+    s.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    result = sweep_flow(SweepParams(store=s.root, config=TrainConfig(preset="fbank-tcn", d_model=8), sizes=[2, 4],
+                                    steps=4, source="ground_truth"))
+    assert [p[0] for p in result["points"]] == [2, 4] and all(np.isfinite(p[1]) for p in result["points"])
+    assert result["validation_utterances"] == 2
+    assert (s.root / "reports" / "sweep-fbank-tcn.png").stat().st_size > 1000
+    assert {m[C.MODEL] for m in s.read_metrics().to_pylist()} == {"sweep-fbank-tcn-n2", "sweep-fbank-tcn-n4"}

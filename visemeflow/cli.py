@@ -169,6 +169,30 @@ def train(
 
 
 @app.command()
+def sweep(
+    store: StoreOpt = DEFAULT_STORE,
+    preset: Annotated[str, typer.Option(help="Model preset.")] = "fbank-blstm",
+    sizes: Annotated[str, typer.Option(help="Comma-separated training-set sizes.")] = "100,300,1000,3000",
+    steps: Annotated[int, typer.Option(help="Training steps per size (equal budget).")] = 10000,
+    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth or procedural.")] = "tracked",
+    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves.")] = None,
+    d_model: Annotated[Optional[int], typer.Option(help="Model width.")] = None,
+) -> None:
+    """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
+    from visemeflow.flows.params import SweepParams
+    from visemeflow.flows.sweep import sweep_flow
+    from visemeflow.learning.train import TrainConfig
+
+    params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model),
+                         sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,
+                         variant=variant)
+    result = sweep_flow(params)
+    for size, value in result["points"]:
+        typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
+    typer.echo(f"plot: {result['plot']}")
+
+
+@app.command()
 def predict(
     audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
     model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models).")],

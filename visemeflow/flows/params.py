@@ -92,6 +92,17 @@ class TrainParams(BaseModel):
         return None if name is None else validate_name(name, "model name")
 
 
+class SweepParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    config: TrainConfig = Field(default_factory=TrainConfig)
+    sizes: list[int] = Field([100, 300, 1000, 3000], description="Training-set sizes (nested subsets).")
+    steps: int = Field(10000, ge=1, description="Training steps (utterances) per size: the equal budget.")
+    source: Literal["tracked", "ground_truth", "procedural"] = Field("tracked", description="Curves to learn.")
+    variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
+
+
 class RerunParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
