@@ -13,8 +13,7 @@ from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
-from visemeflow.tasks.train import train_model_task
+from visemeflow.tasks.train import training_task_for
 
 
 def nested_subsets(rows: list[dict], sizes: list[int]) -> dict[int, list[dict]]:
@@ -76,10 +75,9 @@ def sweep_flow(params: SweepParams) -> dict:
         ids = {r[C.UTTERANCE_ID] for r in rows}
         sub_lineage = {**lineage, "train": {k: v for k, v in lineage["train"].items() if k in ids},
                        "config": config.model_dump(mode="json")}
-        futures[size] = train_model_task.with_options(
-            result_storage=result_storage(store.root),
-            refresh_cache=not (store.model_dir(name) / "model.pt").exists(),
-        ).submit(str(store.root), name, rows, val, params.source, variant, sub_lineage, config)
+        futures[size] = training_task_for(store, name).submit(
+            str(store.root), name, rows, val, params.source, variant, sub_lineage, config
+        )
     results = {size: future.result() for size, future in futures.items()}
     points = [(size, float(r["val_l1_x100"])) for size, r in sorted(results.items())]
     plot = plot_sweep(points, store.root / "reports" / f"sweep-{params.config.preset}.png",

@@ -6,8 +6,7 @@ from visemeflow.flows.params import TrainParams
 from visemeflow.hashing import stable_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
-from visemeflow.tasks.train import train_model_task
+from visemeflow.tasks.train import training_task_for
 
 ROW_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.AUDIO_PATH, C.FPS, C.SPLIT]
 
@@ -47,9 +46,8 @@ def train_flow(params: TrainParams) -> dict:
         raise LookupError(f"no utterance in {store.root} has {params.source} curves of variant {variant!r} in the train split")
     name = params.model_name or f"{params.config.preset}-{stable_hash(params.config, lineage, size=4)}"
     lineage = {**lineage, "config": params.config.model_dump(mode="json")}
-    report = train_model_task.with_options(
-        result_storage=result_storage(store.root),
-        refresh_cache=not (store.model_dir(name) / "model.pt").exists(),
-    )(str(store.root), name, train, val, params.source, variant, lineage, params.config)
+    report = training_task_for(store, name)(
+        str(store.root), name, train, val, params.source, variant, lineage, params.config
+    )
     get_run_logger().info("train %s: %s", name, report)
     return report

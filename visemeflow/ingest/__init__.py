@@ -2,7 +2,7 @@
 
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import CorpusEntry, DiscoveryReject, discover_corpus
-from visemeflow.ingest.utterance import IngestError, IngestedUtterance, ingest_utterance
+from visemeflow.ingest.utterance import IngestedUtterance, IngestError, ingest_utterance
 
 __all__ = [
     "CorpusEntry",

@@ -9,8 +9,17 @@ import soundfile as sf
 
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import CorpusEntry
-from visemeflow.phonetics.inventory import UnknownPhonemeError, detect_inventory, map_phone, split_interval
-from visemeflow.phonetics.textgrid import TextGridError, decode_textgrid_bytes, parse_textgrid
+from visemeflow.phonetics.inventory import (
+    UnknownPhonemeError,
+    detect_inventory,
+    map_phone,
+    split_interval,
+)
+from visemeflow.phonetics.textgrid import (
+    TextGridError,
+    decode_textgrid_bytes,
+    parse_textgrid,
+)
 from visemeflow.phonetics.types import Alignment, PhoneInterval, WordInterval
 from visemeflow.phonetics.wordalign import (
     WordAlignmentError,

@@ -40,6 +40,7 @@ encoders (wav2vec2-base) normalise over the whole padded time axis and are not i
 
 from __future__ import annotations
 
+import abc
 import math
 from fractions import Fraction
 from pathlib import Path
@@ -328,7 +329,7 @@ def _deltas(
     return out / (2 * sum(k * k for k in range(1, width + 1)))
 
 
-class FeatureExtractor(nn.Module):
+class FeatureExtractor(nn.Module, abc.ABC):
     """Base: ``forward(audio (B, S), lengths (B,)) -> (features (B, T, D), feat_lengths (B,))``."""
 
     dim: int
@@ -338,9 +339,9 @@ class FeatureExtractor(nn.Module):
         super().__init__()
         self.config = config
 
+    @abc.abstractmethod
     def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
         """(B,) feature frames produced for (B,) sample lengths; every extractor defines its own framing."""
-        raise NotImplementedError(f"{type(self).__name__} does not define its framing")
 
     def _prepare(
         self, audio: torch.Tensor, lengths: torch.Tensor | None

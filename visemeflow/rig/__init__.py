@@ -22,7 +22,13 @@ from visemeflow.rig.model import (
     rig_tensors,
     validate_rig,
 )
-from visemeflow.rig.recipes import Recipes, combine_shapes, load_ict_recipes, parse_recipes, recipe_shapes
+from visemeflow.rig.recipes import (
+    Recipes,
+    combine_shapes,
+    load_ict_recipes,
+    parse_recipes,
+    recipe_shapes,
+)
 
 
 def demo_rig_path() -> Path:

@@ -1,6 +1,12 @@
 """Table schemas (the only place column names are written) and identifier rules."""
 
-from visemeflow.schemas.ids import InvalidIdError, shard_of, split_utterance_id, validate_name, validate_utterance_id
+from visemeflow.schemas.ids import (
+    InvalidIdError,
+    shard_of,
+    split_utterance_id,
+    validate_name,
+    validate_utterance_id,
+)
 from visemeflow.schemas.tables import (
     CURVES,
     LOSS_TERMS,

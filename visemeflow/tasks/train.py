@@ -17,7 +17,7 @@ from visemeflow.learning.train import (
 )
 from visemeflow.schemas import METRICS, C, curves_array
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.tasks.common import CACHE_POLICY, result_storage
 from visemeflow.visemes import VISEMES
 
 SAMPLE_RATE = 16000
@@ -90,3 +90,11 @@ def train_model_task(
     )
     return {"model": model_name, "epochs": len(result.history), "val_l1_x100": overall,
             "train": len(train), "val": len(val), "path": str(folder / "model.pt")}
+
+
+def training_task_for(store: Store, model_name: str):
+    """`train_model_task` with the store's result storage; recomputed when the model file is missing from the store."""
+    return train_model_task.with_options(
+        result_storage=result_storage(store.root),
+        refresh_cache=not (store.model_dir(model_name) / "model.pt").exists(),
+    )
