@@ -111,7 +111,10 @@ class TrainConfig(BaseModel):
     lr: float | None = Field(None, gt=0)  # override the preset's learning rate
     max_steps_per_epoch: int | None = Field(None, ge=1)
     wav2vec2_model: str | None = None  # local path or hub id, wav2vec2 presets only
-    train_augment: bool = False  # apply the augment_audio hook passed to train_model
+    # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
+    # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
+    train_augment: bool = False
+    train_augment_probability: float = Field(0.5, ge=0, le=1)
 
     def resolved_preset(self) -> Preset:
         p = get_preset(self.preset)
@@ -279,9 +282,11 @@ def train_model(
 ) -> TrainResult:
     """Train ``config.preset`` on ``train`` (see the module docstring); validate on ``val`` each epoch.
 
-    ``augment_audio(audio, rng) -> (audio, time_factor)`` is applied to every training utterance
-    when ``config.train_augment`` is true (and required then); the targets are resampled by the
-    time factor (:func:`resample_curves`). Without ``config.train_augment`` it is not used.
+    When ``config.train_augment`` is true, every training step passes its utterance through
+    ``augment_audio(audio, rng) -> (audio, time_factor)`` (default:
+    :func:`visemeflow.learning.augment.train_augment_hook` with
+    ``config.train_augment_probability``) and resamples the targets by the time factor
+    (:func:`resample_curves`). Without ``config.train_augment`` no hook is used.
     With ``checkpoint_dir``, ``last.pt`` is written after every epoch (before ``on_epoch`` is
     called) and an existing one is resumed from; it must come from the same config (``epochs``
     aside) and the same training data, else ``ValueError``.
@@ -290,9 +295,13 @@ def train_model(
         raise ValueError("no training examples")
     _check_examples(train, "training example")
     _check_examples(val, "validation example")
-    if config.train_augment and augment_audio is None:
-        raise ValueError("config.train_augment is set but no augment_audio hook was passed")
-    hook = augment_audio if config.train_augment else None
+    hook: AudioAugment | None = None
+    if config.train_augment:
+        if augment_audio is None:
+            from visemeflow.learning.augment import train_augment_hook
+
+            augment_audio = train_augment_hook(probability=config.train_augment_probability, sample_rate=SAMPLE_RATE)
+        hook = augment_audio
     preset = config.resolved_preset()
     curve_fps = float(train[0].fps)
     model = build_training_model(config, curve_fps)
