@@ -102,3 +102,23 @@ def make_corpus(
         text = build([(s, e, label) for label, s, e in phones], end, tier=tier)
         (folder / f"{name}.TextGrid").write_text(text, encoding="utf-8")
     return root
+
+
+def make_curve_store(root, n=6, seed=0):
+    """A store with `n` one-second utterances (write_wav tones) and random `ground_truth`/`cm` curves at 25 fps;
+    the first two in the 'val' split."""
+    from visemeflow.schemas import UTTERANCES, C, curves_table, table_from_rows
+    from visemeflow.storage import Store
+
+    s = Store(root)
+    rows = []
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        uid = f"spk/u{i}"
+        wav = write_wav(root.parent / f"{root.name}-audio" / f"u{i}.wav", 1.0)
+        rows.append({C.UTTERANCE_ID: uid, C.SPEAKER: "spk", C.AUDIO_PATH: str(wav), C.ALIGNMENT_PATH: "x",
+                     C.ALIGNMENT_FORMAT: "textgrid", C.SAMPLE_RATE: 16000, C.DURATION_S: 1.0, C.FPS: 25.0,
+                     C.N_FRAMES: 25, C.CONTENT_HASH: str(i), C.SPLIT: "val" if i < 2 else "train"})
+        s.write_curves(curves_table(uid, "ground_truth", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
+    s.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    return s

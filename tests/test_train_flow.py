@@ -1,10 +1,15 @@
 """The `train` flow on a small synthetic store: model, metrics, cache, and `predict` through the CLI."""
 
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
-from factories import DEMO_CORPUS
+from factories import DEMO_CORPUS, REPO, make_curve_store
 from typer.testing import CliRunner
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
@@ -44,7 +49,7 @@ def test_train_flow_writes_model_metrics_and_is_cached_then_predicts(tmp_path):
     metrics = s.read_metrics("tiny").to_pylist()
     per_epoch = [m for m in metrics if m[C.RUN] == "train"]
     assert len(per_epoch) == 2 and all(m[C.CONDITION] == "validation" for m in per_epoch)
-    model, loaded_config, lineage = load_model(s.model_dir("tiny") / "model.pt")
+    _, loaded_config, lineage = load_model(s.model_dir("tiny") / "model.pt")
     assert loaded_config == config and set(lineage["train"]) | set(lineage["val"]) == set(splits)
 
     mtime = (s.model_dir("tiny") / "model.pt").stat().st_mtime_ns
@@ -75,26 +80,68 @@ def test_sweep_subsets_are_nested_and_disjoint_from_validation():
     assert nested_subsets(list(reversed(rows)), [10]) == {10: subsets[10]}  # order-independent
 
 
-def test_sweep_flow_trains_each_size_and_plots(tmp_path):
-    from factories import write_wav
+def test_train_flow_killed_with_kill_minus_nine_resumes_to_the_uninterrupted_weights(
+    tmp_path, prefect_api_url, monkeypatch
+):
+    import torch
 
+    import visemeflow.tasks.train as train_tasks
+    from visemeflow.flows.params import TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig, load_model
+
+    killed, clean = make_curve_store(tmp_path / "killed"), make_curve_store(tmp_path / "clean")
+    epochs = 6
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visemeflow.cli", "train", "--store", str(killed.root), "--source", "ground_truth",
+         "--preset", "fbank-blstm", "--d-model", "16", "--epochs", str(epochs), "--name", "m",
+         "--train-augment", "0.5"],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    checkpoint = killed.model_dir("m") / "checkpoints" / "last.pt"
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline and proc.poll() is None and not checkpoint.exists():
+            time.sleep(0.002)
+        assert proc.poll() is None, "the training run ended before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    assert checkpoint.exists() and not (killed.model_dir("m") / "model.pt").exists()
+    done = torch.load(checkpoint, weights_only=True)["epoch"]
+    assert 1 <= done < epochs, "killed after the last epoch: the test proves nothing"
+
+    config = TrainConfig(preset="fbank-blstm", d_model=16, epochs=epochs, train_augment=True,
+                         train_augment_probability=0.5)
+    trained_epochs: list[int] = []  # epochs actually trained by the in-process runs below
+    original = train_tasks.train_model
+
+    def counting(*args, on_epoch, **kwargs):
+        def report(epoch):
+            trained_epochs.append(epoch.epoch)
+            on_epoch(epoch)
+        return original(*args, on_epoch=report, **kwargs)
+
+    monkeypatch.setattr(train_tasks, "train_model", counting)
+    train_flow(TrainParams(store=killed.root, config=config, source="ground_truth", model_name="m"))
+    assert trained_epochs == list(range(done + 1, epochs + 1)), "the rerun did not resume from the checkpoint"
+    train_flow(TrainParams(store=clean.root, config=config, source="ground_truth", model_name="m"))
+    a, b = load_model(killed.model_dir("m") / "model.pt")[0], load_model(clean.model_dir("m") / "model.pt")[0]
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    columns = ["run", "model", "condition", "utterance_id", "epoch", "l1_x100"]
+    assert killed.read_metrics("m").select(columns).to_pylist() == clean.read_metrics("m").select(columns).to_pylist()
+    assert not list(killed.root.rglob(".*.tmp"))
+
+
+def test_sweep_flow_trains_each_size_and_plots(tmp_path):
     from visemeflow.flows.params import SweepParams
     from visemeflow.flows.sweep import sweep_flow
     from visemeflow.learning.train import TrainConfig
-    from visemeflow.schemas import UTTERANCES, C, curves_table, table_from_rows
-    from visemeflow.storage import Store
+    from visemeflow.schemas import C
 
-    s = Store(tmp_path / "store")
-    rows = []
-    rng = np.random.default_rng(0)
-    for i in range(6):
-        uid = f"spk/u{i}"
-        wav = write_wav(tmp_path / "audio" / f"u{i}.wav", 1.0)
-        rows.append({C.UTTERANCE_ID: uid, C.SPEAKER: "spk", C.AUDIO_PATH: str(wav), C.ALIGNMENT_PATH: "x",
-                     C.ALIGNMENT_FORMAT: "textgrid", C.SAMPLE_RATE: 16000, C.DURATION_S: 1.0, C.FPS: 25.0,
-                     C.N_FRAMES: 25, C.CONTENT_HASH: str(i), C.SPLIT: "val" if i < 2 else "train"})
-        s.write_curves(curves_table(uid, "ground_truth", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
-    s.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    s = make_curve_store(tmp_path / "store")
     result = sweep_flow(SweepParams(store=s.root, config=TrainConfig(preset="fbank-tcn", d_model=8), sizes=[2, 4],
                                     steps=4, source="ground_truth"))
     assert [p[0] for p in result["points"]] == [2, 4] and all(np.isfinite(p[1]) for p in result["points"])
