@@ -13,7 +13,7 @@ Rows:
   curves from the alignment: needs the text and phone timing, which the audio models do not get);
 - presets trained from scratch on FBank / MFCC / LPC features (wav2vec2 presets need weights that
   cannot be downloaded here: see the README for what to expect with them);
-- training frames/s: curve frames trained per second over the epochs (both cores, one utterance per
+- training frames/s: median over epochs of curve frames trained per second (both cores, one utterance per
   step); RTF: inference seconds per second of audio with torch on one thread, whole validation set.
 
 The sweep trains fbank-blstm on nested subsets (the sweep flow's `nested_subsets`) at an equal budget of
@@ -33,11 +33,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from learning_data import OUT, load_data, trained_model  # noqa: E402
+from learning_data import OUT, load_data, trained_model
 
-from visemeflow.flows.sweep import nested_subsets, plot_sweep  # noqa: E402
-from visemeflow.learning.train import TrainConfig, evaluate  # noqa: E402
-from visemeflow.visemes import N_VISEMES  # noqa: E402
+from visemeflow.flows.sweep import nested_subsets, plot_sweep
+from visemeflow.learning.train import TrainConfig, evaluate
+from visemeflow.visemes import N_VISEMES
 
 DEFAULT_PRESETS = ["fbank-blstm", "mfcc-blstm", "lpc-blstm", "fbank-lstm", "fbank-tcn", "fbank-transformer",
                    "karras-lpc", "faceformer-fbank"]
@@ -92,7 +92,7 @@ def main() -> int:
         t0 = time.perf_counter()
         model, history = trained_model(preset, TrainConfig(preset=preset, epochs=args.epochs), train, val)
         l1 = evaluate(model, val)[0]
-        fps = np.mean([h["frames_per_s"] for h in history])
+        fps = np.median([h["frames_per_s"] for h in history])  # robust to an epoch slowed by other load
         rtf = real_time_factor(model, val)
         rows.append((preset, l1, f"{args.epochs}", f"{fps:.0f}", f"{rtf:.4f}",
                      " ".join(f"{h['val_l1_x100']:.2f}" for h in history)))

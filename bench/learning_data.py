@@ -27,7 +27,13 @@ from visemeflow.hashing import stable_hash
 from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance
 from visemeflow.ingest.utterance import assign_split
 from visemeflow.learning.features import resample_audio
-from visemeflow.learning.train import Example, TrainConfig, load_model, save_model, train_model
+from visemeflow.learning.train import (
+    Example,
+    TrainConfig,
+    load_model,
+    save_model,
+    train_model,
+)
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import generate_procedural_curves
 from visemeflow.synth.dynamics import generate_ground_truth
