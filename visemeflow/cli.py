@@ -157,13 +157,17 @@ def train(
     d_model: Annotated[Optional[int], typer.Option(help="Model width (default: the preset's, 512).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of initialisation, order and augmentation.")] = 0,
     wav2vec2: Annotated[Optional[str], typer.Option(help="wav2vec2 model path or hub id (wav2vec2 presets).")] = None,
+    train_augment: Annotated[float, typer.Option(
+        help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = off).",
+        min=0.0, max=1.0)] = 0.0,
 ) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
     from visemeflow.flows.params import TrainParams
     from visemeflow.flows.train import train_flow
     from visemeflow.learning.train import TrainConfig
 
-    config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2)
+    config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2,
+                         train_augment=train_augment > 0, train_augment_probability=train_augment or 0.5)
     _print_summary("train", train_flow(TrainParams(store=store, config=config, source=source, variant=variant,
                                                    model_name=name)))
 
@@ -190,6 +194,27 @@ def sweep(
     for size, value in result["points"]:
         typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
     typer.echo(f"plot: {result['plot']}")
+
+
+@app.command()
+def evaluate(
+    models: Annotated[str, typer.Option("--models", help="Comma-separated names of trained models in the store.")],
+    store: StoreOpt = DEFAULT_STORE,
+    conditions: Annotated[str, typer.Option(help="Augmented conditions to judge on.")] = "volume,pitch,speed,noise",
+    seed: Annotated[int, typer.Option(help="Seed of the augmentations (same seed, same augmented audio).")] = 0,
+    source: Annotated[Optional[str], typer.Option(help="Target curves (default: the first model's).")] = None,
+    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (default: the first model's).")] = None,
+) -> None:
+    """Judge models on the validation set and on copies augmented in volume, pitch, speed and noise (paper 5.2)."""
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams
+
+    params = EvaluateParams(store=store, models=[m.strip() for m in models.split(",") if m.strip()],
+                            conditions=[c.strip() for c in conditions.split(",") if c.strip()], seed=seed,
+                            source=source, variant=variant)
+    result = evaluate_flow(params)
+    typer.echo(Path(result["markdown"]).read_text(encoding="utf-8"))
+    typer.echo(f"table: {result['markdown']} and {result['csv']}")
 
 
 @app.command()

@@ -6,6 +6,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.ingest import IngestConfig
+from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import validate_name, validate_utterance_id
@@ -115,3 +116,23 @@ class RerunParams(BaseModel):
     @classmethod
     def _valid_id(cls, utterance_id: str) -> str:
         return validate_utterance_id(utterance_id)
+
+
+class EvaluateParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    models: list[str] = Field(..., min_length=1, description="Names of trained models in the store.")
+    conditions: list[Literal["volume", "pitch", "speed", "noise"]] = Field(
+        ["volume", "pitch", "speed", "noise"], description="Augmented copies of the validation set to judge on."
+    )
+    seed: int = Field(0, description="Seed of the augmentations: the same seed gives the same augmented audio.")
+    augment: AugmentConfig = Field(default_factory=AugmentConfig, description="Ranges (the paper's by default).")
+    source: Literal["tracked", "ground_truth", "procedural"] | None = Field(
+        None, description="Target curves; default: those the first model was trained on.")
+    variant: str | None = Field(None, description="Variant of those curves; default: the first model's.")
+
+    @field_validator("models")
+    @classmethod
+    def _safe_models(cls, models: list[str]) -> list[str]:
+        return [validate_name(m, "model name") for m in models]

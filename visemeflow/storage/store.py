@@ -107,6 +107,11 @@ class Store:
         """Folder of a trained model: weights, config and lineage, checkpoints."""
         return self.root / "models" / validate_name(model, "model name")
 
+    def augmented_audio_path(self, augmentation: str, augmented_id: str) -> Path:
+        """An augmented copy of an utterance's audio (float WAV), in the folder of one augmentation set."""
+        speaker, name = split_utterance_id(augmented_id)
+        return self.root / "augmented" / validate_name(augmentation, "augmentation") / speaker / f"{name}.wav"
+
     def metrics_path(self, model: str, run: str) -> Path:
         return self.root / "metrics" / validate_name(model, "model name") / f"{validate_name(run, 'run name')}.parquet"
 

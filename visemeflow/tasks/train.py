@@ -23,6 +23,15 @@ from visemeflow.visemes import VISEMES
 SAMPLE_RATE = 16000
 
 
+def load_audio(path: str) -> np.ndarray:
+    """Mono 16 kHz float32 audio of an audio file or of a video's audio track."""
+    if path.endswith((".mp4", ".mpg", ".avi", ".mov")):
+        audio, rate = _video_audio(path)
+    else:
+        audio, rate = sf.read(path, dtype="float32", always_2d=False)
+    return resample_audio(audio, rate, SAMPLE_RATE)
+
+
 def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> list[Example]:
     """Audio (16 kHz mono) and target curves of the given utterance rows."""
     examples = []
@@ -30,9 +39,7 @@ def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> 
         uid = row[C.UTTERANCE_ID]
         table = store.read_curves(uid, source, variant)
         fps = float(len(table) - 1) / float(table.column(C.TIME_S)[-1].as_py()) if len(table) > 1 else float(row[C.FPS])
-        audio, rate = sf.read(row[C.AUDIO_PATH], dtype="float32", always_2d=False) if not row[C.AUDIO_PATH].endswith(
-            (".mp4", ".mpg", ".avi", ".mov")) else _video_audio(row[C.AUDIO_PATH])
-        examples.append(Example(uid, resample_audio(audio, rate, SAMPLE_RATE), curves_array(table), round(fps, 6)))
+        examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves_array(table), round(fps, 6)))
     return examples
 
 

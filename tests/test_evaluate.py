@@ -1,0 +1,142 @@
+"""Robustness evaluation: augmented validation copies, the paper-style table, and the `evaluate` flow."""
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+import torch
+from factories import make_curve_store
+from torch import nn
+
+from visemeflow.learning.augment import CONDITIONS, draw_value, source_id
+from visemeflow.learning.robustness import augment_examples, robustness_table, table_csv, table_markdown
+from visemeflow.learning.train import Example, evaluate, resample_curves
+
+FPS = 25.0
+
+
+def _examples(n=3, seconds=1.2):
+    rng = np.random.default_rng(0)
+    out = []
+    for i in range(n):
+        audio = (0.1 * rng.standard_normal(int(16000 * seconds))).astype(np.float32)
+        out.append(Example(f"spk/u{i}", audio, rng.random((round(seconds * FPS), 16)).astype(np.float32), FPS))
+    return out
+
+
+class Oracle(nn.Module):
+    """Returns, for audio it was told about, the curves the test expects: a model that is exactly right."""
+
+    def __init__(self, answers: dict[str, np.ndarray]):
+        super().__init__()
+        self.answers = answers
+
+    def forward(self, audio, lengths, n_frames, fps=None):
+        key = hashlib.sha256(audio[0, : int(lengths[0])].numpy().tobytes()).hexdigest()
+        curves = torch.from_numpy(self.answers[key])[None]
+        assert curves.shape[1] == int(n_frames[0]), "evaluation asked for a different number of frames"
+        return curves, torch.ones(curves.shape[:2], dtype=torch.bool)
+
+
+def test_augmented_copies_trace_to_their_source_and_speed_resamples_targets():
+    examples = _examples()
+    for condition in CONDITIONS:
+        copies = augment_examples(examples, condition, seed=3)
+        assert [source_id(c.utterance_id) for c in copies] == [e.utterance_id for e in examples]
+        assert all(condition in c.utterance_id for c in copies)
+        again = augment_examples(examples, condition, seed=3)
+        assert all(np.array_equal(a.audio, b.audio) for a, b in zip(copies, again))
+        for ex, c in zip(examples, copies):
+            factor = draw_value(condition, ex.utterance_id, 3) if condition == "speed" else 1.0
+            assert len(c.curves) == round(len(ex.curves) / factor)
+            assert len(c.audio) == round(len(ex.audio) / factor)
+
+
+def test_a_model_that_outputs_the_targets_scores_zero_on_every_condition():
+    examples = _examples()
+    answers = {}
+    sets = {"validation": examples}
+    for condition in CONDITIONS:
+        sets[condition] = augment_examples(examples, condition, seed=0)
+    for condition, copies in sets.items():
+        for ex, c in zip(examples, copies):
+            # the expected targets computed here, independently of augment_examples' own curves
+            factor = draw_value(condition, ex.utterance_id, 0) if condition == "speed" else 1.0
+            answers[hashlib.sha256(c.audio.tobytes()).hexdigest()] = resample_curves(ex.curves, factor)
+    oracle = Oracle(answers)
+    for condition, copies in sets.items():
+        overall, per_utt, per_viseme = evaluate(oracle, copies)
+        assert overall == 0.0 and set(per_utt.values()) == {0.0} and not per_viseme.any(), condition
+    # and a model that is off by 0.1 everywhere scores 10
+    shifted = Oracle({k: np.clip(v + 0.1, 0, 2).astype(np.float32) for k, v in answers.items()})
+    assert evaluate(shifted, sets["speed"])[0] == pytest.approx(10.0, abs=1e-4)
+
+
+def _row(model, condition, value, uid=None):
+    return {"run": "evaluate", "model": model, "condition": condition, "utterance_id": uid, "l1_x100": value}
+
+
+def test_robustness_table_pivots_groups_and_ratios():
+    rows = [_row("a", "validation", 4.0), _row("a", "pitch", 5.0), _row("a", "speed", 4.4), _row("a", "volume", 4.0),
+            _row("a", "noise", 6.0), _row("a", "pitch", 99.0, uid="spk/u0__pitch_p1.00"),
+            _row("m", "validation", 8.0), _row("m", "pitch", 8.0), _row("t", "validation", 5.0)]
+    table = robustness_table(rows, presets={"a": "fbank-blstm", "m": "mean-curve", "t": "fbank-tcn"},
+                             augmented={"a": True})
+    assert [r["model"] for r in table] == ["a", "t", "m"]  # Table 1 rows, then decoders, then baselines
+    a = table[0]
+    assert a["pitch"] == 5.0 and a["ratio_pitch"] == pytest.approx(1.25) and a["ratio_speed"] == pytest.approx(1.1)
+    assert a["train_augment"] is True and table[2]["ratio_pitch"] == 1.0
+    assert math.isnan(table[1]["pitch"]) and math.isnan(table[1]["ratio_pitch"])
+    md = table_markdown(table)
+    assert "| a | fbank-blstm | yes | 4.00 | 4.00 (1.00) | 5.00 (1.25) | 4.40 (1.10) | 6.00 (1.50) |" in md
+    assert "**baselines and floors (Table 3)**" in md and "| t | fbank-tcn | no | 5.00 | - (-) |" in md
+    csv = table_csv(table).splitlines()
+    assert csv[0].startswith("group,model,preset,train_augment,validation,volume,pitch,speed,noise,ratio_volume")
+    assert len(csv) == 4
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_evaluate_flow_writes_metrics_reuses_augmented_audio_and_recomputes_nothing(tmp_path):
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.schemas import C
+
+    store = make_curve_store(tmp_path / "store")
+    for name, config in (("tcn", TrainConfig(preset="fbank-tcn", epochs=1, d_model=8)),
+                         ("mean", TrainConfig(preset="mean-curve", epochs=1))):
+        train_flow(TrainParams(store=store.root, config=config, source="ground_truth", model_name=name))
+
+    first = evaluate_flow(EvaluateParams(store=store.root, models=["tcn"]))
+    assert first["source"] == "ground_truth" and first["variant"] == "cm" and first["validation_utterances"] == 2
+    augmented = sorted((store.root / "augmented").rglob("*.wav"))
+    assert len(augmented) == 2 * len(CONDITIONS)
+    stamps = {p: p.stat().st_mtime_ns for p in augmented}
+    rows = [r for r in store.read_metrics("tcn").to_pylist() if r[C.RUN] == "evaluate"]
+    aggregates = {r[C.CONDITION]: r[C.L1_X100] for r in rows if r[C.UTTERANCE_ID] is None}
+    assert set(aggregates) == {"validation", *CONDITIONS} and all(np.isfinite(list(aggregates.values())))
+    per_utt = [r for r in rows if r[C.UTTERANCE_ID] is not None]
+    assert len(per_utt) == 2 * (1 + len(CONDITIONS))
+    assert {source_id(r[C.UTTERANCE_ID]) for r in per_utt} == {"spk/u0", "spk/u1"}
+    assert all(r[C.L1_PREFIX + "MBP"] is not None for r in rows if r[C.UTTERANCE_ID] is None)
+
+    metrics_file = store.metrics_path("tcn", "evaluate")
+    tcn_stamp = metrics_file.stat().st_mtime_ns
+    second = evaluate_flow(EvaluateParams(store=store.root, models=["tcn", "mean"]))
+    # the second model reused the augmented audio; the first model was not evaluated again
+    assert {p: p.stat().st_mtime_ns for p in augmented} == stamps
+    assert metrics_file.stat().st_mtime_ns == tcn_stamp
+    assert [r["model"] for r in second["table"]] == ["tcn", "mean"]
+    assert second["table"][0]["validation"] == pytest.approx(aggregates["validation"])
+    text = (store.root / "reports" / "robustness.md").read_text()
+    assert "| mean | mean-curve | no |" in text and (store.root / "reports" / "robustness.csv").exists()
+
+    # a deleted augmented file is made again; unknown models are a clear error
+    augmented[0].unlink()
+    evaluate_flow(EvaluateParams(store=store.root, models=["mean"]))
+    assert augmented[0].exists()
+    with pytest.raises(LookupError, match="no trained model named nope.*known models: mean, tcn"):
+        evaluate_flow(EvaluateParams(store=store.root, models=["nope"]))
