@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
-# then run the pipeline on those videos.
+# then run the pipeline on those videos, train two models, predict, and end with the robustness table.
 demo: venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -29,7 +29,9 @@ demo: venv
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source procedural
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source tracked
 	$(BIN)/visemeflow train --store $(OUT)/store --preset fbank-blstm --epochs 5 --d-model 128 --name demo-fbank-blstm
+	$(BIN)/visemeflow train --store $(OUT)/store --preset mean-curve --name demo-mean-curve
 	$(BIN)/visemeflow predict examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --out $(OUT)/predicted
+	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
 test: venv
