@@ -13,8 +13,9 @@ Rows:
   curves from the alignment: needs the text and phone timing, which the audio models do not get);
 - presets trained from scratch on FBank / MFCC / LPC features (wav2vec2 presets need weights that
   cannot be downloaded here: see the README for what to expect with them);
-- training frames/s: median over epochs of curve frames trained per second (both cores, one utterance per
-  step); RTF: inference seconds per second of audio with torch on one thread, whole validation set.
+- training frames/s: curve frames trained per second over 60 steps of a fresh model (`--threads` threads, one
+  utterance per step, features precomputed); RTF: inference seconds per second of audio (features + model) with
+  torch on one thread, whole validation set.
 
 The sweep trains fbank-blstm on nested subsets (the sweep flow's `nested_subsets`) at an equal budget of
 optimisation steps (paper Fig. 5), and writes bench/out/learning/sweep.png (the sweep flow's plot).
@@ -36,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from learning_data import OUT, load_data, trained_model
 
 from visemeflow.flows.sweep import nested_subsets, plot_sweep
-from visemeflow.learning.train import TrainConfig, evaluate
+from visemeflow.learning.train import TrainConfig, evaluate, train_model
 from visemeflow.visemes import N_VISEMES
 
 DEFAULT_PRESETS = ["fbank-blstm", "mfcc-blstm", "lpc-blstm", "fbank-lstm", "fbank-tcn", "fbank-transformer",
@@ -55,6 +56,12 @@ def real_time_factor(model, examples) -> float:
     finally:
         torch.set_num_threads(threads)
     return secs / sum(len(ex.audio) / 16000 for ex in examples)
+
+
+def training_frames_per_s(preset: str, examples, steps: int = 60) -> float:
+    """Curve frames trained per second over `steps` one-utterance steps of a fresh model (features precomputed)."""
+    config = TrainConfig(preset=preset, epochs=1, max_steps_per_epoch=steps, seed=1)
+    return train_model(examples, [], config).history[0].frames_per_s
 
 
 def floor_l1(pred: dict[str, np.ndarray], examples) -> float:
@@ -92,7 +99,7 @@ def main() -> int:
         t0 = time.perf_counter()
         model, history = trained_model(preset, TrainConfig(preset=preset, epochs=args.epochs), train, val)
         l1 = evaluate(model, val)[0]
-        fps = np.median([h["frames_per_s"] for h in history])  # robust to an epoch slowed by other load
+        fps = training_frames_per_s(preset, train)  # measured apart: epochs of a long run share the machine
         rtf = real_time_factor(model, val)
         rows.append((preset, l1, f"{args.epochs}", f"{fps:.0f}", f"{rtf:.4f}",
                      " ".join(f"{h['val_l1_x100']:.2f}" for h in history)))
@@ -116,7 +123,8 @@ def main() -> int:
             examples = [by_id[r["utterance_id"]] for r in subset]
             config = TrainConfig(preset="fbank-blstm", epochs=max(1, math.ceil(steps / size)),
                                  max_steps_per_epoch=min(size, steps))
-            model, _ = trained_model(f"sweep-n{size}", config, examples, val, verbose=False)
+            # no validation inside the run (hundreds of epochs for the small sizes): judged once at the end
+            model, _ = trained_model(f"sweep-n{size}", config, examples, [], verbose=False)
             l1 = evaluate(model, val)[0]
             points.append((size, l1))
             print(f"  {size:5d} utterances: val L1x100 {l1:.2f}", flush=True)
