@@ -4,6 +4,8 @@ Interval lists for the TextGrid builders are `(start, end, label)` tuples, the o
 `Tier.items` holds; `make_corpus` takes `(label, start, end)` phones per utterance id.
 """
 
+import os
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -122,3 +124,49 @@ def make_curve_store(root, n=6, seed=0):
         s.write_curves(curves_table(uid, "ground_truth", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
     s.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
     return s
+
+
+LJ_NAMES = ["LJ001-0002", "LJ001-0003", "LJ001-0005", "LJ001-0008", "LJ001-0010", "LJ001-0012"]
+
+
+def make_lj_corpus(root: Path, speakers: int = 2, names: list[str] = LJ_NAMES) -> Path:
+    """A corpus of demo LJSpeech utterances (hard links) under several speakers, plus the Mandarin one."""
+    for s in range(speakers):
+        folder = root / f"spk{s}"
+        folder.mkdir(parents=True)
+        for name in names:
+            for ext in (".wav", ".TextGrid"):
+                src = DEMO_CORPUS / "LJ" / f"{name}{ext}"
+                # TextGrids are copied (tests edit them); audio is linked to save disk.
+                (shutil.copyfile if ext == ".TextGrid" else os.link)(src, folder / f"{name}{ext}")
+    zh = root / "zh"
+    zh.mkdir()
+    for ext in (".wav", ".TextGrid"):
+        shutil.copyfile(DEMO_CORPUS / "SSB1624" / f"SSB16240001{ext}", zh / f"SSB16240001{ext}")
+    return root
+
+
+def run_pipeline(corpus: Path, store: Path, n_shards: int = 4) -> dict:
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    return pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=n_shards))
+
+
+def snapshot(store: Path) -> dict[str, list[dict]]:
+    """Every table, curve file and tracking diagnostic, sorted, without reject timestamps: what 'identical' means."""
+    from visemeflow.schemas import C
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    out = {}
+    for table in ("utterances", "phones"):
+        out[table] = sorted(s.read_table(table).to_pylist(), key=lambda r: tuple(str(v) for v in r.values()))
+    out["rejects"] = sorted(
+        ({k: v for k, v in r.items() if k != C.TIME} for r in s.read_table("rejects").to_pylist()), key=str
+    )
+    out["curves"] = sorted(s.scan_curves().to_pylist(), key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
+    out["curve_files"] = sorted(os.path.relpath(p, s.root) for p in s.curve_files())
+    out["tracking_frames"] = sorted(s.read_tracking_frames().to_pylist(),
+                                    key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
+    return out

@@ -1,7 +1,6 @@
 """Real flow runs under the session's Prefect harness: caching, changed files, reruns, kill and resume."""
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -10,60 +9,25 @@ from pathlib import Path
 
 import pyarrow as pa
 import pytest
+from factories import (
+    LJ_NAMES,
+    REPO,
+    make_lj_corpus,
+    run_pipeline,
+    snapshot,
+)
 
-from factories import DEMO_CORPUS, REPO
 from visemeflow.schemas import C, validate_utterance_id
 from visemeflow.storage import Store
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
 
-LJ_NAMES = ["LJ001-0002", "LJ001-0003", "LJ001-0005", "LJ001-0008", "LJ001-0010", "LJ001-0012"]
-
-
-def make_corpus(root: Path, speakers: int = 2, names: list[str] = LJ_NAMES) -> Path:
-    """A corpus of demo LJSpeech utterances (hard links) under several speakers, plus the Mandarin one."""
-    for s in range(speakers):
-        folder = root / f"spk{s}"
-        folder.mkdir(parents=True)
-        for name in names:
-            for ext in (".wav", ".TextGrid"):
-                src = DEMO_CORPUS / "LJ" / f"{name}{ext}"
-                # TextGrids are copied (tests edit them); audio is linked to save disk.
-                (shutil.copyfile if ext == ".TextGrid" else os.link)(src, folder / f"{name}{ext}")
-    zh = root / "zh"
-    zh.mkdir()
-    for ext in (".wav", ".TextGrid"):
-        shutil.copyfile(DEMO_CORPUS / "SSB1624" / f"SSB16240001{ext}", zh / f"SSB16240001{ext}")
-    return root
-
-
-def run_pipeline(corpus: Path, store: Path, n_shards: int = 4) -> dict:
-    from visemeflow.flows.params import PipelineParams
-    from visemeflow.flows.pipeline import pipeline_flow
-
-    return pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=n_shards))
-
-
 def curve_mtimes(store: Path) -> dict[str, int]:
     return {p: os.stat(p).st_mtime_ns for p in Store(store).curve_files()}
 
 
-def snapshot(store: Path) -> dict[str, list[dict]]:
-    """Every table and every curve file's rows, sorted, without reject timestamps: what 'identical' means."""
-    s = Store(store)
-    out = {}
-    for table in ("utterances", "phones"):
-        out[table] = sorted(s.read_table(table).to_pylist(), key=lambda r: tuple(str(v) for v in r.values()))
-    out["rejects"] = sorted(
-        ({k: v for k, v in r.items() if k != C.TIME} for r in s.read_table("rejects").to_pylist()), key=str
-    )
-    out["curves"] = sorted(s.scan_curves().to_pylist(), key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
-    out["curve_files"] = sorted(os.path.relpath(p, s.root) for p in s.curve_files())
-    return out
-
-
 def test_second_run_on_unchanged_corpus_is_all_cache_hits(tmp_path):
-    corpus = make_corpus(tmp_path / "corpus")
+    corpus = make_lj_corpus(tmp_path / "corpus")
     store = tmp_path / "store"
     first = run_pipeline(corpus, store)
     n = 2 * len(LJ_NAMES) + 1
@@ -80,7 +44,7 @@ def test_second_run_on_unchanged_corpus_is_all_cache_hits(tmp_path):
 
 
 def test_changed_textgrid_recomputes_only_that_utterance(tmp_path):
-    corpus = make_corpus(tmp_path / "corpus")
+    corpus = make_lj_corpus(tmp_path / "corpus")
     store = tmp_path / "store"
     run_pipeline(corpus, store)
     before = curve_mtimes(store)
@@ -107,7 +71,7 @@ def test_rerun_one_utterance_even_when_cache_is_valid(tmp_path):
     from visemeflow.flows.params import RerunParams
     from visemeflow.flows.rerun import rerun_flow
 
-    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    corpus = make_lj_corpus(tmp_path / "corpus", speakers=1)
     store = tmp_path / "store"
     run_pipeline(corpus, store)
     before = curve_mtimes(store)
@@ -129,7 +93,7 @@ def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
     from visemeflow.flows.params import RerunParams
     from visemeflow.flows.rerun import rerun_flow
 
-    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    corpus = make_lj_corpus(tmp_path / "corpus", speakers=1)
     broken = corpus / "spk0" / "LJ001-0005.TextGrid"
     good_text = broken.read_text()
     broken.write_text(good_text[: len(good_text) // 3])
@@ -146,6 +110,13 @@ def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
     assert str(unknown) in rejects["spk0/LJ001-0008"][C.MESSAGE]
     assert "spk0/LJ001-0005" in rejects["spk0/LJ001-0005"][C.MESSAGE] and str(broken) in rejects["spk0/LJ001-0005"][C.PATH]
     assert result["procedural"]["generated"] == len(LJ_NAMES) + 1 - 2
+    # the flow's final state says how many failed (the Prefect UI shows this message on the run)
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams
+
+    state = ingest_flow(IngestParams(corpus=corpus, store=store, n_shards=4), return_state=True)
+    assert state.is_completed() and state.message.startswith(f"ingest: 2 of {len(LJ_NAMES) + 1} utterances failed")
+    assert state.result()["utterances"] == len(LJ_NAMES) + 1
 
     # Fixing the file and rerunning that one utterance by hand clears its reject.
     broken.write_text(good_text)
@@ -158,7 +129,7 @@ def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
 
 
 def test_kill_minus_nine_then_rerun_gives_the_uninterrupted_store(tmp_path, prefect_api_url):
-    corpus = make_corpus(tmp_path / "corpus", speakers=8)
+    corpus = make_lj_corpus(tmp_path / "corpus", speakers=8)
     killed_store, clean_store = tmp_path / "killed", tmp_path / "clean"
     env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
     proc = subprocess.Popen(
@@ -189,7 +160,7 @@ def test_kill_minus_nine_then_rerun_gives_the_uninterrupted_store(tmp_path, pref
 
 
 def test_utterance_ids_in_the_store_are_valid(tmp_path):
-    corpus = make_corpus(tmp_path / "corpus", speakers=1)
+    corpus = make_lj_corpus(tmp_path / "corpus", speakers=1)
     store = tmp_path / "store"
     run_pipeline(corpus, store)
     ids = Store(store).read_table("utterances").column(C.UTTERANCE_ID).to_pylist()

@@ -5,6 +5,7 @@ from collections.abc import Iterable
 
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import PrefectFuture, as_completed
+from prefect.states import Completed, State
 
 from visemeflow.schemas import shard_of
 
@@ -50,3 +51,13 @@ def totals(reports: list[dict]) -> dict[str, int]:
                 out[k] += v
     out["shards"] = len(reports)
     return dict(out)
+
+
+def finished(stage: str, summary: dict, failed: int, total: int) -> State:
+    """The flow's final state: Completed with the summary as its result and a message saying how many of the
+    stage's utterances failed (each failure is a reject row with its reason; the rest of the corpus went on)."""
+    if failed:
+        message = f"{stage}: {failed} of {total} utterances failed (see the rejects table); the others are done"
+    else:
+        message = f"{stage}: all {total} utterances done"
+    return Completed(message=message, data=summary)

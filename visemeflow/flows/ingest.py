@@ -4,7 +4,7 @@ import pyarrow as pa
 from prefect import flow, get_run_logger
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect, group_by_shard, totals
+from visemeflow.flows.common import collect, finished, group_by_shard, totals
 from visemeflow.flows.params import IngestParams
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
@@ -53,4 +53,5 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     get_run_logger().info("ingest: %s", summary)
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
-    return summary
+    failed = len(discovery_rejects) + store.read_table("rejects", STAGE).num_rows
+    return finished(STAGE, summary, failed, len(found["entries"]) + len(discovery_rejects))

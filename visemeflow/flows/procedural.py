@@ -3,7 +3,7 @@
 from prefect import flow, get_run_logger
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect, group_by_shard, totals
+from visemeflow.flows.common import collect, finished, group_by_shard, totals
 from visemeflow.flows.params import ProceduralParams
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -51,4 +51,5 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     get_run_logger().info("procedural (%s): %s", variant, summary)
     if errors:
         raise RuntimeError(f"procedural: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
-    return {**summary, "variant": variant}
+    failed = store.read_table("rejects", STAGE).num_rows
+    return finished(STAGE, {**summary, "variant": variant}, failed, sum(len(items) for items in shards.values()))
