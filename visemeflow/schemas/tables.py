@@ -134,6 +134,7 @@ METRICS = pa.schema(
         pa.field(C.L1, pa.float64(), nullable=False),
         pa.field(C.L1_X100, pa.float64(), nullable=False),
     ]
+    # per-viseme mean L1 of the aggregate rows, on the scale of `l1` (not x 100); null on per-utterance rows
     + [pa.field(C.L1_PREFIX + v, pa.float64()) for v in VISEMES]
 )
 

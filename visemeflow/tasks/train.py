@@ -54,7 +54,8 @@ def metrics_rows(run: str, model: str, condition: str, overall: float, per_utter
     """Rows of the `metrics` table: the aggregate (with per-viseme L1) and one per utterance."""
     aggregate = {C.RUN: run, C.MODEL: model, C.CONDITION: condition, C.UTTERANCE_ID: None, C.EPOCH: epoch,
                  C.L1: overall / 100.0, C.L1_X100: overall}
-    aggregate.update({C.L1_PREFIX + v: float(per_viseme[i]) for i, v in enumerate(VISEMES)})
+    # per-viseme columns hold plain L1 like `l1` (per_viseme comes as L1 x 100 from `evaluate`)
+    aggregate.update({C.L1_PREFIX + v: float(per_viseme[i]) / 100.0 for i, v in enumerate(VISEMES)})
     rows = [aggregate]
     for uid, value in sorted(per_utterance.items()):
         rows.append({C.RUN: run, C.MODEL: model, C.CONDITION: condition, C.UTTERANCE_ID: uid, C.EPOCH: epoch,

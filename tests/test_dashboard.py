@@ -1,0 +1,468 @@
+"""The static HTML report (`visemeflow dashboard`): content, escaping, the robustness pivot, and a real browser.
+
+The browser test drives Debian's chromium headless over the DevTools protocol (a websocket to the page target,
+through the `websockets` package Prefect already depends on): it loads the page from file://, collects every
+console message, uncaught exception, browser log entry and network request, checks that each chart <img> decoded,
+and takes a screenshot. Without chromium it fails in CI (the `CI` variable set) and is skipped locally.
+"""
+
+import contextlib
+import html
+import json
+import os
+import shutil
+import signal
+import subprocess
+import time
+from datetime import UTC, datetime
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pytest
+from factories import write_wav
+from typer.testing import CliRunner
+
+from visemeflow.cli import app
+from visemeflow.dashboards.html import (
+    build_dashboard,
+    robustness_html,
+    robustness_table,
+    select_utterances,
+    tracking_sample,
+)
+from visemeflow.schemas import (
+    METRICS,
+    PHONES,
+    REJECTS,
+    TRACKING_FRAMES,
+    UTTERANCES,
+    C,
+    curves_table,
+    table_from_rows,
+)
+from visemeflow.storage import Store
+from visemeflow.visemes import VISEMES
+
+runner = CliRunner()
+HOSTILE_ID = "spk/<img src=x onerror=alert(1)>&\"'"
+HOSTILE_MESSAGE = "expected \"</td></tr></table><script>alert('x')</script>\" & <b>bold</b>"
+HOSTILE_CONDITION = "<script>alert(\"c\")</script>&"
+CONDITIONS = {"validation": 10.0, "volume": 10.5, "pitch": 13.0, "speed": 12.0, "noise": 16.0}
+
+
+# ---- store builders ---------------------------------------------------------------------------------
+def _utterance_row(uid: str, audio: Path, video: Path | None, seconds: float, fps: float, split: str) -> dict:
+    return {C.UTTERANCE_ID: uid, C.SPEAKER: uid.split("/")[0], C.LANGUAGE: "en", C.AUDIO_PATH: str(audio),
+            C.VIDEO_PATH: str(video) if video else None, C.ALIGNMENT_PATH: "x.TextGrid", C.ALIGNMENT_FORMAT: "textgrid",
+            C.SAMPLE_RATE: 16000, C.DURATION_S: seconds, C.FPS: fps, C.N_FRAMES: round(seconds * fps),
+            C.CONTENT_HASH: uid, C.SPLIT: split}
+
+
+def _phone_rows(uid: str, seconds: float) -> list[dict]:
+    labels = [("sil", None), ("HH", "GK"), ("AH0", "SCHWA"), ("L", "LNTD"), ("OW1", "OHH"), ("<&\">", None),
+              ("M", "MBP"), ("sil", None)]
+    edges = np.linspace(0.0, seconds, len(labels) + 1)
+    return [{C.UTTERANCE_ID: uid, C.INDEX: k, C.PART: 0, C.LABEL: label, C.PHONEME: label, C.VISEME: viseme,
+             C.START_S: float(edges[k]), C.END_S: float(edges[k + 1])} for k, (label, viseme) in enumerate(labels)]
+
+
+def _tracking_frames(uid: str, variant: str, n: int, rng) -> pa.Table:
+    cols = {C.UTTERANCE_ID: [uid] * n, C.VARIANT: [variant] * n, C.FRAME: list(range(n)),
+            C.MOUTH_ERROR_PX: [None if k == 3 else float(x) for k, x in enumerate(rng.gamma(4.0, 0.5, n))],
+            C.LANDMARKS_VALID: [k != 3 for k in range(n)], C.FLOW_VALID_FRACTION: rng.random(n).tolist()}
+    cols.update({c: [0.0] * n for c in C.POSE_COLUMNS})
+    return table_from_rows([{k: v[i] for k, v in cols.items()} for i in range(n)], TRACKING_FRAMES)
+
+
+def _metric(run: str, model: str, condition: str, value: float, uid: str | None = None, epoch: int | None = None):
+    row = {C.RUN: run, C.MODEL: model, C.CONDITION: condition, C.UTTERANCE_ID: uid, C.EPOCH: epoch,
+           C.L1: value / 100, C.L1_X100: value}
+    row.update({C.L1_PREFIX + v: value / 100 * (1 + k / 16) for k, v in enumerate(VISEMES)})  # plain L1, as `l1`
+    return row
+
+
+def _reject(uid: str | None, stage: str, message: str) -> dict:
+    return {C.UTTERANCE_ID: uid, C.STAGE: stage, C.ERROR_TYPE: "BadInput<x>", C.MESSAGE: message,
+            C.PATH: "/corpus/a&b.TextGrid", C.TIME: datetime(2026, 11, 1, tzinfo=UTC)}
+
+
+def realistic_store(root: Path) -> Store:
+    """Three utterances (one whose audio is inside an .mp4), curves of every source, phones, two tracked variants,
+    training, final and evaluate metrics, a sweep plot, and rejects with hostile text. Written with the Store API."""
+    from visemeflow.tracking.video import write_video
+
+    s = Store(root)
+    rng = np.random.default_rng(0)
+    media = root.parent / f"{root.name}-media"
+    seconds, fps = 1.2, 25.0
+    n = round(seconds * fps)
+    wav0 = write_wav(media / "u0.wav", seconds)
+    t = np.arange(int(seconds * 16000)) / 16000
+    mp4 = write_video(media / "u1.mp4", np.full((n, 48, 64, 3), 120, np.uint8), fps=fps,
+                      audio=(0.3 * np.sin(2 * np.pi * 300 * t)).astype(np.float32), audio_rate=16000)
+    wav2 = write_wav(media / "u2.wav", seconds)
+    rows = [_utterance_row("spk/u0", wav0, None, seconds, fps, "val"),
+            _utterance_row("spk/u1", mp4, mp4, seconds, fps, "train"),
+            _utterance_row("spk/u2", wav2, None, seconds, fps, "train")]
+    s.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    s.write_shard("phones", 0, table_from_rows([p for r in rows for p in _phone_rows(r[C.UTTERANCE_ID], seconds)],
+                                                PHONES))
+    sources = {"spk/u0": [("procedural", "jali"), ("tracked", "guided-fast"), ("tracked", "unguided-fast"),
+                          ("ground_truth", "cm-seed0"), ("predicted", "m1")],
+               "spk/u1": [("procedural", "jali"), ("ground_truth", "cm-seed0")],
+               "spk/u2": [("procedural", "jali")]}
+    for uid, items in sources.items():
+        for source, variant in items:
+            s.write_curves(curves_table(uid, source, variant, rng.random((n, 16)).astype(np.float32), fps), fps=fps)
+    for uid in ("spk/u0", "spk/u1"):
+        for variant in ("guided-fast", "unguided-fast"):
+            s.write_tracking_frames(_tracking_frames(uid, variant, n, rng))
+    train = [_metric("train", "m1", "validation", 20.0 - 3 * e, epoch=e) for e in (1, 2, 3)]
+    final = [_metric("final", "m1", "validation", 11.0), _metric("final", "m1", "validation", 11.0, uid="spk/u0")]
+    s.write_metrics("m1", "train", table_from_rows(train + final, METRICS))
+    evaluate = [_metric("evaluate", m, c, v * (1.1 if m == "m2" else 1.0)) for m in ("m1", "m2")
+                for c, v in CONDITIONS.items()]
+    evaluate.append(_metric("evaluate", "m1", "noise", 30.0, uid="spk/u0"))   # per utterance: not in the table
+    evaluate.append(_metric("evaluate", "m1", HOSTILE_CONDITION, 12.5))
+    s.write_metrics("m1", "evaluate", table_from_rows(evaluate, METRICS))
+    import cv2
+
+    (root / "reports").mkdir(parents=True)
+    sweep = np.full((120, 200, 3), 255, np.uint8)
+    cv2.line(sweep, (10, 100), (190, 20), (180, 80, 20), 2)
+    cv2.imwrite(str(root / "reports" / "sweep-fbank-blstm.png"), sweep)
+    s.write_shard("rejects", 0, table_from_rows([_reject(HOSTILE_ID, "ingest", HOSTILE_MESSAGE)], REJECTS),
+                  stage="ingest")
+    s.write_shard("rejects", 0, table_from_rows([_reject(None, "track", "no landmarks & no <video>")], REJECTS),
+                  stage="track")
+    return s
+
+
+class _Tags(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.tags: list[tuple[str, dict]] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+
+def _tags(page: str) -> list[tuple[str, dict]]:
+    parser = _Tags()
+    parser.feed(page)
+    return parser.tags
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory):
+    """(store, out folder, page text, CLI output) of the dashboard of `realistic_store`, built through the CLI."""
+    root = tmp_path_factory.mktemp("dash") / "store"
+    store = realistic_store(root)
+    out = root.parent / "report"
+    result = runner.invoke(app, ["dashboard", "--store", str(root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return store, out, (out / "index.html").read_text(encoding="utf-8"), result.output
+
+
+# ---- content ------------------------------------------------------------------------------------------
+def test_dashboard_holds_every_section_and_chart(dashboard):
+    _, out, page, output = dashboard
+    assert "3 utterances, 6 charts" in output
+    assert [p.name for p in out.iterdir()] == ["index.html"]        # one self-contained file
+    tags = _tags(page)
+    images = {a["id"]: a for t, a in tags if t == "img"}
+    assert set(images) == {"chart-curves-0", "chart-curves-1", "chart-curves-2", "chart-mouth-error",
+                           "chart-training", "chart-sweep-0"}
+    assert all(a["alt"] and a["src"].startswith("data:image/png;base64,") for a in images.values())
+    assert "spk/u0" in images["chart-curves-0"]["alt"]
+    for section in ("store", "utterances", "tracking", "training", "sweeps", "robustness", "rejects"):
+        assert ("section", {"id": section}) in tags
+    # nothing is fetched: no script, no stylesheet or other link, a CSP that forbids any load but data: images
+    assert not [t for t, _ in tags if t in {"script", "link", "iframe", "object", "embed"}]
+    assert "default-src &#x27;none&#x27;; img-src data:" in page
+    assert "audio unreadable" not in page                        # the .wav and the .mp4 audio track were read
+    assert "L1 x 100 vs ground truth: procedural/jali" in page
+    assert 'id="training-table"' in page and 'id="tracking-table"' in page and 'id="robustness-table"' in page
+    assert "guided-fast" in page and "unguided-fast" in page
+    assert "WWW 21.3, UUU 20.6, TTH 19.9" in page                   # worst visemes of the final row of m1
+
+
+def test_hostile_ids_messages_and_conditions_are_escaped(dashboard, tmp_path):
+    store, _, page, _ = dashboard
+    for raw in (HOSTILE_ID, HOSTILE_MESSAGE, HOSTILE_CONDITION, "BadInput<x>", "no landmarks & no <video>"):
+        assert raw not in page
+        assert html.escape(raw, quote=True) in page
+    assert not [t for t, _ in _tags(page) if t in {"script", "b", "video"}]
+    # a requested id is echoed back escaped too
+    requested = '"><script>alert(1)</script>'
+    result = runner.invoke(app, ["dashboard", "--store", str(store.root), "--out", str(tmp_path),
+                                 "--utterance", "spk/u2", "--utterance", requested])
+    assert result.exit_code == 0, result.output
+    assert "warning" in result.output and "1 utterances" in result.output
+    again = (tmp_path / "index.html").read_text(encoding="utf-8")
+    assert requested not in again and html.escape(requested) in again
+    assert ["chart-curves-0"] == [a["id"] for t, a in _tags(again) if t == "img" and a["id"].startswith("chart-curves")]
+    assert "spk/u2" in again and "spk/u0</strong>" not in again
+
+
+def test_robustness_table_pivots_aggregate_evaluate_rows_with_ratios():
+    rows = [_metric("evaluate", "b", c, v) for c, v in CONDITIONS.items()]
+    rows += [_metric("evaluate", "a", "validation", 8.0), _metric("evaluate", "a", "noise", 10.0),
+             _metric("evaluate", "a", "noise", 14.0),                         # two aggregates: averaged
+             _metric("evaluate", "a", "speed", 99.0, uid="spk/u0"),          # per utterance: ignored
+             _metric("final", "a", "validation", 1.0), _metric("train", "a", "pitch", 1.0, epoch=1),
+             _metric("evaluate", "c", "volume", 5.0),                          # no validation: no ratio
+             _metric("evaluate", "b", "reverb", 30.0)]                         # any other condition, after the known
+    table = robustness_table(table_from_rows(rows, METRICS))
+    assert table.models == ["a", "b", "c"]
+    assert table.conditions == ["validation", "volume", "pitch", "speed", "noise", "reverb"]
+    assert table.values[("a", "noise")] == pytest.approx(12.0)
+    assert ("a", "speed") not in table.values and ("a", "pitch") not in table.values
+    assert table.ratio("a", "noise") == pytest.approx(1.5)
+    assert table.ratio("b", "pitch") == pytest.approx(1.3)
+    assert table.ratio("b", "reverb") == pytest.approx(3.0)
+    assert table.ratio("a", "volume") is None and table.ratio("c", "volume") is None
+    rendered = robustness_html(table)
+    headers = [a for t, a in _tags(rendered) if t == "th"]
+    assert len(headers) == 3 + 1 + 6 + 5             # groups; model, 6 conditions, 5 ratios
+    assert [h.get("colspan") for h in headers[:3]] == ["1", "6", "5"]
+    assert "ratio to validation" in rendered and "<td class=\"num\">1.500</td>" in rendered
+    assert "<td class=\"num\">3.000</td>" in rendered
+
+
+def test_robustness_table_is_empty_without_evaluate_rows():
+    table = robustness_table(table_from_rows([_metric("final", "a", "validation", 1.0)], METRICS))
+    assert table.models == [] and table.conditions == []
+
+
+def test_selection_shows_every_source_and_respects_the_limit():
+    index = {f"s/u{i}": {"procedural": ["jali"]} for i in range(30)}
+    index["s/u17"]["ground_truth"] = ["cm"]
+    index["predict/x"] = {"predicted": ["m"]}
+    known = [f"s/u{i}" for i in range(30)]
+    selected, missing = select_utterances(known, index, None, 3)
+    assert len(selected) == 3 and not missing
+    assert "s/u17" in selected and "predict/x" in selected          # each source at least once
+    assert selected[0] == "s/u17"                                     # richest first, curve-only last
+    assert selected[-1] == "predict/x"
+    assert select_utterances(known, index, ["s/u5", "nope/x", "s/u5"], 3) == (["s/u5"], ["nope/x"])
+    assert select_utterances(known, index, None, 0) == ([], [])
+
+
+def test_tracking_diagnostics_are_a_bounded_stable_sample(dashboard):
+    store = dashboard[0]
+    frames, counts = tracking_sample(store, limit=1)
+    assert counts == {"guided-fast": (1, 2), "unguided-fast": (1, 2)}
+    per_variant = {v: set(frames.filter(pc.equal(frames.column(C.VARIANT), v)).column(C.UTTERANCE_ID).to_pylist())
+                   for v in counts}
+    assert all(len(ids) == 1 for ids in per_variant.values())
+    assert tracking_sample(store, limit=1)[0].equals(frames)           # the same sample every run
+    assert tracking_sample(store)[0].num_rows == 4 * 30
+
+
+def test_empty_store_says_there_is_nothing_yet(tmp_path):
+    (tmp_path / "store").mkdir()
+    result = runner.invoke(app, ["dashboard", "--store", str(tmp_path / "store"), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert "nothing yet" in result.output
+    page = (tmp_path / "out" / "index.html").read_text()
+    assert 'id="nothing-yet"' in page and 'id="no-training"' in page and 'id="no-robustness"' in page
+    assert "No utterances yet" in page and "No sweep yet" in page and "No tracking diagnostics yet" in page
+    assert not [t for t, _ in _tags(page) if t == "img"]
+    missing = runner.invoke(app, ["dashboard", "--store", str(tmp_path / "absent"), "--out", str(tmp_path / "o2")])
+    assert missing.exit_code == 2 and "no store at" in missing.output
+    assert not (tmp_path / "o2").exists()
+
+
+def test_unreadable_audio_is_noted_not_fatal(tmp_path):
+    s = Store(tmp_path / "store")
+    s.write_shard("utterances", 0, table_from_rows(
+        [_utterance_row("spk/a", tmp_path / "gone.wav", None, 1.0, 25.0, "train")], UTTERANCES))
+    s.write_curves(curves_table("spk/a", "procedural", "jali", np.zeros((25, 16), np.float32), 25.0))
+    result = build_dashboard(s, tmp_path / "out")
+    page = result.path.read_text()
+    assert result.utterances == ["spk/a"] and result.charts == ["chart-curves-0"]
+    assert "audio unreadable" in page and "gone.wav" in page and 'id="no-rejects"' in page
+
+
+# ---- a real browser -------------------------------------------------------------------------------------
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+    "--no-first-run", "--no-default-browser-check", "--disable-dev-shm-usage", "--disable-extensions",
+    "--disable-sync", "--mute-audio", "--hide-scrollbars", "--remote-debugging-port=0", "--window-size=1280,2000",
+]
+
+
+def chromium_or_fail() -> str:
+    """The chromium executable; without one, fail in CI (it must run there) and skip locally."""
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        exe = shutil.which(name)
+        if exe:
+            return exe
+    message = "chromium is not installed (apt-get install chromium; .ci/run installs it)"
+    if os.environ.get("CI"):
+        pytest.fail(message)
+    pytest.skip(message)
+
+
+class Browser:
+    """Headless chromium and one page target, driven over the DevTools protocol."""
+
+    def __init__(self, exe: str, profile: Path, timeout: float = 60.0):
+        from websockets.sync.client import connect
+
+        self.timeout = timeout
+        self.log = profile.parent / f"{profile.name}.stderr"
+        profile.mkdir(parents=True, exist_ok=True)
+        with open(self.log, "wb") as err:
+            self.proc = subprocess.Popen([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
+                                         stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+        try:
+            port_file = profile / "DevToolsActivePort"
+            deadline = time.monotonic() + timeout
+            while not (port_file.exists() and len(port_file.read_text().split()) >= 2):
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"chromium did not start: {self.log.read_text(errors='replace')[-2000:]}")
+                time.sleep(0.05)
+            port = port_file.read_text().split()[0]
+            # The page target: the tab chromium opened on about:blank; its endpoint is /devtools/page/<id>.
+            with connect(f"ws://127.0.0.1:{port}{port_file.read_text().split()[1]}", proxy=None) as browser:
+                browser.send(json.dumps({"id": 1, "method": "Target.getTargets"}))
+                while True:
+                    reply = json.loads(browser.recv(timeout=timeout))
+                    if reply.get("id") == 1:
+                        break
+            page = next(t for t in reply["result"]["targetInfos"] if t["type"] == "page")
+            self.ws = connect(f"ws://127.0.0.1:{port}/devtools/page/{page['targetId']}", proxy=None, max_size=None)
+        except BaseException:
+            self.kill()
+            raise
+        self.next_id = 0
+        self.events: list[dict] = []
+
+    def send(self, method: str, params: dict | None = None) -> dict:
+        self.next_id += 1
+        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params or {}}))
+        deadline = time.monotonic() + self.timeout
+        while True:
+            message = json.loads(self.ws.recv(timeout=max(deadline - time.monotonic(), 0.01)))
+            if message.get("id") == self.next_id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message["result"]
+            if "method" in message:
+                self.events.append(message)
+
+    def wait_for(self, event: str) -> dict:
+        deadline = time.monotonic() + self.timeout
+        while True:
+            for e in self.events:
+                if e["method"] == event:
+                    self.events.remove(e)
+                    return e
+            message = json.loads(self.ws.recv(timeout=max(deadline - time.monotonic(), 0.01)))
+            if "method" in message:
+                self.events.append(message)
+
+    def load(self, path: Path) -> dict:
+        """Open `path`; after its load event, the page's problems and the state of its images."""
+        self.events.clear()
+        for domain in ("Page", "Runtime", "Log", "Network"):
+            self.send(f"{domain}.enable")
+        self.send("Emulation.setDeviceMetricsOverride", {"width": 1280, "height": 2000, "deviceScaleFactor": 1,
+                                                          "mobile": False})
+        self.send("Page.navigate", {"url": path.resolve().as_uri()})
+        self.wait_for("Page.loadEventFired")
+        images = self.send("Runtime.evaluate", {"returnByValue": True, "awaitPromise": True, "expression": """
+            Promise.all([...document.images].map(img => img.decode().then(() => true, () => false)))
+              .then(() => [...document.images].map(img => ({id: img.id, alt: img.alt, complete: img.complete,
+                                                             width: img.naturalWidth, height: img.naturalHeight})))
+        """})["result"]["value"]
+        self.send("Runtime.evaluate", {"expression": "0"})   # flush: events queued before this reply are in
+        errors = []
+        for e in self.events:
+            p = e["params"]
+            if e["method"] == "Runtime.consoleAPICalled" and p["type"] in ("error", "assert", "warning"):
+                errors.append(f"console.{p['type']}: " + " ".join(str(a.get("value", a.get("description")))
+                                                                  for a in p["args"]))
+            elif e["method"] == "Runtime.exceptionThrown":
+                errors.append(f"exception: {p['exceptionDetails'].get('text')}")
+            elif e["method"] == "Log.entryAdded" and p["entry"]["level"] in ("error", "warning"):
+                errors.append(f"log {p['entry']['source']}: {p['entry']['text']}")
+            elif e["method"] == "Network.loadingFailed":
+                errors.append(f"load failed: {p.get('blockedReason') or p.get('errorText')}")
+        requests = [e["params"]["request"]["url"] for e in self.events if e["method"] == "Network.requestWillBeSent"]
+        return {"errors": errors, "requests": requests, "images": images}
+
+    def screenshot(self, path: Path) -> Path:
+        import base64
+
+        path.write_bytes(base64.b64decode(self.send("Page.captureScreenshot", {"format": "png"})["data"]))
+        return path
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)   # chromium and the renderer processes it started
+            except ProcessLookupError:
+                pass
+        self.proc.wait(timeout=30)
+
+    def close(self) -> None:
+        from websockets.exceptions import WebSocketException
+
+        with contextlib.suppress(RuntimeError, OSError, TimeoutError, WebSocketException):
+            self.send("Browser.close")
+        with contextlib.suppress(OSError, WebSocketException, subprocess.TimeoutExpired):
+            self.ws.close()
+            self.proc.wait(timeout=10)
+        self.kill()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    exe = chromium_or_fail()
+    b = Browser(exe, tmp_path_factory.mktemp("chromium") / "profile")
+    yield b
+    b.close()
+
+
+def test_the_page_renders_in_chromium_without_errors_or_network(dashboard, browser, tmp_path):
+    _, out, page, _ = dashboard
+    started = time.perf_counter()
+    state = browser.load(out / "index.html")
+    assert state["errors"] == []
+    assert [u for u in state["requests"] if not u.startswith(("file:", "data:"))] == []
+    ids = [a["id"] for t, a in _tags(page) if t == "img"]
+    assert [i["id"] for i in state["images"]] == ids and len(ids) == 6
+    broken = [i for i in state["images"] if not (i["complete"] and i["width"] > 0 and i["height"] > 0)]
+    assert broken == []
+    from PIL import Image
+
+    shot = browser.screenshot(tmp_path / "dashboard.png")
+    with Image.open(shot) as image:
+        assert image.format == "PNG" and image.size == (1280, 2000)
+        pixels = np.asarray(image.convert("L"), dtype=np.float32)
+    assert shot.stat().st_size > 20_000 and pixels.std() > 20       # not a blank page
+    assert time.perf_counter() - started < 30
+
+
+def test_the_browser_check_sees_errors_broken_images_and_blocked_fetches(browser, tmp_path):
+    """The checks above can fail: a console error, an undecodable image and a fetch the CSP blocks are all seen."""
+    bad = tmp_path / "bad.html"
+    bad.write_text('<!DOCTYPE html><html><body><img id="broken" alt="x" src="data:image/png;base64,AAAA">'
+                   '<script>console.error("boom")</script></body></html>')
+    state = browser.load(bad)
+    assert any("boom" in e for e in state["errors"])
+    assert state["images"][0]["width"] == 0
+    blocked = tmp_path / "blocked.html"
+    blocked.write_text('<!DOCTYPE html><html><head><meta http-equiv="Content-Security-Policy" '
+                       "content=\"default-src 'none'; img-src data:\"></head><body>"
+                       '<img id="remote" alt="x" src="http://127.0.0.1:9/x.png"></body></html>')
+    state = browser.load(blocked)
+    assert state["images"][0]["width"] == 0
+    assert any("Content Security Policy" in e for e in state["errors"])
+    assert "http://127.0.0.1:9/x.png" in state["requests"]      # the attempt is seen even though CSP blocks it

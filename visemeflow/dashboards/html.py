@@ -1,0 +1,549 @@
+"""The static HTML report of a store (`visemeflow dashboard`): one self-contained `index.html`, readable offline.
+
+Sections: what the store holds; per-utterance curves of every source with the phones and the waveform; mouth
+keypoint error of each tracked variant; training results; dataset-size sweep plots; the robustness table; rejects.
+
+The page fetches nothing: every chart is a PNG inside a `data:` URI, styles are inline, there is no script, and a
+Content-Security-Policy (`default-src 'none'`) makes the browser refuse any other load. Every value from the store
+(utterance ids, phone labels, reject messages, condition names) is HTML-escaped. Only a bounded number of
+utterances is drawn (`max_utterances`, or the ids asked for), so a store of 10,000 utterances stays quick to report.
+"""
+
+import base64
+import html
+import math
+import os
+import uuid
+import zlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as ds
+
+from visemeflow.dashboards import plots
+from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
+from visemeflow.schemas.tables import CURVE_SOURCES
+from visemeflow.storage import Store
+from visemeflow.visemes import VISEMES
+
+DEFAULT_MAX_UTTERANCES = 12
+MAX_REJECT_ROWS = 500
+# Tracking diagnostics read per variant (a fixed sample beyond that): keeps a 10k-utterance store at ~1 s.
+MAX_TRACKING_UTTERANCES = 2000
+# Robustness conditions in the paper's order (Tables 1-3); any other condition follows, sorted by name.
+CONDITION_ORDER = ("validation", "volume", "pitch", "speed", "noise")
+BASELINE_CONDITION = "validation"
+VIDEO_SUFFIXES = {".mp4", ".m4v", ".mov", ".mkv", ".avi", ".mpg", ".mpeg", ".webm"}
+CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
+
+_CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 0 auto; max-width: 1300px;
+       padding: 0 20px 40px; color: #222; }
+h1 { margin-bottom: 4px; } h2 { border-bottom: 1px solid #ccc; padding-bottom: 4px; margin-top: 36px; }
+nav a { margin-right: 14px; } .meta, .note { color: #666; } .empty { color: #a33; font-style: italic; }
+table { border-collapse: collapse; margin: 8px 0 16px; font-size: 14px; }
+th, td { border: 1px solid #ddd; padding: 4px 8px; text-align: left; vertical-align: top; }
+th { background: #f4f6f8; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
+td.msg { max-width: 640px; white-space: pre-wrap; word-break: break-word; }
+figure { margin: 12px 0 28px; } figcaption { color: #444; font-size: 14px; margin-bottom: 6px; }
+img { max-width: 100%; height: auto; border: 1px solid #eee; }
+code { background: #f4f6f8; padding: 0 3px; }
+"""
+
+
+def esc(value: object) -> str:
+    """`value` as HTML text or attribute value: `& < > " '` escaped; None as an empty string."""
+    return "" if value is None else html.escape(str(value), quote=True)
+
+
+@dataclass
+class DashboardResult:
+    path: Path                                   # the index.html written
+    utterances: list[str] = field(default_factory=list)   # utterances drawn, in page order
+    charts: list[str] = field(default_factory=list)       # ids of the <img> charts on the page
+    missing: list[str] = field(default_factory=list)      # requested utterance ids with nothing stored
+    empty: bool = False                          # the store holds nothing to report
+
+
+class _Page:
+    """Accumulates HTML and the ids of the charts it holds."""
+
+    def __init__(self) -> None:
+        self.parts: list[str] = []
+        self.charts: list[str] = []
+
+    def add(self, *parts: str) -> None:
+        self.parts.extend(parts)
+
+    def image(self, chart_id: str, png: bytes, alt: str, caption: str = "", mime: str = "image/png") -> None:
+        data = base64.b64encode(png).decode("ascii")
+        self.charts.append(chart_id)
+        self.add(
+            "<figure>", f"<figcaption>{caption}</figcaption>" if caption else "",
+            f'<img id="{esc(chart_id)}" alt="{esc(alt)}" src="data:{mime};base64,{data}">', "</figure>",
+        )
+
+
+def html_table(headers: Sequence[str], rows: Iterable[Sequence[object]], numeric: Sequence[bool] | None = None,
+               table_id: str | None = None, cell_class: Sequence[str] | None = None,
+               groups: Sequence[tuple[str, int]] | None = None) -> str:
+    """An HTML table; every header and cell escaped; floats with 3 decimals, None as a dash.
+
+    `groups`, (title, columns spanned) pairs, add a header row above `headers`.
+    """
+    out = [f'<table id="{esc(table_id)}">' if table_id else "<table>", "<thead>"]
+    if groups:
+        out.append("<tr>" + "".join(f'<th colspan="{int(n)}">{esc(t)}</th>' for t, n in groups if n > 0) + "</tr>")
+    out.append("<tr>")
+    out += [f"<th>{esc(h)}</th>" for h in headers]
+    out.append("</tr></thead><tbody>")
+    for row in rows:
+        out.append("<tr>")
+        for k, cell in enumerate(row):
+            classes = []
+            if numeric and numeric[k]:
+                classes.append("num")
+            if cell_class and cell_class[k]:
+                classes.append(cell_class[k])
+            attr = f' class="{" ".join(classes)}"' if classes else ""
+            out.append(f"<td{attr}>{esc(_fmt(cell))}</td>")
+        out.append("</tr>")
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def _fmt(value: object) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return "–" if math.isnan(value) else f"{value:.3f}"
+    return str(value)
+
+
+# ---- utterance selection ---------------------------------------------------------------------------
+def curve_index(store: Store) -> dict[str, dict[str, list[str]]]:
+    """utterance id -> {source: [variants]} of every stored curve file (a listing, no file is opened)."""
+    index: dict[str, dict[str, list[str]]] = {}
+    for source in CURVE_SOURCES:
+        for variant in store.curve_variants(source):
+            for f in store.curve_files(source, variant):
+                p = Path(f)
+                uid = f"{p.parent.name}/{p.stem}"
+                index.setdefault(uid, {}).setdefault(source, []).append(variant)
+    return index
+
+
+def select_utterances(
+    known: Sequence[str], index: dict[str, dict[str, list[str]]], requested: Sequence[str] | None, limit: int
+) -> tuple[list[str], list[str]]:
+    """(utterances to draw, requested ids that are stored nowhere).
+
+    Requested ids are drawn in the order given. Otherwise up to `limit` utterances: first, for each curve source
+    in turn, the richest utterance holding it (so every source appears at least once), then the utterances with
+    the most sources, ties by id. Utterances of the `utterances` table come before curve-only ones (`predict/...`).
+    """
+    if requested:
+        stored = set(known) | set(index)
+        chosen = list(dict.fromkeys(requested))
+        return [u for u in chosen if u in stored], [u for u in chosen if u not in stored]
+    in_table = set(known)
+    candidates = sorted(set(known) | set(index),
+                        key=lambda u: (u not in in_table, -len(index.get(u, {})), u))
+    selected: list[str] = []
+    for source in CURVE_SOURCES:
+        if len(selected) >= limit:
+            break
+        if any(source in index.get(u, {}) for u in selected):
+            continue
+        pick = next((u for u in candidates if source in index.get(u, {}) and u not in selected), None)
+        if pick is not None:
+            selected.append(pick)
+    for u in candidates:
+        if len(selected) >= limit:
+            break
+        if u not in selected:
+            selected.append(u)
+    order = {u: k for k, u in enumerate(candidates)}
+    return sorted(selected, key=order.__getitem__), []
+
+
+# ---- data of one utterance -------------------------------------------------------------------------
+def load_waveform(row: dict | None) -> tuple[tuple[np.ndarray, int] | None, str]:
+    """((mono samples, rate), "") of an utterance's audio, or (None, why not). Videos are read through PyAV."""
+    if row is None:
+        return None, "no row in the utterances table: audio unknown"
+    audio, video = row.get(C.AUDIO_PATH), row.get(C.VIDEO_PATH)
+    errors = []
+    if audio and Path(audio).suffix.lower() not in VIDEO_SUFFIXES:
+        import soundfile as sf
+
+        try:
+            samples, rate = sf.read(audio, dtype="float32", always_2d=True)
+            return (samples.mean(axis=1), int(rate)), ""
+        except (RuntimeError, OSError, ValueError) as exc:
+            errors.append(f"{audio}: {exc}")
+    for path in dict.fromkeys(p for p in (audio, video) if p and Path(p).suffix.lower() in VIDEO_SUFFIXES):
+        from visemeflow.tracking.video import read_video_audio
+
+        try:
+            return read_video_audio(path), ""
+        except (OSError, ValueError) as exc:  # VideoError is a ValueError
+            errors.append(str(exc))
+    return None, "audio unreadable: " + ("; ".join(errors) if errors else "no audio path")
+
+
+def _phones_of(phones: pa.Table, uid: str) -> list[plots.Phone]:
+    rows = phones.filter(pc.equal(phones.column(C.UTTERANCE_ID), uid)).sort_by(
+        [(C.START_S, "ascending"), (C.INDEX, "ascending"), (C.PART, "ascending")]).to_pylist()
+    return [plots.Phone(r[C.START_S], r[C.END_S], r[C.LABEL], r[C.VISEME] is None) for r in rows]
+
+
+def _l1_x100(reference: pa.Table, other: pa.Table) -> float:
+    """Mean absolute difference x 100 of `other` against `reference`, `other` interpolated at the reference frames."""
+    t_ref = reference.column(C.TIME_S).to_numpy()
+    t_other = other.column(C.TIME_S).to_numpy()
+    if not len(t_ref) or not len(t_other):
+        return float("nan")
+    a, b = curves_array(reference), curves_array(other)
+    resampled = np.stack([np.interp(t_ref, t_other, b[:, i]) for i in range(b.shape[1])], axis=1)
+    return float(np.abs(resampled - a).mean() * 100.0)
+
+
+def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | None,
+                       sources: dict[str, list[str]], phones: pa.Table) -> None:
+    panels, tables = [], []
+    for source in CURVE_SOURCES:
+        for variant in sources.get(source, []):
+            try:
+                table = store.read_curves(uid, source, variant)
+            except (LookupError, OSError, pa.ArrowException):
+                continue
+            tables.append((source, variant, table))
+            panels.append(plots.CurvePanel(f"{source}\n{variant}", table.column(C.TIME_S).to_numpy(),
+                                           curves_array(table)))
+    waveform, note = load_waveform(row)
+    duration = float(row[C.DURATION_S]) if row else 0.0
+    phone_list = _phones_of(phones, uid)
+    png = plots.utterance_figure(uid, duration, waveform, note, phone_list, panels)
+
+    facts = []
+    if row:
+        facts += [f"speaker {esc(row[C.SPEAKER])}", f"language {esc(row[C.LANGUAGE] or '?')}",
+                  f"split {esc(row[C.SPLIT])}", f"{row[C.DURATION_S]:.2f} s", f"{row[C.FPS]:g} fps",
+                  f"{len(phone_list)} phones"]
+    else:
+        facts.append("not in the utterances table")
+    truth = next((t for s, _, t in tables if s == "ground_truth"), None)
+    if truth is not None:
+        errors = [f"{esc(s)}/{esc(v)} {_l1_x100(truth, t):.2f}" for s, v, t in tables if s != "ground_truth"]
+        if errors:
+            facts.append("L1 x 100 vs ground truth: " + ", ".join(errors))
+    shown = ", ".join(f"{esc(s)}/{esc(v)}" for s, v, _ in tables) or "none"
+    caption = (f'<strong class="utterance-id">{esc(uid)}</strong> · ' + " · ".join(facts)
+               + f"<br><span class=\"note\">curves: {shown}</span>")
+    if waveform is None:
+        caption += f'<br><span class="empty">{esc(note)}</span>'
+    page.image(f"chart-curves-{n}", png, f"viseme curves, phones and waveform of {uid}", caption)
+
+
+# ---- tables from the metrics ------------------------------------------------------------------------
+@dataclass
+class RobustnessTable:
+    models: list[str]
+    conditions: list[str]
+    values: dict[tuple[str, str], float]    # (model, condition) -> L1 x 100
+
+    def ratio(self, model: str, condition: str) -> float | None:
+        """L1 under `condition` over L1 on clean validation audio (1.0 = no degradation), None when unknown."""
+        base = self.values.get((model, BASELINE_CONDITION))
+        value = self.values.get((model, condition))
+        if base is None or value is None or base == 0:
+            return None
+        return value / base
+
+
+def _condition_key(condition: str) -> tuple[int, str]:
+    for k, name in enumerate(CONDITION_ORDER):
+        if condition == name or condition.startswith(name):
+            return k, condition
+    return len(CONDITION_ORDER), condition
+
+
+def _aggregate_rows(metrics: pa.Table, run: str) -> pa.Table:
+    mask = pc.and_(pc.equal(metrics.column(C.RUN), run), pc.is_null(metrics.column(C.UTTERANCE_ID)))
+    return metrics.filter(mask)
+
+
+def robustness_table(metrics: pa.Table) -> RobustnessTable:
+    """Aggregate rows (`utterance_id` null) of run `evaluate`, one row per model, one column per condition.
+
+    Several aggregate rows of one (model, condition) (e.g. per epoch) are averaged.
+    """
+    rows = _aggregate_rows(metrics, "evaluate").select([C.MODEL, C.CONDITION, C.L1_X100]).to_pylist()
+    sums: dict[tuple[str, str], list[float]] = {}
+    for r in rows:
+        sums.setdefault((r[C.MODEL], r[C.CONDITION]), []).append(float(r[C.L1_X100]))
+    values = {k: float(np.mean(v)) for k, v in sums.items()}
+    models = sorted({m for m, _ in values})
+    conditions = sorted({c for _, c in values}, key=_condition_key)
+    return RobustnessTable(models, conditions, values)
+
+
+def robustness_html(table: RobustnessTable) -> str:
+    ratios = [c for c in table.conditions if c != BASELINE_CONDITION]
+    has_base = BASELINE_CONDITION in table.conditions
+    headers = ["model", *table.conditions]
+    groups = [("", 1), ("L1 x 100", len(table.conditions))]
+    if has_base:
+        headers += ratios
+        groups.append((f"ratio to {BASELINE_CONDITION} (1.0 = unchanged)", len(ratios)))
+    rows = []
+    for m in table.models:
+        row: list[object] = [m] + [table.values.get((m, c)) for c in table.conditions]
+        if has_base:
+            row += [table.ratio(m, c) for c in ratios]
+        rows.append(row)
+    numeric = [False] + [True] * (len(headers) - 1)
+    note = "" if has_base else (f'<p class="note">no <code>{BASELINE_CONDITION}</code> condition: '
+                                "ratios cannot be computed.</p>")
+    return html_table(headers, rows, numeric, table_id="robustness-table", groups=groups) + note
+
+
+def training_html(metrics: pa.Table) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """The table of `final` aggregate rows and the per-epoch validation series of `train` rows, per model."""
+    final = _aggregate_rows(metrics, "final").to_pylist()
+    train = _aggregate_rows(metrics, "train")
+    train = train.filter(pc.equal(train.column(C.CONDITION), BASELINE_CONDITION))
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    epochs: dict[str, int] = {}
+    for model in sorted(set(train.column(C.MODEL).to_pylist())):
+        rows = train.filter(pc.equal(train.column(C.MODEL), model)).to_pylist()
+        pts = sorted((r[C.EPOCH], r[C.L1_X100]) for r in rows if r[C.EPOCH] is not None)
+        if pts:
+            series[model] = (np.array([p[0] for p in pts]), np.array([p[1] for p in pts]))
+            epochs[model] = int(pts[-1][0])
+    per_utt = metrics.filter(pc.and_(pc.equal(metrics.column(C.RUN), "final"),
+                                     pc.invert(pc.is_null(metrics.column(C.UTTERANCE_ID)))))
+    utt_counts: dict[tuple[str, str], int] = {}
+    for r in per_utt.select([C.MODEL, C.CONDITION]).to_pylist():
+        key = (r[C.MODEL], r[C.CONDITION])
+        utt_counts[key] = utt_counts.get(key, 0) + 1
+    rows = []
+    for r in sorted(final, key=lambda r: (r[C.MODEL], _condition_key(r[C.CONDITION]))):
+        # per-viseme columns hold plain L1 (like `l1`); shown x 100
+        per_viseme = [(100.0 * r[C.L1_PREFIX + v], v) for v in VISEMES if r.get(C.L1_PREFIX + v) is not None]
+        worst = ", ".join(f"{v} {x:.1f}" for x, v in sorted(per_viseme, reverse=True)[:3]) or None
+        rows.append([r[C.MODEL], r[C.CONDITION], float(r[C.L1_X100]), epochs.get(r[C.MODEL]),
+                     utt_counts.get((r[C.MODEL], r[C.CONDITION])), worst])
+    headers = ["model", "condition", "L1 x 100", "epochs", "utterances", "worst visemes (L1 x 100)"]
+    return html_table(headers, rows, [False, False, True, True, True, False], table_id="training-table"), series
+
+
+# ---- the page ---------------------------------------------------------------------------------------
+def _count_by(table: pa.Table, column: str) -> list[tuple[str, int]]:
+    if table.num_rows == 0:
+        return []
+    counts = pc.value_counts(table.column(column)).to_pylist()
+    return sorted(((str(c["values"]), int(c["counts"])) for c in counts), key=lambda x: x[0])
+
+
+def tracking_sample(store: Store, limit: int = MAX_TRACKING_UTTERANCES) -> tuple[pa.Table, dict[str, tuple[int, int]]]:
+    """Diagnostics of up to `limit` utterances per tracked variant, and per variant (utterances read, stored).
+
+    `Store.read_tracking_frames` opens every file (half a millisecond each: 10 s for a 10k-utterance store); the
+    report reads a fixed pseudo-random sample of the files instead (the same in every run), and only the columns
+    it shows. Files are found by the store's layout, tracking_frames/<variant>/<speaker>/<name>.parquet.
+    """
+    folder = store.root / "tracking_frames"
+    variants = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")) \
+        if folder.is_dir() else []
+    files, counts = [], {}
+    for variant in variants:
+        found = [p for p in (folder / variant).glob("*/*.parquet") if not p.name.startswith(".")]
+        found.sort(key=lambda p: (zlib.crc32(f"{p.parent.name}/{p.stem}".encode()), str(p)))
+        files += [str(p) for p in found[:limit]]
+        counts[variant] = (min(len(found), limit), len(found))
+    columns = [C.UTTERANCE_ID, C.VARIANT, C.MOUTH_ERROR_PX, C.LANDMARKS_VALID, C.FLOW_VALID_FRACTION]
+    if not files:
+        return TRACKING_FRAMES.empty_table().select(columns), counts
+    return ds.dataset(files, schema=TRACKING_FRAMES, format="parquet").to_table(columns=columns), counts
+
+
+def _tracking_section(page: _Page, store: Store) -> bool:
+    frames, counts = tracking_sample(store)
+    if frames.num_rows == 0:
+        return False
+    errors: dict[str, np.ndarray] = {}
+    rows = []
+    for variant in sorted(set(frames.column(C.VARIANT).to_pylist())):
+        sub = frames.filter(pc.equal(frames.column(C.VARIANT), variant))
+        err = sub.column(C.MOUTH_ERROR_PX).drop_null().to_numpy().astype(np.float64)
+        err = err[np.isfinite(err)]
+        flow = sub.column(C.FLOW_VALID_FRACTION).drop_null().to_numpy()
+        valid = sub.column(C.LANDMARKS_VALID).to_numpy(zero_copy_only=False)
+        errors[variant] = err
+        q = np.percentile(err, [50, 90]) if err.size else [None, None]
+        read, stored = counts.get(variant, (0, 0))
+        rows.append([variant, stored if read == stored else f"{read} of {stored} (sample)", sub.num_rows,
+                     float(valid.mean() * 100) if valid.size else None,
+                     None if q[0] is None else float(q[0]), None if q[1] is None else float(q[1]),
+                     float(err.max()) if err.size else None, float(flow.mean()) if flow.size else None])
+    page.add(html_table(
+        ["variant", "utterances", "frames", "landmarks found %", "mouth error median px", "p90 px", "max px",
+         "valid flow fraction"], rows, [False] + [True] * 7, table_id="tracking-table"))
+    png = plots.histogram_figure(errors, "mouth keypoint error (px in the video frame, mean over the 20 mouth landmarks)")
+    page.image("chart-mouth-error", png, "histogram of mouth keypoint error per tracked variant",
+               "Mouth keypoint error per frame, one histogram per tracked variant (dashed: median).")
+    return True
+
+
+def build_dashboard(
+    store: Store | Path | str, out: Path | str, utterance_ids: Sequence[str] | None = None,
+    max_utterances: int = DEFAULT_MAX_UTTERANCES,
+) -> DashboardResult:
+    """Write `out/index.html`, the report of `store`; returns what it holds."""
+    store = store if isinstance(store, Store) else Store(store)
+    out = Path(out)
+    page = _Page()
+
+    utterances = store.read_table("utterances")
+    rows_by_id = {r[C.UTTERANCE_ID]: r for r in utterances.to_pylist()}
+    index = curve_index(store)
+    metrics = store.read_metrics()
+    rejects = store.read_table("rejects")
+    sweeps = sorted((store.root / "reports").glob("sweep-*.png")) if (store.root / "reports").is_dir() else []
+    has_tracking = any(store.root.joinpath("tracking_frames").rglob("*.parquet")) \
+        if store.root.joinpath("tracking_frames").is_dir() else False
+    empty = not (rows_by_id or index or metrics.num_rows or rejects.num_rows or sweeps or has_tracking)
+
+    selected, missing = select_utterances(list(rows_by_id), index, utterance_ids, max(0, max_utterances))
+    # Phones of the drawn utterances only: a filtered dataset scan, not the whole table.
+    phones = store.read_table("phones", utterance_ids=[u for u in selected if u in rows_by_id])
+
+    generated = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    page.add(
+        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+        f'<meta http-equiv="Content-Security-Policy" content="{esc(CSP)}">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>visemeflow: {esc(store.root.name)}</title><style>{_CSS}</style></head><body>",
+        "<h1>visemeflow report</h1>",
+        f'<p class="meta">store <code>{esc(store.root)}</code> · generated {esc(generated)}</p>',
+        '<nav><a href="#store">store</a><a href="#utterances">utterances</a><a href="#tracking">tracking</a>'
+        '<a href="#training">training</a><a href="#sweeps">sweeps</a><a href="#robustness">robustness</a>'
+        '<a href="#rejects">rejects</a></nav>',
+    )
+    if empty:
+        page.add('<p id="nothing-yet" class="empty">Nothing yet: this store holds no utterances, curves, metrics '
+                 "or rejects. Run <code>visemeflow pipeline CORPUS --store " + esc(store.root) + "</code> first.</p>")
+
+    # -- store summary
+    page.add('<section id="store"><h2>Store</h2>')
+    summary = [["utterances", len(rows_by_id)]]
+    summary += [[f"utterances in split {k}", v] for k, v in _count_by(utterances, C.SPLIT)]
+    summary += [["speakers", len(set(utterances.column(C.SPEAKER).to_pylist()))]]
+    for source in CURVE_SOURCES:
+        for variant in store.curve_variants(source):
+            summary.append([f"curves {source}/{variant}", len(store.curve_files(source, variant))])
+    summary += [["metrics rows", metrics.num_rows], ["rejects", rejects.num_rows]]
+    summary += [[f"rejects at stage {k}", v] for k, v in _count_by(rejects, C.STAGE)]
+    page.add(html_table(["what", "count"], summary, [False, True], table_id="store-table"), "</section>")
+
+    # -- utterances
+    page.add('<section id="utterances"><h2>Utterances</h2>')
+    if missing:
+        page.add('<p class="empty" id="missing-utterances">Not in the store: '
+                 + ", ".join(f"<code>{esc(u)}</code>" for u in missing) + "</p>")
+    if selected:
+        total = len(set(rows_by_id) | set(index))
+        page.add(f'<p class="note">{len(selected)} of {total} utterances; choose others with '
+                 "<code>visemeflow dashboard --utterance SPEAKER/NAME</code> (repeatable) or "
+                 "<code>--max-utterances N</code>. Curves: 16 viseme weights per frame, one panel per source and "
+                 "variant; phone labels as written in the alignment (grey: no viseme).</p>")
+        for n, uid in enumerate(selected):
+            _utterance_section(page, store, n, uid, rows_by_id.get(uid), index.get(uid, {}), phones)
+    else:
+        page.add('<p class="empty">No utterances yet.</p>')
+    page.add("</section>")
+
+    # -- tracking
+    page.add('<section id="tracking"><h2>Tracking</h2>')
+    if not _tracking_section(page, store):
+        page.add('<p class="empty">No tracking diagnostics yet (<code>visemeflow track</code>).</p>')
+    page.add("</section>")
+
+    # -- training
+    page.add('<section id="training"><h2>Training</h2>')
+    final = _aggregate_rows(metrics, "final")
+    table_html, series = training_html(metrics)
+    if final.num_rows:
+        page.add('<p class="note">Validation L1 x 100 of each trained model (run <code>final</code>).</p>', table_html)
+    else:
+        page.add('<p class="empty" id="no-training">No trained model yet (no <code>final</code> metrics rows; '
+                 "<code>visemeflow train</code>).</p>")
+    if series:
+        page.image("chart-training", plots.training_figure(series), "validation L1 x 100 by epoch per model",
+                   "Validation L1 x 100 after each epoch (run <code>train</code>).")
+    page.add("</section>")
+
+    # -- sweeps
+    page.add('<section id="sweeps"><h2>Dataset-size sweeps</h2>')
+    for n, path in enumerate(sweeps):
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            page.add(f'<p class="empty">{esc(path.name)}: {esc(exc)}</p>')
+            continue
+        if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+            page.add(f'<p class="empty">{esc(path.name)} is not a PNG file.</p>')
+            continue
+        page.image(f"chart-sweep-{n}", data, f"sweep plot {path.name}", f"<code>{esc(path.name)}</code>")
+    if not sweeps:
+        page.add('<p class="empty">No sweep yet (<code>visemeflow sweep</code>).</p>')
+    page.add("</section>")
+
+    # -- robustness
+    page.add('<section id="robustness"><h2>Robustness</h2>')
+    robust = robustness_table(metrics)
+    if robust.models:
+        page.add('<p class="note">Validation L1 x 100 on clean audio and under each augmentation (run '
+                 "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation).</p>",
+                 robustness_html(robust))
+    else:
+        page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
+                 "metrics rows).</p>")
+    page.add("</section>")
+
+    # -- rejects
+    page.add('<section id="rejects"><h2>Rejects</h2>')
+    if rejects.num_rows:
+        ordered = rejects.sort_by([(C.TIME, "descending")]).slice(0, MAX_REJECT_ROWS).to_pylist()
+        page.add(html_table(
+            ["stage", "utterance", "error", "message", "path", "time"],
+            [[r[C.STAGE], r[C.UTTERANCE_ID], r[C.ERROR_TYPE], r[C.MESSAGE], r[C.PATH],
+              r[C.TIME].strftime("%Y-%m-%d %H:%M:%S") if r[C.TIME] else None] for r in ordered],
+            cell_class=["", "", "", "msg", "msg", ""], table_id="rejects-table"))
+        if rejects.num_rows > MAX_REJECT_ROWS:
+            page.add(f'<p class="note">... and {rejects.num_rows - MAX_REJECT_ROWS} older rejects: '
+                     "<code>visemeflow rejects</code>.</p>")
+    else:
+        page.add('<p class="note" id="no-rejects">No rejects.</p>')
+    page.add("</section></body></html>")
+
+    out.mkdir(parents=True, exist_ok=True)
+    target = out / "index.html"
+    tmp = out / f".index.html.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    try:
+        tmp.write_text("\n".join(page.parts), encoding="utf-8")
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return DashboardResult(target, selected, page.charts, missing, empty)
+
+
+__all__ = ["DashboardResult", "RobustnessTable", "build_dashboard", "esc", "robustness_table",
+           "select_utterances"]
