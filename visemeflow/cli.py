@@ -15,9 +15,34 @@ app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Pre
 curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True)
 app.add_typer(curves_app, name="curves")
 
-StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.")]
+
+
+def _usable_store(store: Path) -> Path:
+    """Fail before any flow starts when the store cannot be a writable folder (no side effects)."""
+    probe = store
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise typer.BadParameter(f"cannot use {store} as a store: {probe} is a file, not a folder")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        raise typer.BadParameter(f"cannot write the store {store}: no write permission on {probe}")
+    return store
+
+
+StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.", callback=_usable_store)]
 ShardsOpt = Annotated[int, typer.Option("--shards", help="Tasks per cheap stage (utterances are hashed into shards).")]
 DEFAULT_STORE = Path("visemeflow-out/store")
+RunnerOpt = Annotated[str, typer.Option("--runner", help="threads (Prefect's thread pool) or dask (prefect-dask).")]
+DaskWorkersOpt = Annotated[int, typer.Option("--dask-workers", min=1, help="Local Dask cluster: worker processes, one thread each.")]
+DaskAddressOpt = Annotated[str | None, typer.Option("--dask-address", help="Existing Dask scheduler (tcp://host:8786); implies --runner dask.")]
+
+
+def _runner(runner: str, dask_workers: int, dask_address: str | None):
+    from visemeflow.flows.params import RunnerConfig
+
+    if runner not in ("threads", "dask"):
+        raise typer.BadParameter(f"--runner must be threads or dask, not {runner!r}")
+    return RunnerConfig(kind="dask" if dask_address else runner, dask_workers=dask_workers, dask_address=dask_address)
 
 
 def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: float, fps: float):
@@ -78,14 +103,20 @@ def track(
     rgb: Annotated[bool, typer.Option(help="Include the photo loss L_rgb (slower).")] = False,
     flow: Annotated[bool, typer.Option(help="Include the optical-flow loss L_flow.")] = True,
     rig: Annotated[Optional[Path], typer.Option(help="Viseme rig; default: the ICT demo rig.")] = None,
+    runner: RunnerOpt = "threads",
+    dask_workers: DaskWorkersOpt = 2,
+    dask_address: DaskAddressOpt = None,
 ) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
     from visemeflow.flows.params import TrackParams
     from visemeflow.flows.track import track_flow
+    from visemeflow.ops.runners import run_on_runner
     from visemeflow.tracking.solver import TrackingConfig
 
     config = TrackingConfig(solver=solver, guidance=guidance, use_rgb=rgb, use_flow=flow)
-    _print_summary("track", track_flow(TrackParams(store=store, n_shards=shards, config=config, rig=rig)))
+    params = TrackParams(store=store, n_shards=shards, config=config, rig=rig,
+                         runner=_runner(runner, dask_workers, dask_address))
+    _print_summary("track", run_on_runner(track_flow, params))
     _print_rejects_hint(store)
 
 
@@ -94,12 +125,16 @@ def pipeline(
     corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.")],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
+    runner: Annotated[str, typer.Option("--runner", help="Tracking on threads (Prefect's pool) or dask.")] = "threads",
+    dask_workers: DaskWorkersOpt = 2,
+    dask_address: DaskAddressOpt = None,
 ) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos."""
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
-    result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards))
+    result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards,
+                                          runner=_runner(runner, dask_workers, dask_address)))
     for stage, summary in result.items():
         _print_summary(stage, summary)
     _print_outputs(store)
@@ -147,6 +182,25 @@ def espeak_corpus(
 
 
 @app.command()
+def serve(
+    store: StoreOpt = DEFAULT_STORE,
+    corpus: Annotated[Path | None, typer.Option(
+        help="Corpus of the scheduled pipeline; default: the one the store last ingested.")] = None,
+    cron: Annotated[str, typer.Option(help="Schedule of the pipeline (cron); '' for none.")] = "0 3 * * *",
+    timezone: Annotated[str, typer.Option(help="Time zone of the schedule (IANA name).")] = "UTC",
+    port: Annotated[int, typer.Option(help="Port of the local Prefect server started when PREFECT_API_URL is unset.")] = 4200,
+) -> None:
+    """Serve every stage as a Prefect deployment (the pipeline on a schedule) with the UI; Ctrl-C stops."""
+    from visemeflow.ops.serve import ServerStartError, serve_stages
+
+    try:
+        serve_stages(store, corpus, cron or None, timezone, port, echo=typer.echo)
+    except ServerStartError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+@app.command()
 def train(
     store: StoreOpt = DEFAULT_STORE,
     preset: Annotated[str, typer.Option(help="Model preset, e.g. fbank-blstm, wav2vec2-blstm, mean-curve.")] = "fbank-blstm",
@@ -181,16 +235,20 @@ def sweep(
     source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth or procedural.")] = "tracked",
     variant: Annotated[Optional[str], typer.Option(help="Variant of those curves.")] = None,
     d_model: Annotated[Optional[int], typer.Option(help="Model width.")] = None,
+    runner: Annotated[str, typer.Option("--runner", help="One training task per size on threads or dask.")] = "threads",
+    dask_workers: DaskWorkersOpt = 2,
+    dask_address: DaskAddressOpt = None,
 ) -> None:
     """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
     from visemeflow.flows.params import SweepParams
     from visemeflow.flows.sweep import sweep_flow
     from visemeflow.learning.train import TrainConfig
+    from visemeflow.ops.runners import run_on_runner
 
     params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model),
                          sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,
-                         variant=variant)
-    result = sweep_flow(params)
+                         variant=variant, runner=_runner(runner, dask_workers, dask_address))
+    result = run_on_runner(sweep_flow, params)
     for size, value in result["points"]:
         typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
     typer.echo(f"plot: {result['plot']}")
@@ -389,8 +447,42 @@ def _print_outputs(store: Path) -> None:
     _print_rejects_hint(store)
 
 
+@app.command()
+def dashboard(
+    store: StoreOpt = DEFAULT_STORE,
+    out: Annotated[Path, typer.Option("--out", help="Folder of the report (index.html).")] = Path("visemeflow-out/dashboard"),
+    utterance: Annotated[list[str] | None, typer.Option(
+        "--utterance", help="Utterance to draw, '<speaker>/<name>' (repeatable); default: a selection.")] = None,
+    max_utterances: Annotated[int, typer.Option(
+        "--max-utterances", min=0, help="Utterances drawn when none is named.")] = 12,
+) -> None:
+    """Write a static HTML report of the store (curves, tracking error, training, sweeps, robustness, rejects)."""
+    import time
+
+    from visemeflow.dashboards.html import build_dashboard
+
+    if not store.is_dir():
+        typer.echo(f"error: no store at {store}; run `visemeflow pipeline CORPUS --store {store}` first", err=True)
+        raise typer.Exit(2)
+    started = time.perf_counter()
+    result = build_dashboard(store, out, utterance, max_utterances)
+    for uid in result.missing:
+        typer.echo(f"warning: {uid!r} has no row and no curves in the store", err=True)
+    what = "nothing yet in the store, " if result.empty else ""
+    typer.echo(f"dashboard: {result.path} ({what}{len(result.utterances)} utterances, {len(result.charts)} charts, "
+               f"{time.perf_counter() - started:.1f} s); open it in any browser, it needs no network")
+
+
 def main() -> None:
-    app()
+    """The `visemeflow` command: errors a user can act on print one line and exit 2, without a traceback."""
+    from visemeflow.schemas import InvalidIdError
+    from visemeflow.storage import StoreError
+
+    try:
+        app()
+    except (StoreError, InvalidIdError, LookupError) as exc:
+        typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

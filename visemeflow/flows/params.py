@@ -25,6 +25,25 @@ def _existing(corpus: Path) -> Path:
 CorpusPath = Annotated[Path, AfterValidator(_existing)]
 
 
+class RunnerConfig(BaseModel):
+    """Where a stage's per-utterance (or per-model) tasks run."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["threads", "dask"] = Field(
+        "threads", description="threads: Prefect's thread pool in the flow's process; dask: a Dask cluster (prefect-dask).",
+    )
+    dask_workers: int = Field(
+        2, ge=1, le=1024, description="Worker processes of the local Dask cluster, one thread each (not with an address).",
+    )
+    dask_address: str | None = Field(
+        None, description="Scheduler of an existing Dask cluster (tcp://host:8786); default: a local cluster.",
+    )
+
+
+RunnerField = Field(default_factory=RunnerConfig, description="Where the per-utterance or per-model tasks run.")
+
+
 class StoreParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -57,6 +76,7 @@ class PipelineParams(StoreParams):
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     rig: Path | None = Field(None, description="Viseme rig for tracking; default: the shipped ICT demo rig.")
+    runner: RunnerConfig = RunnerField
 
 
 class SynthParams(BaseModel):
@@ -76,6 +96,7 @@ class TrackParams(StoreParams):
     procedural_variant: str | None = Field(
         None, description="Procedural curves that guide tracking; default: those the procedural stage last wrote."
     )
+    runner: RunnerConfig = RunnerField
 
 
 class TrainParams(BaseModel):
@@ -102,6 +123,7 @@ class SweepParams(BaseModel):
     steps: int = Field(10000, ge=1, description="Training steps (utterances) per size: the equal budget.")
     source: Literal["tracked", "ground_truth", "procedural"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
+    runner: RunnerConfig = RunnerField
 
 
 class RerunParams(BaseModel):

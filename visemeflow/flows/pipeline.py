@@ -2,6 +2,7 @@
 
 from prefect import flow
 
+from visemeflow.flows.common import finished
 from visemeflow.flows.ingest import ingest_flow
 from visemeflow.flows.params import (
     IngestParams,
@@ -11,6 +12,7 @@ from visemeflow.flows.params import (
 )
 from visemeflow.flows.procedural import procedural_flow
 from visemeflow.flows.track import track_flow
+from visemeflow.ops.runners import run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 
@@ -23,5 +25,9 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     result["procedural"] = procedural_flow(ProceduralParams(config=params.procedural, **common))
     videos = Store(params.store).read_table("utterances").column(C.VIDEO_PATH).drop_null()
     if len(videos):
-        result["track"] = track_flow(TrackParams(config=params.tracking, rig=params.rig, **common))
-    return result
+        track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner, **common)
+        result["track"] = run_on_runner(track_flow, track)
+    ids = Store(params.store).read_table("rejects").column(C.UTTERANCE_ID).to_pylist()
+    failed = len({i for i in ids if i is not None}) + sum(i is None for i in ids)  # each utterance once
+    return finished("pipeline", result, failed, result["ingest"].get("utterances", 0) + result["ingest"].get(
+        "discovery_rejected", 0))

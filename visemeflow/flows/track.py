@@ -8,7 +8,9 @@ from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import as_completed
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.common import finished
 from visemeflow.flows.params import TrackParams
+from visemeflow.ops.runners import on_requested_runner, run_on_runner
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
@@ -40,6 +42,8 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
 @flow(name="track", flow_run_name="track[{params.store}]")
 def track_flow(params: TrackParams) -> dict[str, object]:
     """Track every utterance that has a video; failures become rejects and the rest goes on."""
+    if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow
+        return run_on_runner(track_flow, params)
     store = Store(params.store)
     rig_path, rig_hash = rig_and_hash(params.rig)
     procedural_variant = procedural_variant_of(store, params.procedural_variant)
@@ -91,4 +95,4 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     publish_stage_summary(STAGE, summary, extra)
     publish_rejects(STAGE, store.read_table("rejects", STAGE))
     get_run_logger().info("track (%s): %s", config.variant, summary)
-    return {**summary, **extra}
+    return finished(STAGE, {**summary, **extra}, len(rejects), len(rows))

@@ -1,0 +1,114 @@
+"""Scale-out with prefect-dask: tracking on a local 2-worker cluster equals the run on Prefect's thread pool."""
+
+import os
+import shutil
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from factories import DEMO_CORPUS
+from prefect import flow, task
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+from visemeflow.flows.params import PipelineParams, RunnerConfig, SynthParams
+from visemeflow.ops.runners import run_on_runner, shared_api, task_runner_for
+from visemeflow.schemas import C, curves_array
+from visemeflow.storage import Store
+
+pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
+
+SHORT = [("LJ", "LJ001-0002"), ("LJ", "LJ001-0008"), ("LJ", "LJ001-0013"), ("SSB1624", "SSB16240001")]
+DASK = RunnerConfig(kind="dask", dask_workers=2)
+
+
+@pytest.fixture(scope="module")
+def video_corpus(tmp_path_factory, prefect_harness):
+    """Four short demo utterances rendered as talking-face videos (about 8 s of speech)."""
+    from visemeflow.flows.synth import synth_flow
+
+    root = tmp_path_factory.mktemp("dask")
+    for speaker, name in SHORT:
+        (root / "source" / speaker).mkdir(parents=True, exist_ok=True)
+        for ext in (".wav", ".TextGrid"):
+            shutil.copyfile(DEMO_CORPUS / speaker / f"{name}{ext}", root / "source" / speaker / f"{name}{ext}")
+    synth_flow(SynthParams(corpus=root / "source", out=root / "videos", store=root / "truth"))
+    return root / "videos"
+
+
+def tracked_store(store) -> dict[str, object]:
+    """Relative curve file paths, each tracked curve file's table and the per-frame diagnostics, in a stable order."""
+    s = Store(store)
+    return {
+        "files": sorted(os.path.relpath(p, s.root) for p in s.curve_files()),
+        "tracked": {os.path.relpath(p, s.root): pq.read_table(p) for p in s.curve_files("tracked")},
+        "frames": s.read_tracking_frames("guided-fast").sort_by([(C.UTTERANCE_ID, "ascending"), (C.FRAME, "ascending")]),
+    }
+
+
+def test_pipeline_tracking_on_a_local_dask_cluster_equals_the_thread_pool_run(tmp_path, video_corpus):
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    threads = pipeline_flow(PipelineParams(corpus=video_corpus, store=tmp_path / "threads", n_shards=2))
+    dask = pipeline_flow(PipelineParams(corpus=video_corpus, store=tmp_path / "dask", n_shards=2, runner=DASK))
+    assert threads["track"]["tracked"] == dask["track"]["tracked"] == len(SHORT)
+    assert dask["track"]["rejected"] == 0
+    a, b = tracked_store(tmp_path / "threads"), tracked_store(tmp_path / "dask")
+    assert a["files"] == b["files"] and len(a["tracked"]) == len(SHORT)
+    for path, table in a["tracked"].items():
+        other = b["tracked"][path]
+        assert other.select([C.UTTERANCE_ID, C.FRAME, C.TIME_S]).equals(table.select([C.UTTERANCE_ID, C.FRAME, C.TIME_S]))
+        np.testing.assert_array_equal(curves_array(other), curves_array(table))
+    assert b["frames"].num_rows == a["frames"].num_rows
+    assert b["frames"].column(C.UTTERANCE_ID).equals(a["frames"].column(C.UTTERANCE_ID))
+
+
+@task
+def _worker_facts(i: int) -> tuple[int, str, int]:
+    import torch
+
+    return os.getpid(), str(PREFECT_API_URL.value()), torch.get_num_threads()
+
+
+@flow
+def _facts_flow(params: PipelineParams) -> list[tuple[int, str, int]]:
+    return [f.result() for f in [_worker_facts.submit(i) for i in range(6)]]
+
+
+def test_dask_workers_report_to_the_flows_api_with_one_torch_thread(tmp_path, prefect_api_url):
+    params = PipelineParams(corpus=tmp_path, runner=DASK)
+    # as without a configured server: the workers must still be told the API the flow uses
+    with temporary_settings(restore_defaults={PREFECT_API_URL}):
+        facts = run_on_runner(_facts_flow, params)
+    assert {url.rstrip("/") for _, url, _ in facts} == {prefect_api_url.rstrip("/")}
+    assert {threads for _, _, threads in facts} == {1}
+    assert len({pid for pid, _, _ in facts} - {os.getpid()}) >= 1
+
+
+@flow
+def _api_inside_a_flow() -> str:
+    with shared_api() as url:
+        return url
+
+
+def test_shared_api_names_the_temporary_server_when_none_is_configured(prefect_api_url):
+    # the harness's server stands in for the temporary one Prefect starts when no server is configured
+    with temporary_settings(restore_defaults={PREFECT_API_URL}):
+        assert not PREFECT_API_URL.value()
+        with shared_api() as url:
+            assert PREFECT_API_URL.value() == url
+            assert url.rstrip("/") == prefect_api_url.rstrip("/")
+        assert not PREFECT_API_URL.value()
+        assert _api_inside_a_flow().rstrip("/") == prefect_api_url.rstrip("/")
+
+
+def test_runner_choices(tmp_path):
+    from prefect.task_runners import ThreadPoolTaskRunner
+    from prefect_dask import DaskTaskRunner
+
+    assert isinstance(task_runner_for(PipelineParams(corpus=tmp_path)), ThreadPoolTaskRunner)
+    local = task_runner_for(PipelineParams(corpus=tmp_path, runner=DASK))
+    assert isinstance(local, DaskTaskRunner) and local.cluster_kwargs["n_workers"] == 2
+    assert local.cluster_kwargs["threads_per_worker"] == 1 and local.cluster_kwargs["env"]["OMP_NUM_THREADS"] == "1"
+    remote = task_runner_for(PipelineParams(corpus=tmp_path, runner=RunnerConfig(
+        kind="dask", dask_address="tcp://10.0.0.5:8786")))
+    assert remote.address == "tcp://10.0.0.5:8786" and not remote.cluster_kwargs

@@ -1,0 +1,129 @@
+"""`visemeflow serve` and `prefect.yaml`: deployments, schedules, parameter forms, and the local server helper."""
+
+import importlib
+import os
+import socket
+
+import pytest
+import yaml
+from factories import REPO
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+from visemeflow.ops import serve as serve_module
+from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
+
+STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "rerun")
+STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "rerun")
+
+
+def flow_of(entrypoint: str):
+    module, name = (entrypoint.split(":") if ":" in entrypoint else entrypoint.rsplit(".", 1))
+    if module.endswith(".py"):
+        module = module.removesuffix(".py").replace("/", ".")
+    return getattr(importlib.import_module(module), name)
+
+
+def test_deployments_of_every_stage_with_the_pipeline_on_the_cron_schedule(tmp_path):
+    corpus, store = tmp_path / "corpus", tmp_path / "store"
+    corpus.mkdir()
+    deployments = {d.full_name: d for d in build_deployments(store, corpus, "0 3 * * *")}
+    assert set(deployments) == {f"{stage}/served" for stage in STAGES}
+    (schedule,) = deployments["pipeline/served"].schedules
+    assert schedule.schedule.cron == "0 3 * * *" and schedule.schedule.timezone == "UTC" and schedule.active
+    assert all(not d.schedules for name, d in deployments.items() if name != "pipeline/served")
+    for stage in ("pipeline", "ingest"):
+        assert deployments[f"{stage}/served"].parameters == {"params": {"store": str(store), "corpus": str(corpus)}}
+    for stage in STORE_ONLY:
+        assert deployments[f"{stage}/served"].parameters == {"params": {"store": str(store)}}
+    for name, d in deployments.items():
+        assert flow_of(d.entrypoint).name == d.flow_name == name.split("/")[0]
+
+
+def test_the_pipeline_defaults_to_the_corpus_last_ingested_else_has_no_schedule(tmp_path):
+    from visemeflow.storage import Store
+
+    store = tmp_path / "store"
+    (pipeline, *_) = build_deployments(store, None)
+    assert not pipeline.schedules and pipeline.parameters == {"params": {"store": str(store)}}
+    Store(store).write_run_config("ingest", {"corpus": str(tmp_path / "corpus"), "n_shards": 8, "config": {}})
+    (pipeline, *_) = build_deployments(store, None, "*/5 * * * *", timezone="Europe/Paris")
+    assert pipeline.parameters["params"]["corpus"] == str(tmp_path / "corpus")
+    assert pipeline.schedules[0].schedule.cron == "*/5 * * * *"
+    assert pipeline.schedules[0].schedule.timezone == "Europe/Paris"
+    (unscheduled, *_) = build_deployments(store, None, None)
+    assert not unscheduled.schedules
+
+
+def test_the_rerun_form_asks_for_utterance_stage_and_force():
+    from prefect.utilities.callables import parameter_schema
+
+    from visemeflow.flows.rerun import rerun_flow
+
+    schema = parameter_schema(rerun_flow).model_dump()
+    form = schema["definitions"]["RerunParams"]
+    assert {"utterance_id", "stage", "force", "store"} <= set(form["properties"])
+    assert form["required"] == ["utterance_id"]
+    assert form["properties"]["force"]["default"] is True
+    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "track"}
+
+
+def test_prefect_yaml_names_existing_flows_with_the_same_schedule():
+    from prefect.cli.deploy._models import PrefectYamlModel
+
+    config = yaml.safe_load((REPO / "prefect.yaml").read_text())
+    PrefectYamlModel.model_validate(config)
+    deployments = config["deployments"]
+    names = set()
+    for d in deployments:
+        assert d["entrypoint"].startswith("visemeflow/flows/") and (REPO / d["entrypoint"].split(":")[0]).is_file()
+        flow = flow_of(d["entrypoint"])
+        names.add(flow.name)
+        assert d["work_pool"]["name"] == "visemeflow"
+        params = d["parameters"]["params"]
+        assert params["store"] == "visemeflow-out/store"
+        if flow.name in ("pipeline", "ingest"):
+            assert params["corpus"]
+    assert names == set(STAGES)
+    (pipeline,) = [d for d in deployments if d["entrypoint"].endswith(":pipeline_flow")]
+    assert pipeline["schedules"] == [{"cron": serve_module.DEFAULT_CRON, "timezone": "UTC"}]
+
+
+def test_serve_serves_every_deployment_on_the_configured_api(tmp_path, monkeypatch):
+    served, lines = [], []
+    monkeypatch.setattr("prefect.serve", lambda *deployments, **kwargs: served.extend(deployments))
+    with temporary_settings(updates={PREFECT_API_URL: "http://127.0.0.1:4999/api"}):
+        serve_module.serve_stages(tmp_path / "store", tmp_path, port=1, echo=lines.append)
+    assert {d.full_name for d in served} == {f"{stage}/served" for stage in STAGES}
+    assert "http://127.0.0.1:4999" in lines[0]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.server
+def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_path, monkeypatch):
+    from prefect.client.orchestration import get_client
+
+    port = free_port()
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect-home"))  # the server's database goes there
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    with temporary_settings(restore_defaults={PREFECT_API_URL}):
+        with ensure_server(port) as api_url:
+            assert api_url == f"http://127.0.0.1:{port}/api" and api_healthy(api_url)
+            assert os.environ["PREFECT_API_URL"] == api_url and PREFECT_API_URL.value() == api_url
+            for deployment in build_deployments(tmp_path / "store", corpus):
+                deployment.apply()
+            with get_client(sync_client=True) as client:
+                rerun = client.read_deployment_by_name("rerun/served")
+                pipeline = client.read_deployment_by_name("pipeline/served")
+        assert not api_healthy(api_url)
+        assert "PREFECT_API_URL" not in os.environ and not PREFECT_API_URL.value()
+    form = rerun.parameter_openapi_schema["definitions"]["RerunParams"]["properties"]
+    assert {"utterance_id", "stage", "force"} <= set(form)
+    assert [s.schedule.cron for s in pipeline.schedules] == [serve_module.DEFAULT_CRON]
+    assert pipeline.parameters["params"]["corpus"] == str(corpus)

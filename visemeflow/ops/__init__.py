@@ -1,0 +1,1 @@
+"""Operations: serving deployments with a local Prefect server, and task runners that scale out with Dask."""

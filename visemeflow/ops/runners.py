@@ -1,0 +1,107 @@
+"""Task runners for the stages that scale out (tracking, sweeps): Prefect's thread pool, or Dask via prefect-dask.
+
+A task run sent to a Dask worker carries the flow's Prefect settings, not the worker's environment. With no
+`PREFECT_API_URL` those settings say "no server", so every worker process starts its own temporary server
+(seconds each, all writing one SQLite file) and the flow's tasks are split across servers. `shared_api` names
+the API explicitly before tasks are submitted: the configured one, else the temporary server this process
+already uses, so every worker reports to the server the flow reports to.
+"""
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Protocol, TypeVar
+from urllib.parse import urlparse
+
+from prefect import Flow
+from prefect.context import FlowRunContext
+from prefect.settings import PREFECT_API_URL, temporary_settings
+from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
+
+from visemeflow.flows.params import RunnerConfig
+
+logger = logging.getLogger(__name__)
+
+R = TypeVar("R")
+
+# Each worker is one process with one thread; native libraries get one thread too, so n workers use n cores.
+ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                  "OPENCV_FOR_THREADS_NUM": "1"}
+LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+
+
+class HasRunner(Protocol):
+    runner: RunnerConfig
+
+
+def task_runner_for(params: HasRunner) -> TaskRunner:
+    """The task runner `params.runner` asks for: a thread pool, a local Dask cluster, or an existing one."""
+    runner = params.runner
+    if runner.kind == "threads":
+        return ThreadPoolTaskRunner()
+    from prefect_dask import DaskTaskRunner
+
+    if runner.dask_address:
+        return DaskTaskRunner(address=runner.dask_address)
+    return DaskTaskRunner(cluster_kwargs={
+        "n_workers": runner.dask_workers, "threads_per_worker": 1, "processes": True, "env": dict(ONE_THREAD_ENV),
+    })
+
+
+def with_runner(flow: Flow[..., R], params: HasRunner) -> Flow[..., R]:
+    """`flow` with the task runner its parameters ask for."""
+    return flow.with_options(task_runner=task_runner_for(params))
+
+
+def on_requested_runner(params: HasRunner) -> bool:
+    """Whether the flow run in progress already uses the kind of task runner `params.runner` asks for."""
+    if params.runner.kind == "threads":
+        return True
+    from prefect_dask import DaskTaskRunner
+
+    context = FlowRunContext.get()
+    return context is not None and isinstance(context.task_runner, DaskTaskRunner)
+
+
+def run_on_runner(flow: Flow[..., R], params: HasRunner) -> R:
+    """Call `flow(params)` on the task runner its parameters ask for, with Dask workers reporting to this API."""
+    if params.runner.kind == "threads":
+        return flow(params)
+    with shared_api() as api_url:
+        warn_if_unreachable(api_url, params.runner)
+        return with_runner(flow, params)(params)
+
+
+@contextmanager
+def shared_api() -> Iterator[str]:
+    """Settings naming the Prefect API this process uses, so Dask workers report to it; yields its URL."""
+    configured = PREFECT_API_URL.value()
+    if configured:
+        yield configured
+        return
+    context = FlowRunContext.get()
+    if context is not None and context.client is not None:
+        url = str(context.client.api_url)
+    else:
+        from prefect.server.api.server import SubprocessASGIServer
+
+        # the same temporary server Prefect starts for this process on its first API call (one per port, reused)
+        server = SubprocessASGIServer()
+        server.start()
+        url = server.api_url
+    with temporary_settings(updates={PREFECT_API_URL: url}):
+        yield url
+
+
+def warn_if_unreachable(api_url: str, runner: RunnerConfig) -> None:
+    """A remote Dask cluster cannot report to a Prefect API on this machine's loopback address; say so."""
+    if not runner.dask_address:
+        return
+    api_host = urlparse(api_url).hostname
+    scheduler_host = urlparse(runner.dask_address if "://" in runner.dask_address
+                              else f"tcp://{runner.dask_address}").hostname
+    if api_host in LOOPBACK and scheduler_host not in LOOPBACK:
+        logger.warning(
+            "Dask workers behind %s cannot reach the Prefect API at %s; start a server they can reach "
+            "(prefect server start --host 0.0.0.0) and set PREFECT_API_URL to it", runner.dask_address, api_url,
+        )
