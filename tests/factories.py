@@ -6,7 +6,11 @@ Interval lists for the TextGrid builders are `(start, end, label)` tuples, the o
 
 import os
 import shutil
-from collections.abc import Mapping, Sequence
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -170,3 +174,21 @@ def snapshot(store: Path) -> dict[str, list[dict]]:
     out["tracking_frames"] = sorted(s.read_tracking_frames().to_pylist(),
                                     key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
     return out
+
+
+def kill_cli_when(args: list[str], prefect_api_url: str, ready: Callable[[], bool], timeout_s: float = 300) -> None:
+    """Run `visemeflow ARGS` in a child process on the given Prefect API and SIGKILL it as soon as `ready()`.
+
+    Fails if the command ended before it could be killed (a test that kills too late proves nothing).
+    """
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    proc = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", *args], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline and proc.poll() is None and not ready():
+            time.sleep(0.002)
+        assert proc.poll() is None, f"visemeflow {args[0]} ended before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)

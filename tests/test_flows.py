@@ -1,17 +1,13 @@
 """Real flow runs under the session's Prefect harness: caching, changed files, reruns, kill and resume."""
 
 import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pyarrow as pa
 import pytest
 from factories import (
     LJ_NAMES,
-    REPO,
+    kill_cli_when,
     make_lj_corpus,
     run_pipeline,
     snapshot,
@@ -131,22 +127,9 @@ def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
 def test_kill_minus_nine_then_rerun_gives_the_uninterrupted_store(tmp_path, prefect_api_url):
     corpus = make_lj_corpus(tmp_path / "corpus", speakers=8)
     killed_store, clean_store = tmp_path / "killed", tmp_path / "clean"
-    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "visemeflow.cli", "pipeline", str(corpus), "--store", str(killed_store), "--shards", "8"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
     curves_dir = killed_store / "curves"
-    deadline = time.monotonic() + 240
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            if curves_dir.exists() and any(curves_dir.rglob("*.parquet")):
-                break
-            time.sleep(0.002)
-        assert proc.poll() is None, "the pipeline ended before it could be killed"
-        os.kill(proc.pid, signal.SIGKILL)
-    finally:
-        proc.wait(timeout=30)
+    kill_cli_when(["pipeline", str(corpus), "--store", str(killed_store), "--shards", "8"], prefect_api_url,
+                  lambda: curves_dir.exists() and any(curves_dir.rglob("*.parquet")))
     n_total = 8 * len(LJ_NAMES) + 1
     assert len(Store(killed_store).curve_files()) < n_total, "killed after all work was done: the test proves nothing"
 

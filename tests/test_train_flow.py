@@ -1,15 +1,10 @@
 """The `train` flow on a small synthetic store: model, metrics, cache, and `predict` through the CLI."""
 
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
-from factories import DEMO_CORPUS, REPO, make_curve_store
+from factories import DEMO_CORPUS, kill_cli_when, make_curve_store
 from typer.testing import CliRunner
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
@@ -92,22 +87,10 @@ def test_train_flow_killed_with_kill_minus_nine_resumes_to_the_uninterrupted_wei
 
     killed, clean = make_curve_store(tmp_path / "killed"), make_curve_store(tmp_path / "clean")
     epochs = 6
-    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "visemeflow.cli", "train", "--store", str(killed.root), "--source", "ground_truth",
-         "--preset", "fbank-blstm", "--d-model", "16", "--epochs", str(epochs), "--name", "m",
-         "--train-augment", "0.5"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
     checkpoint = killed.model_dir("m") / "checkpoints" / "last.pt"
-    deadline = time.monotonic() + 240
-    try:
-        while time.monotonic() < deadline and proc.poll() is None and not checkpoint.exists():
-            time.sleep(0.002)
-        assert proc.poll() is None, "the training run ended before it could be killed"
-        os.kill(proc.pid, signal.SIGKILL)
-    finally:
-        proc.wait(timeout=30)
+    kill_cli_when(["train", "--store", str(killed.root), "--source", "ground_truth", "--preset", "fbank-blstm",
+                   "--d-model", "16", "--epochs", str(epochs), "--name", "m", "--train-augment", "0.5"],
+                  prefect_api_url, checkpoint.exists)
     assert checkpoint.exists() and not (killed.model_dir("m") / "model.pt").exists()
     done = torch.load(checkpoint, weights_only=True)["epoch"]
     assert 1 <= done < epochs, "killed after the last epoch: the test proves nothing"
