@@ -10,7 +10,7 @@ already uses, so every worker reports to the server the flow reports to.
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Protocol, TypeVar
+from typing import TYPE_CHECKING, Protocol, TypeVar
 from urllib.parse import urlparse
 
 from prefect import Flow
@@ -20,13 +20,21 @@ from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
 from visemeflow.flows.params import RunnerConfig
 
+if TYPE_CHECKING:
+    from distributed import LocalCluster
+
 logger = logging.getLogger(__name__)
 
 R = TypeVar("R")
 
-# Each worker is one process with one thread; native libraries get one thread too, so n workers use n cores.
-ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-                  "OPENCV_FOR_THREADS_NUM": "1"}
+# Environment of a local worker process from its start: one thread for torch (OpenMP), BLAS and OpenCV, so n
+# workers use n cores; and glibc's own malloc tuning. Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 so that
+# workers hand memory back to the OS, which makes tracking 1.6-1.7x slower (its many large tensor allocations
+# then go back and forth to the kernel); None removes it.
+WORKER_ENVIRON: dict[str, str | None] = {
+    "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1",
+    "MALLOC_TRIM_THRESHOLD_": None,
+}
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 
 
@@ -43,9 +51,20 @@ def task_runner_for(params: HasRunner) -> TaskRunner:
 
     if runner.dask_address:
         return DaskTaskRunner(address=runner.dask_address)
-    return DaskTaskRunner(cluster_kwargs={
-        "n_workers": runner.dask_workers, "threads_per_worker": 1, "processes": True, "env": dict(ONE_THREAD_ENV),
+    return DaskTaskRunner(cluster_class=local_cluster, cluster_kwargs={
+        "n_workers": runner.dask_workers, "threads_per_worker": 1, "processes": True,
     })
+
+
+def local_cluster(**kwargs) -> "LocalCluster":
+    """A `distributed.LocalCluster` whose worker processes start with `WORKER_ENVIRON`."""
+    import dask
+    from distributed import LocalCluster
+
+    # the nanny sets these variables before it spawns a worker: in time for the C libraries, unlike `env`
+    key = "distributed.nanny.pre-spawn-environ"
+    with dask.config.set({key: {**dask.config.get(key), **WORKER_ENVIRON}}):
+        return LocalCluster(**kwargs)
 
 
 def with_runner(flow: Flow[..., R], params: HasRunner) -> Flow[..., R]:
