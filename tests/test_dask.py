@@ -12,10 +12,13 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 
 from visemeflow.flows.params import PipelineParams, RunnerConfig, SynthParams
 from visemeflow.ops.runners import (
+    available_cpus,
     local_cluster,
+    on_requested_runner,
     run_on_runner,
     shared_api,
     task_runner_for,
+    thread_workers,
 )
 from visemeflow.schemas import C, curves_array
 from visemeflow.storage import Store
@@ -120,3 +123,55 @@ def test_runner_choices(tmp_path):
     remote = task_runner_for(PipelineParams(corpus=tmp_path, runner=RunnerConfig(
         kind="dask", dask_address="tcp://10.0.0.5:8786")))
     assert remote.address == "tcp://10.0.0.5:8786" and not remote.cluster_kwargs
+
+
+def test_the_thread_pool_runs_one_task_per_cpu_unless_told(tmp_path):
+    from prefect.settings import PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS
+
+    from visemeflow.flows.sweep import sweep_flow
+    from visemeflow.flows.track import track_flow
+
+    assert thread_workers() == available_cpus() >= 1
+    assert thread_workers(3) == 3
+    assert task_runner_for(PipelineParams(corpus=tmp_path))._max_workers == available_cpus()
+    assert task_runner_for(PipelineParams(corpus=tmp_path, runner=RunnerConfig(threads=5)))._max_workers == 5
+    with temporary_settings(updates={PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS: 7}):  # an operator's setting
+        assert thread_workers() == 7 and thread_workers(2) == 2
+    # deployments call the flows directly: their own default is the bounded pool too (Prefect's has no limit)
+    assert track_flow.task_runner._max_workers == sweep_flow.task_runner._max_workers == available_cpus()
+
+
+@task
+def _interval(i: int) -> tuple[float, float]:
+    import time
+
+    start = time.monotonic()
+    time.sleep(0.3)
+    return start, time.monotonic()
+
+
+@flow
+def _intervals_flow(params: PipelineParams) -> dict:
+    return {"on_requested": on_requested_runner(params),
+            "intervals": [f.result() for f in [_interval.submit(i) for i in range(6)]]}
+
+
+def most_at_once(intervals: list[tuple[float, float]]) -> int:
+    events = sorted([(a, 1) for a, _ in intervals] + [(b, -1) for _, b in intervals])
+    running = peak = 0
+    for _, step in events:
+        running += step
+        peak = max(peak, running)
+    return peak
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_run_on_runner_limits_the_tasks_at_once(tmp_path, threads):
+    params = PipelineParams(corpus=tmp_path, runner=RunnerConfig(threads=threads))
+    out = run_on_runner(_intervals_flow, params)
+    assert out["on_requested"] is True
+    assert most_at_once(out["intervals"]) == threads
+    # called without the runner it asks for (Prefect's unbounded default), the flow knows it
+    assert _intervals_flow(params)["on_requested"] is False
+    # with no size asked for, the thread pool the caller chose is respected
+    assert _intervals_flow(PipelineParams(corpus=tmp_path))["on_requested"] is True

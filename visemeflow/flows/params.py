@@ -33,6 +33,10 @@ class RunnerConfig(BaseModel):
     kind: Literal["threads", "dask"] = Field(
         "threads", description="threads: Prefect's thread pool in the flow's process; dask: a Dask cluster (prefect-dask).",
     )
+    threads: int | None = Field(
+        None, ge=1, le=1024,
+        description="threads: tasks at once (default: Prefect's thread_pool_max_workers setting, else the CPUs).",
+    )
     dask_workers: int = Field(
         2, ge=1, le=1024, description="Worker processes of the local Dask cluster, one thread each (not with an address).",
     )

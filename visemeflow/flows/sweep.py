@@ -11,7 +11,7 @@ from prefect.artifacts import create_table_artifact
 
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
-from visemeflow.ops.runners import on_requested_runner, run_on_runner
+from visemeflow.ops.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for
@@ -57,7 +57,7 @@ def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
     return path
 
 
-@flow(name="sweep", flow_run_name="sweep[{params.config.preset}]")
+@flow(name="sweep", flow_run_name="sweep[{params.config.preset}]", task_runner=cpu_thread_pool())
 def sweep_flow(params: SweepParams) -> dict:
     """Train the preset on each nested subset (in parallel tasks) at an equal budget of steps; plot L1 x 100 by size."""
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow

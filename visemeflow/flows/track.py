@@ -10,7 +10,7 @@ from prefect.futures import as_completed
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import finished
 from visemeflow.flows.params import TrackParams
-from visemeflow.ops.runners import on_requested_runner, run_on_runner
+from visemeflow.ops.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
@@ -39,7 +39,7 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
     return default_variant(ProceduralConfig())
 
 
-@flow(name="track", flow_run_name="track[{params.store}]")
+@flow(name="track", flow_run_name="track[{params.store}]", task_runner=cpu_thread_pool())
 def track_flow(params: TrackParams) -> dict[str, object]:
     """Track every utterance that has a video; failures become rejects and the rest goes on."""
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow
@@ -53,6 +53,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         "config": config.model_dump(mode="json"),
     })
     rows = [r for r in store.read_table("utterances").select(TRACK_FIELDS).to_pylist() if r[C.VIDEO_PATH]]
+    # longest videos first: with n workers the run then ends on short utterances, not on one long one
+    rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
     rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
     futures = {}
     for row in rows:
