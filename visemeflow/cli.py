@@ -35,14 +35,16 @@ DEFAULT_STORE = Path("visemeflow-out/store")
 RunnerOpt = Annotated[str, typer.Option("--runner", help="threads (Prefect's thread pool) or dask (prefect-dask).")]
 DaskWorkersOpt = Annotated[int, typer.Option("--dask-workers", min=1, help="Local Dask cluster: worker processes, one thread each.")]
 DaskAddressOpt = Annotated[str | None, typer.Option("--dask-address", help="Existing Dask scheduler (tcp://host:8786); implies --runner dask.")]
+ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", min=1, help="--runner threads: tasks at once (default: the CPUs).")]
 
 
-def _runner(runner: str, dask_workers: int, dask_address: str | None):
+def _runner(runner: str, dask_workers: int, dask_address: str | None, threads: int | None = None):
     from visemeflow.flows.params import RunnerConfig
 
     if runner not in ("threads", "dask"):
         raise typer.BadParameter(f"--runner must be threads or dask, not {runner!r}")
-    return RunnerConfig(kind="dask" if dask_address else runner, dask_workers=dask_workers, dask_address=dask_address)
+    return RunnerConfig(kind="dask" if dask_address else runner, threads=threads, dask_workers=dask_workers,
+                        dask_address=dask_address)
 
 
 def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: float, fps: float):
@@ -106,6 +108,7 @@ def track(
     runner: RunnerOpt = "threads",
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
     from visemeflow.flows.params import TrackParams
@@ -115,7 +118,7 @@ def track(
 
     config = TrackingConfig(solver=solver, guidance=guidance, use_rgb=rgb, use_flow=flow)
     params = TrackParams(store=store, n_shards=shards, config=config, rig=rig,
-                         runner=_runner(runner, dask_workers, dask_address))
+                         runner=_runner(runner, dask_workers, dask_address, threads))
     _print_summary("track", run_on_runner(track_flow, params))
     _print_rejects_hint(store)
 
@@ -128,13 +131,14 @@ def pipeline(
     runner: Annotated[str, typer.Option("--runner", help="Tracking on threads (Prefect's pool) or dask.")] = "threads",
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos."""
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
     result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards,
-                                          runner=_runner(runner, dask_workers, dask_address)))
+                                          runner=_runner(runner, dask_workers, dask_address, threads)))
     for stage, summary in result.items():
         _print_summary(stage, summary)
     _print_outputs(store)
@@ -238,6 +242,7 @@ def sweep(
     runner: Annotated[str, typer.Option("--runner", help="One training task per size on threads or dask.")] = "threads",
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
     from visemeflow.flows.params import SweepParams
@@ -247,7 +252,7 @@ def sweep(
 
     params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model),
                          sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,
-                         variant=variant, runner=_runner(runner, dask_workers, dask_address))
+                         variant=variant, runner=_runner(runner, dask_workers, dask_address, threads))
     result = run_on_runner(sweep_flow, params)
     for size, value in result["points"]:
         typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
@@ -350,6 +355,37 @@ def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typ
         return
     for r in table.to_pylist():
         typer.echo(f"[{r['stage']}] {r['error_type']}: {r['message']}")
+
+
+@app.command()
+def clean(
+    kinds: Annotated[Optional[list[str]], typer.Argument(
+        help="What to remove: temporary, augmented, checkpoints, results (several allowed). None: only list.")] = None,
+    store: StoreOpt = DEFAULT_STORE,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="List what would be removed; remove nothing.")] = False,
+) -> None:
+    """Reclaim disk: data the flows can make again (never curves, tables, models or metrics).
+
+    temporary: files of killed writers; augmented: evaluate's augmented audio (written again when needed);
+    checkpoints: of models whose training finished; results: Prefect's cached task results (the next run of
+    every stage then recomputes its tasks once). Run it while no flow writes to the store.
+    """
+    from visemeflow.ops.clean import KINDS, clean as remove, human_bytes, reclaimable
+    from visemeflow.storage import Store
+
+    unknown = sorted(set(kinds or []) - set(KINDS))
+    if unknown:
+        raise typer.BadParameter(f"unknown kind {', '.join(unknown)}; choose from {', '.join(KINDS)}")
+    s = Store(store)
+    chosen = [k for k in KINDS if k in (kinds or [])]
+    listing = not chosen or dry_run
+    items = reclaimable(s, chosen or KINDS) if listing else remove(s, chosen)
+    verb = "reclaimable" if listing else "removed"
+    for item in items:
+        typer.echo(f"{item.kind:12s} {human_bytes(item.n_bytes):>10s} {verb} in {len(item.paths)} "
+                   f"{'path' if len(item.paths) == 1 else 'paths'}")
+    if not chosen:
+        typer.echo(f"nothing removed; name the kinds to remove, e.g. visemeflow clean augmented --store {store}")
 
 
 def _load_curves(utterance_id: str, store: Path, source: str, variant: str | None):

@@ -223,16 +223,15 @@ class Store:
             # Keep the file's metadata (e.g. the config hash that lets later runs reuse these rows).
             return self._write_atomic(new.replace_schema_metadata(old.schema.metadata), path)
 
-    def sweep_temporary_files(self, min_age_s: float = 3600.0) -> int:
-        """Remove temporary files left by killed writers; returns how many were removed.
+    def stale_temporary_files(self, min_age_s: float = 3600.0) -> list[Path]:
+        """Temporary files left by killed writers.
 
         A temporary file is stale when the process that wrote it (its pid is in the name) no longer runs
         on this machine, or when it is older than `min_age_s` (a pid may have been reused).
         """
         if not self.root.exists():
-            return 0
-        removed = 0
-        now = time.time()
+            return []
+        stale, now = [], time.time()
         for tmp in self.root.rglob(".*.tmp"):
             if tmp.parent.name == ".prefect-results":
                 continue
@@ -241,10 +240,19 @@ class Store:
             except (ValueError, IndexError):
                 continue
             try:
-                stale = not _pid_alive(pid) or now - tmp.stat().st_mtime > min_age_s
-                if stale:
-                    tmp.unlink()
-                    removed += 1
+                if not _pid_alive(pid) or now - tmp.stat().st_mtime > min_age_s:
+                    stale.append(tmp)
+            except FileNotFoundError:
+                continue
+        return stale
+
+    def sweep_temporary_files(self, min_age_s: float = 3600.0) -> int:
+        """Remove the stale temporary files (`stale_temporary_files`); returns how many were removed."""
+        removed = 0
+        for tmp in self.stale_temporary_files(min_age_s):
+            try:
+                tmp.unlink()
+                removed += 1
             except FileNotFoundError:
                 continue
         return removed

@@ -1,0 +1,83 @@
+"""Reclaim disk in a store: only what the flows can make again, never curves, tables, models or metrics.
+
+Kinds of reclaimable data:
+  temporary    files left by writers that were killed (their process is gone, or they are over an hour old)
+  augmented    the augmented validation audio of `evaluate` (`augmented/<condition>-s<seed>/`): the next
+               `evaluate` that needs a set writes it again
+  checkpoints  `models/<name>/checkpoints/` of models whose training finished (`model.pt` exists): only
+               an interrupted training resumes from them
+  results      Prefect's persisted task results and cache records (`.prefect-results/`): the next run of every
+               stage recomputes its tasks once (same outputs) and records them again
+
+Run it while no flow writes to the store: a flow that is evaluating while its augmented audio is removed fails
+that model's task (run it again).
+"""
+
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from visemeflow.storage import Store
+from visemeflow.tasks.common import result_storage
+
+KINDS = ("temporary", "augmented", "checkpoints", "results")
+
+
+@dataclass
+class Reclaimable:
+    kind: str
+    paths: list[Path] = field(default_factory=list)
+    n_bytes: int = 0
+
+
+def _size(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def _paths(store: Store, kind: str) -> list[Path]:
+    root = store.root
+    if kind == "temporary":
+        return store.stale_temporary_files()
+    if kind == "augmented":
+        folder = root / "augmented"
+        return sorted(p for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
+    if kind == "checkpoints":
+        models = root / "models"
+        return sorted(d / "checkpoints" for d in models.iterdir()
+                      if (d / "checkpoints").is_dir() and (d / "model.pt").is_file()) if models.is_dir() else []
+    if kind == "results":
+        folder = result_storage(root)
+        return [folder] if folder.is_dir() else []
+    raise ValueError(f"unknown kind {kind!r}; known: {', '.join(KINDS)}")
+
+
+def reclaimable(store: Store, kinds: Iterable[str] = KINDS) -> list[Reclaimable]:
+    """What each kind would remove from `store`, with its size."""
+    found = []
+    for kind in kinds:
+        paths = _paths(store, kind)
+        found.append(Reclaimable(kind, paths, sum(_size(p) for p in paths)))
+    return found
+
+
+def clean(store: Store, kinds: Iterable[str]) -> list[Reclaimable]:
+    """Remove the reclaimable data of `kinds` from `store`; returns what was removed."""
+    removed = reclaimable(store, kinds)
+    for item in removed:
+        for path in item.paths:
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+    return removed
+
+
+def human_bytes(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
