@@ -127,3 +127,41 @@ def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_p
     assert {"utterance_id", "stage", "force"} <= set(form)
     assert [s.schedule.cron for s in pipeline.schedules] == [serve_module.DEFAULT_CRON]
     assert pipeline.parameters["params"]["corpus"] == str(corpus)
+
+
+@pytest.mark.server
+def test_serve_stops_its_server_on_sigterm_as_under_systemd(tmp_path):
+    """systemd stops a service with SIGTERM: `visemeflow serve` must exit and take its Prefect server with it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    log = (tmp_path / "serve.log").open("w+")
+    serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", "--store", str(tmp_path / "store"),
+                              "--corpus", str(corpus), "--port", str(port)], env=env, stdout=log,
+                             stderr=subprocess.STDOUT)
+    api_url = f"http://127.0.0.1:{port}/api"
+    try:
+        deadline = time.monotonic() + 240
+        while "stop with Ctrl-C" not in (tmp_path / "serve.log").read_text() and serve.poll() is None:
+            assert time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.5)
+        assert serve.poll() is None, (tmp_path / "serve.log").read_text()
+        assert api_healthy(api_url)
+        serve.send_signal(signal.SIGTERM)
+        assert serve.wait(timeout=60) == 0, (tmp_path / "serve.log").read_text()
+        assert not api_healthy(api_url)  # the server it started is gone too
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+        import psutil
+
+        for process in psutil.process_iter(["cmdline"]):  # a server left behind by a failure here
+            if "--port" in (cmd := process.info["cmdline"] or []) and str(port) in cmd and "server" in cmd:
+                process.kill()

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -185,6 +186,11 @@ def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CR
     """Serve every deployment until interrupted, with a local server unless PREFECT_API_URL names one."""
     from prefect import serve
 
+    def stop(signum: int, frame: object) -> None:  # systemd and `kill` stop with SIGTERM: leave like Ctrl-C does
+        raise SystemExit(0)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)  # until Prefect's runner installs its own, which also exits
     with ensure_server(port) as api_url:
         deployments = build_deployments(store, corpus, cron, timezone)
         pipeline = deployments[0]
