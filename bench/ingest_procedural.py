@@ -76,6 +76,9 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from report import met, print_table  # bench/report.py
 
 DEMO_CORPUS = REPO / "examples" / "corpus"
 N_SHARDS = 8
@@ -327,34 +330,6 @@ def rate(count: float, seconds: float) -> float:
 
 def fmt_rate(value: float, unit: str) -> str:
     return f"{value:,.0f} {unit}"
-
-
-def print_table(rows: list[tuple[str, str, str, str]], notes: list[str]) -> None:
-    header = ("metric", "value", "target", "met?")
-    body = [r for r in rows if not r[0].startswith("## ")]
-    widths = [max(len(r[i]) for r in body + [header]) for i in range(4)]
-    inner = sum(widths) + 3 * (len(widths) - 1)
-    line = "+-" + "-+-".join("-" * w for w in widths) + "-+"
-
-    def show(r):
-        print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |")
-
-    print(line)
-    show(header)
-    for r in rows:
-        if r[0].startswith("## "):
-            print(line)
-            print("| " + r[0][3:][:inner].ljust(inner) + " |")
-            print(line)
-        else:
-            show(r)
-    print(line)
-    for n in notes:
-        print(n)
-
-
-def met(ok: bool | None) -> str:
-    return "" if ok is None else ("yes" if ok else "NO")
 
 
 def report(args, link: str, pure: Pure, peer: Peer | None, flow: FlowRuns | None, wall_s: float) -> None:

@@ -54,6 +54,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from report import met, print_table  # bench/report.py, beside this script
+
 REPO = Path(__file__).resolve().parents[1]
 DEMO_CORPUS = REPO / "visemeflow-out" / "demo-corpus"
 TARGET_OVERHEAD = 1.5
@@ -269,33 +271,6 @@ def tracked_stores_equal(runs: list[TrackRun]) -> bool:
         (other := curves(r.store)).keys() == first.keys() and all(np.array_equal(other[k], v) for k, v in first.items())
         for r in runs[1:]
     )
-
-
-def print_table(rows: list[tuple[str, str, str, str]], notes: list[str]) -> None:
-    header = ("metric", "value", "target", "met?")
-    body = [r for r in rows if not r[0].startswith("## ")]
-    widths = [max(len(r[i]) for r in [*body, header]) for i in range(4)]
-    line = "+-" + "-+-".join("-" * w for w in widths) + "-+"
-
-    def show(r: tuple[str, ...]) -> None:
-        print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) + " |")
-
-    print(line)
-    show(header)
-    for r in rows:
-        if r[0].startswith("## "):
-            print(line)
-            show((r[0][3:], "", "", ""))
-            print(line)
-        else:
-            show(r)
-    print(line)
-    for n in notes:
-        print(n)
-
-
-def met(ok: bool) -> str:
-    return "yes" if ok else "NO"
 
 
 def main() -> None:
