@@ -218,7 +218,7 @@ def running_cluster(workers: int) -> Iterator[str]:
     """A local Dask cluster, started and its workers warmed (tracking code imported) before the timing starts."""
     from distributed import Client
 
-    from visemeflow.ops.runners import local_cluster
+    from visemeflow.flows.runners import local_cluster
 
     with local_cluster(n_workers=workers, threads_per_worker=1, processes=True) as cluster, Client(cluster) as client:
         client.run(importlib.import_module, "visemeflow.tasks.track")
@@ -231,7 +231,7 @@ def track_once(name: str, into: Path, store: Path, workers: int, max_load: float
 
     from visemeflow.flows.params import RunnerConfig, TrackParams
     from visemeflow.flows.track import track_flow
-    from visemeflow.ops.runners import run_on_runner
+    from visemeflow.flows.runners import run_on_runner
 
     copy = untracked_copy(store, into)
     with ExitStack() as stack:

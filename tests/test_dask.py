@@ -11,7 +11,7 @@ from prefect import flow, task
 from prefect.settings import PREFECT_API_URL, temporary_settings
 
 from visemeflow.flows.params import PipelineParams, RunnerConfig, SynthParams
-from visemeflow.ops.runners import (
+from visemeflow.flows.runners import (
     available_cpus,
     local_cluster,
     on_requested_runner,

@@ -113,7 +113,7 @@ def track(
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
     from visemeflow.flows.params import TrackParams
     from visemeflow.flows.track import track_flow
-    from visemeflow.ops.runners import run_on_runner
+    from visemeflow.flows.runners import run_on_runner
     from visemeflow.tracking.solver import TrackingConfig
 
     config = TrackingConfig(solver=solver, guidance=guidance, use_rgb=rgb, use_flow=flow)
@@ -248,7 +248,7 @@ def sweep(
     from visemeflow.flows.params import SweepParams
     from visemeflow.flows.sweep import sweep_flow
     from visemeflow.learning.train import TrainConfig
-    from visemeflow.ops.runners import run_on_runner
+    from visemeflow.flows.runners import run_on_runner
 
     params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model),
                          sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,

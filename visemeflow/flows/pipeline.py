@@ -12,7 +12,7 @@ from visemeflow.flows.params import (
 )
 from visemeflow.flows.procedural import procedural_flow
 from visemeflow.flows.track import track_flow
-from visemeflow.ops.runners import run_on_runner
+from visemeflow.flows.runners import run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 

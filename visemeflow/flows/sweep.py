@@ -11,7 +11,7 @@ from prefect.artifacts import create_table_artifact
 
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
-from visemeflow.ops.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for

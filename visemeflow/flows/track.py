@@ -10,7 +10,7 @@ from prefect.futures import as_completed
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import finished
 from visemeflow.flows.params import TrackParams
-from visemeflow.ops.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
