@@ -19,7 +19,7 @@ from visemeflow.schemas import (
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY
 from visemeflow.tracking.camera import Intrinsics
-from visemeflow.tracking.flow import FlowConfig, roi_around, track_flow
+from visemeflow.tracking.optical_flow import FlowConfig, estimate_optical_flow, roi_around
 from visemeflow.tracking.identity import (
     apply_identity,
     demo_identity_path,
@@ -109,7 +109,7 @@ def flow_term(frames: np.ndarray, rig: VisemeRig, track: LandmarkTrack) -> tuple
     """Optical-flow correspondences over the face region of the video, and the valid fraction per frame."""
     height, width = frames.shape[1:3]
     roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
-    field = track_flow(frames, FlowConfig(), roi)
+    field = estimate_optical_flow(frames, FlowConfig(), roi)
     valid_fraction = np.array([np.nan] + [field.valid_fraction(j) for j in range(1, len(frames))], np.float32)
     return FlowTerm(flow_vertices(rig), field.correspondences, field.backward_correspondences), valid_fraction
 

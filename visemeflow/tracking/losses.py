@@ -81,7 +81,7 @@ def flow_loss(proj_cur: torch.Tensor, proj_prev, displacement, valid) -> torch.T
         frames at once (any leading batch dims work).
     proj_prev: Proj(s_k^{j-1}), same shape (a tensor or array; pass it detached to keep frame j-1 fixed, as the
         per-frame fitting does; a tensor that requires grad receives gradient too).
-    displacement: u_k, same shape, from `FlowField.correspondences` (visemeflow.tracking.flow).
+    displacement: u_k, same shape, from `FlowField.correspondences` (visemeflow.tracking.optical_flow).
     valid: (N,) or (T, N) bool.
     Returns a scalar for (N, 2) inputs and the (T,) per-frame losses for (T, N, 2). A frame with no valid
     correspondence contributes 0, still connected to the graph (zero gradient). Invalid entries never reach the

@@ -7,7 +7,7 @@ frame j toward where the flow carries its projection in frame j-1:
     L_flow(X^j) = 1/|K| sum_{k in K} || Proj(s_k^j) - (Proj(s_k^{j-1}) + u_k) ||^2
 
 The flow is OpenCV's DIS (Dense Inverse Search, ``cv2.DISOpticalFlow_create``), computed once per utterance by
-:func:`track_flow` and kept in a :class:`FlowField`, which answers the correspondence queries of both the forward
+:func:`estimate_optical_flow` and kept in a :class:`FlowField`, which answers the correspondence queries of both the forward
 pass (flow j-1 -> j) and the backward pass (flow j+1 -> j) of the tracker.
 
 Conventions (those of `visemeflow.tracking.camera`): points are (x, y) pixel coordinates, x to the right and y
@@ -50,10 +50,10 @@ class FlowConfig:
         ||f(p) + b(p + f(p))|| < fb_threshold_px, b the flow in the opposite direction.
     grayscale: convert RGB frames to luma (``cv2.COLOR_RGB2GRAY``) before DIS. DIS only accepts one 8-bit channel,
         so with False the frames must already be single-channel ((H, W) or (H, W, 1) uint8).
-    storage_dtype: the dtype :func:`track_flow` stores flows in, "float16" (half the memory; about 0.001 px
+    storage_dtype: the dtype :func:`estimate_optical_flow` stores flows in, "float16" (half the memory; about 0.001 px
         resolution below 2 px and 0.03 px at 50 px) or "float32".
     photometric_threshold: None (the paper: forward-backward check only) or a gray-level threshold (0-255) for an
-        extra photometric check in :func:`track_flow`: p also needs the mean absolute difference between the
+        extra photometric check in :func:`estimate_optical_flow`: p also needs the mean absolute difference between the
         first frame and the flow-warped second frame, over a ``photometric_window`` square around p, below it.
         The forward-backward check alone cannot see content that changes without moving (the inside of the mouth,
         a specular highlight): DIS propagates its neighbours' smooth flow into such a region in both directions
@@ -247,7 +247,7 @@ def photometric_mask(prev: np.ndarray, nxt: np.ndarray, forward: np.ndarray, thr
 
 def flow_masks(prev: np.ndarray, nxt: np.ndarray, forward: np.ndarray, backward: np.ndarray,
                config: FlowConfig = DEFAULT_CONFIG) -> tuple[np.ndarray, np.ndarray]:
-    """The validity masks :func:`track_flow` keeps for one pair: (forward on prev's pixels, backward on nxt's
+    """The validity masks :func:`estimate_optical_flow` keeps for one pair: (forward on prev's pixels, backward on nxt's
     pixels), the forward-backward check and, when ``config.photometric_threshold`` is set, the photometric one.
     prev / nxt: frames as given to :func:`bidirectional_flow`, already cropped to the flows' region."""
     fmask = consistency_mask(forward, backward, config.fb_threshold_px)
@@ -375,14 +375,14 @@ class FlowField:
         return float(self.forward_valid[self._pair(j - 1, f"valid_fraction(j={j})")].mean())
 
 
-def track_flow(frames: Sequence[np.ndarray] | np.ndarray, config: FlowConfig = DEFAULT_CONFIG,
+def estimate_optical_flow(frames: Sequence[np.ndarray] | np.ndarray, config: FlowConfig = DEFAULT_CONFIG,
                roi: Sequence[int] | None = None) -> FlowField:
     """Bi-directional DIS flow and forward-backward masks for every consecutive pair of ``frames`` ((T, H, W, 3)
     uint8 RGB, or a sequence of such frames), on ``roi`` (x0, y0, w, h; the whole frame when None), computed once
     per utterance. Each frame is converted to gray once and one DIS instance serves all pairs."""
     seq = list(frames)   # an array iterates over its first (time) axis
     if len(seq) == 0:
-        raise ValueError("track_flow needs at least one frame")
+        raise ValueError("estimate_optical_flow needs at least one frame")
     gray = [_to_channel(f, config) for f in seq]
     height, width = gray[0].shape
     for t, g in enumerate(gray):

@@ -1,4 +1,4 @@
-"""visemeflow.tracking.flow: DIS optical flow, the forward-backward check, flow sampling, the per-utterance
+"""visemeflow.tracking.optical_flow: DIS optical flow, the forward-backward check, flow sampling, the per-utterance
 FlowField and the optical-flow loss of Eq. 6. Synthetic frames with known motion, and two frames of a real GRID
 clip (fails, not skips, when ../shared/data is missing)."""
 
@@ -11,7 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from visemeflow.tracking.flow import (
+from visemeflow.tracking.optical_flow import (
     PRESETS,
     FlowConfig,
     FlowField,
@@ -23,7 +23,7 @@ from visemeflow.tracking.flow import (
     photometric_mask,
     roi_around,
     sample_flow,
-    track_flow,
+    estimate_optical_flow,
 )
 from visemeflow.tracking.losses import flow_loss
 from visemeflow.tracking.video import read_video_frames
@@ -310,7 +310,7 @@ def moving_frames(seed=3) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def field() -> FlowField:
-    return track_flow(moving_frames())
+    return estimate_optical_flow(moving_frames())
 
 
 def _grid_points(lo=30.0, hi_x=W - 30.0, hi_y=H - 30.0, n=7):
@@ -367,7 +367,7 @@ def test_track_flow_correspondences_chain(field):
 def test_track_flow_roi_matches_full_frame(field):
     frames = moving_frames()
     roi = (50, 40, 110, 80)
-    cropped = track_flow(list(frames), FlowConfig(storage_dtype="float32"), roi=roi)
+    cropped = estimate_optical_flow(list(frames), FlowConfig(storage_dtype="float32"), roi=roi)
     assert cropped.roi == roi and cropped.forward.shape == (4, 80, 110, 2)
     assert cropped.forward.dtype == np.float32
     assert cropped.nbytes < field.nbytes
@@ -384,16 +384,16 @@ def test_track_flow_roi_matches_full_frame(field):
 
 
 def test_track_flow_edge_cases():
-    one = track_flow(moving_frames()[:1])
+    one = estimate_optical_flow(moving_frames()[:1])
     assert one.n_frames == 1 and one.n_pairs == 0
     with pytest.raises(ValueError, match="at least one frame"):
-        track_flow(np.zeros((0, H, W, 3), np.uint8))
+        estimate_optical_flow(np.zeros((0, H, W, 3), np.uint8))
     frames = list(moving_frames()[:2])
     frames[1] = frames[1][:-2]
     with pytest.raises(ValueError, match="frame 1"):
-        track_flow(frames)
+        estimate_optical_flow(frames)
     pts = torch.tensor(_grid_points(), requires_grad=True)   # torch points are accepted (detached)
-    disp, ok = track_flow(moving_frames()[:2]).correspondences(1, pts)
+    disp, ok = estimate_optical_flow(moving_frames()[:2]).correspondences(1, pts)
     assert ok.all() and disp.shape == (49, 2)
 
 
@@ -521,7 +521,7 @@ def test_grid_consecutive_frames(grid_pair, preset):
     assert mask[face].mean() > 0.5
     assert np.median(np.linalg.norm(fwd[face], axis=-1)) < 2.0
     # the same on the face region only
-    ff = track_flow(grid_pair, cfg, roi=GRID_FACE)
+    ff = estimate_optical_flow(grid_pair, cfg, roi=GRID_FACE)
     assert ff.valid_fraction(1) > 0.5
     assert np.median(np.linalg.norm(ff.forward_flow(1), axis=-1)) < 2.0
     # landmarks-like points on the face mostly find a correspondence
@@ -530,5 +530,5 @@ def test_grid_consecutive_frames(grid_pair, preset):
     disp, ok = ff.correspondences(1, pts)
     assert ok.mean() > 0.5
     assert np.median(np.linalg.norm(disp[ok], axis=1)) < 2.0
-    photo = track_flow(grid_pair, FlowConfig(preset=preset, photometric_threshold=10.0), roi=GRID_FACE)
+    photo = estimate_optical_flow(grid_pair, FlowConfig(preset=preset, photometric_threshold=10.0), roi=GRID_FACE)
     assert photo.valid_fraction(1) > 0.5
