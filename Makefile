@@ -8,12 +8,18 @@ OUT ?= visemeflow-out
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export PREFECT_LOGGING_LEVEL ?= WARNING
 
-.PHONY: venv demo test bench clean
+.PHONY: system-deps venv demo test bench clean
 
-venv: $(STAMP)
+# System packages (espeak-ng, chromium, nodejs/npm): installed when missing as root; otherwise one line that
+# names them and the install command, and make stops. Fast when everything is there (no apt call).
+SYSTEM_DEPS ?= sh scripts/system-deps.sh
+system-deps:
+	$(SYSTEM_DEPS)
+
+venv: system-deps $(STAMP)
 
 # torch goes in first, pinned, from the machine's local CPU wheel: an unpinned torch pulls GBs of CUDA.
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml | system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
@@ -22,7 +28,7 @@ $(STAMP): pyproject.toml
 
 # The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
 # then run the pipeline on those videos, train two models, predict, and end with the robustness table.
-demo: venv
+demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow curves show SSB1624/SSB16240001 --store $(OUT)/store --source ground_truth
@@ -34,7 +40,7 @@ demo: venv
 	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
-test: venv
+test: system-deps venv
 	$(BIN)/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
 
 bench: venv

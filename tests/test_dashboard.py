@@ -3,7 +3,8 @@
 The browser test drives Debian's chromium headless over the DevTools protocol (a websocket to the page target,
 through the `websockets` package Prefect already depends on): it loads the page from file://, collects every
 console message, uncaught exception, browser log entry and network request, checks that each chart <img> decoded,
-and takes a screenshot. Without chromium it fails in CI (the `CI` variable set) and is skipped locally.
+and takes a screenshot. Without chromium it fails (never skips) with the install command: `make test` and .ci/run
+install it first through scripts/system-deps.sh.
 """
 
 import contextlib
@@ -297,15 +298,13 @@ CHROMIUM_FLAGS = [
 
 
 def chromium_or_fail() -> str:
-    """The chromium executable; without one, fail in CI (it must run there) and skip locally."""
+    """The chromium executable; without one the test fails (a skip would let a missing browser pass unnoticed)."""
     for name in ("chromium", "chromium-browser", "google-chrome"):
         exe = shutil.which(name)
         if exe:
             return exe
-    message = "chromium is not installed (apt-get install chromium; .ci/run installs it)"
-    if os.environ.get("CI"):
-        pytest.fail(message)
-    pytest.skip(message)
+    pytest.fail("chromium is not installed: run `sh scripts/system-deps.sh` as root "
+                "(or `apt-get install -y chromium`); `make test` and .ci/run run it first")
 
 
 class Browser:
@@ -432,7 +431,6 @@ def browser(tmp_path_factory):
 
 def test_the_page_renders_in_chromium_without_errors_or_network(dashboard, browser, tmp_path):
     _, out, page, _ = dashboard
-    started = time.perf_counter()
     state = browser.load(out / "index.html")
     assert state["errors"] == []
     assert [u for u in state["requests"] if not u.startswith(("file:", "data:"))] == []
@@ -447,7 +445,6 @@ def test_the_page_renders_in_chromium_without_errors_or_network(dashboard, brows
         assert image.format == "PNG" and image.size == (1280, 2000)
         pixels = np.asarray(image.convert("L"), dtype=np.float32)
     assert shot.stat().st_size > 20_000 and pixels.std() > 20       # not a blank page
-    assert time.perf_counter() - started < 30
 
 
 def test_the_browser_check_sees_errors_broken_images_and_blocked_fetches(browser, tmp_path):

@@ -1,7 +1,8 @@
 """espeak-ng synthesis with exact phone timings, TextGrid writing, sentence generators, the synthetic corpus.
 
-These tests need libespeak-ng (CI installs it: `apt-get install -y espeak-ng`). Without it they fail
-with the install command instead of being skipped, so a missing dependency cannot pass unnoticed.
+These tests need libespeak-ng (Debian's espeak-ng; `make test` and .ci/run install it first through
+scripts/system-deps.sh). Without it they fail with the install command instead of being skipped, so a missing
+dependency cannot pass unnoticed.
 """
 
 import hashlib
@@ -49,7 +50,8 @@ GRID_WORDS = ("bin", "blue", "at", "a", "one", "again")
 @pytest.fixture(scope="module")
 def needs_espeak():
     if not espeak_available():
-        pytest.fail("libespeak-ng is not installed: run `apt-get install -y espeak-ng` (CI installs it)")
+        pytest.fail("libespeak-ng is not installed: run `sh scripts/system-deps.sh` as root "
+                    "(or `apt-get install -y espeak-ng`); `make test` and .ci/run run it first")
 
 
 def grid(words=GRID_WORDS, voice="en-us", rate=160, **kw) -> SynthResult:
