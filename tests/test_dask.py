@@ -2,6 +2,8 @@
 
 import os
 import shutil
+import threading
+import time
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -141,37 +143,40 @@ def test_the_thread_pool_runs_one_task_per_cpu_unless_told(tmp_path):
     assert track_flow.task_runner._max_workers == sweep_flow.task_runner._max_workers == available_cpus()
 
 
-@task
-def _interval(i: int) -> tuple[float, float]:
-    import time
+_occupancy = {"running": 0, "peak": 0}
+_occupancy_changed = threading.Condition()
 
-    start = time.monotonic()
-    time.sleep(0.3)
-    return start, time.monotonic()
+
+@task
+def _occupy(wanted: int) -> None:
+    """Hold a worker until `wanted` tasks have run at once (or 60 s), then a little longer: the most tasks ever
+    running together is then exactly the pool's limit, whatever the machine's load, when that limit is `wanted`."""
+    with _occupancy_changed:
+        _occupancy["running"] += 1
+        _occupancy["peak"] = max(_occupancy["peak"], _occupancy["running"])
+        _occupancy_changed.notify_all()
+        _occupancy_changed.wait_for(lambda: _occupancy["peak"] >= wanted, timeout=60)
+    time.sleep(0.2)  # room for a task beyond the limit to start, if the pool allowed one
+    with _occupancy_changed:
+        _occupancy["running"] -= 1
 
 
 @flow
-def _intervals_flow(params: PipelineParams) -> dict:
-    return {"on_requested": on_requested_runner(params),
-            "intervals": [f.result() for f in [_interval.submit(i) for i in range(6)]]}
-
-
-def most_at_once(intervals: list[tuple[float, float]]) -> int:
-    events = sorted([(a, 1) for a, _ in intervals] + [(b, -1) for _, b in intervals])
-    running = peak = 0
-    for _, step in events:
-        running += step
-        peak = max(peak, running)
-    return peak
+def _occupancy_flow(params: PipelineParams) -> dict:
+    wanted = params.runner.threads or 1
+    _occupancy.update(running=0, peak=0)
+    for future in [_occupy.submit(wanted) for _ in range(6)]:
+        future.result()
+    return {"on_requested": on_requested_runner(params), "peak": _occupancy["peak"]}
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_run_on_runner_limits_the_tasks_at_once(tmp_path, threads):
     params = PipelineParams(corpus=tmp_path, runner=RunnerConfig(threads=threads))
-    out = run_on_runner(_intervals_flow, params)
+    out = run_on_runner(_occupancy_flow, params)
     assert out["on_requested"] is True
-    assert most_at_once(out["intervals"]) == threads
+    assert out["peak"] == threads
     # called without the runner it asks for (Prefect's unbounded default), the flow knows it
-    assert _intervals_flow(params)["on_requested"] is False
+    assert _occupancy_flow(params)["on_requested"] is False
     # with no size asked for, the thread pool the caller chose is respected
-    assert _intervals_flow(PipelineParams(corpus=tmp_path))["on_requested"] is True
+    assert _occupancy_flow(PipelineParams(corpus=tmp_path))["on_requested"] is True

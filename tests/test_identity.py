@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from factories import REPO, SHARED_DATA
 from visemeflow.rig import RigError, evaluate_rig, load_demo_rig
 from visemeflow.tracking.camera import Intrinsics, project
 from visemeflow.tracking.identity import (
@@ -25,8 +26,6 @@ from visemeflow.tracking.identity import (
 from visemeflow.tracking.landmarks import LandmarkTrack, read_landmarks
 from visemeflow.visemes import N_VISEMES, viseme_index
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
 ICT = SHARED_DATA / "ict_facekit"
 GRID = SHARED_DATA / "grid_s1"
 NON_JAW = np.arange(17, 68)

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from factories import SHARED_DATA
 from visemeflow.tracking.landmarks import (
     GROUPS,
     MEDIAPIPE_TO_68,
@@ -30,7 +31,6 @@ from visemeflow.tracking.landmarks import (
 )
 from visemeflow.tracking.video import probe_video, read_video_frames
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRID = SHARED_DATA / "grid_s1"
 CLIPS = ("bbaf2n", "bgin3a", "bwbg8n", "lbwy6n", "lrik4p", "pbav2n", "pgwe6n", "pwbk1s", "sbwo1s", "srbu6n")
 
@@ -61,11 +61,6 @@ def grid_words(clip: str) -> list[tuple[float, float, str]]:
 
 
 # ------------------------------------------------------------------------------------------------ GRID (MediaPipe)
-
-
-def test_grid_landmark_files_present():
-    assert sorted(p.name for p in (GRID / "landmarks").glob("*.mediapipe478.csv")) == [
-        f"{c}.mediapipe478.csv" for c in CLIPS]
 
 
 @pytest.mark.parametrize("clip", CLIPS)

@@ -2,7 +2,6 @@
 FlowField and the optical-flow loss of Eq. 6. Synthetic frames with known motion, and two frames of a real GRID
 clip (fails, not skips, when ../shared/data is missing)."""
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,6 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from factories import SHARED_DATA
 from visemeflow.tracking.optical_flow import (
     PRESETS,
     FlowConfig,
@@ -28,7 +28,6 @@ from visemeflow.tracking.optical_flow import (
 from visemeflow.tracking.losses import flow_loss
 from visemeflow.tracking.video import read_video_frames
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRID_CLIP = SHARED_DATA / "grid_s1" / "video" / "bbaf2n.mpg"
 GRID_FACE = (87, 99, 139, 139)   # x, y, w, h: the Haar-cascade face box of bbaf2n (the speaker barely moves)
 

@@ -393,8 +393,20 @@ def test_validate_rig_names_the_problem(changes, message):
         validate_rig(tiny_rig(**changes))
 
 
-def test_validate_rig_accepts_a_good_rig():
-    validate_rig(tiny_rig())
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {},
+        {"landmark_ids": np.full(68, -1, np.int64)},                    # a rig with no landmark vertices
+        {"vertex_colors": None, "regions": {}},                        # colours and regions are optional
+        {"vertex_colors": np.tile(np.float32([0, 1, 1]), (9, 1))},     # the ends of [0, 1]
+        {"faces": TRIANGLES.astype(np.int64)},                         # any integer dtype
+        {"regions": {"lips": np.array([0, 8])}},                       # ids at both ends of [0, 9)
+    ],
+)
+def test_validate_rig_accepts_rigs_at_the_edges_of_the_rules(changes):
+    rig = tiny_rig(**changes)
+    assert validate_rig(rig) is None  # raises RigError otherwise
 
 
 def test_save_refuses_an_invalid_rig(tmp_path):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 import torch
@@ -464,13 +464,6 @@ class FaceFormerDecoder(_CurveHead):
         y = torch.stack(ys, 1)
         mask = length_mask(n_frames.to(y.device), t)
         return y * mask[..., None].to(y.dtype), mask
-
-
-class FeatureModule(Protocol):
-    frame_rate_hz: float
-    dim: int
-
-    def __call__(self, audio: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor]: ...
 
 
 class AudioCurveModel(nn.Module):

@@ -444,11 +444,6 @@ def espeak_available() -> bool:
         return False
 
 
-def espeak_version() -> str:
-    """The library's version string (e.g. '1.51'); raises EspeakUnavailableError when it is missing."""
-    return (_engine().lib.espeak_Info(None) or b"").decode()
-
-
 # --- voices --------------------------------------------------------------------------------------
 
 PINYIN_VOICE: Final = "cmn-latn-pinyin"

@@ -104,11 +104,6 @@ class Crop:
         )
 
 
-def full_crop(width: int, height: int) -> Crop:
-    """The whole image at its native resolution."""
-    return Crop(0, 0, int(width), int(height))
-
-
 def mouth_crop(landmarks_2d, size: int = 64, margin: float = 0.6, image_size: tuple[int, int] | None = None) -> Crop:
     """Square window around the mouth landmarks 48-67, rendered on a `size` x `size` grid.
 
