@@ -1,4 +1,5 @@
-"""Rebuild `examples/rig/ict_identities.npz`: the first 20 ICT Face Model identity modes, cropped like the demo rig.
+"""Rebuild `visemeflow/rig/data/ict_identities.npz` (package data): the first 20 ICT Face Model identity modes, cropped
+like the demo rig.
 
 Run from the repository root:  .venv/bin/python examples/build_demo_identities.py [--ict DIR] [--out NPZ]
 
@@ -6,7 +7,7 @@ Input: `../shared/data/ict_facekit` (ICT-FaceKit, MIT): `generic_neutral_mesh.ob
 `identities/identity000..019.obj.gz`. Each identity file is a full mesh, the neutral plus one standard deviation of
 one PCA mode, so mode_k = identity_k - neutral and a face is neutral + sum_k c_k mode_k with c_k ~ N(0, 1).
 The modes are cropped to the demo rig's vertices (the same ICT ranges, in the same order, as
-`examples/build_demo_rig.py`), so they add directly to `examples/rig/ict_visemes.npz`'s neutral.
+`examples/build_demo_rig.py`), so they add directly to `visemeflow/rig/data/ict_visemes.npz`'s neutral.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from build_demo_rig import PARTS
 from visemeflow.rig import read_obj
 
 DEFAULT_ICT = REPO.parent / "shared" / "data" / "ict_facekit"
-DEFAULT_OUT = REPO / "examples" / "rig" / "ict_identities.npz"
+DEFAULT_OUT = REPO / "visemeflow" / "rig" / "data" / "ict_identities.npz"  # package data, shipped in the wheel
 N_MODES = 20
 FORMAT = "visemeflow-identity-modes/1"
 

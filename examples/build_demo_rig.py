@@ -1,4 +1,5 @@
-"""Rebuild the shipped demo rig `examples/rig/ict_visemes.npz` (and `docs/rig_contact_sheet.png`) from the ICT Face Model.
+"""Rebuild the shipped demo rig `visemeflow/rig/data/ict_visemes.npz` (package data; and `docs/rig_contact_sheet.png`)
+from the ICT Face Model.
 
 Run from the repository root:  .venv/bin/python examples/build_demo_rig.py [--ict DIR] [--out NPZ] [--sheet PNG | --no-sheet]
 
@@ -36,7 +37,7 @@ from visemeflow.rig import (  # noqa: E402
 from visemeflow.visemes import VISEMES  # noqa: E402
 
 DEFAULT_ICT = REPO.parent / "shared" / "data" / "ict_facekit"
-DEFAULT_OUT = REPO / "examples" / "rig" / "ict_visemes.npz"
+DEFAULT_OUT = REPO / "visemeflow" / "rig" / "data" / "ict_visemes.npz"  # package data, shipped in the wheel
 DEFAULT_SHEET = REPO / "docs" / "rig_contact_sheet.png"
 
 # Vertex ranges of the ICT Face Model (ICT-FaceKit README, end exclusive), in the order they are kept.

@@ -1,5 +1,6 @@
 """Viseme blendshape rigs: load (folder of meshes, GLB morph targets, compact npz), validate, evaluate; ICT recipes."""
 
+from importlib import resources
 from pathlib import Path
 
 from visemeflow.rig.io import (
@@ -31,13 +32,23 @@ from visemeflow.rig.recipes import (
 )
 
 
+def rig_data_path(name: str) -> Path:
+    """A file shipped in the package's `visemeflow/rig/data/` folder, as a filesystem path.
+
+    Found through importlib.resources, so it is the installed package's copy (a wheel installs its package data
+    unpacked, as real files), not the source checkout's.
+    """
+    resource = resources.files(__name__).joinpath("data", name)
+    return resource if isinstance(resource, Path) else Path(str(resource))
+
+
 def demo_rig_path() -> Path:
-    """The shipped demo rig, `examples/rig/ict_visemes.npz` of the source checkout (ICT Face Model, MIT)."""
-    return Path(__file__).resolve().parents[2] / "examples" / "rig" / "ict_visemes.npz"
+    """The shipped demo rig, package data `visemeflow/rig/data/ict_visemes.npz` (ICT Face Model, MIT)."""
+    return rig_data_path("ict_visemes.npz")
 
 
 def load_demo_rig() -> VisemeRig:
-    """The shipped ICT demo rig (see examples/rig/SOURCE.txt); RigError when the checkout does not have it."""
+    """The shipped ICT demo rig (see visemeflow/rig/data/SOURCE.txt); RigError when the package lacks it."""
     path = demo_rig_path()
     if not path.is_file():
         raise RigError(f"{path}: demo rig not found (rebuild with examples/build_demo_rig.py)")
@@ -65,6 +76,7 @@ __all__ = [
     "read_mesh",
     "read_obj",
     "recipe_shapes",
+    "rig_data_path",
     "rig_tensors",
     "save_rig_npz",
     "validate_rig",

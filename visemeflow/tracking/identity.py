@@ -2,7 +2,7 @@
 
 The paper reconstructs the actress's neutral 3D face from a few neutral video frames with a 3DMM fit, then transfers
 the template visemes onto it. Here the 3DMM is the rig's own mesh plus PCA identity modes with the same vertices
-(the demo: the first 20 ICT Face Model modes, `examples/rig/ict_identities.npz`). A subject's face is
+(the demo: the first 20 ICT Face Model modes, `visemeflow/rig/data/ict_identities.npz`). A subject's face is
 
     neutral' = scale * (neutral + sum_k c_k mode_k),   c_k ~ N(0, 1) (the modes are one standard deviation each),
 
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from visemeflow.rig import RigError, VisemeRig
+from visemeflow.rig import RigError, VisemeRig, rig_data_path
 from visemeflow.tracking.camera import Intrinsics, to_camera
 from visemeflow.tracking.landmarks import GROUPS, N_POINTS, LandmarkTrack
 
@@ -54,8 +54,8 @@ class IdentityModes:
 
 
 def demo_identity_path() -> Path:
-    """The shipped identity modes of the demo rig, `examples/rig/ict_identities.npz` of the source checkout."""
-    return Path(__file__).resolve().parents[2] / "examples" / "rig" / "ict_identities.npz"
+    """The shipped identity modes of the demo rig, package data `visemeflow/rig/data/ict_identities.npz`."""
+    return rig_data_path("ict_identities.npz")
 
 
 def load_identity_modes(path: Path | str) -> IdentityModes:
