@@ -34,7 +34,7 @@ check
 [ -z "$missing" ] && exit 0
 
 command="apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y $missing"
-if [ "$(id -u)" != 0 ]; then
+if [ "$(id -u 2>/dev/null || echo unknown)" != 0 ]; then
     echo "system packages missing: $missing; install them with: sudo sh -c '$command'" >&2
     exit 1
 fi
