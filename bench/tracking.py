@@ -22,7 +22,7 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
   guided faithful soft  the same with box="soft": the paper's L_range penalty and truncation at the end instead of
                      projection after every step (the paper-exact form, which overshoots: see TrackingConfig.box).
   guided fast+flow   `solve_fast`, TrackingConfig(): the default pipeline config (L_flow on, DIS optical flow of
-                     the rendered frames built as `visemeflow.tasks.track.flow_term` builds it).
+                     the rendered frames built as `visemeflow.tracking.utterance.flow_term` builds it).
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames
@@ -52,7 +52,7 @@ procedural, track with the default TrackingConfig except `guidance`; L_flow on, 
 runs twice inside `prefect_test_harness()`, into one store for guided and one for unguided tracking. From each
 store: for every phone whose viseme is MBP (phones table), its midpoint frame; the share where MBP is the tracked
 top viseme and among the top two (the procedural curves as reference); per clip the mean mouth keypoint error
-(tracking_frames) and the identity-fit rms (re-computed with `visemeflow.tasks.track.rig_and_camera`, the same
+(tracking_frames) and the identity-fit rms (re-computed with `visemeflow.tracking.utterance.rig_and_camera`, the same
 deterministic call the track task makes, because the flow does not store it).
 """
 
@@ -83,7 +83,7 @@ from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import generate_procedural_curves
 from visemeflow.rig import VisemeRig, load_demo_rig
 from visemeflow.synth.take import SynthConfig, SyntheticTake, make_take, render_take
-from visemeflow.tasks.track import flow_term
+from visemeflow.tracking.utterance import flow_term
 from visemeflow.timebase import frame_count
 from visemeflow.tracking.camera import Intrinsics
 from visemeflow.tracking.landmarks import LandmarkTrack
@@ -457,7 +457,7 @@ def grid() -> None:
     from visemeflow.flows.pipeline import pipeline_flow
     from visemeflow.schemas import C
     from visemeflow.storage import Store
-    from visemeflow.tasks.track import load_track, rig_and_camera
+    from visemeflow.tracking.utterance import load_track, rig_and_camera
 
     if not (GRID / "video").is_dir():
         print(f"Table 2: skipped, {GRID} not found")
@@ -520,8 +520,8 @@ def grid() -> None:
         for u in sorted(utterances, key=lambda r: r[C.UTTERANCE_ID]):
             uid = u[C.UTTERANCE_ID]
             try:
-                track = load_track(u, int(u[C.N_FRAMES]))
-                _, _, info = rig_and_camera(u, rig, track)
+                track = load_track(u[C.LANDMARK_PATH], u[C.FPS], int(u[C.N_FRAMES]), u[C.VIDEO_PATH])
+                _, _, info = rig_and_camera(u[C.VIDEO_PATH], rig, track)
                 rms = info.get("identity_rms_px", float("nan"))
             except (ValueError, RuntimeError, OSError, FloatingPointError) as exc:  # report, never stop the table
                 rms = float("nan")

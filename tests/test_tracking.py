@@ -199,3 +199,81 @@ def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
     report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="track", store=store))
     assert report["frames"] == 43
     assert path.stat().st_mtime_ns != before
+
+
+@pytest.fixture(scope="module")
+def tracked_store(tmp_path_factory, prefect_harness):
+    """An ingested store with procedural curves of two synthetic videos: `lj/good` (landmarks) and `lj/bare`
+    (none); and the corpus, for stores of other mixes."""
+    from visemeflow.flows.params import IngestParams, ProceduralParams, SynthParams
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.flows.synth import synth_flow
+
+    tmp = tmp_path_factory.mktemp("track-failures")
+    source = tmp / "source" / "lj"
+    source.mkdir(parents=True)
+    for ext in (".wav", ".TextGrid"):
+        shutil.copyfile(DEMO_CORPUS / "LJ" / f"LJ001-0008{ext}", source / f"good{ext}")
+    out = tmp / "synth"
+    synth_flow(SynthParams(corpus=source.parent, out=out, store=tmp / "truth"))
+    for ext in (".wav", ".TextGrid", ".mp4"):
+        shutil.copyfile(out / "lj" / f"good{ext}", out / "lj" / f"bare{ext}")
+
+    def build(name: str, keep_landmarks: bool = True):
+        corpus = tmp / f"corpus-{name}"
+        shutil.copytree(out, corpus)
+        if not keep_landmarks:
+            for path in corpus.rglob("*.landmarks.*"):
+                path.unlink()
+        store = tmp / f"store-{name}"
+        ingest_flow(IngestParams(corpus=corpus, store=store, n_shards=2))
+        procedural_flow(ProceduralParams(store=store, n_shards=2))
+        return store
+
+    return build
+
+
+@pytest.mark.flow
+def test_track_flow_ends_failed_with_the_traceback_when_an_utterance_meets_a_bug(tracked_store, monkeypatch, caplog):
+    from visemeflow.flows.errors import StageFailed
+    from visemeflow.flows.params import TrackParams
+    from visemeflow.flows.track import track_flow
+    from visemeflow.schemas import C
+    from visemeflow.storage import Store
+    from visemeflow.tasks import track as track_task
+
+    store = tracked_store("bug")
+    real = track_task.track_video
+
+    def buggy(video, procedural, rig, config):
+        if "good" in video.video_path:
+            return {}["no such key"]  # a bug, not bad input
+        return real(video, procedural, rig, config)
+
+    monkeypatch.setattr(track_task, "track_video", buggy)
+    caplog.set_level("ERROR")
+    with pytest.raises(StageFailed, match="1 of 2 utterances failed with an unexpected error") as failed:
+        track_flow(TrackParams(store=store, n_shards=2))
+    assert failed.value.summary["rejected"] == 2 and failed.value.summary["tracked"] == 0
+    rejects = {r[C.UTTERANCE_ID]: r for r in Store(store).read_table("rejects", "track").to_pylist()}
+    assert rejects["lj/bare"][C.ERROR_TYPE] == "NoLandmarks"
+    bug = rejects["lj/good"]
+    assert bug[C.ERROR_TYPE] == "KeyError"
+    assert "Traceback" in bug[C.MESSAGE] and "in buggy" in bug[C.MESSAGE]
+    logged = [r for r in caplog.records if "track[lj/good]: unexpected KeyError" in r.getMessage()]
+    assert logged and "in buggy" in logged[0].getMessage()
+
+
+@pytest.mark.flow
+def test_track_flow_ends_failed_when_every_utterance_is_rejected(tracked_store):
+    from visemeflow.flows.errors import StageFailed
+    from visemeflow.flows.params import TrackParams
+    from visemeflow.flows.track import track_flow
+
+    store = tracked_store("none", keep_landmarks=False)
+    state = track_flow(TrackParams(store=store, n_shards=2), return_state=True)
+    assert state.is_failed() and state.message == "track: all 2 utterances failed (see the rejects table)"
+    with pytest.raises(StageFailed) as failed:
+        state.result()
+    assert failed.value.summary["rejected"] == 2

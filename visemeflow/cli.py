@@ -511,6 +511,7 @@ def dashboard(
 
 def main() -> None:
     """The `visemeflow` command: errors a user can act on print one line and exit 2, without a traceback."""
+    from visemeflow.flows.errors import StageFailed
     from visemeflow.schemas import InvalidIdError
     from visemeflow.storage import StoreError
 
@@ -519,6 +520,16 @@ def main() -> None:
     except (StoreError, InvalidIdError, LookupError) as exc:
         typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
         raise SystemExit(2) from None
+    except StageFailed as exc:  # the flow ran to its end; its run is Failed in the UI with the same message
+        for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
+            _print_summary(stage, summary)
+        typer.echo(f"failed: {exc}", err=True)
+        raise SystemExit(1) from None
+
+
+def _is_per_stage(summary: dict) -> bool:
+    """Whether a flow's summary is the pipeline's, one summary per stage."""
+    return bool(summary) and all(isinstance(v, dict) for v in summary.values())
 
 
 if __name__ == "__main__":

@@ -5,8 +5,9 @@ from collections.abc import Iterable
 
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import PrefectFuture, as_completed
-from prefect.states import Completed, State
+from prefect.states import Completed, Failed, State
 
+from visemeflow.flows.errors import StageFailed
 from visemeflow.schemas import shard_of
 
 
@@ -53,9 +54,20 @@ def totals(reports: list[dict]) -> dict[str, int]:
     return dict(out)
 
 
-def finished(stage: str, summary: dict, failed: int, total: int) -> State:
-    """The flow's final state: Completed with the summary as its result and a message saying how many of the
-    stage's utterances failed (each failure is a reject row with its reason; the rest of the corpus went on)."""
+def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int = 0) -> State:
+    """The flow's final state, with a message saying how many of the stage's utterances failed.
+
+    Completed (the summary as its result) while failures are bad input of some utterances: each is a reject row
+    with its reason and the rest of the corpus went on. Failed, raising `StageFailed` to a caller, when all of
+    `total` utterances failed or `unexpected` of them failed with an error that is not a known bad-input class.
+    """
+    if unexpected:
+        message = (f"{stage}: {unexpected} of {total} utterances failed with an unexpected error (tracebacks in the "
+                   f"run's logs; reasons in the rejects table); {failed} failed in all")
+        return Failed(message=message, data=StageFailed(message, summary))
+    if total and failed >= total:
+        message = f"{stage}: all {total} utterances failed (see the rejects table)"
+        return Failed(message=message, data=StageFailed(message, summary))
     if failed:
         message = f"{stage}: {failed} of {total} utterances failed (see the rejects table); the others are done"
     else:

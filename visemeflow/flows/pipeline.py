@@ -1,8 +1,13 @@
-"""The `pipeline` flow: every stage that exists, in order, on one corpus."""
+"""The `pipeline` flow: ingest, procedural curves and tracking, in order, on one corpus (training, sweeps and
+evaluation are flows of their own: they need choices the corpus does not make)."""
+
+from collections.abc import Callable
 
 from prefect import flow
+from prefect.states import Failed
 
 from visemeflow.flows.common import finished
+from visemeflow.flows.errors import StageFailed
 from visemeflow.flows.ingest import ingest_flow
 from visemeflow.flows.params import (
     IngestParams,
@@ -19,14 +24,31 @@ from visemeflow.storage import Store
 
 @flow(name="pipeline", flow_run_name="pipeline[{params.corpus}]")
 def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
-    """Ingest the corpus, generate procedural curves, track the videos; each stage a subflow with cached tasks."""
+    """Ingest the corpus, generate procedural curves, track the videos; each stage a subflow with cached tasks.
+
+    A stage that ends Failed does not stop the later ones (they work on what it did); the pipeline then ends
+    Failed with that stage's message and every stage's summary.
+    """
     common = {"store": params.store, "n_shards": params.n_shards}
-    result = {"ingest": ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, **common))}
-    result["procedural"] = procedural_flow(ProceduralParams(config=params.procedural, **common))
+    result: dict[str, dict] = {}
+    failures: list[str] = []
+
+    def run(stage: str, call: Callable[[], dict]) -> None:
+        try:
+            result[stage] = call()
+        except StageFailed as exc:
+            result[stage] = exc.summary
+            failures.append(str(exc))
+
+    run("ingest", lambda: ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, **common)))
+    run("procedural", lambda: procedural_flow(ProceduralParams(config=params.procedural, **common)))
     videos = Store(params.store).read_table("utterances").column(C.VIDEO_PATH).drop_null()
     if len(videos):
         track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner, **common)
-        result["track"] = run_on_runner(track_flow, track)
+        run("track", lambda: run_on_runner(track_flow, track))
+    if failures:
+        message = "pipeline: " + "; ".join(failures)
+        return Failed(message=message, data=StageFailed(message, result))
     ids = Store(params.store).read_table("rejects").column(C.UTTERANCE_ID).to_pylist()
     failed = len({i for i in ids if i is not None}) + sum(i is None for i in ids)  # each utterance once
     return finished("pipeline", result, failed, result["ingest"].get("utterances", 0) + result["ingest"].get(

@@ -1,6 +1,7 @@
 """The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each)."""
 
 import hashlib
+import traceback
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -66,7 +67,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
         futures[future] = uid
     progress = create_progress_artifact(0.0, description=f"{STAGE}: utterances done") if futures else None
-    reports, rejects = [], []
+    logger = get_run_logger()
+    reports, rejects, unexpected = [], [], 0
     for done, future in enumerate(as_completed(list(futures)), start=1):
         uid = futures[future]
         try:
@@ -75,8 +77,11 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             reports.append(report)
         except TrackError as exc:
             rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
-        except Exception as exc:  # an unexpected failure of one utterance must not stop the others
-            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}", None))
+        except Exception as exc:  # a bug met on one utterance: the others still go on, the flow ends Failed
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("track[%s]: unexpected %s\n%s", uid, type(exc).__name__, trace)
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
+            unexpected += 1
         if progress is not None:
             update_progress_artifact(progress, 100.0 * done / len(futures))
     by_shard: dict[int, list[dict]] = {}
@@ -96,5 +101,5 @@ def track_flow(params: TrackParams) -> dict[str, object]:
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
     publish_stage_summary(STAGE, summary, extra)
     publish_rejects(STAGE, store.read_table("rejects", STAGE))
-    get_run_logger().info("track (%s): %s", config.variant, summary)
-    return finished(STAGE, {**summary, **extra}, len(rejects), len(rows))
+    logger.info("track (%s): %s", config.variant, summary)
+    return finished(STAGE, {**summary, **extra}, len(rejects), len(rows), unexpected)
