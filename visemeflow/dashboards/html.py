@@ -12,8 +12,6 @@ utterances is drawn (`max_utterances`, or the ids asked for), so a store of 10,0
 import base64
 import html
 import math
-import os
-import uuid
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +23,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.dataset as ds
 
+from visemeflow.atomic import atomic_write_text
 from visemeflow.dashboards import plots
 from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
 from visemeflow.schemas.tables import CURVE_SOURCES
@@ -534,14 +533,7 @@ def build_dashboard(
         page.add('<p class="note" id="no-rejects">No rejects.</p>')
     page.add("</section></body></html>")
 
-    out.mkdir(parents=True, exist_ok=True)
-    target = out / "index.html"
-    tmp = out / f".index.html.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
-    try:
-        tmp.write_text("\n".join(page.parts), encoding="utf-8")
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
+    target = atomic_write_text(out / "index.html", "\n".join(page.parts))
     return DashboardResult(target, selected, page.charts, missing, empty)
 
 

@@ -20,8 +20,8 @@ parameters; their features are computed once per training utterance and cached f
 Determinism and exact resume: ``torch.manual_seed(seed)`` before the model is built (same
 initial weights), a ``numpy.random.Generator`` (PCG64, seed) for the epoch shuffles, a separate
 ``torch.Generator`` (seed + 1) for SpecAugment, another numpy Generator for the audio augmentation
-hook. At the end of every epoch ``checkpoint_dir/last.pt`` is written atomically (temporary file +
-``os.replace``) with the model and optimizer states, epoch, step, history, and every RNG state
+hook. At the end of every epoch ``checkpoint_dir/last.pt`` is written atomically (``visemeflow.atomic``:
+temporary file + ``os.replace``) with the model and optimizer states, epoch, step, history, and every RNG state
 (torch CPU global state, SpecAugment generator state, the numpy generators' states as JSON strings,
 numpy's legacy global state, which transformers uses for wav2vec2 time masking). The file holds
 only tensors and plain Python values, and is read with ``torch.load(weights_only=True)``. A run
@@ -34,8 +34,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -47,6 +45,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
+from visemeflow.atomic import atomic_write
 from visemeflow.learning.features import (
     FeatureConfig,
     Wav2Vec2Extractor,
@@ -240,16 +239,8 @@ def _resume_key(config: TrainConfig) -> str:
 
 
 def _atomic_torch_save(obj: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    # visemeflow.atomic: stdlib-only, so this pure package need not import storage (DESIGN)
+    atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -20,13 +20,14 @@ The MediaPipe -> 68 map, why each vertex was chosen and how it was checked is in
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from visemeflow.atomic import atomic_path
 
 N_POINTS = 68
 SOURCES = ("openface", "mediapipe478", "generic68", "lbf")
@@ -383,11 +384,7 @@ def write_landmarks(track: LandmarkTrack, path: str | os.PathLike) -> Path:
     if ext not in _PARQUET_EXT | {".csv"}:
         raise LandmarkError(f"{path}: landmark files are written as .csv or .parquet, not {ext or 'no extension'}")
     df = landmark_table(track)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_path(path) as tmp:  # a uniquely named hidden temporary file, renamed over `path` when whole
         if ext in _PARQUET_EXT:
             import pyarrow as pa
             import pyarrow.parquet as pq
@@ -400,9 +397,6 @@ def write_landmarks(track: LandmarkTrack, path: str | os.PathLike) -> Path:
             pq.write_table(table.replace_schema_metadata(meta), tmp)
         else:
             df.to_csv(tmp, index=False)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

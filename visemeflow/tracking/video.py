@@ -20,6 +20,8 @@ from pathlib import Path
 import av
 import numpy as np
 
+from visemeflow.atomic import atomic_path
+
 # Encoders in order of preference, by container. The first one this PyAV build can open is used.
 MP4_VIDEO_CODECS = ("libx264", "libopenh264", "mpeg4")
 AVI_VIDEO_CODECS = ("mjpeg", "ffv1")
@@ -262,10 +264,9 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: floa
     if odd and vcodec not in ("libx264", "mjpeg", "ffv1"):
         raise VideoError(f"{path}: {vcodec} needs even frame sizes, got {width}x{height}")
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
     try:
-        with av.open(str(tmp), mode="w", format=fmt) as out:
+        # atomic: a uniquely named hidden temporary file (keeping the suffix), renamed over `path` when whole
+        with atomic_path(path, keep_suffix=True) as tmp, av.open(str(tmp), mode="w", format=fmt) as out:
             vs = out.add_stream(vcodec, rate=rate)
             vs.width, vs.height = width, height
             if vcodec in ("libx264", "libopenh264"):
@@ -325,11 +326,8 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: floa
             if astream is not None:
                 push_audio(n_samples)
                 out.mux(astream.encode(None))
-        os.replace(tmp, path)
     except av.error.FFmpegError as exc:
         raise VideoError(f"{path}: video encoding failed ({exc})") from exc
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

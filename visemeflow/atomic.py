@@ -1,0 +1,140 @@
+"""Atomic file writes: the one way this package replaces a file.
+
+A file is written to a temporary file in the target's folder, flushed to disk (fsync), renamed over the
+target (`os.replace`) and the folder's entry flushed too. A reader sees the old file or the new one, whole;
+a writer that fails removes its temporary file and leaves the old file in place; a killed writer leaves at
+most its temporary file, which `Store.stale_temporary_files` (`visemeflow clean temporary`) finds.
+
+Temporary names follow one pattern, so they can be recognised and never collide:
+
+    .<target name>.<pid>.<token>.tmp              .shard-0003.parquet.4242.1f3a9c0b.tmp
+    .<target name>.<pid>.<token>.tmp<suffix>      .sweep-x.png.4242.1f3a9c0b.tmp.png (`keep_suffix=True`,
+                                                  for writers that pick the format by the file's suffix)
+
+The pid tells a dead writer's leftover from a live one's; the random token keeps two writers of one
+target apart (two threads share a pid). Names start with a dot, so readers that skip hidden files never
+see a half-written file.
+
+This module uses the standard library only. It lives at the top of the package, beside `hashing.py`, so
+that the pure domain packages (`tracking/`, `learning/`), which may not import `storage/` (DESIGN), write
+their own files (videos, landmark files, checkpoints) through the same helper as the store.
+"""
+
+import os
+import re
+import secrets
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+__all__ = [
+    "atomic_path",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "is_temporary_name",
+    "temporary_path",
+    "temporary_writer_pid",
+]
+
+_TEMPORARY = re.compile(r"^\.(?P<target>.+)\.(?P<pid>[0-9]+)\.(?P<token>[0-9A-Za-z_]+)\.tmp(?P<suffix>\.[0-9A-Za-z]+)?$")
+# Names older versions of this package used (a fixed `.name.tmp`, tempfile's `.name.XXXXXXXX.tmp`, videos'
+# `.stem.pid.tmp.mp4`): recognised so that their leftovers can be cleaned, but they carry no usable pid.
+_LEGACY_TEMPORARY = re.compile(r"^\..+\.tmp(\.[0-9A-Za-z]+)?$")
+
+
+def temporary_path(path: str | os.PathLike, keep_suffix: bool = False) -> Path:
+    """A fresh temporary path in `path`'s folder, named by the pattern above (nothing is created)."""
+    path = Path(path)
+    suffix = path.suffix if keep_suffix else ""
+    return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{suffix}")
+
+
+def temporary_writer_pid(name: str) -> int | None:
+    """The pid of the process that wrote the temporary file `name`, or None when `name` carries none."""
+    match = _TEMPORARY.match(name)
+    return int(match["pid"]) if match else None
+
+
+def is_temporary_name(name: str) -> bool:
+    """Whether `name` is a temporary file of an atomic write (of this version or an older one)."""
+    return bool(_TEMPORARY.match(name) or _LEGACY_TEMPORARY.match(name))
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in `folder` durable. Best effort: the rename has happened whatever this says, and some
+    file systems cannot fsync a folder (EINVAL)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _remove_quietly(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass  # the folder itself is unusable, so there is no temporary file to remove
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, *, keep_suffix: bool = False, fsync: bool = True) -> Iterator[Path]:
+    """Yield a temporary path to write; on leaving the block, it replaces `path` atomically.
+
+    The caller writes the whole file to the yielded path (by any library that takes a path). On normal exit the
+    file is flushed and renamed over `path`; on any exception (also KeyboardInterrupt) the temporary file is
+    removed, `path` keeps its previous content, and the exception propagates. The folder is created if needed.
+
+        with atomic_path(out / "model.pt") as tmp:
+            torch.save(state, tmp)
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(path, keep_suffix)
+    try:
+        yield tmp
+        if fsync:
+            _fsync_path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    if fsync:
+        _fsync_folder(path.parent)
+
+
+def atomic_write(
+    path: str | os.PathLike, writer: Callable[[Path], object], *, keep_suffix: bool = False, fsync: bool = True
+) -> Path:
+    """Call `writer(temporary_path)` and put the file it wrote at `path` atomically; returns `path`."""
+    with atomic_path(path, keep_suffix=keep_suffix, fsync=fsync) as tmp:
+        writer(tmp)
+    return Path(path)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, fsync: bool = True) -> Path:
+    """Replace the file at `path` with `data`, atomically."""
+    def write(tmp: Path) -> None:
+        with open(tmp, "xb") as fh:
+            fh.write(data)
+
+    return atomic_write(path, write, fsync=fsync)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, *, encoding: str = "utf-8", fsync: bool = True) -> Path:
+    """Replace the file at `path` with `text`, atomically."""
+    return atomic_write_bytes(path, text.encode(encoding), fsync=fsync)
