@@ -27,7 +27,9 @@ def layout(root) -> dict[str, list]:
             "models/done/model.pt", "models/killed/checkpoints/last.pt", "metrics/done/train.parquet",
             f"curves/procedural/jali/LJ/.LJ001-0002.parquet.{os.getpid()}.abc.tmp",  # a writer still running
         ],
-        "temporary": [f"tables/phones/.shard-0001.parquet.{dead_pid()}.abc.tmp"],
+        "temporary": [f"tables/phones/.shard-0001.parquet.{dead_pid()}.abc.tmp",
+                      f"reports/.sweep-x.png.{dead_pid()}.0a1b2c3d.tmp.png",            # a writer that needs the suffix
+                      f"models/killed/checkpoints/.last.pt.{dead_pid()}.0a1b2c3d.tmp"],
         "augmented": ["augmented/pitch-s0/LJ/LJ001-0001.wav", "augmented/noise-s0/LJ/LJ001-0001.wav"],
         "checkpoints": ["models/done/checkpoints/last.pt"],
         "results": [".prefect-results/0123abcd"],

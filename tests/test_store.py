@@ -3,6 +3,7 @@
 import errno
 import io
 import multiprocessing
+import re
 import zlib
 from pathlib import Path
 
@@ -20,16 +21,22 @@ from visemeflow.schemas import (
     InvalidIdError,
     curves_array,
     curves_table,
+    id_path_parts,
+    make_utterance_id,
+    normalize_utterance_id,
     shard_of,
     split_utterance_id,
     table_from_rows,
+    utterance_id_from_path_parts,
     validate_name,
     validate_utterance_id,
 )
-from visemeflow.storage import Store, StoreError
+from visemeflow.storage import NonFiniteValueError, Store, StoreError
 from visemeflow.visemes import N_VISEMES, VISEMES
 
-BAD_IDS = ["../x", "a/../../b", "a/.hidden", "a/b/c", "a b/c", "a", "", "/a", "a/", "./a", "a/..", "a\\b/c", "spk/na\x00me"]
+BAD_IDS = ["../x", "a/../../b", "a/.hidden", "a/b/c", "a", "", "/a", "a/", "./a", "a/..", "a\\b/c", "spk/na\x00me",
+           "spk/a\\..\\..\\b", "spk/line\nbreak", "spk/tab\tname", "spk/\u202egnp.exe", " spk/a", "spk/a ", "spk/..",
+           "u\u0308/a", "spk/" + "x" * 201]
 
 
 def curves_of(utterance_id: str, n: int = 10, source: str = "procedural", variant: str = "v1", seed: int = 0, fps=30.0):
@@ -93,6 +100,60 @@ def test_good_utterance_ids(good, tmp_path):
     speaker, name = split_utterance_id(good)
     assert Store(tmp_path).curve_path("procedural", "v1", good) == (
         tmp_path.resolve() / "curves" / "procedural" / "v1" / speaker / f"{name}.parquet")
+
+
+UNICODE_IDS = ["Speaker One/take 1", "Sprecher_ü/Äpfel", "张三/一", "spk/it's (2), #3 & more!", "spk/100%", "A/b~c",
+               "مريم/جملة", "spk/utt__pitch_p2.10"]
+
+
+@pytest.mark.parametrize("good", UNICODE_IDS)
+def test_unicode_ids_round_trip_through_the_store(good, tmp_path):
+    """Ids of any script, with spaces and punctuation: stable ASCII store paths, the same id read back."""
+    store = Store(tmp_path)
+    assert validate_utterance_id(good) == good
+    path = store.curve_path("procedural", "v1", good)
+    assert path.parent.parent == tmp_path.resolve() / "curves" / "procedural" / "v1"
+    assert path.relative_to(tmp_path.resolve()).as_posix().isascii() and " " not in str(path.relative_to(tmp_path.resolve()))
+    assert Store.utterance_id_of(path) == good and utterance_id_from_path_parts(*id_path_parts(good)) == good
+    values, table = curves_of(good, n=5)
+    assert store.write_curves(table, provenance="p") == path
+    np.testing.assert_array_equal(curves_array(store.read_curves(good, "procedural")), values)
+    assert store.curve_ids("procedural", "v1") == [good]
+    assert store.scan_curves(utterance_ids=[good]).num_rows == 5
+    assert store.augmented_audio_path("pitch-s0", good).parent == path.parent.parent.parent.parent.parent \
+        / "augmented" / "pitch-s0" / path.parent.name
+
+
+def test_path_encoding_is_fixed():
+    """Store paths of ids are a file format: these must never change (older stores must stay readable)."""
+    assert id_path_parts("LJ/LJ001-0001") == ("LJ", "LJ001-0001")
+    assert id_path_parts("a_b/c.d-e") == ("a_b", "c.d-e")
+    assert id_path_parts("张三/一") == ("%E5%BC%A0%E4%B8%89", "%E4%B8%80")
+    assert id_path_parts("Speaker One/a%b") == ("Speaker%20One", "a%25b")
+    assert id_path_parts("Sprecher_ü/x") == ("Sprecher_%C3%BC", "x")
+
+
+def test_ids_are_nfc_normalised_where_they_are_made():
+    decomposed = "Sprecher_u\u0308"
+    with pytest.raises(InvalidIdError, match="NFC"):
+        validate_utterance_id(decomposed + "/a")
+    assert make_utterance_id(decomposed, "a") == "Sprecher_\u00fc/a"
+    assert normalize_utterance_id(decomposed + "/a") == "Sprecher_\u00fc/a"
+
+
+@pytest.mark.parametrize("bad, why", [
+    ("a/..", "starts with '.'"), ("../a", "starts with '.'"), ("a\\b/c", "backslash"), ("a/b/c", "exactly one '/'"),
+    ("spk/a\x07b", "U+0007"), ("spk/a\u202eb", "U+202E"), ("spk/a ", "space"), ("spk/" + "字" * 80, "too long"),
+])
+def test_bad_ids_say_why(bad, why):
+    with pytest.raises(InvalidIdError, match=re.escape(why)):
+        validate_utterance_id(bad)
+
+
+def test_store_paths_not_made_by_the_store_are_not_ids():
+    for speaker, name in (("a%2Fb", "c"), ("x", "%2E%2E"), ("x", "%E5%BC"), ("%41", "b")):
+        with pytest.raises((InvalidIdError, UnicodeDecodeError)):
+            utterance_id_from_path_parts(speaker, name)
 
 
 @pytest.mark.parametrize("bad", ["..", ".", ".x", "a/b", "", "a b", "ü"])
@@ -237,6 +298,134 @@ def test_replace_utterance_rows_replaces_exactly_one_utterance(tmp_path):
     store.replace_utterance_rows("phones", 5, "s/z", phone_rows("s/z", 2))  # new shard file
     assert store.read_shard("phones", 5).num_rows == 2
     assert store.read_table("utterances").schema.equals(UTTERANCES)
+
+
+# ---- no NaN or infinity is ever written ---------------------------------------------------------
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_write_curves_refuses_non_finite_values(tmp_path, bad):
+    store = Store(tmp_path)
+    values, table = curves_of("张三/一", n=10, source="tracked", variant="guided-fast")
+    path = store.write_curves(table, provenance="old")
+    before = path.read_bytes()
+    values = values.copy()
+    values[6, VISEMES.index("MBP")] = bad
+    values[8, 0] = bad
+    with pytest.raises(NonFiniteValueError) as info:
+        store.write_curves(curves_table("张三/一", "tracked", "guided-fast", values, 30.0), provenance="new")
+    message = str(info.value)
+    assert "张三/一" in message and "tracked/guided-fast" in message
+    assert "frame 6" in message and "column MBP" in message and str(bad) in message
+    assert path.read_bytes() == before  # the stored curves are untouched
+    with pytest.raises(NonFiniteValueError, match="frame rate"):
+        store.write_curves(table, fps=float("nan"))
+    times = table.column(C.TIME_S).to_numpy().copy()
+    times[0] = np.inf
+    broken = table.set_column(table.schema.get_field_index(C.TIME_S), C.TIME_S, pa.array(times))
+    with pytest.raises(NonFiniteValueError, match=f"frame 0, column {C.TIME_S}"):
+        store.write_curves(broken)
+    assert not store.curve_files("tracked", "other")
+
+
+def test_write_metrics_refuses_non_finite_values(tmp_path):
+    from visemeflow.schemas import METRICS
+
+    store = Store(tmp_path)
+    row = {C.RUN: "evaluate", C.MODEL: "m", C.CONDITION: "pitch", C.UTTERANCE_ID: None, C.L1: 0.1, C.L1_X100: 10.0}
+    store.write_metrics("m", "evaluate", pa.Table.from_pylist([row], schema=METRICS))  # nulls are fine
+    for column, bad in ((C.L1_X100, float("nan")), (C.L1_PREFIX + "AAA", float("inf"))):
+        rows = [row, {**row, C.UTTERANCE_ID: "spk/u1", column: bad}]
+        with pytest.raises(NonFiniteValueError) as info:
+            store.write_metrics("m", "evaluate", pa.Table.from_pylist(rows, schema=METRICS))
+        assert "model m" in str(info.value) and "spk/u1" in str(info.value) and column in str(info.value)
+    assert store.read_metrics("m").num_rows == 1
+
+
+# ---- rejects of a stage replaced --------------------------------------------------------------------
+
+def _rejects_of(*ids: str, stage: str = "track") -> pa.Table:
+    import datetime as dt
+
+    now = dt.datetime.now(dt.timezone.utc)
+    return table_from_rows([{C.UTTERANCE_ID: u, C.STAGE: stage, C.ERROR_TYPE: "E", C.MESSAGE: f"bad {u}", C.TIME: now}
+                            for u in ids], REJECTS)
+
+
+def test_replace_stage_rejects_writes_new_shards_and_removes_the_others(tmp_path):
+    store = Store(tmp_path)
+    store.write_shard("rejects", 1, _rejects_of("s/a"), stage="track")
+    store.write_shard("rejects", 4, _rejects_of("s/b"), stage="track")
+    store.write_shard("rejects", 1, _rejects_of("s/z", stage="ingest"), stage="ingest")
+    assert store.shards("rejects", "track") == [1, 4]
+    assert store.replace_stage_rejects("track", {4: _rejects_of("s/c"), 6: _rejects_of("s/d")}) == [1]
+    assert store.shards("rejects", "track") == [4, 6]
+    assert sorted(store.read_table("rejects", "track").column(C.UTTERANCE_ID).to_pylist()) == ["s/c", "s/d"]
+    assert store.read_table("rejects", "ingest").num_rows == 1  # other stages untouched
+    assert store.replace_stage_rejects("track", {}) == [4, 6] and store.shards("rejects", "track") == []
+
+
+def test_a_crash_while_replacing_rejects_keeps_them_readable(tmp_path, monkeypatch):
+    """Killed between writing the new rejects and removing the old: the stage still has its rejects."""
+    store = Store(tmp_path)
+    store.write_shard("rejects", 1, _rejects_of("s/a"), stage="track")
+    store.write_shard("rejects", 4, _rejects_of("s/b"), stage="track")
+
+    class Killed(BaseException):
+        pass
+
+    def killed(*args, **kwargs):
+        raise Killed()
+
+    monkeypatch.setattr(Store, "delete_shard", killed)
+    with pytest.raises(Killed):
+        store.replace_stage_rejects("track", {2: _rejects_of("s/c")})
+    assert sorted(store.read_table("rejects", "track").column(C.UTTERANCE_ID).to_pylist()) == ["s/a", "s/b", "s/c"]
+    monkeypatch.undo()
+
+    written = []
+    monkeypatch.setattr(Store, "write_shard", lambda self, *a, **k: written.append(a) or killed())
+    with pytest.raises(Killed):  # killed while writing the first new shard: the old rejects are all there
+        store.replace_stage_rejects("track", {2: _rejects_of("s/d"), 3: _rejects_of("s/e")})
+    assert sorted(store.read_table("rejects", "track").column(C.UTTERANCE_ID).to_pylist()) == ["s/a", "s/b", "s/c"]
+
+
+def test_the_track_flow_replaces_its_rejects_through_the_store():
+    """The flow asks the store to replace the stage's rejects (new shards first), it deletes no shard by hand."""
+    import inspect
+
+    from visemeflow.flows import track
+
+    source = inspect.getsource(track.track_flow)
+    assert "replace_stage_rejects" in source and ".unlink(" not in source and ".glob(" not in source
+
+
+# ---- store layout through the Store ---------------------------------------------------------------
+
+def test_models_reports_and_shards_are_reached_through_the_store(tmp_path):
+    store = Store(tmp_path)
+    assert store.model_names() == [] and store.report_files() == [] and store.shards("phones") == []
+    store.model_path("done").parent.mkdir(parents=True)
+    store.model_path("done").write_bytes(b"x")
+    store.checkpoint_dir("done").mkdir()
+    store.checkpoint_dir("running").mkdir(parents=True)
+    assert store.model_names() == ["done"] and store.has_model("done") and not store.has_model("running")
+    assert store.finished_checkpoint_dirs() == [store.checkpoint_dir("done")]
+    store.write_report_text("robustness.md", "| a |")
+    store.write_report("sweep-x.png", lambda tmp: tmp.write_bytes(b"png" if tmp.suffix == ".png" else b"?"))
+    assert store.report_path("sweep-x.png").read_bytes() == b"png"
+    assert [p.name for p in store.report_files(prefix="sweep-", suffix=".png")] == ["sweep-x.png"]
+    with pytest.raises(InvalidIdError):
+        store.report_path("../x")
+    for shard in (3, 0, 12):
+        store.write_shard("phones", shard, phone_rows("s/a", 1))
+    assert store.shards("phones") == [0, 3, 12] and store.has_shard("phones", 3)
+    assert store.delete_shards_except("phones", {3}) == [0, 12] and store.shards("phones") == [3]
+    store.write_shard("utterances", 0, UTTERANCES.empty_table(), metadata={b"k": b"v"})
+    assert store.shard_metadata("utterances", 0)[b"k"] == b"v" and store.shard_metadata("utterances", 1) is None
+    with pytest.raises(ValueError, match="not inside the store"):
+        store.write_file(tmp_path.parent / "elsewhere.txt", lambda tmp: tmp.write_text("x"))
+    with pytest.raises(ValueError):
+        store.delete_path(store.root)
 
 
 # ---- atomic writes -------------------------------------------------------------------------------

@@ -478,8 +478,8 @@ def _print_outputs(store: Path) -> None:
     typer.echo(f"store: {s.root}")
     typer.echo(f"  tables/utterances  {utterances} utterances")
     typer.echo(f"  tables/phones      {s.read_table('phones').num_rows} phone rows")
-    for source_dir in sorted((s.root / "curves").glob("*/*")) if (s.root / "curves").exists() else []:
-        typer.echo(f"  curves/{source_dir.parent.name}/{source_dir.name}  {len(s.curve_files(source_dir.parent.name, source_dir.name))} files")
+    for source, variant in s.curve_sets():
+        typer.echo(f"  curves/{source}/{variant}  {len(s.curve_files(source, variant))} files")
     _print_rejects_hint(store)
 
 

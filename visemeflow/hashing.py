@@ -1,16 +1,55 @@
-"""Short stable digests of configs and values, for cache keys and provenance."""
+"""Short stable digests of configs, values and files, for cache keys and provenance.
+
+The one place a digest is computed: blake2b with a 16-byte digest unless told otherwise. Top-level and free of
+imports from the rest of the package, so every layer (the pure domain packages included) can use it.
+"""
 
 import hashlib
 import json
+import os
+from collections.abc import Iterable
 
 from pydantic import BaseModel
 
+DIGEST_SIZE = 16
+_CHUNK = 1 << 20
 
-def stable_hash(*values: object, size: int = 16) -> str:
+
+def new_hasher(size: int = DIGEST_SIZE) -> "hashlib._Hash":
+    """An empty hasher of the package's digest (blake2b), for content fed piece by piece."""
+    return hashlib.blake2b(digest_size=size)
+
+
+def stable_hash(*values: object, size: int = DIGEST_SIZE) -> str:
     """Hex digest of JSON-able values (pydantic models by their JSON dump), stable across processes."""
-    h = hashlib.blake2b(digest_size=size)
+    h = new_hasher(size)
     for v in values:
         text = v.model_dump_json() if isinstance(v, BaseModel) else json.dumps(v, sort_keys=True, default=str)
         h.update(text.encode())
         h.update(b"\0")
+    return h.hexdigest()
+
+
+def _update_with_file(h: "hashlib._Hash", path: str | os.PathLike) -> None:
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            h.update(chunk)
+
+
+def file_hash(path: str | os.PathLike, size: int = DIGEST_SIZE) -> str:
+    """Hex digest of one file's bytes (read in chunks)."""
+    h = new_hasher(size)
+    _update_with_file(h, path)
+    return h.hexdigest()
+
+
+def files_hash(paths: Iterable[str | os.PathLike | None], size: int = DIGEST_SIZE) -> str:
+    """Hex digest of several files' bytes, in order; a None entry counts as an absent file (distinct from an
+    empty one), so (audio, None) and (None, audio) differ."""
+    h = new_hasher(size)
+    for p in paths:
+        h.update(b"\0" if p is None else b"\1")
+        if p is not None:
+            _update_with_file(h, p)
+            h.update(b"\0")
     return h.hexdigest()

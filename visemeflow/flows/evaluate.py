@@ -1,13 +1,11 @@
 """The `evaluate` flow: models judged on the validation set and on augmented copies of it (paper 5.2, Tables 1-3)."""
 
-import hashlib
-from pathlib import Path
-
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
 from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.train import training_rows
+from visemeflow.hashing import file_hash
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.train import load_model
 from visemeflow.schemas import C
@@ -15,30 +13,14 @@ from visemeflow.storage import Store
 from visemeflow.tasks.evaluate import augmented_task_for, evaluation_task_for
 
 
-def _file_hash(path: Path) -> str:
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 20):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def _write_text_atomic(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-    return path
-
-
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
 def evaluate_flow(params: EvaluateParams) -> dict:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files."""
     store = Store(params.store)
-    paths = {m: store.model_dir(m) / "model.pt" for m in params.models}
-    missing = [m for m, p in paths.items() if not p.exists()]
+    paths = {m: store.model_path(m) for m in params.models}
+    missing = [m for m in params.models if not store.has_model(m)]
     if missing:
-        known = sorted(p.parent.name for p in (store.root / "models").glob("*/model.pt"))
+        known = store.model_names()
         raise LookupError(f"no trained model named {', '.join(missing)} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
     lineage = load_model(paths[params.models[0]])[2]
@@ -58,7 +40,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     augmented = {cond: f.result() for cond, f in aug_futures.items()}
     targets = {r[C.UTTERANCE_ID]: store.curves_provenance(source, variant, r[C.UTTERANCE_ID]) for r in val}
     futures = [
-        evaluation_task_for(store, m).submit(str(store.root), m, _file_hash(paths[m]), val, augmented, source, variant,
+        evaluation_task_for(store, m).submit(str(store.root), m, file_hash(paths[m]), val, augmented, source, variant,
                                              targets)
         for m in params.models
     ]
@@ -69,8 +51,8 @@ def evaluate_flow(params: EvaluateParams) -> dict:
                              augmented={r["model"]: r["train_augment"] for r in results})
     title = f"Validation L1 x 100 on {len(val)} utterances ({source}/{variant}); in brackets: ratio to validation"
     markdown = table_markdown(table, title)
-    md = _write_text_atomic(store.root / "reports" / "robustness.md", markdown)
-    csv = _write_text_atomic(store.root / "reports" / "robustness.csv", table_csv(table))
+    md = store.write_report_text("robustness.md", markdown)
+    csv = store.write_report_text("robustness.csv", table_csv(table))
     create_markdown_artifact(key="robustness-table", markdown=markdown,
                              description="Paper Tables 1-3 format: validation and augmented conditions")
     get_run_logger().info("evaluate: %d models on %d utterances x %d conditions -> %s", len(results), len(val),

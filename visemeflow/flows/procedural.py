@@ -15,7 +15,7 @@ UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.N_FRA
 
 def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, rejected: set[str]) -> bool:
     """Whether the shard's curve files and rejects file exist, so a cached result still describes the store."""
-    if not store.shard_path("rejects", shard, STAGE).exists():
+    if not store.has_shard("rejects", shard, STAGE):
         return False
     return all(store.has_curves(SOURCE, variant, u[C.UTTERANCE_ID]) or u[C.UTTERANCE_ID] in rejected for u in items)
 
@@ -42,9 +42,7 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
         for shard, items in shards.items()
     ]
     reports, errors = collect(futures, STAGE)
-    for path in store.table_dir("rejects", STAGE).glob("shard-*.parquet"):
-        if int(path.stem.split("-")[1]) not in shards:
-            path.unlink()
+    store.delete_shards_except("rejects", set(shards), STAGE)
     summary = totals(reports)
     publish_stage_summary(STAGE, summary, {"variant": variant})
     publish_rejects(STAGE, store.read_table("rejects", STAGE))

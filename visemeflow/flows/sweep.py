@@ -9,6 +9,7 @@ import numpy as np
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_table_artifact
 
+from visemeflow.atomic import atomic_write
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
@@ -50,11 +51,11 @@ def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
     cv2.putText(image, "training utterances (log scale)", (width // 2 - 120, height - 15), cv2.FONT_HERSHEY_SIMPLEX,
                 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(image, "val L1 x 100", (5, margin - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    cv2.imwrite(str(tmp), image)
-    tmp.replace(path)
-    return path
+    def write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"cannot write the sweep plot {path}")
+
+    return atomic_write(path, write, keep_suffix=True)  # cv2 picks the format by the suffix
 
 
 @flow(name="sweep", flow_run_name="sweep[{params.config.preset}]", task_runner=cpu_thread_pool())
@@ -83,7 +84,7 @@ def sweep_flow(params: SweepParams) -> dict:
         )
     results = {size: future.result() for size, future in futures.items()}
     points = [(size, float(r["val_l1_x100"])) for size, r in sorted(results.items())]
-    plot = plot_sweep(points, store.root / "reports" / f"sweep-{params.config.preset}.png",
+    plot = plot_sweep(points, store.report_path(f"sweep-{params.config.preset}.png"),
                       f"{params.config.preset}: validation L1 x 100 by training size ({params.steps} steps each)")
     create_table_artifact(
         key=f"sweep-{params.config.preset.replace('_', '-')}",

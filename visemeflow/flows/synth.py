@@ -1,13 +1,11 @@
 """The `synth` flow: a corpus of audio + alignments becomes talking-face videos with known true curves."""
 
-import hashlib
-from pathlib import Path
-
 from prefect import flow, get_run_logger
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import collect
 from visemeflow.flows.params import SynthParams
+from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
@@ -18,16 +16,12 @@ from visemeflow.tasks.synth import SOURCE, synth_utterance, truth_variant
 STAGE = "synth"
 
 
-def _file_hash(path: Path) -> str:
-    return hashlib.blake2b(path.read_bytes(), digest_size=16).hexdigest()
-
-
 @flow(name="synth", flow_run_name="synth[{params.corpus}]")
 def synth_flow(params: SynthParams) -> dict[str, object]:
     """Render every utterance of the source corpus (one cached task each) into `params.out`."""
     store = Store(params.store)
     rig_path = (params.rig or demo_rig_path()).resolve()
-    rig_hash = _file_hash(rig_path)
+    rig_hash = file_hash(rig_path)
     variant = truth_variant(params.config)
     found = discover_corpus_task(str(params.corpus.resolve()))
     out = params.out.resolve()

@@ -87,10 +87,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     by_shard: dict[int, list[dict]] = {}
     for r in rejects:
         by_shard.setdefault(shard_of(r[C.UTTERANCE_ID], params.n_shards), []).append(r)
-    for path in store.table_dir("rejects", STAGE).glob("shard-*.parquet"):
-        path.unlink()
-    for shard, items in by_shard.items():
-        store.write_shard("rejects", shard, table_from_rows(items, REJECTS), stage=STAGE)
+    # new shards first, then the stale ones go: a kill in between never loses the stage's rejects
+    store.replace_stage_rejects(STAGE, {shard: table_from_rows(items, REJECTS) for shard, items in by_shard.items()})
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     summary = {
         "utterances": len(rows), "tracked": sum(1 for r in reports if not r["cached"]),

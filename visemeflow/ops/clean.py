@@ -13,13 +13,11 @@ Run it while no flow writes to the store: a flow that is evaluating while its au
 that model's task (run it again).
 """
 
-import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
 
 KINDS = ("temporary", "augmented", "checkpoints", "results")
 
@@ -31,25 +29,15 @@ class Reclaimable:
     n_bytes: int = 0
 
 
-def _size(path: Path) -> int:
-    if path.is_file():
-        return path.stat().st_size
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-
-
 def _paths(store: Store, kind: str) -> list[Path]:
-    root = store.root
     if kind == "temporary":
         return store.stale_temporary_files()
     if kind == "augmented":
-        folder = root / "augmented"
-        return sorted(p for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
+        return store.augmented_sets()
     if kind == "checkpoints":
-        models = root / "models"
-        return sorted(d / "checkpoints" for d in models.iterdir()
-                      if (d / "checkpoints").is_dir() and (d / "model.pt").is_file()) if models.is_dir() else []
+        return store.finished_checkpoint_dirs()
     if kind == "results":
-        folder = result_storage(root)
+        folder = store.results_dir()
         return [folder] if folder.is_dir() else []
     raise ValueError(f"unknown kind {kind!r}; known: {', '.join(KINDS)}")
 
@@ -59,7 +47,7 @@ def reclaimable(store: Store, kinds: Iterable[str] = KINDS) -> list[Reclaimable]
     found = []
     for kind in kinds:
         paths = _paths(store, kind)
-        found.append(Reclaimable(kind, paths, sum(_size(p) for p in paths)))
+        found.append(Reclaimable(kind, paths, sum(store.disk_usage(p) for p in paths)))
     return found
 
 
@@ -68,10 +56,7 @@ def clean(store: Store, kinds: Iterable[str]) -> list[Reclaimable]:
     removed = reclaimable(store, kinds)
     for item in removed:
         for path in item.paths:
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+            store.delete_path(path)
     return removed
 
 

@@ -2,8 +2,13 @@
 
 from visemeflow.schemas.ids import (
     InvalidIdError,
+    encode_path_part,
+    id_path_parts,
+    make_utterance_id,
+    normalize_utterance_id,
     shard_of,
     split_utterance_id,
+    utterance_id_from_path_parts,
     validate_name,
     validate_utterance_id,
 )
@@ -35,9 +40,14 @@ __all__ = [
     "InvalidIdError",
     "curves_array",
     "curves_table",
+    "encode_path_part",
+    "id_path_parts",
+    "make_utterance_id",
+    "normalize_utterance_id",
     "shard_of",
     "split_utterance_id",
     "table_from_rows",
+    "utterance_id_from_path_parts",
     "validate_name",
     "validate_utterance_id",
 ]

@@ -4,37 +4,55 @@ Layout under the root folder:
     tables/<table>/shard-NNNN.parquet                  utterances, phones (one file per shard)
     tables/rejects/<stage>/shard-NNNN.parquet          rejects of a stage, per shard
     curves/<source>/<variant>/<speaker>/<name>.parquet one file per (source, variant, utterance)
+    tracking_frames/<variant>/<speaker>/<name>.parquet per-frame tracking diagnostics
+    models/<model>/model.pt, checkpoints/              trained models
+    metrics/<model>/<run>.parquet                      metrics of a model's runs
+    augmented/<set>/<speaker>/<name>.wav               augmented validation audio of `evaluate`
+    reports/<name>                                     tables and plots (robustness.md, sweep-*.png)
+    configs/<stage>.json                               the settings each stage last ran with
+    .prefect-results/                                  Prefect's persisted task results
+    .locks/                                            lock files of read-modify-write updates
 
-Every file is written to a hidden temporary file in its folder and renamed over the target, so a
-killed writer never leaves a half file and readers see the old or the new file whole. Shard files
-that are read, changed and written back (a rerun of one utterance) are updated under a lock file so
-two writers cannot lose each other's rows.
+<speaker>/<name> are the utterance id's parts percent-encoded (`schemas.ids.id_path_parts`): ASCII ids of
+letters, digits and `_ - .` appear as they are, others (`张三/一`, `Speaker One/a`) reversibly encoded.
+
+Every file goes through this class: flows, tasks and operations ask it for paths and listings and let it
+write and delete. Every file is written with `visemeflow.atomic` (a uniquely named hidden temporary file in
+its folder, fsync, rename over the target), so a killed writer never leaves a half file and readers see the
+old or the new file whole. Shard files that are read, changed and written back (a rerun of one utterance)
+are updated under a lock file so two writers cannot lose each other's rows. Curves and metrics are checked
+before they are written: a NaN or infinite value is refused with the utterance and the first bad value named.
 """
 
 import errno
 import fcntl
 import json
 import os
+import re
+import shutil
 import time
-import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
+from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer_pid
 from visemeflow.schemas import (
     CURVES,
     METRICS,
     TABLE_SCHEMAS,
     TRACKING_FRAMES,
     C,
-    split_utterance_id,
+    id_path_parts,
+    utterance_id_from_path_parts,
     validate_name,
 )
+from visemeflow.visemes import VISEMES
 
 PROVENANCE_KEY = b"visemeflow.provenance"
 # Curve files are small and many: dictionary-encode only the constant id columns and keep statistics only
@@ -60,6 +78,27 @@ def _pid_alive(pid: int) -> bool:
 
 class StoreError(OSError):
     """The store cannot be written or read; the message names the path and the reason."""
+
+
+class NonFiniteValueError(ValueError):
+    """Curves or metrics holding NaN or an infinite value: refused before anything is written."""
+
+
+RESULTS_DIR = ".prefect-results"
+_SHARD_FILE = re.compile(r"^shard-([0-9]{4,})\.parquet$")
+
+
+def _first_non_finite(table: pa.Table, columns: list[str]) -> tuple[int, str, object, int] | None:
+    """(row, column, value, number of bad values) of the first NaN, infinite or null value in `columns`."""
+    values = np.stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+                       for c in columns], axis=1) if table.num_rows else np.zeros((0, len(columns)))
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    row = int(np.flatnonzero(bad.any(axis=1))[0])
+    col = int(np.flatnonzero(bad[row])[0])
+    value = table.column(columns[col])[row].as_py()
+    return row, columns[col], value, int(bad.sum())
 
 
 def _read_whole(path: Path) -> pa.Table:
@@ -93,45 +132,105 @@ class Store:
         return self.table_dir(table, stage) / f"shard-{shard:04d}.parquet"
 
     def curve_path(self, source: str, variant: str, utterance_id: str) -> Path:
-        speaker, name = split_utterance_id(utterance_id)
+        speaker, name = id_path_parts(utterance_id)
         return (
             self.root / "curves" / validate_name(source, "curve source") / validate_name(variant, "variant")
             / speaker / f"{name}.parquet"
         )
 
     def tracking_frames_path(self, variant: str, utterance_id: str) -> Path:
-        speaker, name = split_utterance_id(utterance_id)
+        speaker, name = id_path_parts(utterance_id)
         return self.root / "tracking_frames" / validate_name(variant, "variant") / speaker / f"{name}.parquet"
+
+    @staticmethod
+    def utterance_id_of(path: str | Path) -> str:
+        """The utterance id of a per-utterance file of the store (`.../<speaker>/<name>.<ext>`)."""
+        path = Path(path)
+        return utterance_id_from_path_parts(path.parent.name, path.name.removesuffix(path.suffix))
 
     def model_dir(self, model: str) -> Path:
         """Folder of a trained model: weights, config and lineage, checkpoints."""
         return self.root / "models" / validate_name(model, "model name")
 
+    def model_path(self, model: str) -> Path:
+        """The file of a trained model (weights, config, lineage), written when its training finished."""
+        return self.model_dir(model) / "model.pt"
+
+    def checkpoint_dir(self, model: str) -> Path:
+        """Folder of a model's training checkpoints (an interrupted training resumes from them)."""
+        return self.model_dir(model) / "checkpoints"
+
+    def has_model(self, model: str) -> bool:
+        return self.model_path(model).is_file()
+
+    def model_names(self) -> list[str]:
+        """Names of the trained models (those whose training finished), sorted."""
+        folder = self.root / "models"
+        if not folder.is_dir():
+            return []
+        return sorted(d.name for d in folder.iterdir()
+                      if d.is_dir() and not d.name.startswith(".") and (d / "model.pt").is_file())
+
+    def finished_checkpoint_dirs(self) -> list[Path]:
+        """Checkpoint folders of models whose training finished (nothing resumes from them any more)."""
+        return [self.checkpoint_dir(m) for m in self.model_names() if self.checkpoint_dir(m).is_dir()]
+
     def augmented_audio_path(self, augmentation: str, augmented_id: str) -> Path:
         """An augmented copy of an utterance's audio (float WAV), in the folder of one augmentation set."""
-        speaker, name = split_utterance_id(augmented_id)
+        speaker, name = id_path_parts(augmented_id)
         return self.root / "augmented" / validate_name(augmentation, "augmentation") / speaker / f"{name}.wav"
+
+    def augmented_sets(self) -> list[Path]:
+        """Folders of the stored augmentation sets (`augmented/<condition>-s<seed>`), sorted."""
+        folder = self.root / "augmented"
+        return sorted(p for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
 
     def metrics_path(self, model: str, run: str) -> Path:
         return self.root / "metrics" / validate_name(model, "model name") / f"{validate_name(run, 'run name')}.parquet"
 
+    def report_path(self, name: str) -> Path:
+        """A report file (`robustness.md`, `sweep-<preset>.png`) in the store's `reports` folder."""
+        return self.root / "reports" / validate_name(name, "report name")
+
+    def report_files(self, prefix: str = "", suffix: str = "") -> list[Path]:
+        """Stored report files whose names start with `prefix` and end with `suffix`, sorted."""
+        folder = self.root / "reports"
+        if not folder.is_dir():
+            return []
+        return sorted(p for p in folder.iterdir() if p.is_file() and not is_temporary_name(p.name)
+                      and not p.name.startswith(".") and p.name.startswith(prefix) and p.name.endswith(suffix))
+
+    def results_dir(self) -> Path:
+        """Folder of Prefect's persisted task results and cache records (see `tasks.common.result_storage`)."""
+        return self.root / RESULTS_DIR
+
     # ---- writes ------------------------------------------------------------------------------
-    def _write_atomic(self, table: pa.Table, path: Path, **parquet_options: object) -> Path:
-        tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    def _inside(self, path: Path) -> Path:
+        path = Path(path)
+        resolved = path.resolve()
+        if resolved != self.root and self.root not in resolved.parents:
+            raise ValueError(f"{path} is not inside the store {self.root}")
+        return path
+
+    def write_file(self, path: Path, writer: Callable[[Path], object], *, keep_suffix: bool = False) -> Path:
+        """Replace the store file `path` with what `writer(temporary_path)` writes, atomically.
+
+        For files not written by a method of their own (augmented audio, a plot): `writer` gets a hidden
+        temporary path in the same folder (ending in `path`'s suffix when `keep_suffix`, for writers that pick
+        the format by it). A failing writer leaves the previous file in place; an OSError becomes a StoreError
+        naming `path`.
+        """
+        path = self._inside(path)
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            pq.write_table(table, tmp, compression="zstd", **parquet_options)
-            os.replace(tmp, path)
-        except BaseException as exc:  # any failure (also ArrowInvalid, Ctrl-C) removes the temporary file
-            try:
-                tmp.unlink(missing_ok=True)
-            except OSError:
-                pass  # the folder itself is unusable, so there is no temporary file
-            if not isinstance(exc, OSError):
-                raise
+            with atomic_path(path, keep_suffix=keep_suffix) as tmp:
+                writer(tmp)
+        except OSError as exc:  # any other failure (ArrowInvalid, Ctrl-C) propagates as it is
             reason = "disk full" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
             raise StoreError(exc.errno or 0, f"cannot write {path}: {reason}; stored data is unchanged") from exc
         return path
+
+    def _write_atomic(self, table: pa.Table, path: Path, **parquet_options: object) -> Path:
+        return self.write_file(path, lambda tmp: pq.write_table(table, tmp, compression="zstd", **parquet_options))
 
     def write_shard(
         self, table_name: str, shard: int, table: pa.Table, stage: str | None = None,
@@ -155,11 +254,23 @@ class Store:
             raise ValueError(
                 f"a curves file holds one utterance, source and variant; got {ids[:3]}, {sources}, {variants}"
             )
+        path = self.curve_path(sources[0], variants[0], ids[0])  # validates the id before anything else
+        what = f"{ids[0]} ({sources[0]}/{variants[0]})"
+        bad = _first_non_finite(table, [C.TIME_S, *VISEMES])
+        if bad is not None:
+            row, column, value, n_bad = bad
+            frame = table.column(C.FRAME)[row].as_py()
+            raise NonFiniteValueError(
+                f"refusing to write curves of {what}: frame {frame}, column {column} is {value} "
+                f"({n_bad} NaN, infinite or missing values in all); nothing was written to {path}"
+            )
+        if fps is not None and not np.isfinite(fps):
+            raise NonFiniteValueError(f"refusing to write curves of {what}: frame rate {fps} is not finite")
         meta = {PROVENANCE_KEY: provenance.encode()}
         if fps is not None:
             meta[FPS_KEY] = repr(float(fps)).encode()
         table = table.replace_schema_metadata(meta)
-        return self._write_atomic(table, self.curve_path(sources[0], variants[0], ids[0]), **CURVE_FILE_OPTIONS)
+        return self._write_atomic(table, path, **CURVE_FILE_OPTIONS)
 
     def write_tracking_frames(self, table: pa.Table) -> Path:
         """Per-frame tracking diagnostics of one (variant, utterance), replacing what was stored."""
@@ -172,10 +283,7 @@ class Store:
 
     def read_tracking_frames(self, variant: str | None = None, utterance_ids: list[str] | None = None) -> pa.Table:
         """Stored tracking diagnostics (of one variant, some utterances) as one table."""
-        folder = self.root / "tracking_frames"
-        if variant:
-            folder = folder / validate_name(variant, "variant")
-        files = self._files(folder)
+        files = self.tracking_frame_files(variant)
         if not files or utterance_ids == []:
             return TRACKING_FRAMES.empty_table()
         dataset = ds.dataset(files, schema=TRACKING_FRAMES, format="parquet")
@@ -183,8 +291,27 @@ class Store:
         return dataset.to_table(filter=flt)
 
     def write_metrics(self, model: str, run: str, table: pa.Table) -> Path:
-        """The metrics rows of one (model, run), replacing what that run wrote before."""
-        return self._write_atomic(table.cast(METRICS), self.metrics_path(model, run))
+        """The metrics rows of one (model, run), replacing what that run wrote before.
+
+        NaN and infinite values are refused (a missing per-viseme value is null, not NaN).
+        """
+        path = self.metrics_path(model, run)
+        table = table.cast(METRICS)
+        columns = [C.L1, C.L1_X100, *(C.L1_PREFIX + v for v in VISEMES)]
+        values = table.select(columns)
+        # nulls are allowed where the schema allows them: compare only the non-null values
+        for column in columns:
+            col = values.column(column)
+            finite = pc.is_finite(col)
+            if pc.any(pc.invert(pc.fill_null(finite, True))).as_py():
+                row = int(np.flatnonzero(~np.asarray(pc.fill_null(finite, True)))[0])
+                r = table.slice(row, 1).to_pylist()[0]
+                raise NonFiniteValueError(
+                    f"refusing to write metrics of model {model}, run {run}: row {row} (condition "
+                    f"{r[C.CONDITION]}, utterance {r[C.UTTERANCE_ID] or 'all'}, epoch {r[C.EPOCH]}), column "
+                    f"{column} is {r[column]}; nothing was written to {path}"
+                )
+        return self._write_atomic(table, path)
 
     def read_metrics(self, model: str | None = None) -> pa.Table:
         folder = self.root / "metrics"
@@ -224,27 +351,29 @@ class Store:
             return self._write_atomic(new.replace_schema_metadata(old.schema.metadata), path)
 
     def stale_temporary_files(self, min_age_s: float = 3600.0) -> list[Path]:
-        """Temporary files left by killed writers.
+        """Temporary files left by killed writers (names of `visemeflow.atomic`), sorted.
 
         A temporary file is stale when the process that wrote it (its pid is in the name) no longer runs
-        on this machine, or when it is older than `min_age_s` (a pid may have been reused).
+        on this machine, or when it is older than `min_age_s` (a pid may have been reused). Temporary files
+        of older versions, whose names carry no pid, are stale when older than `min_age_s`.
         """
         if not self.root.exists():
             return []
         stale, now = [], time.time()
-        for tmp in self.root.rglob(".*.tmp"):
-            if tmp.parent.name == ".prefect-results":
-                continue
-            try:
-                pid = int(tmp.name.rsplit(".", 3)[-3])
-            except (ValueError, IndexError):
-                continue
-            try:
-                if not _pid_alive(pid) or now - tmp.stat().st_mtime > min_age_s:
-                    stale.append(tmp)
-            except FileNotFoundError:
-                continue
-        return stale
+        for folder, dirs, files in os.walk(self.root):
+            if Path(folder) == self.root:
+                dirs[:] = [d for d in dirs if d != RESULTS_DIR]  # Prefect's own files
+            for name in files:
+                if not name.startswith(".") or not is_temporary_name(name):
+                    continue
+                tmp = Path(folder) / name
+                pid = temporary_writer_pid(name)
+                try:
+                    if (pid is not None and not _pid_alive(pid)) or now - tmp.stat().st_mtime > min_age_s:
+                        stale.append(tmp)
+                except FileNotFoundError:
+                    continue
+        return sorted(stale)
 
     def sweep_temporary_files(self, min_age_s: float = 3600.0) -> int:
         """Remove the stale temporary files (`stale_temporary_files`); returns how many were removed."""
@@ -259,6 +388,56 @@ class Store:
 
     def delete_shard(self, table_name: str, shard: int, stage: str | None = None) -> None:
         self.shard_path(table_name, shard, stage).unlink(missing_ok=True)
+
+    def shards(self, table_name: str, stage: str | None = None) -> list[int]:
+        """Numbers of the stored shard files of a table (of one stage for rejects), sorted."""
+        folder = self.table_dir(table_name, stage)
+        if not folder.is_dir():
+            return []
+        return sorted(int(m[1]) for p in folder.iterdir() if (m := _SHARD_FILE.match(p.name)))
+
+    def delete_shards_except(self, table_name: str, keep: set[int], stage: str | None = None) -> list[int]:
+        """Delete the shard files of a table whose numbers are not in `keep`; returns the deleted numbers."""
+        gone = [shard for shard in self.shards(table_name, stage) if shard not in keep]
+        for shard in gone:
+            self.delete_shard(table_name, shard, stage)
+        return gone
+
+    def replace_stage_rejects(self, stage: str, tables: Mapping[int, pa.Table]) -> list[int]:
+        """Make a stage's rejects exactly `tables` ({shard: rows}); returns the shard numbers deleted.
+
+        The given shards are written first, each atomically, and only then are the stage's other shard files
+        deleted: a run killed in between leaves the stage's rejects readable (old shards not yet deleted, or
+        new ones), never none.
+        """
+        with self.locked(f"rejects-{validate_name(stage, 'stage')}"):
+            for shard, table in sorted(tables.items()):
+                self.write_shard("rejects", shard, table, stage=stage)
+            return self.delete_shards_except("rejects", set(tables), stage)
+
+    def delete_path(self, path: Path) -> None:
+        """Remove a file or folder of the store (what `visemeflow clean` reclaims)."""
+        path = self._inside(path)
+        if path == self.root:
+            raise ValueError(f"refusing to delete the whole store {self.root}")
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+
+    def disk_usage(self, path: Path) -> int:
+        """Bytes of a file of the store, or of every file under a folder of it."""
+        path = self._inside(path)
+        if path.is_file():
+            return path.stat().st_size
+        total = 0
+        for p in path.rglob("*"):
+            try:
+                if p.is_file():
+                    total += p.stat().st_size
+            except FileNotFoundError:
+                continue
+        return total
 
     # ---- reads -------------------------------------------------------------------------------
     def _files(self, folder: Path) -> list[str]:
@@ -275,6 +454,17 @@ class Store:
         dataset = ds.dataset(files, schema=schema, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(pa.array(utterance_ids, pa.string())) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
+
+    def has_shard(self, table_name: str, shard: int, stage: str | None = None) -> bool:
+        return self.shard_path(table_name, shard, stage).is_file()
+
+    def shard_metadata(self, table_name: str, shard: int, stage: str | None = None) -> dict[bytes, bytes] | None:
+        """The file metadata written with a shard (`write_shard(metadata=...)`), or None when there is no shard."""
+        path = self.shard_path(table_name, shard, stage)
+        if not path.is_file():
+            return None
+        with open(path, "rb") as fh:
+            return dict(pq.read_schema(fh).metadata or {})
 
     def read_shard(self, table_name: str, shard: int, stage: str | None = None) -> pa.Table:
         path = self.shard_path(table_name, shard, stage)
@@ -314,6 +504,30 @@ class Store:
             return variants
         return [v for v in variants if self.curve_path(source, v, utterance_id).exists()]
 
+    def curve_sets(self) -> list[tuple[str, str]]:
+        """(source, variant) of every stored set of curves, sorted."""
+        folder = self.root / "curves"
+        if not folder.is_dir():
+            return []
+        return [(src.name, var) for src in sorted(folder.iterdir())
+                if src.is_dir() and not src.name.startswith(".") for var in self.curve_variants(src.name)]
+
+    def curve_ids(self, source: str, variant: str) -> list[str]:
+        """Utterance ids with stored curves of (source, variant), from the file listing (no file is opened)."""
+        return sorted(self.utterance_id_of(f) for f in self.curve_files(source, variant))
+
+    def tracking_variants(self) -> list[str]:
+        folder = self.root / "tracking_frames"
+        return sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")) \
+            if folder.is_dir() else []
+
+    def tracking_frame_files(self, variant: str | None = None) -> list[str]:
+        """Stored tracking-diagnostics files (of one variant), sorted; `utterance_id_of` names their utterance."""
+        folder = self.root / "tracking_frames"
+        if variant:
+            folder = folder / validate_name(variant, "variant")
+        return self._files(folder)
+
     def curve_files(self, source: str | None = None, variant: str | None = None) -> list[str]:
         folder = self.root / "curves"
         if source:
@@ -338,18 +552,19 @@ class Store:
     def write_run_config(self, stage: str, config: dict) -> Path:
         """Remember the settings a stage last ran with (a rerun of one utterance uses them)."""
         path = self.root / "configs" / f"{validate_name(stage, 'stage')}.json"
-        tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_text(json.dumps(config, indent=2, sort_keys=True, default=str))
-            os.replace(tmp, path)
-        except OSError as exc:
-            try:
-                tmp.unlink(missing_ok=True)
-            except OSError:
-                pass  # the folder itself is unusable, so there is no temporary file
-            raise StoreError(exc.errno or 0, f"cannot write {path}: {exc.strerror or exc}") from exc
-        return path
+        return self.write_text(path, json.dumps(config, indent=2, sort_keys=True, default=str))
+
+    def write_text(self, path: Path, text: str) -> Path:
+        """Replace the store file `path` with UTF-8 `text`, atomically."""
+        return self.write_file(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+    def write_report_text(self, name: str, text: str) -> Path:
+        """Replace the report `name` (`robustness.md`, ...) with `text`, atomically."""
+        return self.write_text(self.report_path(name), text)
+
+    def write_report(self, name: str, writer: Callable[[Path], object]) -> Path:
+        """Replace the report `name` with what `writer(path)` writes (a plot; the temporary path keeps the suffix)."""
+        return self.write_file(self.report_path(name), writer, keep_suffix=True)
 
     def read_run_config(self, stage: str) -> dict | None:
         path = self.root / "configs" / f"{validate_name(stage, 'stage')}.json"

@@ -1,8 +1,6 @@
 """Evaluation tasks: augmented copies of the validation audio (shared by every model), and one model's L1 x 100
 on the validation set and on each augmented copy."""
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -37,17 +35,9 @@ def expected_augmented_paths(store: Store, rows: list[dict], condition: str, see
         r[C.UTTERANCE_ID], condition, draw_value(condition, r[C.UTTERANCE_ID], seed, config))) for r in rows]
 
 
-def _write_wav_atomic(path: Path, audio: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        # float samples: a +10 dB copy may exceed [-1, 1] and must reach the model unclipped
-        sf.write(tmp, audio, SAMPLE_RATE, subtype="FLOAT", format="WAV")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def _write_wav(store: Store, path: Path, audio: np.ndarray) -> None:
+    # float samples: a +10 dB copy may exceed [-1, 1] and must reach the model unclipped
+    store.write_file(path, lambda tmp: sf.write(tmp, audio, SAMPLE_RATE, subtype="FLOAT", format="WAV"))
 
 
 @task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="augment[{condition}]")
@@ -60,7 +50,7 @@ def augment_condition(store_root: str, condition: str, seed: int, config: Augmen
         uid = row[C.UTTERANCE_ID]
         aug = augment_utterance(load_audio(row[C.AUDIO_PATH]), SAMPLE_RATE, uid, condition, seed, config)
         path = store.augmented_audio_path(name, aug.utterance_id)
-        _write_wav_atomic(path, aug.audio)
+        _write_wav(store, path, aug.audio)
         out.append({"source_id": uid, "utterance_id": aug.utterance_id, "path": str(path),
                     "time_factor": aug.time_factor, "value": aug.value})
     get_run_logger().info("%s: %d augmented utterances in %s", condition, len(out), name)
@@ -84,13 +74,13 @@ def evaluate_model(
     that the cache is invalidated by a retrained model or changed curves.
     """
     store = Store(store_root)
-    model, config, _ = load_model(store.model_dir(model_name) / "model.pt")
+    model, config, _ = load_model(store.model_path(model_name))
     val = load_examples(store, val_rows, source, variant)
     by_id = {ex.utterance_id: ex for ex in val}
     sets = {"validation": val}
     for condition, items in augmented.items():
         sets[condition] = [
-            Example(item["utterance_id"], sf.read(item["path"], dtype="float32")[0],
+            Example(item["utterance_id"], load_audio(item["path"]),
                     resample_curves(by_id[item["source_id"]].curves, item["time_factor"]), by_id[item["source_id"]].fps)
             for item in items
         ]

@@ -2,8 +2,6 @@
 
 from dataclasses import asdict
 
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from prefect import get_run_logger, task
 from prefect.cache_policies import NONE
 
@@ -57,8 +55,8 @@ def ingest_entries(
 
 def _previous_rows(store: Store, shard: int, config_hash: str) -> dict[str, tuple[str, dict, list[dict]]]:
     """Rows stored for a shard by the same ingest config, by utterance id."""
-    path = store.shard_path("utterances", shard)
-    if not path.exists() or (pq.read_schema(path).metadata or {}).get(CONFIG_KEY, b"").decode() != config_hash:
+    metadata = store.shard_metadata("utterances", shard)
+    if metadata is None or metadata.get(CONFIG_KEY, b"").decode() != config_hash:
         return {}
     utts = store.read_shard("utterances", shard).to_pylist()
     phone_table = store.read_shard("phones", shard)
@@ -106,25 +104,13 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
 
 def shard_files_present(store: Store, shard: int) -> bool:
     """Whether all outputs of an ingest shard are in the store (else its cache entry is stale)."""
-    return all(p.exists() for p in (
-        store.shard_path("utterances", shard), store.shard_path("phones", shard),
-        store.shard_path("rejects", shard, STAGE),
-    ))
+    return (store.has_shard("utterances", shard) and store.has_shard("phones", shard)
+            and store.has_shard("rejects", shard, STAGE))
 
 
 def remove_stale_shards(store: Store, live: set[int]) -> int:
     """Delete shard files of shards that no longer hold any utterance; returns how many shards went."""
-    removed = set()
+    removed: set[int] = set()
     for table, stage in (("utterances", None), ("phones", None), ("rejects", STAGE)):
-        folder = store.table_dir(table, stage)
-        for path in folder.glob("shard-*.parquet") if folder.exists() else ():
-            shard = int(path.stem.split("-")[1])
-            if shard not in live:
-                path.unlink()
-                removed.add(shard)
+        removed.update(store.delete_shards_except(table, live, stage))
     return len(removed)
-
-
-def rejected_ids(store: Store, stage: str) -> set[str]:
-    table = store.read_table("rejects", stage)
-    return set(pc.unique(table.column(C.UTTERANCE_ID)).to_pylist()) - {None}

@@ -50,8 +50,7 @@ def generate_for_utterance(
     else:
         fps, n_frames = config.fps, frame_count(utterance[C.DURATION_S], config.fps)
     curves = generate_procedural_curves(segments_from_phones(phones), n_frames, fps, config)
-    if not np.isfinite(curves).all():
-        raise FloatingPointError(f"{uid}: procedural curves are not finite")
+    # NaN or infinite curves are refused by the store (NonFiniteValueError, a reject of this utterance)
     store.write_curves(
         curves_table(uid, SOURCE, variant, curves, fps),
         provenance=provenance(utterance[C.CONTENT_HASH], config), fps=fps,

@@ -1,0 +1,227 @@
+"""Atomic writes (`visemeflow.atomic`): concurrent writers of one file, killed writers, failing writers."""
+
+import os
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from factories import write_wav
+
+from visemeflow.atomic import (
+    atomic_path,
+    atomic_write,
+    atomic_write_text,
+    is_temporary_name,
+    temporary_path,
+    temporary_writer_pid,
+)
+from visemeflow.ops.clean import clean, reclaimable
+from visemeflow.storage import Store
+
+
+def hidden_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.rglob(".*") if p.is_file())
+
+
+def test_temporary_names_are_unique_and_recognised(tmp_path):
+    target = tmp_path / "reports" / "sweep-a.png"
+    names = {temporary_path(target).name for _ in range(200)}
+    assert len(names) == 200
+    name = temporary_path(target, keep_suffix=True).name
+    assert name.startswith(".sweep-a.png.") and name.endswith(".tmp.png")
+    assert temporary_writer_pid(name) == os.getpid() and is_temporary_name(name)
+    assert temporary_writer_pid(temporary_path(tmp_path / "x.parquet").name) == os.getpid()
+    for legacy in (".robustness.md.tmp", ".last.pt.k2j4_x9a.tmp", ".u1.4242.tmp.mp4"):
+        assert is_temporary_name(legacy) and temporary_writer_pid(legacy) is None
+    for data in ("u1.parquet", "tmp.parquet", ".locks", "model.pt"):
+        assert not is_temporary_name(data)
+
+
+def test_threads_writing_one_file_never_collide_or_corrupt(tmp_path):
+    path = tmp_path / "reports" / "robustness.md"
+    versions = {k: (f"version {k}\n" * (2000 + 500 * k)) for k in range(6)}
+    errors, stop = [], threading.Event()
+
+    def writer(k: int) -> None:
+        try:
+            for _ in range(30):
+                atomic_write_text(path, versions[k])
+        except Exception as exc:  # noqa: BLE001 - any failure of a writer fails the test
+            errors.append(exc)
+
+    def reader() -> None:
+        while not stop.is_set():
+            if path.exists():
+                text = path.read_text()
+                if text not in versions.values():
+                    errors.append(AssertionError(f"a reader saw a mixed file of {len(text)} characters"))
+
+    threads = [threading.Thread(target=writer, args=(k,)) for k in versions]
+    watch = threading.Thread(target=reader)
+    watch.start()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    stop.set()
+    watch.join()
+    assert errors == []
+    assert path.read_text() in versions.values()
+    assert hidden_files(tmp_path) == []  # every temporary file became the target or was removed
+
+
+def test_threads_writing_one_video_never_collide(tmp_path):
+    """`write_video` from two threads of one process (same pid): each write is whole, none fails."""
+    from visemeflow.tracking.video import probe_video, write_video
+
+    path = tmp_path / "out" / "clip.avi"
+    errors = []
+
+    def writer(value: int) -> None:
+        frames = [np.full((32, 32, 3), value, np.uint8) for _ in range(12)]
+        try:
+            for _ in range(4):
+                write_video(path, frames, 25.0)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(v,)) for v in (40, 200)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert probe_video(path).n_frames == 12
+    assert hidden_files(tmp_path) == []
+
+
+def test_store_threads_writing_one_report(tmp_path):
+    store = Store(tmp_path)
+    errors = []
+
+    def writer(k: int) -> None:
+        try:
+            for _ in range(20):
+                store.write_report_text("robustness.csv", f"{k}\n" * 5000)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert len(set(store.report_path("robustness.csv").read_text().split())) == 1
+    assert store.report_files() == [store.report_path("robustness.csv")]
+
+
+@pytest.mark.parametrize("exc", [OSError(28, "No space left on device"), ValueError("bad data"), KeyboardInterrupt()])
+def test_a_failing_writer_leaves_the_previous_file(tmp_path, exc):
+    path = tmp_path / "a" / "model.pt"
+    atomic_write_text(path, "old")
+
+    def half(tmp: Path) -> None:
+        tmp.write_text("new but only ha")
+        raise exc
+
+    with pytest.raises(type(exc)):
+        atomic_write(path, half)
+    with pytest.raises(type(exc)), atomic_path(path, keep_suffix=True) as tmp:
+        tmp.write_text("new")
+        raise exc
+    assert path.read_text() == "old"
+    assert hidden_files(tmp_path) == []
+
+
+def test_a_failing_store_write_leaves_the_previous_report(tmp_path):
+    store = Store(tmp_path)
+    store.write_report_text("robustness.md", "old")
+
+    def half(tmp: Path) -> None:
+        tmp.write_bytes(b"\x89PNG half")
+        raise OSError(28, "No space left on device")
+
+    from visemeflow.storage import StoreError
+
+    with pytest.raises(StoreError, match="disk full"):
+        store.write_report("robustness.md", half)
+    assert store.report_path("robustness.md").read_text() == "old"
+    assert hidden_files(tmp_path) == []
+
+
+# ---- killed writers ------------------------------------------------------------------------------
+
+_KILLED_CHECKPOINT = """
+import os, torch
+from pathlib import Path
+from visemeflow.learning import train
+
+def dying_save(obj, f, *a, **k):
+    Path(f).write_bytes(b"half a checkpoint")
+    os._exit(9)
+
+torch.save = dying_save
+train._atomic_torch_save({"w": 1}, Path(STORE) / "models" / "m" / "checkpoints" / "last.pt")
+"""
+
+_KILLED_AUGMENTED_AUDIO = """
+import os
+from pathlib import Path
+import soundfile
+from visemeflow.learning.augment import AugmentConfig
+from visemeflow.tasks.evaluate import augment_condition
+
+def dying_write(file, *a, **k):
+    Path(file).write_bytes(b"RIFF half a wav")
+    os._exit(9)
+
+soundfile.write = dying_write
+augment_condition.fn(STORE, "volume", 0, AugmentConfig(), [{"utterance_id": "spk/u1", "audio_path": AUDIO}])
+"""
+
+
+@pytest.mark.parametrize("script", [_KILLED_CHECKPOINT, _KILLED_AUGMENTED_AUDIO], ids=["checkpoint", "augmented"])
+def test_a_killed_writers_leftover_is_found_by_clean_temporary(tmp_path, script):
+    store_root = (tmp_path / "store").resolve()
+    audio = write_wav(tmp_path / "u1.wav", 0.5)
+    code = f"STORE = {str(store_root)!r}\nAUDIO = {str(audio)!r}\n" + textwrap.dedent(script)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 9, proc.stderr
+    left = [p for p in store_root.rglob("*") if p.is_file()]
+    assert len(left) == 1 and left[0].name.startswith("."), left  # only the dead writer's temporary file
+
+    store = Store(store_root)
+    assert store.stale_temporary_files() == left
+    (temporary,) = [item for item in reclaimable(store) if item.kind == "temporary"]
+    assert temporary.paths == left and temporary.n_bytes == left[0].stat().st_size
+    clean(store, ["temporary"])
+    assert not left[0].exists()
+
+
+def test_clean_temporary_finds_suffixed_and_legacy_leftovers_but_not_live_ones(tmp_path):
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    store = Store(tmp_path)
+    files = {
+        "reports/.sweep-a.png.%d.0a1b2c3d.tmp.png" % dead.pid: True,             # dead writer, suffix kept
+        "augmented/volume-s0/spk/.u1.wav.%d.0a1b2c3d.tmp" % dead.pid: True,      # dead writer
+        "reports/.robustness.md.tmp": True,                                     # an old fixed name, old
+        "models/m/.model.pt.k2j4_x9a.tmp": True,                                # tempfile's name, old
+        "reports/.robustness.csv.%d.0a1b2c3d.tmp" % os.getpid(): False,          # a live writer (this one)
+        "reports/.fresh.md.tmp": False,                                         # no pid and young: maybe live
+        "reports/robustness.md": False,                                         # data
+    }
+    old = time.time() - 2 * 3600
+    for rel in files:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x")
+        if rel.endswith(("robustness.md.tmp", "k2j4_x9a.tmp")):
+            os.utime(tmp_path / rel, (old, old))
+    found = {str(p.relative_to(tmp_path.resolve())) for p in store.stale_temporary_files()}
+    assert found == {rel for rel, stale in files.items() if stale}
