@@ -310,7 +310,7 @@ def test_manifest_path_outside_corpus(tmp_path):
 
 def test_invalid_utterance_id(tmp_path):
     make_corpus(tmp_path, {"good/a": HELLO})
-    bad = tmp_path / "bad speaker"
+    bad = tmp_path / "bad\\speaker"  # a backslash: a path separator on Windows
     bad.mkdir()
     write_wav(bad / "a.wav", 1.0)
     (bad / "a.TextGrid").write_text(textgrid_long([(0.0, 1.0, "AA1")], 1.0))
@@ -318,13 +318,13 @@ def test_invalid_utterance_id(tmp_path):
     assert [e.utterance_id for e in found.entries] == ["good/a"]
     (reject,) = found.rejects
     assert reject.error_type == "InvalidId"
-    assert "bad speaker/a" in reject.message
+    assert "bad\\\\speaker/a" in reject.message and "backslash" in reject.message
     assert reject.path.startswith(str(bad)) and reject.path in reject.message
     # in a manifest too
-    manifest = write_manifest(tmp_path / "m.csv", [{"utterance_id": "a b/c", "audio": "good/a.wav",
+    manifest = write_manifest(tmp_path / "m.csv", [{"utterance_id": "a/b/c", "audio": "good/a.wav",
                                                      "alignment": "good/a.TextGrid"}])
     (reject,) = discover_corpus(manifest).rejects
-    assert reject.error_type == "InvalidId" and "a b/c" in reject.message and str(manifest) in reject.message
+    assert reject.error_type == "InvalidId" and "a/b/c" in reject.message and str(manifest) in reject.message
 
 
 def test_wav_without_textgrid(tmp_path):
@@ -525,3 +525,129 @@ def test_video_shorter_than_alignment(tmp_path):
         ingest_utterance(entry, CONFIG)
     assert err.value.error_type == "VideoShorterThanAlignment"
     assert_names(err.value, "spk/u1", video)
+
+
+# ---- ids in any script, links leaving the corpus, non-finite audio -------------------------------
+
+UNICODE_SPEAKERS = {"Speaker One/take 1": HELLO, "Sprecher_ü/Äpfel": HELLO, "张三/一": HELLO}
+
+
+def test_speakers_named_in_any_script_are_discovered(tmp_path):
+    make_corpus(tmp_path, UNICODE_SPEAKERS)
+    found = discover_corpus(tmp_path)
+    assert found.rejects == ()
+    assert sorted(e.utterance_id for e in found.entries) == sorted(UNICODE_SPEAKERS)
+    assert entry_of(tmp_path, "张三/一").audio_path == str((tmp_path / "张三" / "一.wav").resolve())
+    for uid in UNICODE_SPEAKERS:
+        result = ingest_utterance(entry_of(tmp_path, uid), CONFIG)
+        assert result.utterance[C.UTTERANCE_ID] == uid and result.utterance[C.SPEAKER] == uid.split("/")[0]
+
+
+def test_decomposed_folder_names_give_nfc_ids(tmp_path):
+    """A folder named on macOS arrives decomposed (u + combining diaeresis): its id is the composed form."""
+    make_corpus(tmp_path, {"Sprecher_u\u0308/a": HELLO})
+    (entry,) = discover_corpus(tmp_path).entries
+    assert entry.utterance_id == "Sprecher_\u00fc/a"
+    assert entry_of(tmp_path, "Sprecher_\u00fc/a").audio_path == entry.audio_path
+
+
+def test_a_symlink_leaving_the_corpus_is_a_reject(tmp_path):
+    outside = make_corpus(tmp_path / "elsewhere", {"x/secret": HELLO})
+    root = make_corpus(tmp_path / "corpus", {"s/a": HELLO})
+    (root / "s" / "b.wav").symlink_to(outside / "x" / "secret.wav")
+    (root / "s" / "b.TextGrid").write_text((root / "s" / "a.TextGrid").read_text())
+    (root / "s" / "c.wav").symlink_to(root / "s" / "a.wav")  # a link inside the corpus is fine
+    (root / "s" / "c.TextGrid").write_text((root / "s" / "a.TextGrid").read_text())
+    (root / "linked").symlink_to(outside / "x", target_is_directory=True)  # a whole speaker outside
+    found = discover_corpus(root)
+    assert [e.utterance_id for e in found.entries] == ["s/a", "s/c"]
+    by_id = {r.utterance_id: r for r in found.rejects}
+    assert sorted(by_id) == ["linked/secret", "s/b"]
+    b = by_id["s/b"]
+    assert b.error_type == "PathOutsideCorpus" and b.path == str(root / "s" / "b.wav")
+    assert str(root / "s" / "b.wav") in b.message and "outside the corpus" in b.message
+    assert by_id["linked/secret"].error_type == "PathOutsideCorpus"
+    assert discover_corpus(root, only="s/b").entries == ()
+
+
+def _float_wav(path: Path, seconds: float, bad: dict[int, float], rate: int = 16000, channels: int = 1) -> Path:
+    import soundfile as sf
+
+    n = int(round(seconds * rate))
+    samples = 0.05 * np.sin(2 * np.pi * 220.0 * np.arange(n) / rate)
+    samples = np.repeat(samples[:, None], channels, axis=1)
+    for index, value in bad.items():
+        samples[index, channels - 1] = value
+    sf.write(path, samples, rate, subtype="FLOAT")
+    return path
+
+
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf])
+def test_float_audio_with_nan_or_inf_is_a_reject_naming_the_samples(tmp_path, bad_value):
+    make_corpus(tmp_path, {"s/bad": HELLO, "s/good": HELLO})
+    wav = _float_wav(tmp_path / "s" / "bad.wav", 1.0, {1000: bad_value, 1200: bad_value, 1499: bad_value}, channels=2)
+    _float_wav(tmp_path / "s" / "good.wav", 1.0, {})  # float audio without a bad sample is fine
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/bad"), CONFIG)
+    message = assert_names(info.value, "s/bad", wav.resolve())
+    assert info.value.error_type == "NonFiniteAudio"
+    assert "samples 1000..1499" in message and "0.062..0.094 s" in message and "3 samples" in message
+    assert ingest_utterance(entry_of(tmp_path, "s/good"), CONFIG).utterance[C.DURATION_S] == 1.0
+
+
+def test_integer_audio_is_not_decoded_for_the_finiteness_check(tmp_path, monkeypatch):
+    import soundfile as sf
+
+    from visemeflow.ingest.audio import check_audio_file_finite
+
+    make_corpus(tmp_path, {"s/pcm": HELLO})
+    monkeypatch.setattr(sf, "blocks", lambda *a, **k: pytest.fail("integer PCM was decoded"))
+    assert check_audio_file_finite(tmp_path / "s" / "pcm.wav") is False
+    ingest_utterance(entry_of(tmp_path, "s/pcm"), CONFIG)
+
+
+def test_audio_loading_for_training_and_prediction_refuses_nan(tmp_path):
+    """The one audio reader (training, evaluation, prediction) refuses NaN samples with the same clear error."""
+    from visemeflow.ingest.audio import NonFiniteAudioError, read_audio
+    from visemeflow.tasks.train import load_audio
+
+    wav = _float_wav(tmp_path / "bad.wav", 0.5, {2000: np.nan}, rate=8000)
+    for load in (load_audio, lambda p: read_audio(p)[0]):
+        with pytest.raises(NonFiniteAudioError) as info:
+            load(str(wav))
+        assert str(wav) in str(info.value) and "samples 2000..2000 (0.250..0.250 s)" in str(info.value)
+        assert isinstance(info.value, ValueError) and pickle.loads(pickle.dumps(info.value)).path == str(wav)
+    good = write_wav(tmp_path / "good.wav", 0.5, rate=8000)
+    assert load_audio(str(good)).shape == (8000,)  # resampled to 16 kHz
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
+    """Speakers 'Speaker One', 'Sprecher_ü', '张三' ingest; their curves are written and read back by id; a NaN
+    float WAV and a link leaving the corpus are rejects with clear messages while the rest goes on."""
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, ProceduralParams
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.storage import Store
+
+    corpus = make_corpus(tmp_path / "corpus", {**UNICODE_SPEAKERS, "s/nan": HELLO, "s/link": HELLO})
+    _float_wav(corpus / "s" / "nan.wav", 1.0, {8000: np.nan})
+    outside = write_wav(tmp_path / "outside.wav", 1.0)
+    (corpus / "s" / "link.wav").unlink()
+    (corpus / "s" / "link.wav").symlink_to(outside)
+    store_root = tmp_path / "store"
+    ingest_flow(IngestParams(corpus=corpus, store=store_root, n_shards=2))
+    procedural_flow(ProceduralParams(store=store_root, n_shards=2))
+
+    store = Store(store_root)
+    assert sorted(store.read_table("utterances").column(C.UTTERANCE_ID).to_pylist()) == sorted(UNICODE_SPEAKERS)
+    assert store.curve_ids("procedural", "jali") == sorted(UNICODE_SPEAKERS)
+    for uid in UNICODE_SPEAKERS:
+        curves = store.read_curves(uid, "procedural", "jali")
+        assert set(curves.column(C.UTTERANCE_ID).to_pylist()) == {uid} and curves.num_rows == 30
+    rejects = {r[C.UTTERANCE_ID]: r for r in store.read_table("rejects").to_pylist()}
+    assert sorted(rejects) == ["s/link", "s/nan"]
+    assert rejects["s/nan"][C.ERROR_TYPE] == "NonFiniteAudio" and "samples 8000..8000" in rejects["s/nan"][C.MESSAGE]
+    assert rejects["s/link"][C.ERROR_TYPE] == "PathOutsideCorpus"
+    assert str(corpus / "s" / "link.wav") in rejects["s/link"][C.MESSAGE]

@@ -1,15 +1,20 @@
-"""Find the utterances of a corpus: a folder `<speaker>/<name>.wav` + alignment, or a manifest CSV."""
+"""Find the utterances of a corpus: a folder `<speaker>/<name>.wav` + alignment, or a manifest CSV.
+
+Utterance ids are `<speaker folder>/<file stem>` (or the manifest's `utterance_id`), NFC-normalised, in any
+script (`Speaker One/take 1`, `张三/一`; rules in `schemas.ids`). Nothing outside the corpus folder is read:
+a manifest path that leaves its folder and a symlink that points outside the corpus are rejects naming the file.
+"""
 
 import csv
-import hashlib
+import unicodedata
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from visemeflow.schemas import InvalidIdError, validate_utterance_id
+from visemeflow.hashing import files_hash
+from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS
+from visemeflow.schemas import InvalidIdError, make_utterance_id, normalize_utterance_id
 
-AUDIO_EXTS = (".wav", ".flac", ".ogg")
 ALIGNMENT_EXTS = (".TextGrid", ".textgrid", ".align")
-VIDEO_EXTS = (".mp4", ".avi", ".mpg", ".mov")
 LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet", ".mediapipe478.csv", ".openface.csv")
 MANIFEST_COLUMNS = ("utterance_id", "audio", "alignment", "video", "landmarks", "language", "split")
 
@@ -50,19 +55,6 @@ class Discovery:
     rejects: tuple[DiscoveryReject, ...] = field(default_factory=tuple)
 
 
-def hash_files(paths: list[str | None]) -> str:
-    """blake2b of the bytes of the given files (None entries count as absent), as hex."""
-    h = hashlib.blake2b(digest_size=16)
-    for p in paths:
-        h.update(b"\0" if p is None else b"\1")
-        if p is not None:
-            with open(p, "rb") as fh:
-                while chunk := fh.read(1 << 20):
-                    h.update(chunk)
-            h.update(b"\0")
-    return h.hexdigest()
-
-
 def _inside(path: Path, root: Path) -> bool:
     try:
         path.resolve().relative_to(root.resolve())
@@ -80,7 +72,7 @@ def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
     if not corpus.exists():
         raise FileNotFoundError(f"corpus {corpus} does not exist")
     if only is not None:
-        validate_utterance_id(only)
+        only = normalize_utterance_id(only)
     if corpus.is_file():
         return _discover_manifest(corpus, only)
     manifest = corpus / "manifest.csv"
@@ -90,7 +82,7 @@ def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
 
 
 def _with_hash(entry: CorpusEntry) -> CorpusEntry:
-    digest = hash_files([entry.audio_path, entry.alignment_path, entry.video_path, entry.landmark_path])
+    digest = files_hash([entry.audio_path, entry.alignment_path, entry.video_path, entry.landmark_path])
     return replace(entry, content_hash=digest)
 
 
@@ -103,38 +95,50 @@ def _priority(filename: str) -> int:
     return 0
 
 
+def _nfc(name: str) -> str:
+    return unicodedata.normalize("NFC", name)
+
+
 def _discover_folder(root: Path, only: str | None = None) -> Discovery:
     entries: list[CorpusEntry] = []
     rejects: list[DiscoveryReject] = []
+    real_root = root.resolve()
+    speaker_dirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     if only is not None:
         speaker, name = only.split("/")
-        speaker_dirs = [root / speaker] if (root / speaker).is_dir() else []
-    else:
-        speaker_dirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        # compared NFC-normalised: a folder name may be stored decomposed (macOS) yet is the same speaker
+        speaker_dirs = [p for p in speaker_dirs if _nfc(p.name) == speaker]
     for speaker_dir in speaker_dirs:
         files = {p.name: p for p in speaker_dir.iterdir() if p.is_file()}
         if only is not None:
-            files = {n: p for n, p in files.items() if n.startswith(name + ".")}
+            files = {n: p for n, p in files.items() if _nfc(n).startswith(name + ".")}
         stems: dict[str, dict[str, Path]] = {}
         # Sorted by extension priority, highest last, so the choice does not depend on listing order:
         # a TextGrid wins over an .align, a .wav over a .flac, and so on.
-        for name, path in sorted(files.items(), key=lambda item: _priority(item[0])):
+        for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
             for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
                 for ext in exts:
-                    if name.endswith(ext):
-                        stems.setdefault(name[: -len(ext)], {})[kind] = path
+                    if filename.endswith(ext):
+                        stems.setdefault(filename[: -len(ext)], {})[kind] = path
             for suffix in LANDMARK_SUFFIXES:
-                if name.endswith(suffix):
-                    stems.setdefault(name[: -len(suffix)], {})["landmarks"] = path
+                if filename.endswith(suffix):
+                    stems.setdefault(filename[: -len(suffix)], {})["landmarks"] = path
         for stem, kinds in sorted(stems.items()):
-            utterance_id = f"{speaker_dir.name}/{stem}"
-            if only is not None and utterance_id != only:
-                continue
             any_path = str(next(iter(kinds.values())))
             try:
-                validate_utterance_id(utterance_id)
+                utterance_id = make_utterance_id(speaker_dir.name, stem)
             except InvalidIdError as exc:
-                rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}", any_path))
+                if only is None:
+                    rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}", any_path))
+                continue
+            if only is not None and utterance_id != only:
+                continue
+            outside = next((p for p in kinds.values() if not _inside(p, real_root)), None)
+            if outside is not None:
+                rejects.append(DiscoveryReject(
+                    utterance_id, "PathOutsideCorpus",
+                    f"{utterance_id}: {outside} is a link to {outside.resolve()}, outside the corpus folder "
+                    f"{real_root}; copy the file into the corpus", str(outside)))
                 continue
             if "alignment" not in kinds:
                 rejects.append(DiscoveryReject(utterance_id, "MissingAlignment",
@@ -169,12 +173,13 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
         for lineno, row in enumerate(reader, start=2):
             where = f"{manifest}:{lineno}"
             utterance_id = (row.get("utterance_id") or "").strip()
-            if only is not None and utterance_id != only:
-                continue
             try:
-                validate_utterance_id(utterance_id)
+                utterance_id = normalize_utterance_id(utterance_id)
             except InvalidIdError as exc:
-                rejects.append(DiscoveryReject(None, "InvalidId", f"{where}: {exc}", str(manifest)))
+                if only is None:
+                    rejects.append(DiscoveryReject(None, "InvalidId", f"{where}: {exc}", str(manifest)))
+                continue
+            if only is not None and utterance_id != only:
                 continue
             if utterance_id in seen:
                 rejects.append(DiscoveryReject(utterance_id, "DuplicateId", f"{where}: {utterance_id} listed twice", str(manifest)))

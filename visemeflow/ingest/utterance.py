@@ -1,4 +1,8 @@
-"""Ingest one utterance: read its alignment and audio header, check them, map phones to visemes."""
+"""Ingest one utterance: read its alignment and audio header, check them, map phones to visemes.
+
+Audio samples are read only where they can be NaN or infinite (float WAV files, float PCM audio tracks of
+videos; see `ingest.audio`): such audio is a reject naming the file and the bad sample range.
+"""
 
 import math
 import zlib
@@ -7,6 +11,7 @@ from pathlib import Path
 
 import soundfile as sf
 
+from visemeflow.ingest.audio import AudioError, check_audio_file_finite, read_audio
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import CorpusEntry
 from visemeflow.phonetics.inventory import (
@@ -113,13 +118,26 @@ def check_intervals(entry: CorpusEntry, alignment: Alignment) -> None:
         raise IngestError(entry.utterance_id, entry.alignment_path, "EmptyAlignment", "the phone tier has no intervals")
 
 
+def _float_pcm_codec(codec: str | None) -> bool:
+    """Whether an audio codec stores IEEE float samples (pcm_f32le, pcm_f64be, ...), which can be NaN."""
+    return bool(codec) and codec.startswith("pcm_f")
+
+
 def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
-    """(sample rate, duration in seconds) from the audio header (or the video's audio track)."""
+    """(sample rate, duration in seconds) from the audio header (or the video's audio track).
+
+    Float audio is read whole to check that every sample is finite (integer audio cannot be anything else).
+    """
     if entry.video_path is not None and entry.audio_path == entry.video_path:
         info = read_video_info(entry)
         if not info.has_audio or not info.audio_rate:
             raise IngestError(entry.utterance_id, entry.video_path, "MissingAudio",
                               "no audio file beside the video and no audio track in it")
+        if _float_pcm_codec(info.audio_codec):
+            try:
+                read_audio(entry.video_path)
+            except AudioError as exc:
+                raise IngestError(entry.utterance_id, exc.path, exc.error_type, exc.reason) from exc
         return int(info.audio_rate), float(info.container_duration_s or info.duration_s)
     try:
         info = sf.info(entry.audio_path)
@@ -127,6 +145,12 @@ def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
         raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
     if info.frames <= 0 or info.samplerate <= 0:
         raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples")
+    try:
+        check_audio_file_finite(entry.audio_path, info)
+    except AudioError as exc:
+        raise IngestError(entry.utterance_id, exc.path, exc.error_type, exc.reason) from exc
+    except (RuntimeError, OSError) as exc:
+        raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
     return int(info.samplerate), info.frames / info.samplerate
 
 

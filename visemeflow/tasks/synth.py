@@ -7,7 +7,9 @@ from pathlib import Path
 import soundfile as sf
 from prefect import get_run_logger, task
 
+from visemeflow.atomic import atomic_write, atomic_write_text
 from visemeflow.hashing import stable_hash
+from visemeflow.ingest.audio import read_audio
 from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_rig
@@ -30,12 +32,6 @@ def truth_variant(config: SynthConfig) -> str:
     return name
 
 
-def _atomic_json(path: Path, data: object) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    tmp.replace(path)
-
-
 @task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="synth[{entry[utterance_id]}]", retries=0)
 def synth_utterance(
     entry: dict, out_root: str, rig_path: str, rig_hash: str, config: SynthConfig, store_root: str
@@ -51,19 +47,18 @@ def synth_utterance(
     rig = load_rig(rig_path)
     take = make_take(rig, segments, n_frames, source.speaker, source.utterance_id, config)
 
+    # The output is a corpus: its folders are the id's speaker and name as they are (not store paths).
     speaker, name = split_utterance_id(source.utterance_id)
     folder = Path(out_root) / speaker
     folder.mkdir(parents=True, exist_ok=True)
     alignment = folder / (name + Path(source.alignment_path).suffix)
     audio = folder / f"{name}.wav"
-    shutil.copyfile(source.alignment_path, alignment)
-    samples, rate = sf.read(source.audio_path, dtype="float32", always_2d=False)
-    if samples.ndim > 1:
-        samples = samples.mean(axis=1)
-    sf.write(audio, samples, rate, subtype="PCM_16")
+    atomic_write(alignment, lambda tmp: shutil.copyfile(source.alignment_path, tmp))
+    samples, rate = read_audio(source.audio_path)
+    atomic_write(audio, lambda tmp: sf.write(tmp, samples, rate, subtype="PCM_16", format="WAV"))
     video = write_video(folder / f"{name}.{config.video_ext}", render_take(rig, take), config.fps, samples, rate)
     landmarks = write_landmarks(take.landmarks, folder / f"{name}.landmarks.parquet")
-    _atomic_json(folder / f"{name}.camera.json", camera_record(take))
+    atomic_write_text(folder / f"{name}.camera.json", json.dumps(camera_record(take), indent=1))
 
     variant = truth_variant(config)
     Store(store_root).write_curves(

@@ -1,13 +1,16 @@
 """Training task: one audio-to-curves model trained on curves and audio from the store."""
 
+import math
+
 import numpy as np
 import pyarrow as pa
-import soundfile as sf
 from prefect import get_run_logger, task
 from prefect.artifacts import create_table_artifact
 
+from visemeflow.ingest.audio import read_audio
 from visemeflow.learning.features import resample_audio
 from visemeflow.learning.train import (
+    SAMPLE_RATE,
     EpochReport,
     Example,
     TrainConfig,
@@ -20,15 +23,12 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, result_storage
 from visemeflow.visemes import VISEMES
 
-SAMPLE_RATE = 16000
-
-
 def load_audio(path: str) -> np.ndarray:
-    """Mono 16 kHz float32 audio of an audio file or of a video's audio track."""
-    if path.endswith((".mp4", ".mpg", ".avi", ".mov")):
-        audio, rate = _video_audio(path)
-    else:
-        audio, rate = sf.read(path, dtype="float32", always_2d=False)
+    """Mono 16 kHz float32 audio of an audio file or of a video's audio track (`ingest.audio.read_audio`).
+
+    Raises `ingest.audio.NonFiniteAudioError` (naming the file and the bad samples) for NaN or infinite samples.
+    """
+    audio, rate = read_audio(path)
     return resample_audio(audio, rate, SAMPLE_RATE)
 
 
@@ -41,12 +41,6 @@ def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> 
         fps = float(len(table) - 1) / float(table.column(C.TIME_S)[-1].as_py()) if len(table) > 1 else float(row[C.FPS])
         examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves_array(table), round(fps, 6)))
     return examples
-
-
-def _video_audio(path: str) -> tuple[np.ndarray, int]:
-    from visemeflow.tracking.video import read_video_audio
-
-    return read_video_audio(path)
 
 
 def metrics_rows(run: str, model: str, condition: str, overall: float, per_utterance: dict[str, float],
@@ -73,7 +67,6 @@ def train_model_task(
     logger = get_run_logger()
     train = load_examples(store, train_rows, source, variant)
     val = load_examples(store, val_rows, source, variant)
-    folder = store.model_dir(model_name)
     history: list[EpochReport] = []
 
     def report(epoch: EpochReport) -> None:
@@ -81,14 +74,18 @@ def train_model_task(
         logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %.3f, %.0f frames/s", model_name, epoch.epoch,
                     epoch.train_l1_x100, epoch.val_l1_x100, epoch.frames_per_s)
 
-    result = train_model(train, val, config, checkpoint_dir=folder / "checkpoints", on_epoch=report)
-    save_model(result.model, config, folder / "model.pt", lineage)
+    result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report)
+    model_path = save_model(result.model, config, store.model_path(model_name), lineage)
+    # Validation metrics exist only with a validation set: no rows rather than NaN rows (the store refuses NaN).
     rows = []
     for epoch in result.history:
-        rows.append({C.RUN: "train", C.MODEL: model_name, C.CONDITION: "validation", C.UTTERANCE_ID: None,
-                     C.EPOCH: epoch.epoch, C.L1: epoch.val_l1_x100 / 100.0, C.L1_X100: epoch.val_l1_x100})
-    overall, per_utt, per_vis = evaluate(result.model, val) if val else (float("nan"), {}, np.full(16, np.nan))
-    rows += metrics_rows("final", model_name, "validation", overall, per_utt, per_vis)
+        if epoch.val_l1_x100 is not None and math.isfinite(epoch.val_l1_x100):
+            rows.append({C.RUN: "train", C.MODEL: model_name, C.CONDITION: "validation", C.UTTERANCE_ID: None,
+                         C.EPOCH: epoch.epoch, C.L1: epoch.val_l1_x100 / 100.0, C.L1_X100: epoch.val_l1_x100})
+    overall = float("nan")
+    if val:
+        overall, per_utt, per_vis = evaluate(result.model, val)
+        rows += metrics_rows("final", model_name, "validation", overall, per_utt, per_vis)
     store.write_metrics(model_name, "train", pa.Table.from_pylist(rows, schema=METRICS))
     create_table_artifact(
         key=f"loss-curve-{model_name.lower().replace('_', '-').replace('.', '-')}",
@@ -97,12 +94,12 @@ def train_model_task(
         description=f"{model_name}: L1 x 100 per epoch",
     )
     return {"model": model_name, "epochs": len(result.history), "val_l1_x100": overall,
-            "train": len(train), "val": len(val), "path": str(folder / "model.pt")}
+            "train": len(train), "val": len(val), "path": str(model_path)}
 
 
 def training_task_for(store: Store, model_name: str):
     """`train_model_task` with the store's result storage; recomputed when the model file is missing from the store."""
     return train_model_task.with_options(
         result_storage=result_storage(store.root),
-        refresh_cache=not (store.model_dir(model_name) / "model.pt").exists(),
+        refresh_cache=not store.has_model(model_name),
     )
