@@ -2,6 +2,7 @@
 
 import hashlib
 import math
+import re
 
 import numpy as np
 import pytest
@@ -96,6 +97,58 @@ def test_robustness_table_pivots_groups_and_ratios():
     assert len(csv) == 4
 
 
+def _dashboard_view(table):
+    """What the dashboard shows: models in order and their non-missing cells."""
+    return table.models, {k: round(v, 9) for k, v in table.values.items()}
+
+
+def _report_view(table):
+    cells = {(r["model"], c): round(r[c], 9) for r in table for c in r
+             if c in ("validation", *CONDITIONS, "reverb") and not math.isnan(r[c])}
+    return [r["model"] for r in table], cells
+
+
+def test_report_and_dashboard_build_one_table_from_the_same_rows():
+    """Duplicate aggregate cells (two evaluations of a model gathered together), per-utterance rows, training rows
+    and an unknown condition: the evaluate report and the dashboard used to differ (the dashboard averaged the
+    duplicates, sorted models by name and kept training rows out by run only); now both are the same table."""
+    import pyarrow as pa
+
+    from visemeflow.dashboards.html import robustness_table as dashboard_table
+    from visemeflow.schemas import METRICS
+
+    def row(run, model, condition, value, uid=None, epoch=None):
+        return {"run": run, "model": model, "condition": condition, "utterance_id": uid, "epoch": epoch,
+                "l1": value / 100, "l1_x100": value}
+
+    rows = [row("evaluate", "zeta", "validation", 4.0), row("evaluate", "zeta", "noise", 9.0),
+            row("evaluate", "zeta", "noise", 6.0),               # a later evaluation of the same cell: it wins
+            row("evaluate", "zeta", "pitch", 50.0, uid="spk/u0"),  # per utterance: not a cell
+            row("evaluate", "alpha", "validation", 8.0), row("evaluate", "alpha", "pitch", 8.8),
+            row("evaluate", "alpha", "reverb", 16.0),
+            row("train", "alpha", "validation", 3.0, epoch=2),     # training's validation: not the evaluation
+            row("final", "zeta", "validation", 1.0)]
+    presets = {"zeta": "fbank-blstm", "alpha": "mean-curve"}
+    report = robustness_table(rows, presets=presets)
+    dashboard = dashboard_table(pa.Table.from_pylist(rows, schema=METRICS), presets=presets)
+    assert _dashboard_view(dashboard) == _report_view(report)
+    assert dashboard.models == ["zeta", "alpha"]  # Table 1 before the baselines, as the report
+    assert dashboard.values[("zeta", "noise")] == 6.0 and dashboard.ratio("zeta", "noise") == pytest.approx(1.5)
+    assert report[0]["ratio_noise"] == pytest.approx(1.5)
+    assert dashboard.values[("alpha", "validation")] == 8.0 and ("zeta", "pitch") not in dashboard.values
+    assert dashboard.conditions == ["validation", "pitch", "noise", "reverb"]
+    assert report[1]["ratio_reverb"] == pytest.approx(2.0) and "reverb" in table_markdown(report)
+    # without labels both put every model under "other", by name
+    assert dashboard_table(pa.Table.from_pylist(rows, schema=METRICS)).models == ["alpha", "zeta"]
+    assert [r["model"] for r in robustness_table(rows)] == ["alpha", "zeta"]
+
+
+def _html_robustness(page: str) -> tuple[list[str], list[list[str]]]:
+    body = re.search(r'<table id="robustness-table">.*?<tbody>(.*?)</tbody>', page, re.S).group(1)
+    rows = [re.findall(r"<td[^>]*>(.*?)</td>", tr) for tr in re.findall(r"<tr>(.*?)</tr>", body)]
+    return [r[0] for r in rows], rows
+
+
 @pytest.mark.flow
 @pytest.mark.usefixtures("prefect_harness")
 def test_evaluate_flow_writes_metrics_reuses_augmented_audio_and_recomputes_nothing(tmp_path):
@@ -133,6 +186,15 @@ def test_evaluate_flow_writes_metrics_reuses_augmented_audio_and_recomputes_noth
     assert second["table"][0]["validation"] == pytest.approx(aggregates["validation"])
     text = (store.root / "reports" / "robustness.md").read_text()
     assert "| mean | mean-curve | no |" in text and (store.root / "reports" / "robustness.csv").exists()
+
+    # the dashboard shows the report's table: same models in the same order (by preset group, not by name), same numbers
+    from visemeflow.dashboards.html import build_dashboard
+
+    page = build_dashboard(store.root, tmp_path / "dashboard", max_utterances=0).path.read_text(encoding="utf-8")
+    models, cells = _html_robustness(page)
+    assert models == [r["model"] for r in second["table"]] == ["tcn", "mean"]
+    for r, shown in zip(second["table"], cells):
+        assert [float(x) for x in shown[1:6]] == pytest.approx([r[c] for c in ("validation", *CONDITIONS)], abs=5e-4)
 
     # a deleted augmented file is made again; unknown models are a clear error
     augmented[0].unlink()

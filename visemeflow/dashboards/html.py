@@ -10,7 +10,9 @@ utterances is drawn (`max_utterances`, or the ids asked for), so a store of 10,0
 """
 
 import base64
+import csv
 import html
+import io
 import math
 import zlib
 from collections.abc import Iterable, Sequence
@@ -25,6 +27,10 @@ import pyarrow.dataset as ds
 
 from visemeflow.atomic import atomic_write_text
 from visemeflow.dashboards import plots
+# The robustness table is built by the same function as the `evaluate` report, so both show the same cells in the
+# same order (DESIGN lets dashboards import schemas and storage; this module is the exception, pure and torch-free).
+from visemeflow.learning.robustness_table import COLUMNS, RUN, table_columns
+from visemeflow.learning.robustness_table import robustness_table as shared_robustness_table
 from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
 from visemeflow.schemas.tables import CURVE_SOURCES
 from visemeflow.storage import Store
@@ -34,8 +40,8 @@ DEFAULT_MAX_UTTERANCES = 12
 MAX_REJECT_ROWS = 500
 # Tracking diagnostics read per variant (a fixed sample beyond that): keeps a 10k-utterance store at ~1 s.
 MAX_TRACKING_UTTERANCES = 2000
-# Robustness conditions in the paper's order (Tables 1-3); any other condition follows, sorted by name.
-CONDITION_ORDER = ("validation", "volume", "pitch", "speed", "noise")
+# Robustness conditions in the paper's order (Tables 1-3), as the evaluate report has them; any other follows.
+CONDITION_ORDER = COLUMNS
 BASELINE_CONDITION = "validation"
 VIDEO_SUFFIXES = {".mp4", ".m4v", ".mov", ".mkv", ".avi", ".mpg", ".mpeg", ".webm"}
 CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
@@ -253,6 +259,9 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
 # ---- tables from the metrics ------------------------------------------------------------------------
 @dataclass
 class RobustnessTable:
+    """The robustness table of `visemeflow.learning.robustness_table` (the one the `evaluate` report shows), as
+    models in the report's order, the conditions present and the non-missing cells."""
+
     models: list[str]
     conditions: list[str]
     values: dict[tuple[str, str], float]    # (model, condition) -> L1 x 100
@@ -278,19 +287,36 @@ def _aggregate_rows(metrics: pa.Table, run: str) -> pa.Table:
     return metrics.filter(mask)
 
 
-def robustness_table(metrics: pa.Table) -> RobustnessTable:
-    """Aggregate rows (`utterance_id` null) of run `evaluate`, one row per model, one column per condition.
+def evaluated_labels(store: Store) -> tuple[dict[str, str], dict[str, bool]]:
+    """(model -> preset, model -> trained with augmentation) from the last `evaluate` report (`robustness.csv`).
 
-    Several aggregate rows of one (model, condition) (e.g. per epoch) are averaged.
+    The metrics table carries no preset, and reading it from the model files would load torch; the report the
+    `evaluate` flow wrote from the same table function has it. Models it does not list are grouped as "other".
     """
-    rows = _aggregate_rows(metrics, "evaluate").select([C.MODEL, C.CONDITION, C.L1_X100]).to_pylist()
-    sums: dict[tuple[str, str], list[float]] = {}
-    for r in rows:
-        sums.setdefault((r[C.MODEL], r[C.CONDITION]), []).append(float(r[C.L1_X100]))
-    values = {k: float(np.mean(v)) for k, v in sums.items()}
-    models = sorted({m for m, _ in values})
-    conditions = sorted({c for _, c in values}, key=_condition_key)
-    return RobustnessTable(models, conditions, values)
+    presets: dict[str, str] = {}
+    augmented: dict[str, bool] = {}
+    try:
+        text = store.report_path("robustness.csv").read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return presets, augmented
+    for row in csv.DictReader(io.StringIO(text)):
+        model = row.get("model")
+        if model:
+            if row.get("preset"):
+                presets[model] = row["preset"]
+            augmented[model] = row.get("train_augment") == "True"
+    return presets, augmented
+
+
+def robustness_table(metrics: pa.Table, presets: dict[str, str] | None = None,
+                     augmented: dict[str, bool] | None = None) -> RobustnessTable:
+    """The `evaluate` report's table (`visemeflow.learning.robustness_table.robustness_table`) of these metrics:
+    aggregate rows of run `evaluate`, the latest per (model, condition), models in the report's order."""
+    rows = _aggregate_rows(metrics, RUN).select([C.RUN, C.MODEL, C.CONDITION, C.UTTERANCE_ID, C.EPOCH, C.L1_X100])
+    table = shared_robustness_table(rows.to_pylist(), presets, augmented)
+    values = {(r["model"], c): r[c] for r in table for c in table_columns(table) if not math.isnan(r[c])}
+    conditions = [c for c in table_columns(table) if any((m, c) in values for m in (r["model"] for r in table))]
+    return RobustnessTable([r["model"] for r in table], conditions, values)
 
 
 def robustness_html(table: RobustnessTable) -> str:
@@ -507,10 +533,11 @@ def build_dashboard(
 
     # -- robustness
     page.add('<section id="robustness"><h2>Robustness</h2>')
-    robust = robustness_table(metrics)
+    robust = robustness_table(metrics, *evaluated_labels(store))
     if robust.models:
         page.add('<p class="note">Validation L1 x 100 on clean audio and under each augmentation (run '
-                 "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation).</p>",
+                 "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation); "
+                 "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model.</p>",
                  robustness_html(robust))
     else:
         page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
