@@ -186,3 +186,27 @@ def training_figure(series: dict[str, tuple[np.ndarray, np.ndarray]]) -> bytes:
     ax.legend(fontsize=8, frameon=False)
     fig.tight_layout()
     return _png(fig)
+
+
+def sweep_figure(points: Sequence[tuple[int, float]], title: str) -> bytes:
+    """Paper Fig. 5: validation L1 x 100 against the number of training utterances (log x axis), each point labelled."""
+    fig = Figure(figsize=(7.2, 4.6))
+    ax = fig.add_subplot(1, 1, 1)
+    sizes = [int(size) for size, _ in points]
+    values = [float(value) for _, value in points]
+    ax.plot(sizes, values, marker="o", markersize=6, linewidth=2, color=_TAB20[0])
+    for size, value in zip(sizes, values):
+        ax.annotate(f"{value:.2f}", (size, value), textcoords="offset points", xytext=(6, 6), fontsize=9)
+    ax.set_xscale("log")
+    ax.set_xticks(sizes, [str(s) for s in sizes])
+    ax.minorticks_off()
+    if sizes:
+        lo, hi = min(sizes), max(sizes)
+        ax.set_xlim(lo / 1.25, hi * 1.25)
+    ax.set_ylim(0.0, max([*values, 1e-6]) * 1.15)
+    ax.set_xlabel("training utterances (log scale)")
+    ax.set_ylabel("validation L1 x 100")
+    ax.set_title(plain(title), fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)

@@ -4,12 +4,11 @@ import math
 import zlib
 from pathlib import Path
 
-import cv2
-import numpy as np
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_table_artifact
 
 from visemeflow.atomic import atomic_write
+from visemeflow.dashboards import plots
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
@@ -25,37 +24,10 @@ def nested_subsets(rows: list[dict], sizes: list[int]) -> dict[int, list[dict]]:
 
 
 def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
-    """A Fig. 5-style PNG: validation L1 x 100 against training-set size (log x axis), drawn with OpenCV."""
-    width, height, margin = 640, 420, 60
-    image = np.full((height, width, 3), 255, np.uint8)
-    xs = np.log10([p[0] for p in points])
-    ys = np.array([p[1] for p in points])
-    x_lo, x_hi = xs.min() - 0.1, xs.max() + 0.1
-    y_lo, y_hi = 0.0, max(ys.max() * 1.15, 1e-6)
-
-    def to_px(x: float, y: float) -> tuple[int, int]:
-        u = margin + (x - x_lo) / (x_hi - x_lo) * (width - 2 * margin)
-        v = height - margin - (y - y_lo) / (y_hi - y_lo) * (height - 2 * margin)
-        return int(round(u)), int(round(v))
-
-    cv2.rectangle(image, (margin, margin), (width - margin, height - margin), (0, 0, 0), 1)
-    pixels = [to_px(x, y) for x, y in zip(xs, ys)]
-    for a, b in zip(pixels, pixels[1:]):
-        cv2.line(image, a, b, (180, 80, 20), 2, cv2.LINE_AA)
-    for (size, value), p in zip(points, pixels):
-        cv2.circle(image, p, 5, (180, 80, 20), -1, cv2.LINE_AA)
-        cv2.putText(image, f"{value:.2f}", (p[0] + 6, p[1] - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(image, str(size), (p[0] - 10, height - margin + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1,
-                    cv2.LINE_AA)
-    cv2.putText(image, title, (margin, 35), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, "training utterances (log scale)", (width // 2 - 120, height - 15), cv2.FONT_HERSHEY_SIMPLEX,
-                0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, "val L1 x 100", (5, margin - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    def write(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"cannot write the sweep plot {path}")
-
-    return atomic_write(path, write, keep_suffix=True)  # cv2 picks the format by the suffix
+    """A Fig. 5-style PNG at `path`: validation L1 x 100 against training-set size (log x axis), drawn with
+    matplotlib like every other chart (`dashboards.plots.sweep_figure`), written atomically."""
+    png = plots.sweep_figure(points, title)
+    return atomic_write(path, lambda tmp: tmp.write_bytes(png), keep_suffix=True)
 
 
 @flow(name="sweep", flow_run_name="sweep[{params.config.preset}]", task_runner=cpu_thread_pool())
