@@ -212,7 +212,7 @@ def test_hostile_ids_messages_and_conditions_are_escaped(dashboard, tmp_path):
 def test_robustness_table_pivots_aggregate_evaluate_rows_with_ratios():
     rows = [_metric("evaluate", "b", c, v) for c, v in CONDITIONS.items()]
     rows += [_metric("evaluate", "a", "validation", 8.0), _metric("evaluate", "a", "noise", 10.0),
-             _metric("evaluate", "a", "noise", 14.0),                         # two aggregates: averaged
+             _metric("evaluate", "a", "noise", 14.0),                         # two aggregates: the latest wins
              _metric("evaluate", "a", "speed", 99.0, uid="spk/u0"),          # per utterance: ignored
              _metric("final", "a", "validation", 1.0), _metric("train", "a", "pitch", 1.0, epoch=1),
              _metric("evaluate", "c", "volume", 5.0),                          # no validation: no ratio
@@ -220,9 +220,9 @@ def test_robustness_table_pivots_aggregate_evaluate_rows_with_ratios():
     table = robustness_table(table_from_rows(rows, METRICS))
     assert table.models == ["a", "b", "c"]
     assert table.conditions == ["validation", "volume", "pitch", "speed", "noise", "reverb"]
-    assert table.values[("a", "noise")] == pytest.approx(12.0)
+    assert table.values[("a", "noise")] == pytest.approx(14.0)
     assert ("a", "speed") not in table.values and ("a", "pitch") not in table.values
-    assert table.ratio("a", "noise") == pytest.approx(1.5)
+    assert table.ratio("a", "noise") == pytest.approx(1.75)
     assert table.ratio("b", "pitch") == pytest.approx(1.3)
     assert table.ratio("b", "reverb") == pytest.approx(3.0)
     assert table.ratio("a", "volume") is None and table.ratio("c", "volume") is None
@@ -230,7 +230,7 @@ def test_robustness_table_pivots_aggregate_evaluate_rows_with_ratios():
     headers = [a for t, a in _tags(rendered) if t == "th"]
     assert len(headers) == 3 + 1 + 6 + 5             # groups; model, 6 conditions, 5 ratios
     assert [h.get("colspan") for h in headers[:3]] == ["1", "6", "5"]
-    assert "ratio to validation" in rendered and "<td class=\"num\">1.500</td>" in rendered
+    assert "ratio to validation" in rendered and "<td class=\"num\">1.750</td>" in rendered
     assert "<td class=\"num\">3.000</td>" in rendered
 
 
