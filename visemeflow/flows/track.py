@@ -1,6 +1,5 @@
 """The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each)."""
 
-import hashlib
 import traceback
 from pathlib import Path
 
@@ -12,6 +11,7 @@ from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summa
 from visemeflow.flows.common import finished
 from visemeflow.flows.params import TrackParams
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
@@ -25,7 +25,7 @@ TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C
 
 def rig_and_hash(rig: Path | None) -> tuple[Path, str]:
     path = (rig or demo_rig_path()).resolve()
-    return path, hashlib.blake2b(path.read_bytes(), digest_size=16).hexdigest()
+    return path, file_hash(path)
 
 
 def procedural_variant_of(store: Store, given: str | None) -> str:
