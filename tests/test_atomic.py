@@ -225,3 +225,18 @@ def test_clean_temporary_finds_suffixed_and_legacy_leftovers_but_not_live_ones(t
             os.utime(tmp_path / rel, (old, old))
     found = {str(p.relative_to(tmp_path.resolve())) for p in store.stale_temporary_files()}
     assert found == {rel for rel, stale in files.items() if stale}
+
+
+def test_fsync_of_file_and_folder_by_default_and_off_by_environment(tmp_path, monkeypatch):
+    import visemeflow.atomic as atomic
+
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: synced.append(os.readlink(f"/proc/self/fd/{fd}")) or real(fd))
+    path = tmp_path / "d" / "x.txt"
+    atomic_write_text(path, "x")
+    assert len(synced) == 2 and synced[0].startswith(str(tmp_path / "d" / ".x.txt.")) and synced[1] == str(path.parent)
+    synced.clear()
+    monkeypatch.setenv("VISEMEFLOW_FSYNC", "0")
+    atomic_write_text(path, "y")
+    assert synced == [] and path.read_text() == "y"
