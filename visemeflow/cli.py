@@ -458,7 +458,9 @@ def curves_export(
     if out is None:
         sys.stdout.write(text)
     else:
-        out.write_text(text)
+        from visemeflow.atomic import atomic_write_text
+
+        atomic_write_text(out, text)
         typer.echo(f"wrote {out}")
 
 
