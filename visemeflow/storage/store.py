@@ -180,6 +180,9 @@ class Store:
         speaker, name = id_path_parts(augmented_id)
         return self.root / "augmented" / validate_name(augmentation, "augmentation") / speaker / f"{name}.wav"
 
+    def has_augmented_audio(self, augmentation: str, augmented_id: str) -> bool:
+        return self.augmented_audio_path(augmentation, augmented_id).is_file()
+
     def augmented_sets(self) -> list[Path]:
         """Folders of the stored augmentation sets (`augmented/<condition>-s<seed>`), sorted."""
         folder = self.root / "augmented"
@@ -187,6 +190,9 @@ class Store:
 
     def metrics_path(self, model: str, run: str) -> Path:
         return self.root / "metrics" / validate_name(model, "model name") / f"{validate_name(run, 'run name')}.parquet"
+
+    def has_metrics(self, model: str, run: str) -> bool:
+        return self.metrics_path(model, run).is_file()
 
     def report_path(self, name: str) -> Path:
         """A report file (`robustness.md`, `sweep-<preset>.png`) in the store's `reports` folder."""

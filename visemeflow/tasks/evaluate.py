@@ -27,12 +27,10 @@ def augmentation_name(condition: str, seed: int, config: AugmentConfig) -> str:
     return name
 
 
-def expected_augmented_paths(store: Store, rows: list[dict], condition: str, seed: int,
-                             config: AugmentConfig) -> list[Path]:
-    """Where the augmented copies of `rows` live (the drawn values are known without computing any audio)."""
-    name = augmentation_name(condition, seed, config)
-    return [store.augmented_audio_path(name, augmented_id(
-        r[C.UTTERANCE_ID], condition, draw_value(condition, r[C.UTTERANCE_ID], seed, config))) for r in rows]
+def expected_augmented_ids(rows: list[dict], condition: str, seed: int, config: AugmentConfig) -> list[str]:
+    """Ids of the augmented copies of `rows` (the drawn values are known without computing any audio)."""
+    return [augmented_id(r[C.UTTERANCE_ID], condition, draw_value(condition, r[C.UTTERANCE_ID], seed, config))
+            for r in rows]
 
 
 def _write_wav(store: Store, path: Path, audio: np.ndarray) -> None:
@@ -59,7 +57,8 @@ def augment_condition(store_root: str, condition: str, seed: int, config: Augmen
 
 def augmented_task_for(store: Store, rows: list[dict], condition: str, seed: int, config: AugmentConfig):
     """`augment_condition` with the store's result storage; recomputed when an augmented file is missing."""
-    missing = not all(p.exists() for p in expected_augmented_paths(store, rows, condition, seed, config))
+    name = augmentation_name(condition, seed, config)
+    missing = not all(store.has_augmented_audio(name, a) for a in expected_augmented_ids(rows, condition, seed, config))
     return augment_condition.with_options(result_storage=result_storage(store.root), refresh_cache=missing)
 
 
@@ -98,5 +97,5 @@ def evaluation_task_for(store: Store, model_name: str):
     """`evaluate_model` with the store's result storage; recomputed when its metrics file is missing."""
     return evaluate_model.with_options(
         result_storage=result_storage(store.root),
-        refresh_cache=not store.metrics_path(model_name, RUN).exists(),
+        refresh_cache=not store.has_metrics(model_name, RUN),
     )
