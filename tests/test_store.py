@@ -559,3 +559,15 @@ def test_run_config_round_trip(tmp_path):
     assert store.read_run_config("ingest") == {"fps": 30.0, "tiers": ["phones"]}
     with pytest.raises(InvalidIdError):
         store.write_run_config("../etc", {})
+
+
+def test_rerun_params_take_an_id_typed_in_decomposed_form_as_the_stored_one():
+    import unicodedata
+
+    from visemeflow.flows.params import RerunParams
+
+    typed = unicodedata.normalize("NFD", "Sprecher_ü/Satz 1")
+    assert typed != "Sprecher_ü/Satz 1"
+    assert RerunParams(utterance_id=typed).utterance_id == "Sprecher_ü/Satz 1"
+    with pytest.raises(ValueError, match="exactly one '/'"):
+        RerunParams(utterance_id="a/b/c")

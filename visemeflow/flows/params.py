@@ -9,7 +9,7 @@ from visemeflow.ingest import IngestConfig
 from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
-from visemeflow.schemas import validate_name, validate_utterance_id
+from visemeflow.schemas import normalize_utterance_id, validate_name
 from visemeflow.synth.take import SynthConfig
 from visemeflow.tracking.solver import TrackingConfig
 
@@ -141,7 +141,7 @@ class RerunParams(BaseModel):
     @field_validator("utterance_id")
     @classmethod
     def _valid_id(cls, utterance_id: str) -> str:
-        return validate_utterance_id(utterance_id)
+        return normalize_utterance_id(utterance_id)  # typed by hand: NFD "ü" from a macOS terminal is the same id
 
 
 class EvaluateParams(BaseModel):
