@@ -67,7 +67,9 @@ def test_pipeline_tracking_on_a_local_dask_cluster_equals_the_thread_pool_run(tm
     for path, table in a["tracked"].items():
         other = b["tracked"][path]
         assert other.select([C.UTTERANCE_ID, C.FRAME, C.TIME_S]).equals(table.select([C.UTTERANCE_ID, C.FRAME, C.TIME_S]))
-        np.testing.assert_array_equal(curves_array(other), curves_array(table))
+        # equal up to float summation order: torch splits a reduction by its thread count, one thread per Dask
+        # worker against the threads a busy intra-op pool lends in the thread-pool run (seen: 7e-7 apart)
+        np.testing.assert_allclose(curves_array(other), curves_array(table), rtol=0, atol=1e-5)
     assert b["frames"].num_rows == a["frames"].num_rows
     assert b["frames"].column(C.UTTERANCE_ID).equals(a["frames"].column(C.UTTERANCE_ID))
 
