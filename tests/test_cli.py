@@ -65,3 +65,71 @@ def test_rejects_lists_reasons(store):
     store.write_shard("rejects", 0, table_from_rows([row], REJECTS), stage="ingest")
     result = runner.invoke(app, ["rejects", "--store", str(store.root)])
     assert result.exit_code == 0 and "[ingest] UnknownPhoneme: spk/bad" in result.output
+
+
+# ---- the curve exporters (visemeflow/animation/export.py), used by `curves export` and `predict --out` ----------
+
+def _track(curves, fps=30.0, uid="spk/x"):
+    from visemeflow.animation import CurveTrack
+
+    table = curves_table(uid, "predicted", "m", curves, fps)
+    return CurveTrack(uid, "predicted", "m", curves, table.column(C.TIME_S).to_numpy(), table.column(C.FRAME).to_numpy())
+
+
+def test_csv_export_reads_back_the_exact_float32_weights_in_arrows_layout():
+    import pyarrow.csv as pacsv
+
+    from visemeflow.animation import curves_csv
+
+    rng = np.random.default_rng(1)
+    curves = (rng.random((40, 16)) ** 9).astype(np.float32)
+    curves[0] = [0.0, 1.0, 0.5, 1e-6, 9.9e-7, 1e-7, 3e-9, 1e-30, 1e-45, 0.999999, 0.1, 0.2, 0.3, 1 / 3, 2 / 3, 0.0]
+    text = curves_csv(_track(curves, fps=25.0))
+    back = pacsv.read_csv(io.BytesIO(text.encode()))
+    assert back.column_names == [C.FRAME, C.TIME_S, *VISEMES]
+    assert np.array_equal(np.stack([back.column(v).to_numpy().astype(np.float32) for v in VISEMES], 1), curves)
+    # the same text Arrow's CSV writer gave before the exporter moved out of the CLI
+    table = curves_table("spk/x", "predicted", "m", curves, 25.0)
+    buf = io.BytesIO()
+    pacsv.write_csv(table.select([C.FRAME, C.TIME_S, *VISEMES]), buf)
+    assert text == buf.getvalue().decode()
+
+
+def test_json_export_and_errors(tmp_path):
+    from visemeflow.animation import CurveTrack, curves_json, export_text, write_export
+
+    curves = np.zeros((3, 16), dtype=np.float32)
+    curves[1, viseme_index("MBP")] = 0.1234567
+    data = json.loads(curves_json(_track(curves)))
+    assert data["fps"] == pytest.approx(30.0) and data["curves"]["MBP"] == [0.0, 0.123457, 0.0]
+    assert data["utterance_id"] == "spk/x" and data["source"] == "predicted" and data["variant"] == "m"
+    assert json.loads(curves_json(_track(curves[:1])))["fps"] is None
+    with pytest.raises(ValueError, match="unknown format 'xml'"):
+        export_text(_track(curves), "xml")
+    with pytest.raises(ValueError, match="spk/y: curves must be"):
+        CurveTrack("spk/y", "p", "v", np.zeros((3, 15), np.float32), np.zeros(3), np.arange(3))
+    with pytest.raises(ValueError, match="3 frames of curves but 2 times"):
+        CurveTrack("spk/y", "p", "v", curves, np.zeros(2), np.arange(3))
+    bad = curves.copy()
+    bad[2, 0] = np.nan
+    with pytest.raises(ValueError, match="AAA has NaN"):
+        curves_json(_track(bad))
+    path = write_export(_track(curves), tmp_path / "deep" / "x.json")  # format from the suffix, folders made
+    assert json.loads(path.read_text())["visemes"] == list(VISEMES)
+    assert not [p for p in (tmp_path / "deep").iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_animation_package_is_pure():
+    """DESIGN: animation/ imports rig and visemes only (and the standard helpers), never Prefect or the store."""
+    import ast
+
+    from factories import REPO
+
+    allowed = ("visemeflow.visemes", "visemeflow.rig", "visemeflow.animation", "visemeflow.atomic")
+    for path in (REPO / "visemeflow" / "animation").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            for name in names:
+                assert not name.startswith("prefect"), (path, name)
+                assert not name.startswith("visemeflow") or name.startswith(allowed), (path, name)

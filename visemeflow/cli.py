@@ -1,6 +1,5 @@
 """The `visemeflow` command."""
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -288,45 +287,31 @@ def predict(
     fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
     out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
 ) -> None:
-    """Predict viseme curves from audio with a trained model; curves go to the store (source predicted)."""
-    import time
+    """Predict viseme curves from audio with a trained model; curves go to the store (source predicted).
 
-    import soundfile as sf
-
-    from visemeflow.learning.train import load_model, predict_curves
-    from visemeflow.schemas import curves_table
+    Runs the `predict` flow: one cached task per file (keyed on the model's and the audio's content hashes),
+    a markdown artifact with the outputs and real-time factors.
+    """
+    from visemeflow.flows.predict import PredictParams, predict_flow
+    from visemeflow.ingest.audio import AudioError
     from visemeflow.storage import Store
 
     s = Store(store)
-    path = s.model_dir(model) / "model.pt"
-    if not path.exists():
-        typer.echo(f"error: no model {model!r} in {s.root} ({path} missing); train one with `visemeflow train`", err=True)
+    if not s.has_model(model):
+        typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
+                   "`visemeflow train`", err=True)
         raise typer.Exit(2)
-    net, _, _ = load_model(path)
-    for item in audio:
-        started = time.perf_counter()
-        try:
-            samples, rate = sf.read(item, dtype="float32", always_2d=False)
-        except (RuntimeError, OSError):
-            from visemeflow.tracking.video import read_video_audio
-
-            samples, rate = read_video_audio(item)
-        curves = predict_curves(net, samples, rate, fps)
-        seconds = time.perf_counter() - started
-        uid = f"predict/{_safe_stem(item)}"
-        s.write_curves(curves_table(uid, "predicted", model, curves, fps), provenance=f"predicted:{model}:{item}", fps=fps)
-        duration = len(samples) / rate
-        typer.echo(f"{item}: {len(curves)} frames -> {uid} (real-time factor {seconds / max(duration, 1e-9):.4f})")
-        if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
-            curves_export(uid, store, "predicted", model, "csv", out / f"{_safe_stem(item)}.csv")
-            curves_export(uid, store, "predicted", model, "json", out / f"{_safe_stem(item)}.json")
-
-
-def _safe_stem(path: Path) -> str:
-    import re
-
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem).lstrip(".") or "audio"
+    try:
+        result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out))
+    except AudioError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    for r in result["predictions"]:
+        cached = ", cached" if r["cached"] else ""
+        typer.echo(f"{r['audio']}: {r['frames']} frames -> {r['utterance_id']} "
+                   f"(real-time factor {r['real_time_factor']:.4f}{cached})")
+        for path in r["exports"]:
+            typer.echo(f"wrote {path}")
 
 
 @app.command()
@@ -432,35 +417,19 @@ def curves_export(
     out: Annotated[Optional[Path], typer.Option(help="Output file; default: standard output.")] = None,
 ) -> None:
     """Write one utterance's curves as CSV (one row per frame) or JSON (one list per viseme)."""
-    from visemeflow.schemas import C
-    from visemeflow.visemes import VISEMES
+    from visemeflow.animation.export import FORMATS, CurveTrack, export_text, write_export
+    from visemeflow.schemas import C, curves_array
 
-    table = _load_curves(utterance_id, store, source, variant)
-    if format == "csv":
-        import io
-
-        import pyarrow.csv as pacsv
-
-        buf = io.BytesIO()
-        pacsv.write_csv(table.select([C.FRAME, C.TIME_S, *VISEMES]), buf)
-        text = buf.getvalue().decode()
-    elif format == "json":
-        times = table.column(C.TIME_S).to_numpy()
-        fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else None
-        text = json.dumps({
-            "utterance_id": utterance_id, "source": source, "variant": table.column(C.VARIANT)[0].as_py(),
-            "fps": fps, "visemes": list(VISEMES), "time_s": times.tolist(),
-            "curves": {v: [round(x, 6) for x in table.column(v).to_pylist()] for v in VISEMES},
-        })
-    else:
+    if format not in FORMATS:
         typer.echo(f"error: unknown format {format!r}; use csv or json", err=True)
         raise typer.Exit(2)
+    table = _load_curves(utterance_id, store, source, variant)
+    track = CurveTrack(utterance_id, source, table.column(C.VARIANT)[0].as_py(), curves_array(table),
+                       table.column(C.TIME_S).to_numpy(), table.column(C.FRAME).to_numpy())
     if out is None:
-        sys.stdout.write(text)
+        sys.stdout.write(export_text(track, format))
     else:
-        from visemeflow.atomic import atomic_write_text
-
-        atomic_write_text(out, text)
+        write_export(track, out, format)
         typer.echo(f"wrote {out}")
 
 

@@ -1,0 +1,158 @@
+"""The `predict` flow and command: curves of new audio from a trained model, cached per model and audio content,
+CSV/JSON copies, an artifact with the real-time factors, and a command that exits cleanly every time."""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+from factories import DEMO_CORPUS, REPO
+
+from visemeflow.animation.export import FORMATS
+from visemeflow.learning.train import TrainConfig, build_training_model, save_model
+from visemeflow.storage import Store
+
+AUDIO = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
+
+
+def tiny_model(store: Store, name: str = "tiny", seed: int = 0) -> None:
+    """An untrained small model saved where training would put it (prediction needs weights, not good ones)."""
+    import torch
+
+    torch.manual_seed(seed)
+    config = TrainConfig(preset="fbank-tcn", d_model=8, seed=seed)
+    save_model(build_training_model(config, curve_fps=25.0), config, store.model_path(name), {"source": "none"})
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = Store(tmp_path / "store")
+    tiny_model(s)
+    return s
+
+
+def test_prediction_ids_are_safe_file_stems():
+    from visemeflow.flows.predict import prediction_id
+
+    assert prediction_id("a/b/take 1 (final).wav") == "predict/take_1__final_"
+    assert prediction_id("/x/.hidden.wav") == "predict/hidden"
+    assert prediction_id("/x/....wav") == "predict/audio"
+    assert prediction_id("clip.v2.mp4") == "predict/clip.v2"
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_predict_flow_caches_per_model_and_audio_content_and_exports(store, tmp_path):
+    from prefect.client.orchestration import get_client
+
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    stereo = tmp_path / "in" / "stereo.wav"
+    stereo.parent.mkdir()
+    audio, rate = sf.read(AUDIO, dtype="float32")
+    sf.write(stereo, np.stack([audio, 0.5 * audio], axis=1), rate)
+    out = tmp_path / "out"
+    params = PredictParams(store=store.root, model="tiny", audio=[AUDIO, stereo], fps=25.0, out=out)
+
+    first = predict_flow(params)
+    rows = first["predictions"]
+    assert [r["utterance_id"] for r in rows] == ["predict/SSB16240001", "predict/stereo"]
+    assert [r["cached"] for r in rows] == [False, False]
+    assert all(r["frames"] == round(len(audio) / rate * 25) and r["real_time_factor"] > 0 for r in rows)
+    curves = store.read_curves("predict/stereo", "predicted", "tiny")
+    assert curves.num_rows == rows[1]["frames"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{s}.{f}" for s in ("SSB16240001", "stereo") for f in FORMATS)
+    exported = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    with get_client(sync_client=True) as client:
+        artifact = client.read_latest_artifacts()  # newest per key
+    markdown = next(a for a in artifact if a.key == "predictions").data
+    assert "predict/stereo" in markdown and "real-time factor" in markdown and str(out / "stereo.csv") in markdown
+
+    # the same run again: every file is a cache hit, nothing in the store changes, the copies are the same
+    stamp = store.curve_path("predicted", "tiny", "predict/stereo").stat().st_mtime_ns
+    again = predict_flow(params)
+    assert [r["cached"] for r in again["predictions"]] == [True, True]
+    assert [r["real_time_factor"] for r in again["predictions"]] == [r["real_time_factor"] for r in rows]
+    assert store.curve_path("predicted", "tiny", "predict/stereo").stat().st_mtime_ns == stamp
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == exported
+
+    # changed audio under the same name is predicted again; the other file stays cached
+    sf.write(stereo, np.stack([0.5 * audio, audio], axis=1), rate)
+    changed = predict_flow(params)["predictions"]
+    assert [r["cached"] for r in changed] == [True, False]
+    # a retrained model (other weights, same name) recomputes everything
+    tiny_model(store, seed=1)
+    assert [r["cached"] for r in predict_flow(params)["predictions"]] == [False, False]
+    # curves deleted from the store are made again rather than trusted from the cache
+    store.curve_path("predicted", "tiny", "predict/stereo").unlink()
+    assert [r["cached"] for r in predict_flow(params)["predictions"]] == [True, False]
+    assert store.has_curves("predicted", "tiny", "predict/stereo")
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_predict_flow_refuses_unknown_models_and_missing_files(store, tmp_path):
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    with pytest.raises(LookupError, match="no trained model named nope.*known models: tiny"):
+        predict_flow(PredictParams(store=store.root, model="nope", audio=[AUDIO]))
+    with pytest.raises(LookupError, match="no such audio file.*missing.wav"):
+        predict_flow(PredictParams(store=store.root, model="tiny", audio=[tmp_path / "missing.wav"]))
+
+
+# `visemeflow predict` used to end with SIGABRT ("terminate called without an active exception", exit 134) after
+# writing its outputs, now and then. The cause (core dump): `Store` reads a Parquet file through a Python file object
+# (`storage/store.py: _read_whole`), so Arrow's reads return buffers owned by Python; Arrow's I/O threads can drop the
+# last reference to one after `read_table` returned. When that happens while the interpreter is finalizing (the
+# command's last act was a read), the I/O thread must take the GIL, CPython ends the thread with pthread_exit, and the
+# forced unwind through pyarrow's noexcept ~PyBuffer calls std::terminate. The window is short (the I/O thread must be
+# preempted between completing the read and releasing the buffer), so the reads run four at a time on the 2 cores:
+# that made about 1 process in 8 abort before the fix. A regression shows with probability above 99% in 60 runs.
+READ_RUNS = 60
+READ_PARALLEL = 4
+PREDICT_RUNS = 4   # the real command end to end (slower: it imports torch and Prefect)
+
+_READ_LAST = """
+import sys
+from visemeflow.storage import Store
+print(Store(sys.argv[1]).read_curves(sys.argv[2], "predicted", "tiny").num_rows)
+"""
+
+
+def _run_many(command, runs, env, cwd, parallel=1):
+    """The failures (exit status and end of stderr) of `runs` runs of `command`, `parallel` at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def run(k):
+        done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=180)
+        if done.returncode != 0 or "terminate called" in done.stderr:
+            return f"run {k}: exit {done.returncode}\n{done.stderr[-1500:]}"
+        return None
+
+    with ThreadPoolExecutor(parallel) as pool:
+        return [f for f in pool.map(run, range(runs)) if f]
+
+
+@pytest.mark.flow
+def test_predict_command_exits_cleanly_every_time(store, tmp_path, prefect_api_url):
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PYTHONFAULTHANDLER": "1"}
+    visemeflow = str(Path(sys.executable).parent / "visemeflow")
+    out = tmp_path / "out"
+    started = time.perf_counter()
+    failures = _run_many([visemeflow, "predict", str(AUDIO), "--model", "tiny", "--store", str(store.root),
+                          "--out", str(out)], PREDICT_RUNS, env, REPO)
+    assert not failures, f"{len(failures)} of {PREDICT_RUNS} predict runs failed:\n" + "\n".join(failures)
+    assert sorted(p.name for p in out.iterdir()) == ["SSB16240001.csv", "SSB16240001.json"]
+    # the part that aborted: a store read as the process's last act (what `predict --out` and `curves export` do)
+    script = tmp_path / "read_last.py"
+    script.write_text(_READ_LAST)
+    failures = _run_many([sys.executable, str(script), str(store.root), "predict/SSB16240001"], READ_RUNS, env, REPO,
+                         parallel=READ_PARALLEL)
+    assert not failures, (f"{len(failures)} of {READ_RUNS} processes ending with a store read aborted:\n"
+                          + "\n".join(failures[:3]))
+    print(f"{PREDICT_RUNS} predict runs and {READ_RUNS} reads in {time.perf_counter() - started:.1f} s")

@@ -1,0 +1,105 @@
+"""The `predict` flow: viseme curves of new audio from a trained model (paper 5.1), one cached task per file.
+
+Each file becomes the utterance `predict/<file stem>` with curves of source `predicted`, variant = the model's name.
+A task is keyed on the model file's and the audio file's content hashes (and the frame rate), so running the flow
+again on the same files is all cache hits, and a retrained model or a changed file recomputes only what changed.
+With `out`, CSV and JSON copies of each file's curves (`visemeflow.animation.export`) are written there. A markdown
+artifact lists the outputs and the real-time factor of each file.
+"""
+
+import re
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_markdown_artifact
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from visemeflow.animation.export import CurveTrack, write_export
+from visemeflow.hashing import file_hash
+from visemeflow.schemas import C, curves_array
+from visemeflow.schemas.ids import validate_name
+from visemeflow.storage import Store
+from visemeflow.tasks.predict import SOURCE, prediction_task_for
+
+EXPORT_FORMATS = ("csv", "json")
+# as flows.params.DEFAULT_STORE; not imported from there, which loads every stage's config (a second per `predict`)
+DEFAULT_STORE = Path("visemeflow-out/store")
+
+
+class PredictParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    model: str = Field(..., description="Name of a trained model in the store.")
+    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
+    fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the curves.")
+    out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
+
+    @field_validator("model")
+    @classmethod
+    def _safe_model(cls, name: str) -> str:
+        return validate_name(name, "model name")
+
+
+def prediction_id(path: Path | str) -> str:
+    """The utterance id of a predicted file: `predict/<stem>`, characters other than letters, digits, `_ . -`
+    replaced by `_` (a stem of only dots or nothing becomes `audio`)."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(path).stem).lstrip(".") or "audio"
+    return f"predict/{stem}"
+
+
+def export_paths(out: Path, utterance_id: str) -> dict[str, Path]:
+    """Where `out` receives the CSV and JSON copies of one prediction."""
+    stem = utterance_id.split("/", 1)[1]
+    return {fmt: out / f"{stem}.{fmt}" for fmt in EXPORT_FORMATS}
+
+
+def curve_track(store: Store, utterance_id: str, source: str, variant: str | None) -> CurveTrack:
+    """One utterance's stored curves as the exporters take them."""
+    table = store.read_curves(utterance_id, source, variant)
+    return CurveTrack(utterance_id, source, table.column(C.VARIANT)[0].as_py() if len(table) else (variant or ""),
+                      curves_array(table), table.column(C.TIME_S).to_numpy(), table.column(C.FRAME).to_numpy())
+
+
+def _markdown(model: str, rows: list[dict]) -> str:
+    lines = [f"### Predicted curves, model `{model}`", "",
+             "| audio | utterance | frames | audio s | real-time factor | cached | exports |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        exports = ", ".join(f"`{p}`" for p in r["exports"]) or "-"
+        lines.append(f"| `{r['audio']}` | `{r['utterance_id']}` | {r['frames']} | {r['duration_s']:.2f} | "
+                     f"{r['real_time_factor']:.4f} | {'yes' if r['cached'] else 'no'} | {exports} |")
+    return "\n".join(lines) + "\n\nThe real-time factor (compute time / audio duration) is that of the run that computed " \
+                              "the curves; a cached file was not predicted again.\n"
+
+
+@flow(name="predict", flow_run_name="predict[{params.model}]")
+def predict_flow(params: PredictParams) -> dict:
+    """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies."""
+    store = Store(params.store)
+    if not store.has_model(params.model):
+        known = store.model_names()
+        raise LookupError(f"no trained model named {params.model} in {store.root}; "
+                          f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
+    missing = [str(p) for p in params.audio if not Path(p).is_file()]
+    if missing:
+        raise LookupError(f"no such audio file: {', '.join(missing)}")
+    model_hash = file_hash(store.model_path(params.model))
+    rows = []
+    for audio in params.audio:
+        uid = prediction_id(audio)
+        state = prediction_task_for(store, params.model, uid)(
+            str(store.root), params.model, model_hash, str(audio), file_hash(audio), uid, float(params.fps),
+            return_state=True,
+        )
+        result = state.result()  # raises the task's error (unreadable audio, ...)
+        exports = []
+        if params.out is not None:
+            track = curve_track(store, uid, SOURCE, params.model)
+            exports = [str(write_export(track, path, fmt)) for fmt, path in export_paths(params.out, uid).items()]
+        rows.append({**result, "audio": str(audio), "model": params.model, "cached": state.name == "Cached",
+                     "exports": exports})
+    markdown = _markdown(params.model, rows)
+    create_markdown_artifact(key="predictions", markdown=markdown,
+                             description=f"curves predicted by {params.model}, with real-time factors")
+    get_run_logger().info("predict %s: %d files, %d cached", params.model, len(rows), sum(r["cached"] for r in rows))
+    return {"model": params.model, "predictions": rows}

@@ -1,0 +1,57 @@
+"""Prediction task: the viseme curves of one audio file (or a video's audio track) from one trained model, written
+to the store as source `predicted`, variant = the model's name."""
+
+import functools
+import time
+
+from prefect import get_run_logger, task
+from prefect.cache_policies import TASK_SOURCE, Inputs
+
+from visemeflow.ingest.audio import read_audio
+from visemeflow.learning.train import load_model, predict_curves
+from visemeflow.schemas import curves_table
+from visemeflow.storage import Store
+from visemeflow.tasks.common import result_storage
+
+SOURCE = "predicted"
+# INPUTS + TASK_SOURCE like every task, but not keyed on where the audio lies: its content hash is an input, so the
+# same sound under another folder (same utterance id) is a cache hit, and a changed file under the same path is not.
+PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path"]) + TASK_SOURCE
+
+
+@functools.lru_cache(maxsize=2)
+def _model(path: str, model_hash: str):
+    """The loaded model of `path` (one load for all the files of a run); the hash keys a retrained model apart."""
+    return load_model(path)[0]
+
+
+@task(cache_policy=PREDICT_CACHE_POLICY, persist_result=True, task_run_name="predict[{utterance_id}]")
+def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path: str, audio_hash: str,
+                  utterance_id: str, fps: float) -> dict:
+    """Predict one file's curves and store them; returns where they are and the real-time factor of this run.
+
+    `model_hash` and `audio_hash` (content hashes of the model file and the audio file) key the cache, so a
+    retrained model or changed audio recomputes; the real-time factor is that of the run that computed it.
+    """
+    store = Store(store_root)
+    model = _model(str(store.model_path(model_name)), model_hash)
+    started = time.perf_counter()
+    samples, rate = read_audio(audio_path)
+    curves = predict_curves(model, samples, rate, fps)
+    seconds = time.perf_counter() - started
+    duration = len(samples) / rate
+    path = store.write_curves(curves_table(utterance_id, SOURCE, model_name, curves, fps),
+                              provenance=f"{SOURCE}:{model_name}:{model_hash}:{audio_hash}", fps=fps)
+    rtf = seconds / max(duration, 1e-9)
+    get_run_logger().info("%s: %d frames of %.2f s of audio in %.3f s (real-time factor %.4f)", utterance_id,
+                          len(curves), duration, seconds, rtf)
+    return {"utterance_id": utterance_id, "path": str(path), "frames": int(len(curves)), "duration_s": duration,
+            "seconds": seconds, "real_time_factor": rtf}
+
+
+def prediction_task_for(store: Store, model_name: str, utterance_id: str):
+    """`predict_audio` with the store's result storage; recomputed when its curves file is missing."""
+    return predict_audio.with_options(
+        result_storage=result_storage(store.root),
+        refresh_cache=not store.has_curves(SOURCE, model_name, utterance_id),
+    )
