@@ -120,7 +120,7 @@ def main() -> int:
     }
     with tempfile.TemporaryDirectory() as tmp:
         sources = [f for name, files in sets.items() for f in files]
-        sets["variants (6 layouts x encodings)"] = variants(sources, Path(tmp))
+        sets["variants (8 per file)"] = variants(sources, Path(tmp))
         header = ("set", "files", "ours reads", "textgrid reads", "agree", "exact", "ours ms/file", "textgrid ms/file",
                   "textgrid/ours")
         rows, failures = [], []

@@ -11,7 +11,7 @@ demo corpus, the real TextGrids of ../shared/data and every one of them rewritte
 ours reads 477 of 477 files, the package 472): the package fails on short-format files with a point tier
 (``praatio_examples/mary.TextGrid``, a real file, with an AttributeError that names neither the file nor
 the line), rounds every time to 5 digits (exact on 18 of its 472 files), drops zero-length intervals and
-ignores tiers beyond the declared count without a word. Speed is no reason either way: ours is 1.0-1.3x
+ignores tiers beyond the declared count without a word. Speed is no reason either way: ours is 1.1x
 faster. The package stays the reference of the tests and the benchmark (a dev dependency).
 """
 
