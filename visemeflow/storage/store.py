@@ -106,9 +106,12 @@ def _read_whole(path: Path) -> pa.Table:
 
     `pq.read_table(path)` opens the path more than once (footer, then pages); a writer renaming a new
     file over it in between makes the read fail ("Page was smaller than expected"). One handle keeps
-    the read on one version of the file.
+    the read on one version of the file. The handle is Arrow's own (`pa.OSFile`), not a Python file: buffers
+    read through a Python file are Python objects, and an Arrow I/O thread that drops the last one while the
+    interpreter exits must take the GIL, is ended by Python and aborts the process (`visemeflow predict` exited
+    with SIGABRT after its work was done).
     """
-    with open(path, "rb") as fh:
+    with pa.OSFile(str(path)) as fh:
         return pq.read_table(fh)
 
 
@@ -469,7 +472,7 @@ class Store:
         path = self.shard_path(table_name, shard, stage)
         if not path.is_file():
             return None
-        with open(path, "rb") as fh:
+        with pa.OSFile(str(path)) as fh:
             return dict(pq.read_schema(fh).metadata or {})
 
     def read_shard(self, table_name: str, shard: int, stage: str | None = None) -> pa.Table:
