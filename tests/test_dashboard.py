@@ -463,3 +463,15 @@ def test_the_browser_check_sees_errors_broken_images_and_blocked_fetches(browser
     assert state["images"][0]["width"] == 0
     assert any("Content Security Policy" in e for e in state["errors"])
     assert "http://127.0.0.1:9/x.png" in state["requests"]      # the attempt is seen even though CSP blocks it
+
+
+def test_utterances_with_ids_in_any_script_are_listed_by_their_ids_not_their_file_names(tmp_path):
+    from visemeflow.dashboards.html import curve_index
+
+    s = Store(tmp_path / "store")
+    for uid in ("张三/句子 1", "Sprecher_ü/Satz%1", "spk/plain"):
+        s.write_curves(curves_table(uid, "procedural", "jali", np.zeros((5, 16), np.float32), 25.0))
+    assert curve_index(s) == {uid: {"procedural": ["jali"]} for uid in ("张三/句子 1", "Sprecher_ü/Satz%1", "spk/plain")}
+    result = build_dashboard(s, tmp_path / "out")
+    page = result.path.read_text(encoding="utf-8")
+    assert "张三/句子 1" in page and "Sprecher_ü/Satz%1" in page and "%E5%BC%A0" not in page

@@ -43,7 +43,6 @@ MAX_TRACKING_UTTERANCES = 2000
 # Robustness conditions in the paper's order (Tables 1-3), as the evaluate report has them; any other follows.
 CONDITION_ORDER = COLUMNS
 BASELINE_CONDITION = "validation"
-VIDEO_SUFFIXES = {".mp4", ".m4v", ".mov", ".mkv", ".avi", ".mpg", ".mpeg", ".webm"}
 CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
 
 _CSS = """
@@ -136,9 +135,7 @@ def curve_index(store: Store) -> dict[str, dict[str, list[str]]]:
     index: dict[str, dict[str, list[str]]] = {}
     for source in CURVE_SOURCES:
         for variant in store.curve_variants(source):
-            for f in store.curve_files(source, variant):
-                p = Path(f)
-                uid = f"{p.parent.name}/{p.stem}"
+            for uid in store.curve_ids(source, variant):
                 index.setdefault(uid, {}).setdefault(source, []).append(variant)
     return index
 
@@ -182,22 +179,13 @@ def load_waveform(row: dict | None) -> tuple[tuple[np.ndarray, int] | None, str]
     """((mono samples, rate), "") of an utterance's audio, or (None, why not). Videos are read through PyAV."""
     if row is None:
         return None, "no row in the utterances table: audio unknown"
-    audio, video = row.get(C.AUDIO_PATH), row.get(C.VIDEO_PATH)
+    from visemeflow.ingest.audio import read_audio  # the one reader of audio files and videos' audio tracks
+
     errors = []
-    if audio and Path(audio).suffix.lower() not in VIDEO_SUFFIXES:
-        import soundfile as sf
-
+    for path in dict.fromkeys(p for p in (row.get(C.AUDIO_PATH), row.get(C.VIDEO_PATH)) if p):
         try:
-            samples, rate = sf.read(audio, dtype="float32", always_2d=True)
-            return (samples.mean(axis=1), int(rate)), ""
-        except (RuntimeError, OSError, ValueError) as exc:
-            errors.append(f"{audio}: {exc}")
-    for path in dict.fromkeys(p for p in (audio, video) if p and Path(p).suffix.lower() in VIDEO_SUFFIXES):
-        from visemeflow.tracking.video import read_video_audio
-
-        try:
-            return read_video_audio(path), ""
-        except (OSError, ValueError) as exc:  # VideoError is a ValueError
+            return read_audio(path), ""
+        except (OSError, ValueError) as exc:  # AudioError is a ValueError
             errors.append(str(exc))
     return None, "audio unreadable: " + ("; ".join(errors) if errors else "no audio path")
 
@@ -382,16 +370,13 @@ def tracking_sample(store: Store, limit: int = MAX_TRACKING_UTTERANCES) -> tuple
 
     `Store.read_tracking_frames` opens every file (half a millisecond each: 10 s for a 10k-utterance store); the
     report reads a fixed pseudo-random sample of the files instead (the same in every run), and only the columns
-    it shows. Files are found by the store's layout, tracking_frames/<variant>/<speaker>/<name>.parquet.
+    it shows, listed by the store (`Store.tracking_frame_files`).
     """
-    folder = store.root / "tracking_frames"
-    variants = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")) \
-        if folder.is_dir() else []
     files, counts = [], {}
-    for variant in variants:
-        found = [p for p in (folder / variant).glob("*/*.parquet") if not p.name.startswith(".")]
-        found.sort(key=lambda p: (zlib.crc32(f"{p.parent.name}/{p.stem}".encode()), str(p)))
-        files += [str(p) for p in found[:limit]]
+    for variant in store.tracking_variants():
+        found = store.tracking_frame_files(variant)
+        found.sort(key=lambda p: (zlib.crc32(store.utterance_id_of(p).encode()), p))
+        files += found[:limit]
         counts[variant] = (min(len(found), limit), len(found))
     columns = [C.UTTERANCE_ID, C.VARIANT, C.MOUTH_ERROR_PX, C.LANDMARKS_VALID, C.FLOW_VALID_FRACTION]
     if not files:
@@ -441,9 +426,8 @@ def build_dashboard(
     index = curve_index(store)
     metrics = store.read_metrics()
     rejects = store.read_table("rejects")
-    sweeps = sorted((store.root / "reports").glob("sweep-*.png")) if (store.root / "reports").is_dir() else []
-    has_tracking = any(store.root.joinpath("tracking_frames").rglob("*.parquet")) \
-        if store.root.joinpath("tracking_frames").is_dir() else False
+    sweeps = store.report_files(prefix="sweep-", suffix=".png")
+    has_tracking = bool(store.tracking_frame_files())
     empty = not (rows_by_id or index or metrics.num_rows or rejects.num_rows or sweeps or has_tracking)
 
     selected, missing = select_utterances(list(rows_by_id), index, utterance_ids, max(0, max_utterances))
