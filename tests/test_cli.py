@@ -133,3 +133,20 @@ def test_animation_package_is_pure():
             for name in names:
                 assert not name.startswith("prefect"), (path, name)
                 assert not name.startswith("visemeflow") or name.startswith(allowed), (path, name)
+
+
+def test_a_failed_stage_prints_its_summary_and_exits_1(monkeypatch, capsys):
+    import visemeflow.cli as cli
+    from visemeflow.flows.errors import StageFailed
+
+    def failing_pipeline():
+        raise StageFailed("pipeline: track: all 2 utterances failed (see the rejects table)",
+                          {"ingest": {"utterances": 2}, "track": {"utterances": 2, "rejected": 2}})
+
+    monkeypatch.setattr(cli, "app", failing_pipeline)
+    with pytest.raises(SystemExit) as exited:
+        cli.main()
+    assert exited.value.code == 1
+    out, err = capsys.readouterr()
+    assert out.splitlines() == ["ingest: utterances 2", "track: utterances 2, rejected 2"]
+    assert err.strip() == "failed: pipeline: track: all 2 utterances failed (see the rejects table)"
