@@ -163,11 +163,8 @@ def test_every_variant_with_a_point_tier(tmp_path, style, encoding):
     path.write_bytes(bom + format_textgrid(tiers, 0.0, 1.2, style=style).encode(codec))
     grid = read_textgrid(path)
     assert grid == TextGridData(0.0, 1.2, tiers)
-    if style == "long":
+    if style == "long":  # the package cannot read point tiers in the short layouts (bench/textgrid_readers.py)
         assert _ours_as_reference(grid) == _reference(path)
-    else:
-        with pytest.raises(Exception):  # noqa: B017 - the package's short-layout point reader goes out of step
-            reference.TextGrid.fromFile(str(path))
 
 
 def test_read_textgrid_errors_name_the_file(tmp_path):
@@ -474,10 +471,7 @@ def test_real_and_demo_files_in_every_variant(tmp_path, style):
 
 
 def test_mary_textgrid_with_point_tier():
-    path = DATA / "praatio_examples" / "mary.TextGrid"
-    with pytest.raises(Exception):  # the reference package fails on this short-format file
-        reference.TextGrid.fromFile(str(path))
-    grid = parse_file(path)
+    grid = parse_file(DATA / "praatio_examples" / "mary.TextGrid")  # short format with a point tier
     assert [(t.kind, t.name) for t in grid.tiers] == [("IntervalTier", "phone"), ("IntervalTier", "word"), ("TextTier", "pitch")]
     assert grid.end_s == pytest.approx(1.869687)
     phone = grid.tier(("phones", "phone"))
