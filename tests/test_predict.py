@@ -35,13 +35,18 @@ def store(tmp_path):
     return s
 
 
-def test_prediction_ids_are_safe_file_stems():
+def test_prediction_ids_keep_the_file_name_in_any_script_and_stay_safe():
+    import unicodedata
+
     from visemeflow.flows.predict import prediction_id
 
-    assert prediction_id("a/b/take 1 (final).wav") == "predict/take_1__final_"
+    assert prediction_id("a/b/take 1 (final).wav") == "predict/take 1 (final)"
+    assert prediction_id("/x/张三 第一句.wav") == "predict/张三 第一句"
+    assert prediction_id(unicodedata.normalize("NFD", "Sätze.wav")) == "predict/Sätze"
     assert prediction_id("/x/.hidden.wav") == "predict/hidden"
     assert prediction_id("/x/....wav") == "predict/audio"
     assert prediction_id("clip.v2.mp4") == "predict/clip.v2"
+    assert prediction_id("/x/a\\b\tc.wav") == "predict/a_b_c"
 
 
 @pytest.mark.flow

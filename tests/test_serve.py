@@ -12,8 +12,8 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from visemeflow.ops import serve as serve_module
 from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
 
-STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "rerun")
-STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "rerun")
+STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "rerun")
+STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "rerun")
 
 
 def flow_of(entrypoint: str):

@@ -8,6 +8,7 @@ artifact lists the outputs and the real-time factor of each file.
 """
 
 import re
+import unicodedata
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -17,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
 from visemeflow.schemas import C, curves_array
-from visemeflow.schemas.ids import validate_name
+from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.predict import SOURCE, prediction_task_for
 
@@ -42,10 +43,19 @@ class PredictParams(BaseModel):
 
 
 def prediction_id(path: Path | str) -> str:
-    """The utterance id of a predicted file: `predict/<stem>`, characters other than letters, digits, `_ . -`
-    replaced by `_` (a stem of only dots or nothing becomes `audio`)."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(path).stem).lstrip(".") or "audio"
-    return f"predict/{stem}"
+    """The utterance id of a predicted file: `predict/<stem>`, the file's own name in any script (NFC) as far as
+    ids allow it; leading dots are dropped and characters an id cannot hold (backslash, control characters) become
+    `_`; a stem left empty becomes `audio`."""
+    stem = Path(path).stem.lstrip(".").strip() or "audio"
+    try:
+        return make_utterance_id("predict", stem)
+    except InvalidIdError:
+        cleaned = "".join(ch if ch == " " or unicodedata.category(ch)[0] in "LMNPS" and ch != "\\" else "_"
+                          for ch in unicodedata.normalize("NFC", stem))
+        try:
+            return make_utterance_id("predict", cleaned)
+        except InvalidIdError:  # e.g. too long for a file name once encoded
+            return make_utterance_id("predict", re.sub(r"[^A-Za-z0-9_.-]", "_", stem)[:100] or "audio")
 
 
 def export_paths(out: Path, utterance_id: str) -> dict[str, Path]:

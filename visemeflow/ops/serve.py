@@ -41,7 +41,8 @@ def last_ingested_corpus(store: Path) -> Path | None:
 def build_deployments(
     store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
 ) -> list[RunnerDeployment]:
-    """Deployments of `pipeline` (on `cron` in `timezone`), of each stage and of `rerun`; the store is their default.
+    """Deployments of `pipeline` (on `cron` in `timezone`), of each stage, `predict` and `rerun`; the store is their
+    default.
 
     Without `corpus`, the pipeline and ingest deployments default to the corpus the store last ingested; with
     neither, they have no default corpus and the pipeline no schedule (a run would have nothing to read).
@@ -51,6 +52,7 @@ def build_deployments(
     from visemeflow.flows.evaluate import evaluate_flow
     from visemeflow.flows.ingest import ingest_flow
     from visemeflow.flows.pipeline import pipeline_flow
+    from visemeflow.flows.predict import predict_flow
     from visemeflow.flows.procedural import procedural_flow
     from visemeflow.flows.rerun import rerun_flow
     from visemeflow.flows.sweep import sweep_flow
@@ -77,6 +79,8 @@ def build_deployments(
         deployment(sweep_flow, on_store),
         deployment(evaluate_flow, on_store,
                    description="Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
+        deployment(predict_flow, on_store,
+                   description="Curves of new audio files from a trained model (the form asks for model and files)."),
         deployment(rerun_flow, on_store,
                    description="One utterance through one stage (ingest, procedural, track), even when cached."),
     ]
