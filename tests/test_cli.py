@@ -119,22 +119,6 @@ def test_json_export_and_errors(tmp_path):
     assert not [p for p in (tmp_path / "deep").iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
-def test_animation_package_is_pure():
-    """DESIGN: animation/ imports rig and visemes only (and the standard helpers), never Prefect or the store."""
-    import ast
-
-    from factories import REPO
-
-    allowed = ("visemeflow.visemes", "visemeflow.rig", "visemeflow.animation", "visemeflow.atomic")
-    for path in (REPO / "visemeflow" / "animation").glob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
-                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
-            for name in names:
-                assert not name.startswith("prefect"), (path, name)
-                assert not name.startswith("visemeflow") or name.startswith(allowed), (path, name)
-
-
 def test_a_failed_stage_prints_its_summary_and_exits_1(monkeypatch, capsys):
     import visemeflow.cli as cli
     from visemeflow.flows.errors import StageFailed
