@@ -90,6 +90,8 @@ _SHARD_FILE = re.compile(r"^shard-([0-9]{4,})\.parquet$")
 
 def _first_non_finite(table: pa.Table, columns: list[str]) -> tuple[int, str, object, int] | None:
     """(row, column, value, number of bad values) of the first NaN, infinite or null value in `columns`."""
+    if all(table.column(c).null_count == 0 and np.isfinite(table.column(c).to_numpy()).all() for c in columns):
+        return None  # the common case, checked column by column without copies
     values = np.stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
                        for c in columns], axis=1) if table.num_rows else np.zeros((0, len(columns)))
     bad = ~np.isfinite(values)
@@ -229,7 +231,10 @@ class Store:
         the format by it). A failing writer leaves the previous file in place; an OSError becomes a StoreError
         naming `path`.
         """
-        path = self._inside(path)
+        return self._replace(self._inside(path), writer, keep_suffix)
+
+    def _replace(self, path: Path, writer: Callable[[Path], object], keep_suffix: bool = False) -> Path:
+        """`write_file` for a path this class made (inside the store by construction: no check on the hot path)."""
         try:
             with atomic_path(path, keep_suffix=keep_suffix) as tmp:
                 writer(tmp)
@@ -239,7 +244,7 @@ class Store:
         return path
 
     def _write_atomic(self, table: pa.Table, path: Path, **parquet_options: object) -> Path:
-        return self.write_file(path, lambda tmp: pq.write_table(table, tmp, compression="zstd", **parquet_options))
+        return self._replace(path, lambda tmp: pq.write_table(table, tmp, compression="zstd", **parquet_options))
 
     def write_shard(
         self, table_name: str, shard: int, table: pa.Table, stage: str | None = None,
