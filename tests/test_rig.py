@@ -577,3 +577,20 @@ def test_shipped_demo_rig_matches_a_rebuild_from_the_recipes(demo):
     np.testing.assert_array_equal(rebuilt.faces, demo.faces)
     np.testing.assert_array_equal(rebuilt.landmark_ids, demo.landmark_ids)
     np.testing.assert_allclose(rebuilt.deltas, demo.deltas, atol=4e-3)  # float16 storage
+
+
+def test_a_failed_rig_save_keeps_the_previous_file_whole(tmp_path, monkeypatch):
+    import visemeflow.rig.io as rig_io
+
+    path = save_rig_npz(tiny_rig(), tmp_path / "tiny.npz")
+    before = path.read_bytes()
+
+    def half_then_fail(target, arrays):
+        Path(target).write_bytes(before[:100])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(rig_io, "_write_npz", half_then_fail)
+    with pytest.raises(OSError, match="No space left"):
+        save_rig_npz(tiny_rig(name="other"), path)
+    assert path.read_bytes() == before and load_rig(path).name == "tiny"
+    assert [p.name for p in tmp_path.iterdir()] == ["tiny.npz"]  # no temporary file left

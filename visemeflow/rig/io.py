@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from visemeflow.atomic import atomic_write
 from visemeflow.rig.model import N_LANDMARKS, RigError, VisemeRig, validate_rig
 from visemeflow.visemes import N_VISEMES, VISEMES
 
@@ -503,9 +504,7 @@ def save_rig_npz(rig: VisemeRig, path: Path | str) -> Path:
         arrays["vertex_colors"] = np.round(np.asarray(rig.vertex_colors) * 255.0).astype(np.uint8)
     for region, ids in rig.regions.items():
         arrays[f"region/{region}"] = np.asarray(ids).astype(np.int32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _write_npz(path, arrays)
-    return path
+    return atomic_write(path, lambda tmp: _write_npz(tmp, arrays))  # a rig file is whole or absent
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:

@@ -21,6 +21,7 @@ from typing import Final
 
 import soundfile as sf
 
+from visemeflow.atomic import atomic_write, atomic_write_text
 from visemeflow.phonetics.textgrid import Tier, format_textgrid
 from visemeflow.synth.espeak import SynthResult, parse_pinyin, synthesize
 
@@ -183,8 +184,9 @@ def write_espeak_corpus(root: Path | str, n_english: int, n_mandarin: int, seed:
         folder = root / job.utterance_id.split("/")[0]
         folder.mkdir(parents=True, exist_ok=True)
         stem = folder / job.utterance_id.split("/")[1]
-        sf.write(stem.with_suffix(".wav"), result.pcm16, result.sample_rate, subtype="PCM_16", format="WAV")
-        stem.with_suffix(".TextGrid").write_text(textgrid_of(result), encoding="utf-8", newline="\n")
+        atomic_write(stem.with_suffix(".wav"), lambda tmp: sf.write(
+            tmp, result.pcm16, result.sample_rate, subtype="PCM_16", format="WAV"))
+        atomic_write_text(stem.with_suffix(".TextGrid"), textgrid_of(result))
         return job.utterance_id
 
     return [run(job) for job in jobs]
