@@ -22,7 +22,7 @@ ALLOWED = {
     "procedural": {"phonetics"},
     "tracking": {"rig"},
     "learning": {"schemas"},  # the utterance-id rules, for augmented ids
-    "animation": {"rig"},
+    "animation": {"rig", "synth"},  # synth: the preview reuses its renderer
     "synth": {"phonetics", "procedural", "rig", "tracking"},
     "ingest": {"phonetics", "schemas", "tracking"},  # tracking.video: the audio track of a video
     "storage": {"schemas"},

@@ -1,0 +1,191 @@
+"""Characters: a mesh with named blendshapes (morph targets), whatever the naming convention of its rig.
+
+A `Character` holds the neutral mesh, its triangles and one delta per named shape (shape - neutral), in the
+character's own names and order. `conventions.py` says how our 16 viseme curves drive those names; the exporters
+(glTF, USD, Live Link, web JSON) and the preview write or show the character's own shapes.
+
+Loaders: `load_character(path)` reads
+- a `.glb` / `.gltf` with morph targets (`gltf.read_character_glb`, through pygltflib),
+- a compact `.npz` written by `save_character_npz` (or one of our 16-viseme rig files, `rig.save_rig_npz`),
+- a folder of meshes (OBJ/PLY, gzipped or not): `neutral.<ext>` and one file per shape, named by the shape.
+Every loader ends in `validate_character`, which names the file and what is wrong: no shapes, an empty or
+duplicate shape name, non-finite vertices, deltas of the wrong size, faces outside the mesh.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from visemeflow.atomic import atomic_path
+from visemeflow.rig import RigError, VisemeRig, load_rig_npz, read_mesh
+from visemeflow.visemes import VISEMES
+
+
+class CharacterError(ValueError):
+    """A character that cannot be used: the message names the file and what is wrong with it."""
+
+
+@dataclass(frozen=True, eq=False)
+class Character:
+    """A mesh with named blendshapes: vertices(w) = neutral + sum_s w_s deltas[s]."""
+
+    name: str
+    source: str
+    """The file or folder it was read from ("" for one built in memory)."""
+    neutral: np.ndarray
+    """(V, 3) float32 rest positions, in the mesh's own units and axes."""
+    faces: np.ndarray
+    """(F, 3) int32 triangles."""
+    shape_names: tuple[str, ...]
+    """The S shape (morph target) names, in the character's order."""
+    deltas: np.ndarray
+    """(S, V, 3) float32, shape - neutral, in `shape_names` order."""
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.neutral.shape[0])
+
+    @property
+    def n_shapes(self) -> int:
+        return len(self.shape_names)
+
+    def shape_index(self, name: str) -> int:
+        return self.shape_names.index(name)
+
+    def where(self) -> str:
+        return f"character {self.name!r}" + (f" ({self.source})" if self.source else "")
+
+
+def validate_character(character: Character) -> Character:
+    """Raise CharacterError naming the first problem (and the file); return the character when it is usable."""
+    where = character.where()
+    neutral = np.asarray(character.neutral)
+    if neutral.ndim != 2 or neutral.shape[1] != 3 or neutral.shape[0] == 0:
+        raise CharacterError(f"{where}: the neutral mesh must be (V, 3) with V > 0, got {neutral.shape}")
+    if not np.isfinite(neutral).all():
+        bad = int(np.flatnonzero(~np.isfinite(neutral).all(axis=1))[0])
+        raise CharacterError(f"{where}: the neutral mesh has NaN or infinite coordinates (first at vertex {bad})")
+    names = list(character.shape_names)
+    if not names:
+        raise CharacterError(f"{where}: the mesh has no blendshapes (morph targets); a character needs named shapes")
+    empty = [i for i, n in enumerate(names) if not isinstance(n, str) or not n.strip()]
+    if empty:
+        raise CharacterError(f"{where}: shape {empty[0]} has no name; every blendshape needs a unique name")
+    seen: dict[str, int] = {}
+    for i, n in enumerate(names):
+        if n in seen:
+            raise CharacterError(f"{where}: the shape name {n!r} is used twice (shapes {seen[n]} and {i})")
+        seen[n] = i
+    deltas = np.asarray(character.deltas)
+    if deltas.shape != (len(names), neutral.shape[0], 3):
+        raise CharacterError(f"{where}: expected {len(names)} shape deltas of ({neutral.shape[0]}, 3), "
+                             f"got {deltas.shape}")
+    finite = np.isfinite(deltas).reshape(len(names), -1).all(axis=1)
+    if not finite.all():
+        raise CharacterError(f"{where}: shape {names[int(np.flatnonzero(~finite)[0])]!r} has NaN or infinite "
+                             "coordinates")
+    faces = np.asarray(character.faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise CharacterError(f"{where}: faces must be (F, 3) integer triangles, got {faces.dtype} {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= neutral.shape[0]):
+        raise CharacterError(f"{where}: face vertex ids must lie in [0, {neutral.shape[0]}), "
+                             f"got {faces.min()}..{faces.max()}")
+    return character
+
+
+def make_character(name: str, neutral, faces, shape_names, deltas, source: str | os.PathLike = "") -> Character:
+    """A validated Character from arrays (converted to float32 / int32)."""
+    return validate_character(Character(
+        name=name, source=str(source), neutral=np.ascontiguousarray(neutral, np.float32),
+        faces=np.ascontiguousarray(faces, np.int32), shape_names=tuple(shape_names),
+        deltas=np.ascontiguousarray(deltas, np.float32)))
+
+
+def character_from_rig(rig: VisemeRig, source: str | os.PathLike = "") -> Character:
+    """A 16-viseme rig (our convention: one shape per viseme, named as `visemes.VISEMES`) as a character."""
+    return make_character(rig.name, rig.neutral, rig.faces, VISEMES, rig.deltas, source)
+
+
+_NPZ_KEYS = ("neutral", "faces", "shape_names", "deltas")
+
+
+def save_character_npz(character: Character, path: str | os.PathLike) -> Path:
+    """Write a compact character file (`load_character` reads it back exactly)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, name=np.array(character.name), neutral=character.neutral, faces=character.faces,
+                                shape_names=np.array(character.shape_names), deltas=character.deltas)
+    return path
+
+
+def _load_npz(path: Path, name: str | None) -> Character:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            keys = set(data.files)
+            if set(_NPZ_KEYS) <= keys:
+                return make_character(name or str(data["name"]) if "name" in keys else name or path.stem,
+                                      data["neutral"], data["faces"], [str(n) for n in data["shape_names"]],
+                                      data["deltas"], path)
+    except (OSError, ValueError) as exc:
+        raise CharacterError(f"{path}: not a readable .npz character file ({exc})") from None
+    try:
+        rig = load_rig_npz(path)
+    except RigError as exc:
+        raise CharacterError(f"{path}: neither a character file (keys {', '.join(_NPZ_KEYS)}) nor a viseme rig: "
+                             f"{exc}") from None
+    return character_from_rig(rig, path) if name is None else make_character(
+        name, rig.neutral, rig.faces, VISEMES, rig.deltas, path)
+
+
+_MESH_SUFFIXES = (".obj", ".ply", ".obj.gz", ".ply.gz")
+
+
+def _mesh_name(path: Path) -> str | None:
+    lower = path.name.lower()
+    for suffix in _MESH_SUFFIXES:
+        if lower.endswith(suffix):
+            return path.name[: -len(suffix)]
+    return None
+
+
+def _load_folder(path: Path, name: str | None) -> Character:
+    meshes = {stem: p for p in sorted(path.iterdir()) if p.is_file() and (stem := _mesh_name(p)) is not None}
+    neutral_key = next((k for k in meshes if k.lower() in ("neutral", "base", "basis")), None)
+    if neutral_key is None:
+        raise CharacterError(f"{path}: a character folder needs neutral.obj (or .ply) and one mesh per shape; "
+                             f"found {', '.join(sorted(meshes)) or 'no meshes'}")
+    try:
+        base = read_mesh(meshes.pop(neutral_key))
+        shapes = {k: read_mesh(p) for k, p in meshes.items()}
+    except RigError as exc:
+        raise CharacterError(str(exc)) from None
+    for key, mesh in shapes.items():
+        if mesh.vertices.shape != base.vertices.shape:
+            raise CharacterError(f"{meshes[key]}: {len(mesh.vertices)} vertices, the neutral has "
+                                 f"{len(base.vertices)}; every shape must share the neutral's topology")
+    names = list(shapes)
+    deltas = (np.stack([shapes[k].vertices for k in names]) - base.vertices[None]) if names else \
+        np.zeros((0,) + base.vertices.shape, np.float32)
+    return make_character(name or path.name, base.vertices, base.faces, names, deltas, path)
+
+
+def load_character(path: str | os.PathLike, name: str | None = None) -> Character:
+    """Read a character from a .glb/.gltf, a .npz (ours or a viseme rig) or a folder of meshes; validated."""
+    path = Path(path)
+    if path.is_dir():
+        return _load_folder(path, name)
+    if not path.is_file():
+        raise CharacterError(f"{path}: no such character file or folder")
+    suffix = path.suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        from visemeflow.animation.gltf import read_character_glb
+
+        return read_character_glb(path, name=name)
+    if suffix == ".npz":
+        return _load_npz(path, name)
+    raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .npz or a folder of meshes")
