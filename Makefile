@@ -8,7 +8,7 @@ OUT ?= visemeflow-out
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export PREFECT_LOGGING_LEVEL ?= WARNING
 
-.PHONY: system-deps venv demo test bench clean
+.PHONY: system-deps venv js-deps demo test bench clean
 
 # System packages (espeak-ng, chromium, nodejs/npm): installed when missing as root; otherwise one line that
 # names them and the install command, and make stops. Fast when everything is there (no apt call).
@@ -39,8 +39,16 @@ demo: system-deps venv
 	$(BIN)/visemeflow predict examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --out $(OUT)/predicted
 	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
 
+# The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
+JS_STAMP := tools/js/node_modules/.installed
+js-deps: system-deps $(JS_STAMP)
+
+$(JS_STAMP): tools/js/package.json tools/js/package-lock.json | system-deps
+	npm ci --prefix tools/js --no-audit --no-fund
+	touch $(JS_STAMP)
+
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
-test: system-deps venv
+test: system-deps venv js-deps
 	$(BIN)/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
 
 bench: venv
