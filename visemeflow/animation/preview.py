@@ -1,0 +1,591 @@
+"""Preview videos a person can watch: one character's face driven by several curve sources, side by side.
+
+`render_preview(path, character, {"procedural": w1, "tracked": w2, ...}, fps, audio=..., phones=..., title=...)`
+writes an H.264 + AAC `.mp4`:
+
+    +-----------------------------------------------+
+    |                    title                      |   title band (only with `title`)
+    | procedural  |   tracked    |   predicted      |   label band: each source's label above its panel
+    |   [face]    |   [face]     |    [face]        |   one `size` x `size` panel per source, no margins
+    |                    AH                         |   caption band: the phone under way (only with `phones`)
+    +-----------------------------------------------+
+
+Panels are rendered by the synthetic corpus's numpy rasteriser (`visemeflow.synth.render.render_mesh`, Lambert +
+ambient shading, grey skin) from one fixed camera and pose per character, so only the blendshape motion changes.
+The default `framing="mouth"` frames the vertices that the shapes move (for a face rig: the lower face, lips, jaw
+and chin); `framing="face"` frames the whole neutral mesh.
+
+Memory stays bounded for long takes: vertices are made `chunk_frames` frames at a time
+(`neutral + weights @ deltas.reshape(S, -1)`), each frame is composed into one reused canvas and handed to the
+encoder at once; no list of frames is ever held. A panel whose weights equal its previous frame's (a held last
+frame, a still stretch) or another panel's in the same frame is copied, not rendered again.
+
+Text (title, labels, phones). With Pillow (installed with matplotlib; not a declared dependency) text is drawn
+with a TrueType font: DejaVu Sans from the system (or matplotlib's bundled copy), which covers Latin, IPA and
+pinyin with tone marks, and a CJK font when one of the usual ones is installed (Noto Sans CJK, WenQuanYi, Droid
+Sans Fallback, ...). A character that no available font has (e.g. Chinese on a machine without a CJK font, which
+is this project's Debian image) is drawn as U+FFFD "�", visibly, never silently dropped or as an empty box; the
+characters replaced are listed in `PreviewReport.replaced_characters`. Without Pillow, text goes through
+`cv2.putText` (Hershey fonts, ASCII only): printable ASCII is kept and every other character becomes "?".
+Text too wide for its band is cut and ends in "...".
+
+Timing: frame k shows weights row k and the phone under way at time k / fps (`visemeflow.timebase`'s clock).
+"""
+
+from __future__ import annotations
+
+import bisect
+import functools
+import importlib.util
+import logging
+import math
+import os
+import time
+import unicodedata
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+
+from visemeflow.animation.character import Character
+from visemeflow.atomic import atomic_path
+from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
+from visemeflow.timebase import frame_count
+
+__all__ = ["PreviewFrames", "PreviewReport", "TextPainter", "preview_camera", "render_preview"]
+
+log = logging.getLogger(__name__)
+
+BAND_COLOR = (24, 25, 30)
+TEXT_COLOR = (235, 235, 240)
+CAPTION_COLOR = (255, 214, 120)
+FRAMINGS = ("mouth", "face")
+_MOVING_FRACTION = 0.1
+"""`framing="mouth"` frames the vertices that some shape moves by at least this fraction of the largest move."""
+_FILL = 0.86
+_FOV_DEG = 18.0
+_AUDIO_RATES_PREFERRED = (48000, 44100)
+_AUDIO_BIT_RATE = 96_000
+
+
+@dataclass(frozen=True)
+class PreviewReport:
+    """What `render_preview` wrote and how fast."""
+
+    path: Path
+    frames: int
+    fps: Fraction
+    width: int
+    height: int
+    seconds_render: float
+    """Wall-clock seconds of the whole call: deforming, rendering, text, encoding and writing."""
+    frames_per_second: float
+    """frames / seconds_render."""
+    replaced_characters: str = ""
+    """Characters of the title, labels or phones that no available font could draw (shown as "�" or "?")."""
+
+
+# ----------------------------------------------------------------------------------------------------------- text
+
+_PRIMARY_FONTS = ("DejaVuSans.ttf", "LiberationSans-Regular.ttf", "FreeSans.ttf")
+_CJK_FONTS = (
+    "NotoSansCJK-Regular.ttc", "NotoSansCJKsc-Regular.otf", "NotoSansSC-Regular.otf", "NotoSansCJKSC-Regular.otf",
+    "SourceHanSansSC-Regular.otf", "SourceHanSans-Regular.ttc", "wqy-microhei.ttc", "wqy-zenhei.ttc",
+    "DroidSansFallbackFull.ttf", "DroidSansFallback.ttf", "uming.ttc", "ukai.ttc", "arphic/uming.ttc",
+)
+_MISSING_SENTINEL = "\U0010fffd"  # a private-use code point no font maps: what a missing glyph looks like
+_REPLACEMENT = "\ufffd"
+
+
+def _bundled_dejavu() -> str | None:
+    """matplotlib's own copy of DejaVu Sans (located without importing matplotlib), if installed."""
+    spec = importlib.util.find_spec("matplotlib")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for folder in spec.submodule_search_locations:
+        candidate = Path(folder) / "mpl-data" / "fonts" / "ttf" / "DejaVuSans.ttf"
+        if candidate.is_file():
+            return str(candidate)
+    return None
+
+
+@functools.lru_cache(maxsize=16)
+def _pil_fonts(px: int) -> tuple:
+    """TrueType fonts at `px` pixels, the primary (Latin/IPA) one first, then any CJK font found; () if none."""
+    from PIL import ImageFont
+
+    fonts = []
+    primaries = list(_PRIMARY_FONTS)
+    bundled = _bundled_dejavu()
+    if bundled:
+        primaries.append(bundled)
+    for name in primaries:
+        try:
+            fonts.append(ImageFont.truetype(name, px))  # a bare name is searched in the system's font folders
+            break
+        except OSError:
+            continue
+    for name in _CJK_FONTS:
+        try:
+            fonts.append(ImageFont.truetype(name, px))
+            break
+        except OSError:
+            continue
+    if not fonts:
+        try:
+            fonts.append(ImageFont.load_default(px))  # Pillow's built-in font (Latin only)
+        except (TypeError, OSError):
+            return ()
+    return tuple(fonts)
+
+
+def _pil_available() -> bool:
+    return importlib.util.find_spec("PIL") is not None
+
+
+class TextPainter:
+    """Draws one line of text into a band image, with the fallbacks of the module doc.
+
+    `use_pil=None` uses Pillow when it is installed; False forces the cv2 (ASCII-only) path. `replaced` collects
+    the characters that could not be drawn. Bands are cached by (text, size, colour, alignment).
+    """
+
+    def __init__(self, px: int, use_pil: bool | None = None):
+        self.px = int(px)
+        fonts = _pil_fonts(self.px) if (use_pil is None and _pil_available()) or use_pil else ()
+        if use_pil and not fonts:
+            raise RuntimeError("Pillow with a usable font is not available")
+        self.fonts = fonts
+        self.replaced: set[str] = set()
+        self._glyph: dict[tuple[int, str], bool] = {}
+        self._missing = [self._mask_key(font, _MISSING_SENTINEL) for font in self.fonts]
+        self._cache: dict[tuple, np.ndarray] = {}
+
+    @property
+    def uses_pil(self) -> bool:
+        return bool(self.fonts)
+
+    @staticmethod
+    def _mask_key(font, text: str) -> tuple:
+        mask = font.getmask(text)
+        return mask.size, bytes(mask)
+
+    def _font_for(self, ch: str) -> int | None:
+        """Index of the first font with a glyph for `ch`, or None."""
+        for i, font in enumerate(self.fonts):
+            key = (i, ch)
+            if key not in self._glyph:
+                self._glyph[key] = ch.isspace() or self._mask_key(font, ch) != self._missing[i]
+            if self._glyph[key]:
+                return i
+        return None
+
+    def _runs(self, text: str) -> list[tuple[int, str]]:
+        """(font index, text) runs covering `text`, missing characters replaced by U+FFFD (or "?")."""
+        runs: list[tuple[int, str]] = []
+        for ch in unicodedata.normalize("NFC", text):
+            if unicodedata.category(ch) in ("Cc", "Cf"):
+                continue
+            index = self._font_for(ch)
+            if index is None:
+                self.replaced.add(ch)
+                index, ch = 0, (_REPLACEMENT if self._font_for(_REPLACEMENT) == 0 else "?")
+            if runs and runs[-1][0] == index:
+                runs[-1] = (index, runs[-1][1] + ch)
+            else:
+                runs.append((index, ch))
+        return runs
+
+    def ascii_text(self, text: str) -> str:
+        """The cv2 path's text: printable ASCII kept, every other character "?" (and recorded as replaced)."""
+        out = []
+        for ch in unicodedata.normalize("NFC", text):
+            if 32 <= ord(ch) < 127:
+                out.append(ch)
+            elif unicodedata.category(ch) not in ("Cc", "Cf"):
+                self.replaced.add(ch)
+                out.append("?")
+        return "".join(out)
+
+    def band(self, text: str, width: int, height: int, color=TEXT_COLOR, align: str = "center",
+             background=BAND_COLOR) -> np.ndarray:
+        """(height, width, 3) uint8 RGB: `text` on one line, vertically centred, cut with "..." when too wide."""
+        key = (text, width, height, tuple(color), align, tuple(background))
+        if key not in self._cache:
+            image = np.empty((height, width, 3), np.uint8)
+            image[:] = np.asarray(background, np.uint8)
+            if text:
+                (self._draw_pil if self.fonts else self._draw_cv2)(image, text, color, align)
+            image.flags.writeable = False
+            self._cache[key] = image
+        return self._cache[key]
+
+    def _draw_pil(self, image: np.ndarray, text: str, color, align: str) -> None:
+        from PIL import Image, ImageDraw
+
+        pad = max(2, self.px // 3)
+        runs = self._runs(text)
+
+        def width_of(rs) -> float:
+            return sum(self.fonts[i].getlength(s) for i, s in rs)
+
+        if width_of(runs) > image.shape[1] - 2 * pad:
+            ellipsis = (0, "...")
+            while runs and width_of(runs) + width_of([ellipsis]) > image.shape[1] - 2 * pad:
+                i, s = runs[-1]
+                runs = runs[:-1] + ([(i, s[:-1])] if len(s) > 1 else [])
+            runs = runs + [ellipsis]
+        total = width_of(runs)
+        x = pad if align == "left" else (image.shape[1] - total) / 2.0
+        y = image.shape[0] / 2.0
+        canvas = Image.fromarray(image)
+        draw = ImageDraw.Draw(canvas)
+        for i, s in runs:
+            # anchor "lm": x at the left, y at the middle of the primary font's ascender..descender
+            draw.text((x, y), s, font=self.fonts[i], fill=tuple(int(c) for c in color), anchor="lm")
+            x += self.fonts[i].getlength(s)
+        image[:] = np.asarray(canvas)
+
+    def _draw_cv2(self, image: np.ndarray, text: str, color, align: str) -> None:
+        font, thickness = cv2.FONT_HERSHEY_SIMPLEX, 1
+        scale = self.px / 24.0
+        pad = max(2, self.px // 3)
+        line = self.ascii_text(text)
+
+        def width_of(s: str) -> int:
+            return cv2.getTextSize(s, font, scale, thickness)[0][0]
+
+        if width_of(line) > image.shape[1] - 2 * pad:
+            while line and width_of(line + "...") > image.shape[1] - 2 * pad:
+                line = line[:-1]
+            line += "..."
+        (w, h), _ = cv2.getTextSize(line, font, scale, thickness)
+        x = pad if align == "left" else (image.shape[1] - w) // 2
+        y = (image.shape[0] + h) // 2
+        cv2.putText(image, line, (int(x), int(y)), font, scale, tuple(int(c) for c in color), thickness, cv2.LINE_AA)
+
+
+# --------------------------------------------------------------------------------------------------------- camera
+
+def preview_camera(character: Character, size: int, framing: str = "mouth") -> tuple[Camera, Pose]:
+    """The fixed camera and frontal pose of a character's panels (`size` x `size` pixels).
+
+    "face": the whole neutral mesh; "mouth": the vertices some shape moves by at least 10 % of the largest move
+    (all vertices when no shape moves any). The framed box is made square (its larger side spans 86 % of the
+    panel), so wide and tall regions both fit.
+    """
+    if framing not in FRAMINGS:
+        raise ValueError(f"framing must be one of {FRAMINGS}, got {framing!r}")
+    points = np.asarray(character.neutral, np.float64)
+    if framing == "mouth":
+        moves = np.sqrt((np.asarray(character.deltas, np.float64) ** 2).sum(axis=2)).max(axis=0)
+        if moves.max() > 0:
+            points = points[moves >= _MOVING_FRACTION * moves.max()]
+    low, high = points.min(axis=0), points.max(axis=0)
+    centre = (low + high) / 2.0
+    half = max(float(high[0] - low[0]), float(high[1] - low[1]), 1e-6) / 2.0
+    box = np.array([[centre[0] + sx * half, centre[1] + sy * half, z]
+                    for sx in (-1, 1) for sy in (-1, 1) for z in (low[2], high[2])])
+    camera = Camera.from_fov(size, size, _FOV_DEG)
+    return camera, frontal_pose(box, camera, fill=_FILL)
+
+
+# ------------------------------------------------------------------------------------------------------ validation
+
+def _as_fps(fps) -> Fraction:
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, Fraction, np.integer, np.floating)):
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    if not (math.isfinite(float(fps)) and float(fps) > 0):
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    rate = fps if isinstance(fps, Fraction) else Fraction(float(fps)).limit_denominator(1001)
+    if rate <= 0:
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    return rate
+
+
+def _check_sources(character: Character, sources: Mapping[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
+    where = character.where()
+    if not isinstance(sources, Mapping) or not sources:
+        raise ValueError(f"{where}: no curve sources to preview; give an ordered dict label -> (T, S) weights")
+    checked = []
+    n_shapes = character.n_shapes
+    for label, weights in sources.items():
+        if not isinstance(label, str):
+            raise ValueError(f"{where}: source labels must be strings, got {label!r}")
+        w = np.asarray(weights)
+        if w.ndim != 2 or w.shape[1] != n_shapes:
+            raise ValueError(f"{where}: source {label!r} has weights of shape {w.shape}; expected (T, {n_shapes}), "
+                             f"one column per shape of the character ({', '.join(character.shape_names)})")
+        if w.shape[0] == 0:
+            raise ValueError(f"{where}: source {label!r} has no frames")
+        if not np.issubdtype(w.dtype, np.number) or np.iscomplexobj(w):
+            raise ValueError(f"{where}: source {label!r} weights must be real numbers, got {w.dtype}")
+        w = np.ascontiguousarray(w, np.float32)
+        finite = np.isfinite(w)
+        if not finite.all():
+            row, col = (int(i) for i in np.argwhere(~finite)[0])
+            raise ValueError(f"{where}: source {label!r} has a NaN or infinite weight (first at frame {row}, "
+                             f"shape {character.shape_names[col]!r})")
+        checked.append((label, w))
+    return checked
+
+
+def _check_audio(audio) -> tuple[np.ndarray, int] | None:
+    if audio is None:
+        return None
+    try:
+        samples, rate = audio
+    except (TypeError, ValueError):
+        raise ValueError("audio must be a (samples, sample_rate) pair") from None
+    samples = np.asarray(samples)
+    if samples.ndim == 2 and samples.shape[1] == 1:
+        samples = samples[:, 0]
+    if samples.ndim != 1:
+        raise ValueError(f"audio samples must be mono, shape (N,), got {samples.shape}")
+    if not np.issubdtype(samples.dtype, np.floating):
+        raise ValueError(f"audio samples must be float (in [-1, 1]), got {samples.dtype}")
+    if isinstance(rate, bool) or not float(rate).is_integer() or int(rate) <= 0:
+        raise ValueError(f"audio sample rate must be a positive whole number of Hz, got {rate!r}")
+    samples = np.ascontiguousarray(samples, np.float32)
+    if not np.isfinite(samples).all():
+        raise ValueError(f"audio has NaN or infinite samples (first at sample {int(np.argmin(np.isfinite(samples)))})")
+    return samples, int(rate)
+
+
+def _check_phones(phones) -> tuple[list[float], list[float], list[str]]:
+    if phones is None:
+        return [], [], []
+    rows = []
+    for i, item in enumerate(phones):
+        try:
+            start, end, label = item
+            start, end = float(start), float(end)
+        except (TypeError, ValueError):
+            raise ValueError(f"phone {i}: expected (start_s, end_s, label), got {item!r}") from None
+        if not (math.isfinite(start) and math.isfinite(end) and end >= start):
+            raise ValueError(f"phone {i} ({label!r}): needs finite times with end >= start, got {start}..{end}")
+        rows.append((start, end, str(label).strip()))
+    rows.sort(key=lambda r: r[0])
+    return [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows]
+
+
+def _phone_at(t: float, starts: list[float], ends: list[float], labels: list[str]) -> str:
+    """The label of the latest phone starting at or before t, if it is still under way at t; "" otherwise."""
+    i = bisect.bisect_right(starts, t) - 1
+    return labels[i] if i >= 0 and t < ends[i] else ""
+
+
+def _audio_rate_for_encoder(rate: int) -> int:
+    """`rate` when the AAC encoder takes it, else 48 kHz (or 44.1 kHz)."""
+    supported = av.codec.Codec("aac", "w").audio_rates or ()
+    if not supported or rate in supported:
+        return rate
+    return next((r for r in _AUDIO_RATES_PREFERRED if r in supported), max(supported))
+
+
+def _even_band(px: float) -> int:
+    return int(2 * math.ceil(px / 2.0))
+
+
+# ----------------------------------------------------------------------------------------------------------- main
+
+class PreviewFrames:
+    """The preview's frames, composed one at a time (no encoding): layout, panels, labels, caption.
+
+    Arguments as `render_preview` (validated here, errors naming the character and the source); `n_frames`
+    extends the video beyond the longest source (e.g. to the audio's length). Iterating yields the same
+    (height, width, 3) uint8 RGB array every time, overwritten in place: copy a frame to keep it.
+    """
+
+    def __init__(self, character: Character, sources: Mapping[str, np.ndarray], fps, *,
+                 phones: Sequence[tuple[float, float, str]] | None = None, title: str | None = None,
+                 size: int = 360, chunk_frames: int = 64, framing: str = "mouth", n_frames: int = 0,
+                 painter: TextPainter | None = None):
+        self.rate = _as_fps(fps)
+        self.character = character
+        self.sources = _check_sources(character, sources)
+        self._starts, self._ends, self._phones = _check_phones(phones)
+        if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 16 or size % 2:
+            raise ValueError(f"size must be an even number of pixels >= 16 (H.264 4:2:0 needs even sizes), "
+                             f"got {size!r}")
+        if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, (int, np.integer)) or chunk_frames < 1:
+            raise ValueError(f"chunk_frames must be a positive integer, got {chunk_frames!r}")
+        if title is not None and not isinstance(title, str):
+            raise ValueError(f"title must be text, got {title!r}")
+        self.size, self.chunk_frames, self.title = int(size), int(chunk_frames), title
+        self.camera, self.pose = preview_camera(character, self.size, framing)
+        self.frames = max(int(n_frames), max(w.shape[0] for _, w in self.sources))
+
+        # layout: [title band] label band, panels, [caption band]; every band an even number of rows
+        px = max(10, round(self.size * 0.05))
+        band = _even_band(px * 1.8)
+        self.painter = painter or TextPainter(px)
+        self.n_panels = len(self.sources)
+        self.width = self.n_panels * self.size
+        self.title_height = band if title else 0
+        self.label_height = band
+        self.caption_height = band if phones is not None else 0
+        self.panel_top = self.title_height + self.label_height
+        self.caption_top = self.panel_top + self.size
+        self.height = self.caption_top + self.caption_height
+
+    def panel_box(self, k: int) -> tuple[slice, slice]:
+        """(rows, columns) of panel k in a frame."""
+        return slice(self.panel_top, self.caption_top), slice(k * self.size, (k + 1) * self.size)
+
+    def caption_box(self) -> tuple[slice, slice]:
+        """(rows, columns) of the caption band (empty when there are no phones)."""
+        return slice(self.caption_top, self.height), slice(0, self.width)
+
+    def label_box(self, k: int) -> tuple[slice, slice]:
+        return slice(self.title_height, self.panel_top), slice(k * self.size, (k + 1) * self.size)
+
+    def title_box(self) -> tuple[slice, slice]:
+        return slice(0, self.title_height), slice(0, self.width)
+
+    def phone_at(self, frame: int) -> str:
+        """The caption of `frame`: the phone under way at frame / fps ("" in gaps)."""
+        return _phone_at(frame / float(self.rate), self._starts, self._ends, self._phones)
+
+    def __len__(self) -> int:
+        return self.frames
+
+    def __iter__(self):
+        character, size, n = self.character, self.size, self.n_panels
+        canvas = np.empty((self.height, self.width, 3), np.uint8)
+        if self.title_height:
+            canvas[self.title_box()] = self.painter.band(self.title, self.width, self.title_height)
+        for k, (label, _) in enumerate(self.sources):
+            canvas[self.label_box(k)] = self.painter.band(label, size, self.label_height)
+        deltas = np.ascontiguousarray(character.deltas, np.float32).reshape(character.n_shapes, -1)
+        neutral = np.ascontiguousarray(character.neutral, np.float32).reshape(1, -1)
+        faces = np.asarray(character.faces, np.int64)
+        shown: list[np.ndarray | None] = [None] * n  # the weights row each panel shows now
+        caption = None
+        for start in range(0, self.frames, self.chunk_frames):
+            stop = min(self.frames, start + self.chunk_frames)
+            # a shorter source holds its last row
+            rows = [w[np.minimum(np.arange(start, stop), w.shape[0] - 1)] for _, w in self.sources]
+            vertices = [neutral + r @ deltas for r in rows]  # (chunk, V * 3) per source: the bounded memory
+            for i in range(start, stop):
+                for k in range(n):
+                    row = rows[k][i - start]
+                    if shown[k] is not None and np.array_equal(row, shown[k]):
+                        continue  # unchanged: the canvas already shows it
+                    box = self.panel_box(k)
+                    twin = next((j for j in range(k) if np.array_equal(row, rows[j][i - start])), None)
+                    if twin is not None:
+                        canvas[box] = canvas[self.panel_box(twin)]
+                    else:
+                        canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces, None,
+                                                  self.camera, self.pose)
+                    shown[k] = row
+                if self.caption_height:
+                    text = self.phone_at(i)
+                    if text != caption:
+                        canvas[self.caption_box()] = self.painter.band(text, self.width, self.caption_height,
+                                                                       CAPTION_COLOR)
+                        caption = text
+                yield canvas
+
+
+def render_preview(
+    path: str | os.PathLike,
+    character: Character,
+    sources: Mapping[str, np.ndarray],
+    fps,
+    *,
+    audio: tuple[np.ndarray, int] | None = None,
+    phones: Sequence[tuple[float, float, str]] | None = None,
+    title: str | None = None,
+    size: int = 360,
+    chunk_frames: int = 64,
+    framing: str = "mouth",
+    crf: int = 23,
+) -> PreviewReport:
+    """Write an H.264 + AAC `.mp4` preview of `character` driven by each source, side by side (see the module doc).
+
+    sources: ordered mapping label -> (T_i, S) weights in `character.shape_names` order; one `size` x `size` panel
+        per source, left to right in the mapping's order, its label above it. Weights are used as given (no clip).
+    fps: frames per second (int, float or Fraction; a float is read as the nearest fraction with denominator
+        <= 1001, so 29.97 stays 2997/100 and 30000/1001 can be given as a Fraction).
+    audio: optional (samples float mono, sample_rate), muxed as AAC at its own rate when the encoder takes it
+        (else resampled to 48 kHz); padded with silence to the video's length when the curves run longer.
+    phones: optional (start_s, end_s, label) intervals; frame k's caption is the label of the phone under way at
+        k / fps, empty in gaps. Labels are written as given: drop silence intervals beforehand if "sil" should
+        not show (`visemeflow.phonetics.inventory.is_silence`).
+    title: optional text on a band above the labels.
+    size: even panel side in pixels; the video is (n_sources * size) wide, with no margins.
+    chunk_frames: frames deformed at once (memory: chunk_frames x vertices x 12 bytes per source).
+    framing: "mouth" (the moving region, default) or "face" (the whole neutral mesh); see `preview_camera`.
+    crf: libx264 quality (lower: better and larger).
+
+    Frames: the longest source's length or round(audio seconds x fps), whichever is larger; a shorter source
+    holds its last frame to the end. Written atomically: a failure leaves no file and keeps an older one.
+    Raises ValueError (naming the character and the source) for weights of the wrong width, non-finite weights,
+    no sources, fps <= 0, an odd size, bad audio or phones, a path not ending in .mp4.
+    """
+    started = time.perf_counter()
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"{path}: the preview is an MP4 video; give a path ending in .mp4")
+    rate = _as_fps(fps)
+    sound = _check_audio(audio)
+    audio_frames = frame_count(sound[0].size / sound[1], float(rate)) if sound is not None and sound[0].size else 0
+    frames = PreviewFrames(character, sources, rate, phones=phones, title=title, size=size,
+                           chunk_frames=chunk_frames, framing=framing, n_frames=audio_frames)
+    n_frames = frames.frames
+
+    with atomic_path(path, keep_suffix=True) as tmp:
+        container = av.open(str(tmp), mode="w", format="mp4", options={"movflags": "+faststart"})
+        try:
+            video = container.add_stream("libx264", rate=rate)
+            video.width, video.height, video.pix_fmt = frames.width, frames.height, "yuv420p"
+            video.codec_context.time_base = 1 / rate
+            video.options = {"crf": str(int(crf)), "preset": "medium"}
+            audio_stream, audio_pos, n_audio = None, 0, 0
+            if sound is not None:
+                samples, sample_rate = sound
+                audio_stream = container.add_stream("aac", rate=_audio_rate_for_encoder(sample_rate), layout="mono")
+                audio_stream.bit_rate = _AUDIO_BIT_RATE
+                # silence after the audio up to the video's end, so both streams last as long
+                n_audio = max(samples.size, int(round(n_frames / rate * sample_rate)))
+
+            def push_audio(upto: int) -> None:
+                nonlocal audio_pos
+                upto = min(upto, n_audio)
+                while audio_pos < upto:
+                    stop = min(upto, audio_pos + 8192)
+                    chunk = np.zeros(stop - audio_pos, np.float32)
+                    have = max(0, min(stop, samples.size) - audio_pos)
+                    chunk[:have] = samples[audio_pos:audio_pos + have]
+                    frame = av.AudioFrame.from_ndarray(chunk[None, :], format="fltp", layout="mono")
+                    frame.sample_rate = sample_rate
+                    frame.pts = audio_pos
+                    frame.time_base = Fraction(1, sample_rate)
+                    container.mux(audio_stream.encode(frame))
+                    audio_pos = stop
+
+            for i, canvas in enumerate(frames):
+                frame = av.VideoFrame.from_ndarray(canvas, format="rgb24")
+                frame.pts = i
+                container.mux(video.encode(frame))
+                if audio_stream is not None and (i + 1) % 16 == 0:  # interleave: audio up to the video's time
+                    push_audio(int(round((i + 1) / rate * sample_rate)))
+            container.mux(video.encode(None))
+            if audio_stream is not None:
+                push_audio(n_audio)
+                container.mux(audio_stream.encode(None))
+        finally:
+            container.close()
+
+    seconds = time.perf_counter() - started
+    replaced = "".join(sorted(frames.painter.replaced))
+    if replaced:
+        log.info("%s: no font for %r in the preview's text; drawn as replacement marks", path, replaced)
+    return PreviewReport(path, n_frames, rate, frames.width, frames.height, seconds,
+                         n_frames / seconds if seconds > 0 else 0.0, replaced)
