@@ -1,0 +1,224 @@
+"""OpenUSD export: a character's mesh, its blendshapes and their weights over time, as UsdSkel.
+
+The layout follows what NVIDIA Audio2Face and Maya USD exchange for blendshape-driven faces (UsdSkel,
+`pxr/usd/usdSkel` "Schemas In-Depth"):
+
+    /<Name>                      SkelRoot (the default prim)
+        Skeleton                 Skeleton, one joint "root" at the origin (bind = rest = identity), with
+                                 UsdSkel.BindingAPI: skel:animationSource -> Animation
+            Animation            SkelAnimation: the joint "root" held at identity (UsdSkel only accepts an animation
+                                 source whose translations/rotations/scales match its joints), blendShapes = the
+                                 real shape names, blendShapeWeights time-sampled, one sample per frame
+        Mesh                     Mesh (triangles, rest points), UsdSkel.BindingAPI: skel:skeleton -> Skeleton,
+                                 skel:blendShapes (the real names), skel:blendShapeTargets -> its BlendShape
+                                 children, rigidly bound to "root" (constant jointIndices [0], jointWeights [1],
+                                 geomBindTransform identity), so importers that expect a skinned mesh find one
+            <shape>              BlendShape per shape: offsets = the deltas; pointIndices when fewer than 3/4
+                                 of the vertices move (only those vertices' offsets are stored)
+
+Blend shapes need a bound Skeleton in UsdSkel: the weights live on the SkelAnimation, which only reaches the mesh
+through the skeleton that `skel:skeleton` names, so a blendshape-only character still has one.
+
+Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
+Stage: upAxis Y, `metersPerUnit` as given (0.01: the demo rig is in centimetres).
+
+Names: USD prim names must be identifiers ([A-Za-z_][A-Za-z0-9_]*); a shape whose name is not one gets a prim
+name made valid (other characters -> "_", a leading digit prefixed by "_", made unique with a suffix), while the
+`blendShapes` tokens on the animation and the mesh keep the real name, which is what the weights map by.
+
+Formats by suffix: `.usda` text, `.usdc` binary crate, `.usd` binary crate (written as crate explicitly, whatever
+USD_DEFAULT_FILE_FORMAT says). The file is written to a temporary path with the same suffix and renamed over
+the target (`atomic_path`). Values are stored as float32, so the weights and offsets read back exactly.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+from visemeflow.animation.character import Character
+from visemeflow.atomic import atomic_path
+
+__all__ = ["USD_SUFFIXES", "prim_name", "read_usd_weights", "write_usd"]
+
+USD_SUFFIXES = (".usda", ".usdc", ".usd")
+ROOT_JOINT = "root"
+SKELETON = "Skeleton"
+ANIMATION = "Animation"
+MESH = "Mesh"
+# Store sparse offsets (pointIndices) when they are smaller than dense ones: an index costs 4 bytes, an offset 12.
+_SPARSE_BELOW = 0.75
+
+_INVALID = re.compile(r"[^A-Za-z0-9_]")
+
+
+def prim_name(name: str) -> str:
+    """`name` as a valid USD prim name: other characters become "_", a leading digit gets a "_" before it."""
+    text = _INVALID.sub("_", str(name)) or "_"
+    if text[0].isdigit():
+        text = "_" + text
+    return text
+
+
+def _unique_prim_names(names) -> list[str]:
+    """One distinct prim name per shape: names that are valid keep theirs, the others get `prim_name` plus "_1",
+    "_2" ... when that is taken."""
+    names = [str(n) for n in names]
+    used = {n for n in names if prim_name(n) == n}
+    out = []
+    for name in names:
+        if prim_name(name) == name:
+            out.append(name)
+            continue
+        base = candidate = prim_name(name)
+        k = 1
+        while candidate in used:
+            candidate = f"{base}_{k}"
+            k += 1
+        used.add(candidate)
+        out.append(candidate)
+    return out
+
+
+def _check_weights(weights, n_shapes: int, fps: float, where: str) -> np.ndarray:
+    w = np.asarray(weights)
+    if w.ndim != 2 or w.shape[1] != n_shapes or w.shape[0] == 0:
+        raise ValueError(f"{where}: weights must be (frames > 0, {n_shapes}), got {w.shape}")
+    w = np.ascontiguousarray(w, dtype=np.float32)
+    if not np.isfinite(w).all():
+        raise ValueError(f"{where}: weights hold NaN or infinite values")
+    if w.min() < 0 or w.max() > 1:
+        raise ValueError(f"{where}: weights must lie in [0, 1], got {float(w.min())} .. {float(w.max())}")
+    if not (isinstance(fps, (int, float, np.integer, np.floating)) and np.isfinite(fps) and fps > 0):
+        raise ValueError(f"{where}: fps must be a positive number, got {fps!r}")
+    return w
+
+
+def _format_args(path: Path) -> dict[str, str]:
+    suffix = path.suffix.lower()
+    if suffix not in USD_SUFFIXES:
+        raise ValueError(f"{path}: unknown USD suffix {path.suffix!r}; use {', '.join(USD_SUFFIXES)}")
+    return {"format": "usdc"} if suffix == ".usd" else {}
+
+
+def _extent(character: Character) -> Vt.Vec3fArray:
+    """A bound of the mesh under every weight combination in [0, 1]: rest points plus all negative (positive) parts."""
+    neg = np.minimum(character.deltas, 0).sum(axis=0)
+    pos = np.maximum(character.deltas, 0).sum(axis=0)
+    lo = (character.neutral + neg).min(axis=0)
+    hi = (character.neutral + pos).max(axis=0)
+    return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
+
+
+def build_stage(character: Character, weights, fps: float, *, name: str | None = None,
+                meters_per_unit: float = 0.01) -> Usd.Stage:
+    """The in-memory stage `write_usd` saves (see the module doc for its layout)."""
+    where = character.where()
+    w = _check_weights(weights, character.n_shapes, fps, where)
+    if not (np.isfinite(meters_per_unit) and meters_per_unit > 0):
+        raise ValueError(f"{where}: meters_per_unit must be a positive number, got {meters_per_unit!r}")
+    fps = float(fps)
+    n_frames = int(w.shape[0])
+
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
+    stage.SetTimeCodesPerSecond(fps)
+    stage.SetFramesPerSecond(fps)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(n_frames - 1)
+    stage.GetRootLayer().documentation = f"visemeflow: {character.name} ({n_frames} frames at {fps:g} fps)"
+
+    root_path = Sdf.Path.absoluteRootPath.AppendChild(prim_name(name if name is not None else character.name))
+    root = UsdSkel.Root.Define(stage, root_path)
+    stage.SetDefaultPrim(root.GetPrim())
+    extent = _extent(character)
+    root.CreateExtentAttr(extent)
+
+    identity = Gf.Matrix4d(1.0)
+    shape_tokens = Vt.TokenArray(list(character.shape_names))
+
+    skeleton = UsdSkel.Skeleton.Define(stage, root_path.AppendChild(SKELETON))
+    skeleton.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
+    skeleton.CreateJointNamesAttr(Vt.TokenArray([ROOT_JOINT]))
+    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([identity]))
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([identity]))
+
+    anim = UsdSkel.Animation.Define(stage, skeleton.GetPath().AppendChild(ANIMATION))
+    anim.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
+    anim.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0, 0)]))
+    anim.CreateRotationsAttr(Vt.QuatfArray([Gf.Quatf(1, 0, 0, 0)]))
+    anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)]))
+    anim.CreateBlendShapesAttr(shape_tokens)
+    weights_attr = anim.CreateBlendShapeWeightsAttr()
+    with Sdf.ChangeBlock():
+        for k in range(n_frames):
+            weights_attr.Set(Vt.FloatArray.FromNumpy(w[k]), Usd.TimeCode(k))
+
+    skel_binding = UsdSkel.BindingAPI.Apply(skeleton.GetPrim())
+    skel_binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+
+    mesh = UsdGeom.Mesh.Define(stage, root_path.AppendChild(MESH))
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(character.neutral))
+    faces = np.ascontiguousarray(character.faces, dtype=np.int32)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateExtentAttr(extent)
+
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+    binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+    binding.CreateGeomBindTransformAttr(identity)
+    binding.CreateBlendShapesAttr(shape_tokens)
+
+    targets = []
+    n_vertices = character.n_vertices
+    for shape_prim, delta in zip(_unique_prim_names(character.shape_names), character.deltas):
+        shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(shape_prim))
+        moving = np.flatnonzero((delta != 0).any(axis=1)).astype(np.int32)
+        if len(moving) < _SPARSE_BELOW * n_vertices:
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moving])))
+            shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moving))
+        else:
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta)))
+        targets.append(shape.GetPath())
+    binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    return stage
+
+
+def write_usd(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None,
+              meters_per_unit: float = 0.01) -> Path:
+    """Write `character` animated by `weights` ((T, S) in [0, 1], columns in `character.shape_names` order, frame
+    k at time k / fps) as a UsdSkel stage: `.usda` (text), `.usd` or `.usdc` (binary crate). `name` names the
+    SkelRoot (default: the character's name, made a valid prim name). Atomic; returns `path`."""
+    path = Path(path)
+    args = _format_args(path)
+    stage = build_stage(character, weights, fps, name=name, meters_per_unit=meters_per_unit)
+    with atomic_path(path, keep_suffix=True) as tmp:
+        if not stage.GetRootLayer().Export(str(tmp), "", args):
+            raise OSError(f"{path}: USD could not write the stage")
+    return path
+
+
+def read_usd_weights(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray, float]:
+    """Read back (shape names, (T, S) float32 weights at time codes 0 .. T-1, fps) from the first SkelAnimation
+    of a stage written by `write_usd` (a check and a convenience; any UsdSkel reader sees the same values)."""
+    path = Path(path)
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise ValueError(f"{path}: not a readable USD stage")
+    anim = next((UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)), None)
+    if anim is None:
+        raise ValueError(f"{path}: no SkelAnimation prim")
+    names = tuple(str(t) for t in anim.GetBlendShapesAttr().Get() or ())
+    attr = anim.GetBlendShapeWeightsAttr()
+    times = attr.GetTimeSamples()
+    rows = [np.asarray(attr.Get(Usd.TimeCode(t)), dtype=np.float32) for t in times]
+    weights = np.stack(rows) if rows else np.zeros((0, len(names)), np.float32)
+    return names, weights, float(stage.GetTimeCodesPerSecond())
