@@ -1,0 +1,254 @@
+"""Preview videos (animation/preview.py): panels per curve source, labels, phone caption, H.264 + AAC MP4.
+
+Videos are reopened with PyAV and checked for what a viewer would see: codecs, frame count, rate, the audio's
+length, the layout, and that the pixels move where the weights differ (and only there).
+"""
+
+from fractions import Fraction
+
+import av
+import numpy as np
+import pytest
+
+from visemeflow.animation.character import character_from_rig, make_character
+from visemeflow.animation.preview import PreviewFrames, TextPainter, render_preview
+from visemeflow.rig import load_demo_rig
+
+FPS = 30
+SIZE = 96
+
+
+def grid_character(n: int = 24):
+    """A square sheet in the xy plane facing +z; "bump" raises a cone in its middle, "shift" slides its lower half."""
+    xs, ys = np.meshgrid(np.linspace(-1.0, 1.0, n), np.linspace(-1.0, 1.0, n))
+    neutral = np.stack([xs.ravel(), ys.ravel(), np.zeros(n * n)], axis=1)
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [[a, a + 1, a + n + 1], [a, a + n + 1, a + n]]  # counter-clockwise seen from +z
+    r = np.hypot(neutral[:, 0], neutral[:, 1])
+    deltas = np.zeros((2, n * n, 3))
+    deltas[0, :, 2] = 1.2 * np.clip(0.7 - r, 0.0, None)
+    deltas[1, :, 1] = -0.2 * (neutral[:, 1] < 0)
+    return make_character("grid", neutral, np.array(faces), ["bump", "shift"], deltas)
+
+
+def tone(seconds: float, rate: int) -> np.ndarray:
+    t = np.arange(int(round(seconds * rate))) / rate
+    return (0.2 * np.sin(2 * np.pi * 330.0 * t)).astype(np.float32)
+
+
+def decode(path):
+    """(RGB frames, video stream facts, audio stream facts) of an MP4."""
+    with av.open(str(path)) as container:
+        video, audio = container.streams.video[0], container.streams.audio[0]
+        facts = {
+            "vcodec": video.codec_context.name, "acodec": audio.codec_context.name,
+            "rate": video.average_rate, "width": video.codec_context.width, "height": video.codec_context.height,
+            "pix_fmt": video.codec_context.pix_fmt, "vframes": video.frames,
+            "vseconds": float(video.duration * video.time_base), "aseconds": float(audio.duration * audio.time_base),
+            "arate": audio.rate,
+        }
+        facts["aframe_size"] = audio.codec_context.frame_size
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+        container.seek(0)
+        facts["audio"] = np.concatenate([f.to_ndarray().reshape(-1) for f in container.decode(audio=0)])
+    return frames, facts
+
+
+def diff(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+PHONES = [(0.0, 0.5, "AA"), (0.5, 1.0, "M"), (1.0, 1.5, "UW")]
+
+
+@pytest.fixture(scope="module")
+def grid_preview(tmp_path_factory):
+    ch = grid_character()
+    t = 45  # 1.5 s at 30 fps
+    bump = np.zeros((t, 2), np.float32)
+    bump[:, 0] = 1.0
+    still = np.zeros((t, 2), np.float32)
+    sources = {"bump": bump, "still": still, "still too": still.copy()}
+    path = tmp_path_factory.mktemp("preview") / "grid.mp4"
+    report = render_preview(path, ch, sources, FPS, audio=(tone(1.5, 16000), 16000), phones=PHONES,
+                            title="grid / utt-1", size=SIZE)
+    layout = PreviewFrames(ch, sources, FPS, phones=PHONES, title="grid / utt-1", size=SIZE)
+    return report, layout, decode(path)
+
+
+def test_the_preview_is_h264_and_aac_at_the_given_rate_with_audio_as_long_as_video(grid_preview):
+    report, layout, (frames, facts) = grid_preview
+    assert report.path.is_file() and report.path.suffix == ".mp4"
+    assert facts["vcodec"] == "h264" and facts["acodec"] == "aac" and facts["pix_fmt"] == "yuv420p"
+    assert report.frames == 45 and len(frames) == 45 and facts["vframes"] == 45
+    assert facts["rate"] == FPS and report.fps == FPS
+    assert abs(facts["vseconds"] - 1.5) < 1e-6
+    assert abs(facts["aseconds"] - facts["vseconds"]) <= 1 / FPS
+    # decoded, the last AAC frame is padded to whole frames (the container's duration above says where it ends)
+    samples = facts["audio"]
+    assert 0 <= samples.size - 1.5 * facts["arate"] < facts["aframe_size"]
+    rms = float(np.sqrt(np.mean(samples[: int(1.5 * facts["arate"])] ** 2)))
+    assert rms == pytest.approx(0.2 / np.sqrt(2), rel=0.1)  # the tone is there, at its level
+    # three panels side by side, no margins; bands above (title, labels) and below (caption)
+    assert facts["width"] == report.width == 3 * SIZE
+    assert facts["height"] == report.height == layout.height > SIZE and report.height % 2 == 0
+    assert frames[0].shape == (report.height, report.width, 3)
+    assert report.seconds_render > 0 and report.frames_per_second == pytest.approx(45 / report.seconds_render)
+    assert report.replaced_characters == ""
+
+
+def test_panels_differ_where_the_weights_differ_and_match_where_they_agree(grid_preview):
+    _, layout, (frames, _) = grid_preview
+    frame = frames[20]
+    bump, still, still_too = (frame[layout.panel_box(k)] for k in range(3))
+    assert diff(bump, still) > 8.0  # the cone's shading, over the whole panel
+    assert diff(still, still_too) < 1.0  # the same weights: the same picture, up to compression
+    # before compression: exactly the same pixels
+    composed = [f.copy() for _, f in zip(range(2), layout)]
+    assert np.array_equal(composed[1][layout.panel_box(1)], composed[1][layout.panel_box(2)])
+    assert not np.array_equal(composed[1][layout.panel_box(0)], composed[1][layout.panel_box(1)])
+    # the decoded video shows what was composed
+    assert diff(frames[1], composed[1]) < 3.0
+
+
+def test_the_caption_band_changes_with_the_phone(grid_preview):
+    _, layout, (frames, _) = grid_preview
+    assert [layout.phone_at(k) for k in (0, 14, 15, 29, 30, 44)] == ["AA", "AA", "M", "M", "UW", "UW"]
+    band = layout.caption_box()
+    assert diff(frames[3][band], frames[12][band]) < 1.0  # "AA" both
+    assert diff(frames[12][band], frames[17][band]) > 1.0  # "AA" -> "M"
+    assert diff(frames[17][band], frames[35][band]) > 1.0  # "M" -> "UW"
+    composed = {k: f[band].copy() for k, f in enumerate(layout) if k in (3, 12, 17, 35)}
+    assert np.array_equal(composed[3], composed[12])
+    assert not np.array_equal(composed[12], composed[17]) and not np.array_equal(composed[17], composed[35])
+    # the labels above the panels and the title are drawn (not blank) and stay put
+    for box in (layout.title_box(), layout.label_box(0), layout.label_box(2)):
+        assert frames[0][box].std() > 5.0
+        assert diff(frames[0][box], frames[40][box]) < 1.0
+
+
+def test_shorter_sources_hold_their_last_frame_and_chunks_do_not_change_the_frames():
+    ch = grid_character(12)
+    ramp = np.zeros((10, 2), np.float32)
+    ramp[:, 0] = np.linspace(0.0, 1.0, 10)
+    long = np.zeros((25, 2), np.float32)
+    long[:, 1] = np.linspace(0.0, 1.0, 25)
+    frames = [f.copy() for f in PreviewFrames(ch, {"ramp": ramp, "long": long}, FPS, size=32, chunk_frames=64)]
+    chunked = [f.copy() for f in PreviewFrames(ch, {"ramp": ramp, "long": long}, FPS, size=32, chunk_frames=3)]
+    assert len(frames) == 25
+    assert all(np.array_equal(a, b) for a, b in zip(frames, chunked, strict=True))
+    layout = PreviewFrames(ch, {"ramp": ramp, "long": long}, FPS, size=32)
+    ramp_box, long_box = layout.panel_box(0), layout.panel_box(1)
+    assert not np.array_equal(frames[8][ramp_box], frames[9][ramp_box])
+    assert all(np.array_equal(frames[9][ramp_box], f[ramp_box]) for f in frames[10:])
+    assert not np.array_equal(frames[9][long_box], frames[24][long_box])
+
+
+def test_audio_longer_than_the_curves_sets_the_length(tmp_path):
+    ch = grid_character(12)
+    weights = np.zeros((10, 2), np.float32)
+    report = render_preview(tmp_path / "long audio.mp4", ch, {"a": weights}, 25, audio=(tone(1.0, 44100), 44100),
+                            size=32)
+    frames, facts = decode(report.path)
+    assert report.frames == len(frames) == 25 and facts["rate"] == 25
+    assert report.width == 32 and facts["width"] == 32
+    assert abs(facts["aseconds"] - 1.0) <= 1 / 25 and abs(facts["vseconds"] - 1.0) < 1e-6
+
+
+def test_curves_longer_than_the_audio_pad_it_and_odd_sample_rates_are_resampled(tmp_path):
+    ch = grid_character(12)
+    weights = np.zeros((36, 2), np.float32)  # 1.2 s at 29.97 fps, audio 0.5 s at 11111 Hz
+    report = render_preview(tmp_path / "p.mp4", ch, {"a": weights, "b": weights}, Fraction(30000, 1001),
+                            audio=(tone(0.5, 11111), 11111), size=32)
+    frames, facts = decode(report.path)
+    assert len(frames) == 36 and facts["rate"] == Fraction(30000, 1001) and report.fps == Fraction(30000, 1001)
+    assert facts["arate"] in (48000, 44100)
+    assert abs(facts["aseconds"] - facts["vseconds"]) <= 1001 / 30000
+
+
+def test_the_demo_rig_opens_its_mouth_in_the_preview(tmp_path):
+    ch = character_from_rig(load_demo_rig())
+    t = 12
+    neutral = np.zeros((t, ch.n_shapes), np.float32)
+    open_ = neutral.copy()
+    open_[:, ch.shape_index("AAA")] = 1.0
+    sources = {"neutral": neutral, "AAA": open_}
+    report = render_preview(tmp_path / "demo.mp4", ch, sources, FPS, audio=(tone(t / FPS, 16000), 16000),
+                            phones=[(0.0, 0.2, "AA"), (0.2, 0.4, "")], title=f"{ch.name} demo", size=64)
+    frames, facts = decode(report.path)
+    assert facts["vcodec"] == "h264" and facts["acodec"] == "aac" and len(frames) == t
+    assert report.width == facts["width"] == 2 * 64
+    layout = PreviewFrames(ch, sources, FPS, phones=[], title="x", size=64)
+    closed, opened = frames[5][layout.panel_box(0)], frames[5][layout.panel_box(1)]
+    assert diff(closed, opened) > 4.0
+    # the mouth is in the middle of the "mouth" framing: the centre moves more than the panel as a whole
+    centre = (slice(16, 48), slice(16, 48))
+    assert diff(closed[centre], opened[centre]) > diff(closed, opened)
+    # the whole-face framing sees the same rig smaller
+    face = PreviewFrames(ch, sources, FPS, size=64, framing="face")
+    first = next(iter(face))
+    assert diff(first[face.panel_box(0)], first[face.panel_box(1)]) < diff(closed, opened)
+
+
+def test_text_outside_ascii_is_drawn_or_visibly_replaced():
+    painter = TextPainter(18)
+    assert painter.uses_pil  # Pillow comes with matplotlib
+    blank = painter.band("", 200, 32)
+    pinyin, plain = painter.band("nǐ hǎo", 200, 32), painter.band("ni hao", 200, 32)
+    assert not np.array_equal(pinyin, plain) and painter.replaced == set()  # DejaVu has the tone marks
+    chinese = painter.band("你好", 200, 32)
+    assert not np.array_equal(chinese, blank)  # something visible: the glyphs or replacement marks
+    if painter.replaced:  # no CJK font here: both characters replaced by the same mark
+        assert painter.replaced == {"你", "好"}
+        assert np.array_equal(painter.band("你", 60, 32), painter.band("好", 60, 32))
+    # without Pillow: ASCII kept, the rest "?"
+    ascii_only = TextPainter(18, use_pil=False)
+    assert ascii_only.ascii_text("nǐ 你 ok") == "n? ? ok"
+    assert ascii_only.replaced == {"ǐ", "你"}
+    assert not np.array_equal(ascii_only.band("ni", 80, 32), ascii_only.band("", 80, 32))
+    # too long for its band: cut, still within the band
+    long = painter.band("x" * 200, 100, 32)
+    assert long.shape == (32, 100, 3)
+
+
+def test_a_cjk_title_is_reported_when_no_font_can_draw_it(tmp_path):
+    ch = grid_character(8)
+    w = np.zeros((3, 2), np.float32)
+    report = render_preview(tmp_path / "t.mp4", ch, {"a": w}, FPS, title="句子 001 nǐ", size=32)
+    has_cjk_font = len(TextPainter(10).fonts) > 1  # the panel's text size at 32 px
+    assert report.replaced_characters == ("" if has_cjk_font else "句子")
+
+
+def test_bad_inputs_are_refused_by_name_and_leave_no_file(tmp_path):
+    ch = grid_character(8)
+    good = np.zeros((5, 2), np.float32)
+    path = tmp_path / "bad.mp4"
+    path.write_bytes(b"old preview")
+    with pytest.raises(ValueError, match=r"character 'grid'.*'wide'.*\(T, 2\).*bump, shift"):
+        render_preview(path, ch, {"ok": good, "wide": np.zeros((5, 3), np.float32)}, FPS, size=32)
+    nan = good.copy()
+    nan[3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"character 'grid'.*'curves'.*NaN.*frame 3.*'shift'"):
+        render_preview(path, ch, {"curves": nan}, FPS, size=32)
+    with pytest.raises(ValueError, match=r"'empty' has no frames"):
+        render_preview(path, ch, {"empty": np.zeros((0, 2), np.float32)}, FPS, size=32)
+    with pytest.raises(ValueError, match=r"character 'grid'.*no curve sources"):
+        render_preview(path, ch, {}, FPS, size=32)
+    for fps in (0, -30, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="fps must be a positive number"):
+            render_preview(path, ch, {"ok": good}, fps, size=32)
+    with pytest.raises(ValueError, match="even"):
+        render_preview(path, ch, {"ok": good}, FPS, size=33)
+    with pytest.raises(ValueError, match=r"\.mp4"):
+        render_preview(tmp_path / "bad.avi", ch, {"ok": good}, FPS, size=32)
+    with pytest.raises(ValueError, match="audio has NaN"):
+        render_preview(path, ch, {"ok": good}, FPS, size=32, audio=(np.full(100, np.nan, np.float32), 16000))
+    with pytest.raises(ValueError, match="mono"):
+        render_preview(path, ch, {"ok": good}, FPS, size=32, audio=(np.zeros((100, 2), np.float32), 16000))
+    with pytest.raises(ValueError, match=r"phone 1 \('B'\)"):
+        render_preview(path, ch, {"ok": good}, FPS, size=32, phones=[(0.0, 0.1, "A"), (0.2, 0.1, "B")])
+    assert path.read_bytes() == b"old preview"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mp4"]  # no temporary file left
