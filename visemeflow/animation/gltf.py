@@ -99,10 +99,11 @@ class _Layout:
         accessor = gl.Accessor(bufferView=len(self.gltf.bufferViews) - 1, byteOffset=0, componentType=component,
                                count=count, type=kind)
         if bounds:
-            flat = data.reshape(count, -1)
+            # one contiguous row per component: numpy reduces those ~15x faster than the columns of a (count, 3)
+            columns = np.ascontiguousarray(data.reshape(count, -1).T)
             # float(float32) is the exact value; JSON's shortest repr of that double reads back to it exactly
-            accessor.min = [float(x) for x in flat.min(axis=0)]
-            accessor.max = [float(x) for x in flat.max(axis=0)]
+            accessor.min = [float(x) for x in columns.min(axis=1)]
+            accessor.max = [float(x) for x in columns.max(axis=1)]
         self.gltf.accessors.append(accessor)
         return len(self.gltf.accessors) - 1
 
