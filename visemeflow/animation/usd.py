@@ -43,7 +43,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 from visemeflow.animation.character import Character
 from visemeflow.atomic import atomic_path
 
-__all__ = ["USD_SUFFIXES", "prim_name", "read_usd_weights", "write_usd"]
+__all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd"]
 
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
 ROOT_JOINT = "root"
