@@ -223,13 +223,20 @@ def test_large_meshes_get_uint32_indices(tmp_path):
     assert_same_character(read_character_glb(path), c)
 
 
-def test_gltf_json_with_data_uri_buffers_reads_the_same(tmp_path):
+def test_gltf_json_with_external_or_data_uri_buffers_reads_the_same(tmp_path):
     c = small_character()
     glb = write_glb(tmp_path / "face.glb", c, random_weights(3, c.n_shapes), 30.0)
     g = gl.GLTF2.load(str(glb))
+    g.save_json(str(tmp_path / "external.gltf"))               # the binary chunk becomes external.bin beside it
+    assert json.loads((tmp_path / "external.gltf").read_text())["buffers"][0]["uri"] == "external.bin"
+    assert_same_character(load_character(tmp_path / "external.gltf"), c)
+    g = gl.GLTF2.load(str(glb))
     g.convert_buffers(gl.BufferFormat.DATAURI)
-    g.save_json(str(tmp_path / "face.gltf"))
-    assert_same_character(load_character(tmp_path / "face.gltf"), c)
+    g.save_json(str(tmp_path / "embedded.gltf"))
+    assert_same_character(load_character(tmp_path / "embedded.gltf"), c)
+    (tmp_path / "external.bin").unlink()
+    with pytest.raises(CharacterError, match=r"external\.gltf: buffer 0 \(external\.bin\) is missing"):
+        read_character_glb(tmp_path / "external.gltf")
 
 
 def test_write_rejects_bad_weights_and_keeps_the_previous_file(tmp_path):
@@ -249,6 +256,9 @@ def test_write_rejects_bad_weights_and_keeps_the_previous_file(tmp_path):
             write_glb(path, c, weights, fps)
         assert path.read_bytes() == before, label
     assert [p.name for p in tmp_path.iterdir()] == ["face.glb"]
+    with pytest.raises(ValueError, match="no triangles"):
+        write_glb(path, make_character("points", c.neutral, np.zeros((0, 3), np.int32), c.shape_names, c.deltas),
+                  np.zeros((2, c.n_shapes), np.float32), 30.0)
     one = write_glb(tmp_path / "one.glb", c, np.full((1, c.n_shapes), 0.5, np.float32), 30.0)
     g, read = glb_arrays(one)
     assert read(g.animations[0].samplers[0].input)[:, 0].tolist() == [0.0]

@@ -141,6 +141,8 @@ def write_glb(path: str | os.PathLike, character: Character, weights, fps: float
     """
     path = Path(path)
     validate_character(character)
+    if not len(character.faces):
+        raise ValueError(f"{character.where()}: no triangles; a glTF mesh needs at least one")
     times, w = _check_animation(character, weights, fps)
     label = name or character.name
     gltf = gl.GLTF2(asset=gl.Asset(generator=f"visemeflow (pygltflib {gl.__version__})", version="2.0"))
