@@ -55,6 +55,29 @@ def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: floa
     return IngestConfig(**kwargs)
 
 
+CharactersOpt = Annotated[Optional[list[Path]], typer.Option(
+    "--character", help="Character: .glb/.gltf with morph targets, .npz, or a folder of meshes (repeat for several); "
+                        "default: the shipped ICT demo character.")]
+FormatsOpt = Annotated[str, typer.Option(
+    "--format", help="Comma-separated: glb, usd, livelink, json, curves-csv, curves-json.")]
+MappingOpt = Annotated[Optional[Path], typer.Option(
+    "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.")]
+ConventionOpt = Annotated[Optional[str], typer.Option(
+    "--convention", help="arkit52, oculus15 or visemeflow16; default: detected from the shape names.")]
+
+
+def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool):
+    import pydantic
+
+    from visemeflow.animation.package import AnimateConfig
+
+    try:
+        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview)
+    except pydantic.ValidationError as exc:
+        typer.echo(f"error: {exc.errors()[0]['msg']}", err=True)
+        raise typer.Exit(2) from None
+
+
 def _print_summary(title: str, summary: dict) -> None:
     typer.echo(f"{title}: " + ", ".join(f"{k} {v}" for k, v in summary.items()))
 
@@ -131,15 +154,23 @@ def pipeline(
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
     threads: ThreadsOpt = None,
+    character: Annotated[Optional[list[Path]], typer.Option(
+        "--character", help="Also animate the tracked curves on this character (repeat for several).")] = None,
+    formats: FormatsOpt = "glb,usd,livelink,json",
 ) -> None:
-    """Run every stage on a corpus: ingest, procedural curves, tracking of the videos."""
+    """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
     result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards,
-                                          runner=_runner(runner, dask_workers, dask_address, threads)))
+                                          runner=_runner(runner, dask_workers, dask_address, threads),
+                                          characters=character or [],
+                                          animate=_animate_config(formats, None, None, False)))
     for stage, summary in result.items():
-        _print_summary(stage, summary)
+        if stage == "animate":
+            _print_packages(dict(summary))
+        else:
+            _print_summary(stage, summary)
     _print_outputs(store)
 
 
@@ -314,10 +345,103 @@ def predict(
             typer.echo(f"wrote {path}")
 
 
+def _print_packages(result: dict) -> None:
+    packages = result.pop("packages_written", [])
+    _print_summary("animate", result)
+    for report in packages:
+        cached = " (cached)" if report.get("cached") else ""
+        typer.echo(f"{report['utterance_id']} -> {report['character']} [{report['convention']}], "
+                   f"{report['frames']} frames at {report['fps']:g} fps{cached}:")
+        for path in report["files"].values():
+            typer.echo(f"  {path}")
+
+
+@app.command()
+def animate(
+    utterances: Annotated[Optional[list[str]], typer.Argument(help="Utterance ids; default: all with such curves.")] = None,
+    character: CharactersOpt = None,
+    store: StoreOpt = DEFAULT_STORE,
+    source: Annotated[str, typer.Option(help="tracked, procedural, ground_truth or predicted.")] = "tracked",
+    variant: Annotated[Optional[str], typer.Option(help="Variant of the curves (a model's name for predicted).")] = None,
+    formats: FormatsOpt = "glb,usd,livelink,json",
+    fps: Annotated[Optional[float], typer.Option(help="Export frame rate (resampled); default: the curves' own.")] = None,
+    convention: ConventionOpt = None,
+    mapping: MappingOpt = None,
+    preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 of each package.")] = False,
+    out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
+) -> None:
+    """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
+
+    Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
+    """
+    from visemeflow.flows.animate import AnimateParams, animate_flow
+
+    params = dict(store=store, source=source, variant=variant, utterances=utterances or None, mapping=mapping,
+                  config=_animate_config(formats, fps, convention, preview), out=out)
+    if character:
+        params["characters"] = character
+    _print_packages(dict(animate_flow(AnimateParams(**params))))
+    _print_rejects_hint(store)
+
+
+@app.command()
+def speak(
+    audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
+    model: Annotated[str, typer.Option("--model", help="Model name in the store.")],
+    character: CharactersOpt = None,
+    store: StoreOpt = DEFAULT_STORE,
+    formats: FormatsOpt = "glb,usd,livelink,json",
+    fps: Annotated[float, typer.Option(help="Frame rate of the curves and the exports.")] = 30.0,
+    convention: ConventionOpt = None,
+    mapping: MappingOpt = None,
+    preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 (the character speaking, with the audio).")] = False,
+    out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
+) -> None:
+    """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
+    from visemeflow.flows.animate import SpeakParams, speak_flow
+
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    if not s.has_model(model):
+        typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
+        raise typer.Exit(2)
+    params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
+                  config=_animate_config(formats, None, convention, preview))
+    if character:
+        params["characters"] = character
+    _print_packages(dict(speak_flow(SpeakParams(**params))))
+    _print_rejects_hint(store)
+
+
+@app.command("preview")
+def preview_command(
+    utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
+    character: Annotated[Optional[Path], typer.Option("--character", help="Character file or folder; default: the demo character.")] = None,
+    sources: Annotated[str, typer.Option(help="Comma-separated curve sources side by side (source or source:variant).")] = "procedural,tracked,predicted,ground_truth",
+    store: StoreOpt = DEFAULT_STORE,
+    mapping: MappingOpt = None,
+    size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 360,
+    out: Annotated[Optional[Path], typer.Option(help="MP4 file; default: in the store's animations folder.")] = None,
+) -> None:
+    """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
+    from visemeflow.flows.animate import PreviewParams, preview_flow
+
+    params = dict(store=store, utterance_id=utterance_id, sources=[x.strip() for x in sources.split(",") if x.strip()],
+                  mapping=mapping, size=size, out=out)
+    if character:
+        params["character"] = character
+    result = preview_flow(PreviewParams(**params))
+    for skipped in result["skipped"]:
+        typer.echo(f"left out {skipped}")
+    typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "
+               f"{', '.join(result['sources'])}; rendered at {result['frames_per_second']:.1f} frames/s)")
+
+
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    stage: Annotated[str, typer.Option(help="ingest, procedural or track.")] = "procedural",
+    stage: Annotated[str, typer.Option(help="ingest, procedural, track or animate.")] = "procedural",
     store: StoreOpt = DEFAULT_STORE,
     force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
 ) -> None:

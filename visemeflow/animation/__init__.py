@@ -1,11 +1,21 @@
-"""Animation: viseme curves made usable outside the store (paper section 6).
+"""Animation: viseme curves put on characters and exported for engines and DCC tools (paper section 6).
 
-Today the curve exports (`export.py`: CSV with one row per frame, JSON with one list per viseme) that
-`visemeflow predict --out` and `visemeflow curves export` write; curves applied to meshes and bone poses and
-engine exports (glTF, Live Link) come next. Pure: arrays in, text or files out; imports only `visemes`, `rig`
-and the standard helpers (`atomic`), never Prefect or the store.
+- `character`: a mesh with named shapes (GLB/glTF, npz, mesh folder), validated.
+- `conventions`: how the 16 curves drive a rig's names (our 16, ARKit 52, Oculus 15, a mapping CSV), detected.
+- `apply`: curve checks, resampling to another rate, chunked deformation to vertices.
+- exporters: `gltf` (GLB), `usd` (UsdSkel), `livelink` (Live Link Face CSV), `webjson` (TalkingHead), `export`
+  (the 16 curves as CSV/JSON); `package` writes one utterance's set of them with the audio beside.
+- `preview`: side-by-side MP4 previews (H.264 + AAC) drawn with the synth renderer.
+
+Pure: arrays in, files out; imports `visemes`, `rig`, `synth` (the renderer) and `atomic`, never Prefect or the store.
 """
 
+from visemeflow.animation.character import Character, CharacterError, character_from_rig, load_character
+from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, Binding, arkit_weights, bind, detect_convention
 from visemeflow.animation.export import FORMATS, CurveTrack, curves_csv, curves_json, export_text, write_export
 
-__all__ = ["FORMATS", "CurveTrack", "curves_csv", "curves_json", "export_text", "write_export"]
+__all__ = [
+    "ARKIT_52", "FORMATS", "OCULUS_15", "Binding", "Character", "CharacterError", "CurveTrack", "arkit_weights",
+    "bind", "character_from_rig", "curves_csv", "curves_json", "detect_convention", "export_text", "load_character",
+    "write_export",
+]

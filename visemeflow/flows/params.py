@@ -5,6 +5,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
+from visemeflow.animation.package import AnimateConfig
 from visemeflow.ingest import IngestConfig
 from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.train import TrainConfig
@@ -81,6 +82,9 @@ class PipelineParams(StoreParams):
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     rig: Path | None = Field(None, description="Viseme rig for tracking; default: the shipped ICT demo rig.")
     runner: RunnerConfig = RunnerField
+    characters: list[Path] = Field([], description="Characters to animate with the tracked curves (procedural when "
+                                                   "no utterance has a video); none: no animate stage.")
+    animate: AnimateConfig = Field(default_factory=AnimateConfig)
 
 
 class SynthParams(BaseModel):
@@ -134,7 +138,7 @@ class RerunParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
-    stage: Literal["ingest", "procedural", "track"] = Field("procedural", description="The stage to rerun.")
+    stage: Literal["ingest", "procedural", "track", "animate"] = Field("procedural", description="The stage to rerun.")
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     force: bool = Field(True, description="Recompute even when a cached result is valid.")
 

@@ -1,5 +1,5 @@
-"""The `pipeline` flow: ingest, procedural curves and tracking, in order, on one corpus (training, sweeps and
-evaluation are flows of their own: they need choices the corpus does not make)."""
+"""The `pipeline` flow: ingest, procedural curves, tracking and (when characters are given) animation, in order, on
+one corpus (training, sweeps and evaluation are flows of their own: they need choices the corpus does not make)."""
 
 from collections.abc import Callable
 
@@ -46,6 +46,14 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     if len(videos):
         track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner, **common)
         run("track", lambda: run_on_runner(track_flow, track))
+    if params.characters:
+        from visemeflow.flows.animate import AnimateParams, animate_flow
+
+        source = "tracked" if len(videos) else "procedural"
+        variant = params.tracking.variant if len(videos) else None
+        run("animate", lambda: animate_flow(AnimateParams(
+            store=params.store, n_shards=params.n_shards, characters=params.characters, source=source,
+            variant=variant, config=params.animate)))
     if failures:
         message = "pipeline: " + "; ".join(failures)
         return Failed(message=message, data=StageFailed(message, result))

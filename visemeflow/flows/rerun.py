@@ -22,6 +22,30 @@ class RerunError(LookupError):
     """The utterance or the stage's earlier run cannot be found; the message says what to run first."""
 
 
+def _rerun_animate(store: Store, uid: str, run: dict | None, force: bool) -> dict:
+    """Every character of the last animate run, for one utterance; AnimateError for bad input."""
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.hashing import file_hash
+    from visemeflow.schemas import C
+    from visemeflow.tasks.animate import animate_one, character_key, content_hash
+
+    if run is None:
+        raise RerunError(f"{store.root} has no animate run to repeat; run `visemeflow animate` first")
+    if not store.has_curves(run["source"], run["variant"], uid):
+        raise RerunError(f"{uid} has no {run['source']} curves of variant {run['variant']!r} in {store.root}")
+    config = AnimateConfig(**run["config"])
+    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
+    audio = rows[0][C.AUDIO_PATH] if rows and rows[0][C.AUDIO_PATH] and Path(rows[0][C.AUDIO_PATH]).is_file() else None
+    mapping = run.get("mapping")
+    task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    packages = [task(str(store.root), uid, run["source"], run["variant"],
+                     store.curves_provenance(run["source"], run["variant"], uid) or "", path, content_hash(path),
+                     character_key(path), mapping, file_hash(mapping) if mapping else None, config, audio,
+                     file_hash(audio) if audio else None, run.get("out"))
+                for path in run["characters"] if Path(path).exists()]
+    return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}
+
+
 @flow(name="rerun", flow_run_name="rerun[{params.utterance_id}:{params.stage}]")
 def rerun_flow(params: RerunParams) -> dict[str, int]:
     """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
@@ -38,6 +62,8 @@ def rerun_flow(params: RerunParams) -> dict[str, int]:
             raise RerunError(f"{uid} is not in the corpus {run['corpus']}: {reasons}")
         task = ingest_tasks.ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
         report = task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
+    elif params.stage == "animate":
+        report = _rerun_animate(store, uid, run, params.force)
     elif params.stage == "track":
         rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
         if not rows:

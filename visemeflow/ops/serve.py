@@ -41,7 +41,7 @@ def last_ingested_corpus(store: Path) -> Path | None:
 def build_deployments(
     store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
 ) -> list[RunnerDeployment]:
-    """Deployments of `pipeline` (on `cron` in `timezone`), of each stage, `predict` and `rerun`; the store is their
+    """Deployments of `pipeline` (on `cron` in `timezone`), of each stage, `predict`, `speak`, `preview` and `rerun`; the store is their
     default.
 
     Without `corpus`, the pipeline and ingest deployments default to the corpus the store last ingested; with
@@ -49,6 +49,7 @@ def build_deployments(
     """
     from prefect.schedules import Cron
 
+    from visemeflow.flows.animate import animate_flow, preview_flow, speak_flow
     from visemeflow.flows.evaluate import evaluate_flow
     from visemeflow.flows.ingest import ingest_flow
     from visemeflow.flows.pipeline import pipeline_flow
@@ -81,8 +82,15 @@ def build_deployments(
                    description="Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
         deployment(predict_flow, on_store,
                    description="Curves of new audio files from a trained model (the form asks for model and files)."),
+        deployment(animate_flow, on_store,
+                   description="Stored curves on characters: GLB, USD, Live Link CSV, web JSON and the audio."),
+        deployment(speak_flow, on_store,
+                   description="Audio files to talking characters: predict, then animate (the form asks for model, "
+                               "files and characters)."),
+        deployment(preview_flow, on_store,
+                   description="One utterance's preview MP4: the character driven by each source side by side."),
         deployment(rerun_flow, on_store,
-                   description="One utterance through one stage (ingest, procedural, track), even when cached."),
+                   description="One utterance through one stage (ingest, procedural, track, animate), even when cached."),
     ]
 
 

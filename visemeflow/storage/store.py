@@ -199,6 +199,11 @@ class Store:
     def has_metrics(self, model: str, run: str) -> bool:
         return self.metrics_path(model, run).is_file()
 
+    def animation_dir(self, character: str, utterance_id: str) -> Path:
+        """Folder of one utterance's animation files for one character (`animations/<character>/<speaker>/<name>/`)."""
+        speaker, name = id_path_parts(utterance_id)
+        return self.root / "animations" / validate_name(character, "character name") / speaker / name
+
     def report_path(self, name: str) -> Path:
         """A report file (`robustness.md`, `sweep-<preset>.png`) in the store's `reports` folder."""
         return self.root / "reports" / validate_name(name, "report name")

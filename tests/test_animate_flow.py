@@ -1,0 +1,175 @@
+"""The `animate`, `speak` and `preview` flows, `rerun --stage animate` and the pipeline's animate stage: stored curves
+reach characters in every format, cached per (utterance, character), bad input as rejects while the rest goes on."""
+
+import json
+
+import av
+import numpy as np
+import pytest
+import soundfile as sf
+from factories import make_corpus, make_curve_store
+from test_predict import AUDIO, tiny_model
+
+from visemeflow.animation.character import load_character, make_character, save_character_npz
+from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind
+from visemeflow.animation.gltf import write_glb
+from visemeflow.animation.livelink import arkit_from_livelink, read_livelink_csv
+from visemeflow.animation.apply import resample
+from visemeflow.animation.usd import read_usd_weights
+from visemeflow.animation.webjson import read_web_json
+from visemeflow.flows.animate import AnimateParams, PreviewParams, SpeakParams, animate_flow, preview_flow, \
+    speak_flow
+from visemeflow.animation.package import AnimateConfig
+from visemeflow.flows.errors import StageFailed
+from visemeflow.schemas import C, curves_array, curves_table
+from visemeflow.storage import Store
+
+pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
+ALL = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json")
+
+
+def tiny_character(names, seed=0, name="tiny"):
+    rng = np.random.default_rng(seed)
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)
+    neutral = np.c_[grid, np.zeros(len(grid))]
+    faces = [[i, i + 1, i + 4] for i in range(11) if i % 4 != 3]
+    return make_character(name, neutral, faces, names, rng.normal(0, 0.1, size=(len(names), len(neutral), 3)))
+
+
+@pytest.fixture
+def characters(tmp_path):
+    arkit = tiny_character(list(ARKIT_52), name="arkit")
+    oculus = tiny_character(list(OCULUS_15), seed=1, name="oculus")
+    glb = tmp_path / "chars" / "arkit.glb"
+    write_glb(glb, arkit, np.zeros((1, len(ARKIT_52)), np.float32), 30.0)
+    return glb, save_character_npz(oculus, tmp_path / "chars" / "oculus.npz")
+
+
+def test_every_format_of_every_package_holds_the_curves_at_the_asked_rate(tmp_path, characters):
+    store = make_curve_store(tmp_path / "store", n=3)
+    glb, npz = characters
+    config = AnimateConfig(formats=ALL, fps=30.0)
+    result = animate_flow(AnimateParams(store=store.root, characters=[glb, npz], source="ground_truth",
+                                        config=config))
+    assert result["packages"] == 6 and result["written"] == 6 and result["rejected"] == 0
+    for report in result["packages_written"]:
+        uid = report["utterance_id"]
+        curves = resample(curves_array(store.read_curves(uid, "ground_truth", "cm")), 25.0, 30.0)
+        assert report["frames"] == len(curves) == 29 and report["fps"] == 30.0 and report["resampled_from"] == 25.0
+        character = load_character(glb if report["character"] == "arkit" else npz)
+        weights = bind(character).weights(curves)
+        names, usd_weights, usd_fps = read_usd_weights(report["files"]["usd"])
+        assert names == character.shape_names and usd_fps == 30.0
+        np.testing.assert_allclose(usd_weights, weights, atol=1e-6)
+        _, values, timecodes = read_livelink_csv(report["files"]["livelink"])
+        np.testing.assert_allclose(arkit_from_livelink(values), arkit_weights(curves), atol=1e-6)
+        assert len(timecodes) == len(curves)
+        web_names, web_weights, web_fps = read_web_json(report["files"]["json"])
+        assert web_names == character.shape_names and web_fps == 30.0
+        np.testing.assert_allclose(web_weights, weights, atol=1e-4)
+        back = load_character(report["files"]["glb"])
+        assert back.shape_names == character.shape_names
+        curves_json = json.loads(open(report["files"]["curves-json"]).read())
+        assert curves_json["fps"] == pytest.approx(30.0) and len(curves_json["time_s"]) == len(curves)
+        audio, rate = sf.read(report["files"]["audio"])
+        assert len(audio) / rate == pytest.approx(1.0, abs=1e-3)
+    assert {r["convention"] for r in result["packages_written"]} == {"arkit52", "oculus15"}
+
+
+def test_a_second_run_is_all_cache_hits_and_a_deleted_file_is_made_again(tmp_path, characters):
+    store = make_curve_store(tmp_path / "store", n=2)
+    params = AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth")
+    first = animate_flow(params)
+    assert first["written"] == 2
+    again = animate_flow(params)
+    assert again["cached"] == 2 and again["written"] == 0
+    victim = first["packages_written"][0]["files"]["glb"]
+    Store(store.root).root.joinpath(victim).unlink()
+    third = animate_flow(params)
+    assert third["written"] == 1 and third["cached"] == 1
+    assert (store.root / victim).is_file()
+
+
+def test_bad_characters_and_curves_are_rejects_naming_the_file_and_the_rest_goes_on(tmp_path, characters):
+    store = make_curve_store(tmp_path / "store", n=3)
+    loud = np.full((25, 16), 0.2, np.float32)
+    loud[7, 3] = 1.5  # outside [0, 1]
+    store.write_curves(curves_table("spk/u1", "ground_truth", "cm", loud, 25.0))
+    broken = tmp_path / "broken.glb"
+    broken.write_bytes(b"glTF\x02\x00\x00\x00garbage")
+    mapping = tmp_path / "map.csv"
+    mapping.write_text("viseme,shape,weight\nMBP,NoSuchShape,1\n")
+    result = animate_flow(AnimateParams(store=store.root, characters=[broken, characters[1]], source="ground_truth"))
+    assert result["written"] == 2 and result["rejected"] == 2
+    rejects = store.read_table("rejects", "animate").to_pylist()
+    by_type = {r[C.ERROR_TYPE]: r for r in rejects}
+    assert str(broken) in by_type["CharacterError"][C.MESSAGE] and by_type["CharacterError"][C.UTTERANCE_ID] is None
+    curve_reject = by_type["CurvesError"]
+    assert curve_reject[C.UTTERANCE_ID] == "spk/u1" and "FFF is 1.5000 at frame 7" in curve_reject[C.MESSAGE]
+    assert curve_reject[C.PATH].endswith("u1.parquet")
+    with pytest.raises(StageFailed, match="all 1 utterances failed"):  # nothing could be done: the run is Failed
+        animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth",
+                                   utterances=["spk/u0"], mapping=mapping))
+    message = store.read_table("rejects", "animate").to_pylist()[0][C.MESSAGE]
+    assert "map.csv" in message and "NoSuchShape" in message and "viseme_PP" in message
+
+
+def test_speak_turns_audio_into_a_talking_character_in_one_flow(tmp_path, characters):
+    store = Store(tmp_path / "store")
+    tiny_model(store)
+    out = tmp_path / "out"
+    result = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[AUDIO], characters=[characters[0]],
+                                    out=out, config=AnimateConfig(formats=("glb", "livelink"))))
+    (report,) = result["packages_written"]
+    predicted = curves_array(store.read_curves("predict/SSB16240001", "predicted", "tiny"))
+    assert report["frames"] == len(predicted) and report["fps"] == 30.0
+    assert set(report["files"]) == {"glb", "livelink", "audio"}
+    assert str(out) in report["files"]["glb"]
+    samples, rate = sf.read(report["files"]["audio"])
+    source, source_rate = sf.read(AUDIO)
+    assert rate == source_rate and len(samples) == len(source)
+    again = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[AUDIO], characters=[characters[0]],
+                                   out=out, config=AnimateConfig(formats=("glb", "livelink"))))
+    assert again["cached"] == 1
+
+
+def test_rerun_animate_makes_one_utterance_again_with_the_last_settings(tmp_path, characters):
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    store = make_curve_store(tmp_path / "store", n=2)
+    first = animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth",
+                                       config=AnimateConfig(formats=("json",))))
+    target = next(r for r in first["packages_written"] if r["utterance_id"] == "spk/u1")["files"]["json"]
+    (store.root / target).unlink()
+    report = rerun_flow(RerunParams(utterance_id="spk/u1", stage="animate", store=store.root))
+    assert report == {"packages": 1, "files": 2}
+    assert (store.root / target).is_file()
+
+
+def test_the_pipeline_animates_its_curves_when_characters_are_given(tmp_path, characters):
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    corpus = make_corpus(tmp_path / "corpus", {"spk/a": [("", 0.0, 0.2), ("AA1", 0.2, 0.5), ("M", 0.5, 0.7)],
+                                               "spk/b": [("B", 0.0, 0.3), ("IY1", 0.3, 0.6)]})
+    result = pipeline_flow(PipelineParams(corpus=corpus, store=tmp_path / "store", characters=[characters[1]],
+                                          animate=AnimateConfig(formats=("glb",))))
+    assert result["animate"]["source"] == "procedural" and result["animate"]["written"] == 2
+    assert all(r["files"]["glb"].endswith(".glb") for r in result["animate"]["packages_written"])
+
+
+def test_preview_puts_the_sources_side_by_side_with_the_audio(tmp_path, characters):
+    store = make_curve_store(tmp_path / "store", n=1)
+    curves = curves_array(store.read_curves("spk/u0", "ground_truth", "cm"))
+    store.write_curves(curves_table("spk/u0", "tracked", "v1", np.clip(curves[::-1] * 0.5, 0, 1), 25.0))
+    result = preview_flow(PreviewParams(store=store.root, utterance_id="spk/u0", character=characters[1],
+                                        sources=["tracked", "predicted", "ground_truth"], size=96,
+                                        out=tmp_path / "p.mp4"))
+    assert result["sources"] == ["tracked v1", "ground truth cm"] or len(result["sources"]) == 2
+    assert any("predicted" in s for s in result["skipped"])
+    with av.open(str(tmp_path / "p.mp4")) as container:
+        video = container.streams.video[0]
+        assert video.codec_context.name == "h264" and container.streams.audio[0].codec_context.name == "aac"
+        assert video.codec_context.width >= 2 * 96
+        assert sum(1 for _ in container.decode(video=0)) == result["frames"] == 25

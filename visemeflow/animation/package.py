@@ -1,0 +1,128 @@
+"""One utterance's animation package for one character: the curves checked, resampled to the export rate if asked,
+bound to the character's shapes and written in every requested format into one folder, the audio beside them.
+
+| format        | file                  | for                                                          |
+|---------------|-----------------------|--------------------------------------------------------------|
+| `glb`         | `<stem>.glb`          | Blender, three.js / web, Unity (glTFast, UniVRM), Godot       |
+| `usd`         | `<stem>.usd`          | Omniverse, Maya USD, Houdini (UsdSkel, as Audio2Face exports) |
+| `livelink`    | `<stem>.livelink.csv` | Unreal / MetaHuman (Live Link Face CSV, ARKit 52)             |
+| `json`        | `<stem>.web.json`     | web avatars (TalkingHead's `dt`/`vs` animation layout)        |
+| `curves-csv`  | `<stem>.curves.csv`   | the 16 viseme curves, one row per frame                      |
+| `curves-json` | `<stem>.curves.json`  | the 16 viseme curves, one list per viseme                    |
+
+glTF carries no audio: the utterance's audio goes beside the files as `<stem>.wav` (16-bit PCM at its own rate).
+Every file has exactly the frames and rate of the (resampled) curves: frame k at k / fps. The Live Link CSV holds
+ARKit weights whatever the character's convention (`conventions.arkit_weights`); the other character formats hold
+the character's own shapes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from visemeflow.animation.apply import check_curves, resample
+from visemeflow.animation.character import Character
+from visemeflow.animation.conventions import Binding, arkit_weights
+from visemeflow.animation.export import CurveTrack, write_export
+from visemeflow.atomic import atomic_path
+
+EXPORT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json")
+DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
+SUFFIXES = {"glb": ".glb", "usd": ".usd", "livelink": ".livelink.csv", "json": ".web.json",
+            "curves-csv": ".curves.csv", "curves-json": ".curves.json"}
+
+
+class AnimateConfig(BaseModel):
+    """What to export for each (utterance, character)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    formats: tuple[str, ...] = Field(DEFAULT_FORMATS, min_length=1,
+                                     description=f"Export formats, any of {', '.join(EXPORT_FORMATS)}.")
+    fps: float | None = Field(None, gt=0, le=1000, description="Frame rate of the exports; none: the curves' own "
+                                                                 "(other rates are resampled, never stretched).")
+    convention: str | None = Field(None, description="arkit52, oculus15 or visemeflow16; none: detected from the "
+                                                      "character's shape names.")
+    audio: bool = Field(True, description="Write the utterance's audio beside the exports as <stem>.wav.")
+    preview: bool = Field(False, description="Also render <stem>.mp4: the character driven by these curves, with "
+                                             "the audio and the current phone (H.264 + AAC).")
+
+    @field_validator("formats", mode="before")
+    @classmethod
+    def _known_formats(cls, value):
+        if isinstance(value, str):
+            value = [f.strip() for f in value.split(",") if f.strip()]
+        unknown = [f for f in value if f not in EXPORT_FORMATS]
+        if unknown:
+            raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORT_FORMATS)}")
+        return tuple(dict.fromkeys(value))
+
+
+@dataclass
+class AnimationPackage:
+    """What `export_animation` wrote."""
+
+    files: dict[str, str]
+    """format (and "audio") -> path."""
+    frames: int
+    fps: float
+    source_fps: float
+    resampled: bool
+    binding: dict = field(default_factory=dict)
+
+
+def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str]) -> dict[str, Path]:
+    """Where each format of one package goes."""
+    return {fmt: Path(out_dir) / f"{stem}{SUFFIXES[fmt]}" for fmt in formats}
+
+
+def write_wav(path: Path, samples: np.ndarray, rate: int) -> Path:
+    """16-bit PCM WAV, atomically (what every DCC and engine imports)."""
+    with atomic_path(path, keep_suffix=True) as tmp:
+        sf.write(tmp, np.clip(np.asarray(samples, np.float32), -1.0, 1.0), int(rate), subtype="PCM_16", format="WAV")
+    return path
+
+
+def export_animation(out_dir: str | Path, stem: str, character: Character, binding: Binding, curves: np.ndarray,
+                     fps: float, config: AnimateConfig, *, utterance_id: str, where: str | None = None,
+                     audio: tuple[np.ndarray, int] | None = None) -> AnimationPackage:
+    """Check `curves` (T, 16) at `fps`, resample to `config.fps`, and write each format of `config` into `out_dir`.
+
+    CurvesError (naming `where`, default the utterance) for non-finite curves or values outside [0, 1]."""
+    out_dir = Path(out_dir)
+    curves = check_curves(curves, where or utterance_id)
+    rate = float(config.fps or fps)
+    curves = resample(curves, float(fps), rate)
+    weights = binding.weights(curves)
+    paths = export_paths(out_dir, stem, config.formats)
+    files: dict[str, str] = {}
+    for fmt, path in paths.items():
+        if fmt == "glb":
+            from visemeflow.animation.gltf import write_glb
+
+            write_glb(path, character, weights, rate, name=stem)
+        elif fmt == "usd":
+            from visemeflow.animation.usd import write_usd
+
+            write_usd(path, character, weights, rate, name=stem)
+        elif fmt == "livelink":
+            from visemeflow.animation.livelink import write_livelink_csv
+
+            write_livelink_csv(path, arkit_weights(curves), rate)
+        elif fmt == "json":
+            from visemeflow.animation.webjson import write_web_json
+
+            write_web_json(path, character.shape_names, weights, rate, name=stem)
+        else:
+            n = len(curves)
+            track = CurveTrack(utterance_id, "", "", curves, np.arange(n) / rate, np.arange(n))
+            write_export(track, path, fmt.removeprefix("curves-"))
+        files[fmt] = str(path)
+    if config.audio and audio is not None:
+        files["audio"] = str(write_wav(out_dir / f"{stem}.wav", *audio))
+    return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary())

@@ -1,0 +1,291 @@
+"""The `animate` flow: stored curves put on characters and exported for engines and DCC tools (paper 6), one cached
+task per (utterance, character); and `speak`: audio files to talking characters in one go (predict, then animate).
+
+Files go to `<store>/animations/<character>/<speaker>/<name>/<name>.{glb,usd,livelink.csv,web.json,wav,...}`, or
+under `out` in the same layout. A character that cannot be loaded, an utterance without curves or with curves that
+are NaN or outside [0, 1], unreadable audio: each is a reject row (stage `animate`) naming the utterance and file,
+and the rest of the batch goes on.
+"""
+
+from __future__ import annotations
+
+import traceback
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
+from prefect.futures import as_completed
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from visemeflow.animation.character import CharacterError
+from visemeflow.animation.package import AnimateConfig
+from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.common import finished
+from visemeflow.flows.runners import cpu_thread_pool
+from visemeflow.hashing import file_hash
+from visemeflow.rig import demo_rig_path
+from visemeflow.schemas import REJECTS, C, normalize_utterance_id, shard_of, table_from_rows, validate_name
+from visemeflow.storage import Store
+from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
+    content_hash, outputs_present
+from visemeflow.tasks.common import reject_row, result_storage
+
+DEFAULT_STORE = Path("visemeflow-out/store")
+SOURCES = ("tracked", "procedural", "ground_truth", "predicted")
+
+
+class AnimateParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
+                                   description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
+                                               "folders; default: the shipped ICT demo character.")
+    source: str = Field("tracked", description=f"Curves to animate: {', '.join(SOURCES)}.")
+    variant: str | None = Field(None, description="Variant of those curves (a model's name for predicted); may be "
+                                                  "omitted when only one exists.")
+    utterances: list[str] | None = Field(None, description="Utterance ids; none: every utterance with such curves.")
+    audio: dict[str, Path] = Field(default_factory=dict, description="Audio per utterance id where the utterances "
+                                                                     "table has none (predictions).")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    config: AnimateConfig = Field(default_factory=AnimateConfig)
+    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
+    n_shards: int = Field(8, ge=1, le=4096, description="Shards of the rejects table.")
+
+    @field_validator("source")
+    @classmethod
+    def _safe_source(cls, source: str) -> str:
+        return validate_name(source, "curve source")
+
+    @field_validator("utterances")
+    @classmethod
+    def _valid_ids(cls, ids: list[str] | None) -> list[str] | None:
+        return None if ids is None else [normalize_utterance_id(u) for u in ids]
+
+
+def resolve_variant(store: Store, source: str, variant: str | None) -> str:
+    """The variant of `source` curves to animate: as given, the only one stored, or the one the stage last wrote."""
+    if variant:
+        return validate_name(variant, "variant")
+    variants = store.curve_variants(source)
+    if len(variants) == 1:
+        return variants[0]
+    stage = {"tracked": "track", "procedural": "procedural"}.get(source)
+    run = store.read_run_config(stage) if stage else None
+    last = run and (run.get("variant") or (run.get("config") or {}).get("variant"))
+    if last in variants:
+        return last
+    raise LookupError(f"{store.root}: {len(variants)} variants of {source} curves "
+                      f"({', '.join(variants) or 'none; run the stage that makes them first'}); name one")
+
+
+def _phones(store: Store, utterance_ids: list[str]) -> dict[str, list[tuple[float, float, str]]]:
+    table = store.read_table("phones", utterance_ids=utterance_ids) if utterance_ids else None
+    out: dict[str, list] = {}
+    if table is None or not table.num_rows:
+        return out
+    for row in table.select([C.UTTERANCE_ID, C.START_S, C.END_S, C.PHONEME]).to_pylist():
+        out.setdefault(row[C.UTTERANCE_ID], []).append((row[C.START_S], row[C.END_S], row[C.PHONEME] or ""))
+    return out
+
+
+def _markdown(rows: list[dict]) -> str:
+    lines = ["### Animations", "", "| utterance | character | convention | frames | fps | cached | files |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        files = ", ".join(f"`{Path(p).name}`" for p in r["files"].values())
+        lines.append(f"| `{r['utterance_id']}` | {r['character']} | {r['convention']} | {r['frames']} | "
+                     f"{r['fps']:g} | {'yes' if r['cached'] else 'no'} | {files} |")
+    return "\n".join(lines) + "\n"
+
+
+@flow(name="animate", flow_run_name="animate[{params.source}]", task_runner=cpu_thread_pool())
+def animate_flow(params: AnimateParams):
+    """Export every (utterance, character) of the chosen curves; bad input becomes rejects, the rest goes on."""
+    store = Store(params.store)
+    logger = get_run_logger()
+    variant = resolve_variant(store, params.source, params.variant)
+    ids = params.utterances if params.utterances is not None else store.curve_ids(params.source, variant)
+    utterances = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances", utterance_ids=ids)
+                  .select([C.UTTERANCE_ID, C.AUDIO_PATH]).to_pylist()} if ids else {}
+    phones = _phones(store, ids) if params.config.preview else {}
+    mapping = str(params.mapping.resolve()) if params.mapping else None
+    mapping_hash = file_hash(params.mapping) if params.mapping and params.mapping.is_file() else None
+    store.write_run_config(STAGE, {
+        "characters": [str(p.resolve()) for p in params.characters], "source": params.source, "variant": variant,
+        "mapping": mapping, "out": str(params.out) if params.out else None, "n_shards": params.n_shards,
+        "config": params.config.model_dump(mode="json"),
+    })
+    rejects, reports, futures, unexpected = [], [], {}, 0
+    for character in params.characters:
+        path = str(Path(character).resolve())
+        try:
+            if mapping and not params.mapping.is_file():
+                raise CharacterError(f"{params.mapping}: no such mapping CSV")
+            character_hash = content_hash(path)
+            bound_character(path, character_hash, params.config.convention, mapping, mapping_hash)
+        except (CharacterError, OSError) as exc:  # the whole character is unusable: one reject, next character
+            rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
+            logger.warning("animate: %s", exc)
+            continue
+        key = character_key(path)
+        for uid in ids:
+            audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
+            audio = str(audio) if audio and Path(audio).is_file() else None
+            provenance = store.curves_provenance(params.source, variant, uid) or ""
+            present = outputs_present(store, str(params.out) if params.out else None, key, uid, params.config,
+                                      audio is not None)
+            future = animate_one.with_options(result_storage=result_storage(store.root),
+                                              refresh_cache=not present).submit(
+                str(store.root), uid, params.source, variant, provenance, path, character_hash, key, mapping,
+                mapping_hash, params.config, audio, file_hash(audio) if audio else None,
+                str(params.out) if params.out else None, phones.get(uid))
+            futures[future] = (uid, path)
+    progress = create_progress_artifact(0.0, description=f"{STAGE}: packages done") if futures else None
+    for done, future in enumerate(as_completed(list(futures)), start=1):
+        uid, path = futures[future]
+        try:
+            report = dict(future.result())
+            report["cached"] = future.state.name == "Cached"
+            reports.append(report)
+        except AnimateError as exc:
+            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
+        except Exception as exc:  # a bug met on one package: the others go on, the flow ends Failed
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("animate[%s, %s]: unexpected %s\n%s", uid, path, type(exc).__name__, trace)
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {path}: {exc}\n{trace}", path))
+            unexpected += 1
+        if progress is not None:
+            update_progress_artifact(progress, 100.0 * done / len(futures))
+    by_shard: dict[int, list[dict]] = {}
+    for r in rejects:
+        by_shard.setdefault(shard_of(r[C.UTTERANCE_ID] or "", params.n_shards), []).append(r)
+    store.replace_stage_rejects(STAGE, {s: table_from_rows(items, REJECTS) for s, items in by_shard.items()})
+    summary = {"packages": len(futures), "written": sum(not r["cached"] for r in reports),
+               "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
+               "frames": sum(r["frames"] for r in reports)}
+    publish_stage_summary(STAGE, summary, {"source": params.source, "variant": variant,
+                                           "characters": len(params.characters)})
+    publish_rejects(STAGE, store.read_table("rejects", STAGE))
+    if reports:
+        create_markdown_artifact(key="animations", markdown=_markdown(reports),
+                                 description="animation packages: files per utterance and character")
+    logger.info("animate (%s/%s): %s", params.source, variant, summary)
+    total = len(futures) + sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
+    failed = len(rejects) - sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) + \
+        sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
+    return finished(STAGE, {**summary, "source": params.source, "variant": variant, "packages_written": reports},
+                    failed, total, unexpected)
+
+
+class SpeakParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    model: str = Field(..., description="Name of a trained model in the store.")
+    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
+    characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
+                                   description="Character files or folders; default: the shipped ICT demo character.")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
+    config: AnimateConfig = Field(default_factory=AnimateConfig)
+    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
+
+    @field_validator("model")
+    @classmethod
+    def _safe_model(cls, name: str) -> str:
+        return validate_name(name, "model name")
+
+
+@flow(name="speak", flow_run_name="speak[{params.model}]")
+def speak_flow(params: SpeakParams):
+    """Audio to talking characters: the `predict` flow, then the `animate` flow on its curves (both cached)."""
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    predicted = predict_flow(PredictParams(store=params.store, model=params.model, audio=params.audio,
+                                           fps=params.fps))
+    rows = predicted["predictions"]
+    return animate_flow(AnimateParams(
+        store=params.store, characters=params.characters, source="predicted", variant=params.model,
+        utterances=[r["utterance_id"] for r in rows], audio={r["utterance_id"]: Path(r["audio"]) for r in rows},
+        mapping=params.mapping, config=params.config, out=params.out))
+
+
+class PreviewParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    utterance_id: str = Field(..., description="The utterance, '<speaker>/<name>'.")
+    character: Path = Field(default_factory=demo_rig_path, description="Character file or folder.")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    sources: list[str] = Field(["procedural", "tracked", "predicted", "ground_truth"],
+                               description="Curve sources side by side, each `source` or `source:variant`; sources "
+                                           "the utterance lacks are left out (at least one must exist).")
+    size: int = Field(360, ge=64, le=2048, description="Panel size in pixels.")
+    out: Path | None = Field(None, description="MP4 file; none: <store>/animations/<character>/.../<name>.preview.mp4")
+
+    @field_validator("utterance_id")
+    @classmethod
+    def _valid_id(cls, utterance_id: str) -> str:
+        return normalize_utterance_id(utterance_id)
+
+
+def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: str) -> str:
+    """The variant of one utterance's `source` curves: as given, its only one, or the one the stage last wrote."""
+    variants = store.curve_variants(source, uid)
+    if variant:
+        if variant not in variants:
+            raise LookupError(f"no {source} curves of variant {variant!r}")
+        return variant
+    if len(variants) == 1:
+        return variants[0]
+    if not variants:
+        raise LookupError(f"no {source} curves")
+    try:
+        return resolve_variant(store, source, None)
+    except LookupError:
+        raise LookupError(f"{len(variants)} variants ({', '.join(variants)}); name one as {source}:VARIANT") from None
+
+
+@flow(name="preview", flow_run_name="preview[{params.utterance_id}]")
+def preview_flow(params: PreviewParams) -> dict:
+    """Render one utterance's preview MP4: the character driven by each source side by side, labelled, the phone
+    under way written under them, the audio muxed (H.264 + AAC)."""
+    from visemeflow.animation.apply import check_curves, resample
+    from visemeflow.animation.preview import render_preview
+    from visemeflow.ingest.audio import read_audio
+    from visemeflow.tasks.animate import curves_and_fps, package_dir
+
+    store = Store(params.store)
+    uid = params.utterance_id
+    path = str(params.character.resolve())
+    character_hash = content_hash(path)
+    mapping = str(params.mapping.resolve()) if params.mapping else None
+    character, binding = bound_character(path, character_hash, None, mapping,
+                                         file_hash(mapping) if mapping else None)
+    panels, skipped, rate = {}, [], None
+    for spec in params.sources:
+        source, _, variant = spec.partition(":")
+        try:
+            variant = _variant_of_utterance(store, source, variant or None, uid)
+            curves, fps, curve_file = curves_and_fps(store, uid, source, variant)
+        except LookupError as exc:
+            skipped.append(f"{spec}: {exc}")
+            continue
+        rate = rate or fps
+        curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
+        panels[source.replace("_", " ") if variant in (source, "default") else f"{source} {variant}"] = \
+            binding.weights(curves)
+    if not panels:
+        raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
+    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
+    audio = read_audio(rows[0][C.AUDIO_PATH]) if rows and rows[0][C.AUDIO_PATH] else None
+    phones = _phones(store, [uid]).get(uid)
+    folder = package_dir(store, None, character_key(path), uid)
+    out = params.out or folder / f"{folder.name}.preview.mp4"
+    report = render_preview(out, character, panels, rate, audio=audio, phones=phones,
+                            title=f"{uid} - {character.name}", size=params.size)
+    get_run_logger().info("preview %s: %s (%d frames, %s); left out: %s", uid, out, report.frames,
+                          ", ".join(panels), "; ".join(skipped) or "nothing")
+    return {"utterance_id": uid, "path": str(out), "sources": list(panels), "skipped": skipped,
+            "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}

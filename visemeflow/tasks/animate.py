@@ -1,0 +1,147 @@
+"""Animation task: one utterance's curves put on one character and exported (GLB, USD, Live Link CSV, web JSON,
+curve CSV/JSON, the audio beside them, optionally a preview MP4), into one folder.
+
+Cached on what decides the files: the curves' provenance, the character file's and mapping CSV's content hashes,
+the audio's content hash, the export config and the output folder; a missing output file recomputes.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+from prefect import get_run_logger, task
+from prefect.cache_policies import TASK_SOURCE, Inputs
+
+from visemeflow.animation.apply import CurvesError, resample
+from visemeflow.animation.character import Character, CharacterError, load_character
+from visemeflow.animation.conventions import Binding, bind
+from visemeflow.animation.package import AnimateConfig, export_animation, export_paths
+from visemeflow.hashing import file_hash, stable_hash
+from visemeflow.ingest.audio import AudioError, read_audio
+from visemeflow.schemas import C, curves_array
+from visemeflow.storage import Store
+
+STAGE = "animate"
+# keyed on content hashes, not on where the character, mapping and audio files lie
+ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE
+
+
+class AnimateError(ValueError):
+    """An (utterance, character) that cannot be animated; names the utterance, the file and the reason."""
+
+    def __init__(self, utterance_id: str | None, path: str | None, error_type: str, reason: str):
+        where = ": ".join(p for p in (utterance_id, path) if p)
+        super().__init__(f"{where}: {reason}" if where else reason)
+        self.utterance_id, self.path, self.error_type, self.reason = utterance_id, path, error_type, reason
+
+    def __reduce__(self):
+        return (type(self), (self.utterance_id, self.path, self.error_type, self.reason))
+
+
+@functools.lru_cache(maxsize=4)
+def bound_character(path: str, character_hash: str, convention: str | None, mapping: str | None,
+                    mapping_hash: str | None) -> tuple[Character, Binding]:
+    """The character of `path` bound to the 16 visemes (one load per run; the hashes key a changed file apart)."""
+    character = load_character(path)
+    return character, bind(character, convention, mapping)
+
+
+def curves_and_fps(store: Store, utterance_id: str, source: str, variant: str) -> tuple[np.ndarray, float, str]:
+    """(T, 16) curves, their frame rate (from the frame times) and the file they came from."""
+    table = store.read_curves(utterance_id, source, variant)
+    times = table.column(C.TIME_S).to_numpy()
+    fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else 30.0
+    return curves_array(table), float(round(fps, 6)), str(store.curve_path(source, variant, utterance_id))
+
+
+def content_hash(path: str | Path) -> str:
+    """Content hash of a character file, or of a character folder (its files, by name and content)."""
+    path = Path(path)
+    if path.is_file():
+        return file_hash(path)
+    if not path.is_dir():
+        raise CharacterError(f"{path}: no such character file or folder")
+    return stable_hash(sorted((p.name, file_hash(p)) for p in path.iterdir() if p.is_file()))
+
+
+def character_key(path: str | Path) -> str:
+    """The folder name of a character's packages: its file's stem with characters a store name cannot hold as `_`."""
+    stem = Path(path).name
+    for suffix in (".glb", ".gltf", ".npz"):
+        stem = stem.removesuffix(suffix)
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).lstrip(".") or "character"
+
+
+def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
+    """The folder of one (utterance, character) package: under `out` if given, else in the store."""
+    folder = store.animation_dir(character, utterance_id)
+    return Path(out) / folder.relative_to(store.root / "animations") if out else folder
+
+
+def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
+            mapping_path: str | None, mapping_hash: str | None, config: AnimateConfig, audio_path: str | None,
+            out: str | None, phones: list[tuple[float, float, str]] | None = None) -> dict:
+    """Export one utterance for one character; AnimateError naming the utterance and file for bad input."""
+    try:
+        character, binding = bound_character(character_path, character_hash, config.convention, mapping_path,
+                                             mapping_hash)
+    except CharacterError as exc:
+        raise AnimateError(utterance_id, character_path, "CharacterError", str(exc)) from exc
+    try:
+        curves, fps, curve_file = curves_and_fps(store, utterance_id, source, variant)
+    except LookupError as exc:
+        raise AnimateError(utterance_id, None, "NoCurves", str(exc)) from exc
+    audio = None
+    if audio_path and config.audio:
+        try:
+            audio = read_audio(audio_path)
+        except AudioError as exc:
+            raise AnimateError(utterance_id, audio_path, "AudioError", str(exc)) from exc
+    folder = package_dir(store, out, character_key(character_path), utterance_id)
+    stem = folder.name
+    started = time.perf_counter()
+    try:
+        package = export_animation(folder, stem, character, binding, curves, fps, config, utterance_id=utterance_id,
+                                   where=f"{source}/{variant} curves", audio=audio)
+    except CurvesError as exc:
+        raise AnimateError(utterance_id, curve_file, "CurvesError", str(exc)) from exc
+    files = dict(package.files)
+    if config.preview:
+        from visemeflow.animation.preview import render_preview
+
+        weights = binding.weights(resample(np.clip(curves, 0, 1), fps, package.fps))
+        path = folder / f"{stem}.mp4"
+        render_preview(path, character, {f"{source} ({variant})": weights}, package.fps, audio=audio, phones=phones,
+                       title=f"{utterance_id} - {character.name}")
+        files["preview"] = str(path)
+    seconds = time.perf_counter() - started
+    return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
+            "folder": str(folder), "files": files, "frames": package.frames, "fps": package.fps,
+            "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4)}
+
+
+@task(cache_policy=ANIMATE_CACHE_POLICY, persist_result=True, task_run_name="animate[{utterance_id}:{character_name}]")
+def animate_one(store_root: str, utterance_id: str, source: str, variant: str, provenance: str, character_path: str,
+                character_hash: str, character_name: str, mapping_path: str | None, mapping_hash: str | None,
+                config: AnimateConfig, audio_path: str | None, audio_hash: str | None, out: str | None,
+                phones: list | None = None) -> dict:
+    """One (utterance, character) package; `provenance` and the hashes key the cache (see the module)."""
+    report = animate(Store(store_root), utterance_id, source, variant, character_path, character_hash, mapping_path,
+                     mapping_hash, config, audio_path, out, [tuple(p) for p in phones] if phones else None)
+    get_run_logger().info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"],
+                          report["fps"], ", ".join(report["files"]))
+    return report
+
+
+def outputs_present(store: Store, out: str | None, character_name: str, utterance_id: str, config: AnimateConfig,
+                    with_audio: bool) -> bool:
+    """Whether every file a package of this config would write is on disk (a deleted file recomputes)."""
+    folder = package_dir(store, out, character_name, utterance_id)
+    paths = list(export_paths(folder, folder.name, config.formats).values())
+    paths += [folder / f"{folder.name}.wav"] if with_audio and config.audio else []
+    paths += [folder / f"{folder.name}.mp4"] if config.preview else []
+    return all(p.is_file() for p in paths)
