@@ -27,7 +27,9 @@ $(STAMP): pyproject.toml | system-deps
 	touch $(STAMP)
 
 # The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
-# then run the pipeline on those videos, train two models, predict, and end with the robustness table.
+# then run the pipeline on those videos, train two models, predict, print the robustness table, and end with the
+# Mandarin utterance spoken by the demo character: a side-by-side preview, then GLB + USD + Live Link CSV + web JSON
+# + the wav + a preview MP4 from the audio alone (`speak`); their paths are printed.
 demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -38,6 +40,8 @@ demo: system-deps venv
 	$(BIN)/visemeflow train --store $(OUT)/store --preset mean-curve --name demo-mean-curve
 	$(BIN)/visemeflow predict examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --out $(OUT)/predicted
 	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
+	$(BIN)/visemeflow preview SSB1624/SSB16240001 --sources procedural,tracked,ground_truth --store $(OUT)/store
+	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --format glb,usd,livelink,json --preview --out $(OUT)/speak
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed

@@ -165,6 +165,9 @@ def test_characters_load_from_npz_and_mesh_folders(tmp_path, demo):
     np.testing.assert_array_equal(back.deltas, character.deltas)
     rig = load_character(REPO / "visemeflow/rig/data/ict_visemes.npz")
     assert rig.shape_names == VISEMES and rig.n_vertices == demo.n_vertices
+    assert rig.vertex_colors is not None and rig.vertex_colors.shape == (demo.n_vertices, 3)
+    again = load_character(save_character_npz(rig, tmp_path / "rig.npz"))
+    np.testing.assert_array_equal(again.vertex_colors, rig.vertex_colors)
     folder = tmp_path / "folder"
     folder.mkdir()
     verts = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"

@@ -44,6 +44,8 @@ class Character:
     """The S shape (morph target) names, in the character's order."""
     deltas: np.ndarray
     """(S, V, 3) float32, shape - neutral, in `shape_names` order."""
+    vertex_colors: np.ndarray | None = None
+    """(V, 3) float32 RGB in [0, 1] for previews (lips, teeth, mouth socket), or None (grey)."""
 
     @property
     def n_vertices(self) -> int:
@@ -94,20 +96,26 @@ def validate_character(character: Character) -> Character:
     if faces.size and (faces.min() < 0 or faces.max() >= neutral.shape[0]):
         raise CharacterError(f"{where}: face vertex ids must lie in [0, {neutral.shape[0]}), "
                              f"got {faces.min()}..{faces.max()}")
+    colors = character.vertex_colors
+    if colors is not None and (np.shape(colors) != neutral.shape or not np.isfinite(colors).all()
+                               or np.min(colors) < 0 or np.max(colors) > 1):
+        raise CharacterError(f"{where}: vertex colours must be ({neutral.shape[0]}, 3) RGB in [0, 1]")
     return character
 
 
-def make_character(name: str, neutral, faces, shape_names, deltas, source: str | os.PathLike = "") -> Character:
+def make_character(name: str, neutral, faces, shape_names, deltas, source: str | os.PathLike = "",
+                   vertex_colors=None) -> Character:
     """A validated Character from arrays (converted to float32 / int32)."""
     return validate_character(Character(
         name=name, source=str(source), neutral=np.ascontiguousarray(neutral, np.float32),
         faces=np.ascontiguousarray(faces, np.int32), shape_names=tuple(shape_names),
-        deltas=np.ascontiguousarray(deltas, np.float32)))
+        deltas=np.ascontiguousarray(deltas, np.float32),
+        vertex_colors=None if vertex_colors is None else np.ascontiguousarray(vertex_colors, np.float32)))
 
 
 def character_from_rig(rig: VisemeRig, source: str | os.PathLike = "") -> Character:
     """A 16-viseme rig (our convention: one shape per viseme, named as `visemes.VISEMES`) as a character."""
-    return make_character(rig.name, rig.neutral, rig.faces, VISEMES, rig.deltas, source)
+    return make_character(rig.name, rig.neutral, rig.faces, VISEMES, rig.deltas, source, rig.vertex_colors)
 
 
 _NPZ_KEYS = ("neutral", "faces", "shape_names", "deltas")
@@ -118,8 +126,9 @@ def save_character_npz(character: Character, path: str | os.PathLike) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
+            colors = {} if character.vertex_colors is None else {"vertex_colors": character.vertex_colors}
             np.savez_compressed(f, name=np.array(character.name), neutral=character.neutral, faces=character.faces,
-                                shape_names=np.array(character.shape_names), deltas=character.deltas)
+                                shape_names=np.array(character.shape_names), deltas=character.deltas, **colors)
     return path
 
 
@@ -130,7 +139,8 @@ def _load_npz(path: Path, name: str | None) -> Character:
             if set(_NPZ_KEYS) <= keys:
                 return make_character(name or str(data["name"]) if "name" in keys else name or path.stem,
                                       data["neutral"], data["faces"], [str(n) for n in data["shape_names"]],
-                                      data["deltas"], path)
+                                      data["deltas"], path,
+                                      data["vertex_colors"] if "vertex_colors" in keys else None)
     except (OSError, ValueError) as exc:
         raise CharacterError(f"{path}: not a readable .npz character file ({exc})") from None
     try:
@@ -139,7 +149,7 @@ def _load_npz(path: Path, name: str | None) -> Character:
         raise CharacterError(f"{path}: neither a character file (keys {', '.join(_NPZ_KEYS)}) nor a viseme rig: "
                              f"{exc}") from None
     return character_from_rig(rig, path) if name is None else make_character(
-        name, rig.neutral, rig.faces, VISEMES, rig.deltas, path)
+        name, rig.neutral, rig.faces, VISEMES, rig.deltas, path, rig.vertex_colors)
 
 
 _MESH_SUFFIXES = (".obj", ".ply", ".obj.gz", ".ply.gz")

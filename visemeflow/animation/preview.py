@@ -481,8 +481,8 @@ class PreviewFrames:
                     if twin is not None:
                         canvas[box] = canvas[self.panel_box(twin)]
                     else:
-                        canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces, None,
-                                                  self.camera, self.pose)
+                        canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces,
+                                                  self.character.vertex_colors, self.camera, self.pose)
                     shown[k] = row
                 if self.caption_height:
                     text = self.phone_at(i)
