@@ -338,3 +338,26 @@ def test_utterances_with_ids_in_any_script_are_listed_by_their_ids_not_their_fil
     result = build_dashboard(s, tmp_path / "out")
     page = result.path.read_text(encoding="utf-8")
     assert "张三/句子 1" in page and "Sprecher_ü/Satz%1" in page and "%E5%BC%A0" not in page
+
+
+def test_animation_packages_are_listed_with_links_and_previews_as_video_elements(tmp_path):
+    from urllib.parse import unquote
+
+    s = Store(tmp_path / "store")
+    s.write_curves(curves_table("spk/a", "procedural", "jali", np.zeros((25, 16), np.float32), 25.0))
+    folder = s.animation_dir("ict_visemes", "张三/第一句")
+    folder.mkdir(parents=True)
+    for suffix in (".glb", ".livelink.csv", ".mp4"):
+        (folder / f"{folder.name}{suffix}").write_bytes(b"x")
+    out = tmp_path / "report"
+    page = build_dashboard(s, out).path.read_text()
+    tags = _tags(page)
+    videos = [a for t, a in tags if t == "video"]
+    assert len(videos) == 1 and videos[0]["preload"] == "none" and "controls" in videos[0]
+    links = [a["href"] for t, a in tags if t == "a" and not a.get("href", "").startswith("#")]
+    assert len(links) == 3
+    for href in links + [videos[0]["src"]]:
+        assert (out / unquote(href)).resolve().is_file(), href  # relative to the page, percent-encoded
+    assert "<code>张三/第一句</code> on ict_visemes" in page
+    empty = build_dashboard(Store(tmp_path / "other"), tmp_path / "r2").path.read_text()
+    assert 'id="no-animations"' in empty

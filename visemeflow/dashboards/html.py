@@ -14,11 +14,13 @@ import csv
 import html
 import io
 import math
+import os
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 import pyarrow as pa
@@ -32,18 +34,21 @@ from visemeflow.dashboards import plots
 from visemeflow.learning.robustness_table import COLUMNS, RUN, table_columns
 from visemeflow.learning.robustness_table import robustness_table as shared_robustness_table
 from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
+from visemeflow.schemas.ids import utterance_id_from_path_parts
 from visemeflow.schemas.tables import CURVE_SOURCES
 from visemeflow.storage import Store
 from visemeflow.visemes import VISEMES
 
 DEFAULT_MAX_UTTERANCES = 12
 MAX_REJECT_ROWS = 500
+MAX_ANIMATIONS = 50
 # Tracking diagnostics read per variant (a fixed sample beyond that): keeps a 10k-utterance store at ~1 s.
 MAX_TRACKING_UTTERANCES = 2000
 # Robustness conditions in the paper's order (Tables 1-3), as the evaluate report has them; any other follows.
 CONDITION_ORDER = COLUMNS
 BASELINE_CONDITION = "validation"
-CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
+# media-src: the preview videos of the animations section, files of the store next to the page (loaded on play)
+CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; media-src file: 'self'"
 
 _CSS = """
 body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 0 auto; max-width: 1300px;
@@ -412,6 +417,40 @@ def _tracking_section(page: _Page, store: Store) -> bool:
     return True
 
 
+def _file_url(path: Path, page_dir: Path) -> str:
+    """A link from the page's folder to a store file: relative when it can be, percent-encoded."""
+    try:
+        target = os.path.relpath(path.resolve(), page_dir.resolve())
+    except ValueError:  # another drive (Windows)
+        return path.resolve().as_uri()
+    return quote(Path(target).as_posix())
+
+
+def _animations_section(page: "_Page", store: Store, out: Path, limit: int = MAX_ANIMATIONS) -> None:
+    """Each stored animation package: its files as links, its preview MP4s as <video> elements (no script)."""
+    folders = store.animation_dirs()
+    if not folders:
+        page.add('<p class="empty" id="no-animations">No animations yet (<code>visemeflow animate</code>, '
+                 "<code>visemeflow speak</code>, <code>visemeflow preview</code>).</p>")
+        return
+    page.add(f'<p class="note">{min(len(folders), limit)} of {len(folders)} packages (character, utterance): the '
+             "files open in Blender / three.js (GLB), Omniverse / Maya (USD), Unreal (Live Link CSV); previews "
+             "play here.</p>")
+    for folder in folders[:limit]:
+        character, speaker, name = folder.parts[-3:]
+        try:
+            uid = utterance_id_from_path_parts(speaker, name)
+        except ValueError:
+            uid = f"{speaker}/{name}"
+        files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+        links = " · ".join(f'<a href="{esc(_file_url(p, out))}">{esc(p.name)}</a>' for p in files)
+        page.add(f'<div class="animation"><h3><code>{esc(uid)}</code> on {esc(character)}</h3><p>{links}</p>')
+        for video in (p for p in files if p.suffix == ".mp4"):
+            page.add(f'<video controls preload="none" width="640" src="{esc(_file_url(video, out))}" '
+                     f'title="{esc(video.name)}"></video>')
+        page.add("</div>")
+
+
 def build_dashboard(
     store: Store | Path | str, out: Path | str, utterance_ids: Sequence[str] | None = None,
     max_utterances: int = DEFAULT_MAX_UTTERANCES,
@@ -444,7 +483,7 @@ def build_dashboard(
         f'<p class="meta">store <code>{esc(store.root)}</code> · generated {esc(generated)}</p>',
         '<nav><a href="#store">store</a><a href="#utterances">utterances</a><a href="#tracking">tracking</a>'
         '<a href="#training">training</a><a href="#sweeps">sweeps</a><a href="#robustness">robustness</a>'
-        '<a href="#rejects">rejects</a></nav>',
+        '<a href="#animations">animations</a><a href="#rejects">rejects</a></nav>',
     )
     if empty:
         page.add('<p id="nothing-yet" class="empty">Nothing yet: this store holds no utterances, curves, metrics '
@@ -526,6 +565,11 @@ def build_dashboard(
     else:
         page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
                  "metrics rows).</p>")
+    page.add("</section>")
+
+    # -- animations
+    page.add('<section id="animations"><h2>Animations</h2>')
+    _animations_section(page, store, out)
     page.add("</section>")
 
     # -- rejects

@@ -204,6 +204,13 @@ class Store:
         speaker, name = id_path_parts(utterance_id)
         return self.root / "animations" / validate_name(character, "character name") / speaker / name
 
+    def animation_dirs(self) -> list[Path]:
+        """Folders of stored animation packages (`animations/<character>/<speaker>/<name>/`), sorted."""
+        folder = self.root / "animations"
+        if not folder.is_dir():
+            return []
+        return sorted(p for p in folder.glob("*/*/*") if p.is_dir() and not p.name.startswith("."))
+
     def report_path(self, name: str) -> Path:
         """A report file (`robustness.md`, `sweep-<preset>.png`) in the store's `reports` folder."""
         return self.root / "reports" / validate_name(name, "report name")
