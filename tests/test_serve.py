@@ -12,8 +12,9 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from visemeflow.ops import serve as serve_module
 from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
 
-STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "rerun")
-STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "rerun")
+STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "animate", "speak",
+          "preview", "rerun")
+STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "animate", "speak", "preview", "rerun")
 
 
 def flow_of(entrypoint: str):
@@ -64,7 +65,7 @@ def test_the_rerun_form_asks_for_utterance_stage_and_force():
     assert {"utterance_id", "stage", "force", "store"} <= set(form["properties"])
     assert form["required"] == ["utterance_id"]
     assert form["properties"]["force"]["default"] is True
-    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "track"}
+    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "track", "animate"}
 
 
 def test_prefect_yaml_names_existing_flows_with_the_same_schedule():
