@@ -134,3 +134,22 @@ def test_a_failed_stage_prints_its_summary_and_exits_1(monkeypatch, capsys):
     out, err = capsys.readouterr()
     assert out.splitlines() == ["ingest: utterances 2", "track: utterances 2, rejected 2"]
     assert err.strip() == "failed: pipeline: track: all 2 utterances failed (see the rejects table)"
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_animate_and_preview_commands_print_every_file_and_refuse_bad_options(tmp_path):
+    from factories import make_curve_store
+
+    store = make_curve_store(tmp_path / "store", n=1)
+    result = runner.invoke(app, ["animate", "--store", str(store.root), "--source", "ground_truth",
+                                 "--format", "livelink,curves-csv", "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert "spk/u0 -> ict_visemes [visemeflow16], 25 frames at 25 fps:" in result.output
+    printed = [line.strip() for line in result.output.splitlines() if line.startswith("  ")]
+    assert sorted(p.rsplit("/", 1)[-1] for p in printed) == ["u0.curves.csv", "u0.livelink.csv", "u0.wav"]
+    assert all((tmp_path / "out").joinpath(p).is_file() for p in printed)
+    bad = runner.invoke(app, ["animate", "--store", str(store.root), "--format", "glb,fbx"])
+    assert bad.exit_code == 2 and "unknown export format(s) fbx" in bad.output
+    nothing = runner.invoke(app, ["speak", str(tmp_path / "x.wav"), "--model", "nope", "--store", str(store.root)])
+    assert nothing.exit_code == 2 and "no model 'nope'" in nothing.output

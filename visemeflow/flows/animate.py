@@ -171,11 +171,11 @@ def animate_flow(params: AnimateParams):
         create_markdown_artifact(key="animations", markdown=_markdown(reports),
                                  description="animation packages: files per utterance and character")
     logger.info("animate (%s/%s): %s", params.source, variant, summary)
-    total = len(futures) + sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
-    failed = len(rejects) - sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) + \
-        sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
+    # a character that could not be loaded fails every utterance it was asked for
+    lost = sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
+    failed = sum(1 for r in rejects if r[C.UTTERANCE_ID] is not None) + lost
     return finished(STAGE, {**summary, "source": params.source, "variant": variant, "packages_written": reports},
-                    failed, total, unexpected)
+                    failed, len(futures) + lost, unexpected)
 
 
 class SpeakParams(BaseModel):
