@@ -64,6 +64,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from report import met  # noqa: E402  (bench/report.py, beside this script)
 from visemeflow.animation.apply import deform  # noqa: E402
 from visemeflow.animation.character import Character, character_from_rig  # noqa: E402
 from visemeflow.animation.conventions import arkit_weights, bind  # noqa: E402
@@ -105,10 +106,6 @@ def table(title: str, header: tuple[str, ...], rows: list[tuple[str, ...]], note
     print(line)
     for n in notes:
         print(n)
-
-
-def met(ok: bool | None) -> str:
-    return "" if ok is None else ("yes" if ok else "NO")
 
 
 def mb(n_bytes: float) -> str:

@@ -51,20 +51,17 @@ __all__ = [
     "write_livelink_csv",
 ]
 
-LIVELINK_BLENDSHAPES: tuple[str, ...] = (
-    "EyeBlinkLeft", "EyeLookDownLeft", "EyeLookInLeft", "EyeLookOutLeft", "EyeLookUpLeft", "EyeSquintLeft",
-    "EyeWideLeft", "EyeBlinkRight", "EyeLookDownRight", "EyeLookInRight", "EyeLookOutRight", "EyeLookUpRight",
-    "EyeSquintRight", "EyeWideRight",
-    "JawForward", "JawRight", "JawLeft", "JawOpen",
-    "MouthClose", "MouthFunnel", "MouthPucker", "MouthRight", "MouthLeft", "MouthSmileLeft", "MouthSmileRight",
-    "MouthFrownLeft", "MouthFrownRight", "MouthDimpleLeft", "MouthDimpleRight", "MouthStretchLeft",
-    "MouthStretchRight", "MouthRollLower", "MouthRollUpper", "MouthShrugLower", "MouthShrugUpper", "MouthPressLeft",
-    "MouthPressRight", "MouthLowerDownLeft", "MouthLowerDownRight", "MouthUpperUpLeft", "MouthUpperUpRight",
-    "BrowDownLeft", "BrowDownRight", "BrowInnerUp", "BrowOuterUpLeft", "BrowOuterUpRight",
-    "CheekPuff", "CheekSquintLeft", "CheekSquintRight",
-    "NoseSneerLeft", "NoseSneerRight",
-    "TongueOut",
-)
+def _app_order() -> tuple[str, ...]:
+    """ARKit's names capitalised, in the app's column order: Apple's order with JawRight before JawLeft and
+    MouthRight before MouthLeft (the iOS app writes them so; the streaming enum some tools copy does not)."""
+    names = [name[0].upper() + name[1:] for name in ARKIT_52]
+    for left, right in (("JawLeft", "JawRight"), ("MouthLeft", "MouthRight")):
+        i, k = names.index(left), names.index(right)
+        names[i], names[k] = names[k], names[i]
+    return tuple(names)
+
+
+LIVELINK_BLENDSHAPES: tuple[str, ...] = _app_order()
 """The 52 ARKit blendshapes as the Live Link Face app names and orders its CSV columns."""
 
 LIVELINK_ROTATIONS: tuple[str, ...] = (

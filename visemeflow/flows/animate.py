@@ -20,11 +20,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.animation.character import CharacterError
 from visemeflow.animation.package import AnimateConfig
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import finished
+from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
-from visemeflow.schemas import REJECTS, C, normalize_utterance_id, shard_of, table_from_rows, validate_name
+from visemeflow.schemas import C, normalize_utterance_id, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
     content_hash, outputs_present
@@ -157,10 +157,7 @@ def animate_flow(params: AnimateParams):
             unexpected += 1
         if progress is not None:
             update_progress_artifact(progress, 100.0 * done / len(futures))
-    by_shard: dict[int, list[dict]] = {}
-    for r in rejects:
-        by_shard.setdefault(shard_of(r[C.UTTERANCE_ID] or "", params.n_shards), []).append(r)
-    store.replace_stage_rejects(STAGE, {s: table_from_rows(items, REJECTS) for s, items in by_shard.items()})
+    replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {"packages": len(futures), "written": sum(not r["cached"] for r in reports),
                "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
                "frames": sum(r["frames"] for r in reports)}

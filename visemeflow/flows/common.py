@@ -14,8 +14,17 @@ from visemeflow.schemas import shard_of
 def group_by_shard(items: Iterable[dict], key: str, n_shards: int) -> dict[int, list[dict]]:
     groups: dict[int, list[dict]] = defaultdict(list)
     for item in items:
-        groups[shard_of(item[key], n_shards)].append(item)
+        groups[shard_of(item[key] or "", n_shards)].append(item)  # rows of no utterance (a bad character): shard of ""
     return dict(sorted(groups.items()))
+
+
+def replace_stage_rejects(store, stage: str, rejects: list[dict], n_shards: int) -> None:
+    """A stage's reject rows as its rejects table, sharded by utterance id; new shards first, then the stale ones
+    go (a kill in between never loses the stage's rejects)."""
+    from visemeflow.schemas import REJECTS, C, table_from_rows
+
+    store.replace_stage_rejects(stage, {shard: table_from_rows(rows, REJECTS)
+                                        for shard, rows in group_by_shard(rejects, C.UTTERANCE_ID, n_shards).items()})
 
 
 def collect(

@@ -8,12 +8,12 @@ from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import as_completed
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import finished
+from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.flows.params import TrackParams
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
-from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
+from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
@@ -84,11 +84,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             unexpected += 1
         if progress is not None:
             update_progress_artifact(progress, 100.0 * done / len(futures))
-    by_shard: dict[int, list[dict]] = {}
-    for r in rejects:
-        by_shard.setdefault(shard_of(r[C.UTTERANCE_ID], params.n_shards), []).append(r)
-    # new shards first, then the stale ones go: a kill in between never loses the stage's rejects
-    store.replace_stage_rejects(STAGE, {shard: table_from_rows(items, REJECTS) for shard, items in by_shard.items()})
+    replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     summary = {
         "utterances": len(rows), "tracked": sum(1 for r in reports if not r["cached"]),
