@@ -10,7 +10,8 @@ import soundfile as sf
 from factories import make_corpus, make_curve_store
 from test_predict import AUDIO, tiny_model
 
-from visemeflow.animation.character import load_character, make_character, save_character_npz
+from visemeflow.animation.character import make_character, save_character_npz
+from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind
 from visemeflow.animation.gltf import write_glb
 from visemeflow.animation.livelink import arkit_from_livelink, read_livelink_csv

@@ -13,8 +13,8 @@ import pytest
 from factories import REPO, SHARED_DATA
 from visemeflow.animation.apply import CurvesError, check_curves, deform, deform_all, resample, \
     resampled_frame_count
-from visemeflow.animation.character import CharacterError, character_from_rig, load_character, make_character, \
-    save_character_npz
+from visemeflow.animation.character import CharacterError, character_from_rig, make_character, save_character_npz
+from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind, builtin_table, \
     detect_convention, normalize_shape_name
 from visemeflow.rig import load_demo_rig, read_obj

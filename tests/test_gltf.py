@@ -26,7 +26,8 @@ import pytest
 from browser import Browser, chromium_or_fail
 from factories import REPO
 
-from visemeflow.animation.character import Character, CharacterError, character_from_rig, load_character, make_character
+from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
+from visemeflow.animation.load import load_character
 from visemeflow.animation.gltf import read_character_glb, vertex_normals, write_glb
 from visemeflow.rig import load_demo_rig
 

@@ -10,7 +10,8 @@
 Pure: arrays in, files out; imports `visemes`, `rig`, `synth` (the renderer) and `atomic`, never Prefect or the store.
 """
 
-from visemeflow.animation.character import Character, CharacterError, character_from_rig, load_character
+from visemeflow.animation.character import Character, CharacterError, character_from_rig
+from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, Binding, arkit_weights, bind, detect_convention
 from visemeflow.animation.export import FORMATS, CurveTrack, curves_csv, curves_json, export_text, write_export
 

@@ -4,7 +4,7 @@ A `Character` holds the neutral mesh, its triangles and one delta per named shap
 character's own names and order. `conventions.py` says how our 16 viseme curves drive those names; the exporters
 (glTF, USD, Live Link, web JSON) and the preview write or show the character's own shapes.
 
-Loaders: `load_character(path)` reads
+Loaders (`load.load_character(path)` picks one by the path):
 - a `.glb` / `.gltf` with morph targets (`gltf.read_character_glb`, through pygltflib),
 - a compact `.npz` written by `save_character_npz` (or one of our 16-viseme rig files, `rig.save_rig_npz`),
 - a folder of meshes (OBJ/PLY, gzipped or not): `neutral.<ext>` and one file per shape, named by the shape.
@@ -132,7 +132,7 @@ def save_character_npz(character: Character, path: str | os.PathLike) -> Path:
     return path
 
 
-def _load_npz(path: Path, name: str | None) -> Character:
+def load_character_npz(path: Path, name: str | None) -> Character:
     try:
         with np.load(path, allow_pickle=False) as data:
             keys = set(data.files)
@@ -163,7 +163,7 @@ def _mesh_name(path: Path) -> str | None:
     return None
 
 
-def _load_folder(path: Path, name: str | None) -> Character:
+def load_character_folder(path: Path, name: str | None) -> Character:
     meshes = {stem: p for p in sorted(path.iterdir()) if p.is_file() and (stem := _mesh_name(p)) is not None}
     neutral_key = next((k for k in meshes if k.lower() in ("neutral", "base", "basis")), None)
     if neutral_key is None:
@@ -182,20 +182,3 @@ def _load_folder(path: Path, name: str | None) -> Character:
     deltas = (np.stack([shapes[k].vertices for k in names]) - base.vertices[None]) if names else \
         np.zeros((0,) + base.vertices.shape, np.float32)
     return make_character(name or path.name, base.vertices, base.faces, names, deltas, path)
-
-
-def load_character(path: str | os.PathLike, name: str | None = None) -> Character:
-    """Read a character from a .glb/.gltf, a .npz (ours or a viseme rig) or a folder of meshes; validated."""
-    path = Path(path)
-    if path.is_dir():
-        return _load_folder(path, name)
-    if not path.is_file():
-        raise CharacterError(f"{path}: no such character file or folder")
-    suffix = path.suffix.lower()
-    if suffix in (".glb", ".gltf"):
-        from visemeflow.animation.gltf import read_character_glb
-
-        return read_character_glb(path, name=name)
-    if suffix == ".npz":
-        return _load_npz(path, name)
-    raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .npz or a folder of meshes")

@@ -17,7 +17,8 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.animation.apply import CurvesError, resample
-from visemeflow.animation.character import Character, CharacterError, load_character
+from visemeflow.animation.character import Character, CharacterError
+from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind
 from visemeflow.animation.package import AnimateConfig, export_animation, export_paths
 from visemeflow.hashing import file_hash, stable_hash
