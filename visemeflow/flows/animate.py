@@ -271,8 +271,7 @@ def preview_flow(params: PreviewParams) -> dict:
             continue
         rate = rate or fps
         curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
-        panels[source.replace("_", " ") if variant in (source, "default") else f"{source} {variant}"] = \
-            binding.weights(curves)
+        panels[f"{source.replace('_', ' ')} ({variant})"] = binding.weights(curves)
     if not panels:
         raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
