@@ -151,5 +151,7 @@ def test_animate_and_preview_commands_print_every_file_and_refuse_bad_options(tm
     assert all((tmp_path / "out").joinpath(p).is_file() for p in printed)
     bad = runner.invoke(app, ["animate", "--store", str(store.root), "--format", "glb,fbx"])
     assert bad.exit_code == 2 and "unknown export format(s) fbx" in bad.output
+    bad = runner.invoke(app, ["animate", "--store", str(store.root), "--convention", "arkit"])
+    assert bad.exit_code == 2 and "unknown convention 'arkit'; known: visemeflow16, arkit52, oculus15" in bad.output
     nothing = runner.invoke(app, ["speak", str(tmp_path / "x.wav"), "--model", "nope", "--store", str(store.root)])
     assert nothing.exit_code == 2 and "no model 'nope'" in nothing.output

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.animation.apply import check_curves, resample
 from visemeflow.animation.character import Character
-from visemeflow.animation.conventions import Binding, arkit_weights
+from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.atomic import atomic_path
 
@@ -61,6 +61,13 @@ class AnimateConfig(BaseModel):
         if unknown:
             raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORT_FORMATS)}")
         return tuple(dict.fromkeys(value))
+
+    @field_validator("convention")
+    @classmethod
+    def _known_convention(cls, value: str | None) -> str | None:
+        if value is not None and value not in CONVENTIONS:
+            raise ValueError(f"unknown convention {value!r}; known: {', '.join(CONVENTIONS)} (or give a mapping CSV)")
+        return value
 
 
 @dataclass
