@@ -25,12 +25,15 @@ from visemeflow.rig import (
     load_rig,
     load_rig_folder,
     load_rig_glb,
+    linear_to_srgb,
     load_rig_npz,
     parse_recipes,
+    read_mesh,
     read_obj,
     recipe_shapes,
     rig_tensors,
     save_rig_npz,
+    srgb_to_linear,
     validate_rig,
 )
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
@@ -78,9 +81,11 @@ def write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> Path:
 
 
 def write_glb(path: Path, vertices: np.ndarray, triangles: np.ndarray, targets: dict[str, np.ndarray],
-              sparse: tuple[str, ...] = (), extras: dict | None = None, primitives: int = 1) -> Path:
-    """A minimal glTF 2.0 asset: one mesh of `primitives` identical primitives with morph targets (some stored as
-    sparse accessors). A `.gltf` name writes JSON with the buffer as a data URI, anything else a binary GLB."""
+              sparse: tuple[str, ...] = (), extras: dict | None = None, primitives: int = 1,
+              colors: np.ndarray | None = None) -> Path:
+    """A minimal glTF 2.0 asset: one mesh of `primitives` copies of one primitive (each with its own accessors) with
+    morph targets (some stored as sparse accessors) and optional COLOR_0 (float32 (V, 3), or uint8 (V, 4)
+    normalized). A `.gltf` name writes JSON with the buffer as a data URI, anything else a binary GLB."""
     blob = bytearray()
     views, accessors = [], []
 
@@ -96,25 +101,34 @@ def write_glb(path: Path, vertices: np.ndarray, triangles: np.ndarray, targets: 
         accessors.append({"bufferView": view, "componentType": component, "count": len(array), "type": kind})
         return len(accessors) - 1
 
-    position = add_accessor(vertices.astype(np.float32), 5126, "VEC3")
-    accessors[position].update(min=vertices.min(0).tolist(), max=vertices.max(0).tolist())
-    indices = add_accessor(triangles.astype(np.uint32).reshape(-1), 5125, "SCALAR")
-    target_list = []
-    for name, delta in targets.items():
-        delta = delta.astype(np.float32)
-        if name in sparse:
-            moved = np.flatnonzero(np.abs(delta).sum(1) > 0).astype(np.uint32)
-            accessors.append({
-                "componentType": 5126, "count": len(delta), "type": "VEC3",
-                "sparse": {"count": int(len(moved)),
-                           "indices": {"bufferView": add_view(moved.tobytes()), "componentType": 5125},
-                           "values": {"bufferView": add_view(delta[moved].tobytes())}},
-            })
-            target_list.append({"POSITION": len(accessors) - 1})
-        else:
-            target_list.append({"POSITION": add_accessor(delta, 5126, "VEC3")})
-    primitive = {"attributes": {"POSITION": position}, "indices": indices, "targets": target_list}
-    mesh = {"primitives": [primitive] * primitives, "extras": {"targetNames": list(targets), **(extras or {})}}
+    def add_primitive() -> dict:
+        position = add_accessor(vertices.astype(np.float32), 5126, "VEC3")
+        accessors[position].update(min=vertices.min(0).tolist(), max=vertices.max(0).tolist())
+        indices = add_accessor(triangles.astype(np.uint32).reshape(-1), 5125, "SCALAR")
+        target_list = []
+        for name, delta in targets.items():
+            delta = delta.astype(np.float32)
+            if name in sparse:
+                moved = np.flatnonzero(np.abs(delta).sum(1) > 0).astype(np.uint32)
+                accessors.append({
+                    "componentType": 5126, "count": len(delta), "type": "VEC3",
+                    "sparse": {"count": int(len(moved)),
+                               "indices": {"bufferView": add_view(moved.tobytes()), "componentType": 5125},
+                               "values": {"bufferView": add_view(delta[moved].tobytes())}},
+                })
+                target_list.append({"POSITION": len(accessors) - 1})
+            else:
+                target_list.append({"POSITION": add_accessor(delta, 5126, "VEC3")})
+        attributes = {"POSITION": position}
+        if colors is not None and colors.dtype == np.float32:
+            attributes["COLOR_0"] = add_accessor(colors, 5126, "VEC3")
+        elif colors is not None:
+            attributes["COLOR_0"] = add_accessor(colors, 5121, "VEC4")
+            accessors[-1]["normalized"] = True
+        return {"attributes": attributes, "indices": indices, "targets": target_list}
+
+    mesh = {"primitives": [add_primitive() for _ in range(primitives)],
+            "extras": {"targetNames": list(targets), **(extras or {})}}
     while len(blob) % 4:
         blob.append(0)
     document = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
@@ -350,6 +364,52 @@ def test_glb_unknown_and_missing_targets(tmp_path):
         load_rig_glb(write_glb(tmp_path / "face.glb", GRID, TRIANGLES, targets))
     with pytest.raises(RigError, match="no mesh with morph targets"):
         load_rig_glb(write_glb(tmp_path / "face.glb", GRID, TRIANGLES, {}))
+
+
+def test_glb_problems_are_rig_errors_that_name_the_file(tmp_path):
+    targets = {v: viseme_offsets()[i] for i, v in enumerate(VISEMES)}
+    (tmp_path / "text.glb").write_text("not a model")
+    no_names = write_glb(tmp_path / "no-names.glb", GRID, TRIANGLES, targets)
+    document = json.loads(no_names.read_bytes()[20:20 + struct.unpack_from("<I", no_names.read_bytes(), 12)[0]])
+    assert document["meshes"][0]["extras"]["targetNames"] == list(targets)    # the helper's layout, as read here
+    blob = no_names.read_bytes()
+    no_names.write_bytes(blob.replace(b'"targetNames"', b'"targetNamez"'))   # same length: the GLB stays whole
+    cases = {"text.glb": "not a glTF 2.0 / GLB file", "no-names.glb": "16 morph targets but no names",
+             "gone.glb": "cannot be read"}
+    for name, expected in cases.items():
+        with pytest.raises(RigError) as info:
+            load_rig_glb(tmp_path / name)
+        assert str(tmp_path / name) in str(info.value) and expected in str(info.value), str(info.value)
+    with pytest.raises(RigError, match=r"neutral\.glb: no mesh in this glTF file"):
+        (tmp_path / "neutral.glb").write_bytes(no_names.read_bytes().replace(b'"meshes"', b'"meshez"'))
+        read_mesh(tmp_path / "neutral.glb")
+
+
+def test_srgb_and_linear_are_inverse_and_match_the_standard():
+    assert srgb_to_linear([0.0, 0.04045, 0.5, 1.0]).tolist() == pytest.approx([0.0, 0.04045 / 12.92, 0.214041, 1.0],
+                                                                              abs=1e-6)
+    assert linear_to_srgb([0.0, 0.0031308, 0.5, 1.0]).tolist() == pytest.approx([0.0, 0.0031308 * 12.92, 0.735357,
+                                                                                 1.0], abs=1e-6)
+    values = np.linspace(0.0, 1.0, 1001)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(values)), values, atol=2e-6)
+    assert linear_to_srgb([-0.5, 2.0]).tolist() == [0.0, 1.0]                   # clipped
+
+
+@pytest.mark.parametrize("stored", ["float", "uint8"])
+def test_glb_vertex_colours_come_back_as_srgb(tmp_path, stored):
+    """COLOR_0 is linear (glTF 2.0); rigs hold sRGB display colours, so the reader converts."""
+    linear = np.linspace(0.0, 1.0, 27).reshape(9, 3).astype(np.float32)
+    colors = linear if stored == "float" else np.concatenate(
+        [np.round(linear * 255).astype(np.uint8), np.full((9, 1), 128, np.uint8)], axis=1)     # alpha ignored
+    expected = linear_to_srgb(linear if stored == "float" else np.round(linear * 255) / 255)
+    targets = {v: viseme_offsets()[i] for i, v in enumerate(VISEMES)}
+    rig = load_rig_glb(write_glb(tmp_path / "face.glb", GRID, TRIANGLES, targets, colors=colors, primitives=2))
+    assert rig.vertex_colors.dtype == np.float32 and rig.vertex_colors.shape == (18, 3)
+    np.testing.assert_allclose(rig.vertex_colors, np.concatenate([expected, expected]), atol=1e-6)
+    assert rig.vertex_colors[4].tolist() != linear[4].tolist()                   # converted, not copied
+    mesh = read_mesh(write_glb(tmp_path / "neutral.glb", GRID, TRIANGLES, {}, colors=colors))
+    np.testing.assert_allclose(mesh.colors, expected, atol=1e-6)
+    assert read_mesh(write_glb(tmp_path / "plain.glb", GRID, TRIANGLES, {})).colors is None
 
 
 def test_load_rig_unknown_format_and_missing_path(tmp_path):

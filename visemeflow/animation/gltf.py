@@ -18,21 +18,15 @@ Every accessor has its own buffer view, 4-byte aligned; vertex views target ARRA
 ELEMENT_ARRAY_BUFFER, animation views none. Morph targets carry no NORMAL deltas: a viewer shades the moving mouth
 with the neutral's normals (adding them would double the file for a shading detail).
 
-Reading (`read_character_glb`): the first mesh with morph targets, in scene order (the default scene's node tree,
-then the other scenes and loose nodes), else in mesh order. Every primitive must be TRIANGLES and carry the same
-number of targets; primitives are joined into one vertex array (primitives that share their POSITION and target
-accessors share their vertices). Accessors may be strided, sparse, or integer (normalized or not, as
-KHR_mesh_quantization allows). Target names come from `mesh.extras.targetNames`, else the first primitive's.
-Node transforms are not applied: the character stays in mesh space. Buffers may be the GLB's binary chunk, data
-URIs or files beside a .gltf. Every problem is a `CharacterError` that names the file.
+Reading (`read_character_glb`): a thin wrapper over the rig layer's glTF reader, `rig.gltf.read_gltf_mesh` (the
+first mesh with morph targets in scene order, primitives joined, sparse / strided / quantized accessors, target
+names from `extras.targetNames`, COLOR_0 as vertex colours; node transforms not applied), whose `RigError`s become
+`CharacterError`s naming the file; `validate_character` checks the rest.
 """
 
 from __future__ import annotations
 
-import json
 import os
-import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -40,19 +34,16 @@ import pygltflib as gl
 
 from visemeflow.animation.character import Character, CharacterError, make_character, validate_character
 from visemeflow.atomic import atomic_path
+from visemeflow.rig import RigError
+from visemeflow.rig.gltf import read_gltf_mesh
 
 __all__ = ["read_character_glb", "vertex_normals", "write_glb"]
 
 _ALIGN = 4
-_GLB_MAGIC = b"glTF"
 _COMPONENT_DTYPES = {
     gl.BYTE: np.dtype("<i1"), gl.UNSIGNED_BYTE: np.dtype("<u1"), gl.SHORT: np.dtype("<i2"),
     gl.UNSIGNED_SHORT: np.dtype("<u2"), gl.UNSIGNED_INT: np.dtype("<u4"), gl.FLOAT: np.dtype("<f4"),
 }
-_INDEX_TYPES = (gl.UNSIGNED_BYTE, gl.UNSIGNED_SHORT, gl.UNSIGNED_INT)
-_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
-_MODES = {gl.POINTS: "POINTS", gl.LINES: "LINES", gl.LINE_LOOP: "LINE_LOOP", gl.LINE_STRIP: "LINE_STRIP",
-          gl.TRIANGLES: "TRIANGLES", gl.TRIANGLE_STRIP: "TRIANGLE_STRIP", gl.TRIANGLE_FAN: "TRIANGLE_FAN"}
 
 
 # ---- writing -----------------------------------------------------------------------------------------------
@@ -179,250 +170,22 @@ def write_glb(path: str | os.PathLike, character: Character, weights, fps: float
 
 
 # ---- reading -----------------------------------------------------------------------------------------------
-class _Reader:
-    """Accessors of one loaded glTF as numpy arrays; every error names the file."""
-
-    def __init__(self, path: Path, gltf: gl.GLTF2):
-        self.path = path
-        self.gltf = gltf
-        self.buffers: dict[int, bytes] = {}
-
-    def fail(self, message: str) -> CharacterError:
-        return CharacterError(f"{self.path}: {message}")
-
-    def buffer(self, index: int) -> bytes:
-        if index not in self.buffers:
-            if not 0 <= index < len(self.gltf.buffers):
-                raise self.fail(f"buffer {index} does not exist ({len(self.gltf.buffers)} buffers)")
-            uri = self.gltf.buffers[index].uri
-            if uri is not None and not uri.startswith("data:") and ("://" in uri or Path(uri).is_absolute()):
-                raise self.fail(f"buffer {index}: only data: URIs and files beside the glTF are read, not {uri!r}")
-            try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    data = self.gltf.get_data_from_buffer_uri(uri)
-            except (OSError, ValueError) as exc:
-                raise self.fail(f"buffer {index} ({uri or 'GLB binary chunk'}) cannot be read: {exc}") from None
-            if data is None:
-                raise self.fail(f"buffer {index} ({uri or 'GLB binary chunk'}) is missing")
-            self.buffers[index] = bytes(data)
-        return self.buffers[index]
-
-    def _elements(self, view_index: int, byte_offset: int, count: int, width: int, dtype: np.dtype,
-                  what: str) -> np.ndarray:
-        if view_index is None or not 0 <= view_index < len(self.gltf.bufferViews):
-            raise self.fail(f"{what}: buffer view {view_index} does not exist")
-        view = self.gltf.bufferViews[view_index]
-        data = self.buffer(view.buffer)
-        element = width * dtype.itemsize
-        stride = view.byteStride or element
-        start = (view.byteOffset or 0) + (byte_offset or 0)
-        needed = (count - 1) * stride + element if count else 0
-        if (byte_offset or 0) + needed > view.byteLength or (view.byteOffset or 0) + view.byteLength > len(data):
-            raise self.fail(f"{what}: {count} elements of {element} bytes lie outside buffer view {view_index}")
-        if count == 0:
-            return np.zeros((0, width), dtype)
-        if stride == element:
-            return np.frombuffer(data, dtype, count * width, start).reshape(count, width)
-        return np.ndarray((count, width), dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize))
-
-    def accessor(self, index: int, what: str, types: tuple[str, ...]) -> np.ndarray:
-        """(count, width) in the accessor's own component type, sparse values applied."""
-        if index is None or not 0 <= index < len(self.gltf.accessors):
-            raise self.fail(f"{what}: accessor {index} does not exist")
-        acc = self.gltf.accessors[index]
-        what = f"{what} (accessor {index})"
-        if acc.type not in types or acc.componentType not in _COMPONENT_DTYPES:
-            raise self.fail(f"{what}: expected {' or '.join(types)}, got {acc.type} of component type "
-                            f"{acc.componentType}")
-        dtype, width, count = _COMPONENT_DTYPES[acc.componentType], _WIDTHS[acc.type], int(acc.count or 0)
-        if acc.bufferView is None:
-            values = np.zeros((count, width), dtype)
-        else:
-            values = self._elements(acc.bufferView, acc.byteOffset, count, width, dtype, what)
-        sparse = acc.sparse
-        if sparse is not None and sparse.count:
-            if sparse.indices.componentType not in _INDEX_TYPES:
-                raise self.fail(f"{what}: sparse indices of component type {sparse.indices.componentType}")
-            ids = self._elements(sparse.indices.bufferView, sparse.indices.byteOffset, sparse.count, 1,
-                                 _COMPONENT_DTYPES[sparse.indices.componentType], f"{what} sparse indices")[:, 0]
-            if ids.size and int(ids.max()) >= count:
-                raise self.fail(f"{what}: sparse index {int(ids.max())} outside its {count} elements")
-            values = np.array(values)                 # a writable copy of the dense part
-            values[ids.astype(np.intp)] = self._elements(sparse.values.bufferView, sparse.values.byteOffset,
-                                                         sparse.count, width, dtype, f"{what} sparse values")
-        return values
-
-    def floats(self, index: int, what: str) -> np.ndarray:
-        """A VEC3 accessor as (count, 3) float32: float as is; integers dequantized when normalized (glTF 2.0
-        3.11), taken as they are otherwise (KHR_mesh_quantization)."""
-        values = self.accessor(index, what, ("VEC3",))
-        acc = self.gltf.accessors[index]
-        if values.dtype.kind == "f":
-            return np.ascontiguousarray(values, dtype=np.float32)
-        if acc.normalized:
-            info = np.iinfo(values.dtype)
-            return np.maximum(values.astype(np.float64) / info.max, -1.0).astype(np.float32)
-        return values.astype(np.float32)
-
-    def indices(self, index: int | None, n_vertices: int, what: str) -> np.ndarray:
-        if index is None:   # non-indexed: every three vertices are a triangle
-            if n_vertices % 3:
-                raise self.fail(f"{what}: {n_vertices} vertices without indices are not whole triangles")
-            return np.arange(n_vertices, dtype=np.int64).reshape(-1, 3)
-        values = self.accessor(index, f"{what} indices", ("SCALAR",))
-        if self.gltf.accessors[index].componentType not in _INDEX_TYPES:
-            raise self.fail(f"{what} indices (accessor {index}): component type "
-                            f"{self.gltf.accessors[index].componentType} is not an unsigned integer")
-        if len(values) % 3:
-            raise self.fail(f"{what}: {len(values)} indices are not whole triangles")
-        ids = values[:, 0].astype(np.int64)
-        if ids.size and int(ids.max()) >= n_vertices:
-            raise self.fail(f"{what}: index {int(ids.max())} outside its {n_vertices} vertices")
-        return ids.reshape(-1, 3)
-
-
-def _load(path: Path) -> gl.GLTF2:
-    """The glTF document (a GLB, or glTF JSON), checked to be glTF 2.x; CharacterError otherwise."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise CharacterError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            if data[:4] == _GLB_MAGIC:
-                if len(data) < 20:
-                    raise ValueError(f"{len(data)} bytes, shorter than a GLB header and its JSON chunk")
-                version, length = np.frombuffer(data, "<u4", 2, 4)
-                if version != 2:
-                    raise ValueError(f"GLB container version {version}, not 2")
-                if length > len(data):
-                    raise ValueError(f"the header says {length} bytes, the file has {len(data)}: truncated")
-                gltf = gl.GLTF2.load_from_bytes(data[:length])
-                if gltf is None:
-                    raise ValueError("no JSON chunk")
-            else:
-                document = json.loads(data.decode("utf-8-sig"))
-                if not isinstance(document, dict) or not isinstance(document.get("asset"), dict):
-                    raise ValueError("no glTF asset object")
-                gltf = gl.GLTF2.gltf_from_json(json.dumps(document))
-                gltf._path = path.parent
-    except (ValueError, TypeError, KeyError, AttributeError, OSError, struct.error) as exc:
-        raise CharacterError(f"{path}: not a glTF 2.0 / GLB file ({exc})") from None
-    version = str(getattr(gltf.asset, "version", "") or "")
-    if not version.startswith("2"):
-        raise CharacterError(f"{path}: glTF version {version or '(none)'}; only glTF 2.0 is read")
-    return gltf
-
-
-def _mesh_order(gltf: gl.GLTF2) -> list[int]:
-    """Mesh indices: those of nodes in the default scene's tree first (depth first), then the other scenes',
-    then nodes in no scene, then meshes no node uses."""
-    nodes, meshes = gltf.nodes or [], gltf.meshes or []
-    scenes = gltf.scenes or []
-    scene_order = ([gltf.scene] if isinstance(gltf.scene, int) and 0 <= gltf.scene < len(scenes) else []) + \
-        list(range(len(scenes)))
-    seen_nodes: set[int] = set()
-    order: list[int] = []
-
-    def visit(node_index: int) -> None:
-        stack = [node_index]
-        while stack:
-            i = stack.pop()
-            if not isinstance(i, int) or not 0 <= i < len(nodes) or i in seen_nodes:
-                continue
-            seen_nodes.add(i)
-            node = nodes[i]
-            if isinstance(node.mesh, int) and 0 <= node.mesh < len(meshes) and node.mesh not in order:
-                order.append(node.mesh)
-            stack.extend(reversed(node.children or []))
-
-    for s in scene_order:
-        for root in scenes[s].nodes or []:
-            visit(root)
-    for i in range(len(nodes)):
-        visit(i)
-    return order + [m for m in range(len(meshes)) if m not in order]
-
-
-def _target_names(mesh: gl.Mesh) -> list | None:
-    for extras in [mesh.extras] + [p.extras for p in mesh.primitives[:1]]:
-        if isinstance(extras, dict) and isinstance(extras.get("targetNames"), list):
-            return extras["targetNames"]
-    return None
-
-
 def read_character_glb(path: str | os.PathLike, name: str | None = None) -> Character:
-    """The character of a .glb / .gltf: its first mesh with morph targets (see the module's notes); validated.
+    """The character of a .glb / .gltf: its first mesh with morph targets, read by `rig.gltf.read_gltf_mesh`
+    (see that module for which mesh and how), COLOR_0 as its vertex colours; validated.
 
     Its name: `name`, else the mesh's name, else the file's stem. Raises CharacterError naming the file when it is
     not glTF 2.0, has no mesh, no mesh with morph targets, no target names (`extras.targetNames`), primitives other
     than triangles, targets that differ between primitives, or data that `validate_character` rejects.
     """
     path = Path(path)
-    gltf = _load(path)
-    reader = _Reader(path, gltf)
-    if not gltf.meshes:
-        raise CharacterError(f"{path}: no mesh in this glTF file")
     try:
-        index = next((m for m in _mesh_order(gltf) if any(p.targets for p in gltf.meshes[m].primitives or [])), None)
-        if index is None:
-            raise CharacterError(f"{path}: no mesh has morph targets ({len(gltf.meshes)} meshes); a character needs "
-                                 "its blendshapes as glTF morph targets")
-        mesh = gltf.meshes[index]
-        where = f"mesh {index}" + (f" ({mesh.name!r})" if mesh.name else "")
-        n_targets = len(next(p.targets for p in mesh.primitives if p.targets))
-        names = _target_names(mesh)
-        if names is None:
-            raise CharacterError(f"{path}: {where} has {n_targets} morph targets but no names; expected "
-                                 "mesh.extras.targetNames (or the primitive's extras.targetNames)")
-        if len(names) != n_targets or not all(isinstance(n, str) for n in names):
-            raise CharacterError(f"{path}: {where}: extras.targetNames must be {n_targets} strings (one per morph "
-                                 f"target), got {names!r:.200}")
-        positions: list[np.ndarray] = []
-        deltas: list[np.ndarray] = []
-        faces: list[np.ndarray] = []
-        shared: dict[tuple, tuple[int, int]] = {}   # (POSITION, target POSITIONs) accessors -> (first vertex, count)
-        n_vertices = 0
-        for k, primitive in enumerate(mesh.primitives):
-            what = f"{where} primitive {k}"
-            mode = gl.TRIANGLES if primitive.mode is None else primitive.mode
-            if mode != gl.TRIANGLES:
-                raise CharacterError(f"{path}: {what} draws {_MODES.get(mode, mode)}; only TRIANGLES are read")
-            targets = primitive.targets or []
-            if len(targets) != n_targets:
-                raise CharacterError(f"{path}: {what} has {len(targets)} morph targets, the mesh's first has "
-                                     f"{n_targets}; every primitive needs the same targets")
-            attributes = primitive.attributes
-            position_index = getattr(attributes, "POSITION", None) if attributes is not None else None
-            if position_index is None:
-                raise CharacterError(f"{path}: {what} has no POSITION attribute")
-            target_ids = tuple(t.get("POSITION") if isinstance(t, dict) else getattr(t, "POSITION", None)
-                               for t in targets)
-            key = (position_index, target_ids)
-            if key in shared:
-                first, count = shared[key]
-            else:
-                vertices = reader.floats(position_index, f"{what} POSITION")
-                count = len(vertices)
-                block = np.zeros((n_targets, count, 3), np.float32)
-                for t, target_index in enumerate(target_ids):
-                    if target_index is not None:     # a target that moves no position (e.g. NORMAL only)
-                        d = reader.floats(target_index, f"{what} target {t} ({names[t]!r}) POSITION")
-                        if len(d) != count:
-                            raise CharacterError(f"{path}: {what} target {t} ({names[t]!r}) has {len(d)} "
-                                                 f"positions, the primitive {count}")
-                        block[t] = d
-                first = n_vertices
-                shared[key] = (first, count)
-                positions.append(vertices)
-                deltas.append(block)
-                n_vertices += count
-            faces.append(reader.indices(primitive.indices, count, what) + first)
-    except CharacterError:
-        raise
-    except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
-        raise CharacterError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
-    return make_character(name or mesh.name or path.stem, np.concatenate(positions), np.concatenate(faces),
-                          names, np.concatenate(deltas, axis=1), source=path)
+        mesh = read_gltf_mesh(path)
+    except RigError as exc:   # its message starts with the path
+        message = str(exc)
+        raise CharacterError(message if str(path) in message else f"{path}: {message}") from None
+    if not mesh.target_names:
+        raise CharacterError(f"{path}: no mesh has morph targets ({mesh.n_meshes} meshes); a character needs its "
+                             "blendshapes as glTF morph targets")
+    return make_character(name or mesh.name or path.stem, mesh.neutral, mesh.faces, mesh.target_names,
+                          mesh.deltas, source=path, vertex_colors=mesh.colors)

@@ -1,8 +1,12 @@
-"""Viseme blendshape rigs: load (folder of meshes, GLB morph targets, compact npz), validate, evaluate; ICT recipes."""
+"""Viseme blendshape rigs: load (folder of meshes, GLB morph targets, compact npz), validate, evaluate; ICT recipes.
+
+`rig.gltf` is the package's one glTF reader (`read_gltf_mesh`); `animation.gltf` reads characters through it.
+"""
 
 from importlib import resources
 from pathlib import Path
 
+from visemeflow.rig.gltf import GltfMesh, linear_to_srgb, read_gltf_mesh, srgb_to_linear
 from visemeflow.rig.io import (
     MeshData,
     load_rig,
@@ -57,6 +61,7 @@ def load_demo_rig() -> VisemeRig:
 
 __all__ = [
     "N_LANDMARKS",
+    "GltfMesh",
     "MeshData",
     "Recipes",
     "RigError",
@@ -65,6 +70,7 @@ __all__ = [
     "combine_shapes",
     "demo_rig_path",
     "evaluate_rig",
+    "linear_to_srgb",
     "load_demo_rig",
     "load_ict_recipes",
     "load_rig",
@@ -72,6 +78,7 @@ __all__ = [
     "load_rig_glb",
     "load_rig_npz",
     "parse_recipes",
+    "read_gltf_mesh",
     "read_landmarks_json",
     "read_mesh",
     "read_obj",
@@ -79,5 +86,6 @@ __all__ = [
     "rig_data_path",
     "rig_tensors",
     "save_rig_npz",
+    "srgb_to_linear",
     "validate_rig",
 ]

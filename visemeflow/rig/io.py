@@ -1,16 +1,14 @@
 """Rig readers and writers: a folder of meshes (OBJ/PLY/GLB), one GLB with morph targets, the compact npz.
 
 Vertex order is the rig's identity (landmark ids and deltas index it), so every reader keeps the file's order:
-OBJ and glTF are parsed here, PLY goes through trimesh with `process=False, maintain_order=True` (the default
-processing merges and reorders vertices).
+OBJ is parsed here, glTF/GLB by `rig.gltf.read_gltf_mesh` (pygltflib; the package's one glTF reader), PLY goes
+through trimesh with `process=False, maintain_order=True` (the default processing merges and reorders vertices).
 """
 
 from __future__ import annotations
 
-import base64
 import gzip
 import json
-import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from visemeflow.atomic import atomic_write
+from visemeflow.rig.gltf import read_gltf_mesh
 from visemeflow.rig.model import N_LANDMARKS, RigError, VisemeRig, validate_rig
 from visemeflow.visemes import N_VISEMES, VISEMES
 
@@ -130,7 +129,8 @@ def read_ply(path: Path | str) -> MeshData:
 
 
 def read_mesh(path: Path | str) -> MeshData:
-    """Any supported mesh file (.obj[.gz], .ply, .glb, .gltf); a glTF gives its first mesh, morph targets ignored."""
+    """Any supported mesh file (.obj[.gz], .ply, .glb, .gltf); a glTF gives its first mesh in scene order (with its
+    COLOR_0 as sRGB colours), morph targets ignored (`rig.gltf.read_gltf_mesh`)."""
     path = Path(path)
     suffix = _mesh_suffix(path)
     if suffix == ".obj":
@@ -138,186 +138,9 @@ def read_mesh(path: Path | str) -> MeshData:
     if suffix == ".ply":
         return read_ply(path)
     if suffix in (".glb", ".gltf"):
-        gltf = _GltfFile.open(path)
-        if not gltf.meshes:
-            raise RigError(f"{path}: glTF has no mesh")
-        vertices, faces, _, _ = gltf.read_mesh(0)
-        return MeshData(vertices, faces)
+        mesh = read_gltf_mesh(path, morph_targets=False)
+        return MeshData(mesh.neutral.astype(np.float64), mesh.faces, mesh.colors)
     raise RigError(f"{path}: unsupported mesh format {suffix or '(none)'}; expected one of {', '.join(MESH_SUFFIXES)}")
-
-
-# ---------------------------------------------------------------------------------------------- glTF
-
-_COMPONENT_DTYPES = {
-    5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
-}
-_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
-_GLB_MAGIC = b"glTF"
-_CHUNK_JSON = 0x4E4F534A
-_CHUNK_BIN = 0x004E4942
-
-
-class _GltfFile:
-    """The parts of a glTF 2.0 asset a rig needs: mesh primitives (triangles), their morph targets and names."""
-
-    def __init__(self, path: Path, document: dict, buffers: list[bytes]):
-        self.path = path
-        self.document = document
-        self.buffers = buffers
-        self.meshes: list[dict] = document.get("meshes", [])
-
-    @classmethod
-    def open(cls, path: Path) -> _GltfFile:
-        try:
-            data = path.read_bytes()
-        except OSError as error:
-            raise RigError(f"{path}: cannot read glTF: {error}") from None
-        if data[:4] == _GLB_MAGIC:
-            document, binary = cls._split_glb(path, data)
-        else:
-            try:
-                document = json.loads(data.decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as error:
-                raise RigError(f"{path}: neither a GLB (magic 'glTF') nor glTF JSON: {error}") from None
-            binary = None
-        buffers = []
-        for index, buffer in enumerate(document.get("buffers", [])):
-            uri = buffer.get("uri")
-            if uri is None:
-                if binary is None:
-                    raise RigError(f"{path}: buffer {index} has no uri and the file has no GLB binary chunk")
-                buffers.append(binary)
-            elif uri.startswith("data:"):
-                buffers.append(base64.b64decode(uri.split(",", 1)[1]))
-            else:
-                try:
-                    buffers.append((path.parent / uri).read_bytes())
-                except OSError as error:
-                    raise RigError(f"{path}: cannot read buffer {uri!r}: {error}") from None
-        return cls(path, document, buffers)
-
-    @staticmethod
-    def _split_glb(path: Path, data: bytes) -> tuple[dict, bytes | None]:
-        if len(data) < 20:
-            raise RigError(f"{path}: GLB shorter than its header")
-        _, version, _ = struct.unpack_from("<4sII", data, 0)
-        if version != 2:
-            raise RigError(f"{path}: GLB version {version}; only glTF 2.0 is supported")
-        offset, document, binary = 12, None, None
-        while offset + 8 <= len(data):
-            length, kind = struct.unpack_from("<II", data, offset)
-            chunk = data[offset + 8 : offset + 8 + length]
-            if kind == _CHUNK_JSON and document is None:
-                try:
-                    document = json.loads(chunk.decode("utf-8"))
-                except (UnicodeDecodeError, json.JSONDecodeError) as error:
-                    raise RigError(f"{path}: GLB JSON chunk is not valid JSON: {error}") from None
-            elif kind == _CHUNK_BIN and binary is None:
-                binary = chunk
-            offset += 8 + length
-        if document is None:
-            raise RigError(f"{path}: GLB has no JSON chunk")
-        return document, binary
-
-    def accessor(self, index: int) -> np.ndarray:
-        """(count, width) array of accessor `index` (strided views and sparse substitution handled)."""
-        try:
-            accessor = self.document["accessors"][index]
-            dtype = np.dtype(_COMPONENT_DTYPES[accessor["componentType"]]).newbyteorder("<")
-            width = _TYPE_WIDTHS[accessor["type"]]
-            count = int(accessor["count"])
-        except (KeyError, IndexError, TypeError) as error:
-            raise RigError(f"{self.path}: bad glTF accessor {index}: {error!r}") from None
-        if "bufferView" in accessor:
-            values = self._view(accessor["bufferView"], accessor.get("byteOffset", 0), dtype, width, count)
-        else:
-            values = np.zeros((count, width), dtype)
-        sparse = accessor.get("sparse")
-        if sparse:
-            n = int(sparse["count"])
-            ids_spec, values_spec = sparse["indices"], sparse["values"]
-            ids_dtype = np.dtype(_COMPONENT_DTYPES[ids_spec["componentType"]]).newbyteorder("<")
-            ids = self._view(ids_spec["bufferView"], ids_spec.get("byteOffset", 0), ids_dtype, 1, n)[:, 0]
-            replaced = self._view(values_spec["bufferView"], values_spec.get("byteOffset", 0), dtype, width, n)
-            values = values.copy()
-            values[ids.astype(np.int64)] = replaced
-        return values
-
-    def _view(self, view_index: int, byte_offset: int, dtype: np.dtype, width: int, count: int) -> np.ndarray:
-        try:
-            view = self.document["bufferViews"][view_index]
-            buffer = self.buffers[view["buffer"]]
-        except (KeyError, IndexError) as error:
-            raise RigError(f"{self.path}: bad glTF bufferView {view_index}: {error!r}") from None
-        start = view.get("byteOffset", 0) + byte_offset
-        element = dtype.itemsize * width
-        stride = view.get("byteStride") or element
-        needed = start + (count - 1) * stride + element if count else start
-        if needed > len(buffer) or needed > view.get("byteOffset", 0) + view.get("byteLength", 0):
-            raise RigError(f"{self.path}: glTF bufferView {view_index} is shorter than its accessor")
-        if count == 0:
-            return np.zeros((0, width), dtype)
-        raw = np.frombuffer(buffer, dtype=np.uint8, count=needed - start, offset=start)
-        if stride == element:
-            return raw.view(dtype).reshape(count, width).astype(dtype.newbyteorder("="))
-        rows = np.lib.stride_tricks.as_strided(raw, shape=(count, element), strides=(stride, 1))
-        return np.ascontiguousarray(rows).view(dtype).reshape(count, width).astype(dtype.newbyteorder("="))
-
-    def target_names(self, mesh_index: int) -> list[str] | None:
-        mesh = self.meshes[mesh_index]
-        names = (mesh.get("extras") or {}).get("targetNames")
-        if names is None:
-            for primitive in mesh.get("primitives", []):
-                names = (primitive.get("extras") or {}).get("targetNames")
-                if names is not None:
-                    break
-        return None if names is None else [str(n) for n in names]
-
-    def read_mesh(self, mesh_index: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
-        """Vertices (V, 3), triangles (F, 3), per-target position deltas [(V, 3)], mesh extras; primitives joined."""
-        mesh = self.meshes[mesh_index]
-        primitives = mesh.get("primitives", [])
-        if not primitives:
-            raise RigError(f"{self.path}: glTF mesh {mesh_index} has no primitives")
-        vertices, faces, targets = [], [], None
-        offset = 0
-        for p_index, primitive in enumerate(primitives):
-            mode = primitive.get("mode", 4)
-            if mode != 4:
-                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index} has mode {mode}; only triangles (4)")
-            attributes = primitive.get("attributes", {})
-            if "POSITION" not in attributes:
-                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index} has no POSITION")
-            positions = self.accessor(attributes["POSITION"]).astype(np.float64)
-            if "indices" in primitive:
-                ids = self.accessor(primitive["indices"])[:, 0].astype(np.int64)
-            else:
-                ids = np.arange(len(positions), dtype=np.int64)
-            if len(ids) % 3:
-                raise RigError(f"{self.path}: mesh {mesh_index} primitive {p_index}: index count {len(ids)} is not a multiple of 3")
-            prim_targets = [
-                self.accessor(t["POSITION"]).astype(np.float64) if "POSITION" in t else np.zeros_like(positions)
-                for t in primitive.get("targets", [])
-            ]
-            if targets is None:
-                targets = [[t] for t in prim_targets]
-            elif len(prim_targets) != len(targets):
-                raise RigError(
-                    f"{self.path}: mesh {mesh_index} primitives have different morph target counts "
-                    f"({len(targets)} vs {len(prim_targets)})"
-                )
-            else:
-                for bucket, t in zip(targets, prim_targets):
-                    bucket.append(t)
-            vertices.append(positions)
-            faces.append(ids.reshape(-1, 3) + offset)
-            offset += len(positions)
-        all_vertices = np.concatenate(vertices)
-        all_faces = np.concatenate(faces)
-        if all_faces.size and (all_faces.min() < 0 or all_faces.max() >= len(all_vertices)):
-            raise RigError(f"{self.path}: glTF mesh {mesh_index} indices refer past its {len(all_vertices)} vertices")
-        deltas = [np.concatenate(bucket) for bucket in (targets or [])]
-        return all_vertices, all_faces.astype(np.int32), deltas, mesh.get("extras") or {}
 
 
 # ---------------------------------------------------------------------------------------------- landmarks
@@ -430,25 +253,20 @@ def load_rig_folder(path: Path | str, name: str | None = None) -> VisemeRig:
 def load_rig_glb(path: Path | str, name: str | None = None, landmarks: Path | str | None = None) -> VisemeRig:
     """One glTF/GLB whose morph targets are named by viseme (mesh `extras.targetNames`, any case).
 
-    The mesh used is the first one with morph targets; its primitives are joined, node transforms are not applied.
-    Every morph target must be a viseme and all 16 must be there. Landmark ids come from `landmarks` (a JSON file),
-    else `<stem>.landmarks.json` beside the file, else mesh `extras.landmark_ids`, else none (-1).
+    The mesh used is the first one with morph targets in scene order (`rig.gltf.read_gltf_mesh`); its primitives are
+    joined, node transforms are not applied, COLOR_0 becomes the rig's (sRGB) vertex colours. Every morph target
+    must be a viseme and all 16 must be there. Landmark ids come from `landmarks` (a JSON file), else
+    `<stem>.landmarks.json` beside the file, else mesh `extras.landmark_ids`, else none (-1).
     """
     path = Path(path)
-    gltf = _GltfFile.open(path)
-    mesh_index = next((i for i, m in enumerate(gltf.meshes) if any(p.get("targets") for p in m.get("primitives", []))), None)
-    if mesh_index is None:
+    mesh = read_gltf_mesh(path)
+    if not mesh.target_names:
         raise RigError(f"{path}: no mesh with morph targets; the 16 visemes must be morph targets of one mesh")
-    vertices, faces, targets, extras = gltf.read_mesh(mesh_index)
-    names = gltf.target_names(mesh_index)
-    if names is None:
-        raise RigError(f"{path}: mesh {mesh_index} morph targets have no names (extras.targetNames)")
-    if len(names) != len(targets):
-        raise RigError(f"{path}: {len(names)} target names for {len(targets)} morph targets")
+    vertices, extras = mesh.neutral, mesh.extras
     _check_finite(vertices, path)
     expected = {v.lower(): v for v in VISEMES}
     by_viseme: dict[str, np.ndarray] = {}
-    for target_name, delta in zip(names, targets):
+    for target_name, delta in zip(mesh.target_names, mesh.deltas):
         key = target_name.lower()
         if key not in expected:
             raise RigError(f"{path}: unknown morph target name {target_name!r}; expected one of {', '.join(VISEMES)}")
@@ -471,14 +289,18 @@ def load_rig_glb(path: Path | str, name: str | None = None, landmarks: Path | st
         ids = extras["landmark_ids"]
         if not isinstance(ids, list) or len(ids) != N_LANDMARKS:
             raise RigError(f"{path}: extras.landmark_ids must list {N_LANDMARKS} vertex ids")
-        landmark_ids = np.array([-1 if v is None else int(v) for v in ids], dtype=np.int64)
+        try:
+            landmark_ids = np.array([-1 if v is None else int(v) for v in ids], dtype=np.int64)
+        except (TypeError, ValueError):
+            raise RigError(f"{path}: extras.landmark_ids must be integers or null") from None
         _check_landmarks(landmark_ids, len(vertices), path)
     rig = VisemeRig(
         name=name or path.name.split(".")[0],
         neutral=vertices.astype(np.float32),
         deltas=deltas,
-        faces=faces,
+        faces=mesh.faces,
         landmark_ids=landmark_ids,
+        vertex_colors=mesh.colors,
     )
     _validate(rig, path)
     return rig
