@@ -1,10 +1,12 @@
 """glTF 2.0 characters (visemeflow/animation/gltf.py): exact round trips, the reader's inputs and errors, and the
 GLBs we write checked by real clients:
 
-- the Khronos glTF validator (npm `gltf-validator`, through tools/js/validate_gltf.mjs): no error, no warning;
-- three.js (npm `three`) in headless chromium: GLTFLoader reads every target name, an AnimationMixer plays the
-  clip, and the morph target influences at frame times and between frames are the linear interpolation of the
-  weights we wrote.
+- the Khronos glTF validator (npm `gltf-validator`, through tools/js/validate_gltf.mjs): no error, no warning, on
+  GLBs with sparse and with dense morph targets, with vertex colours;
+- three.js (npm `three`) in headless chromium: GLTFLoader reads every target name (sparse targets substituted to
+  the exact deltas), an AnimationMixer plays the clip, and the morph target influences at frame times and between
+  frames are the linear interpolation of the weights we wrote; the material is our PBR one, and COLOR_0 is loaded
+  as a colour attribute (vertexColors on) equal to three.js's own sRGB -> linear conversion of our colours.
 
 The JS packages are pinned in tools/js/package-lock.json and installed by `make js-deps` (a prerequisite of
 `make test`); without them, node or chromium the tests fail with the command that installs them, never skip.
@@ -37,8 +39,9 @@ VALIDATE = JS / "validate_gltf.mjs"
 
 
 # ---- inputs ---------------------------------------------------------------------------------------------------
-def small_character(n_shapes: int = 3, seed: int = 0) -> Character:
-    """A 5 x 4 grid (20 vertices, 24 triangles) with `n_shapes` random shapes, names with spaces and non-ASCII."""
+def small_character(n_shapes: int = 3, seed: int = 0, colors: bool = False) -> Character:
+    """A 5 x 4 grid (20 vertices, 24 triangles) with `n_shapes` random shapes, names with spaces and non-ASCII;
+    with `colors`, random vertex colours that include 0, 1 and both sides of the sRGB curve's linear toe."""
     rng = np.random.default_rng(seed)
     xs, ys = np.meshgrid(np.arange(5, dtype=np.float32), np.arange(4, dtype=np.float32))
     neutral = np.stack([xs.ravel() * 0.5, ys.ravel() * 0.5, rng.normal(0, 0.05, 20)], axis=1)
@@ -47,7 +50,18 @@ def small_character(n_shapes: int = 3, seed: int = 0) -> Character:
     names = ["jawOpen", "mouth Smile_L", "Ö-pucker", "MBP", "lèvres", "口"][:n_shapes]
     deltas = rng.normal(0, 0.1, (n_shapes, 20, 3)).astype(np.float32)
     deltas[:, :5] = 0.0                                  # the top row never moves
-    return make_character("test face [v1.2]", neutral, faces, names, deltas)
+    deltas[0] = np.abs(deltas[0])                        # the first shape's minimum is the top row's zeros
+    rgb = None
+    if colors:
+        rgb = rng.random((20, 3)).astype(np.float32)
+        rgb[:3] = [[0.0, 0.0, 1.0], [0.04045, 0.04, 0.05], [1.0, 0.5, 0.002]]
+    return make_character("test face [v1.2]", neutral, faces, names, deltas, vertex_colors=rgb)
+
+
+def srgb_to_linear_here(c: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function inverted (IEC 61966-2-1), written here rather than imported."""
+    c = np.asarray(c, np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 def random_weights(n_frames: int, n_shapes: int, seed: int = 1) -> np.ndarray:
@@ -73,17 +87,31 @@ def expected_weights(times: np.ndarray, weights: np.ndarray, t: float) -> np.nda
 
 
 def glb_arrays(path: Path) -> tuple[gl.GLTF2, callable]:
-    """The document and a reader of tightly packed accessors, independent of the module under test."""
+    """The document and a reader of tightly packed accessors (dense, or sparse over zeros as we write them),
+    independent of the module under test."""
     g = gl.GLTF2.load(str(path))
     blob = g.binary_blob()
+    dtypes = {gl.FLOAT: "<f4", gl.UNSIGNED_BYTE: "<u1", gl.UNSIGNED_SHORT: "<u2", gl.UNSIGNED_INT: "<u4"}
+    widths = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+
+    def packed(view_index: int, byte_offset: int, dtype: str, count: int, width: int) -> np.ndarray:
+        view = g.bufferViews[view_index]
+        assert view.byteStride is None
+        assert np.dtype(dtype).itemsize * width * count <= view.byteLength
+        return np.frombuffer(blob, dtype, count * width, view.byteOffset + byte_offset).reshape(count, width)
 
     def read(index: int) -> np.ndarray:
         acc = g.accessors[index]
-        view = g.bufferViews[acc.bufferView]
-        dtype = {gl.FLOAT: "<f4", gl.UNSIGNED_SHORT: "<u2", gl.UNSIGNED_INT: "<u4"}[acc.componentType]
-        width = {"SCALAR": 1, "VEC3": 3}[acc.type]
-        assert view.byteStride is None
-        return np.frombuffer(blob, dtype, acc.count * width, view.byteOffset + acc.byteOffset).reshape(acc.count, width)
+        dtype, width = dtypes[acc.componentType], widths[acc.type]
+        if acc.sparse is None:
+            return packed(acc.bufferView, acc.byteOffset, dtype, acc.count, width)
+        assert acc.bufferView is None
+        values = np.zeros((acc.count, width), dtype)
+        ids = packed(acc.sparse.indices.bufferView, acc.sparse.indices.byteOffset,
+                     dtypes[acc.sparse.indices.componentType], acc.sparse.count, 1)[:, 0]
+        values[ids] = packed(acc.sparse.values.bufferView, acc.sparse.values.byteOffset, dtype, acc.sparse.count,
+                             width)
+        return values
 
     return g, read
 
@@ -135,11 +163,17 @@ class Doc:
 
 
 def assert_same_character(a: Character, b: Character) -> None:
+    """Same names, bit-equal arrays; vertex colours equal to float32 rounding (they are stored linear, read back as
+    sRGB) or both absent."""
     assert a.shape_names == b.shape_names
     for field in ("neutral", "faces", "deltas"):
         x, y = getattr(a, field), getattr(b, field)
         assert x.dtype == y.dtype and x.shape == y.shape, field
         assert np.array_equal(x, y), field
+    assert (a.vertex_colors is None) == (b.vertex_colors is None)
+    if a.vertex_colors is not None:
+        assert a.vertex_colors.dtype == b.vertex_colors.dtype == np.float32
+        np.testing.assert_allclose(a.vertex_colors, b.vertex_colors, rtol=0, atol=1e-6)
 
 
 # ---- writing and reading back -----------------------------------------------------------------------------------
@@ -168,6 +202,17 @@ def test_small_character_round_trips_exactly_with_its_animation(tmp_path):
         acc = g.accessors[target["POSITION"]]
         assert acc.min == c.deltas[s].min(axis=0).tolist() and acc.max == c.deltas[s].max(axis=0).tolist()
         assert set(target) == {"POSITION"}
+        # the top row never moves: 15 of 20 vertices in 15 x (1 + 12) bytes beat 20 x 12 dense, so sparse
+        assert acc.bufferView is None and acc.sparse.count == 15 and acc.componentType == gl.FLOAT
+        assert acc.sparse.indices.componentType == gl.UNSIGNED_BYTE
+        assert read(target["POSITION"]).tolist() == c.deltas[s].tolist()
+        for view in (acc.sparse.indices.bufferView, acc.sparse.values.bufferView):
+            assert g.bufferViews[view].target is None      # sparse views may not target ARRAY_BUFFER
+    assert prim.attributes.COLOR_0 is None                   # no colours, none written
+    (material,) = g.materials
+    assert prim.material == 0 and material.pbrMetallicRoughness.metallicFactor == 0.0
+    assert material.pbrMetallicRoughness.roughnessFactor == 0.6
+    assert material.pbrMetallicRoughness.baseColorFactor == [1.0, 1.0, 1.0, 1.0]
     views = g.bufferViews
     assert views[g.accessors[prim.attributes.POSITION].bufferView].target == gl.ARRAY_BUFFER
     assert views[g.accessors[prim.indices].bufferView].target == gl.ELEMENT_ARRAY_BUFFER
@@ -195,18 +240,57 @@ def test_demo_rig_round_trips_exactly_and_writes_a_minute_fast(tmp_path, demo):
         path = write_glb(tmp_path / "demo.glb", demo, w, 30.0, name="minute")
         seconds.append(time.perf_counter() - start)
     size = path.stat().st_size
-    print(f"\ndemo rig, 1 min at 30 fps: write {min(seconds) * 1000:.0f} ms (best of 3), {size / 1e6:.2f} MB")
+    dense = write_glb(tmp_path / "dense.glb", demo, w, 30.0, name="minute", sparse=False)
+    print(f"\ndemo rig, 1 min at 30 fps: write {min(seconds) * 1000:.0f} ms (best of 3), {size / 1e6:.3f} MB "
+          f"(targets dense: {dense.stat().st_size / 1e6:.3f} MB)")
     assert min(seconds) < 0.5
     back = read_character_glb(path)
     assert_same_character(back, demo)
     assert back.name == demo.name
+    assert_same_character(read_character_glb(dense), demo)
     g, read = glb_arrays(path)
     assert g.animations[0].name == "minute"
     assert g.accessors[g.meshes[0].primitives[0].indices].componentType == gl.UNSIGNED_SHORT   # 21,984 vertices
-    # the mesh (positions, normals, indices, 16 targets) plus 1800 x (1 + 16) float32 of animation
-    mesh_bytes = 4 * demo.n_vertices * 3 * (2 + demo.n_shapes) + 2 * demo.faces.size
-    assert mesh_bytes + 4 * 1800 * 17 <= size < mesh_bytes + 4 * 1800 * 17 + 16_000
+    # every demo viseme moves about 72% of the vertices: sparse (uint16 id + 3 float32 = 14 bytes a vertex) is
+    # smaller than dense (12 bytes a vertex) below 6/7 of them
+    moved = (demo.deltas != 0).any(axis=2).sum(axis=1)
+    assert ((moved > 0.6 * demo.n_vertices) & (moved < demo.n_vertices * 6 / 7)).all(), moved
+    assert all(g.accessors[t["POSITION"]].sparse.count == n for t, n in zip(g.meshes[0].primitives[0].targets, moved))
+    pad4 = lambda n: -(-n // 4) * 4                                            # noqa: E731
+    sparse_bytes = sum(pad4(2 * int(n)) + 12 * int(n) for n in moved)
+    # positions, normals, colours (float32 VEC3), uint16 indices, the targets, 1800 x (1 + 16) float32 of animation
+    fixed = 4 * demo.n_vertices * 3 * 3 + pad4(2 * demo.faces.size) + 4 * 1800 * 17
+    assert fixed + sparse_bytes <= size < fixed + sparse_bytes + 16_000
+    dense_bytes = 12 * demo.n_vertices * demo.n_shapes
+    assert fixed + dense_bytes <= dense.stat().st_size < fixed + dense_bytes + 16_000
     assert load_character(path).shape_names == demo.shape_names                 # the generic loader reads it too
+
+
+def test_vertex_colours_are_written_linear_and_read_back(tmp_path):
+    c = small_character(colors=True)
+    path = write_glb(tmp_path / "coloured.glb", c, random_weights(3, c.n_shapes), 30.0)
+    g, read = glb_arrays(path)
+    prim = g.meshes[0].primitives[0]
+    acc = g.accessors[prim.attributes.COLOR_0]
+    assert (acc.type, acc.componentType, acc.count) == ("VEC3", gl.FLOAT, 20)
+    assert g.bufferViews[acc.bufferView].target == gl.ARRAY_BUFFER
+    stored = read(prim.attributes.COLOR_0)
+    np.testing.assert_allclose(stored, srgb_to_linear_here(c.vertex_colors), rtol=0, atol=1e-7)
+    assert stored.min() >= 0.0 and stored.max() <= 1.0 and stored[0].tolist() == [0.0, 0.0, 1.0]
+    back = read_character_glb(path)
+    assert_same_character(back, c)
+    assert_same_character(load_character(path), c)
+    # a COLOR_0 of normalized unsigned shorts with alpha, as other tools write it, is read too
+    d = Doc()
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    rgba = np.array([[0, 65535, 32768, 65535], [65535, 0, 0, 0], [1000, 2000, 3000, 4000]], np.uint16)
+    d.mesh([gl.Primitive(attributes=gl.Attributes(POSITION=d.accessor(tri),
+                                                  COLOR_0=d.accessor(rgba, gl.VEC4, normalized=True)),
+                         targets=[{"POSITION": d.accessor(tri)}])], names=["up"])
+    quantized = read_character_glb(d.save(tmp_path / "rgba16.glb", nodes=[0]))
+    linear = rgba[:, :3] / 65535.0
+    expected = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(quantized.vertex_colors, expected, rtol=0, atol=1e-6)
 
 
 def test_large_meshes_get_uint32_indices(tmp_path):
@@ -329,10 +413,13 @@ def test_reader_takes_names_from_the_primitive_and_the_first_mesh_in_scene_order
     assert c2.name == "second" and c2.shape_names == ("second",) and np.array_equal(c2.deltas[0], tri * 2)
 
 
-def _glb_with(tmp_path: Path, name: str, change) -> Path:
-    """Our small GLB, changed by `change(gltf, blob: bytearray)` and saved as `name`."""
-    c = small_character()
+def _glb_with(tmp_path: Path, name: str, change, c: Character | None = None) -> Path:
+    """Our GLB of `c` (the small character), changed by `change(gltf, blob: bytearray)` and saved as `name`."""
+    c = c or small_character()
     g = gl.GLTF2.load(str(write_glb(tmp_path / "good.glb", c, random_weights(3, c.n_shapes), 30.0)))
+    for accessor in g.accessors:      # pygltflib reads a missing byteOffset as 0; a sparse one may not have it
+        if accessor.bufferView is None:
+            accessor.byteOffset = None
     blob = bytearray(g.binary_blob())
     change(g, blob)
     g.set_binary_blob(bytes(blob))
@@ -421,15 +508,24 @@ def validate(path: Path) -> dict:
 
 
 def test_the_validator_finds_no_error_or_warning_in_what_we_write(tmp_path, demo):
-    small = small_character(n_shapes=6)
+    small = small_character(n_shapes=6, colors=True)
+    curves = (0.5 + 0.5 * np.sin(2 * np.pi * (np.arange(120)[:, None] / 30.0) * (0.5 + np.arange(16) / 8)))
     files = {
         write_glb(tmp_path / "small.glb", small, random_weights(50, 6), 24.0): small,
         write_glb(tmp_path / "single-frame.glb", small, np.full((1, 6), 0.25, np.float32), 30.0): small,
-        # the demo rig with 4 s of smooth viseme curves at 30 fps
-        write_glb(tmp_path / "demo.glb", demo,
-                  (0.5 + 0.5 * np.sin(2 * np.pi * (np.arange(120)[:, None] / 30.0) * (0.5 + np.arange(16) / 8)))
-                  .astype(np.float32), 30.0): demo,
+        # the demo rig (vertex colours, sparse targets) with 4 s of smooth viseme curves at 30 fps, and dense
+        write_glb(tmp_path / "demo.glb", demo, curves.astype(np.float32), 30.0): demo,
+        write_glb(tmp_path / "demo-dense.glb", demo, curves.astype(np.float32), 30.0, sparse=False): demo,
     }
+    # what the validator is shown: sparse targets (uint8 ids for 20 vertices, uint16 for the demo), and dense ones
+    sparse_ids = {}
+    for path in files:
+        g, _ = glb_arrays(path)
+        targets = [g.accessors[t["POSITION"]] for t in g.meshes[0].primitives[0].targets]
+        sparse_ids[path.name] = {a.sparse.indices.componentType if a.sparse else None for a in targets}
+        assert g.meshes[0].primitives[0].attributes.COLOR_0 is not None and len(g.materials) == 1
+    assert sparse_ids == {"small.glb": {gl.UNSIGNED_BYTE}, "single-frame.glb": {gl.UNSIGNED_BYTE},
+                          "demo.glb": {gl.UNSIGNED_SHORT}, "demo-dense.glb": {None}}
     for path, character in files.items():
         report = validate(path)
         issues = report["issues"]
@@ -441,16 +537,28 @@ def test_the_validator_finds_no_error_or_warning_in_what_we_write(tmp_path, demo
 
 
 def test_the_validator_check_can_fail(tmp_path):
-    """A wrong accessor.min and frame times out of order are errors the check above would see."""
+    """A wrong accessor.min, frame times out of order, a wrong max on a sparse target, sparse ids out of order and a
+    colour above 1 are errors the check above would see."""
     def corrupt(g: gl.GLTF2, blob: bytearray) -> None:
-        g.accessors[g.meshes[0].primitives[0].attributes.POSITION].min[0] -= 1.0
+        prim = g.meshes[0].primitives[0]
+        g.accessors[prim.attributes.POSITION].min[0] -= 1.0
         times = g.bufferViews[g.accessors[g.animations[0].samplers[0].input].bufferView]
         blob[times.byteOffset: times.byteOffset + 8] = np.array([0.5, 0.25], np.float32).tobytes()
+        first, second = (g.accessors[t["POSITION"]] for t in prim.targets[:2])
+        first.max[1] += 0.5
+        ids = g.bufferViews[second.sparse.indices.bufferView]
+        blob[ids.byteOffset: ids.byteOffset + 2] = blob[ids.byteOffset: ids.byteOffset + 2][::-1]
+        colors = g.bufferViews[g.accessors[prim.attributes.COLOR_0].bufferView]
+        blob[colors.byteOffset: colors.byteOffset + 4] = np.float32(1.5).tobytes()
 
-    report = validate(_glb_with(tmp_path, "bad.glb", corrupt))
+    report = validate(_glb_with(tmp_path, "bad.glb", corrupt, small_character(colors=True)))
     codes = {m["code"] for m in report["issues"]["messages"] if m["severity"] == 0}
-    assert "ACCESSOR_MIN_MISMATCH" in codes
-    assert any("ANIMATION_INPUT" in code or "NON_INCREASING" in code for code in codes), codes
+    assert "ACCESSOR_MIN_MISMATCH" in codes and "ACCESSOR_MAX_MISMATCH" in codes
+    assert "ACCESSOR_SPARSE_INDICES_NON_INCREASING" in codes and "ACCESSOR_NON_CLAMPED" in codes
+    assert any("ANIMATION_INPUT" in code for code in codes), codes
+    pointers = {m["pointer"] for m in report["issues"]["messages"] if m["code"] == "ACCESSOR_MAX_MISMATCH"}
+    first_target = glb_arrays(tmp_path / "bad.glb")[0].meshes[0].primitives[0].targets[0]["POSITION"]
+    assert f"/accessors/{first_target}/max/1" in pointers, pointers
 
 
 PAGE = """<!DOCTYPE html>
@@ -463,8 +571,10 @@ PAGE = """<!DOCTYPE html>
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
-// Load `url`, play its first clip with an AnimationMixer and read the morph target influences at `times`.
-window.playGlb = async (url, times, vertexIds) => {
+// Load `url`, play its first clip with an AnimationMixer and read the morph target influences at `times`; the
+// vertex data, colours and material as three.js holds them, and `srgb` (colours) converted by three.js's own
+// colour management into its linear working space.
+window.playGlb = async (url, times, vertexIds, srgb) => {
   const gltf = await new GLTFLoader().loadAsync(url);
   const meshes = [];
   gltf.scene.traverse((o) => { if (o.isMesh) meshes.push(o); });
@@ -483,11 +593,19 @@ window.playGlb = async (url, times, vertexIds) => {
   const geometry = mesh.geometry;
   const position = geometry.attributes.position;
   const xyz = (a) => vertexIds.map((i) => [a.getX(i), a.getY(i), a.getZ(i)]);
+  const color = geometry.attributes.color;
+  const material = mesh.material;
   return {
     meshes: meshes.length, dictionary: mesh.morphTargetDictionary, clips: gltf.animations.map((c) => c.name),
     duration: clip.duration, tracks: clip.tracks.map((t) => [t.name, t.times.length, t.values.length]),
     vertexCount: position.count, triangles: geometry.index.count / 3, relative: geometry.morphTargetsRelative,
     neutral: xyz(position), deltas: geometry.morphAttributes.position.map(xyz), influences,
+    colors: color ? xyz(color) : null, colorItemSize: color ? color.itemSize : null,
+    material: { type: material.type, vertexColors: material.vertexColors, metalness: material.metalness,
+                roughness: material.roughness, color: material.color.toArray() },
+    workingColorSpace: THREE.ColorManagement.workingColorSpace,
+    threeLinear: srgb ? srgb.map(([r, g, b]) => new THREE.Color().setRGB(r, g, b, THREE.SRGBColorSpace).toArray())
+                      : null,
   };
 };
 window.pageReady = true;
@@ -523,13 +641,15 @@ def browser(tmp_path_factory):
     b.close()
 
 
-def play_in_three(browser: Browser, served, path: Path, times: list[float], vertex_ids: list[int]) -> dict:
+def play_in_three(browser: Browser, served, path: Path, times: list[float], vertex_ids: list[int],
+                  srgb: list | None = None) -> dict:
     root, base = served
     (root / path.name).write_bytes(path.read_bytes())
     state = browser.load(f"{base}/index.html")
     assert state["errors"] == [], state
     assert all(u.startswith(base) for u in state["requests"]), state["requests"]
-    call = f"window.playGlb({json.dumps('/' + path.name)}, {json.dumps(times)}, {json.dumps(vertex_ids)})"
+    call = (f"window.playGlb({json.dumps('/' + path.name)}, {json.dumps(times)}, {json.dumps(vertex_ids)}, "
+            f"{json.dumps(srgb)})")
     result = browser.send("Runtime.evaluate", {"expression": call, "awaitPromise": True, "returnByValue": True})
     assert "exceptionDetails" not in result, result["exceptionDetails"]
     browser.send("Runtime.evaluate", {"expression": "0"})       # flush: console events of the run are in
@@ -542,6 +662,7 @@ def play_in_three(browser: Browser, served, path: Path, times: list[float], vert
 
 @pytest.mark.parametrize("which", ["small", "demo"])
 def test_three_js_plays_the_animation_we_wrote(tmp_path, served, browser, demo, which):
+    """Both GLBs have sparse targets; the demo rig has vertex colours, the small character none."""
     character = small_character(n_shapes=6) if which == "small" else demo
     fps, n = (24.0, 30) if which == "small" else (30.0, 60)
     w = random_weights(n, character.n_shapes, seed=7)
@@ -550,8 +671,13 @@ def test_three_js_plays_the_animation_we_wrote(tmp_path, served, browser, demo, 
     times = sorted({0.0, float(frame_times[1]), float(frame_times[-1]), float(frame_times[-2]),
                     *[(k + 0.5) / fps for k in range(0, n - 1, 3)], *[(k + 0.25) / fps for k in (1, n // 2, n - 2)],
                     *[float(frame_times[k]) for k in range(0, n, 7)]})
-    vertex_ids = [0, 7, character.n_vertices // 2, character.n_vertices - 1]
-    got = play_in_three(browser, served, path, times, vertex_ids)
+    moves = (character.deltas[0] != 0).any(axis=1)             # a vertex the first shape's sparse target lists,
+    vertex_ids = [0, 7, character.n_vertices // 2, character.n_vertices - 1,    # and one it leaves at zero
+                  int(np.flatnonzero(moves)[0]), int(np.flatnonzero(~moves)[0])]
+    g, _ = glb_arrays(path)
+    assert all(g.accessors[t["POSITION"]].sparse is not None for t in g.meshes[0].primitives[0].targets)
+    srgb = None if character.vertex_colors is None else character.vertex_colors[vertex_ids].tolist()
+    got = play_in_three(browser, served, path, times, vertex_ids, srgb)
 
     assert got["meshes"] == 1 and got["clips"] == [f"clip {which}"]
     assert got["dictionary"] == {name: i for i, name in enumerate(character.shape_names)}
@@ -562,6 +688,20 @@ def test_three_js_plays_the_animation_we_wrote(tmp_path, served, browser, demo, 
     assert got["relative"] is True
     assert np.array_equal(np.array(got["neutral"], np.float32), character.neutral[vertex_ids])
     assert np.array_equal(np.array(got["deltas"], np.float32), character.deltas[:, vertex_ids])
+    # the material: our PBR values, not glTF's default metal; vertex colours on exactly when we wrote COLOR_0
+    material = got["material"]
+    assert material["type"] == "MeshStandardMaterial" and material["color"] == [1, 1, 1]
+    assert material["metalness"] == 0 and material["roughness"] == pytest.approx(0.6)
+    if character.vertex_colors is None:
+        assert got["colors"] is None and material["vertexColors"] is False
+    else:
+        assert got["colorItemSize"] == 3 and material["vertexColors"] is True
+        assert got["workingColorSpace"] == "srgb-linear"
+        # what three.js holds is what three.js itself makes of our sRGB colours: the preview's colours on screen
+        assert np.allclose(got["colors"], got["threeLinear"], rtol=0, atol=1e-6)
+        assert np.allclose(got["colors"], srgb_to_linear_here(character.vertex_colors[vertex_ids]), rtol=0,
+                           atol=1e-6)
+        assert np.abs(np.array(got["colors"]) - character.vertex_colors[vertex_ids]).max() > 0.05   # not copied
     influences = np.array(got["influences"])
     assert influences.shape == (len(times), character.n_shapes)
     expected = np.array([expected_weights(frame_times, w, t) for t in times])

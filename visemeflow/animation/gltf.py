@@ -8,15 +8,24 @@ Writing (`write_glb`): one scene, one node, one mesh with one triangle primitive
 - `POSITION` (float32 VEC3, min/max), `NORMAL` (unit, area-weighted vertex normals of the neutral; a vertex on no
   triangle or only on degenerate ones gets +Z) and `indices` (uint16, or uint32 when the mesh has 65,535 vertices
   or more: 65,535 is the primitive-restart value uint16 indices may not hold);
+- `COLOR_0` when the character has vertex colours: float32 VEC3, *linear* RGB as glTF defines it (3.7.2.1), i.e.
+  `srgb_to_linear` of our sRGB display colours, so a viewer shows the colours the preview shows; the reader turns
+  them back (to float32 rounding);
+- one material, "skin": PBR metallic-roughness with a white base colour, metallic 0, roughness 0.6 (the glTF
+  defaults, metallic 1 and no material, show a dark grey metal); the vertex colours multiply the base colour
+  (three.js's GLTFLoader turns on `vertexColors` when COLOR_0 is there);
 - one morph target per shape, `POSITION` deltas only (float32 VEC3 with the min/max the specification requires),
   names in `mesh.extras.targetNames` (three.js, Blender) and in the primitive's `extras.targetNames` (Babylon and
-  others read that one); `mesh.weights` all zero;
+  others read that one); `mesh.weights` all zero. A target is written as a sparse accessor (no buffer view: zeros,
+  then the rows of the vertices it moves, found by an exact-zero test, and their ids) when that is smaller than
+  the dense array; min/max are those of the values after substitution, as the specification asks;
 - one animation with one `weights` channel on the node: LINEAR sampler, input = the T frame times k / fps (float32,
   min/max), output = the T x S weights frame by frame.
 
-Every accessor has its own buffer view, 4-byte aligned; vertex views target ARRAY_BUFFER, the index view
-ELEMENT_ARRAY_BUFFER, animation views none. Morph targets carry no NORMAL deltas: a viewer shades the moving mouth
-with the neutral's normals (adding them would double the file for a shading detail).
+Every accessor has its own buffer view (a sparse one two), 4-byte aligned; vertex views target ARRAY_BUFFER, the
+index view ELEMENT_ARRAY_BUFFER, sparse ids and values and animation views none. Morph targets carry no NORMAL
+deltas: a viewer shades the moving mouth with the neutral's normals (adding them would double the file for a
+shading detail).
 
 Reading (`read_character_glb`): a thin wrapper over the rig layer's glTF reader, `rig.gltf.read_gltf_mesh` (the
 first mesh with morph targets in scene order, primitives joined, sparse / strided / quantized accessors, target
@@ -35,11 +44,13 @@ import pygltflib as gl
 from visemeflow.animation.character import Character, CharacterError, make_character, validate_character
 from visemeflow.atomic import atomic_path
 from visemeflow.rig import RigError
-from visemeflow.rig.gltf import read_gltf_mesh
+from visemeflow.rig.gltf import read_gltf_mesh, srgb_to_linear
 
 __all__ = ["read_character_glb", "vertex_normals", "write_glb"]
 
 _ALIGN = 4
+_MATERIAL = "skin"
+_ROUGHNESS = 0.6
 _COMPONENT_DTYPES = {
     gl.BYTE: np.dtype("<i1"), gl.UNSIGNED_BYTE: np.dtype("<u1"), gl.SHORT: np.dtype("<i2"),
     gl.UNSIGNED_SHORT: np.dtype("<u2"), gl.UNSIGNED_INT: np.dtype("<u4"), gl.FLOAT: np.dtype("<f4"),
@@ -67,19 +78,22 @@ def vertex_normals(neutral: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals.astype(np.float32)
 
 
+def _bounds(columns: np.ndarray) -> tuple[list[float], list[float]]:
+    """Per-component min and max of (width, count) float32 columns, as JSON-exact floats."""
+    # float(float32) is the exact value; JSON's shortest repr of that double reads back to it exactly
+    return [float(x) for x in columns.min(axis=1)], [float(x) for x in columns.max(axis=1)]
+
+
 class _Layout:
-    """The binary buffer being laid out: one buffer view per accessor, each starting on a 4-byte boundary."""
+    """The binary buffer being laid out: one buffer view per array, each starting on a 4-byte boundary."""
 
     def __init__(self, gltf: gl.GLTF2):
         self.gltf = gltf
         self.parts: list[memoryview | bytes] = []
         self.offset = 0
 
-    def accessor(self, array: np.ndarray, kind: str, *, target: int | None = None, bounds: bool = False) -> int:
-        """Append `array` ((count,) or (count, width), little-endian) as a view and an accessor; its index."""
-        data = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
-        component = next(c for c, d in _COMPONENT_DTYPES.items() if d == data.dtype)
-        count = data.shape[0]
+    def view(self, data: np.ndarray, target: int | None = None) -> int:
+        """Append contiguous little-endian `data` as a buffer view; its index."""
         self.parts.append(memoryview(data).cast("B"))
         padding = -data.nbytes % _ALIGN
         if padding:
@@ -87,15 +101,48 @@ class _Layout:
         self.gltf.bufferViews.append(gl.BufferView(buffer=0, byteOffset=self.offset, byteLength=data.nbytes,
                                                    target=target))
         self.offset += data.nbytes + padding
-        accessor = gl.Accessor(bufferView=len(self.gltf.bufferViews) - 1, byteOffset=0, componentType=component,
+        return len(self.gltf.bufferViews) - 1
+
+    def accessor(self, array: np.ndarray, kind: str, *, target: int | None = None, bounds: bool = False) -> int:
+        """Append `array` ((count,) or (count, width), little-endian) as a view and an accessor; its index."""
+        data = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+        component = next(c for c, d in _COMPONENT_DTYPES.items() if d == data.dtype)
+        count = data.shape[0]
+        accessor = gl.Accessor(bufferView=self.view(data, target), byteOffset=0, componentType=component,
                                count=count, type=kind)
         if bounds:
             # one contiguous row per component: numpy reduces those ~15x faster than the columns of a (count, 3)
-            columns = np.ascontiguousarray(data.reshape(count, -1).T)
-            # float(float32) is the exact value; JSON's shortest repr of that double reads back to it exactly
-            accessor.min = [float(x) for x in columns.min(axis=1)]
-            accessor.max = [float(x) for x in columns.max(axis=1)]
+            accessor.min, accessor.max = _bounds(np.ascontiguousarray(data.reshape(count, -1).T))
         self.gltf.accessors.append(accessor)
+        return len(self.gltf.accessors) - 1
+
+    def sparse_vec3(self, values: np.ndarray) -> int | None:
+        """(V, 3) float32 `values` as a sparse accessor over zeros (glTF 2.0 3.6.2.3): the ids of the rows with a
+        non-zero component (strictly increasing, the smallest unsigned type that holds V - 1) and those rows, each
+        in its own untargeted view; min/max of the values after substitution, as the specification asks. None when
+        that is not smaller than the dense array (then the caller writes it dense)."""
+        count = len(values)
+        columns = np.ascontiguousarray(values.T, dtype=np.float32)     # (3, V): numpy scans rows much faster
+        moved = np.flatnonzero((columns[0] != 0) | (columns[1] != 0) | (columns[2] != 0))
+        id_dtype = np.dtype("<u1") if count <= 0x100 else np.dtype("<u2") if count <= 0x10000 else np.dtype("<u4")
+        n = max(len(moved), 1)      # sparse.count must be >= 1: a shape that moves nothing lists vertex 0's zero
+        if n * (id_dtype.itemsize + 12) >= count * 12:
+            return None
+        if not len(moved):
+            moved = np.zeros(1, np.intp)
+        rows = np.ascontiguousarray(values[moved], dtype="<f4")
+        ids = moved.astype(id_dtype)
+        # the rows left out are exact zeros, so the dense columns' bounds are those after substitution (a -0.0 left
+        # out reads back as +0.0, the same number)
+        low, high = _bounds(columns)
+        component = next(c for c, d in _COMPONENT_DTYPES.items() if d == id_dtype)
+        sparse = gl.Sparse(count=len(ids),
+                           indices=gl.AccessorSparseIndices(bufferView=self.view(ids), byteOffset=0,
+                                                            componentType=component),
+                           values=gl.AccessorSparseValues(bufferView=self.view(rows), byteOffset=0))
+        # no bufferView, so no byteOffset either (the schema makes byteOffset depend on bufferView)
+        self.gltf.accessors.append(gl.Accessor(byteOffset=None, componentType=gl.FLOAT, count=count, type=gl.VEC3,
+                                               sparse=sparse, min=low, max=high))
         return len(self.gltf.accessors) - 1
 
     def finish(self) -> None:
@@ -124,11 +171,13 @@ def _check_animation(character: Character, weights, fps: float) -> tuple[np.ndar
     return times, w
 
 
-def write_glb(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None) -> Path:
+def write_glb(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None,
+              sparse: bool = True) -> Path:
     """Write `character` with its weight animation as a GLB at `path` (atomically); returns `path`.
 
     `weights` is (T, S) in [0, 1], T >= 1 frames, columns in `character.shape_names` order; frame k plays at
-    k / fps seconds. The animation is named `name`, else the character's name.
+    k / fps seconds. The animation is named `name`, else the character's name. `sparse=False` writes every morph
+    target dense (for a client without sparse accessors); by default a target is sparse when that is smaller.
     """
     path = Path(path)
     validate_character(character)
@@ -145,12 +194,21 @@ def write_glb(path: str | os.PathLike, character: Character, weights, fps: float
     position = layout.accessor(neutral, gl.VEC3, target=gl.ARRAY_BUFFER, bounds=True)
     normal = layout.accessor(vertex_normals(neutral, faces), gl.VEC3, target=gl.ARRAY_BUFFER)
     indices = layout.accessor(faces.astype(index_dtype).ravel(), gl.SCALAR, target=gl.ELEMENT_ARRAY_BUFFER)
+    attributes = gl.Attributes(POSITION=position, NORMAL=normal)
+    if character.vertex_colors is not None:
+        attributes.COLOR_0 = layout.accessor(srgb_to_linear(character.vertex_colors), gl.VEC3, target=gl.ARRAY_BUFFER)
     deltas = np.ascontiguousarray(character.deltas, dtype=np.float32)
-    targets = [gl.Attributes(POSITION=layout.accessor(d, gl.VEC3, target=gl.ARRAY_BUFFER, bounds=True))
-               for d in deltas]
+    targets = []
+    for d in deltas:
+        target = layout.sparse_vec3(d) if sparse else None
+        if target is None:
+            target = layout.accessor(d, gl.VEC3, target=gl.ARRAY_BUFFER, bounds=True)
+        targets.append(gl.Attributes(POSITION=target))
     names = list(character.shape_names)
-    primitive = gl.Primitive(attributes=gl.Attributes(POSITION=position, NORMAL=normal), indices=indices,
-                             mode=gl.TRIANGLES, targets=targets, extras={"targetNames": names})
+    gltf.materials.append(gl.Material(name=_MATERIAL, pbrMetallicRoughness=gl.PbrMetallicRoughness(
+        baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=_ROUGHNESS)))
+    primitive = gl.Primitive(attributes=attributes, indices=indices, material=0, mode=gl.TRIANGLES, targets=targets,
+                             extras={"targetNames": names})
     gltf.meshes.append(gl.Mesh(name=character.name, primitives=[primitive], weights=[0.0] * len(names),
                                extras={"targetNames": names}))
     gltf.nodes.append(gl.Node(name=character.name, mesh=0))
