@@ -116,6 +116,13 @@ def animate_flow(params: AnimateParams):
         "mapping": mapping, "out": str(params.out) if params.out else None, "n_shards": params.n_shards,
         "config": params.config.model_dump(mode="json"),
     })
+    per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
+    for uid in ids:
+        audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
+        audio = str(audio) if audio and Path(audio).is_file() else None
+        per_utterance[uid] = (audio, file_hash(audio) if audio else None,
+                              store.curves_provenance(params.source, variant, uid) or "")
+    out = str(params.out) if params.out else None
     rejects, reports, futures, unexpected = [], [], {}, 0
     for character in params.characters:
         path = str(Path(character).resolve())
@@ -130,16 +137,12 @@ def animate_flow(params: AnimateParams):
             continue
         key = character_key(path)
         for uid in ids:
-            audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
-            audio = str(audio) if audio and Path(audio).is_file() else None
-            provenance = store.curves_provenance(params.source, variant, uid) or ""
-            present = outputs_present(store, str(params.out) if params.out else None, key, uid, params.config,
-                                      audio is not None)
+            audio, audio_hash, provenance = per_utterance[uid]
+            present = outputs_present(store, out, key, uid, params.config, audio is not None)
             future = animate_one.with_options(result_storage=result_storage(store.root),
                                               refresh_cache=not present).submit(
                 str(store.root), uid, params.source, variant, provenance, path, character_hash, key, mapping,
-                mapping_hash, params.config, audio, file_hash(audio) if audio else None,
-                str(params.out) if params.out else None, phones.get(uid))
+                mapping_hash, params.config, audio, audio_hash, out, phones.get(uid))
             futures[future] = (uid, path)
     progress = create_progress_artifact(0.0, description=f"{STAGE}: packages done") if futures else None
     for done, future in enumerate(as_completed(list(futures)), start=1):
