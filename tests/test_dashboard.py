@@ -8,6 +8,7 @@ and .ci/run install it first through scripts/system-deps.sh.
 """
 
 import html
+import re
 from datetime import UTC, datetime
 from html.parser import HTMLParser
 from pathlib import Path
@@ -226,6 +227,32 @@ def test_robustness_table_pivots_aggregate_evaluate_rows_with_ratios():
     assert [h.get("colspan") for h in headers[:3]] == ["1", "6", "5"]
     assert "ratio to validation" in rendered and "<td class=\"num\">1.750</td>" in rendered
     assert "<td class=\"num\">3.000</td>" in rendered
+
+
+def test_robustness_table_shows_realspeech_metrics_as_their_own_column_groups():
+    rows = [_metric("evaluate", "a", c, v) for c, v in CONDITIONS.items()]
+    rows += [_metric("evaluate.mbp_closure", "a", "validation", 80.0), _metric("evaluate.mbp_closure", "a", "pitch", 40.0),
+             _metric("evaluate.mbp_closure", "a", "pitch", 10.0, uid="spk/u0"),     # per utterance: not a cell
+             _metric("evaluate.agreement", "a", "validation", 62.5), _metric("evaluate.agreement", "a", "noise", 50.0),
+             _metric("evaluate.agreement", "b", "validation", 12.5)]                 # a model without L1 rows
+    table = robustness_table(table_from_rows(rows, METRICS))
+    assert table.models == ["a", "b"] and table.realspeech_metrics == ["mbp_closure", "agreement"]
+    assert table.conditions == ["validation", "volume", "pitch", "speed", "noise"]
+    assert table.realspeech == {("a", "mbp_closure", "validation"): 80.0, ("a", "mbp_closure", "pitch"): 40.0,
+                                ("a", "agreement", "validation"): 62.5, ("a", "agreement", "noise"): 50.0,
+                                ("b", "agreement", "validation"): 12.5}
+    assert table.realspeech_conditions("mbp_closure") == ["validation", "pitch"]
+    rendered = robustness_html(table)
+    headers = [a for t, a in _tags(rendered) if t == "th"]
+    assert len(headers) == 5 + 1 + 5 + 4 + 2 + 2     # groups; model, 5 conditions, 4 ratios, MBP 2, agreement 2
+    assert [h.get("colspan") for h in headers[:5]] == ["1", "5", "4", "2", "2"]
+    assert "MBP closure % (real-speech metric)" in rendered and "agreement % (real-speech metric)" in rendered
+    cells = re.findall(r"<td[^>]*>(.*?)</td>", rendered)
+    assert cells[10:14] == ["80.000", "40.000", "62.500", "50.000"]
+    assert cells[14:] == ["b"] + ["–"] * 9 + ["–", "–", "12.500", "–"]
+    # without real-speech rows the table is the one it always was
+    plain = robustness_table(table_from_rows([r for r in rows if r[C.RUN] == "evaluate"], METRICS))
+    assert plain.realspeech_metrics == [] and "real-speech" not in robustness_html(plain)
 
 
 def test_robustness_table_is_empty_without_evaluate_rows():

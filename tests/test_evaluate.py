@@ -13,6 +13,7 @@ from torch import nn
 from visemeflow.learning.augment import CONDITIONS, draw_value, source_id
 from visemeflow.learning.robustness import augment_examples, robustness_table, table_csv, table_markdown
 from visemeflow.learning.train import Example, evaluate, resample_curves
+from visemeflow.visemes import VISEMES
 
 FPS = 25.0
 
@@ -74,8 +75,95 @@ def test_a_model_that_outputs_the_targets_scores_zero_on_every_condition():
     assert evaluate(shifted, sets["speed"])[0] == pytest.approx(10.0, abs=1e-4)
 
 
+# six 0.2 s phones over 1.2 s (frames of 0.04 s): a copy whose phones were not scaled with its speed would be judged
+# on frames up to 0.36 s away at its end
+PHONES = [(0.0, 0.2, None), (0.2, 0.4, "MBP"), (0.4, 0.6, "AAA"), (0.6, 0.8, "FFF"), (0.8, 1.0, "MBP"),
+          (1.0, 1.2, "OHH")]
+
+
+def _ideal(n_frames, fps, time_factor, phones=PHONES):
+    """Curves that show each phone's viseme (1.0) exactly while it is spoken, in audio sped up by time_factor:
+    frame k is the original time k * time_factor / fps (computed here, not with realspeech's helpers)."""
+    c = np.zeros((n_frames, 16), np.float32)
+    for k in range(n_frames):
+        t = k * time_factor / fps
+        for start, end, viseme in phones:
+            if viseme and start <= t < end:
+                c[k, VISEMES.index(viseme)] = 1.0
+    return c
+
+
+def test_realspeech_metrics_follow_each_augmented_copy_and_speed_scales_the_phones():
+    from visemeflow.learning.realspeech import Phone, scale_phones
+    from visemeflow.learning.robustness import realspeech_evaluation
+
+    examples = _examples(n=2)
+    phones = [Phone(a, b, v) for a, b, v in PHONES]
+    factor = draw_value("speed", "spk/u0", 0)
+    assert abs(factor - 1.0) > 0.1, "the test needs a clearly faster or slower copy"
+    answers, sets = {}, {"validation": (examples, 1.0)}
+    for condition in CONDITIONS:
+        sets[condition] = (augment_examples(examples, condition, seed=0), None)
+    for condition, (copies, _) in sets.items():
+        for ex, c in zip(examples, copies):
+            f = draw_value(condition, ex.utterance_id, 0) if condition == "speed" else 1.0
+            answers[hashlib.sha256(c.audio.tobytes()).hexdigest()] = _ideal(len(c.curves), FPS, f)
+    oracle = Oracle(answers)
+    for condition, (copies, _) in sets.items():
+        factors = {c.utterance_id: (draw_value(condition, ex.utterance_id, 0) if condition == "speed" else 1.0)
+                   for ex, c in zip(examples, copies)}
+        # phones of the first utterance only: the second is not scored
+        aligned = {copies[0].utterance_id: scale_phones(phones, factors[copies[0].utterance_id])}
+        pooled, per = realspeech_evaluation(oracle, copies, aligned)
+        assert list(per) == [copies[0].utterance_id], condition
+        assert pooled.closure["MBP"].hits == pooled.closure["MBP"].total == 2, condition
+        assert pooled.closure["FFF"].hits == pooled.closure["FFF"].total == 1, condition
+        assert pooled.agreement.overall.hits == pooled.agreement.overall.total == 5, condition
+        if condition == "speed":
+            # the same copy judged on the unscaled phones is wrong at its end: the metric sees the time axis
+            unscaled, _ = realspeech_evaluation(oracle, copies, {copies[0].utterance_id: phones})
+            assert unscaled.agreement.overall.hits < 5
+
+
 def _row(model, condition, value, uid=None):
     return {"run": "evaluate", "model": model, "condition": condition, "utterance_id": uid, "l1_x100": value}
+
+
+def test_robustness_table_gains_realspeech_columns_only_when_there_are_realspeech_rows():
+    rows = [_row("a", "validation", 4.0), _row("a", "pitch", 5.0), _row("m", "validation", 8.0)]
+    plain = robustness_table(rows, presets={"a": "fbank-blstm", "m": "mean-curve"})
+    assert "closure" not in table_markdown(plain) and "closure" not in table_csv(plain)
+
+    def real(metric, model, condition, pct, uid=None):
+        return {"run": f"evaluate.{metric}", "model": model, "condition": condition, "utterance_id": uid,
+                "l1_x100": pct}
+
+    rows += [real("mbp_closure", "a", "validation", 75.0), real("mbp_closure", "a", "pitch", 50.0),
+             real("mbp_closure", "a", "validation", 0.0, uid="spk/u0"),     # per utterance: not a cell
+             real("agreement", "a", "validation", 60.0), real("agreement", "a", "pitch", 55.5),
+             real("agreement", "m", "validation", 20.0),
+             real("agreement", "m", "validation", 25.0)]                    # the latest evaluation wins
+    table = robustness_table(rows, presets={"a": "fbank-blstm", "m": "mean-curve"})
+    a, m = table
+    assert a["mbp_closure_validation"] == 75.0 and a["mbp_closure_pitch"] == 50.0 and a["agreement_pitch"] == 55.5
+    assert math.isnan(m["mbp_closure_validation"]) and m["agreement_validation"] == 25.0
+    assert "fff_closure_validation" not in a                                # no FFF rows: no FFF column
+    assert [c for c in a if c in CONDITIONS or c == "validation"] == ["validation", *CONDITIONS]  # no new condition
+    md = table_markdown(table, note="On 2 utterances.")
+    assert "| model | preset | train aug. | validation | volume | pitch | speed | noise | MBP closure % | agreement % |" in md
+    assert "| a | fbank-blstm | no | 4.00 | - (-) | 5.00 (1.25) | - (-) | - (-) | 75.0 (- / 50.0 / - / -) | " \
+           "60.0 (- / 55.5 / - / -) |" in md
+    assert "| m | mean-curve | no | 8.00 | - (-) | - (-) | - (-) | - (-) | - (- / - / - / -) | 25.0 (- / - / - / -) |" in md
+    assert "in brackets under volume / pitch / speed / noise" in md and md.rstrip().endswith("On 2 utterances.")
+    csv = table_csv(table).splitlines()
+    header = csv[0].split(",")
+    assert header[:4] == ["group", "model", "preset", "train_augment"] and header.index("ratio_noise") == 12
+    assert header[13:] == [f"{m}_{c}" for m in ("mbp_closure", "agreement") for c in ("validation", *CONDITIONS)]
+    import csv as csv_module
+
+    first = next(csv_module.DictReader(csv))
+    assert (first["model"], first["mbp_closure_validation"], first["mbp_closure_volume"]) == ("a", "75.0000", "nan")
+    assert first["agreement_pitch"] == "55.5000"
 
 
 def test_robustness_table_pivots_groups_and_ratios():
@@ -202,3 +290,86 @@ def test_evaluate_flow_writes_metrics_reuses_augmented_audio_and_recomputes_noth
     assert augmented[0].exists()
     with pytest.raises(LookupError, match="no trained model named nope.*known models: mean, tcn"):
         evaluate_flow(EvaluateParams(store=store.root, models=["nope"]))
+
+
+def _html_headers(page: str) -> list[list[str]]:
+    head = re.search(r'<table id="robustness-table"><thead>(.*?)</thead>', page, re.S).group(1)
+    return [re.findall(r"<th[^>]*>(.*?)</th>", tr) for tr in re.findall(r"<tr>(.*?)</tr>", head)]
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_phones(tmp_path):
+    """Two mean-curve models whose constant output is known: `mbp` shows MBP most and FFF second, `fff` FFF most and
+    AAA second. On the validation phones (MBP, AAA, FFF | FFF, EH, MBP, and silence) their closure recall and
+    agreement are known on every condition (their output ignores the audio)."""
+    from visemeflow.dashboards.html import build_dashboard
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.schemas import PHONES as PHONES_SCHEMA
+    from visemeflow.schemas import C, curves_table, table_from_rows
+
+    store = make_curve_store(tmp_path / "store")
+    rng = np.random.default_rng(5)
+    for variant, first, second in (("mbp", "MBP", "FFF"), ("fff", "FFF", "AAA")):
+        for i in range(6):    # u0, u1 (validation, not in the mean) too: training without validation fails
+            c = 0.3 * rng.random((25, 16))
+            c[:, VISEMES.index(first)], c[:, VISEMES.index(second)] = 0.9, 0.7
+            store.write_curves(curves_table(f"spk/u{i}", "ground_truth", variant, c.astype(np.float32), 25.0))
+    layout = {"spk/u0": [("sil", 0.0, 0.2, None), ("B", 0.2, 0.4, "MBP"), ("AA1", 0.4, 0.6, "AAA"),
+                         ("F", 0.6, 0.8, "FFF"), ("", 0.8, 1.0, None)],
+              # u1's speed copy is 1.097x faster: 23 frames (0.92 s); its last phone starts at 0.93 s, i.e. at
+              # 0.848 s in the copy: inside it only when the phones are scaled with the audio
+              "spk/u1": [("V", 0.0, 0.3, "FFF"), ("EH1", 0.3, 0.6, "EH"), ("sp", 0.6, 0.93, None),
+                         ("M", 0.93, 1.0, "MBP")],
+              "spk/u3": [("P", 0.0, 1.0, "MBP")]}                    # a training utterance: never scored
+    rows = [{C.UTTERANCE_ID: uid, C.INDEX: i, C.PART: 0, C.LABEL: label, C.START_S: a, C.END_S: b, C.VISEME: v}
+            for uid, phones in layout.items() for i, (label, a, b, v) in enumerate(phones)]
+    store.write_shard("phones", 0, table_from_rows(rows, PHONES_SCHEMA))
+    for name in ("mbp", "fff"):
+        train_flow(TrainParams(store=store.root, config=TrainConfig(preset="mean-curve", epochs=1),
+                               source="ground_truth", variant=name, model_name=name))
+
+    result = evaluate_flow(EvaluateParams(store=store.root, models=["mbp", "fff"], variant="cm"))
+    expected = {"mbp": {"mbp_closure": 100.0, "fff_closure": 0.0, "agreement": 400 / 6},
+                "fff": {"mbp_closure": 0.0, "fff_closure": 100.0, "agreement": 300 / 6}}
+    by_model = {r["model"]: r for r in result["table"]}
+    for model, values in expected.items():
+        for metric, value in values.items():
+            for condition in ("validation", *CONDITIONS):
+                assert by_model[model][f"{metric}_{condition}"] == pytest.approx(value), (model, metric, condition)
+        assert by_model[model]["validation"] > 0                              # the L1 columns are still there
+
+    metrics = store.read_metrics("mbp").to_pylist()
+    runs = {r[C.RUN] for r in metrics}
+    assert runs == {"train", "final", "evaluate", "evaluate.mbp_closure", "evaluate.fff_closure", "evaluate.agreement"}
+    agreement = [r for r in metrics if r[C.RUN] == "evaluate.agreement" and r[C.CONDITION] == "validation"]
+    aggregate = next(r for r in agreement if r[C.UTTERANCE_ID] is None)
+    assert aggregate[C.L1] == pytest.approx(4 / 6) and aggregate[C.L1_X100] == pytest.approx(400 / 6)
+    per_viseme = {v: aggregate[C.L1_PREFIX + v] for v in VISEMES if aggregate[C.L1_PREFIX + v] is not None}
+    assert per_viseme == {"AAA": 0.0, "EH": 0.0, "FFF": 1.0, "MBP": 1.0}
+    assert {r[C.UTTERANCE_ID]: r[C.L1] for r in agreement if r[C.UTTERANCE_ID]} == pytest.approx(
+        {"spk/u0": 2 / 3, "spk/u1": 2 / 3})
+    assert draw_value("speed", "spk/u1", 0) == pytest.approx(1.0971, abs=1e-4)
+    speed_ids = {r[C.UTTERANCE_ID] for r in metrics if r[C.RUN] == "evaluate.mbp_closure" and r[C.CONDITION] == "speed"}
+    assert {source_id(u) for u in speed_ids if u} == {"spk/u0", "spk/u1"} and None in speed_ids
+
+    text = (store.root / "reports" / "robustness.md").read_text()
+    assert "| MBP closure % | FFF closure % | agreement % |" in text
+    assert "| 100.0 (100.0 / 100.0 / 100.0 / 100.0) | 0.0 (0.0 / 0.0 / 0.0 / 0.0) | 66.7 (66.7 / 66.7 / 66.7 / 66.7) |" \
+        in text.split("| mbp |")[1].splitlines()[0]
+    assert "On 2 validation utterances with phones: 2 b/p/m, 2 f/v and 6 non-silent phones." in text
+    csv_head = (store.root / "reports" / "robustness.csv").read_text().splitlines()[0]
+    assert csv_head.endswith(",agreement_validation,agreement_volume,agreement_pitch,agreement_speed,agreement_noise")
+
+    page = build_dashboard(store.root, tmp_path / "dashboard", max_utterances=0).path.read_text(encoding="utf-8")
+    groups, headers = _html_headers(page)
+    assert groups[-3:] == [f"{m} % (real-speech metric)" for m in ("MBP closure", "FFF closure", "agreement")]
+    assert headers[-15:] == [*(("validation", *CONDITIONS) * 3)]
+    models, cells = _html_robustness(page)
+    assert models == ["fff", "mbp"]
+    for model, shown in zip(models, cells):
+        want = [expected[model][m] for m in ("mbp_closure", "fff_closure", "agreement") for _ in range(5)]
+        assert [float(x) for x in shown[-15:]] == pytest.approx(want, abs=5e-4)

@@ -31,7 +31,14 @@ from visemeflow.atomic import atomic_write_text
 from visemeflow.dashboards import plots
 # The robustness table is built by the same function as the `evaluate` report, so both show the same cells in the
 # same order (DESIGN lets dashboards import schemas and storage; this module is the exception, pure and torch-free).
-from visemeflow.learning.robustness_table import COLUMNS, RUN, table_columns
+from visemeflow.learning.robustness_table import (
+    COLUMNS,
+    REALSPEECH_LABELS,
+    REALSPEECH_RUNS,
+    RUN,
+    realspeech_metrics,
+    table_columns,
+)
 from visemeflow.learning.robustness_table import robustness_table as shared_robustness_table
 from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
 from visemeflow.schemas.ids import utterance_id_from_path_parts
@@ -258,6 +265,13 @@ class RobustnessTable:
     models: list[str]
     conditions: list[str]
     values: dict[tuple[str, str], float]    # (model, condition) -> L1 x 100
+    # real-speech metrics (closure recall, activation agreement) with any cell, and (model, metric, condition) -> %
+    realspeech_metrics: list[str] = field(default_factory=list)
+    realspeech: dict[tuple[str, str, str], float] = field(default_factory=dict)
+
+    def realspeech_conditions(self, metric: str) -> list[str]:
+        """The conditions, in the table's order, where some model has a value of `metric`."""
+        return [c for c in self.conditions if any((m, metric, c) in self.realspeech for m in self.models)]
 
     def ratio(self, model: str, condition: str) -> float | None:
         """L1 under `condition` over L1 on clean validation audio (1.0 = no degradation), None when unknown."""
@@ -275,8 +289,9 @@ def _condition_key(condition: str) -> tuple[int, str]:
     return len(CONDITION_ORDER), condition
 
 
-def _aggregate_rows(metrics: pa.Table, run: str) -> pa.Table:
-    mask = pc.and_(pc.equal(metrics.column(C.RUN), run), pc.is_null(metrics.column(C.UTTERANCE_ID)))
+def _aggregate_rows(metrics: pa.Table, run: str | Sequence[str]) -> pa.Table:
+    runs = pa.array([run] if isinstance(run, str) else list(run), pa.string())
+    mask = pc.and_(pc.is_in(metrics.column(C.RUN), value_set=runs), pc.is_null(metrics.column(C.UTTERANCE_ID)))
     return metrics.filter(mask)
 
 
@@ -304,12 +319,19 @@ def evaluated_labels(store: Store) -> tuple[dict[str, str], dict[str, bool]]:
 def robustness_table(metrics: pa.Table, presets: dict[str, str] | None = None,
                      augmented: dict[str, bool] | None = None) -> RobustnessTable:
     """The `evaluate` report's table (`visemeflow.learning.robustness_table.robustness_table`) of these metrics:
-    aggregate rows of run `evaluate`, the latest per (model, condition), models in the report's order."""
-    rows = _aggregate_rows(metrics, RUN).select([C.RUN, C.MODEL, C.CONDITION, C.UTTERANCE_ID, C.EPOCH, C.L1_X100])
+    aggregate rows of run `evaluate` and of its real-speech runs, the latest per (model, condition), models in
+    the report's order."""
+    rows = _aggregate_rows(metrics, [RUN, *REALSPEECH_RUNS])
+    rows = rows.select([C.RUN, C.MODEL, C.CONDITION, C.UTTERANCE_ID, C.EPOCH, C.L1_X100])
     table = shared_robustness_table(rows.to_pylist(), presets, augmented)
-    values = {(r["model"], c): r[c] for r in table for c in table_columns(table) if not math.isnan(r[c])}
-    conditions = [c for c in table_columns(table) if any((m, c) in values for m in (r["model"] for r in table))]
-    return RobustnessTable([r["model"] for r in table], conditions, values)
+    columns = table_columns(table)
+    values = {(r["model"], c): r[c] for r in table for c in columns if not math.isnan(r[c])}
+    models = [r["model"] for r in table]
+    real = {(r["model"], m, c): r[f"{m}_{c}"] for r in table for m in realspeech_metrics(table) for c in columns
+            if not math.isnan(r[f"{m}_{c}"])}
+    conditions = [c for c in columns if any((m, c) in values for m in models) or any(k[2] == c for k in real)]
+    metrics_shown = [m for m in realspeech_metrics(table) if any(k[1] == m for k in real)]
+    return RobustnessTable(models, conditions, values, metrics_shown, real)
 
 
 def robustness_html(table: RobustnessTable) -> str:
@@ -320,11 +342,17 @@ def robustness_html(table: RobustnessTable) -> str:
     if has_base:
         headers += ratios
         groups.append((f"ratio to {BASELINE_CONDITION} (1.0 = unchanged)", len(ratios)))
+    real = {metric: table.realspeech_conditions(metric) for metric in table.realspeech_metrics}
+    for metric, conditions in real.items():
+        headers += conditions
+        groups.append((f"{REALSPEECH_LABELS[metric]} % (real-speech metric)", len(conditions)))
     rows = []
     for m in table.models:
         row: list[object] = [m] + [table.values.get((m, c)) for c in table.conditions]
         if has_base:
             row += [table.ratio(m, c) for c in ratios]
+        for metric, conditions in real.items():
+            row += [table.realspeech.get((m, metric, c)) for c in conditions]
         rows.append(row)
     numeric = [False] + [True] * (len(headers) - 1)
     note = "" if has_base else (f'<p class="note">no <code>{BASELINE_CONDITION}</code> condition: '
@@ -558,10 +586,16 @@ def build_dashboard(
     page.add('<section id="robustness"><h2>Robustness</h2>')
     robust = robustness_table(metrics, *evaluated_labels(store))
     if robust.models:
+        real = ""
+        if robust.realspeech_metrics:
+            real = (" Real-speech metrics, from the validation utterances' phone alignment and no curve truth "
+                    "(runs <code>evaluate.&lt;metric&gt;</code>): MBP / FFF closure, the % of b/p/m (f/v) phones "
+                    "whose top predicted viseme within the phone is MBP (FFF); agreement, the % of non-silent "
+                    "phones whose viseme is among the top two predicted at the phone's middle frame.")
         page.add('<p class="note">Validation L1 x 100 on clean audio and under each augmentation (run '
                  "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation); "
-                 "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model.</p>",
-                 robustness_html(robust))
+                 "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model."
+                 f"{real}</p>", robustness_html(robust))
     else:
         page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
                  "metrics rows).</p>")

@@ -1,4 +1,6 @@
-"""The `evaluate` flow: models judged on the validation set and on augmented copies of it (paper 5.2, Tables 1-3)."""
+"""The `evaluate` flow: models judged on the validation set and on augmented copies of it (paper 5.2, Tables 1-3),
+by L1 x 100 against the target curves and, on validation utterances with phones, by real-speech metrics that need
+no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`)."""
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
@@ -7,10 +9,32 @@ from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.train import training_rows
 from visemeflow.hashing import file_hash
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
+from visemeflow.learning.robustness_table import REALSPEECH_RUNS
 from visemeflow.learning.train import load_model
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.evaluate import augmented_task_for, evaluation_task_for
+
+
+def validation_phones(store: Store, rows: list[dict]) -> dict[str, list[dict]]:
+    """utterance id -> its phone rows (`start_s`, `end_s`, `viseme`, in time order) for the rows that have phones."""
+    ids = [r[C.UTTERANCE_ID] for r in rows]
+    table = store.read_table("phones", utterance_ids=ids).select(
+        [C.UTTERANCE_ID, C.INDEX, C.PART, C.START_S, C.END_S, C.VISEME])
+    phones: dict[str, list[dict]] = {}
+    for r in sorted(table.to_pylist(), key=lambda r: (r[C.UTTERANCE_ID], r[C.START_S], r[C.INDEX], r[C.PART])):
+        phones.setdefault(r[C.UTTERANCE_ID], []).append(
+            {C.START_S: r[C.START_S], C.END_S: r[C.END_S], C.VISEME: r[C.VISEME]})
+    return phones
+
+
+def _realspeech_counts(results: list[dict], n_utterances: int) -> str | None:
+    """'On N validation utterances with phones: b/p/m ..., f/v ..., non-silent ... phones' (None: nothing scored)."""
+    counts = next((r["realspeech"]["validation"] for r in results if r.get("realspeech", {}).get("validation")), None)
+    if counts is None:
+        return None
+    return (f"On {n_utterances} validation utterances with phones: {counts['mbp_closure'][1]} b/p/m, "
+            f"{counts['fff_closure'][1]} f/v and {counts['agreement'][1]} non-silent phones.")
 
 
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
@@ -39,18 +63,20 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     }
     augmented = {cond: f.result() for cond, f in aug_futures.items()}
     targets = {r[C.UTTERANCE_ID]: store.curves_provenance(source, variant, r[C.UTTERANCE_ID]) for r in val}
+    phones = validation_phones(store, val)
     futures = [
         evaluation_task_for(store, m).submit(str(store.root), m, file_hash(paths[m]), val, augmented, source, variant,
-                                             targets)
+                                             targets, phones)
         for m in params.models
     ]
     results = [f.result() for f in futures]
 
-    metrics = [r for m in params.models for r in store.read_metrics(m).to_pylist() if r[C.RUN] == "evaluate"]
+    runs = {"evaluate", *REALSPEECH_RUNS}
+    metrics = [r for m in params.models for r in store.read_metrics(m).to_pylist() if r[C.RUN] in runs]
     table = robustness_table(metrics, presets={r["model"]: r["preset"] for r in results},
                              augmented={r["model"]: r["train_augment"] for r in results})
     title = f"Validation L1 x 100 on {len(val)} utterances ({source}/{variant}); in brackets: ratio to validation"
-    markdown = table_markdown(table, title)
+    markdown = table_markdown(table, title, note=_realspeech_counts(results, len(phones)))
     md = store.write_report_text("robustness.md", markdown)
     csv = store.write_report_text("robustness.csv", table_csv(table))
     create_markdown_artifact(key="robustness-table", markdown=markdown,

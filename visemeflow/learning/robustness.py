@@ -10,17 +10,28 @@ Tables follow the paper: one row per model, columns ``validation`` and the four 
 as its ratio to ``validation`` (how much the model degrades). Rows are grouped as in the paper's tables: audio
 features with the BLSTM decoder (Table 1), decoders (Table 2), baselines and floors (Table 3). The table itself is
 built in :mod:`visemeflow.learning.robustness_table` (no torch), which the HTML dashboard uses too.
+
+Real-speech metrics (:mod:`visemeflow.learning.realspeech`): on validation utterances with a phone alignment, the
+closure recall of MBP and FFF and the activation agreement of the model's curves, on clean audio and on each
+augmented copy (the phones of a ``speed`` copy are scaled by its time factor, as its curves are resampled). The
+curves judged are those `predict` writes: :func:`~visemeflow.learning.train.predict_curves` clipped to [0, 1], as
+many frames as the example's target curves (the frames `evaluate` scores). They need no curve truth.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from torch import nn
 
 from visemeflow.learning.augment import DEFAULT_CONFIG, AugmentConfig, augment_utterance
+from visemeflow.learning.realspeech import Phone, RealSpeechScores, pool, score_utterance
 from visemeflow.learning.robustness_table import COLUMNS, robustness_table, table_columns, table_csv, table_markdown
-from visemeflow.learning.train import SAMPLE_RATE, Example, resample_curves
+from visemeflow.learning.train import SAMPLE_RATE, Example, predict_curves, resample_curves
 
-__all__ = ["COLUMNS", "augment_examples", "robustness_table", "table_columns", "table_csv", "table_markdown"]
+__all__ = ["COLUMNS", "augment_examples", "example_curves", "realspeech_evaluation", "robustness_table",
+           "table_columns", "table_csv", "table_markdown"]
 
 
 def augment_examples(
@@ -32,3 +43,18 @@ def augment_examples(
         aug = augment_utterance(ex.audio, SAMPLE_RATE, ex.utterance_id, condition, seed, config)
         out.append(Example(aug.utterance_id, aug.audio, resample_curves(ex.curves, aug.time_factor), ex.fps))
     return out
+
+
+def example_curves(model: nn.Module, example: Example) -> np.ndarray:
+    """The curves `predict` would write for the example's (16 kHz) audio, as many frames as its target curves."""
+    return predict_curves(model, example.audio, SAMPLE_RATE, example.fps, n_frames=len(example.curves))
+
+
+def realspeech_evaluation(
+    model: nn.Module, examples: Sequence[Example], phones: Mapping[str, Sequence[Phone]]
+) -> tuple[RealSpeechScores, dict[str, RealSpeechScores]]:
+    """(pooled, per utterance) closure recall and activation agreement of the model on the examples that have
+    phones (``phones``: utterance id -> phones on that example's own time axis); the others are not scored."""
+    per = {ex.utterance_id: score_utterance(example_curves(model, ex), ex.fps, phones[ex.utterance_id])
+           for ex in examples if ex.utterance_id in phones}
+    return pool(per.values()), per

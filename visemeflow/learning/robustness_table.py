@@ -11,6 +11,14 @@ one-second utterance like a ten-second one and give another number. Should a (mo
 aggregate rows (the store keeps one evaluation per model, but rows can be gathered from several reads), the latest
 wins: the highest epoch, then the last row given, as a new evaluation replaces the old one in the store.
 Averaging them would mix a stale evaluation into a fresh one.
+
+Real-speech metrics (:mod:`visemeflow.learning.realspeech`: they need the phone alignment, not curve truth) are
+rows of runs ``evaluate.mbp_closure``, ``evaluate.fff_closure`` and ``evaluate.agreement`` (:data:`REALSPEECH_RUNS`)
+in the same schema: ``l1`` holds the share (0..1), ``l1_x100`` the percentage, and, on the aggregate rows of
+``evaluate.agreement``, ``l1_<VISEME>`` the share of that viseme's phones (null where it has none). A metric
+that is undefined (no b/p/m phone among the validation utterances) has no row. The same latest-wins rule picks
+the cell. A table gains the columns ``<metric>_<condition>`` (percent) only for the metrics some row has, so a
+store evaluated without phones gives the table it always gave.
 """
 
 from __future__ import annotations
@@ -21,12 +29,24 @@ import math
 from collections.abc import Iterable
 
 from visemeflow.learning.augment import CONDITIONS
+from visemeflow.learning.realspeech import CLOSURE_VISEMES, TOP_K
 
-__all__ = ["COLUMNS", "RUN", "robustness_table", "table_columns", "table_csv", "table_markdown"]
+__all__ = ["CLOSURE_METRICS", "COLUMNS", "REALSPEECH_LABELS", "REALSPEECH_METRICS", "REALSPEECH_RUNS", "RUN",
+           "realspeech_metrics", "realspeech_note", "robustness_table", "table_columns", "table_csv",
+           "table_markdown"]
 
 RUN = "evaluate"
 COLUMNS = ("validation", *CONDITIONS)
 _FIXED_KEYS = {"group", "model", "preset", "train_augment"}
+# metric name -> the viseme whose closure it counts: mbp_closure (b/p/m), fff_closure (f/v)
+CLOSURE_METRICS = {f"{v.lower()}_closure": v for v in CLOSURE_VISEMES}
+REALSPEECH_METRICS = (*CLOSURE_METRICS, "agreement")
+REALSPEECH_LABELS = {**{m: f"{v} closure" for m, v in CLOSURE_METRICS.items()}, "agreement": "agreement"}
+REALSPEECH_RUNS = {f"{RUN}.{m}": m for m in REALSPEECH_METRICS}   # run name in `metrics` -> metric
+
+
+def _is_realspeech_key(key: str) -> bool:
+    return any(key.startswith(f"{m}_") for m in REALSPEECH_METRICS)
 
 
 def _group(preset: str | None) -> tuple[int, str]:
@@ -49,19 +69,32 @@ def robustness_table(
     found, by name. ``presets`` (model -> preset name) and ``augmented`` (model -> trained with audio augmentation)
     order and label the rows: grouped as the paper's tables (features with BLSTM, decoders, baselines, other),
     then by preset, augmentation and name. Missing cells are NaN; ``ratio_<condition>`` is condition / validation.
+    Aggregate rows of the real-speech runs (:data:`REALSPEECH_RUNS`) add ``<metric>_<condition>`` cells (percent,
+    NaN where missing) for each metric that has any; a model with only such rows still gets a row.
     """
     presets, augmented = presets or {}, augmented or {}
     cells: dict[str, dict[str, tuple[int, float]]] = {}
+    extra_cells: dict[str, dict[tuple[str, str], tuple[int, float]]] = {}   # model -> (metric, condition) -> cell
     for r in rows:
-        if r.get("run", RUN) != RUN or r.get("utterance_id") is not None or r.get("condition") is None:
+        run = r.get("run", RUN)
+        if run != RUN and run not in REALSPEECH_RUNS:
+            continue
+        if r.get("utterance_id") is not None or r.get("condition") is None:
             continue
         epoch = r.get("epoch")
         rank = -1 if epoch is None else int(epoch)
-        model_cells = cells.setdefault(r["model"], {})
-        old = model_cells.get(r["condition"])
+        if run == RUN:
+            model_cells, key = cells.setdefault(r["model"], {}), r["condition"]
+        else:
+            cells.setdefault(r["model"], {})
+            model_cells, key = extra_cells.setdefault(r["model"], {}), (REALSPEECH_RUNS[run], r["condition"])
+        old = model_cells.get(key)
         if old is None or rank >= old[0]:  # the latest evaluation of a cell wins
-            model_cells[r["condition"]] = (rank, float(r["l1_x100"]))
-    extra = sorted({c for values in cells.values() for c in values} - set(COLUMNS))
+            model_cells[key] = (rank, float(r["l1_x100"]))
+    conditions = {c for values in cells.values() for c in values}
+    conditions |= {c for values in extra_cells.values() for _, c in values}
+    extra = sorted(conditions - set(COLUMNS))
+    metrics = [m for m in REALSPEECH_METRICS if any(m == k[0] for values in extra_cells.values() for k in values)]
     table = []
     for model, values in cells.items():
         preset = presets.get(model)
@@ -73,6 +106,10 @@ def robustness_table(
         val = row["validation"]
         for cond in (*CONDITIONS, *extra):
             row[f"ratio_{cond}"] = row[cond] / val if val and not math.isnan(val) else math.nan
+        mine = extra_cells.get(model, {})
+        for metric in metrics:
+            for col in (*COLUMNS, *extra):
+                row[f"{metric}_{col}"] = mine[(metric, col)][1] if (metric, col) in mine else math.nan
         table.append(row)
     table.sort(key=lambda r: (r["_order"], r["preset"], r["train_augment"], r["model"]))
     for r in table:
@@ -82,36 +119,66 @@ def robustness_table(
 
 def table_columns(table: list[dict]) -> list[str]:
     """The condition columns of a table in order: ``validation``, the paper's four, then any other."""
-    extra = sorted({k for r in table for k in r if k not in _FIXED_KEYS and not k.startswith("ratio_")} - set(COLUMNS))
+    extra = sorted({k for r in table for k in r
+                    if k not in _FIXED_KEYS and not k.startswith("ratio_") and not _is_realspeech_key(k)} - set(COLUMNS))
     return [*COLUMNS, *extra]
+
+
+def realspeech_metrics(table: list[dict]) -> list[str]:
+    """The real-speech metrics the table has columns for (some model has a row of them), in a fixed order."""
+    return [m for m in REALSPEECH_METRICS if any(f"{m}_validation" in r for r in table)]
+
+
+def realspeech_note(conditions: list[str]) -> str:
+    """What the real-speech columns of :func:`table_markdown` hold."""
+    closures = ", ".join(f"{v} closure" for v in CLOSURE_METRICS.values())
+    after = f"; in brackets under {' / '.join(conditions)}" if conditions else ""
+    return (f"{closures}: % of the phones of that viseme (b/p/m, f/v) whose top predicted viseme within the phone "
+            f"(highest peak, strictly) is it; agreement: % of non-silent phones whose viseme is among the top "
+            f"{TOP_K} predicted at the phone's middle frame. On clean validation audio{after}; "
+            "- where undefined (no such phone).")
 
 
 def _num(x: float, digits: int = 2) -> str:
     return "-" if x is None or math.isnan(x) else f"{x:.{digits}f}"
 
 
-def table_markdown(table: list[dict], title: str = "Validation L1 x 100 (ratio to validation)") -> str:
-    """The table as markdown: `value (ratio)` per condition, group headings as in the paper's tables."""
+def table_markdown(table: list[dict], title: str = "Validation L1 x 100 (ratio to validation)",
+                   note: str | None = None) -> str:
+    """The table as markdown: `value (ratio)` per condition, group headings as in the paper's tables.
+
+    Real-speech metrics, when the table has them, follow as one column each: `validation (volume / pitch / ...)`
+    in percent, and a line under the table says what they are (``note`` is added to it).
+    """
     conditions = table_columns(table)[1:]
-    blank = " |" * (3 + len(conditions))
+    metrics = realspeech_metrics(table)
+    blank = " |" * (3 + len(conditions) + len(metrics))
     head = "| model | preset | train aug. | validation | " + " | ".join(conditions) + " |"
-    lines = [f"### {title}", "", head, "|---" * (4 + len(conditions)) + "|"]
+    head += "".join(f" {REALSPEECH_LABELS[m]} % |" for m in metrics)
+    lines = [f"### {title}", "", head, "|---" * (4 + len(conditions) + len(metrics)) + "|"]
     group = None
     for r in table:
         if r["group"] != group:
             group = r["group"]
             lines.append(f"| **{group}** |" + blank)
         conds = " | ".join(f"{_num(r[c])} ({_num(r[f'ratio_{c}'])})" for c in conditions)
+        real = "".join(
+            f" {_num(r[f'{m}_validation'], 1)}"
+            + (f" ({' / '.join(_num(r[f'{m}_{c}'], 1) for c in conditions)})" if conditions else "") + " |"
+            for m in metrics)
         lines.append(f"| {r['model']} | {r['preset'] or '-'} | {'yes' if r['train_augment'] else 'no'} | "
-                     f"{_num(r['validation'])} | {conds} |")
+                     f"{_num(r['validation'])} | {conds} |{real}")
     if not table:
         lines.append("| (no evaluated model) |" + blank)
+    if metrics:
+        lines += ["", realspeech_note(conditions) + (f" {note}" if note else "")]
     return "\n".join(lines) + "\n"
 
 
 def table_csv(table: list[dict]) -> str:
     columns = table_columns(table)
     fields = ["group", "model", "preset", "train_augment", *columns, *(f"ratio_{c}" for c in columns[1:])]
+    fields += [f"{m}_{c}" for m in realspeech_metrics(table) for c in columns]   # percent
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     writer.writeheader()

@@ -1,5 +1,6 @@
 """Evaluation tasks: augmented copies of the validation audio (shared by every model), and one model's L1 x 100
-on the validation set and on each augmented copy."""
+on the validation set and on each augmented copy, with the real-speech metrics (closure recall, activation
+agreement) of the validation utterances that have phones."""
 
 from pathlib import Path
 
@@ -10,6 +11,9 @@ from prefect import get_run_logger, task
 
 from visemeflow.hashing import stable_hash
 from visemeflow.learning.augment import AugmentConfig, augment_utterance, augmented_id, draw_value
+from visemeflow.learning.realspeech import RealSpeechScores, Recall, phones_of, scale_phones
+from visemeflow.learning.robustness import realspeech_evaluation
+from visemeflow.learning.robustness_table import CLOSURE_METRICS, REALSPEECH_METRICS, REALSPEECH_RUNS
 from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, load_model, resample_curves
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
@@ -62,35 +66,84 @@ def augmented_task_for(store: Store, rows: list[dict], condition: str, seed: int
     return augment_condition.with_options(result_storage=result_storage(store.root), refresh_cache=missing)
 
 
+_METRIC_RUNS = {metric: run for run, metric in REALSPEECH_RUNS.items()}
+
+
+def _recall(scores: RealSpeechScores, metric: str) -> Recall:
+    if metric in CLOSURE_METRICS:
+        return scores.closure.get(CLOSURE_METRICS[metric], Recall())
+    return scores.agreement.overall
+
+
+def realspeech_rows(model: str, condition: str, pooled: RealSpeechScores,
+                    per_utterance: dict[str, RealSpeechScores]) -> list[dict]:
+    """Rows of the `metrics` table for the real-speech metrics of one (model, condition), runs
+    `evaluate.mbp_closure`, `evaluate.fff_closure`, `evaluate.agreement` (same schema as the L1 rows).
+
+    `l1` holds the share (0..1) and `l1_x100` the percentage; the aggregate (pooled over phones) and one row per
+    utterance, each only where defined (an utterance without b/p/m phones has no `evaluate.mbp_closure` row, a
+    validation set without any has none at all: the store refuses NaN). The aggregate row of
+    `evaluate.agreement` also holds each viseme's agreement in `l1_<VISEME>` (null where it has no phone).
+    """
+    rows = []
+    for metric in REALSPEECH_METRICS:
+        base = {C.RUN: _METRIC_RUNS[metric], C.MODEL: model, C.CONDITION: condition, C.EPOCH: None}
+        share = _recall(pooled, metric).share
+        if share is None:
+            continue
+        aggregate = {**base, C.UTTERANCE_ID: None, C.L1: share, C.L1_X100: 100.0 * share}
+        if metric == "agreement":
+            aggregate.update({C.L1_PREFIX + v: r.share for v, r in pooled.agreement.per_viseme.items()})
+        rows.append(aggregate)
+        for uid, scores in sorted(per_utterance.items()):
+            one = _recall(scores, metric).share
+            if one is not None:
+                rows.append({**base, C.UTTERANCE_ID: uid, C.L1: one, C.L1_X100: 100.0 * one})
+    return rows
+
+
 @task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="evaluate[{model_name}]")
 def evaluate_model(
     store_root: str, model_name: str, model_hash: str, val_rows: list[dict], augmented: dict[str, list[dict]],
-    source: str, variant: str, targets: dict[str, str | None],
+    source: str, variant: str, targets: dict[str, str | None], phones: dict[str, list[dict]] | None = None,
 ) -> dict:
     """L1 x 100 of one model on the validation set and each augmented copy; rows into `metrics` (run 'evaluate').
 
-    `model_hash` (the model file's content hash) and `targets` (the target curves' provenance) are inputs so
-    that the cache is invalidated by a retrained model or changed curves.
+    `phones` (validation utterance id -> its phone rows: `start_s`, `end_s`, `viseme`) adds the real-speech
+    metrics of those utterances on every condition (runs `evaluate.<metric>`, see `realspeech_rows`); the phones
+    of a speed copy are scaled by its time factor. `model_hash` (the model file's content hash), `targets` (the
+    target curves' provenance) and `phones` are inputs so that the cache is invalidated by a retrained model,
+    changed curves or a changed alignment.
     """
     store = Store(store_root)
     model, config, _ = load_model(store.model_path(model_name))
     val = load_examples(store, val_rows, source, variant)
     by_id = {ex.utterance_id: ex for ex in val}
+    aligned = {uid: phones_of(rows) for uid, rows in (phones or {}).items() if uid in by_id}
     sets = {"validation": val}
+    set_phones = {"validation": aligned}
     for condition, items in augmented.items():
         sets[condition] = [
             Example(item["utterance_id"], load_audio(item["path"]),
                     resample_curves(by_id[item["source_id"]].curves, item["time_factor"]), by_id[item["source_id"]].fps)
             for item in items
         ]
-    rows, summary = [], {}
+        set_phones[condition] = {item["utterance_id"]: scale_phones(aligned[item["source_id"]], item["time_factor"])
+                                 for item in items if item["source_id"] in aligned}
+    rows, summary, real = [], {}, {}
     for condition, examples in sets.items():
         overall, per_utt, per_vis = evaluate(model, examples)
         rows += metrics_rows(RUN, model_name, condition, overall, per_utt, per_vis)
         summary[condition] = overall
+        if set_phones[condition]:
+            pooled, per = realspeech_evaluation(model, examples, set_phones[condition])
+            rows += realspeech_rows(model_name, condition, pooled, per)
+            real[condition] = {m: [_recall(pooled, m).hits, _recall(pooled, m).total] for m in REALSPEECH_METRICS}
     store.write_metrics(model_name, RUN, pa.Table.from_pylist(rows, schema=METRICS))
-    get_run_logger().info("%s: %s", model_name, {k: round(v, 3) for k, v in summary.items()})
-    return {"model": model_name, "preset": config.preset, "train_augment": config.train_augment, "l1_x100": summary}
+    get_run_logger().info("%s: L1 x 100 %s; real speech (hits, phones) %s", model_name,
+                          {k: round(v, 3) for k, v in summary.items()}, real)
+    return {"model": model_name, "preset": config.preset, "train_augment": config.train_augment, "l1_x100": summary,
+            "realspeech": real}
 
 
 def evaluation_task_for(store: Store, model_name: str):
