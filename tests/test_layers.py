@@ -24,7 +24,8 @@ ALLOWED = {
     "learning": {"schemas"},  # the utterance-id rules, for augmented ids
     "animation": {"rig", "synth"},  # synth: the preview reuses its renderer
     "synth": {"phonetics", "procedural", "rig", "tracking"},
-    "ingest": {"phonetics", "schemas", "tracking"},  # tracking.video: the audio track of a video
+    # tracking.video: the audio track of a video; animation: captured takes (Live Link reader, ARKit -> visemes fit)
+    "ingest": {"phonetics", "schemas", "tracking", "animation"},
     "storage": {"schemas"},
     "dashboards": {"schemas", "storage", "learning", "ingest"},  # the robustness table; the one audio reader
     "tasks": DOMAIN | {"schemas", "storage"},
