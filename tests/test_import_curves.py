@@ -355,6 +355,28 @@ def test_a_take_of_an_ingested_utterance_adds_curves_and_keeps_its_row(tmp_path)
     assert store.read_table("utterances").num_rows == 1
 
 
+@pytest.mark.usefixtures("prefect_harness")
+def test_ingest_keeps_imported_takes_and_procedural_skips_them(tmp_path):
+    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, ProceduralParams
+    from visemeflow.flows.procedural import procedural_flow
+
+    manifest, _ = synthetic_takes(tmp_path / "takes")
+    store_root = tmp_path / "store"
+    import_curves_flow(ImportCurvesParams(takes=manifest, store=store_root, n_shards=4), return_state=True)
+    corpus = make_corpus(tmp_path / "corpus", {"spk/u1": [("sil", 0.0, 0.2), ("AA1", 0.2, 1.0)],
+                                               "spk/u2": [("M", 0.0, 0.3), ("IY1", 0.3, 0.8)]})
+    ingest_flow(IngestParams(corpus=corpus, store=store_root, n_shards=4))
+    store = Store(store_root)
+    ids = sorted(store.read_table("utterances").column(C.UTTERANCE_ID).to_pylist())
+    assert ids == ["csv/a", "csv/b", "spk/u1", "spk/u2"]  # the takes survive an ingest of another corpus
+    result = procedural_flow(ProceduralParams(store=store_root, n_shards=4))
+    assert result["utterances"] == 2
+    assert sorted(store.curve_ids("procedural", result["variant"])) == ["spk/u1", "spk/u2"]
+    assert store.curve_ids("captured", "arkit-nnls") == ["csv/a", "csv/b"]
+
+
 # ---- the real FACEGOOD takes -------------------------------------------------------------------------------------
 def facegood_manifest(root):
     """The four FACEGOOD takes copied under `root` with a manifest (paths may not leave the manifest's folder)."""

@@ -12,9 +12,10 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from visemeflow.ops import serve as serve_module
 from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
 
-STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "animate", "speak",
-          "preview", "rerun")
-STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "animate", "speak", "preview", "rerun")
+STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "import_curves",
+          "animate", "speak", "preview", "rerun")
+STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "import_curves", "animate", "speak",
+              "preview", "rerun")
 
 
 def flow_of(entrypoint: str):

@@ -239,7 +239,7 @@ def train(
     store: StoreOpt = DEFAULT_STORE,
     preset: Annotated[str, typer.Option(help="Model preset, e.g. fbank-blstm, wav2vec2-blstm, mean-curve.")] = "fbank-blstm",
     epochs: Annotated[int, typer.Option(help="Passes over the training utterances (one utterance per step).")] = 10,
-    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth or procedural.")] = "tracked",
+    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth, procedural or captured.")] = "tracked",
     variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (when several exist).")] = None,
     name: Annotated[Optional[str], typer.Option(help="Model name in the store.")] = None,
     d_model: Annotated[Optional[int], typer.Option(help="Model width (default: the preset's, 512).")] = None,
@@ -266,7 +266,7 @@ def sweep(
     preset: Annotated[str, typer.Option(help="Model preset.")] = "fbank-blstm",
     sizes: Annotated[str, typer.Option(help="Comma-separated training-set sizes.")] = "100,300,1000,3000",
     steps: Annotated[int, typer.Option(help="Training steps per size (equal budget).")] = 10000,
-    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth or procedural.")] = "tracked",
+    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth, procedural or captured.")] = "tracked",
     variant: Annotated[Optional[str], typer.Option(help="Variant of those curves.")] = None,
     d_model: Annotated[Optional[int], typer.Option(help="Model width.")] = None,
     runner: Annotated[str, typer.Option("--runner", help="One training task per size on threads or dask.")] = "threads",
@@ -356,12 +356,44 @@ def _print_packages(result: dict) -> None:
             typer.echo(f"  {path}")
 
 
+@app.command("import-curves")
+def import_curves(
+    takes: Annotated[Path, typer.Argument(help="Manifest CSV of takes, a folder with takes.csv, or <speaker>/<name>.wav "
+                                               "+ .livelink.csv | .capture.csv | .capture.npy.")],
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+    channel_table: Annotated[Optional[Path], typer.Option(help="Channel -> ARKit table (CSV or .xlsx) for takes that "
+                                                               "give none.")] = None,
+    names: Annotated[Optional[Path], typer.Option(help="Channel names (.npy or text) for NPY takes.")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="Capture rate of takes with no clock.")] = None,
+    variant: Annotated[str, typer.Option(help="Variant of the captured curves.")] = "arkit-nnls",
+    max_drift: Annotated[float, typer.Option(help="Largest capture/audio length difference, frames per second.")] = 1.0,
+    val_fraction: Annotated[float, typer.Option(help="Share of takes in 'val' when the manifest gives none.")] = 0.1,
+) -> None:
+    """Import captured animation (Live Link Face CSV, channel CSV/NPY) as `captured` viseme curves of real speech.
+
+    ARKit weights become the 16 visemes by a per-frame non-negative least-squares fit through the ICT face; each take
+    is an utterance (no alignment) with its audio, ready for `visemeflow train --source captured`.
+    """
+    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
+    from visemeflow.ingest.captured import CaptureConfig
+
+    result = dict(import_curves_flow(ImportCurvesParams(
+        takes=takes, store=store, n_shards=shards, channel_table=channel_table, names=names,
+        config=CaptureConfig(variant=variant, fps=fps, max_drift_frames_per_s=max_drift, val_fraction=val_fraction))))
+    reports = result.pop("takes_report", [])
+    _print_summary("import-curves", result)
+    for r in reports[:20]:
+        typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(f"{k} {v}" for k, v in r.items() if k != "utterance_id"))
+    _print_rejects_hint(store)
+
+
 @app.command()
 def animate(
     utterances: Annotated[Optional[list[str]], typer.Argument(help="Utterance ids; default: all with such curves.")] = None,
     character: CharactersOpt = None,
     store: StoreOpt = DEFAULT_STORE,
-    source: Annotated[str, typer.Option(help="tracked, procedural, ground_truth or predicted.")] = "tracked",
+    source: Annotated[str, typer.Option(help="tracked, procedural, ground_truth, captured or predicted.")] = "tracked",
     variant: Annotated[Optional[str], typer.Option(help="Variant of the curves (a model's name for predicted).")] = None,
     formats: FormatsOpt = "glb,usd,livelink,json",
     fps: Annotated[Optional[float], typer.Option(help="Export frame rate (resampled); default: the curves' own.")] = None,

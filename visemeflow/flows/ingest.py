@@ -11,6 +11,7 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.ingest import (
     STAGE,
+    captured_shards,
     discover_corpus_task,
     ingest_shard,
     remove_stale_shards,
@@ -40,7 +41,7 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
         for shard, entries in shards.items()
     ]
     reports, errors = collect(futures, STAGE)
-    removed = remove_stale_shards(store, set(shards))
+    removed = remove_stale_shards(store, set(shards) | captured_shards(store))
     discovery_rejects = [
         reject_row(r["utterance_id"], DISCOVER_STAGE, r["error_type"], r["message"], r["path"]) for r in found["rejects"]
     ]

@@ -112,7 +112,7 @@ class TrainParams(BaseModel):
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     config: TrainConfig = Field(default_factory=TrainConfig)
-    source: Literal["tracked", "ground_truth", "procedural"] = Field("tracked", description="Curves to learn.")
+    source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
     model_name: str | None = Field(None, description="Name of the model in the store; default: preset + a hash.")
 
@@ -129,7 +129,7 @@ class SweepParams(BaseModel):
     config: TrainConfig = Field(default_factory=TrainConfig)
     sizes: list[int] = Field([100, 300, 1000, 3000], description="Training-set sizes (nested subsets).")
     steps: int = Field(10000, ge=1, description="Training steps (utterances) per size: the equal budget.")
-    source: Literal["tracked", "ground_truth", "procedural"] = Field("tracked", description="Curves to learn.")
+    source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
     runner: RunnerConfig = RunnerField
 
@@ -158,7 +158,7 @@ class EvaluateParams(BaseModel):
     )
     seed: int = Field(0, description="Seed of the augmentations: the same seed gives the same augmented audio.")
     augment: AugmentConfig = Field(default_factory=AugmentConfig, description="Ranges (the paper's by default).")
-    source: Literal["tracked", "ground_truth", "procedural"] | None = Field(
+    source: Literal["tracked", "ground_truth", "procedural", "captured"] | None = Field(
         None, description="Target curves; default: those the first model was trained on.")
     variant: str | None = Field(None, description="Variant of those curves; default: the first model's.")
 

@@ -6,6 +6,7 @@ from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summa
 from visemeflow.flows.common import collect, finished, group_by_shard, totals
 from visemeflow.flows.params import ProceduralParams
 from visemeflow.schemas import C
+from visemeflow.schemas.tables import NO_ALIGNMENT
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_shard
@@ -31,7 +32,9 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     store.write_run_config(STAGE, {
         "variant": variant, "n_shards": params.n_shards, "config": params.config.model_dump(mode="json"),
     })
-    utterances = store.read_table("utterances").select(UTTERANCE_FIELDS).to_pylist()
+    # utterances with no alignment (captured takes, `visemeflow import-curves`) have no phones to make curves from
+    utterances = [r for r in store.read_table("utterances").select(UTTERANCE_FIELDS + [C.ALIGNMENT_FORMAT]).to_pylist()
+                  if r.pop(C.ALIGNMENT_FORMAT) != NO_ALIGNMENT]
     rejected = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
     shards = group_by_shard(utterances, C.UTTERANCE_ID, params.n_shards)
     futures = [

@@ -57,6 +57,7 @@ from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS, is_video_file
 from visemeflow.ingest.corpus import CorpusEntry, DiscoveryReject
 from visemeflow.ingest.utterance import IngestError, assign_split, read_audio_info
 from visemeflow.schemas import C, InvalidIdError, make_utterance_id, normalize_utterance_id
+from visemeflow.schemas.tables import NO_ALIGNMENT
 
 __all__ = [
     "BAD_INPUT_ERRORS",
@@ -85,7 +86,7 @@ __all__ = [
 ]
 
 CAPTURE_FORMATS = ("livelink", "csv", "npy")
-CAPTURED_ALIGNMENT_FORMAT = "none"
+CAPTURED_ALIGNMENT_FORMAT = NO_ALIGNMENT
 """`alignment_format` of the `utterances` rows of captured takes (they have no alignment; `alignment_path` is "")."""
 TAKE_MANIFEST = "takes.csv"
 MANIFEST_COLUMNS = ("utterance_id", "audio", "capture", "format", "channels", "names", "fps", "language", "split")

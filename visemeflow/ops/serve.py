@@ -51,6 +51,7 @@ def build_deployments(
 
     from visemeflow.flows.animate import animate_flow, preview_flow, speak_flow
     from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.import_curves import import_curves_flow
     from visemeflow.flows.ingest import ingest_flow
     from visemeflow.flows.pipeline import pipeline_flow
     from visemeflow.flows.predict import predict_flow
@@ -82,6 +83,8 @@ def build_deployments(
                    description="Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
         deployment(predict_flow, on_store,
                    description="Curves of new audio files from a trained model (the form asks for model and files)."),
+        deployment(import_curves_flow, on_store,
+                   description="Captured animation (Live Link CSV, channel files) as `captured` curves of real speech."),
         deployment(animate_flow, on_store,
                    description="Stored curves on characters: GLB, USD, Live Link CSV, web JSON and the audio."),
         deployment(speak_flow, on_store,

@@ -64,7 +64,10 @@ class C:
     TIME = "time"
 
 
-CURVE_SOURCES = ("procedural", "tracked", "predicted", "ground_truth")
+NO_ALIGNMENT = "none"
+"""`alignment_format` of an utterance without phones (a captured take): ingest keeps it, procedural skips it."""
+
+CURVE_SOURCES = ("procedural", "tracked", "predicted", "ground_truth", "captured")
 
 UTTERANCES = pa.schema([
     pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),

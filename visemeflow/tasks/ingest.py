@@ -14,6 +14,7 @@ from visemeflow.ingest import (
     ingest_utterance,
 )
 from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
+from visemeflow.schemas.tables import NO_ALIGNMENT
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, reject_row
 
@@ -73,6 +74,7 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     config_hash = stable_hash(config)
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
+    utterances += captured_rows(store, shard, {o.utterance_id for o in objs})
     store.write_shard("phones", shard, table_from_rows(phones, PHONES))
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
     store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),
@@ -100,6 +102,19 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
     if rejects:
         get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
     return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects)}
+
+
+def captured_rows(store: Store, shard: int, corpus_ids: set[str]) -> list[dict]:
+    """Rows of a shard that no corpus file made (captured takes, `visemeflow import-curves`: no alignment) and the
+    corpus does not hold now: an ingest keeps them."""
+    rows = store.read_shard("utterances", shard).to_pylist()
+    return [r for r in rows if r[C.ALIGNMENT_FORMAT] == NO_ALIGNMENT and r[C.UTTERANCE_ID] not in corpus_ids]
+
+
+def captured_shards(store: Store) -> set[int]:
+    """Shards holding captured takes' rows (an ingest whose corpus has none in them keeps them alive)."""
+    return {shard for shard in store.shards("utterances")
+            if NO_ALIGNMENT in store.read_shard("utterances", shard).column(C.ALIGNMENT_FORMAT).to_pylist()}
 
 
 def shard_files_present(store: Store, shard: int) -> bool:
