@@ -313,7 +313,8 @@ def evaluate(
 @app.command()
 def predict(
     audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
-    model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models).")],
+    model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models); "
+                                                       "default: the model shipped with the package.")] = "default",
     store: StoreOpt = DEFAULT_STORE,
     fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
     out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
@@ -328,7 +329,7 @@ def predict(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if not s.has_model(model):
+    if model != "default" and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
                    "`visemeflow train`", err=True)
         raise typer.Exit(2)
@@ -419,7 +420,7 @@ def animate(
 @app.command()
 def speak(
     audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
-    model: Annotated[str, typer.Option("--model", help="Model name in the store.")],
+    model: Annotated[str, typer.Option("--model", help="Model name in the store; default: the shipped model.")] = "default",
     character: CharactersOpt = None,
     store: StoreOpt = DEFAULT_STORE,
     formats: FormatsOpt = "glb,usd,livelink,json",
@@ -435,7 +436,7 @@ def speak(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if not s.has_model(model):
+    if model != "default" and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,

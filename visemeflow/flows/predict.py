@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
+from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
@@ -31,7 +32,8 @@ class PredictParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    model: str = Field(..., description="Name of a trained model in the store.")
+    model: str = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
+                                                   "with the package (installed into the store on first use).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
     fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the curves.")
     out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
@@ -40,6 +42,17 @@ class PredictParams(BaseModel):
     @classmethod
     def _safe_model(cls, name: str) -> str:
         return validate_name(name, "model name")
+
+
+def ensure_model(store: Store, model: str) -> None:
+    """Install the package's default model into the store when `model` is `default` and the store has none."""
+    if model == DEFAULT_MODEL and not store.has_model(model):
+        shipped = default_model_path()
+        if not shipped.is_file():
+            raise LookupError(f"this installation ships no default model ({shipped} missing); train one with "
+                              "`visemeflow train` and pass --model NAME")
+        store.install_model(model, shipped)
+        get_run_logger().info("installed the shipped default model into %s", store.model_path(model))
 
 
 def prediction_id(path: Path | str) -> str:
@@ -86,6 +99,7 @@ def _markdown(model: str, rows: list[dict]) -> str:
 def predict_flow(params: PredictParams) -> dict:
     """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies."""
     store = Store(params.store)
+    ensure_model(store, params.model)
     if not store.has_model(params.model):
         known = store.model_names()
         raise LookupError(f"no trained model named {params.model} in {store.root}; "

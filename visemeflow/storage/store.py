@@ -165,6 +165,11 @@ class Store:
         """Folder of a model's training checkpoints (an interrupted training resumes from them)."""
         return self.model_dir(model) / "checkpoints"
 
+    def install_model(self, model: str, source: Path) -> Path:
+        """Copy a trained model file (e.g. the package's default model) into the store as `model`, atomically."""
+        data = Path(source).read_bytes()
+        return self._replace(self.model_path(model), lambda tmp: Path(tmp).write_bytes(data))
+
     def has_model(self, model: str) -> bool:
         return self.model_path(model).is_file()
 
