@@ -65,6 +65,22 @@ def test_closure_recall_takes_the_highest_peak_within_the_phone_not_the_mean():
     assert [(s.first_frame, s.last_frame, s.apex_frame) for s in scores] == [(0, 2, 2), (3, 5, 5), (6, 9, 8)]
 
 
+def test_false_closures_count_the_other_phones_where_the_closure_viseme_is_on_top():
+    phones = [Phone(0.0, 0.2, "MBP"), Phone(0.2, 0.4, "AAA"), Phone(0.4, 0.6, "EH"), Phone(0.6, 0.8, None),
+              Phone(0.8, 1.0, "FFF")]
+    # MBP tops the b/p/m phone, the AAA phone (strictly) and ties with EH on the EH phone; FFF tops nothing
+    c = curves(MBP=[(0, .9), (2, .8), (4, .5), (7, 1.0)], AAA=[(3, .5)], EH=[(5, .5)], FFF=[(9, .2)], SSS=[(8, .3)])
+    s = score_utterance(c, FPS, phones)
+    assert s.closure == {"MBP": Recall(1, 1), "FFF": Recall(0, 1)}
+    assert s.false_closure == {"MBP": Recall(1, 3), "FFF": Recall(0, 3)}   # silence is no phone of another viseme
+    # a face that always shows MBP most has perfect closure recall and closes on every other phone too
+    shut = np.tile(np.where(np.array(VISEMES) == "MBP", 0.6, 0.1), (10, 1))
+    s = score_utterance(shut, FPS, phones)
+    assert s.closure["MBP"] == Recall(1, 1) and s.false_closure["MBP"] == Recall(3, 3)
+    pooled = pool([s, s])
+    assert pooled.false_closure["MBP"] == Recall(6, 6)
+
+
 def test_a_tie_for_the_top_is_not_a_hit_and_flat_curves_earn_nothing():
     phones = [Phone(0.0, 0.5, "FFF"), Phone(0.5, 1.0, "FFF")]
     tie = curves(FFF=[(1, .7), (6, .7)], SSS=[(2, .7)])

@@ -25,7 +25,10 @@ Metrics:
 
 * **closure recall** of a viseme (``MBP`` for b/p/m, ``FFF`` for f/v): among the scored phones whose viseme it
   is, the share whose top viseme it is. :class:`Recall` keeps ``hits`` and ``total``; ``share`` is ``None`` when
-  ``total`` is 0 (no such phone: undefined, not 0 and not 1).
+  ``total`` is 0 (no such phone: undefined, not 0 and not 1). Recall alone rewards a face that keeps its lips shut:
+  a constant curve whose largest weight is MBP has a recall of 1. Its counterpart, **false closures**
+  (``RealSpeechScores.false_closure``), is the share of the *other* scored phones whose top viseme (strictly) is
+  the closure viseme; read the two together.
 * **activation agreement**: at each scored phone's apex, the frame nearest its midpoint (the same
   ``floor(mid * fps + 0.5)``, clamped into the phone's frames), is the phone's own viseme among the top ``k = 2``
   of the 16 weights? Its rank is the number of *other* visemes whose weight is ``>=`` its own, and it is in the
@@ -124,8 +127,13 @@ class PhoneScore:
     last_frame: int          # inclusive
     apex_frame: int
     top: str                 # argmax of the per-viseme maxima over the phone (first in VISEMES order on a tie)
-    top_hit: bool            # the phone's viseme is strictly the top: no other viseme's maximum equals or beats it
+    top_unique: bool         # no other viseme's maximum equals the top's
     apex_rank: int           # other visemes whose weight at the apex is >= the phone's viseme's
+
+    @property
+    def top_hit(self) -> bool:
+        """The phone's viseme is strictly the top: no other viseme's maximum within the phone equals or beats it."""
+        return self.top_unique and self.top == self.viseme
 
 
 @dataclass(frozen=True)
@@ -135,6 +143,8 @@ class RealSpeechScores:
     closure: dict[str, Recall]
     agreement: Agreement
     skipped: int = 0         # phones outside the curves (start at or after their end)
+    # per closure viseme: of the scored phones of other visemes, those whose top (strictly) it is
+    false_closure: dict[str, Recall] = field(default_factory=dict)
 
 
 # ---- inputs -------------------------------------------------------------------------------------------------
@@ -220,12 +230,12 @@ def score_phones(curves: np.ndarray, fps: float,
             continue
         v = VISEME_INDEX[p.viseme]
         peaks = c[frames].max(axis=0)
-        others = np.delete(peaks, v)
+        top = int(np.argmax(peaks))
         apex = min(max(_nearest_frame(0.5 * (p.start_s + p.end_s), fps), int(frames[0])), int(frames[-1]))
         at_apex = c[apex]
         rank = int((np.delete(at_apex, v) >= at_apex[v]).sum())
         scored.append(PhoneScore(p.viseme, p.start_s, p.end_s, int(frames[0]), int(frames[-1]), apex,
-                                 VISEMES[int(np.argmax(peaks))], bool((others < peaks[v]).all()), rank))
+                                 VISEMES[top], bool((np.delete(peaks, top) < peaks[top]).all()), rank))
     return scored, skipped
 
 
@@ -234,6 +244,14 @@ def _closure(scores: Sequence[PhoneScore], visemes: Sequence[str]) -> dict[str, 
     for name in visemes:
         mine = [s for s in scores if s.viseme == name]
         out[name] = Recall(sum(s.top_hit for s in mine), len(mine))
+    return out
+
+
+def _false_closure(scores: Sequence[PhoneScore], visemes: Sequence[str]) -> dict[str, Recall]:
+    out = {}
+    for name in visemes:
+        others = [s for s in scores if s.viseme != name]
+        out[name] = Recall(sum(s.top == name and s.top_unique for s in others), len(others))
     return out
 
 
@@ -266,21 +284,24 @@ def score_utterance(curves: np.ndarray, fps: float, phones: pa.Table | Iterable[
                     visemes: Sequence[str] = CLOSURE_VISEMES, k: int = TOP_K) -> RealSpeechScores:
     """Closure recall and activation agreement of one utterance's curves, its phones scored once."""
     scores, skipped = score_phones(curves, fps, phones)
-    return RealSpeechScores(_closure(scores, visemes), _agreement(scores, k), skipped)
+    return RealSpeechScores(_closure(scores, visemes), _agreement(scores, k), skipped, _false_closure(scores, visemes))
 
 
 def pool(scores: Iterable[RealSpeechScores]) -> RealSpeechScores:
     """Several utterances' scores as one: hits and totals added (each phone weighs the same)."""
     closure: dict[str, Recall] = {}
+    false: dict[str, Recall] = {}
     overall, per, skipped = Recall(), {}, 0
     for s in scores:
         for name, r in s.closure.items():
             closure[name] = closure.get(name, Recall()) + r
+        for name, r in s.false_closure.items():
+            false[name] = false.get(name, Recall()) + r
         overall = overall + s.agreement.overall
         for name, r in s.agreement.per_viseme.items():
             per[name] = per.get(name, Recall()) + r
         skipped += s.skipped
-    return RealSpeechScores(closure, Agreement(overall, {v: per[v] for v in VISEMES if v in per}), skipped)
+    return RealSpeechScores(closure, Agreement(overall, {v: per[v] for v in VISEMES if v in per}), skipped, false)
 
 
 # ---- against reference curves -------------------------------------------------------------------------------
