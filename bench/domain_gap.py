@@ -1,0 +1,183 @@
+"""Closing the domain gap: which training data makes a model hold on real speech of speakers it never heard
+(issue 14, item 3). Printed, never asserted.
+
+Run: .venv/bin/python bench/domain_gap.py [--steps 1200] [--d-model 128] [--recipes synthetic,synthetic+aug,real,mixed+aug]
+
+Training data (all shippable):
+- synthetic: the espeak-ng scale corpus of bench/learning_data.py (700 English + 500 Mandarin utterances, 36
+  voice/rate speakers; targets: synthetic Cohen-Massaro curves from the alignment), its training split;
+- real: the LJSpeech examples of `examples/corpus/LJ` (one female English speaker; targets: the same synthetic
+  curves from their MFA alignments) and FACEGOOD takes 02-04 (one female Mandarin speaker, ~5.6 min; targets: the
+  animator's captured curves, converted to our 16 visemes by `visemeflow.animation.capture`), cut into 8 s pieces.
+Recipes: `synthetic`, `synthetic+aug` (train-time augmentation, probability 0.5), `real`, `mixed+aug` (both,
+augmented). One fbank-blstm each (`--d-model`), seed 0, one utterance per step, the same budget of `--steps` steps
+for every recipe (so a small real set is seen for more epochs).
+
+Judged on real speech of speakers no recipe trained on:
+- GRID s1 (10 clips, male English; phones from the word alignment and CMUdict) and the charsiu Mandarin
+  utterance (AISHELL-3 speaker SSB1624 -- excluded from training): MBP and FFF closure recall and top-2 agreement
+  (`visemeflow.learning.realspeech`, no curve truth needed);
+- FACEGOOD take 05 (held out; the same speaker as takes 02-04, so a held-out *take*, not a held-out speaker): L1 x 100
+  against the captured curves and the mean per-viseme correlation, with the floor of the training takes' mean curve.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from learning_data import load_data  # noqa: E402
+from realspeech import FPS, SAMPLE_RATE, SHARED, read_corpus  # noqa: E402
+
+from visemeflow.animation.capture import fit_visemes  # noqa: E402
+from visemeflow.ingest.audio import read_audio  # noqa: E402
+from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
+from visemeflow.learning.features import resample_audio  # noqa: E402
+from visemeflow.learning.realspeech import compare_curves, pool, score_utterance  # noqa: E402
+from visemeflow.learning.train import Example, TrainConfig, predict_curves, train_model  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+FACEGOOD = SHARED / "facegood_audio2face"
+TRAIN_TAKES = ("1114_2_02", "1114_2_03", "1114_2_04")
+HELD_OUT_TAKE = "1114_2_05"
+PIECE_S = 8.0
+RECIPES = ("synthetic", "synthetic+aug", "real", "real+aug", "mixed+aug")
+
+
+def facegood_take(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(16 kHz audio, (T, 16) captured viseme curves at 30 fps) of one FACEGOOD take."""
+    table = read_channel_table(ROOT / "examples" / "facegood" / "voice2face_arkit.csv")
+    take = read_take(FACEGOOD / f"bs_value_{name}.npy", "npy", table=table,
+                     names=FACEGOOD / "shirley_1015_bs_name.npy", fps=FPS)
+    samples, rate = read_audio(FACEGOOD / f"{name}.wav")
+    return resample_audio(samples, rate, SAMPLE_RATE), fit_visemes(take.arkit).curves
+
+
+def pieces(uid: str, audio: np.ndarray, curves: np.ndarray) -> list[Example]:
+    """A long take cut into PIECE_S-second examples (the last piece takes what is left)."""
+    n = min(len(curves), int(len(audio) / SAMPLE_RATE * FPS))
+    step = int(PIECE_S * FPS)
+    out = []
+    for k, start in enumerate(range(0, n - int(FPS), step)):
+        end = min(start + step, n)
+        out.append(Example(f"{uid}/{k:03d}", audio[int(start / FPS * SAMPLE_RATE):int(end / FPS * SAMPLE_RATE)],
+                           curves[start:end].astype(np.float32), FPS))
+    return out
+
+
+def grid_corpus(tmp: Path) -> Path:
+    """GRID s1's clips (video with audio + word alignment) in the corpus layout, copied under `tmp`."""
+    folder = tmp / "grid" / "s1"
+    folder.mkdir(parents=True)
+    for align in sorted((SHARED / "grid_s1" / "align").glob("*.align")):
+        shutil.copyfile(align, folder / align.name)
+        shutil.copyfile(SHARED / "grid_s1" / "video" / f"{align.stem}.mpg", folder / f"{align.stem}.mpg")
+    return folder.parent
+
+
+@dataclass
+class Sets:
+    synthetic: object              # learning_data.Data: train / val Examples of the espeak corpus (or None)
+    real: list[Example]            # LJ examples + FACEGOOD training-take pieces
+    held_out: list                 # realspeech.Utterance of GRID s1 and the charsiu Mandarin utterance
+    test_audio: np.ndarray         # FACEGOOD take 05
+    test_curves: np.ndarray
+    floor: np.ndarray              # (16,) mean curve of the FACEGOOD training takes
+
+
+def load_sets(synthetic: bool = True) -> Sets:
+    """The training sets and the held-out real speech (see the module); `synthetic=False` skips the espeak corpus
+    (for judging a trained model only)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        lj = [u for u in read_corpus(ROOT / "examples" / "corpus") if u.speaker == "LJ"]
+        held_out = read_corpus(grid_corpus(tmp))
+        zh = tmp / "zh" / "SSB1624"
+        zh.mkdir(parents=True)
+        shutil.copyfile(SHARED / "charsiu_mandarin" / "SSB16240001_16k.wav", zh / "SSB16240001.wav")
+        shutil.copyfile(SHARED / "charsiu_mandarin" / "SSB16240001.TextGrid", zh / "SSB16240001.TextGrid")
+        held_out += read_corpus(zh.parent)
+    captured = [e for name in TRAIN_TAKES for e in pieces(f"facegood/{name}", *facegood_take(name))]
+    real = [Example(u.uid, u.audio, u.truth.astype(np.float32), FPS) for u in lj] + captured
+    test_audio, test_curves = facegood_take(HELD_OUT_TAKE)
+    floor = np.concatenate([e.curves for e in captured]).mean(axis=0)
+    return Sets(load_data(700, 500) if synthetic else None, real, held_out, test_audio, test_curves, floor)
+
+
+def judge(sets: Sets, predict) -> dict:
+    """Real-speech figures of `predict(audio, n_frames) -> (n, 16)` on the held-out sets."""
+    scores = pool(score_utterance(predict(u.audio, len(u.truth)), FPS, u.phones) for u in sets.held_out)
+    comparison = compare_curves(predict(sets.test_audio, len(sets.test_curves)), sets.test_curves, FPS)
+    return {"mbp": scores.closure["MBP"], "fff": scores.closure["FFF"], "agreement": scores.agreement.overall,
+            "captured_l1_x100": comparison.l1_x100, "captured_mean_pearson": comparison.mean_pearson}
+
+
+def row(name: str, j: dict) -> str:
+    def share(r) -> str:
+        return f"{r.hits}/{r.total} ({100 * (r.share or 0):.0f}%)"
+
+    return (f"| {name} | {share(j['mbp'])} | {share(j['fff'])} | {share(j['agreement'])} | "
+            f"{j['captured_l1_x100']:.2f} | {j['captured_mean_pearson']:.2f} |")
+
+
+HEADER = ("| model | MBP closure (GRID + Mandarin) | FFF closure | top-2 agreement | FACEGOOD take 05 L1 x 100 | "
+          "mean correlation |\n|---|---|---|---|---|---|")
+
+
+def recipe_config(recipe: str, n_train: int, steps: int, d_model: int) -> TrainConfig:
+    """fbank-blstm at an equal budget of `steps` steps; augmented recipes at probability 0.5."""
+    epochs = -(-steps // n_train)
+    return TrainConfig(preset="fbank-blstm", d_model=d_model, epochs=epochs, seed=0,
+                       max_steps_per_epoch=min(n_train, -(-steps // epochs)),
+                       train_augment=recipe.endswith("+aug"), train_augment_probability=0.5)
+
+
+def recipe_data(sets: Sets, recipe: str) -> list[Example]:
+    return {"synthetic": sets.synthetic.train, "synthetic+aug": sets.synthetic.train, "real": sets.real,
+            "real+aug": sets.real, "mixed+aug": sets.synthetic.train + sets.real}[recipe]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=1200, help="training steps (utterances) per recipe: equal budget")
+    parser.add_argument("--d-model", type=int, default=128)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--recipes", default=",".join(RECIPES))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    sets = load_sets()
+    print(f"data in {time.perf_counter() - t0:.0f} s: synthetic {len(sets.synthetic.train)} train utterances; real "
+          f"{len(sets.real)} examples (LJ + FACEGOOD pieces); judged on {len(sets.held_out)} held-out utterances "
+          f"and FACEGOOD {HELD_OUT_TAKE} ({len(sets.test_curves)} frames)", flush=True)
+    rows = [row("mean curve of the FACEGOOD training takes (floor)",
+                judge(sets, lambda audio, n: np.tile(sets.floor, (n, 1)).astype(np.float32)))]
+    for recipe in args.recipes.split(","):
+        train = recipe_data(sets, recipe)
+        started = time.perf_counter()
+        model = train_model(train, sets.synthetic.val[:20], recipe_config(recipe, len(train), args.steps,
+                                                                          args.d_model)).model
+        print(f"{recipe}: trained on {len(train)} examples in {time.perf_counter() - started:.0f} s", flush=True)
+        rows.append(row(f"fbank-blstm, {recipe}", judge(
+            sets, lambda audio, n, model=model: predict_curves(model, audio, SAMPLE_RATE, FPS, n_frames=n))))
+    print()
+    print(HEADER)
+    for r in rows:
+        print(r)
+    print(f"\ntargets on held-out real speech: MBP closure >= 85%; captured L1 >= 25% below the floor. "
+          f"total {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
