@@ -131,3 +131,24 @@ def test_sweep_flow_trains_each_size_and_plots(tmp_path):
     assert result["validation_utterances"] == 2
     assert (s.root / "reports" / "sweep-fbank-tcn.png").stat().st_size > 1000
     assert {m[C.MODEL] for m in s.read_metrics().to_pylist()} == {"sweep-fbank-tcn-n2", "sweep-fbank-tcn-n4"}
+
+
+def test_training_without_validation_utterances_finishes_and_reports_no_validation(tmp_path):
+    from visemeflow.storage import Store
+    from visemeflow.tasks.train import train_model_task
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.schemas import C
+
+    from prefect import flow
+
+    s = make_curve_store(tmp_path / "store", n=3)
+    rows = s.read_table("utterances").to_pylist()
+
+    @flow
+    def train_without_validation():
+        return train_model_task(str(s.root), "noval", rows, [], "ground_truth", "cm", {},
+                                TrainConfig(preset="fbank-tcn", d_model=8, epochs=2))
+
+    result = train_without_validation()
+    assert result["epochs"] == 2 and result["val"] == 0 and Store(s.root).has_model("noval")
+    assert not [m for m in s.read_metrics().to_pylist() if m[C.MODEL] == "noval" and m[C.RUN] == "train"]

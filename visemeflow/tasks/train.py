@@ -71,8 +71,9 @@ def train_model_task(
 
     def report(epoch: EpochReport) -> None:
         history.append(epoch)
-        logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %.3f, %.0f frames/s", model_name, epoch.epoch,
-                    epoch.train_l1_x100, epoch.val_l1_x100, epoch.frames_per_s)
+        val = "-" if epoch.val_l1_x100 is None else f"{epoch.val_l1_x100:.3f}"  # no validation utterances
+        logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %s, %.0f frames/s", model_name, epoch.epoch,
+                    epoch.train_l1_x100, val, epoch.frames_per_s)
 
     result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report)
     model_path = save_model(result.model, config, store.model_path(model_name), lineage)
@@ -89,7 +90,8 @@ def train_model_task(
     store.write_metrics(model_name, "train", pa.Table.from_pylist(rows, schema=METRICS))
     create_table_artifact(
         key=f"loss-curve-{model_name.lower().replace('_', '-').replace('.', '-')}",
-        table=[{"epoch": e.epoch, "train_l1_x100": round(e.train_l1_x100, 3), "val_l1_x100": round(e.val_l1_x100, 3),
+        table=[{"epoch": e.epoch, "train_l1_x100": round(e.train_l1_x100, 3),
+                "val_l1_x100": None if e.val_l1_x100 is None else round(e.val_l1_x100, 3),
                 "frames_per_s": round(e.frames_per_s)} for e in result.history],
         description=f"{model_name}: L1 x 100 per epoch",
     )
