@@ -1,0 +1,106 @@
+"""Where models run: ``--device auto|cpu|cuda`` and mixed precision (pure torch, no Prefect).
+
+:func:`resolve_device` turns the command-line word into a ``torch.device``:
+
+* ``auto``: ``cuda`` when ``torch.cuda.is_available()``, else ``cpu``;
+* ``cpu``;
+* ``cuda`` or ``cuda:N``: the GPU, or :class:`DeviceError` (one line) when this torch has no CUDA or no GPU
+  is visible, or when there is no device N. Nothing falls back to the CPU silently when a GPU was asked for.
+
+:func:`autocast_context` is the mixed-precision context for a forward pass: ``torch.autocast`` on CUDA with
+bfloat16 (``"bf16"``) or float16 (``"fp16"``), and a no-op on the CPU or with ``dtype=None``, so CPU runs stay
+bit-identical to runs without it. Training in fp16 also needs loss scaling (:func:`grad_scaler`); bf16 does
+not. The CPU is the reference: the exact-resume guarantee of ``train_model`` (bit-identical weights) holds
+there; CUDA kernels (cuDNN LSTMs, atomics in reductions) are not bit-reproducible by default.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+from collections.abc import Iterator
+from typing import Literal
+
+import torch
+
+__all__ = [
+    "DEVICE_CHOICES",
+    "AutocastDtype",
+    "DeviceError",
+    "autocast_context",
+    "grad_scaler",
+    "resolve_device",
+]
+
+DEVICE_CHOICES = ("auto", "cpu", "cuda")  # what --device offers (cuda:N is accepted too)
+AutocastDtype = Literal["bf16", "fp16"]
+_AUTOCAST_DTYPES: dict[str, torch.dtype] = {"bf16": torch.bfloat16, "fp16": torch.float16}
+_CUDA_N = re.compile(r"^cuda(?::(\d+))?$")
+
+NO_CUDA = (
+    "cuda requested but torch.cuda.is_available() is False (CPU-only torch build or no GPU); "
+    "use --device cpu or auto"
+)
+
+
+class DeviceError(RuntimeError):
+    """The requested device cannot be used here; the message is one line, fit for a command's error output."""
+
+
+def resolve_device(request: str) -> torch.device:
+    """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` (case and surrounding spaces ignored) -> ``torch.device``."""
+    word = str(request).strip().lower()
+    if word == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if word == "cpu":
+        return torch.device("cpu")
+    m = _CUDA_N.match(word)
+    if m is None:
+        raise DeviceError(f"unknown device {request!r}; expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)")
+    if not torch.cuda.is_available():
+        raise DeviceError(NO_CUDA)
+    if m.group(1) is None:
+        return torch.device("cuda")
+    index, count = int(m.group(1)), torch.cuda.device_count()
+    if index >= count:
+        raise DeviceError(f"{word} requested but torch sees {count} CUDA device(s) (cuda:0..cuda:{count - 1})")
+    return torch.device("cuda", index)
+
+
+def _check_dtype(dtype: str | None) -> torch.dtype | None:
+    if dtype is None:
+        return None
+    if dtype not in _AUTOCAST_DTYPES:
+        raise DeviceError(f"unknown autocast dtype {dtype!r}; expected bf16, fp16 or None")
+    return _AUTOCAST_DTYPES[dtype]
+
+
+@contextlib.contextmanager
+def autocast_context(device: torch.device | str, dtype: AutocastDtype | None = "bf16") -> Iterator[None]:
+    """Mixed precision for the forward passes inside; a no-op on the CPU and with ``dtype=None``.
+
+    On CUDA, ``"bf16"`` needs a GPU that supports it (``torch.cuda.is_bf16_supported()``, Ampere and newer):
+    otherwise :class:`DeviceError` rather than torch's silent fallback. Ops autocast keeps in float32
+    (reductions, losses, softmax) stay float32; outputs of matmuls / convolutions / LSTMs are ``dtype``.
+    """
+    device = torch.device(device)
+    torch_dtype = _check_dtype(dtype)
+    if torch_dtype is None or device.type == "cpu":
+        yield
+        return
+    if device.type != "cuda":
+        raise DeviceError(f"no autocast for device type {device.type!r} (cpu or cuda)")
+    if not torch.cuda.is_available():
+        raise DeviceError(NO_CUDA)
+    if torch_dtype is torch.bfloat16 and not torch.cuda.is_bf16_supported():
+        raise DeviceError("bf16 autocast requested but this GPU has no bfloat16 support; use fp16 or None")
+    with torch.autocast(device_type="cuda", dtype=torch_dtype):
+        yield
+
+
+def grad_scaler(device: torch.device | str, dtype: AutocastDtype | None) -> torch.amp.GradScaler:
+    """Loss scaling for training under :func:`autocast_context`: enabled for fp16 on CUDA only (a pass-through
+    otherwise: ``scale(loss)`` returns the loss, ``step(opt)`` calls ``opt.step()``)."""
+    device = torch.device(device)
+    enabled = _check_dtype(dtype) is torch.float16 and device.type == "cuda"
+    return torch.amp.GradScaler("cuda" if enabled else "cpu", enabled=enabled)
