@@ -155,3 +155,19 @@ def test_animate_and_preview_commands_print_every_file_and_refuse_bad_options(tm
     assert bad.exit_code == 2 and "unknown convention 'arkit'; known: visemeflow16, arkit52, oculus15" in bad.output
     nothing = runner.invoke(app, ["speak", str(tmp_path / "x.wav"), "--model", "nope", "--store", str(store.root)])
     assert nothing.exit_code == 2 and "no model 'nope'" in nothing.output
+
+
+def test_export_model_writes_an_onnx_graph_that_onnxruntime_runs(tmp_path):
+    import onnxruntime
+
+    out = tmp_path / "default.onnx"
+    result = runner.invoke(app, ["export-model", "default", "--out", str(out), "--store", str(tmp_path / "store")])
+    assert result.exit_code == 0, result.output
+    assert "onnxruntime vs torch max |diff|" in result.output and out.is_file()
+    session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    (curves,) = session.run(None, {"audio": np.zeros((1, 16000), np.float32)})
+    assert curves.shape == (1, 30, 16)
+    missing = runner.invoke(app, ["export-model", "nope", "--out", str(out), "--store", str(tmp_path / "store")])
+    assert missing.exit_code == 2 and "no model 'nope'" in missing.output
+    bad = runner.invoke(app, ["export-model", "default", "--out", str(out), "--format", "fbx"])
+    assert bad.exit_code == 2 and "unknown format 'fbx'" in bad.output

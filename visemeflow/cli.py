@@ -471,6 +471,44 @@ def preview_command(
                f"{', '.join(result['sources'])}; rendered at {result['frames_per_second']:.1f} frames/s)")
 
 
+@app.command("export-model")
+def export_model(
+    model: Annotated[str, typer.Argument(help="Model name in the store (`default`: the shipped model).")],
+    out: Annotated[Path, typer.Option("--out", help="Output file (.onnx).")],
+    store: StoreOpt = DEFAULT_STORE,
+    format: Annotated[str, typer.Option("--format", help="onnx (what Unity Sentis and Unreal NNE load).")] = "onnx",
+    opset: Annotated[int, typer.Option(help="ONNX opset (15 for Unity Sentis before 2.6).")] = 17,
+    sample_rate: Annotated[int, typer.Option(help="Rate of the graph's audio input (mono float32).")] = 16000,
+    fps: Annotated[Optional[float], typer.Option(help="Curve frame rate; default: the model's own.")] = None,
+    check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4).")] = True,
+) -> None:
+    """Export a trained model for engines: an ONNX graph, audio samples in, (1, frames, 16) curves out."""
+    from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
+    from visemeflow.storage import Store
+
+    if format != "onnx":
+        typer.echo(f"error: unknown format {format!r}; use onnx", err=True)
+        raise typer.Exit(2)
+    s = Store(store)
+    path = s.model_path(model) if s.has_model(model) or model != DEFAULT_MODEL else default_model_path()
+    if not path.is_file():
+        typer.echo(f"error: no model {model!r} in {s.root} ({path} missing)", err=True)
+        raise typer.Exit(2)
+    try:
+        from visemeflow.learning.onnx_export import OnnxExportError, export_onnx
+    except ImportError as exc:
+        typer.echo(f"error: {exc}; install the onnx extra: pip install 'visemeflow[onnx]'", err=True)
+        raise typer.Exit(2) from None
+    try:
+        report = export_onnx(path, out, opset=opset, sample_rate=sample_rate, fps=fps, check=check)
+    except OnnxExportError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    checked = f", onnxruntime vs torch max |diff| {report.max_abs_diff:.1e}" if report.max_abs_diff is not None else ""
+    typer.echo(f"wrote {report.path} ({report.size_bytes / 1e6:.2f} MB, opset {report.opset}, {report.preset}, "
+               f"audio {report.sample_rate} Hz mono -> curves at {report.fps:g} fps{checked})")
+
+
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
