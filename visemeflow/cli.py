@@ -7,6 +7,9 @@ from typing import Annotated, Optional
 
 # Analytics in embedded mode cause "database is locked" errors; set before Prefect is imported.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+# The embedded server's first start migrates a fresh database; on a loaded 2-core machine that takes longer than
+# Prefect's 20 s default (seen in CI: "Timed out while attempting to connect to ephemeral Prefect API server").
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 import typer  # noqa: E402
 
