@@ -190,7 +190,7 @@ def read_livelink_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndar
         try:
             numbers = [float(row[i]) for i in value_columns]
         except ValueError:
-            bad = next(i for i in value_columns if not _is_number(row[i]))
+            bad = next(i for i in value_columns if not is_number(row[i]))
             raise ValueError(f"{path}, line {line}: column {header[bad]!r} holds {row[bad]!r}, not a number") from None
         if not all(math.isfinite(x) for x in numbers):
             bad = next(i for i, x in zip(value_columns, numbers) if not math.isfinite(x))
@@ -204,7 +204,8 @@ def read_livelink_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndar
     return LIVELINK_COLUMNS, weights, timecodes
 
 
-def _is_number(text: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether a CSV cell reads as a float (what every per-frame CSV reader checks its cells with)."""
     try:
         float(text)
     except ValueError:

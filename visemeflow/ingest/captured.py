@@ -50,7 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.animation.capture import ArkitToVisemes, CaptureError, VisemeFit, fit_visemes
 from visemeflow.animation.conventions import ARKIT_52
-from visemeflow.animation.livelink import arkit_from_livelink, parse_timecode, read_livelink_csv
+from visemeflow.animation.livelink import arkit_from_livelink, is_number, parse_timecode, read_livelink_csv
 from visemeflow.atomic import atomic_write_text
 from visemeflow.hashing import files_hash, stable_hash
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS, is_video_file
@@ -581,7 +581,7 @@ def read_channel_csv(path: str | Path, table: ChannelTable | None = None, fps: f
             if time_col is not None:
                 times.append(float(row[time_col]))
         except ValueError:
-            bad = next(i for i in keep + ([time_col] if time_col is not None else []) if not _is_float(row[i]))
+            bad = next(i for i in keep + ([time_col] if time_col is not None else []) if not is_number(row[i]))
             raise CaptureReadError(str(path), "BadValue",
                                    f"line {line}: column {header[bad]!r} holds {row[bad]!r}, not a number") from None
     values = np.array(rows, dtype=np.float64).reshape(len(rows), len(keep))
@@ -594,14 +594,6 @@ def read_channel_csv(path: str | Path, table: ChannelTable | None = None, fps: f
             raise CaptureReadError(str(path), "BadTimecode", "the time column does not increase from row to row")
         fps = round(1.0 / statistics.median(steps.tolist()), 3)
     return _channels_to_arkit(tuple(header[i] for i in keep), values, table, path, _fps_or_error(fps, path), "csv")
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def _load_npy(path: Path) -> np.ndarray:
