@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 from factories import SHARED_DATA
 
-from visemeflow.tracking.video import VideoError, frame_times, probe_video, read_video_frames, write_video
+from visemeflow.tracking.video import (
+    VideoError,
+    frame_times,
+    grid_rate,
+    probe_video,
+    read_timed_frames,
+    read_video_frames,
+    write_video,
+)
 
 TALKING = SHARED_DATA / "talking_heads"
 VFR_CLIP = TALKING / "1.mp4"
@@ -83,11 +91,62 @@ def test_audio_start_is_time_zero(tmp_path):
     assert np.allclose(times, np.arange(12) / 25.0, atol=2e-3)
 
 
+def zeroed_video(path):
+    """A video whose container, stream and frame index are intact but whose frame data are all zero bytes."""
+    write_video(path, [np.full((48, 64, 3), 20 * k, np.uint8) for k in range(10)], 25)
+    data = bytearray(path.read_bytes())
+    at = data.index(b"mdat")
+    size = int.from_bytes(data[at - 4:at], "big")
+    data[at + 4:at - 4 + size] = bytes(size - 8)
+    path.write_bytes(bytes(data))
+    return path
+
+
 def test_no_decodable_frames_is_an_error_naming_the_file(tmp_path):
-    path = _write_timed(tmp_path / "empty.mkv", [])
-    with pytest.raises(VideoError, match="empty.mkv"):
+    path = zeroed_video(tmp_path / "zeroed.mp4")
+    with pytest.raises(VideoError, match=r"zeroed\.mp4: video decoding failed"):
         frame_times(path)
     bad = tmp_path / "junk.mp4"
     bad.write_bytes(b"\x00" * 4096)
-    with pytest.raises(VideoError, match="junk.mp4"):
-        frame_times(bad)
+    for fn in (frame_times, probe_video):
+        with pytest.raises(VideoError, match=r"junk\.mp4: not a readable video"):
+            fn(bad)
+
+
+def test_mpeg4_encoder_writes_readable_video(tmp_path):
+    frames = [np.full((48, 64, 3), 20 * k, np.uint8) for k in range(6)]
+    path = write_video(tmp_path / "m4.mp4", frames, 25, video_codec="mpeg4")
+    assert probe_video(path).video_codec == "mpeg4"
+    got = read_video_frames(path)
+    assert got.shape == (6, 48, 64, 3) and np.abs(got.astype(int) - np.stack(frames)).mean() < 3
+
+
+def test_probe_reports_the_frame_grid():
+    assert VFR_CLIP.is_file() and GRID_CLIP.is_file() and CFR_CLIP.is_file(), "missing test data"
+    vfr = probe_video(VFR_CLIP)
+    assert vfr.grid_fps == 30.0 and vfr.nominal_fps == 30.0 and vfr.variable_rate
+    assert vfr.first_frame_s == pytest.approx(0.033, abs=1e-3)
+    assert vfr.last_frame_s == pytest.approx(93691 / 15360, abs=1e-9)
+    assert vfr.grid_frames == 184            # 0 .. 6.1 s at 30 fps: the 135 frames and 49 the clip lacks
+    assert np.array_equal(np.round(frame_times(VFR_CLIP) * 30).astype(int) == 0, np.zeros(135, bool))
+    for clip, fps, n in ((GRID_CLIP, 25.0, 75), (CFR_CLIP, 30.0, 199)):
+        info = probe_video(clip)
+        assert (info.fps, info.grid_fps, info.n_frames, info.grid_frames) == (fps, fps, n, n)
+        assert not info.variable_rate and info.first_frame_s == 0.0
+
+
+def test_grid_rate_picks_the_lowest_stream_rate_holding_every_frame():
+    on_30 = np.array([0, 1, 3, 4, 6, 7, 9], float) / 30 + 0.033
+    assert grid_rate(on_30, [1350 / 61, 30.0]) == 30.0
+    assert grid_rate(np.arange(10) / 25, [50.0, 25.0]) == 25.0
+    jitter = np.cumsum(np.r_[0, np.random.default_rng(0).uniform(0.030, 0.037, 40)])
+    assert 27 < grid_rate(jitter, [30.0]) < 33            # no stream rate holds it: 1 / the median interval
+    assert grid_rate(np.array([0.5])) is None
+
+
+def test_read_timed_frames_is_one_pass_of_frames_and_times():
+    assert VFR_CLIP.is_file(), f"missing test data {VFR_CLIP}"
+    frames, times = read_timed_frames(VFR_CLIP)
+    assert frames.shape == (135, 700, 700, 3) and frames.dtype == np.uint8
+    assert np.array_equal(times, frame_times(VFR_CLIP))
+    assert np.array_equal(frames[[0, 77, 134]], read_video_frames(VFR_CLIP)[[0, 77, 134]])

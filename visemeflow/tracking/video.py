@@ -53,6 +53,30 @@ class VideoInfo:
     video_codec: str = ""
     audio_codec: str | None = None
     container_duration_s: float | None = None   # what the container header says (GRID: 2.98 for 75 frames at 25)
+    # Frame times (presentation time stamps on the audio's clock, see frame_times); defaults: frame k at k / fps
+    first_frame_s: float = 0.0       # when the first frame is shown (talking_heads/1.mp4: 0.033 s after the audio)
+    last_frame_s: float | None = None
+    grid_fps: float | None = None    # the rate whose grid the frames sit on (1.mp4: 30, while fps says 22.13)
+
+    @property
+    def nominal_fps(self) -> float:
+        """The frame grid's rate: `grid_fps`, else `fps`."""
+        return self.grid_fps or self.fps
+
+    @property
+    def grid_frames(self) -> int:
+        """Frames at `nominal_fps` from the audio's start (time 0) to the last frame: the curve grid of the clip
+        (k / nominal_fps). Equals `n_frames` for constant-rate video that starts with its audio."""
+        last = self.last_frame_s if self.last_frame_s is not None else (self.n_frames - 1) / self.fps
+        return max(1, int(round(last * self.nominal_fps)) + 1)
+
+    @property
+    def variable_rate(self) -> bool:
+        """Whether frames are missing from the grid between the first and the last frame (or off it)."""
+        if self.last_frame_s is None:
+            return False
+        span = int(round((self.last_frame_s - self.first_frame_s) * self.nominal_fps)) + 1
+        return span != self.n_frames or abs(self.nominal_fps - self.fps) > 1e-3 * self.fps
 
 
 def _open(path: Path):
@@ -113,15 +137,61 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
             raise VideoError(f"{path}: video stream has no frame size")
         audio = container.streams.audio[0] if container.streams.audio else None
         container_dur = None if container.duration is None else container.duration / av.time_base
-        return VideoInfo(
-            path=path, width=int(width), height=int(height), fps=fps, n_frames=n_frames,
-            duration_s=n_frames / fps, has_audio=audio is not None,
-            audio_rate=None if audio is None else int(audio.codec_context.sample_rate),
-            audio_channels=None if audio is None else int(audio.codec_context.channels),
-            video_codec=stream.codec_context.name,
-            audio_codec=None if audio is None else audio.codec_context.name,
-            container_duration_s=container_dur,
-        )
+        rates = [float(r) for r in (stream.average_rate, stream.guessed_rate, stream.base_rate)
+                 if r is not None and r > 0]
+        audio_start = _audio_start_s(container)
+        audio_rate = None if audio is None else int(audio.codec_context.sample_rate)
+        audio_channels = None if audio is None else int(audio.codec_context.channels)
+        video_codec = stream.codec_context.name
+        audio_codec = None if audio is None else audio.codec_context.name
+    if n_frames == 0:
+        raise VideoError(f"{path}: no decodable video frames")
+    times = _packet_times(path)
+    if len(times) == n_frames:
+        times = times - (times[0] if audio_start is None else audio_start)
+    else:                                # packets without time stamps, or not one frame each: decode
+        times = frame_times(path)
+    return VideoInfo(
+        path=path, width=int(width), height=int(height), fps=fps, n_frames=n_frames,
+        duration_s=n_frames / fps, has_audio=audio is not None, audio_rate=audio_rate,
+        audio_channels=audio_channels, video_codec=video_codec, audio_codec=audio_codec,
+        container_duration_s=container_dur, first_frame_s=float(times[0]), last_frame_s=float(times[-1]),
+        grid_fps=grid_rate(times, rates),
+    )
+
+
+def _packet_times(path: Path) -> np.ndarray:
+    """Sorted presentation times (s, container clock) of the video packets that carry one, read without decoding;
+    packets without a time stamp are left out (the caller then decodes)."""
+    out: list[float] = []
+    with _open(path) as container:
+        stream = _video_stream(container, path)
+        try:
+            for packet in container.demux(stream):
+                if packet.size and packet.pts is not None and packet.time_base is not None:
+                    out.append(float(packet.pts * packet.time_base))
+        except av.error.FFmpegError as exc:
+            raise VideoError(f"{path}: video demuxing failed ({exc})") from exc
+    return np.unique(np.asarray(out, np.float64))
+
+
+def grid_rate(times: np.ndarray, rates: Iterable[float] = ()) -> float | None:
+    """The frame rate whose grid (first frame + k / rate) the frame `times` sit on: the lowest of the stream's
+    rates `rates` (average, guessed, base) that holds every frame within a tenth of a frame, else 1 / the median
+    frame interval (rounded to 1e-3); None for fewer than two frames.
+
+    GRID: 25 (its base rate 50 holds the frames too, but 25 is the lower); talking_heads/1.mp4: 30 (its average
+    rate 22.13 does not hold them); a phone's jittery clip: about its median rate."""
+    times = np.asarray(times, np.float64)
+    if len(times) < 2:
+        return None
+    offsets = times - times[0]
+    for rate in sorted(r for r in rates if r > 0):
+        steps = offsets * rate
+        if np.abs(steps - np.round(steps)).max() < 0.1:
+            return float(rate)
+    step = float(np.median(np.diff(times)))
+    return round(1.0 / step, 3) if step > 0 else None
 
 
 def _audio_start_s(container) -> float | None:
@@ -144,14 +214,26 @@ def frame_times(path: str | os.PathLike) -> np.ndarray:
     nominal frame after the previous one. :class:`VideoError` naming the file when no frame decodes or the time
     stamps do not increase.
     """
-    path = Path(path)
+    return _decode_timed(Path(path), images=False)[1]
+
+
+def read_timed_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Every decoded frame, (T, H, W, 3) uint8 RGB, with its :func:`frame_times` (T,), from one decoding pass."""
+    images, times = _decode_timed(Path(path), images=True)
+    return np.stack(images), times
+
+
+def _decode_timed(path: Path, images: bool) -> tuple[list[np.ndarray], np.ndarray]:
     raw: list[float | None] = []
+    out: list[np.ndarray] = []
     with _open(path) as container:
         stream = _video_stream(container, path)
         stream.thread_type = "AUTO"
         fps = _stream_fps(stream) or 25.0
         for frame in _decode_video(container, stream, path):
             raw.append(None if frame.pts is None or frame.time_base is None else float(frame.pts * frame.time_base))
+            if images:
+                out.append(frame.to_ndarray(format="rgb24"))
         audio_start = _audio_start_s(container)
     if not raw:
         raise VideoError(f"{path}: no decodable video frames")
@@ -166,7 +248,7 @@ def frame_times(path: str | os.PathLike) -> np.ndarray:
         raise VideoError(f"{path}: frame {i} has presentation time {times[i]:.6f} s, not after frame {i - 1}'s "
                          f"{times[i - 1]:.6f} s")
     times -= times[0] if audio_start is None else audio_start
-    return times
+    return out, times
 
 
 def iter_video_frames(path: str | os.PathLike) -> Iterator[np.ndarray]:
@@ -326,7 +408,7 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: floa
             elif vcodec == "mpeg4":
                 vs.pix_fmt = "yuv420p"
                 vs.codec_context.qscale = 2
-                vs.codec_context.flags |= "QSCALE"
+                vs.codec_context.flags |= av.codec.context.Flags.qscale
             elif vcodec == "mjpeg":
                 vs.pix_fmt = "yuvj444p"
                 vs.options = {"q:v": "2"}
@@ -391,6 +473,6 @@ def _check_frame(frame: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
 
 
 __all__ = [
-    "VideoError", "VideoInfo", "choose_audio_codec", "choose_video_codec", "frame_times", "iter_video_frames", "probe_video",
-    "read_video_audio", "read_video_frames", "write_video",
+    "VideoError", "VideoInfo", "choose_audio_codec", "choose_video_codec", "frame_times", "grid_rate",
+    "iter_video_frames", "probe_video", "read_timed_frames", "read_video_audio", "read_video_frames", "write_video",
 ]
