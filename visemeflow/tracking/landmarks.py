@@ -557,3 +557,16 @@ __all__ = [
     "write_landmarks",
 ]
 
+
+def track_from_mediapipe478(points: np.ndarray, detected: np.ndarray, fps: float | None = None) -> LandmarkTrack:
+    """The 68-point track of MediaPipe FaceMesh points ((frames, 468 or 478, 2) pixels) with a per-frame detected
+    flag ((frames,) bool), mapped with :data:`MEDIAPIPE_TO_68` as :func:`read_mediapipe478_csv` maps a file."""
+    points = np.asarray(points, dtype=np.float32)
+    detected = np.asarray(detected, dtype=bool)
+    if points.ndim != 3 or points.shape[1] < 468 or points.shape[2] != 2:
+        raise ValueError(f"points must have shape (frames, 468 or 478, 2), got {points.shape}")
+    if detected.shape != points.shape[:1]:
+        raise ValueError(f"detected must have shape {points.shape[:1]}, got {detected.shape}")
+    coords = points[:, list(MEDIAPIPE_TO_68)]
+    valid = detected[:, None] & np.isfinite(coords).all(axis=2)
+    return LandmarkTrack(points=coords, valid=valid, fps=fps, source="mediapipe478")
