@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from factories import SHARED_DATA
 
 from visemeflow.tracking.facemesh import (
     CSV_COLUMNS,
@@ -29,7 +30,7 @@ from visemeflow.tracking.facemesh import (
 from visemeflow.tracking.landmarks import MEDIAPIPE_TO_68, read_landmarks, read_mediapipe478_csv
 from visemeflow.tracking.video import read_video_frames, write_video
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 GRID = DATA / "grid_s1"
 HEADS = DATA / "talking_heads"
 MOUTH_MEDIAN_PX = 1.5   # the bound on agreement with the reference files (same model)

@@ -5,6 +5,7 @@ Layout under the root folder:
     tables/rejects/<stage>/shard-NNNN.parquet          rejects of a stage, per shard
     curves/<source>/<variant>/<speaker>/<name>.parquet one file per (source, variant, utterance)
     tracking_frames/<variant>/<speaker>/<name>.parquet per-frame tracking diagnostics
+    landmarks/<speaker>/<name>.mediapipe478.parquet    FaceMesh 478 points per video frame (landmarks stage)
     models/<model>/model.pt, checkpoints/              trained models
     metrics/<model>/<run>.parquet                      metrics of a model's runs
     augmented/<set>/<speaker>/<name>.wav               augmented validation audio of `evaluate`
@@ -146,6 +147,23 @@ class Store:
     def tracking_frames_path(self, variant: str, utterance_id: str) -> Path:
         speaker, name = id_path_parts(utterance_id)
         return self.root / "tracking_frames" / validate_name(variant, "variant") / speaker / f"{name}.parquet"
+
+    def landmark_path(self, utterance_id: str) -> Path:
+        """FaceMesh landmarks the `landmarks` stage detected on an utterance's video: the columns of a
+        `.mediapipe478.csv` (frame, time_s, detected, x_i, y_i, z_i) in Parquet; `read_landmarks` reads it."""
+        speaker, name = id_path_parts(utterance_id)
+        return self.root / "landmarks" / speaker / f"{name}.mediapipe478.parquet"
+
+    def has_landmarks(self, utterance_id: str) -> bool:
+        return self.landmark_path(utterance_id).is_file()
+
+    def landmarks_provenance(self, utterance_id: str) -> str | None:
+        """What made an utterance's stored landmarks (as given to `write_landmarks`), or None when there are none."""
+        path = self.landmark_path(utterance_id)
+        if not path.is_file():
+            return None
+        with pa.OSFile(str(path)) as fh:
+            return (pq.read_schema(fh).metadata or {}).get(PROVENANCE_KEY, b"").decode()
 
     @staticmethod
     def utterance_id_of(path: str | Path) -> str:
@@ -311,6 +329,14 @@ class Store:
         if len(ids) != 1 or len(variants) != 1:
             raise ValueError(f"a tracking_frames file holds one utterance and variant; got {ids[:3]}, {variants[:3]}")
         return self._write_atomic(table, self.tracking_frames_path(variants[0], ids[0]))
+
+    def write_landmarks(self, utterance_id: str, table: pa.Table, *, provenance: str = "") -> Path:
+        """An utterance's FaceMesh landmark table (`tracking.facemesh.mediapipe478_table`), replacing what was
+        stored; `provenance` records what made it."""
+        path = self.landmark_path(utterance_id)
+        meta = dict(table.schema.metadata or {})
+        meta[PROVENANCE_KEY] = provenance.encode()
+        return self._write_atomic(table.replace_schema_metadata(meta), path)
 
     def read_tracking_frames(self, variant: str | None = None, utterance_ids: list[str] | None = None) -> pa.Table:
         """Stored tracking diagnostics (of one variant, some utterances) as one table."""

@@ -1,0 +1,86 @@
+"""The `landmarks` flow: MediaPipe FaceMesh on every utterance with a video but no landmark file (one task each)."""
+
+import traceback
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.futures import as_completed
+from pydantic import Field
+
+from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.flows.common import finished, replace_stage_rejects
+from visemeflow.flows.params import RunnerField, RunnerConfig, StoreParams
+from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.schemas import C
+from visemeflow.storage import Store
+from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.tasks.landmarks import STAGE, LandmarksError, landmarks_utterance, provenance
+from visemeflow.tracking.facemesh import FaceMeshConfig
+
+LANDMARK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]
+
+
+class LandmarksParams(StoreParams):
+    config: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
+    runner: RunnerConfig = RunnerField
+
+
+def utterances_needing_landmarks(store: Store) -> list[dict]:
+    """Utterance rows with a video and no landmark file of their own, longest videos first."""
+    rows = [r for r in store.read_table("utterances").select(LANDMARK_FIELDS).to_pylist()
+            if r[C.VIDEO_PATH] and not r[C.LANDMARK_PATH]]
+    # longest first: with n workers the run then ends on short utterances, not on one long one
+    rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
+    return rows
+
+
+@flow(name="landmarks", flow_run_name="landmarks[{params.store}]", task_runner=cpu_thread_pool())
+def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
+    """Detect the landmarks of every utterance with a video but no landmark file; a video without a usable face
+    (none, or found on too few frames) or a detector failure becomes a reject and the rest goes on."""
+    if not on_requested_runner(params):
+        return run_on_runner(landmarks_flow, params)
+    store = Store(params.store)
+    config = params.config
+    store.write_run_config(STAGE, {"n_shards": params.n_shards, "config": config.model_dump(mode="json")})
+    rows = utterances_needing_landmarks(store)
+    rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    futures = {}
+    for row in rows:
+        uid = row[C.UTTERANCE_ID]
+        # a cache hit must not hide a deleted or outdated file: recompute unless this run's file is there
+        present = store.landmarks_provenance(uid) == provenance(row, config) or uid in rejected_before
+        future = landmarks_utterance.with_options(
+            result_storage=result_storage(store.root), refresh_cache=not present,
+        ).submit(str(store.root), row, config)
+        futures[future] = uid
+    progress = create_progress_artifact(0.0, description=f"{STAGE}: utterances done") if futures else None
+    logger = get_run_logger()
+    reports, rejects, unexpected = [], [], 0
+    for done, future in enumerate(as_completed(list(futures)), start=1):
+        uid = futures[future]
+        try:
+            report = dict(future.result())
+            report["cached"] = int(future.state.name == "Cached")
+            reports.append(report)
+        except LandmarksError as exc:
+            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
+        except Exception as exc:  # a bug met on one utterance: the others still go on, the flow ends Failed
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("landmarks[%s]: unexpected %s\n%s", uid, type(exc).__name__, trace)
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
+            unexpected += 1
+        if progress is not None:
+            update_progress_artifact(progress, 100.0 * done / len(futures))
+    replace_stage_rejects(store, STAGE, rejects, params.n_shards)
+    summary = {
+        "utterances": len(rows), "detected": sum(1 for r in reports if not r["cached"]),
+        "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
+        "frames": sum(r["frames"] for r in reports),
+        "frames_without_face": sum(r["frames"] - r["detected_frames"] for r in reports),
+        "multi_face": sum(r["multi_face"] for r in reports),
+    }
+    publish_stage_summary(STAGE, summary)
+    publish_rejects(STAGE, store.read_table("rejects", STAGE))
+    logger.info("landmarks: %s", summary)
+    return finished(STAGE, summary, len(rejects), len(rows), unexpected)
