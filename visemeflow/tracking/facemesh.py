@@ -99,6 +99,7 @@ class FaceMeshTrack:
     frames without the face (and on the 10 iris points without ``refine_landmarks``). ``detected`` (frames,) bool,
     ``times`` (frames,) float64 seconds (presentation time relative to the audio start). ``faces``: the most faces
     seen on one frame (1 when only one was ever found); ``multi_face``: whether the multi-face run was used.
+    ``fps``: the frames' nominal rate (of a video: 1 / the median frame interval; None if unknown).
     """
 
     video: str
@@ -351,13 +352,14 @@ def detect_frames(frames: Sequence[np.ndarray] | np.ndarray, times: Sequence[flo
 def detect_video(video: str | os.PathLike, config: FaceMeshConfig | None = None) -> FaceMeshTrack:
     """FaceMesh over every frame of a video file, with presentation times; :class:`FaceMeshError` naming the clip
     for a video that cannot be read or has no usable face."""
-    from visemeflow.tracking.video import VideoError, probe_video
+    from visemeflow.tracking.video import VideoError, grid_rate
 
     path = Path(video)
     config = config or FaceMeshConfig()
     try:
-        fps = probe_video(path).fps
-        return _detect(_VideoFrames(path), str(path), config, fps)
+        frames = _VideoFrames(path)
+        # the rate of the frames' grid (1 / median interval; a variable-rate clip's times are the truth)
+        return _detect(frames, str(path), config, grid_rate(frames.times))
     except VideoError as exc:
         raise FaceMeshError(str(path), "UnreadableVideo", str(exc).removeprefix(f"{path}: ")) from exc
 
@@ -451,17 +453,22 @@ def detect_clip(video: str | os.PathLike, out_csv: str | os.PathLike,
 
 def draw_landmarks(frame: np.ndarray, points: np.ndarray, color: tuple[int, int, int] = (0, 255, 0),
                    highlight: Sequence[int] = (), highlight_color: tuple[int, int, int] = (255, 40, 40),
-                   radius: int = 1) -> np.ndarray:
+                   radius: int = 1, highlight_radius: int | None = None) -> np.ndarray:
     """A copy of an RGB frame with ``points`` ((n, 2) pixels; NaN rows skipped) drawn as dots, the ids in
-    ``highlight`` in their own colour."""
+    ``highlight`` in their own colour and size (drawn last, on top)."""
     import cv2
 
     out = np.ascontiguousarray(frame).copy()
     special = set(int(i) for i in highlight)
-    for i, (x, y) in enumerate(np.asarray(points, dtype=np.float64)):
+    pts = np.asarray(points, dtype=np.float64)
+    order = [i for i in range(len(pts)) if i not in special] + [i for i in range(len(pts)) if i in special]
+    for i in order:
+        x, y = pts[i]
         if np.isfinite(x) and np.isfinite(y):
-            cv2.circle(out, (int(round(x)), int(round(y))), radius,
-                       highlight_color if i in special else color, -1, lineType=cv2.LINE_AA)
+            lit = i in special
+            r = (highlight_radius or radius) if lit else radius
+            cv2.circle(out, (int(round(x)), int(round(y))), r, highlight_color if lit else color, -1,
+                       lineType=cv2.LINE_AA)
     return out
 
 
