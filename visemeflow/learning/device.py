@@ -12,6 +12,12 @@ bfloat16 (``"bf16"``) or float16 (``"fp16"``), and a no-op on the CPU or with ``
 bit-identical to runs without it. Training in fp16 also needs loss scaling (:func:`grad_scaler`); bf16 does
 not. The CPU is the reference: the exact-resume guarantee of ``train_model`` (bit-identical weights) holds
 there; CUDA kernels (cuDNN LSTMs, atomics in reductions) are not bit-reproducible by default.
+
+:func:`resolve_precision` turns ``--precision auto|fp32|bf16|fp16`` into the autocast dtype for a device:
+``auto`` is bf16 on a CUDA GPU that supports it and float32 (None) everywhere else; the CPU always runs in
+float32, whatever was asked (autocast is only used on CUDA). :func:`check_device_word` checks the spelling of a
+device word without asking whether the device exists (flow parameters are validated where they are made, the
+device is resolved where the work runs).
 """
 
 from __future__ import annotations
@@ -25,15 +31,21 @@ import torch
 
 __all__ = [
     "DEVICE_CHOICES",
+    "PRECISION_CHOICES",
     "AutocastDtype",
     "DeviceError",
     "autocast_context",
+    "check_device_word",
     "grad_scaler",
+    "model_device",
     "resolve_device",
+    "resolve_precision",
 ]
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")  # what --device offers (cuda:N is accepted too)
+PRECISION_CHOICES = ("auto", "fp32", "bf16", "fp16")  # what --precision offers
 AutocastDtype = Literal["bf16", "fp16"]
+Precision = Literal["auto", "fp32", "bf16", "fp16"]
 _AUTOCAST_DTYPES: dict[str, torch.dtype] = {"bf16": torch.bfloat16, "fp16": torch.float16}
 _CUDA_N = re.compile(r"^cuda(?::(\d+))?$")
 
@@ -47,16 +59,30 @@ class DeviceError(RuntimeError):
     """The requested device cannot be used here; the message is one line, fit for a command's error output."""
 
 
-def resolve_device(request: str) -> torch.device:
-    """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` (case and surrounding spaces ignored) -> ``torch.device``."""
+def check_device_word(request: str) -> str:
+    """The device word normalised (``" CUDA:1 "`` -> ``"cuda:1"``), or :class:`DeviceError` for an unknown one.
+
+    Only the spelling is checked: whether this machine has the device is :func:`resolve_device`'s question.
+    """
     word = str(request).strip().lower()
+    if word not in ("auto", "cpu") and _CUDA_N.match(word) is None:
+        raise DeviceError(f"unknown device {request!r}; expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)")
+    return word
+
+
+def resolve_device(request: str | torch.device) -> torch.device:
+    """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` (case and surrounding spaces ignored) -> ``torch.device``.
+
+    A ``torch.device`` is checked the same way (a CUDA device without CUDA is refused)."""
+    if isinstance(request, torch.device):
+        request = str(request)
+    word = check_device_word(request)
     if word == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if word == "cpu":
         return torch.device("cpu")
     m = _CUDA_N.match(word)
-    if m is None:
-        raise DeviceError(f"unknown device {request!r}; expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)")
+    assert m is not None  # check_device_word
     if not torch.cuda.is_available():
         raise DeviceError(NO_CUDA)
     if m.group(1) is None:
@@ -65,6 +91,33 @@ def resolve_device(request: str) -> torch.device:
     if index >= count:
         raise DeviceError(f"{word} requested but torch sees {count} CUDA device(s) (cuda:0..cuda:{count - 1})")
     return torch.device("cuda", index)
+
+
+def resolve_precision(device: torch.device | str, precision: str | None) -> AutocastDtype | None:
+    """The autocast dtype for ``precision`` (``auto``, ``fp32``, ``bf16``, ``fp16``; None is fp32) on ``device``.
+
+    The CPU: always None (float32, bit-identical to a run without autocast). CUDA: ``auto`` is bf16 where the GPU
+    supports it, else None (fp16 is never chosen for the user: it needs loss scaling and can overflow); ``bf16``
+    on a GPU without bfloat16 is :class:`DeviceError`.
+    """
+    word = "fp32" if precision is None else str(precision).strip().lower()
+    if word not in PRECISION_CHOICES:
+        raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
+    device = torch.device(device)
+    if device.type != "cuda" or word == "fp32":
+        return None
+    if word == "auto":
+        return "bf16" if torch.cuda.is_bf16_supported() else None
+    if word == "bf16" and not torch.cuda.is_bf16_supported():
+        raise DeviceError("bf16 precision requested but this GPU has no bfloat16 support; use fp16 or fp32")
+    return word  # type: ignore[return-value]
+
+
+def model_device(model: torch.nn.Module) -> torch.device:
+    """Where a module's parameters (else buffers) are; the CPU for a module that has neither."""
+    for tensor in (*model.parameters(), *model.buffers()):
+        return tensor.device
+    return torch.device("cpu")
 
 
 def _check_dtype(dtype: str | None) -> torch.dtype | None:

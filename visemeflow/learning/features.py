@@ -36,12 +36,25 @@ from ``lengths``.  ``D = model.config.hidden_size``; ``feat_lengths`` from the m
 length formula; ``frame_rate_hz = sample_rate / prod(conv_stride)`` (50 Hz for real models).
 Padding invariance holds for "layer"-norm feature encoders (large / XLSR models); group-norm
 encoders (wav2vec2-base) normalise over the whole padded time axis and are not invariant.
+
+Frozen CNN encoder outputs: with ``freeze_feature_encoder`` the CNN feature encoder is a fixed function
+of the (normalised) waveform, with no randomness in training either, so its output can be computed once
+and reused: :meth:`Wav2Vec2Extractor.encode` gives it for one utterance, and
+``forward(audio, lengths, encoded=...)`` runs the rest of the model (feature projection, wav2vec2's own time
+masking, transformer) on given encoder outputs instead of recomputing them (the HF model's forward is run as
+is, with its feature encoder answering from ``encoded``), so the result equals ``forward(audio, lengths)``
+bit for bit for one utterance. :class:`EncoderOutputCache` keeps such outputs by key (in memory, optionally
+mirrored to files written atomically); :meth:`Wav2Vec2Extractor.encoder_fingerprint` identifies the encoder
+(its architecture and frozen weights) for those keys.
 """
 
 from __future__ import annotations
 
 import abc
+import contextlib
+import json
 import math
+from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
 from typing import Any, Literal
@@ -52,6 +65,7 @@ from pydantic import BaseModel, ConfigDict, model_validator
 from torch import nn
 
 __all__ = [
+    "EncoderOutputCache",
     "FeatureConfig",
     "FeatureExtractor",
     "FilterbankExtractor",
@@ -497,20 +511,144 @@ class Wav2Vec2Extractor(FeatureExtractor):
             .clamp(min=0)
         )
 
-    def forward(
-        self, audio: torch.Tensor, lengths: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _normalized(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(zero-mean unit-variance audio over the valid samples, padding zeroed; lengths; valid-sample mask)."""
         audio, lengths = self._prepare(audio, lengths)
         mask = _valid_mask(lengths, audio.shape[1])
         maskf = mask.to(audio.dtype)
         count = maskf.sum(1, keepdim=True).clamp(min=1.0)
         mean = (audio * maskf).sum(1, keepdim=True) / count
         var = (((audio - mean) * maskf) ** 2).sum(1, keepdim=True) / count
-        audio = (audio - mean) / torch.sqrt(var + 1e-7) * maskf
-        out = self.model(audio, attention_mask=mask.to(torch.long))
+        return (audio - mean) / torch.sqrt(var + 1e-7) * maskf, lengths, mask
+
+    @property
+    def encoder_frozen(self) -> bool:
+        """Whether the CNN feature encoder is frozen (then its outputs may be cached)."""
+        return not any(p.requires_grad for p in self.model.feature_extractor.parameters())
+
+    def encoder_fingerprint(self) -> str:
+        """A digest of the CNN feature encoder: its architecture and its weights, and the waveform normalisation
+        in front of it (hashes every encoder weight: compute it once per run, not per step)."""
+        from visemeflow.hashing import new_hasher
+
+        cfg = self.model.config
+        arch = {k: getattr(cfg, k, None) for k in ("conv_dim", "conv_kernel", "conv_stride", "conv_bias",
+                                                   "feat_extract_norm", "feat_extract_activation")}
+        h = new_hasher()
+        h.update(json.dumps({"arch": arch, "normalize": "utterance-cmvn-1e-7"}, sort_keys=True, default=list).encode())
+        for name, tensor in sorted(self.model.feature_extractor.state_dict().items()):
+            h.update(name.encode() + b"\0" + str(tensor.dtype).encode() + str(tuple(tensor.shape)).encode())
+            h.update(tensor.detach().to("cpu").contiguous().numpy().tobytes())
+        return h.hexdigest()
+
+    def encode(self, audio: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
+        """The CNN feature encoder's output (B, conv_dim[-1], T') of the normalised audio, without gradient.
+
+        What ``forward`` computes first; pass it back as ``forward(..., encoded=...)``. For a batch, the
+        frames past an utterance's own encoder length (``output_lengths``) are padding whatever they hold.
+        """
+        audio, _, _ = self._normalized(audio, lengths)
+        with torch.no_grad():
+            return self.model.feature_extractor(audio)
+
+    def forward(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None, encoded: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features of ``audio``; with ``encoded`` (from :meth:`encode`, of this audio, the encoder frozen) the
+        CNN feature encoder is not run again. Padded encoder frames of ``encoded`` are never read as speech:
+        the attention mask excludes them and wav2vec2 zeroes them before its positional convolution."""
+        audio, lengths, mask = self._normalized(audio, lengths)
+        if encoded is None:
+            out = self.model(audio, attention_mask=mask.to(torch.long))
+        else:
+            if not self.encoder_frozen:
+                raise ValueError("encoded features need a frozen feature encoder (freeze_feature_encoder=True)")
+            expected = int(self.output_lengths(torch.tensor([audio.shape[1]]))[0])
+            if encoded.ndim != 3 or encoded.shape[0] != audio.shape[0] or encoded.shape[2] != expected:
+                raise ValueError(f"encoded must be (B={audio.shape[0]}, C, {expected}) for this audio, "
+                                 f"got {tuple(encoded.shape)}")
+            with _answering(self.model.feature_extractor, encoded):
+                out = self.model(audio, attention_mask=mask.to(torch.long))
         feats = out.last_hidden_state
         feat_lengths = self.output_lengths(lengths).clamp(max=feats.shape[1])
         return self._finish(feats, feat_lengths)
+
+
+@contextlib.contextmanager
+def _answering(module: nn.Module, output: torch.Tensor) -> Iterator[None]:
+    """Inside, calling ``module`` returns ``output`` instead of running its forward (an instance attribute
+    shadows the class's ``forward``; removed on the way out)."""
+    module.forward = lambda *args, **kwargs: output  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        del module.forward
+
+
+class EncoderOutputCache:
+    """Frozen wav2vec2 CNN encoder outputs by key, in memory and, with ``directory``, in files.
+
+    Keys come from :meth:`key`: the encoder's fingerprint, the audio's content hash (of the exact samples fed
+    to the encoder, so augmented audio never hits an entry of its clean original) and the precision it ran in.
+    Files (``<key>.pt``, one tensor, read with ``torch.load(weights_only=True)`` on the CPU and moved to the
+    requested device) are written atomically (``visemeflow.atomic``), so a killed run leaves whole files or
+    none; a directory can be shared by runs and processes. Memory use: ``conv_dim[-1]`` floats per encoder
+    frame, e.g. 512 x 50 per second of audio for XLSR-53 (100 kB/s in float32).
+    """
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self.directory = Path(directory) if directory is not None else None
+        self._memory: dict[str, torch.Tensor] = {}
+        self.hits = 0  # answered from memory or a file
+        self.misses = 0  # computed by the encoder
+
+    @staticmethod
+    def key(fingerprint: str, audio_hash: str, precision: str | None = None) -> str:
+        from visemeflow.hashing import stable_hash
+
+        return stable_hash({"encoder": fingerprint, "audio": audio_hash, "precision": precision or "fp32"})
+
+    def __len__(self) -> int:
+        return len(self._memory)
+
+    def get(self, key: str, device: torch.device | str = "cpu") -> torch.Tensor | None:
+        value = self._memory.get(key)
+        if value is None and self.directory is not None:
+            path = self.directory / f"{key}.pt"
+            if path.is_file():
+                value = torch.load(path, map_location="cpu", weights_only=True)
+                self._memory[key] = value = value.to(device)
+        if value is not None:
+            self.hits += 1
+            return value.to(device)
+        return None
+
+    def put(self, key: str, value: torch.Tensor) -> None:
+        value = value.detach()
+        self._memory[key] = value
+        if self.directory is not None:
+            from visemeflow.atomic import atomic_write
+
+            path = self.directory / f"{key}.pt"
+            if not path.is_file():
+                self.directory.mkdir(parents=True, exist_ok=True)
+                atomic_write(path, lambda tmp: torch.save(value.to("cpu").contiguous(), tmp))
+
+    def get_or_encode(
+        self, extractor: Wav2Vec2Extractor, fingerprint: str, audio: torch.Tensor, audio_hash: str,
+        precision: str | None = None,
+    ) -> torch.Tensor:
+        """``extractor.encode(audio)`` of one utterance (1, samples), from the cache when there; ``fingerprint``
+        is ``extractor.encoder_fingerprint()`` (computed once by the caller)."""
+        key = self.key(fingerprint, audio_hash, precision)
+        value = self.get(key, audio.device)
+        if value is None:
+            self.misses += 1
+            value = extractor.encode(audio)
+            self.put(key, value)
+        return value
 
 
 def load_wav2vec2(path_or_id: str | Path) -> nn.Module:

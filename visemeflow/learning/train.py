@@ -27,14 +27,47 @@ numpy's legacy global state, which transformers uses for wav2vec2 time masking).
 only tensors and plain Python values, and is read with ``torch.load(weights_only=True)``. A run
 interrupted after epoch k and restarted with the same config (``epochs`` may differ) continues from
 that checkpoint and ends with bit-identical weights to an uninterrupted run.
+
+Devices (``device=``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``, :mod:`visemeflow.learning.device`): the model is
+built and seeded on the CPU (same initial weights everywhere), then moved; every batch goes to the device,
+forward passes run under :func:`~visemeflow.learning.device.autocast_context` (``precision=``: ``auto`` is bf16
+on a CUDA GPU that has it; the CPU always runs float32, so CPU results are bit-identical whatever is asked) and
+fp16 training uses loss scaling (the scaler's state is checkpointed). Hand-crafted features are always computed
+in float32. Neither the device nor the precision is part of the config: a model or checkpoint does not record
+where it was computed; checkpoints and model files are read with ``map_location="cpu"`` (a run started on a GPU
+resumes on the CPU and the other way round) and model files hold CPU tensors. Exact resume is guaranteed on the
+CPU only (CUDA kernels are not bit-reproducible); on CUDA the CUDA RNG state is checkpointed too.
+
+Feature caches (results equal to recomputing, never a different number): parameter-free features of an
+utterance's original audio are computed at its first step and kept for the run; for ``wav2vec2-*`` presets,
+whose CNN feature encoder is frozen, the encoder's outputs for original (not augmented) audio are kept in a
+:class:`~visemeflow.learning.features.EncoderOutputCache` keyed by (encoder architecture + weights digest, audio
+content hash, device type and precision) (``encoder_cache=``: True in memory, a folder to also keep them in
+files, False to run the encoder every step), so epochs after the first skip the encoder. A step whose audio the
+augmentation hook changed always runs the extractor/encoder on that audio.
+
+Batches (``TrainConfig.batch_size``; 1, the default, is the paper's recipe and gives bit-identical results to
+versions before batches existed): each epoch's shuffled order is cut into buckets of ``batch_size *
+bucket_batches`` utterances, each bucket is sorted by audio length (stable, so ties keep the shuffled order) and
+cut into batches of ``batch_size`` (never mixing curve frame rates), and the batches' order is shuffled (from the
+same seeded generator). ``max_steps_per_epoch`` counts batches. Padding: features are computed per utterance
+(hand-crafted ones, and wav2vec2's CNN encoder outputs) and padded with zeros; wav2vec2's transformer gets the
+attention mask of the real samples (padded frames are zeroed before its positional convolution and never
+attended to); the decoder gets each utterance's frame count (packed LSTMs, masked TCN/transformer,
+interpolation that never reads past the last valid feature frame); the L1 loss averages over the valid frames of
+the batch (longer utterances weigh more, as frames do in ``evaluate``). What the padding holds changes nothing.
+With the wav2vec2 encoder cache switched off, a batch runs the CNN encoder on the zero-padded batch (equal to the
+per-utterance outputs to float rounding, ~1e-6); with ``batch_size=1`` cached and uncached runs are bit-identical.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -42,11 +75,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
 from torch import Tensor, nn
 
 from visemeflow.atomic import atomic_write
+from visemeflow.hashing import new_hasher
+from visemeflow.learning.device import (
+    autocast_context,
+    grad_scaler,
+    model_device,
+    resolve_device,
+    resolve_precision,
+)
 from visemeflow.learning.features import (
+    EncoderOutputCache,
     FeatureConfig,
     Wav2Vec2Extractor,
     build_feature_extractor,
@@ -71,6 +113,7 @@ __all__ = [
     "apply_audio_augment",
     "build_training_model",
     "evaluate",
+    "length_batches",
     "load_model",
     "predict_curves",
     "resample_curves",
@@ -114,16 +157,33 @@ class TrainConfig(BaseModel):
     # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
     train_augment: bool = False
     train_augment_probability: float = Field(0.5, ge=0, le=1)
+    # utterances per optimisation step: 1 is the paper's recipe; more pads length-bucketed batches (module docstring)
+    batch_size: int = Field(1, ge=1)
+    # batch_size > 1: a length bucket holds this many batches (1: batches as drawn, sorted only inside)
+    bucket_batches: int = Field(8, ge=1)
+
+    @model_serializer(mode="wrap")
+    def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # Fields added after models were trained are left out at their defaults, so a config means the same JSON
+        # (checkpoint resume keys, model names hashed from it, Prefect cache keys) as before they existed.
+        data = handler(self)
+        for name, default in _ADDED_DEFAULTS.items():
+            if name in data and data[name] == default:
+                del data[name]
+        return data
 
     def resolved_preset(self) -> Preset:
         p = get_preset(self.preset)
         return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
 
 
+_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8}
+
+
 @dataclass
 class EpochReport:
     epoch: int  # 1-based
-    steps: int  # optimisation steps in this epoch
+    steps: int  # optimisation steps (batches) in this epoch
     train_l1_x100: float  # mean per-step training L1 x 100 (with augmentation, train mode)
     val_l1_x100: float | None  # evaluate() on the validation set; None without one
     seconds: float  # wall time of the training steps of this epoch
@@ -258,9 +318,103 @@ def _check_examples(examples: Sequence[Example], what: str) -> None:
             raise ValueError(f"{what} {ex.utterance_id!r}: fps must be positive")
 
 
-def _audio_tensors(audio: np.ndarray) -> tuple[Tensor, Tensor]:
+def _audio_tensors(audio: np.ndarray, device: torch.device | None = None) -> tuple[Tensor, Tensor]:
     a = torch.from_numpy(np.ascontiguousarray(audio, dtype=np.float32))[None]
-    return a, torch.tensor([a.shape[1]], dtype=torch.long)
+    lengths = torch.tensor([a.shape[1]], dtype=torch.long)
+    if device is not None:
+        a, lengths = a.to(device), lengths.to(device)
+    return a, lengths
+
+
+def _audio_hash(audio: np.ndarray) -> str:
+    """Content hash of the float32 samples (what the wav2vec2 encoder cache is keyed on)."""
+    h = new_hasher()
+    a = np.ascontiguousarray(audio, dtype=np.float32)
+    h.update(str(a.shape[0]).encode() + b"\0")
+    h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _pad_audio(audios: Sequence[np.ndarray], device: torch.device) -> tuple[Tensor, Tensor]:
+    """(B, max samples) zero-padded audio and (B,) lengths; one utterance: exactly :func:`_audio_tensors`."""
+    if len(audios) == 1:
+        return _audio_tensors(audios[0], device)
+    lengths = torch.tensor([len(a) for a in audios], dtype=torch.long)
+    batch = torch.zeros(len(audios), int(lengths.max()), dtype=torch.float32)
+    for j, a in enumerate(audios):
+        batch[j, : len(a)] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+    return batch.to(device), lengths.to(device)
+
+
+def _pad_time(tensors: Sequence[Tensor], dim: int) -> Tensor:
+    """Concatenate (1, ...) tensors along the batch, zero-padding dimension ``dim`` to the longest."""
+    if len(tensors) == 1:
+        return tensors[0]
+    size = max(t.shape[dim] for t in tensors)
+    out = tensors[0].new_zeros((len(tensors), *[size if d == dim else n for d, n in enumerate(tensors[0].shape)][1:]))
+    for j, t in enumerate(tensors):
+        out[j].narrow(dim - 1, 0, t.shape[dim]).copy_(t[0])
+    return out
+
+
+def _pad_curves(curves: Sequence[np.ndarray], device: torch.device) -> tuple[Tensor, Tensor]:
+    """(B, max T, 16) zero-padded targets on ``device`` and (B,) frame counts (CPU)."""
+    if len(curves) == 1:
+        target = torch.from_numpy(np.ascontiguousarray(curves[0]))[None]
+        return target.to(device), torch.tensor([target.shape[1]], dtype=torch.long)
+    n_frames = torch.tensor([c.shape[0] for c in curves], dtype=torch.long)
+    target = torch.zeros(len(curves), int(n_frames.max()), N_VISEMES, dtype=torch.float32)
+    for j, c in enumerate(curves):
+        target[j, : c.shape[0]] = torch.from_numpy(np.ascontiguousarray(c, dtype=np.float32))
+    return target.to(device), n_frames
+
+
+def length_batches(
+    order: Sequence[int], lengths: Sequence[int], fps: Sequence[float], batch_size: int, bucket_batches: int,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
+    """One epoch's batches of example indices from its shuffled ``order`` (see the module docstring).
+
+    ``batch_size == 1``: one index per batch in ``order`` and ``rng`` untouched (the paper's recipe, as before
+    batches existed). Otherwise buckets of ``batch_size * bucket_batches`` consecutive indices of ``order``, each
+    sorted by (fps, length) (stable) and cut into batches of at most ``batch_size`` that share one fps; the
+    batches are then put in an order drawn from ``rng``.
+    """
+    order = np.asarray(order, dtype=np.int64)
+    if batch_size == 1:
+        return [order[k : k + 1] for k in range(len(order))]
+    span = batch_size * bucket_batches
+    batches: list[np.ndarray] = []
+    for s in range(0, len(order), span):
+        bucket = sorted(order[s : s + span].tolist(), key=lambda i: (float(fps[i]), int(lengths[i])))
+        run: list[int] = []
+        for i in bucket:
+            if run and (len(run) == batch_size or float(fps[run[0]]) != float(fps[i])):
+                batches.append(np.asarray(run, dtype=np.int64))
+                run = []
+            run.append(i)
+        if run:
+            batches.append(np.asarray(run, dtype=np.int64))
+    return [batches[k] for k in rng.permutation(len(batches))]
+
+
+@dataclass
+class _Item:
+    """One utterance of a step: its index, the audio and targets it trains on, and whether that audio is the
+    example's own (not changed by augmentation), so its cached features may stand in."""
+
+    index: int
+    audio: np.ndarray
+    curves: np.ndarray
+    original: bool
+
+
+def _encoder_cache(option: bool | str | Path | EncoderOutputCache | None) -> EncoderOutputCache | None:
+    if option is None or option is False:
+        return None
+    if isinstance(option, EncoderOutputCache):
+        return option
+    return EncoderOutputCache(None if option is True else Path(option))
 
 
 def train_model(
@@ -270,22 +424,31 @@ def train_model(
     checkpoint_dir: Path | None = None,
     on_epoch: Callable[[EpochReport], None] | None = None,
     augment_audio: AudioAugment | None = None,
+    *,
+    device: str | torch.device = "cpu",
+    precision: str | None = "auto",
+    encoder_cache: bool | str | Path | EncoderOutputCache | None = True,
 ) -> TrainResult:
     """Train ``config.preset`` on ``train`` (see the module docstring); validate on ``val`` each epoch.
 
-    When ``config.train_augment`` is true, every training step passes its utterance through
+    When ``config.train_augment`` is true, every training utterance of a step passes through
     ``augment_audio(audio, rng) -> (audio, time_factor)`` (default:
     :func:`visemeflow.learning.augment.train_augment_hook` with
-    ``config.train_augment_probability``) and resamples the targets by the time factor
-    (:func:`resample_curves`). Without ``config.train_augment`` no hook is used.
+    ``config.train_augment_probability``) and its targets are resampled by the time factor
+    (:func:`resample_curves`); a hook that returns the audio object it was given with factor 1 left it
+    unchanged (cached features are used). Without ``config.train_augment`` no hook is used.
     With ``checkpoint_dir``, ``last.pt`` is written after every epoch (before ``on_epoch`` is
     called) and an existing one is resumed from; it must come from the same config (``epochs``
-    aside) and the same training data, else ``ValueError``.
+    aside) and the same training data, else ``ValueError``. ``device``, ``precision`` and
+    ``encoder_cache``: see the module docstring (:class:`~visemeflow.learning.device.DeviceError`
+    for a device or precision this machine does not have). The returned model is on ``device``.
     """
     if not train:
         raise ValueError("no training examples")
     _check_examples(train, "training example")
     _check_examples(val, "validation example")
+    dev = resolve_device(device)
+    amp = resolve_precision(dev, precision)
     hook: AudioAugment | None = None
     if config.train_augment:
         if augment_audio is None:
@@ -295,7 +458,7 @@ def train_model(
         hook = augment_audio
     preset = config.resolved_preset()
     curve_fps = float(train[0].fps)
-    model = build_training_model(config, curve_fps)
+    model = build_training_model(config, curve_fps).to(dev)
 
     if not preset.trainable:  # mean-curve: fit, no steps
         t0 = time.perf_counter()
@@ -314,6 +477,7 @@ def train_model(
     optimizer = build_optimizer(preset, model)
     if optimizer is None:
         raise ValueError(f"preset {preset.name!r} has no trainable parameters")
+    scaler = grad_scaler(dev, amp)
     shuffle_rng = np.random.default_rng(config.seed)
     augment_rng = np.random.default_rng([config.seed, 2])
     spec_gen = torch.Generator().manual_seed(config.seed + 1)
@@ -331,78 +495,124 @@ def train_model(
             raise ValueError(f"{ckpt_path} was written for different training data")
         model.load_state_dict(ck["model"])
         optimizer.load_state_dict(ck["optimizer"])
+        if ck.get("scaler") and scaler.is_enabled():
+            scaler.load_state_dict(ck["scaler"])
         start_epoch, step = int(ck["epoch"]), int(ck["step"])
         history = [EpochReport(**h) for h in ck["history"]]
         torch.set_rng_state(ck["rng"]["torch"])
+        if "cuda" in ck["rng"] and dev.type == "cuda":
+            torch.cuda.set_rng_state(ck["rng"]["cuda"], dev)
         spec_gen.set_state(ck["rng"]["spec_augment"])
         _set_np_gen_state(shuffle_rng, ck["rng"]["shuffle"])
         _set_np_gen_state(augment_rng, ck["rng"]["augment"])
         _set_np_global_state(ck["rng"]["numpy_global"])
 
-    cached: list[tuple[Tensor, Tensor]] | None = None
+    # features: parameter-free extractors keep each utterance's features; wav2vec2 keeps its frozen CNN outputs
+    w2v = model.features if isinstance(model.features, Wav2Vec2Extractor) and model.features.encoder_frozen else None
+    enc_cache = _encoder_cache(encoder_cache) if w2v is not None and start_epoch < config.epochs else None
+    enc_fingerprint = w2v.encoder_fingerprint() if enc_cache is not None and w2v is not None else ""
+    enc_tag = f"{dev.type}-{amp or 'fp32'}"
+    audio_hashes: dict[int, str] = {}
     has_feature_params = any(True for _ in model.features.parameters())
-    if hook is None and not has_feature_params and start_epoch < config.epochs:
-        with torch.no_grad():  # parameter-free extractor: features once per utterance
-            cached = [model.features(*_audio_tensors(ex.audio)) for ex in train]
+    feat_cache: dict[int, tuple[Tensor, Tensor]] = {}
 
+    def features_of(items: list[_Item]) -> tuple[Tensor, Tensor]:
+        if w2v is not None:  # per-utterance CNN outputs (cached for original audio), the transformer batched
+            audio, lengths = _pad_audio([it.audio for it in items], dev)
+            if enc_cache is None:
+                return model.features(audio, lengths)
+            encoded = []
+            for it in items:
+                one = _audio_tensors(it.audio, dev)[0]
+                if it.original:
+                    if it.index not in audio_hashes:
+                        audio_hashes[it.index] = _audio_hash(it.audio)
+                    encoded.append(enc_cache.get_or_encode(w2v, enc_fingerprint, one, audio_hashes[it.index], enc_tag))
+                else:
+                    encoded.append(w2v.encode(one))
+            return model.features(audio, lengths, encoded=_pad_time(encoded, 2))
+        if not has_feature_params:  # per utterance, float32 (outside autocast), padded with zeros
+            per = []
+            with torch.autocast(dev.type, enabled=False) if amp is not None else contextlib.nullcontext():
+                for it in items:
+                    if not it.original:
+                        per.append(model.features(*_audio_tensors(it.audio, dev)))
+                        continue
+                    if it.index not in feat_cache:
+                        with torch.no_grad():
+                            feat_cache[it.index] = model.features(*_audio_tensors(it.audio, dev))
+                    per.append(feat_cache[it.index])
+            if len(per) == 1:
+                return per[0]
+            return _pad_time([f for f, _ in per], 1), torch.cat([n for _, n in per])
+        return model.features(*_pad_audio([it.audio for it in items], dev))
+
+    lengths_of = [len(ex.audio) for ex in train]
+    fps_of = [float(ex.fps) for ex in train]
     for epoch in range(start_epoch, config.epochs):
         model.train()
         order = shuffle_rng.permutation(len(train))
+        batches = length_batches(order, lengths_of, fps_of, config.batch_size, config.bucket_batches, shuffle_rng)
         if config.max_steps_per_epoch is not None:
-            order = order[: config.max_steps_per_epoch]
+            batches = batches[: config.max_steps_per_epoch]
         losses: list[float] = []
         frames = 0
         t0 = time.perf_counter()
-        for i in order:
-            ex = train[int(i)]
-            if hook is not None:
-                audio, curves = apply_audio_augment(ex, hook, augment_rng)
-                feats, feat_lengths = model.features(*_audio_tensors(audio))
-            else:
-                curves = np.asarray(ex.curves, dtype=np.float32)
-                if cached is not None:
-                    feats, feat_lengths = cached[int(i)]
-                else:
-                    feats, feat_lengths = model.features(*_audio_tensors(ex.audio))
-            feats = augment(preset, feats, feat_lengths, generator=spec_gen)
-            target = torch.from_numpy(np.ascontiguousarray(curves))[None]
-            n_frames = torch.tensor([target.shape[1]], dtype=torch.long)
-            pred, mask = model.head(feats, feat_lengths, n_frames, targets=target, fps=float(ex.fps))
-            loss = l1_loss(pred, target, mask)
+        for batch in batches:
+            items = []
+            for i in batch:
+                ex = train[int(i)]
+                if hook is not None:
+                    raw, factor = hook(ex.audio, augment_rng)
+                    if raw is not ex.audio or float(factor) != 1.0:
+                        items.append(_Item(int(i), np.asarray(raw, dtype=np.float32),
+                                           resample_curves(ex.curves, float(factor)), False))
+                        continue
+                items.append(_Item(int(i), ex.audio, np.asarray(ex.curves, dtype=np.float32), True))
+            with autocast_context(dev, amp):
+                feats, feat_lengths = features_of(items)
+                feats = augment(preset, feats, feat_lengths, generator=spec_gen)
+                target, n_frames = _pad_curves([it.curves for it in items], dev)
+                pred, mask = model.head(feats, feat_lengths, n_frames, targets=target, fps=fps_of[int(batch[0])])
+            loss = l1_loss(pred.float(), target, mask)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            scaler.scale(loss).backward()
+            scaler.step(optimizer)
+            scaler.update()
             step += 1
             losses.append(float(loss.detach()))
-            frames += int(target.shape[1])
+            frames += int(n_frames.sum())
         secs = time.perf_counter() - t0
         val_l1 = evaluate(model, val)[0] if val else None
         report = EpochReport(
-            epoch=epoch + 1, steps=len(order), train_l1_x100=100.0 * float(np.mean(losses)) if losses else math.nan,
+            epoch=epoch + 1, steps=len(batches), train_l1_x100=100.0 * float(np.mean(losses)) if losses else math.nan,
             val_l1_x100=val_l1, seconds=secs, frames_per_s=frames / max(secs, 1e-9),
         )
         history.append(report)
         if ckpt_path is not None:
-            _atomic_torch_save(
-                {
-                    "format": _CKPT_FORMAT,
-                    "resume_key": _resume_key(config),
-                    "data": fingerprint,
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "epoch": epoch + 1,
-                    "step": step,
-                    "history": [asdict(h) for h in history],
-                    "rng": {
-                        "torch": torch.get_rng_state(),
-                        "spec_augment": spec_gen.get_state(),
-                        "shuffle": _np_gen_state(shuffle_rng),
-                        "augment": _np_gen_state(augment_rng),
-                        "numpy_global": _np_global_state(),
-                    },
-                },
-                ckpt_path,
-            )
+            rng_state: dict[str, Any] = {
+                "torch": torch.get_rng_state(),
+                "spec_augment": spec_gen.get_state(),
+                "shuffle": _np_gen_state(shuffle_rng),
+                "augment": _np_gen_state(augment_rng),
+                "numpy_global": _np_global_state(),
+            }
+            if dev.type == "cuda":
+                rng_state["cuda"] = torch.cuda.get_rng_state(dev)
+            state = {
+                "format": _CKPT_FORMAT,
+                "resume_key": _resume_key(config),
+                "data": fingerprint,
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "epoch": epoch + 1,
+                "step": step,
+                "history": [asdict(h) for h in history],
+                "rng": rng_state,
+            }
+            if scaler.is_enabled():
+                state["scaler"] = scaler.state_dict()
+            _atomic_torch_save(state, ckpt_path)
         if on_epoch is not None:
             on_epoch(report)
     model.eval()
@@ -414,16 +624,20 @@ def train_model(
 
 
 def evaluate(
-    model: nn.Module, examples: Sequence[Example], batch_size: int = 1
+    model: nn.Module, examples: Sequence[Example], batch_size: int = 1, precision: str | None = None
 ) -> tuple[float, dict[str, float], np.ndarray]:
     """L1 x 100 of the raw (unclipped) predictions, in eval mode, without teacher forcing.
 
     Returns (mean over all valid frames and visemes of all utterances, {utterance_id: its mean},
     per-viseme mean over all frames (16,)). ``model(audio, lengths, n_frames, fps=fps)`` must
     follow the :class:`AudioCurveModel` convention; batches (padded) only group equal-fps examples.
+    Runs where the model is (:func:`~visemeflow.learning.device.model_device`), in float32 unless
+    ``precision`` asks for autocast there (``auto``/``bf16``/``fp16``; the CPU is always float32).
     """
     if not examples:
         raise ValueError("no examples to evaluate")
+    device = model_device(model)
+    amp = resolve_precision(device, precision)
     was_training = model.training
     model.eval()
     total = np.zeros(N_VISEMES, dtype=np.float64)
@@ -442,7 +656,9 @@ def evaluate(
                     for j, ex in enumerate(batch):
                         audio[j, : len(ex.audio)] = torch.from_numpy(np.asarray(ex.audio, dtype=np.float32))
                     n_frames = torch.tensor([np.asarray(ex.curves).shape[0] for ex in batch], dtype=torch.long)
-                    pred, _ = model(audio, lengths, n_frames, fps=fps)
+                    with autocast_context(device, amp):
+                        pred, _ = model(audio.to(device), lengths.to(device), n_frames, fps=fps)
+                    pred = pred.float().cpu()
                     for j, ex in enumerate(batch):
                         t = int(n_frames[j])
                         err = (pred[j, :t].to(torch.float64) - torch.as_tensor(
@@ -458,12 +674,14 @@ def evaluate(
 
 
 def predict_curves(
-    model: nn.Module, audio: np.ndarray, sample_rate: int, fps: float, n_frames: int | None = None
+    model: nn.Module, audio: np.ndarray, sample_rate: int, fps: float, n_frames: int | None = None,
+    precision: str | None = None,
 ) -> np.ndarray:
     """(T, 16) curves in [0, 1] for audio of any rate, (samples,) or (samples, channels).
 
-    The audio is downmixed and resampled to 16 kHz; ``n_frames`` defaults to
-    ``round(duration * fps)`` with the duration of the input audio.
+    The audio is downmixed and resampled to 16 kHz (on the CPU); ``n_frames`` defaults to
+    ``round(duration * fps)`` with the duration of the input audio. The model runs where it is, in float32
+    unless ``precision`` asks for autocast on CUDA (as :func:`evaluate`).
     """
     audio = np.asarray(audio)
     duration = audio.shape[0] / float(sample_rate)
@@ -471,23 +689,36 @@ def predict_curves(
     t = round(duration * fps) if n_frames is None else int(n_frames)
     if t <= 0:
         return np.zeros((0, N_VISEMES), dtype=np.float32)
+    device = model_device(model)
+    amp = resolve_precision(device, precision)
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad():
-            a, lengths = _audio_tensors(x)
+        with torch.no_grad(), autocast_context(device, amp):
+            a, lengths = _audio_tensors(x, device)
             pred, _ = model(a, lengths, torch.tensor([t], dtype=torch.long), fps=float(fps))
     finally:
         model.train(was_training)
-    return np.clip(pred[0, :t].numpy(), 0.0, 1.0).astype(np.float32)
+    return np.clip(pred[0, :t].float().cpu().numpy(), 0.0, 1.0).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------------
 # save / load
 
 
+def _cpu_state_dict(model: nn.Module) -> dict[str, Tensor]:
+    """``model.state_dict()`` with every tensor on the CPU (the same object when it already is)."""
+    state = model.state_dict()
+    if all(v.device.type == "cpu" for v in state.values()):
+        return state
+    cpu: OrderedDict[str, Tensor] = OrderedDict((k, v.cpu()) for k, v in state.items())
+    cpu._metadata = getattr(state, "_metadata", None)  # type: ignore[attr-defined]
+    return cpu
+
+
 def save_model(model: nn.Module, config: TrainConfig, path: str | Path, lineage: dict[str, Any]) -> Path:
-    """One file: weights, TrainConfig JSON, feature config, head frame rate, lineage JSON.
+    """One file: weights (CPU tensors, wherever the model is), TrainConfig JSON, feature config, head frame rate,
+    lineage JSON.
 
     For wav2vec2 presets the Wav2Vec2 architecture config is stored too, so loading needs neither
     the original pretrained model nor the network. Written atomically.
@@ -503,15 +734,18 @@ def save_model(model: nn.Module, config: TrainConfig, path: str | Path, lineage:
         "curve_fps": float(model.head.curve_fps),
         "wav2vec2_config": w2v_config,
         "lineage": json.dumps(lineage, sort_keys=True, default=str),
-        "state_dict": model.state_dict(),
+        "state_dict": _cpu_state_dict(model),
     }
     path = Path(path)
     _atomic_torch_save(blob, path)
     return path
 
 
-def load_model(path: str | Path) -> tuple[AudioCurveModel, TrainConfig, dict[str, Any]]:
-    """Inverse of :func:`save_model` (``torch.load(weights_only=True)``); the model is in eval mode."""
+def load_model(
+    path: str | Path, device: str | torch.device | None = None
+) -> tuple[AudioCurveModel, TrainConfig, dict[str, Any]]:
+    """Inverse of :func:`save_model` (``torch.load(weights_only=True, map_location="cpu")``, so a file written
+    from a GPU loads anywhere); the model is in eval mode, on ``device`` (default: the CPU)."""
     blob = torch.load(Path(path), map_location="cpu", weights_only=True)
     if not isinstance(blob, dict) or blob.get("format") != _MODEL_FORMAT:
         raise ValueError(f"{path} is not a saved visemeflow curve model")
@@ -526,5 +760,7 @@ def load_model(path: str | Path) -> tuple[AudioCurveModel, TrainConfig, dict[str
         features = build_feature_extractor(fcfg)
     model = _assemble(config, features, float(blob["curve_fps"]))
     model.load_state_dict(blob["state_dict"])
+    if device is not None:
+        model.to(resolve_device(device))
     model.eval()
     return model, config, json.loads(blob["lineage"])
