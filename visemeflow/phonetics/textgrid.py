@@ -1,10 +1,20 @@
-"""Praat TextGrid reader for every text variant Praat writes (UTF-8 with or without BOM, UTF-16, Latin-1).
+"""Praat TextGrid reader for every format Praat writes: text (UTF-8 with or without BOM, UTF-16, Latin-1) and binary.
 
 Praat's text format is a stream of values: quoted strings (with "" for a literal quote), numbers and
 <flags>; everything else (``xmin =``, ``item [1]:``) is decoration that Praat itself ignores. Reading
 the value stream instead of the lines therefore handles the long format, the short format, the older
 short header (``File type = "ooTextFile short"`` with ``"TextGrid"`` on its own line, as old Praat and
-P2FA write it) and any mix of them with one small tokenizer.
+P2FA write it), the chronological format ("Save as chronological text file": a header string
+``"Praat chronological TextGrid text file"``, the tiers declared first, then every interval and point in
+time order, each prefixed by its tier number) and any mix of them with one small tokenizer.
+
+The binary format ("Save as binary file", starting with the bytes ``ooBinaryFile``) is read by
+`parse_textgrid_binary`; `parse_textgrid_bytes` and `read_textgrid` choose the reader from the first bytes.
+The layout was checked against files Praat 6.1.38 wrote (through praat-parselmouth): big-endian IEEE
+doubles for times, a 1-byte flag for "tiers exist", 32-bit counts, the object and tier classes as a 1-byte
+length and ASCII, tier names and labels as a 16-bit length and 8-bit text, or the length 0xFFFF then a
+16-bit count of characters and their UTF-16BE code units (two for a character outside the BMP) when the
+text is not ASCII.
 
 Why our own reader rather than the `textgrid` package (measured by ``bench/textgrid_readers.py`` on the
 demo corpus, the real TextGrids of ../shared/data and every one of them rewritten in each Praat variant:
@@ -18,6 +28,7 @@ faster. The package stays the reference of the tests and the benchmark (a dev de
 import math
 import os
 import re
+import struct
 from dataclasses import dataclass
 
 from visemeflow.phonetics.types import Seconds
@@ -29,11 +40,13 @@ _TOKEN = re.compile(
     r"|(?<![\w.])([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|(?i:nan|[-+]?inf))(?![\w.])"  # number
     # nan/inf (as Python writers put them) are read as numbers, so the interval checks downstream
     # can name the bad interval instead of the stream going out of step.
-    r"|!\S[^\n]*"                                # Praat comment line
+    r"|![^\n]*"                                  # Praat comment: from ! outside a string to the end of the line
 )
 
 
 _FILE_TYPES = ("ooTextFile", "ooTextFile short")
+CHRONOLOGICAL_HEADER = "Praat chronological TextGrid text file"
+BINARY_MAGIC = b"ooBinaryFile"
 
 
 class TextGridError(ValueError):
@@ -139,6 +152,8 @@ def parse_textgrid(text: str, source: str = "<string>") -> TextGridData:
     """Parse TextGrid text in Praat's long or short format into tiers of (start, end, label)."""
     cur = _Cursor(_tokens(text), source)
     file_type = cur.string("the file type")
+    if file_type == CHRONOLOGICAL_HEADER:
+        return _parse_chronological(cur)
     object_class = cur.string("the object class")
     # "ooTextFile short" is the older short-format header: the class follows as a bare "TextGrid" line
     if file_type not in _FILE_TYPES or object_class != "TextGrid":
@@ -178,6 +193,123 @@ def _parse_tier(cur: _Cursor, number: int) -> Tier:
     else:
         raise TextGridError(f"{cur.source}: tier {name!r} has unknown class {kind!r}")
     return Tier(name, kind, start, end, tuple(items))
+
+
+def _parse_chronological(cur: _Cursor) -> TextGridData:
+    """The chronological text format: tier headers first, then `tier number, time(s), text` in time order."""
+    start, end = cur.number("xmin"), cur.number("xmax")
+    n_tiers = cur.count("the tier count")
+    headers: list[tuple[str, str, float, float]] = []
+    for t in range(n_tiers):
+        kind = cur.string(f"the class of tier {t + 1}")
+        name = cur.string(f"the name of tier {t + 1}")
+        if kind not in ("IntervalTier", "TextTier"):
+            raise TextGridError(f"{cur.source}: tier {name!r} has unknown class {kind!r}")
+        headers.append((kind, name, cur.number(f"xmin of tier {name!r}"), cur.number(f"xmax of tier {name!r}")))
+    items: list[list[tuple[float, float, str]]] = [[] for _ in headers]
+    entry = 0
+    while cur.pos < len(cur.tokens):
+        entry += 1
+        number = cur.number(f"the tier number of entry {entry}")
+        if not (number == int(number) and 1 <= number <= n_tiers):
+            raise TextGridError(f"{cur.source}: entry {entry} names tier {number:g}; the file declares {n_tiers} tier(s)")
+        kind, name = headers[int(number) - 1][:2]
+        if kind == "IntervalTier":
+            a = cur.number(f"xmin of entry {entry} (tier {name!r})")
+            b = cur.number(f"xmax of entry {entry} (tier {name!r})")
+        else:
+            a = b = cur.number(f"the time of entry {entry} (tier {name!r})")
+        items[int(number) - 1].append((a, b, cur.string(f"the text of entry {entry} (tier {name!r})")))
+    tiers = tuple(Tier(name, kind, a, b, tuple(its)) for (kind, name, a, b), its in zip(headers, items))
+    return TextGridData(start, end, tiers)
+
+
+class _BinaryReader:
+    """Big-endian values of a binary Praat file, with errors naming the file and the byte offset."""
+
+    def __init__(self, data: bytes, source: str):
+        self.data, self.pos, self.source = data, 0, source
+
+    def take(self, n: int, what: str) -> bytes:
+        if self.pos + n > len(self.data):
+            raise TextGridError(f"{self.source}: binary TextGrid ends early at byte {len(self.data)}, expected {what}")
+        chunk = self.data[self.pos:self.pos + n]
+        self.pos += n
+        return chunk
+
+    def double(self, what: str) -> float:
+        return struct.unpack(">d", self.take(8, what))[0]
+
+    def int32(self, what: str) -> int:
+        value = struct.unpack(">i", self.take(4, what))[0]
+        if value < 0:
+            raise TextGridError(f"{self.source}: {what} is negative ({value}) at byte {self.pos - 4}")
+        return value
+
+    def short_ascii(self, what: str) -> str:
+        """A 1-byte length and ASCII text (Praat's class names)."""
+        n = self.take(1, what)[0]
+        return self.take(n, what).decode("latin-1")
+
+    def text(self, what: str) -> str:
+        """A 16-bit length and 8-bit text, or 0xFFFF, a 16-bit character count and UTF-16BE code units."""
+        n = struct.unpack(">H", self.take(2, what))[0]
+        if n != 0xFFFF:
+            return self.take(n, what).decode("latin-1")
+        n = struct.unpack(">H", self.take(2, what))[0]
+        start = self.pos
+        for _ in range(n):  # n counts characters: one outside the BMP takes two code units (a surrogate pair)
+            if 0xD800 <= struct.unpack(">H", self.take(2, what))[0] <= 0xDBFF:
+                self.take(2, what)
+        try:
+            return self.data[start:self.pos].decode("utf-16-be")
+        except UnicodeDecodeError as exc:
+            raise TextGridError(f"{self.source}: {what} is not valid UTF-16 (before byte {self.pos}): {exc}") from exc
+
+
+def parse_textgrid_binary(data: bytes, source: str = "<bytes>") -> TextGridData:
+    """Parse a TextGrid in Praat's binary format ("Save as binary file")."""
+    r = _BinaryReader(data, source)
+    if r.take(len(BINARY_MAGIC), "the ooBinaryFile header") != BINARY_MAGIC:
+        raise TextGridError(f"{source}: not a Praat binary file (no ooBinaryFile header)")
+    object_class = r.short_ascii("the object class")
+    if object_class != "TextGrid":
+        raise TextGridError(f"{source}: a Praat binary {object_class!r} file, not a TextGrid")
+    start, end = r.double("xmin"), r.double("xmax")
+    tiers: list[Tier] = []
+    if r.take(1, "the tiers-exist flag")[0]:
+        for t in range(r.int32("the tier count")):
+            kind = r.short_ascii(f"the class of tier {t + 1}")
+            name = r.text(f"the name of tier {t + 1}")
+            a, b = r.double(f"xmin of tier {name!r}"), r.double(f"xmax of tier {name!r}")
+            count = r.int32(f"the item count of tier {name!r}")
+            items: list[tuple[float, float, str]] = []
+            if kind == "IntervalTier":
+                for i in range(count):
+                    x0 = r.double(f"xmin of interval {i + 1} in tier {name!r}")
+                    x1 = r.double(f"xmax of interval {i + 1} in tier {name!r}")
+                    items.append((x0, x1, r.text(f"the text of interval {i + 1} in tier {name!r}")))
+            elif kind == "TextTier":
+                for i in range(count):
+                    x = r.double(f"the time of point {i + 1} in tier {name!r}")
+                    items.append((x, x, r.text(f"the mark of point {i + 1} in tier {name!r}")))
+            else:
+                raise TextGridError(f"{source}: tier {name!r} has unknown class {kind!r}")
+            tiers.append(Tier(name, kind, a, b, tuple(items)))
+    if r.pos != len(data):
+        raise TextGridError(f"{source}: {len(data) - r.pos} unexpected byte(s) after the last of {len(tiers)} tier(s)")
+    return TextGridData(start, end, tuple(tiers))
+
+
+def parse_textgrid_bytes(data: bytes, source: str = "<bytes>") -> TextGridData:
+    """A TextGrid file's content in any format Praat writes: binary, or text in any encoding Praat uses."""
+    if data.startswith(BINARY_MAGIC):
+        return parse_textgrid_binary(data, source)
+    try:
+        text = decode_textgrid_bytes(data)
+    except UnicodeDecodeError as exc:
+        raise TextGridError(f"{source}: not UTF-16 text although it starts with a UTF-16 byte-order mark: {exc}") from exc
+    return parse_textgrid(text, source)
 
 
 STYLES = ("long", "short", "ooTextFile short")
@@ -241,14 +373,11 @@ def format_textgrid(
 
 
 def read_textgrid(path: str | os.PathLike) -> TextGridData:
-    """Read a TextGrid file in any text variant Praat writes; errors name the file."""
+    """Read a TextGrid file in any format Praat writes (text variants and binary); errors name the file."""
     path = os.fspath(path)
     try:
-        data = open(path, "rb").read()
+        with open(path, "rb") as fh:
+            data = fh.read()
     except OSError as exc:
         raise TextGridError(f"{path}: cannot read: {exc.strerror}") from exc
-    try:
-        text = decode_textgrid_bytes(data)
-    except UnicodeDecodeError as exc:
-        raise TextGridError(f"{path}: not UTF-16 text although it starts with a UTF-16 byte-order mark: {exc}") from exc
-    return parse_textgrid(text, path)
+    return parse_textgrid_bytes(data, path)
