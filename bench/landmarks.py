@@ -26,9 +26,9 @@ Table 2, agreement with the reference files (default config, refine on; refine o
 distance per (frame, point) pooled over the set's frames, median and 95th percentile, on the 40 lip vertices
 (`LIP_IDS`, MediaPipe's FACEMESH_LIPS) and on all points; the share of frames detected by both.
 
---frame PATH also saves one GRID frame (bbaf2n, the frame with the widest inner-lip gap) with our 478 points drawn
-(the 40 lip vertices in red), cropped around the face and enlarged 3x, as a palette PNG (docs/landmarks_frame.png
-in the README).
+--frame PATH also saves a frame with our 478 points drawn (the 40 lip vertices in red) as a palette PNG
+(docs/landmarks_frame.png in the README): the ICT demo rig rendered by our synthetic-take renderer, not GRID or
+talking_heads footage (GRID has no clear license, talking_heads is third-party footage that stays in ../shared).
 """
 
 from __future__ import annotations
@@ -184,31 +184,41 @@ def main() -> None:
                   f"{both:>4}/{n:<4}")
 
     if args.frame is not None:
-        save_frame(args.frame, decoded["GRID 360x288"], results[("GRID 360x288", "one face + probe, refine on")])
+        save_frame(args.frame)
 
 
-def save_frame(out: Path, clips: list, tracks: list, clip: str = "bbaf2n") -> None:
-    """The frame of `clip` with the widest inner-lip gap (vertices 13/14), our points drawn, face crop at 3x."""
+def save_frame(out: Path) -> None:
+    """A rendered frame of the ICT demo rig (our synthetic renderer, `synth.take`: no third-party footage in the
+    repository) with the points FaceMesh finds on it: the frame of a short take with the widest inner-lip gap
+    (vertices 13/14), cropped around the face."""
     from PIL import Image
 
-    images = next(images for path, images, _ in clips if path.stem == clip)
-    track = next(track for path, track in tracks if path.stem == clip)
+    from visemeflow.phonetics.types import VisemeSegment
+    from visemeflow.rig import demo_rig_path, load_rig
+    from visemeflow.synth.take import SynthConfig, make_take, render_take
+
+    rig = load_rig(demo_rig_path())
+    segments = [VisemeSegment("MBP", 0.0, 0.2), VisemeSegment("AAA", 0.2, 0.5), VisemeSegment("OHH", 0.5, 0.8)]
+    take = make_take(rig, segments, 20, "demo", "demo/landmarks", SynthConfig(width=560, height=560, fill=0.9))
+    images = np.stack(list(render_take(rig, take)))
+    track = detect_frames(images, fps=25, name="ICT demo take")
     frame = int(np.nanargmax(track.points[:, 14, 1] - track.points[:, 13, 1]))
     pts = track.points[frame]
-    scale = 3
-    big = np.asarray(Image.fromarray(images[frame]).resize((images.shape[2] * scale, images.shape[1] * scale),
-                                                            Image.Resampling.LANCZOS))
+    scale = 1
+    h, w = images.shape[1:3]
+    big = np.asarray(Image.fromarray(images[frame]).resize((w * scale, h * scale), Image.Resampling.LANCZOS))
     drawn = draw_landmarks(big, pts * scale, color=(60, 255, 60), highlight=LIP_IDS, radius=2, highlight_radius=3)
     x0, y0 = np.nanmin(pts, axis=0) * scale
     x1, y1 = np.nanmax(pts, axis=0) * scale
-    pad = 12 * scale
+    pad = 24 * scale
     x0, y0 = max(0, int(x0) - pad), max(0, int(y0) - pad)
     x1, y1 = min(drawn.shape[1], int(x1) + pad), min(drawn.shape[0], int(y1) + pad)
     crop = Image.fromarray(drawn[y0:y1, x0:x1])
     out.parent.mkdir(parents=True, exist_ok=True)
     crop.quantize(colors=128, method=Image.Quantize.MEDIANCUT).save(out, optimize=True)
-    print(f"\nsaved {out} ({crop.width}x{crop.height}, {out.stat().st_size / 1024:.0f} KB): GRID s1 {clip} frame "
-          f"{frame} (widest inner-lip gap), our 478 points (the 40 lip vertices red), 3x")
+    print(f"\nsaved {out} ({crop.width}x{crop.height}, {out.stat().st_size / 1024:.0f} KB): the ICT demo rig rendered "
+          f"at {w}x{h}, frame {frame} of a 20-frame take (face on {int(track.detected.sum())} of 20), our 478 points "
+          f"(the 40 lip vertices red)")
 
 
 if __name__ == "__main__":
