@@ -1,4 +1,7 @@
-"""The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each)."""
+"""The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each).
+
+Utterances without an alignment are tracked unguided (variant `unguided-...`, see tasks/track.py); the summary
+counts them (`unguided`) and says why (`unguided_why`)."""
 
 import traceback
 from pathlib import Path
@@ -18,9 +21,10 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
-from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance
+from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance, utterance_config
 
-TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]
+TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.AUDIO_PATH, C.ALIGNMENT_PATH,
+                C.ALIGNMENT_FORMAT, C.FPS, C.N_FRAMES]
 
 
 def rig_and_hash(rig: Path | None) -> tuple[Path, str]:
@@ -38,6 +42,15 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
     from visemeflow.procedural import ProceduralConfig
 
     return default_variant(ProceduralConfig())
+
+
+def unguided_why(unguided: list[dict]) -> str | None:
+    """'N: reason; M: reason' over the reports of utterances tracked without phoneme guidance; None if none."""
+    counts: dict[str, int] = {}
+    for r in unguided:
+        reason = r.get("unguided_reason") or "unknown"
+        counts[reason] = counts.get(reason, 0) + 1
+    return "; ".join(f"{n}: {reason}" for reason, n in sorted(counts.items())) or None
 
 
 @flow(name="track", flow_run_name="track[{params.store}]", task_runner=cpu_thread_pool())
@@ -60,7 +73,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     futures = {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
-        present = store.has_curves(SOURCE, config.variant, uid) or uid in rejected_before
+        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
         provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
         future = track_utterance.with_options(
             result_storage=result_storage(store.root), refresh_cache=not present,
@@ -86,12 +99,16 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             update_progress_artifact(progress, 100.0 * done / len(futures))
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
+    unguided = [r for r in reports if not r.get("guided", True)]
     summary = {
         "utterances": len(rows), "tracked": sum(1 for r in reports if not r["cached"]),
         "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
-        "frames": sum(r["frames"] for r in reports),
+        "frames": sum(r["frames"] for r in reports), "unguided": len(unguided),
+        "interpolated_frames": sum(r.get("interpolated_frames", 0) for r in reports),
     }
     extra = {"variant": config.variant,
+             "variants": ", ".join(sorted({r["variant"] for r in reports})) or None,
+             "unguided_why": unguided_why(unguided),
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
     publish_stage_summary(STAGE, summary, extra)
     publish_rejects(STAGE, store.read_table("rejects", STAGE))

@@ -2,10 +2,21 @@
 
 The tracking itself is `visemeflow.tracking.utterance.track_video`; this task reads the procedural curves from the
 store, calls it, and writes the curves and per-frame diagnostics back.
+
+An utterance without an alignment (`alignment_format` NO_ALIGNMENT: a video ingested without phones, a captured
+take with a video) has no procedural curves: it is tracked without phoneme guidance (no L_sup/L_act) and its
+curves are stored under the unguided variant (`unguided-fast` where the config says `guided-fast`), never mixed
+with guided ones. Utterances with an alignment stay guided.
+
+Curves are stored on the utterance's grid (frame k at k / fps, the `curves` contract). For a video whose frames are
+not that grid (variable frame rate, a late first frame) the tracker solves on the frames' true times and
+interpolates onto the grid (see `tracking.utterance`); the `tracking_frames` rows of grid frames the video lacks
+have `landmarks_valid` false and every `loss_*` column (and mouth error, flow) null: nothing was measured there.
 """
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 from prefect import get_run_logger, task
 
 from visemeflow.hashing import stable_hash
@@ -17,6 +28,7 @@ from visemeflow.schemas import (
     curves_array,
     curves_table,
 )
+from visemeflow.schemas.tables import NO_ALIGNMENT
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY
 from visemeflow.tracking.solver import TrackingConfig
@@ -24,6 +36,8 @@ from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, Vide
 
 STAGE = "track"
 SOURCE = "tracked"
+NO_ALIGNMENT_REASON = "no alignment"
+GUIDANCE_OFF_REASON = "guidance off in the tracking config"
 
 
 class TrackError(ValueError):
@@ -35,6 +49,31 @@ class TrackError(ValueError):
 
     def __reduce__(self):
         return (type(self), (self.utterance_id, self.path, self.error_type, self.reason))
+
+
+def has_alignment(utterance: dict) -> bool:
+    """Whether the utterance has phones to guide tracking (its alignment_format is not NO_ALIGNMENT)."""
+    return utterance.get(C.ALIGNMENT_FORMAT) != NO_ALIGNMENT
+
+
+def utterance_config(utterance: dict, config: TrackingConfig) -> TrackingConfig:
+    """The config one utterance is tracked with: `config`, unguided for an utterance without an alignment."""
+    if config.guidance and not has_alignment(utterance):
+        return config.model_copy(update={"guidance": False})
+    return config
+
+
+def unguided_reason(utterance: dict, config: TrackingConfig) -> str | None:
+    """Why an utterance is tracked without phoneme guidance; None when it is guided."""
+    if not config.guidance:
+        return GUIDANCE_OFF_REASON
+    return None if has_alignment(utterance) else NO_ALIGNMENT_REASON
+
+
+def alignment_end_s(store: Store, uid: str) -> float | None:
+    """Where the utterance's phones end (s); None without phone rows."""
+    ends = store.read_table("phones", utterance_ids=[uid]).column(C.END_S)
+    return float(pc.max(ends).as_py()) if len(ends) else None
 
 
 def diagnostics_table(uid: str, variant: str, tracked: TrackedVideo) -> pa.Table:
@@ -62,12 +101,18 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     uid = utterance[C.UTTERANCE_ID]
     if not utterance[C.VIDEO_PATH]:
         raise TrackError(uid, None, "NoVideo", "the utterance has no video")
-    try:
-        procedural = curves_array(store.read_curves(uid, "procedural", procedural_variant))
-    except LookupError as exc:
-        raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
+    why = unguided_reason(utterance, config)
+    config = utterance_config(utterance, config)
+    procedural = end_s = None
+    if has_alignment(utterance):
+        try:
+            procedural = curves_array(store.read_curves(uid, "procedural", procedural_variant))
+        except LookupError as exc:
+            raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
+        end_s = alignment_end_s(store, uid)
     video = VideoInput(utterance[C.VIDEO_PATH], utterance[C.LANDMARK_PATH], utterance[C.FPS],
-                       int(utterance[C.N_FRAMES]))
+                       int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
+                       alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
     try:
         tracked = track_video(video, procedural, rig, config)
     except TrackingInputError as exc:
@@ -80,7 +125,9 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     return {
         "utterance_id": uid, "frames": video.n_frames, "seconds": round(result.seconds, 3),
         "mouth_error_px": float(np.nanmean(error)) if np.isfinite(error).any() else None,
-        "variant": variant, **tracked.camera_info,
+        "variant": variant, "guided": why is None, "unguided_reason": why,
+        "video_frames": int(len(tracked.frame_times)) if tracked.frame_times is not None else video.n_frames,
+        "interpolated_frames": int(tracked.interpolated.sum()), **tracked.camera_info,
     }
 
 
@@ -92,6 +139,6 @@ def track_utterance(
     """Track one utterance (cached on its inputs' content hash, the procedural curves, the rig and the config)."""
     rig = load_rig(rig_path)
     report = track_one(Store(store_root), utterance, procedural_variant, rig, config)
-    get_run_logger().info("%s: %d frames in %.2f s, mouth error %s px", report["utterance_id"], report["frames"],
-                          report["seconds"], report["mouth_error_px"])
+    get_run_logger().info("%s: %d frames (%s) in %.2f s, mouth error %s px", report["utterance_id"], report["frames"],
+                          report["variant"], report["seconds"], report["mouth_error_px"])
     return report

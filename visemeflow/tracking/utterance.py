@@ -1,8 +1,19 @@
 """Tracking one utterance from its video: landmarks on the video's frames, the camera (and the speaker's identity
 for real footage), the optical-flow term, then the solver (paper 4.3).
 
-Pure of orchestration and storage: the caller passes the utterance's files and its procedural curves and gets
-arrays back. Bad input raises `TrackingInputError` with the file it concerns and a short error type.
+Pure of orchestration and storage: the caller passes the utterance's files and its procedural curves (None: track
+without phoneme guidance) and gets arrays back. Bad input raises `TrackingInputError` with the file it concerns and
+a short error type.
+
+Video time. Curves live on the utterance's grid, frame k at k / fps on the audio's clock (the `curves` table
+contract, shared with the procedural curves and the audio). The video's frames are shown at their presentation
+times (`video.frame_times`). When those are the grid (constant-rate video that starts with its audio: GRID, the
+synthetic takes; within `UNIFORM_TOLERANCE_S`) tracking runs on the grid as it always did. Otherwise (variable
+frame rate, a video starting after its audio, a rate other than the grid's) the solver runs on the decoded frames
+at their true times, with the procedural curves sampled at those times, and its curves and poses are then
+resampled onto the grid by linear interpolation in time (held before the first and after the last frame). Grid
+frames with no video frame within half a grid step are the ones the video lacks: `TrackedVideo.video_frame` is -1
+there, and their diagnostics (landmarks, mouth error, flow, every loss term) are missing, not invented.
 """
 
 import json
@@ -12,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from visemeflow.rig import VisemeRig
+from visemeflow.visemes import N_VISEMES
 from visemeflow.tracking.camera import Intrinsics
 from visemeflow.tracking.identity import (
     apply_identity,
@@ -32,10 +44,14 @@ from visemeflow.tracking.solver import (
     solve_faithful,
     solve_fast,
 )
-from visemeflow.tracking.video import VideoError, probe_video, read_video_frames
+from visemeflow.tracking.video import VideoError, frame_times, probe_video, read_timed_frames
 
 LANDMARK_FILES = "<name>.landmarks.csv|.parquet, .mediapipe478.csv, .openface.csv"
 FALLBACK_FOV_DEG = 25.0
+UNIFORM_TOLERANCE_S = 1e-3
+"""Frames within this of k / fps (every one of the grid's frames) are the grid: tracked on it as they are."""
+COVERAGE_TOLERANCE_S = 0.1
+"""How far the curve grid or the alignment may run past the video's last frame (ingest's default tolerance)."""
 
 
 class TrackingInputError(ValueError):
@@ -51,23 +67,112 @@ class TrackingInputError(ValueError):
 
 @dataclass(frozen=True)
 class VideoInput:
-    """One utterance's video and landmark files, with the frame count and rate ingestion measured."""
+    """One utterance's video and landmark files, with its curve grid (rate and frame count) from ingestion.
+
+    `audio_path` (when given) is checked to exist; when it is the video itself the video must have an audio track.
+    `alignment_end_s` (when given) is where the utterance's phones end: past the video's end it is a reject."""
 
     video_path: str
     landmark_path: str | None
     fps: float
     n_frames: int
+    audio_path: str | None = None
+    alignment_path: str | None = None
+    alignment_end_s: float | None = None
 
 
 @dataclass
 class TrackedVideo:
-    """What tracking one video gives: the solver's result, the landmarks used, the flow's valid fraction per
-    frame ((T,), NaN at frame 0; None without flow) and how the camera/identity was chosen."""
+    """What tracking one video gives, on the curve grid ((T,) = the utterance's frames): the solver's result, the
+    landmarks used, the flow's valid fraction per frame (NaN at frame 0; None without flow), how the
+    camera/identity was chosen, the decoded frame shown at each grid frame (`video_frame`, -1 where the video
+    lacks one and the curves are interpolated) and the decoded frames' times (s, audio clock)."""
 
     result: TrackingResult
     landmarks: LandmarkTrack
     flow_valid: np.ndarray | None
     camera_info: dict = field(default_factory=dict)
+    video_frame: np.ndarray | None = None
+    frame_times: np.ndarray | None = None
+
+    @property
+    def interpolated(self) -> np.ndarray:
+        """(T,) bool: grid frames the video lacks (curves interpolated in time, no diagnostics)."""
+        if self.video_frame is None:
+            return np.zeros(len(self.result.curves), bool)
+        return self.video_frame < 0
+
+    @property
+    def guided(self) -> bool:
+        return bool(self.result.extra.get("guided", True))
+
+
+@dataclass(frozen=True)
+class FrameTimeline:
+    """Where the decoded frames (shown at `times`, s) sit on the curve grid k / `fps`, k < `n_grid`."""
+
+    times: np.ndarray
+    fps: float
+    n_grid: int
+
+    @property
+    def grid_times(self) -> np.ndarray:
+        return np.arange(self.n_grid, dtype=np.float64) / self.fps
+
+    @property
+    def uniform(self) -> bool:
+        """The first `n_grid` frames are the grid's frames (so tracking runs on the grid as it is)."""
+        return (len(self.times) >= self.n_grid
+                and bool(np.abs(self.times[:self.n_grid] - self.grid_times).max() <= UNIFORM_TOLERANCE_S))
+
+    def video_frame(self) -> np.ndarray:
+        """(n_grid,) the decoded frame within half a grid step of each grid frame (the nearest), -1 where none."""
+        grid = self.grid_times
+        right = np.clip(np.searchsorted(self.times, grid), 1, len(self.times) - 1) if len(self.times) > 1 else \
+            np.zeros(len(grid), int)
+        left = np.maximum(right - 1, 0)
+        nearest = np.where(np.abs(self.times[left] - grid) <= np.abs(self.times[right] - grid), left, right)
+        close = np.abs(self.times[nearest] - grid) < 0.5 / self.fps
+        return np.where(close, nearest, -1)
+
+    def to_frames(self, values: np.ndarray) -> np.ndarray:
+        """Grid values (n_grid, ...) linearly interpolated at the frames' times (held beyond the grid's ends)."""
+        return _interp(self.times, self.grid_times, values)
+
+    def to_grid(self, values: np.ndarray) -> np.ndarray:
+        """Per-frame values (frames, ...) linearly interpolated at the grid's times (held beyond the frames)."""
+        return _interp(self.grid_times, self.times, values)
+
+
+def _interp(at: np.ndarray, times: np.ndarray, values: np.ndarray) -> np.ndarray:
+    values = np.asarray(values)
+    flat = values.reshape(len(values), -1).astype(np.float64)
+    out = np.stack([np.interp(at, times, flat[:, i]) for i in range(flat.shape[1])], axis=1)
+    return out.reshape((len(at),) + values.shape[1:]).astype(values.dtype)
+
+
+def _pick(values: np.ndarray, index: np.ndarray, fill) -> np.ndarray:
+    """values[index] where index >= 0, else `fill`."""
+    out = values[np.maximum(index, 0)].copy()
+    out[index < 0] = fill
+    return out
+
+
+def on_grid(tracked: TrackedVideo, timeline: FrameTimeline) -> TrackedVideo:
+    """A result solved on the decoded frames, moved to the curve grid: curves and pose interpolated in time, the
+    per-frame diagnostics of the frame shown at each grid frame (missing where the video lacks one)."""
+    r, index = tracked.result, timeline.video_frame()
+    curves = np.clip(timeline.to_grid(r.curves), 0.0, 1.0).astype(np.float32)
+    terms = {k: _pick(np.asarray(v, np.float32), index, np.nan) for k, v in r.terms.items()}
+    result = TrackingResult(
+        curves, timeline.to_grid(r.rotation), timeline.to_grid(r.translation), terms,
+        _pick(np.asarray(r.mouth_error_px, np.float32), index, np.nan), r.seconds, r.iterations,
+        {**r.extra, "video_frames": len(timeline.times), "interpolated_frames": int((index < 0).sum())},
+    )
+    lm = tracked.landmarks
+    landmarks = LandmarkTrack(_pick(lm.points, index, np.nan), _pick(lm.valid, index, False), lm.fps, lm.source)
+    flow_valid = None if tracked.flow_valid is None else _pick(tracked.flow_valid, index, np.nan)
+    return TrackedVideo(result, landmarks, flow_valid, tracked.camera_info, index, timeline.times)
 
 
 def camera_record_path(video_path: str) -> Path:
@@ -131,30 +236,76 @@ def flow_term(frames: np.ndarray, rig: VisemeRig, track: LandmarkTrack) -> tuple
     return FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences), valid_fraction
 
 
-def track_video(video: VideoInput, procedural: np.ndarray, rig: VisemeRig, config: TrackingConfig) -> TrackedVideo:
-    """Fit viseme curves to one video, guided by its procedural curves ((n_frames, 16)); TrackingInputError for
-    input that cannot be tracked (missing or bad landmarks, unreadable or short video, a diverging solve)."""
-    n_frames = video.n_frames
-    if len(procedural) != n_frames:
+def check_audio(video: VideoInput) -> None:
+    """The utterance's audio must exist; when it is the video's own track, the video must have one."""
+    audio = video.audio_path
+    if audio is None:
+        return
+    if not audio or Path(audio) == Path(video.video_path):
+        if not probe_video(video.video_path).has_audio:
+            raise TrackingInputError(video.video_path, "MissingAudio",
+                                     "no audio file for the utterance and no audio track in its video")
+    elif not Path(audio).is_file():
+        raise TrackingInputError(audio, "MissingAudio", "the utterance's audio file is missing")
+
+
+def check_coverage(video: VideoInput, times: np.ndarray) -> None:
+    """The video must reach the end of the curve grid and of the alignment (within COVERAGE_TOLERANCE_S)."""
+    step = 1.0 / video.fps
+    end = float(times[-1]) + step            # the last frame is shown until one frame later
+    grid_end = video.n_frames * step
+    if grid_end > end + COVERAGE_TOLERANCE_S:
+        raise TrackingInputError(video.video_path, "ShortVideo",
+                                 f"the video's frames end at {end:.3f} s ({len(times)} frames) but its curves "
+                                 f"run to {grid_end:.3f} s ({video.n_frames} frames at {video.fps:g} fps)")
+    if video.alignment_end_s is not None and video.alignment_end_s > end + COVERAGE_TOLERANCE_S:
+        raise TrackingInputError(video.alignment_path or video.video_path, "AlignmentPastVideo",
+                                 f"the alignment runs to {video.alignment_end_s:.3f} s but the video "
+                                 f"{video.video_path} ends at {end:.3f} s (tolerance {COVERAGE_TOLERANCE_S} s)")
+
+
+def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig,
+                config: TrackingConfig) -> TrackedVideo:
+    """Fit viseme curves to one video on its curve grid ((n_frames, 16)), guided by its procedural curves on that
+    grid, or unguided when `procedural` is None (no alignment: no L_sup/L_act, weights start from the neutral
+    face). TrackingInputError for input that cannot be tracked (missing or bad landmarks, unreadable or short
+    video, no audio, an alignment past the video's end, a diverging solve)."""
+    n_grid = video.n_frames
+    guided = procedural is not None
+    if not guided and config.guidance:
+        config = config.model_copy(update={"guidance": False})
+    if guided and len(procedural) != n_grid:
         raise TrackingInputError(None, "FrameMismatch",
-                                 f"procedural curves have {len(procedural)} frames, the video {n_frames}: rerun procedural")
+                                 f"procedural curves have {len(procedural)} frames, the video {n_grid}: rerun procedural")
     try:
+        check_audio(video)
+        need_frames = config.use_flow or config.use_rgb
+        frames, times = read_timed_frames(video.video_path) if need_frames else (None, frame_times(video.video_path))
+        timeline = FrameTimeline(times, float(video.fps), n_grid)
+        check_coverage(video, times)
+        uniform = timeline.uniform
+        if uniform:                     # the frames are the grid: as tracked before frame times were read
+            n_frames = n_grid
+            frames = None if frames is None else frames[:n_grid]
+            prior = procedural if guided else np.zeros((n_grid, N_VISEMES), np.float32)
+        else:
+            n_frames = len(times)
+            prior = (timeline.to_frames(procedural).astype(np.float32) if guided
+                     else np.zeros((n_frames, N_VISEMES), np.float32))
         track = load_track(video.landmark_path, video.fps, n_frames, video.video_path)
         rig, camera, camera_info = rig_and_camera(video.video_path, rig, track)
         flow = flow_valid = photo = None
-        if (config.use_flow and n_frames > 1) or config.use_rgb:
-            frames = read_video_frames(video.video_path, 0, n_frames)
-            if len(frames) < n_frames:
-                raise TrackingInputError(video.video_path, "ShortVideo",
-                                         f"decoded {len(frames)} frames, expected {n_frames}")
-            if config.use_flow and n_frames > 1:
-                flow, flow_valid = flow_term(frames, rig, track)
-            if config.use_rgb:
-                photo = PhotoTerm(rig, camera, frames, track.points)
-        problem = TrackingProblem(rig, camera, track.points, track.valid, procedural, flow=flow, rgb=photo)
+        if config.use_flow and n_frames > 1:
+            flow, flow_valid = flow_term(frames, rig, track)
+        if config.use_rgb:
+            photo = PhotoTerm(rig, camera, frames, track.points)
+        problem = TrackingProblem(rig, camera, track.points, track.valid, prior, flow=flow, rgb=photo)
         result = (solve_fast if config.solver == "fast" else solve_faithful)(problem, config)
     except VideoError as exc:
         raise TrackingInputError(video.video_path, "UnreadableVideo", str(exc)) from exc
     except FloatingPointError as exc:
         raise TrackingInputError(video.video_path, "NonFiniteLoss", str(exc)) from exc
-    return TrackedVideo(result, track, flow_valid, camera_info)
+    result.extra["guided"] = guided
+    if uniform:
+        return TrackedVideo(result, track, flow_valid, camera_info, np.arange(n_grid), times)
+    return on_grid(TrackedVideo(result, track, flow_valid, camera_info), timeline)
