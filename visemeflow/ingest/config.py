@@ -11,20 +11,24 @@ class IngestConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     phone_tiers: tuple[str, ...] = Field(
-        ("phones", "phone", "phons", "phonemes"),
-        description="Names of the TextGrid tier holding phones, tried in order (case-insensitive).",
+        ("phones", "phone", "phons", "phonemes", "MAU", "PhonAlign"),
+        description="Names of the TextGrid or XRA tier holding phones, tried in order (case-insensitive): MFA, "
+                    "P2FA and praatio name it phones/phone/phons, WebMAUS MAU, SPPAS PhonAlign.",
     )
     word_tiers: tuple[str, ...] = Field(
-        ("words", "word"), description="Names of the TextGrid tier holding words, tried in order."
+        ("words", "word", "ORT-MAU", "ORT", "TokensAlign"),
+        description="Names of the TextGrid or XRA tier holding words, tried in order (WebMAUS ORT-MAU, SPPAS "
+                    "TokensAlign).",
     )
-    inventory: Literal["auto", "arpabet", "ipa", "pinyin"] = Field(
+    inventory: Literal["auto", "arpabet", "ipa", "xsampa", "pinyin"] = Field(
         "auto", description="Phoneme inventory of the labels; 'auto' detects it per utterance."
     )
     language: str | None = Field(
         None, description="Language of the corpus (e.g. 'en', 'zh'); by default taken from the manifest or inferred."
     )
     alignment_tolerance_s: float = Field(
-        0.1, ge=0, description="Largest allowed difference between the alignment's end and the audio duration."
+        0.1, ge=0, description="Largest allowed difference between the alignment's end and the audio duration "
+                               "(label files without a file end, HTK/MLF/XRA, may end earlier but not run past it)."
     )
     fps: float = Field(30.0, gt=0, description="Curve frame rate for utterances without video.")
     val_fraction: float = Field(

