@@ -6,7 +6,7 @@ from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summa
 from visemeflow.flows.common import collect, finished, group_by_shard, totals
 from visemeflow.flows.params import ProceduralParams
 from visemeflow.schemas import C
-from visemeflow.schemas.tables import NO_ALIGNMENT
+from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_shard
@@ -32,9 +32,15 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     store.write_run_config(STAGE, {
         "variant": variant, "n_shards": params.n_shards, "config": params.config.model_dump(mode="json"),
     })
-    # utterances with no alignment (captured takes, `visemeflow import-curves`) have no phones to make curves from
-    utterances = [r for r in store.read_table("utterances").select(UTTERANCE_FIELDS + [C.ALIGNMENT_FORMAT]).to_pylist()
-                  if r.pop(C.ALIGNMENT_FORMAT) != NO_ALIGNMENT]
+    # utterances with no alignment (videos without one, captured takes) have no phones to make curves from
+    rows = store.read_table("utterances").select(UTTERANCE_FIELDS + [C.ALIGNMENT_FORMAT]).to_pylist()
+    unaligned = sorted(r[C.UTTERANCE_ID] for r in rows if not has_alignment(r))
+    utterances = [{k: r[k] for k in UTTERANCE_FIELDS} for r in rows if has_alignment(r)]
+    if unaligned:
+        get_run_logger().info(
+            "skipped %d utterance(s) without an alignment (no phones to make procedural curves from; a video "
+            "without one is tracked unguided): %s%s", len(unaligned), ", ".join(unaligned[:10]),
+            " ..." if len(unaligned) > 10 else "")
     rejected = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
     shards = group_by_shard(utterances, C.UTTERANCE_ID, params.n_shards)
     futures = [
@@ -46,7 +52,7 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     ]
     reports, errors = collect(futures, STAGE)
     store.delete_shards_except("rejects", set(shards), STAGE)
-    summary = totals(reports)
+    summary = {**totals(reports), "skipped_unaligned": len(unaligned)}
     publish_stage_summary(STAGE, summary, {"variant": variant})
     publish_rejects(STAGE, store.read_table("rejects", STAGE))
     get_run_logger().info("procedural (%s): %s", variant, summary)

@@ -65,7 +65,18 @@ class C:
 
 
 NO_ALIGNMENT = "none"
-"""`alignment_format` of an utterance without phones (a captured take): ingest keeps it, procedural skips it."""
+"""`alignment_format` of an utterance without phones (a captured take, a video without an alignment; its
+`alignment_path` is ""): ingest keeps it, procedural skips it."""
+
+
+def has_alignment(row: Mapping[str, object]) -> bool:
+    """Whether an `utterances` row (or any dict with its columns) has an alignment, so phones and procedural
+    curves: by `alignment_format` (not NO_ALIGNMENT), or by a non-empty `alignment_path` when the row has no
+    format column."""
+    if C.ALIGNMENT_FORMAT in row and row[C.ALIGNMENT_FORMAT] is not None:
+        return row[C.ALIGNMENT_FORMAT] != NO_ALIGNMENT
+    return bool(row.get(C.ALIGNMENT_PATH))
+
 
 CURVE_SOURCES = ("procedural", "tracked", "predicted", "ground_truth", "captured")
 

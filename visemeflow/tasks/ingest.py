@@ -104,17 +104,28 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
     return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects)}
 
 
+CAPTURED_SOURCE = "captured"
+
+
+def _is_captured(store: Store, row: dict) -> bool:
+    """A row that `visemeflow import-curves` wrote: no alignment, and captured curves stored (an import writes
+    the curves before the row and removes both on a reject). A corpus video without an alignment has the same
+    `alignment_format` but no captured curves: it is the corpus's, and goes when the corpus no longer holds it."""
+    return row[C.ALIGNMENT_FORMAT] == NO_ALIGNMENT and bool(store.curve_variants(CAPTURED_SOURCE, row[C.UTTERANCE_ID]))
+
+
 def captured_rows(store: Store, shard: int, corpus_ids: set[str]) -> list[dict]:
     """Rows of a shard that no corpus file made (captured takes, `visemeflow import-curves`: no alignment) and the
     corpus does not hold now: an ingest keeps them."""
     rows = store.read_shard("utterances", shard).to_pylist()
-    return [r for r in rows if r[C.ALIGNMENT_FORMAT] == NO_ALIGNMENT and r[C.UTTERANCE_ID] not in corpus_ids]
+    return [r for r in rows if r[C.UTTERANCE_ID] not in corpus_ids and _is_captured(store, r)]
 
 
 def captured_shards(store: Store) -> set[int]:
     """Shards holding captured takes' rows (an ingest whose corpus has none in them keeps them alive)."""
     return {shard for shard in store.shards("utterances")
-            if NO_ALIGNMENT in store.read_shard("utterances", shard).column(C.ALIGNMENT_FORMAT).to_pylist()}
+            if any(_is_captured(store, r) for r in store.read_shard("utterances", shard)
+                   .select([C.UTTERANCE_ID, C.ALIGNMENT_FORMAT]).to_pylist())}
 
 
 def shard_files_present(store: Store, shard: int) -> bool:

@@ -9,6 +9,7 @@ from visemeflow.hashing import stable_hash
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
 from visemeflow.schemas import REJECTS, C, curves_table, table_from_rows
+from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, reject_row
 from visemeflow.timebase import frame_count
@@ -84,6 +85,9 @@ def _generate_many(
     generated, reused, rejects = 0, 0, []
     for u in utterances:
         uid = u[C.UTTERANCE_ID]
+        if not has_alignment(u):  # no phones (a video without an alignment, a captured take): nothing to make
+            get_run_logger().info("%s has no alignment: no procedural curves (it has no phones)", uid)
+            continue
         if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u[C.CONTENT_HASH], config):
             reused += 1
             continue
