@@ -78,9 +78,10 @@ def test_predict_flow_caches_per_model_and_audio_content_and_exports(store, tmp_
     markdown = next(a for a in artifact if a.key == "predictions").data
     assert "predict/stereo" in markdown and "real-time factor" in markdown and str(out / "stereo.csv") in markdown
 
-    # the same run again: every file is a cache hit, nothing in the store changes, the copies are the same
+    # the same run again, with the device named: every file is a cache hit (where the model runs is not part of the
+    # key), nothing in the store changes, the copies are the same
     stamp = store.curve_path("predicted", "tiny", "predict/stereo").stat().st_mtime_ns
-    again = predict_flow(params)
+    again = predict_flow(params.model_copy(update={"device": "cpu"}))
     assert [r["cached"] for r in again["predictions"]] == [True, True]
     assert [r["real_time_factor"] for r in again["predictions"]] == [r["real_time_factor"] for r in rows]
     assert store.curve_path("predicted", "tiny", "predict/stereo").stat().st_mtime_ns == stamp

@@ -1,6 +1,9 @@
 """The `evaluate` flow: models judged on the validation set and on augmented copies of it (paper 5.2, Tables 1-3),
 by L1 x 100 against the target curves and, on validation utterances with phones, by real-speech metrics that need
-no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`)."""
+no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`).
+
+Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
+on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line."""
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
@@ -8,6 +11,7 @@ from prefect.artifacts import create_markdown_artifact
 from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.train import training_rows
 from visemeflow.hashing import file_hash
+from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import REALSPEECH_RUNS
 from visemeflow.learning.train import load_model
@@ -40,6 +44,7 @@ def _realspeech_counts(results: list[dict], n_utterances: int) -> str | None:
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
 def evaluate_flow(params: EvaluateParams) -> dict:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files."""
+    resolve_device(params.device)
     store = Store(params.store)
     paths = {m: store.model_path(m) for m in params.models}
     missing = [m for m in params.models if not store.has_model(m)]
@@ -66,7 +71,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     phones = validation_phones(store, val)
     futures = [
         evaluation_task_for(store, m).submit(str(store.root), m, file_hash(paths[m]), val, augmented, source, variant,
-                                             targets, phones)
+                                             targets, phones, params.device)
         for m in params.models
     ]
     results = [f.result() for f in futures]

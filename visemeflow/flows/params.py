@@ -8,6 +8,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 from visemeflow.animation.package import AnimateConfig
 from visemeflow.ingest import IngestConfig
 from visemeflow.learning.augment import AugmentConfig
+from visemeflow.learning.device import DeviceWord, Precision
 from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import normalize_utterance_id, validate_name
@@ -47,6 +48,15 @@ class RunnerConfig(BaseModel):
 
 
 RunnerField = Field(default_factory=RunnerConfig, description="Where the per-utterance or per-model tasks run.")
+
+# Where and in what precision models run: not part of any cache key or model name (a result computed on the CPU
+# stays valid for a GPU run and the other way round); a CUDA request on a machine without CUDA fails in one line.
+DeviceField = Field("auto", description="Where models run: auto (a CUDA GPU when there is one, else the CPU), cpu, "
+                                        "cuda or cuda:N.")
+PrecisionField = Field("auto", description="Training precision on CUDA: auto (bf16 where the GPU has it), fp32, bf16 "
+                                           "or fp16 (with loss scaling); the CPU always trains in float32.")
+EncoderCacheField = Field(None, description="wav2vec2 presets: folder keeping the frozen CNN encoder's outputs as "
+                                            "files (by audio content hash), shared by runs; none: in memory for a run.")
 
 
 class StoreParams(BaseModel):
@@ -115,6 +125,9 @@ class TrainParams(BaseModel):
     source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
     model_name: str | None = Field(None, description="Name of the model in the store; default: preset + a hash.")
+    device: DeviceWord = DeviceField
+    precision: Precision = PrecisionField
+    encoder_cache_dir: Path | None = EncoderCacheField
 
     @field_validator("model_name")
     @classmethod
@@ -132,6 +145,9 @@ class SweepParams(BaseModel):
     source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
     runner: RunnerConfig = RunnerField
+    device: DeviceWord = DeviceField
+    precision: Precision = PrecisionField
+    encoder_cache_dir: Path | None = EncoderCacheField
 
 
 class RerunParams(BaseModel):
@@ -161,6 +177,8 @@ class EvaluateParams(BaseModel):
     source: Literal["tracked", "ground_truth", "procedural", "captured"] | None = Field(
         None, description="Target curves; default: those the first model was trained on.")
     variant: str | None = Field(None, description="Variant of those curves; default: the first model's.")
+    device: DeviceWord = Field("auto", description="Where the models run: auto, cpu, cuda or cuda:N (float32 "
+                                                   "everywhere; not part of the cache key).")
 
     @field_validator("models")
     @classmethod

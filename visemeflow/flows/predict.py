@@ -4,7 +4,9 @@ Each file becomes the utterance `predict/<file stem>` with curves of source `pre
 A task is keyed on the model file's and the audio file's content hashes (and the frame rate), so running the flow
 again on the same files is all cache hits, and a retrained model or a changed file recomputes only what changed.
 With `out`, CSV and JSON copies of each file's curves (`visemeflow.animation.export`) are written there. A markdown
-artifact lists the outputs and the real-time factor of each file.
+artifact lists the outputs and the real-time factor of each file. The model runs on `device` (float32), which is not
+part of the cache key: curves predicted on the CPU are a cache hit for a GPU run. A device this machine does not have
+fails first, in one line (`visemeflow.learning.device.DeviceError`).
 """
 
 import re
@@ -18,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
 from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
+from visemeflow.learning.device import DeviceWord, resolve_device
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
@@ -37,6 +40,8 @@ class PredictParams(BaseModel):
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
     fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the curves.")
     out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
+    device: DeviceWord = Field("auto", description="Where the model runs: auto (a CUDA GPU when there is one), cpu, "
+                                                   "cuda or cuda:N (float32; not part of the cache key).")
 
     @field_validator("model")
     @classmethod
@@ -98,6 +103,7 @@ def _markdown(model: str, rows: list[dict]) -> str:
 @flow(name="predict", flow_run_name="predict[{params.model}]")
 def predict_flow(params: PredictParams) -> dict:
     """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies."""
+    resolve_device(params.device)
     store = Store(params.store)
     ensure_model(store, params.model)
     if not store.has_model(params.model):
@@ -113,7 +119,7 @@ def predict_flow(params: PredictParams) -> dict:
         uid = prediction_id(audio)
         state = prediction_task_for(store, params.model, uid)(
             str(store.root), params.model, model_hash, str(audio), file_hash(audio), uid, float(params.fps),
-            return_state=True,
+            params.device, return_state=True,
         )
         result = state.result()  # raises the task's error (unreadable audio, ...)
         exports = []

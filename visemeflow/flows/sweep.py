@@ -12,6 +12,7 @@ from visemeflow.dashboards import plots
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.learning.device import resolve_device, resolve_precision
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for
@@ -32,7 +33,12 @@ def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
 
 @flow(name="sweep", flow_run_name="sweep[{params.config.preset}]", task_runner=cpu_thread_pool())
 def sweep_flow(params: SweepParams) -> dict:
-    """Train the preset on each nested subset (in parallel tasks) at an equal budget of steps; plot L1 x 100 by size."""
+    """Train the preset on each nested subset (in parallel tasks) at an equal budget of steps; plot L1 x 100 by size.
+
+    The budget counts utterances: with `config.batch_size` B, a size trains ceil(steps / size) epochs of
+    ceil(size / B) optimisation steps. `params.device`/`precision`: as in the `train` flow (all sizes share it).
+    """
+    resolve_precision(resolve_device(params.device), params.precision)  # one line, before anything runs
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow
         return run_on_runner(sweep_flow, params)
     store = Store(params.store)
@@ -52,7 +58,8 @@ def sweep_flow(params: SweepParams) -> dict:
         sub_lineage = {**lineage, "train": {k: v for k, v in lineage["train"].items() if k in ids},
                        "config": config.model_dump(mode="json")}
         futures[size] = training_task_for(store, name).submit(
-            str(store.root), name, rows, val, params.source, variant, sub_lineage, config
+            str(store.root), name, rows, val, params.source, variant, sub_lineage, config, params.device,
+            params.precision, None if params.encoder_cache_dir is None else str(params.encoder_cache_dir),
         )
     results = {size: future.result() for size, future in futures.items()}
     points = [(size, float(r["val_l1_x100"])) for size, r in sorted(results.items())]

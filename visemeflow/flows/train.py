@@ -1,9 +1,15 @@
-"""The `train` flow: an audio-to-curves model from the store's curves (tracked by default) and audio."""
+"""The `train` flow: an audio-to-curves model from the store's curves (tracked by default) and audio.
+
+`params.device` and `params.precision` say where and how the model is computed, not what it is: they enter neither
+the model's default name nor the task's cache key. A device this machine does not have fails first, in one line
+(`visemeflow.learning.device.DeviceError`), before the store is read.
+"""
 
 from prefect import flow, get_run_logger
 
 from visemeflow.flows.params import TrainParams
 from visemeflow.hashing import stable_hash
+from visemeflow.learning.device import resolve_device, resolve_precision
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for
@@ -39,6 +45,7 @@ def resolve_variant(store: Store, source: str, variant: str | None) -> str:
 @flow(name="train", flow_run_name="train[{params.config.preset}]")
 def train_flow(params: TrainParams) -> dict:
     """Train one preset on the store's curves; a killed run resumes from its last epoch checkpoint."""
+    resolve_precision(resolve_device(params.device), params.precision)
     store = Store(params.store)
     variant = resolve_variant(store, params.source, params.variant)
     train, val, lineage = training_rows(store, params.source, variant)
@@ -47,7 +54,8 @@ def train_flow(params: TrainParams) -> dict:
     name = params.model_name or f"{params.config.preset}-{stable_hash(params.config, lineage, size=4)}"
     lineage = {**lineage, "config": params.config.model_dump(mode="json")}
     report = training_task_for(store, name)(
-        str(store.root), name, train, val, params.source, variant, lineage, params.config
+        str(store.root), name, train, val, params.source, variant, lineage, params.config, params.device,
+        params.precision, None if params.encoder_cache_dir is None else str(params.encoder_cache_dir),
     )
     get_run_logger().info("train %s: %s", name, report)
     return report

@@ -25,15 +25,17 @@ from __future__ import annotations
 import contextlib
 import re
 from collections.abc import Iterator
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
+from pydantic import AfterValidator
 
 __all__ = [
     "DEVICE_CHOICES",
     "PRECISION_CHOICES",
     "AutocastDtype",
     "DeviceError",
+    "DeviceWord",
     "autocast_context",
     "check_device_word",
     "grad_scaler",
@@ -68,6 +70,18 @@ def check_device_word(request: str) -> str:
     if word not in ("auto", "cpu") and _CUDA_N.match(word) is None:
         raise DeviceError(f"unknown device {request!r}; expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)")
     return word
+
+
+def _valid_word(request: str) -> str:
+    try:
+        return check_device_word(request)
+    except DeviceError as exc:
+        raise ValueError(str(exc)) from None
+
+
+# A flow parameter naming a device: spelling checked (and normalised) when the parameters are made; whether the
+# machine has it is asked where the work runs (resolve_device).
+DeviceWord = Annotated[str, AfterValidator(_valid_word)]
 
 
 def resolve_device(request: str | torch.device) -> torch.device:

@@ -1,6 +1,9 @@
 """Evaluation tasks: augmented copies of the validation audio (shared by every model), and one model's L1 x 100
 on the validation set and on each augmented copy, with the real-speech metrics (closure recall, activation
-agreement) of the validation utterances that have phones."""
+agreement) of the validation utterances that have phones.
+
+The evaluation task runs its model on the device it is given, in float32; the device is not part of its cache key
+(`EVALUATE_CACHE_POLICY`)."""
 
 from pathlib import Path
 
@@ -8,6 +11,7 @@ import numpy as np
 import pyarrow as pa
 import soundfile as sf
 from prefect import get_run_logger, task
+from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.hashing import stable_hash
 from visemeflow.learning.augment import AugmentConfig, augment_utterance, augmented_id, draw_value
@@ -21,6 +25,8 @@ from visemeflow.tasks.common import CACHE_POLICY, result_storage
 from visemeflow.tasks.train import load_audio, load_examples, metrics_rows
 
 RUN = "evaluate"
+# INPUTS + TASK_SOURCE like every task, without where the model runs
+EVALUATE_CACHE_POLICY = Inputs(exclude=["device"]) + TASK_SOURCE
 
 
 def augmentation_name(condition: str, seed: int, config: AugmentConfig) -> str:
@@ -102,10 +108,11 @@ def realspeech_rows(model: str, condition: str, pooled: RealSpeechScores,
     return rows
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="evaluate[{model_name}]")
+@task(cache_policy=EVALUATE_CACHE_POLICY, persist_result=True, task_run_name="evaluate[{model_name}]")
 def evaluate_model(
     store_root: str, model_name: str, model_hash: str, val_rows: list[dict], augmented: dict[str, list[dict]],
     source: str, variant: str, targets: dict[str, str | None], phones: dict[str, list[dict]] | None = None,
+    device: str = "auto",
 ) -> dict:
     """L1 x 100 of one model on the validation set and each augmented copy; rows into `metrics` (run 'evaluate').
 
@@ -113,10 +120,10 @@ def evaluate_model(
     metrics of those utterances on every condition (runs `evaluate.<metric>`, see `realspeech_rows`); the phones
     of a speed copy are scaled by its time factor. `model_hash` (the model file's content hash), `targets` (the
     target curves' provenance) and `phones` are inputs so that the cache is invalidated by a retrained model,
-    changed curves or a changed alignment.
+    changed curves or a changed alignment. `device` (auto, cpu, cuda, cuda:N): where the model runs (float32).
     """
     store = Store(store_root)
-    model, config, _ = load_model(store.model_path(model_name))
+    model, config, _ = load_model(store.model_path(model_name), device=device)
     val = load_examples(store, val_rows, source, variant)
     by_id = {ex.utterance_id: ex for ex in val}
     aligned = {uid: phones_of(rows) for uid, rows in (phones or {}).items() if uid in by_id}

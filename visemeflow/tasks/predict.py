@@ -8,6 +8,7 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.ingest.audio import read_audio
+from visemeflow.learning.device import resolve_device
 from visemeflow.learning.train import load_model, predict_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
@@ -16,25 +17,28 @@ from visemeflow.tasks.common import result_storage
 SOURCE = "predicted"
 # INPUTS + TASK_SOURCE like every task, but not keyed on where the audio lies: its content hash is an input, so the
 # same sound under another folder (same utterance id) is a cache hit, and a changed file under the same path is not.
-PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path"]) + TASK_SOURCE
+# Nor on where the model runs (`device`): curves predicted on the CPU stay valid for a GPU run.
+PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path", "device"]) + TASK_SOURCE
 
 
 @functools.lru_cache(maxsize=2)
-def _model(path: str, model_hash: str):
-    """The loaded model of `path` (one load for all the files of a run); the hash keys a retrained model apart."""
-    return load_model(path)[0]
+def _model(path: str, model_hash: str, device: str = "cpu"):
+    """The loaded model of `path` on `device` (one load for all the files of a run); the hash keys a retrained
+    model apart."""
+    return load_model(path, device=device)[0]
 
 
 @task(cache_policy=PREDICT_CACHE_POLICY, persist_result=True, task_run_name="predict[{utterance_id}]")
 def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path: str, audio_hash: str,
-                  utterance_id: str, fps: float) -> dict:
+                  utterance_id: str, fps: float, device: str = "auto") -> dict:
     """Predict one file's curves and store them; returns where they are and the real-time factor of this run.
 
     `model_hash` and `audio_hash` (content hashes of the model file and the audio file) key the cache, so a
-    retrained model or changed audio recomputes; the real-time factor is that of the run that computed it.
+    retrained model or changed audio recomputes; the real-time factor is that of the run that computed it (on
+    `device`: auto, cpu, cuda or cuda:N, resolved here, where the work runs).
     """
     store = Store(store_root)
-    model = _model(str(store.model_path(model_name)), model_hash)
+    model = _model(str(store.model_path(model_name)), model_hash, str(resolve_device(device)))
     started = time.perf_counter()
     samples, rate = read_audio(audio_path)
     curves = predict_curves(model, samples, rate, fps)

@@ -1,4 +1,9 @@
-"""Training task: one audio-to-curves model trained on curves and audio from the store."""
+"""Training task: one audio-to-curves model trained on curves and audio from the store.
+
+Keyed on its inputs and code like every task, except where it runs: `device`, `precision` and `encoder_cache_dir`
+are left out of the cache key (`TRAIN_CACHE_POLICY`), so a model trained on the CPU is a cache hit for a GPU run of
+the same config and data, and the other way round.
+"""
 
 import math
 
@@ -6,8 +11,10 @@ import numpy as np
 import pyarrow as pa
 from prefect import get_run_logger, task
 from prefect.artifacts import create_table_artifact
+from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.ingest.audio import read_audio
+from visemeflow.learning.device import resolve_device
 from visemeflow.learning.features import resample_audio
 from visemeflow.learning.train import (
     SAMPLE_RATE,
@@ -20,8 +27,13 @@ from visemeflow.learning.train import (
 )
 from visemeflow.schemas import METRICS, C, curves_array
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, result_storage
+from visemeflow.tasks.common import result_storage
 from visemeflow.visemes import VISEMES
+
+# INPUTS + TASK_SOURCE like every task, without the inputs that say where (not what) it computes
+RUN_SETTINGS = ["device", "precision", "encoder_cache_dir"]
+TRAIN_CACHE_POLICY = Inputs(exclude=RUN_SETTINGS) + TASK_SOURCE
+
 
 def load_audio(path: str) -> np.ndarray:
     """Mono 16 kHz float32 audio of an audio file or of a video's audio track (`ingest.audio.read_audio`).
@@ -57,14 +69,20 @@ def metrics_rows(run: str, model: str, condition: str, overall: float, per_utter
     return rows
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="train[{model_name}]")
+@task(cache_policy=TRAIN_CACHE_POLICY, persist_result=True, task_run_name="train[{model_name}]")
 def train_model_task(
     store_root: str, model_name: str, train_rows: list[dict], val_rows: list[dict], source: str, variant: str,
-    lineage: dict, config: TrainConfig,
+    lineage: dict, config: TrainConfig, device: str = "auto", precision: str = "auto",
+    encoder_cache_dir: str | None = None,
 ) -> dict:
-    """Train (or resume) one model; its checkpoints, weights, lineage and per-epoch validation metrics go to the store."""
+    """Train (or resume) one model; its checkpoints, weights, lineage and per-epoch validation metrics go to the store.
+
+    `device` (auto, cpu, cuda, cuda:N) and `precision` are resolved here, where the work runs (a Dask worker may
+    not be the flow's machine); `encoder_cache_dir` keeps wav2vec2's frozen encoder outputs as files.
+    """
     store = Store(store_root)
     logger = get_run_logger()
+    where = resolve_device(device)  # DeviceError (one line) before any data is read
     train = load_examples(store, train_rows, source, variant)
     val = load_examples(store, val_rows, source, variant)
     history: list[EpochReport] = []
@@ -75,7 +93,9 @@ def train_model_task(
         logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %s, %.0f frames/s", model_name, epoch.epoch,
                     epoch.train_l1_x100, val, epoch.frames_per_s)
 
-    result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report)
+    logger.info("%s: training on %s (precision %s)", model_name, where, precision)
+    result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report,
+                         device=where, precision=precision, encoder_cache=encoder_cache_dir or True)
     model_path = save_model(result.model, config, store.model_path(model_name), lineage)
     # Validation metrics exist only with a validation set: no rows rather than NaN rows (the store refuses NaN).
     rows = []
