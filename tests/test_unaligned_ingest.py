@@ -137,7 +137,7 @@ def test_flows_ingest_it_procedural_skips_it_and_nothing_else_changes(tmp_path):
     rows = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances").to_pylist()}
     assert set(rows) == {"spk/aligned", "spk/clip", "spk/dub"}
     assert [uid for uid, r in rows.items() if not has_alignment(r)] == ["spk/clip", "spk/dub"]
-    assert ingest["ingested"] == 3 and ingest["rejected"] == 0
+    assert ingest["ingested"] == 3 and ingest["rejected"] == 0 and ingest["unaligned"] == 2
     assert procedural["generated"] == 1 and procedural["skipped_unaligned"] == 2 and procedural["rejected"] == 0
     assert store.curve_ids("procedural", "jali") == ["spk/aligned"]
     assert store.read_table("rejects").num_rows == 0

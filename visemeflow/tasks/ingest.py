@@ -14,7 +14,7 @@ from visemeflow.ingest import (
     ingest_utterance,
 )
 from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
-from visemeflow.schemas.tables import NO_ALIGNMENT
+from visemeflow.schemas.tables import NO_ALIGNMENT, has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, reject_row
 
@@ -74,6 +74,7 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     config_hash = stable_hash(config)
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
+    unaligned = sum(not has_alignment(u) for u in utterances)
     utterances += captured_rows(store, shard, {o.utterance_id for o in objs})
     store.write_shard("phones", shard, table_from_rows(phones, PHONES))
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
@@ -83,9 +84,9 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     for r in rejects:
         logger.warning("rejected %s", r[C.MESSAGE])
     report = {"shard": shard, "utterances": len(objs), "ingested": len(utterances) - reused,
-              "reused": reused, "rejected": len(rejects)}
-    logger.info("shard %02d: %d utterances, %d ingested, %d reused, %d rejected", shard, len(objs),
-                report["ingested"], reused, len(rejects))
+              "reused": reused, "rejected": len(rejects), "unaligned": unaligned}
+    logger.info("shard %02d: %d utterances, %d ingested, %d reused, %d rejected; %d videos without an alignment "
+                "(kept without phones)", shard, len(objs), report["ingested"], reused, len(rejects), unaligned)
     return report
 
 
@@ -101,7 +102,8 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
     store.replace_utterance_rows("utterances", shard, uid, table_from_rows(utterances, UTTERANCES))
     if rejects:
         get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
-    return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects)}
+    return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects),
+            "unaligned": sum(not has_alignment(u) for u in utterances)}
 
 
 CAPTURED_SOURCE = "captured"
