@@ -14,6 +14,7 @@ from visemeflow.rig import evaluate_rig, load_demo_rig
 from visemeflow.schemas import PHONES, UTTERANCES, C, curves_array, table_from_rows
 from visemeflow.schemas.ids import shard_of
 from visemeflow.schemas.tables import NO_ALIGNMENT
+from visemeflow.tracking.facemesh import mediapipe478_table, read_mediapipe478
 from visemeflow.tracking.identity import mouth_opening as points_opening
 from visemeflow.tracking.landmarks import mouth_opening, read_landmarks
 from visemeflow.tracking.solver import TrackingConfig
@@ -82,9 +83,10 @@ def rig():
 
 @pytest.fixture(scope="module")
 def tracked(tmp_path_factory, prefect_harness):
-    """One track flow run over: `s1/bbaf2n` (GRID, aligned: guided), `s1/late` (aligned, its phones run past the
-    video), and clips without an alignment: `s1/bare` (the GRID clip), `th/1` (the VFR clip), `th/silent` (no
-    audio track, no audio file), `th/zeroed` (no decodable frame)."""
+    """Two track flow runs over: `s1/bbaf2n` (GRID, aligned: guided), `s1/late` (aligned, its phones run past the
+    video), and clips without an alignment: `s1/bare` (the GRID clip, landmarks in the store as the landmarks
+    stage leaves them), `th/1` (the VFR clip), `th/silent` (no audio track, no audio file), `th/zeroed` (no
+    decodable frame)."""
     from visemeflow.flows.ingest import ingest_flow
     from visemeflow.flows.params import IngestParams, ProceduralParams, TrackParams
     from visemeflow.flows.procedural import procedural_flow
@@ -111,14 +113,15 @@ def tracked(tmp_path_factory, prefect_harness):
 
     _need(TALKING / "1.mp4", TALKING / "1.mediapipe478.csv")
     shutil.copyfile(video, raw / "bare.mpg")
-    shutil.copyfile(landmarks, raw / "bare.mediapipe478.csv")
+    # s1/bare has no landmark file: its points come from the store, as the landmarks stage writes them
+    store.write_landmarks("s1/bare", mediapipe478_table(read_mediapipe478(landmarks)), provenance="reference")
     shutil.copyfile(TALKING / "1.mp4", raw / "1.mp4")
     shutil.copyfile(TALKING / "1.mediapipe478.csv", raw / "1.mediapipe478.csv")
     vfr = probe_video(raw / "1.mp4")
     write_video(raw / "silent.mp4", read_video_frames(raw / "1.mp4", 0, 10), 30)
     zeroed_video_with_audio(raw / "zeroed.mp4")
     rows = [
-        utterance_row("s1/bare", raw / "bare.mpg", raw / "bare.mediapipe478.csv", 25.0, 75),
+        utterance_row("s1/bare", raw / "bare.mpg", None, 25.0, 75),
         utterance_row("th/1", raw / "1.mp4", raw / "1.mediapipe478.csv", vfr.nominal_fps, vfr.grid_frames),
         utterance_row("th/silent", raw / "silent.mp4", None, 30.0, 10),
         utterance_row("th/zeroed", raw / "zeroed.mp4", None, 25.0, 10),
@@ -130,6 +133,10 @@ def tracked(tmp_path_factory, prefect_harness):
     params = TrackParams(store=store_root, n_shards=N_SHARDS, config=CONFIG)
     first = track_flow(params)
     second = track_flow(params)
+    # new landmarks from the landmarks stage: that utterance is tracked again, the others stay cached
+    store.write_landmarks("s1/bare", mediapipe478_table(read_mediapipe478(landmarks)), provenance="redetected")
+    third = track_flow(params)
+    assert third["tracked"] == 1 and third["cached"] == 2, third
     return store, first, second
 
 
@@ -159,7 +166,9 @@ def test_bad_clips_are_rejects_naming_the_clip(tracked):
     assert "runs to 4.000 s" in late[C.MESSAGE] and "late.mpg ends at 3.000 s" in late[C.MESSAGE]
     assert silent[C.ERROR_TYPE] == "MissingAudio" and silent[C.PATH].endswith("silent.mp4")
     assert "no audio track" in silent[C.MESSAGE] and silent[C.MESSAGE].startswith("th/silent: ")
-    assert zeroed[C.ERROR_TYPE] == "UnreadableVideo" and "zeroed.mp4" in zeroed[C.MESSAGE]
+    assert zeroed[C.ERROR_TYPE] == "UnreadableVideo" and zeroed[C.PATH].endswith("zeroed.mp4")
+    assert zeroed[C.MESSAGE].startswith("th/zeroed: ") and zeroed[C.MESSAGE].count("zeroed.mp4") == 1
+    assert "video decoding failed" in zeroed[C.MESSAGE]
 
 
 @pytest.mark.flow
@@ -171,6 +180,7 @@ def test_unguided_grid_curves_follow_the_mouth(tracked, rig):
     opening = mouth_opening(read_landmarks(grid_files()[2])).ratio
     r_unguided = np.corrcoef(rig_opening(rig, unguided), opening)[0, 1]
     r_guided = np.corrcoef(rig_opening(rig, guided), opening)[0, 1]
+    print(f"GRID {GRID_CLIP}: r(rig opening, landmark opening) unguided {r_unguided:.3f}, guided {r_guided:.3f}")
     assert r_unguided > 0.9, r_unguided
     assert r_guided > 0.8, r_guided
     # different curves (no phoneme prior) opening the mouth alike
@@ -191,6 +201,7 @@ def test_vfr_clip_is_tracked_on_its_frames_true_times(tracked, rig):
     tracked_opening = rig_opening(rig, curves)
     r_true = np.corrcoef(tracked_opening[shown], opening)[0, 1]
     r_index = np.corrcoef(tracked_opening[:135], opening)[0, 1]    # frame i read as grid frame i: wrong
+    print(f"1.mp4: r(rig opening, landmark opening) on true times {r_true:.3f}, frame i as grid frame i {r_index:.3f}")
     assert r_true > 0.9, r_true
     assert r_index < r_true - 0.5, (r_index, r_true)
     # diagnostics: the 49 grid frames the video lacks (frame 0 before the first frame, one per dropped frame)

@@ -23,6 +23,8 @@ from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
 from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance, utterance_config
 
+LANDMARKS_KEY = "stored_landmarks"
+"""Key of the stored landmarks' provenance in a task's utterance row (part of the task's cache key)."""
 TRACK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.AUDIO_PATH, C.ALIGNMENT_PATH,
                 C.ALIGNMENT_FORMAT, C.FPS, C.N_FRAMES]
 
@@ -75,6 +77,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         uid = row[C.UTTERANCE_ID]
         present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
         provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
+        if not row[C.LANDMARK_PATH]:    # landmarks from the `landmarks` stage: new ones invalidate the cache
+            row = {**row, LANDMARKS_KEY: store.landmarks_provenance(uid)}
         future = track_utterance.with_options(
             result_storage=result_storage(store.root), refresh_cache=not present,
         ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)

@@ -70,6 +70,14 @@ def unguided_reason(utterance: dict, config: TrackingConfig) -> str | None:
     return None if has_alignment(utterance) else NO_ALIGNMENT_REASON
 
 
+def landmark_file(store: Store, utterance: dict) -> str | None:
+    """The utterance's landmark file: the one beside its video, else what the `landmarks` stage stored."""
+    uid = utterance[C.UTTERANCE_ID]
+    if utterance[C.LANDMARK_PATH]:
+        return utterance[C.LANDMARK_PATH]
+    return str(store.landmark_path(uid)) if store.has_landmarks(uid) else None
+
+
 def alignment_end_s(store: Store, uid: str) -> float | None:
     """Where the utterance's phones end (s); None without phone rows."""
     ends = store.read_table("phones", utterance_ids=[uid]).column(C.END_S)
@@ -110,7 +118,7 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
         except LookupError as exc:
             raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
         end_s = alignment_end_s(store, uid)
-    video = VideoInput(utterance[C.VIDEO_PATH], utterance[C.LANDMARK_PATH], utterance[C.FPS],
+    video = VideoInput(utterance[C.VIDEO_PATH], landmark_file(store, utterance), utterance[C.FPS],
                        int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
                        alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
     try:

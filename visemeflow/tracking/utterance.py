@@ -184,7 +184,8 @@ def camera_record_path(video_path: str) -> Path:
 def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path: str | None = None) -> LandmarkTrack:
     """The landmark track of a video of `n_frames` frames, padded with missing frames to its length."""
     if not landmark_path:
-        raise TrackingInputError(video_path, "NoLandmarks", f"no landmark file ({LANDMARK_FILES}) beside the video")
+        raise TrackingInputError(video_path, "NoLandmarks", f"no landmark file ({LANDMARK_FILES}) beside the video "
+                                 "and none stored by the landmarks stage")
     try:
         track = read_landmarks(landmark_path, fps=fps)
     except LandmarkError as exc:
@@ -302,7 +303,8 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
         problem = TrackingProblem(rig, camera, track.points, track.valid, prior, flow=flow, rgb=photo)
         result = (solve_fast if config.solver == "fast" else solve_faithful)(problem, config)
     except VideoError as exc:
-        raise TrackingInputError(video.video_path, "UnreadableVideo", str(exc)) from exc
+        raise TrackingInputError(video.video_path, "UnreadableVideo",
+                                 str(exc).removeprefix(f"{Path(video.video_path)}: ")) from exc
     except FloatingPointError as exc:
         raise TrackingInputError(video.video_path, "NonFiniteLoss", str(exc)) from exc
     result.extra["guided"] = guided
