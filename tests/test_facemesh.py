@@ -239,3 +239,15 @@ def test_choose_face_links_faces_over_frames_whatever_their_order():
     middle = [box_face(160, 110, 260, 210)] * 3
     assert choose_face([[corner[k], middle[k]] for k in range(3)], 400, 300) == [1, 1, 1]
     assert choose_face([[], []], 400, 300) == [None, None]
+
+
+def test_without_refinement_the_iris_cells_are_empty_and_the_file_still_reads(tmp_path):
+    frames = read_video_frames(grid_video("bbaf2n"), 0, 5)
+    track = detect_frames(frames, fps=25, config=FaceMeshConfig(refine_landmarks=False))
+    assert track.detected.all() and np.isfinite(track.points[:, :468]).all() and np.isnan(track.points[:, 468:]).all()
+    out = write_mediapipe478_csv(track, tmp_path / "plain.csv")
+    header, row = out.read_text().splitlines()[:2]
+    cells = dict(zip(header.split(","), row.split(",")))
+    assert cells["x_467"] and cells["x_468"] == cells["y_477"] == cells["z_470"] == ""
+    lm = read_landmarks(out)
+    assert lm.valid.all()
