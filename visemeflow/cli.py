@@ -87,11 +87,11 @@ def _print_summary(title: str, summary: dict) -> None:
 
 @app.command()
 def ingest(
-    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")],
+    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav or video + .TextGrid/.xra/.lab/.align or an .mlf entry; a video may have none) or manifest CSV.")],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
-    inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa or pinyin.")] = "auto",
-    phone_tier: Annotated[Optional[list[str]], typer.Option(help="Phone tier name (repeatable).")] = None,
+    inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa, xsampa or pinyin.")] = "auto",
+    phone_tier: Annotated[Optional[list[str]], typer.Option(help="Phone tier name (repeatable; default phones, phone, phons, phonemes, MAU, PhonAlign).")] = None,
     tolerance: Annotated[float, typer.Option(help="Allowed alignment/audio length difference, s.")] = 0.1,
     fps: Annotated[float, typer.Option(help="Curve frame rate for audio-only utterances.")] = 30.0,
 ) -> None:
