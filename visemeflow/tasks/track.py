@@ -28,7 +28,7 @@ from visemeflow.schemas import (
     curves_array,
     curves_table,
 )
-from visemeflow.schemas.tables import NO_ALIGNMENT
+from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY
 from visemeflow.tracking.solver import TrackingConfig
@@ -49,11 +49,6 @@ class TrackError(ValueError):
 
     def __reduce__(self):
         return (type(self), (self.utterance_id, self.path, self.error_type, self.reason))
-
-
-def has_alignment(utterance: dict) -> bool:
-    """Whether the utterance has phones to guide tracking (its alignment_format is not NO_ALIGNMENT)."""
-    return utterance.get(C.ALIGNMENT_FORMAT) != NO_ALIGNMENT
 
 
 def utterance_config(utterance: dict, config: TrackingConfig) -> TrackingConfig:
