@@ -1,4 +1,5 @@
-"""Length-bucketed batches beside the paper's one utterance per step (TrainConfig.batch_size, visemeflow.learning.train)."""
+"""Length-bucketed batches beside the paper's one utterance per step (TrainConfig.batch_size in
+visemeflow.learning.train)."""
 
 from __future__ import annotations
 
@@ -67,7 +68,8 @@ def test_buckets_sort_by_length_keep_every_index_once_and_never_mix_frame_rates(
         assert sum(len(b) for b in mine) == len(bucket)  # no batch crosses buckets
     # the batches' order comes from the generator: another seed, another order, same batches
     again = length_batches(order, lengths, fps, 3, 4, np.random.default_rng(2))
-    assert sorted(map(tuple, again)) == sorted(map(tuple, batches)) and list(map(tuple, again)) != list(map(tuple, batches))
+    assert sorted(map(tuple, again)) == sorted(map(tuple, batches))
+    assert list(map(tuple, again)) != list(map(tuple, batches))
 
 
 def test_batched_training_learns(tmp_path):
