@@ -117,6 +117,20 @@ def test_real_grid_clip_without_its_alignment(tmp_path):
     assert u[C.SAMPLE_RATE] == 44100 and u[C.AUDIO_PATH] == u[C.VIDEO_PATH]
 
 
+def test_variable_frame_rate_clip_is_ingested_on_its_30_fps_grid(tmp_path):
+    """talking_heads/1.mp4 shows 135 frames on a 30 fps grid with gaps (its container's average rate is 22.13 fps):
+    its utterance is on the grid of the frames' time stamps, 30 fps from the audio's start to the last frame."""
+    source = SHARED_DATA / "talking_heads" / "1.mp4"
+    assert source.is_file(), f"shared data missing: {source}"
+    folder = tmp_path / "c" / "th"
+    folder.mkdir(parents=True)
+    shutil.copyfile(source, folder / "one.mp4")
+    (entry,) = discover_corpus(tmp_path / "c").entries
+    u = ingest_utterance(entry, CONFIG).utterance
+    assert u[C.ALIGNMENT_FORMAT] == NO_ALIGNMENT
+    assert u[C.FPS] == pytest.approx(30.0, abs=1e-6) and u[C.N_FRAMES] == 184
+
+
 @pytest.mark.flow
 @pytest.mark.usefixtures("prefect_harness")
 def test_flows_ingest_it_procedural_skips_it_and_nothing_else_changes(tmp_path):

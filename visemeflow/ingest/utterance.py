@@ -275,7 +275,7 @@ def ingest_unaligned(entry: CorpusEntry, config: IngestConfig) -> IngestedUttera
         C.AUDIO_PATH: entry.audio_path, C.VIDEO_PATH: entry.video_path,
         C.ALIGNMENT_PATH: "", C.ALIGNMENT_FORMAT: NO_ALIGNMENT,
         C.LANDMARK_PATH: entry.landmark_path, C.SAMPLE_RATE: sample_rate, C.DURATION_S: duration,
-        C.FPS: video.fps, C.N_FRAMES: video.n_frames, C.CONTENT_HASH: entry.content_hash,
+        C.FPS: video.nominal_fps, C.N_FRAMES: video.grid_frames, C.CONTENT_HASH: entry.content_hash,
         C.SPLIT: entry.split or assign_split(entry.utterance_id, config.val_fraction),
     }
     return IngestedUtterance(utterance, [])
@@ -300,13 +300,15 @@ def ingest_utterance(entry: CorpusEntry, config: IngestConfig) -> IngestedUttera
     fps, n_frames = config.fps, frame_count(duration, config.fps)
     if entry.video_path is not None:
         video = read_video_info(entry)
-        if video.duration_s < align_end - config.alignment_tolerance_s:
+        # when the last frame stops showing (its presentation time stamp + one frame)
+        video_end = video.duration_s if video.last_frame_s is None else video.last_frame_s + 1.0 / video.nominal_fps
+        if video_end < align_end - config.alignment_tolerance_s:
             raise IngestError(
                 entry.utterance_id, entry.video_path, "VideoShorterThanAlignment",
                 f"the video has {video.n_frames} frames ({video.duration_s:.3f} s at {video.fps:g} fps) but the "
                 f"alignment {entry.alignment_path} runs to {align_end:.3f} s",
             )
-        fps, n_frames = video.fps, video.n_frames
+        fps, n_frames = video.nominal_fps, video.grid_frames
     inventory, phones = map_phones(entry, alignment, config)
     utterance = {
         C.UTTERANCE_ID: entry.utterance_id, C.SPEAKER: entry.speaker,
