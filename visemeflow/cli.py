@@ -38,6 +38,28 @@ RunnerOpt = Annotated[str, typer.Option("--runner", help="threads (Prefect's thr
 DaskWorkersOpt = Annotated[int, typer.Option("--dask-workers", min=1, help="Local Dask cluster: worker processes, one thread each.")]
 DaskAddressOpt = Annotated[str | None, typer.Option("--dask-address", help="Existing Dask scheduler (tcp://host:8786); implies --runner dask.")]
 ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", min=1, help="--runner threads: tasks at once (default: the CPUs).")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="Where models run: auto (a CUDA GPU when there is one, else the "
+                                                         "CPU), cpu, cuda or cuda:N.")]
+PrecisionOpt = Annotated[str, typer.Option("--precision", help="Training precision on CUDA: auto (bf16 where the GPU has "
+                                                               "it), fp32, bf16 or fp16; the CPU trains in float32.")]
+BatchSizeOpt = Annotated[int, typer.Option("--batch-size", min=1, help="Utterances per optimisation step: 1 is the "
+                                                                        "paper's recipe; more pads length-bucketed batches.")]
+EncoderCacheOpt = Annotated[Optional[Path], typer.Option(
+    "--encoder-cache", help="wav2vec2 presets: folder keeping the frozen CNN encoder's outputs between runs "
+                            "(default: kept in memory for the run).")]
+
+
+def _device(device: str, precision: str | None = None) -> str:
+    """The --device word, checked on this machine before any flow starts: one line and exit 2 when it has no such
+    device (e.g. cuda on a CPU-only torch), or no such precision."""
+    from visemeflow.learning.device import DeviceError, resolve_device, resolve_precision
+
+    try:
+        resolve_precision(resolve_device(device), precision)
+    except DeviceError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    return device.strip().lower()
 
 
 def _runner(runner: str, dask_workers: int, dask_address: str | None, threads: int | None = None):
@@ -251,16 +273,23 @@ def train(
     train_augment: Annotated[float, typer.Option(
         help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = off).",
         min=0.0, max=1.0)] = 0.0,
+    batch_size: BatchSizeOpt = 1,
+    device: DeviceOpt = "auto",
+    precision: PrecisionOpt = "auto",
+    encoder_cache: EncoderCacheOpt = None,
 ) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
+    device = _device(device, precision)
     from visemeflow.flows.params import TrainParams
     from visemeflow.flows.train import train_flow
     from visemeflow.learning.train import TrainConfig
 
     config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2,
-                         train_augment=train_augment > 0, train_augment_probability=train_augment or 0.5)
+                         train_augment=train_augment > 0, train_augment_probability=train_augment or 0.5,
+                         batch_size=batch_size)
     _print_summary("train", train_flow(TrainParams(store=store, config=config, source=source, variant=variant,
-                                                   model_name=name)))
+                                                   model_name=name, device=device, precision=precision,
+                                                   encoder_cache_dir=encoder_cache)))
 
 
 @app.command()
@@ -276,16 +305,22 @@ def sweep(
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
     threads: ThreadsOpt = None,
+    batch_size: BatchSizeOpt = 1,
+    device: DeviceOpt = "auto",
+    precision: PrecisionOpt = "auto",
+    encoder_cache: EncoderCacheOpt = None,
 ) -> None:
     """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
+    device = _device(device, precision)
     from visemeflow.flows.params import SweepParams
     from visemeflow.flows.sweep import sweep_flow
     from visemeflow.learning.train import TrainConfig
     from visemeflow.flows.runners import run_on_runner
 
-    params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model),
+    params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model, batch_size=batch_size),
                          sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,
-                         variant=variant, runner=_runner(runner, dask_workers, dask_address, threads))
+                         variant=variant, runner=_runner(runner, dask_workers, dask_address, threads),
+                         device=device, precision=precision, encoder_cache_dir=encoder_cache)
     result = run_on_runner(sweep_flow, params)
     for size, value in result["points"]:
         typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
@@ -300,14 +335,16 @@ def evaluate(
     seed: Annotated[int, typer.Option(help="Seed of the augmentations (same seed, same augmented audio).")] = 0,
     source: Annotated[Optional[str], typer.Option(help="Target curves (default: the first model's).")] = None,
     variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (default: the first model's).")] = None,
+    device: DeviceOpt = "auto",
 ) -> None:
     """Judge models on the validation set and on copies augmented in volume, pitch, speed and noise (paper 5.2)."""
+    device = _device(device)
     from visemeflow.flows.evaluate import evaluate_flow
     from visemeflow.flows.params import EvaluateParams
 
     params = EvaluateParams(store=store, models=[m.strip() for m in models.split(",") if m.strip()],
                             conditions=[c.strip() for c in conditions.split(",") if c.strip()], seed=seed,
-                            source=source, variant=variant)
+                            source=source, variant=variant, device=device)
     result = evaluate_flow(params)
     typer.echo(Path(result["markdown"]).read_text(encoding="utf-8"))
     typer.echo(f"table: {result['markdown']} and {result['csv']}")
@@ -321,12 +358,14 @@ def predict(
     store: StoreOpt = DEFAULT_STORE,
     fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
     out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
+    device: DeviceOpt = "auto",
 ) -> None:
     """Predict viseme curves from audio with a trained model; curves go to the store (source predicted).
 
-    Runs the `predict` flow: one cached task per file (keyed on the model's and the audio's content hashes),
-    a markdown artifact with the outputs and real-time factors.
+    Runs the `predict` flow: one cached task per file (keyed on the model's and the audio's content hashes, not
+    on the device), a markdown artifact with the outputs and real-time factors.
     """
+    device = _device(device)
     from visemeflow.flows.predict import PredictParams, predict_flow
     from visemeflow.ingest.audio import AudioError
     from visemeflow.storage import Store
@@ -337,7 +376,7 @@ def predict(
                    "`visemeflow train`", err=True)
         raise typer.Exit(2)
     try:
-        result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out))
+        result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out, device=device))
     except AudioError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
