@@ -84,6 +84,19 @@ def test_landmarks_flow_detects_caches_and_rejects(corpus, tmp_path, prefect_har
     third = landmarks_flow(params)
     assert third["detected"] == 1 and store.has_landmarks("s/face")
 
+    # by hand: one utterance again (`visemeflow rerun ID --stage landmarks`), even when cached
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+    from visemeflow.tasks.landmarks import LandmarksError
+
+    before = path.stat().st_mtime_ns
+    report = rerun_flow(RerunParams(utterance_id="s/face", stage="landmarks", store=store_root))
+    assert report["utterance_id"] == "s/face" and path.stat().st_mtime_ns > before
+    with pytest.raises(LandmarksError, match="brief.mp4"):
+        rerun_flow(RerunParams(utterance_id="s/brief", stage="landmarks", store=store_root))
+    ids = sorted(r[C.UTTERANCE_ID] for r in store.read_table("rejects", "landmarks").to_pylist())
+    assert ids == ["s/brief", "s/noise"]   # the other utterance's reject kept, this one's listed once
+
 
 @pytest.mark.flow
 def test_landmarks_flow_ends_failed_when_no_video_has_a_face(corpus, tmp_path, prefect_harness):
@@ -101,3 +114,24 @@ def test_landmarks_flow_ends_failed_when_no_video_has_a_face(corpus, tmp_path, p
     assert state.is_failed() and state.message == "landmarks: all 1 utterances failed (see the rejects table)"
     with pytest.raises(StageFailed):
         state.result()
+
+
+@pytest.mark.flow
+def test_pipeline_detects_landmarks_before_tracking_a_video_without_a_landmark_file(corpus, tmp_path, prefect_harness):
+    """`visemeflow pipeline` on a corpus whose video has no landmark file: the landmarks stage runs before track and
+    the clip is tracked from the stored points; a second run of the pipeline is all cache hits."""
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+    from visemeflow.storage import Store
+
+    clip = tmp_path / "corpus"
+    (clip / "s").mkdir(parents=True)
+    for ext in (".wav", ".TextGrid", ".mp4"):
+        shutil.copyfile(corpus / "s" / f"face{ext}", clip / "s" / f"face{ext}")
+    params = PipelineParams(corpus=clip, store=tmp_path / "store", n_shards=1)
+    first = pipeline_flow(params)
+    assert first["landmarks"]["detected"] == 1 and first["track"]["tracked"] == 1
+    store = Store(tmp_path / "store")
+    assert store.has_landmarks("s/face") and store.has_curves("tracked", "guided-fast", "s/face")
+    second = pipeline_flow(params)
+    assert second["landmarks"]["cached"] == 1 and second["track"]["cached"] == 1

@@ -12,9 +12,9 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from visemeflow.ops import serve as serve_module
 from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
 
-STAGES = ("pipeline", "ingest", "procedural", "track", "train", "sweep", "evaluate", "predict", "import_curves",
+STAGES = ("pipeline", "ingest", "procedural", "landmarks", "track", "train", "sweep", "evaluate", "predict", "import_curves",
           "animate", "speak", "preview", "rerun")
-STORE_ONLY = ("procedural", "track", "train", "sweep", "evaluate", "predict", "import_curves", "animate", "speak",
+STORE_ONLY = ("procedural", "landmarks", "track", "train", "sweep", "evaluate", "predict", "import_curves", "animate", "speak",
               "preview", "rerun")
 
 
@@ -66,7 +66,7 @@ def test_the_rerun_form_asks_for_utterance_stage_and_force():
     assert {"utterance_id", "stage", "force", "store"} <= set(form["properties"])
     assert form["required"] == ["utterance_id"]
     assert form["properties"]["force"]["default"] is True
-    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "track", "animate"}
+    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "landmarks", "track", "animate"}
 
 
 def test_prefect_yaml_names_existing_flows_with_the_same_schedule():

@@ -171,6 +171,55 @@ def track(
 
 
 @app.command()
+def landmarks(
+    video: Annotated[Optional[Path], typer.Argument(
+        help="One video: detect its landmarks into --out. Without it: every utterance of the store with a video "
+             "and no landmark file.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="CSV to write for VIDEO (the .mediapipe478.csv layout).")] = None,
+    store: StoreOpt = DEFAULT_STORE,
+    shards: ShardsOpt = 8,
+    refine: Annotated[bool, typer.Option(help="478 points with the iris refinement (off: 468, faster).")] = True,
+    max_faces: Annotated[int, typer.Option(help="Faces followed at once when a clip shows several.")] = 4,
+    min_face_share: Annotated[float, typer.Option(help="Reject a clip whose face is on fewer frames than this share.")] = 0.5,
+    runner: RunnerOpt = "threads",
+    dask_workers: DaskWorkersOpt = 2,
+    dask_address: DaskAddressOpt = None,
+    threads: ThreadsOpt = None,
+) -> None:
+    """Detect face landmarks (MediaPipe FaceMesh, 478 points per frame) on one video or on the store's videos."""
+    from visemeflow.tracking.facemesh import FaceMeshConfig, FaceMeshError
+
+    try:
+        config = FaceMeshConfig(refine_landmarks=refine, max_faces=max_faces, min_detected_share=min_face_share)
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    if video is None:
+        from visemeflow.flows.landmarks import LandmarksParams, landmarks_flow
+        from visemeflow.flows.runners import run_on_runner
+
+        params = LandmarksParams(store=store, n_shards=shards, config=config,
+                                 runner=_runner(runner, dask_workers, dask_address, threads))
+        _print_summary("landmarks", run_on_runner(landmarks_flow, params))
+        _print_rejects_hint(store)
+        return
+    if out is None:
+        typer.echo("error: --out FILE.csv is needed with a VIDEO", err=True)
+        raise typer.Exit(2)
+    from visemeflow.tracking.facemesh import detect_clip
+
+    try:
+        result = detect_clip(video, out, config)
+    except FaceMeshError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    found = int(result.detected.sum())
+    typer.echo(f"wrote {out}: {result.n_frames} frames ({result.times[0]:.3f}-{result.times[-1]:.3f} s), a face on "
+               f"{found} ({100 * result.detected_share:.1f}%)"
+               + (f"; {result.faces} faces seen, the largest and most central followed" if result.multi_face else ""))
+
+
+@app.command()
 def pipeline(
     corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.")],
     store: StoreOpt = DEFAULT_STORE,
@@ -554,7 +603,7 @@ def export_model(
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    stage: Annotated[str, typer.Option(help="ingest, procedural, track or animate.")] = "procedural",
+    stage: Annotated[str, typer.Option(help="ingest, procedural, landmarks, track or animate.")] = "procedural",
     store: StoreOpt = DEFAULT_STORE,
     force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
 ) -> None:

@@ -13,6 +13,7 @@ from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
 from visemeflow.schemas import normalize_utterance_id, validate_name
 from visemeflow.synth.take import SynthConfig
+from visemeflow.tracking.facemesh import FaceMeshConfig
 from visemeflow.tracking.solver import TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
@@ -89,6 +90,7 @@ class PipelineParams(StoreParams):
     corpus: Path = Field(..., description="Corpus folder or manifest CSV.")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
+    landmarks: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     rig: Path | None = Field(None, description="Viseme rig for tracking; default: the shipped ICT demo rig.")
     runner: RunnerConfig = RunnerField
@@ -154,7 +156,8 @@ class RerunParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
-    stage: Literal["ingest", "procedural", "track", "animate"] = Field("procedural", description="The stage to rerun.")
+    stage: Literal["ingest", "procedural", "landmarks", "track", "animate"] = Field(
+        "procedural", description="The stage to rerun.")
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     force: bool = Field(True, description="Recompute even when a cached result is valid.")
 

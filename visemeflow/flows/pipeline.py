@@ -9,6 +9,7 @@ from prefect.states import Failed
 from visemeflow.flows.common import finished
 from visemeflow.flows.errors import StageFailed
 from visemeflow.flows.ingest import ingest_flow
+from visemeflow.flows.landmarks import LandmarksParams, landmarks_flow, utterances_needing_landmarks
 from visemeflow.flows.params import (
     IngestParams,
     PipelineParams,
@@ -24,7 +25,8 @@ from visemeflow.storage import Store
 
 @flow(name="pipeline", flow_run_name="pipeline[{params.corpus}]")
 def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
-    """Ingest the corpus, generate procedural curves, track the videos; each stage a subflow with cached tasks.
+    """Ingest the corpus, generate procedural curves, detect landmarks on videos without a landmark file, track the
+    videos; each stage a subflow with cached tasks.
 
     A stage that ends Failed does not stop the later ones (they work on what it did); the pipeline then ends
     Failed with that stage's message and every stage's summary.
@@ -43,6 +45,9 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     run("ingest", lambda: ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, **common)))
     run("procedural", lambda: procedural_flow(ProceduralParams(config=params.procedural, **common)))
     videos = Store(params.store).read_table("utterances").column(C.VIDEO_PATH).drop_null()
+    if len(videos) and utterances_needing_landmarks(Store(params.store)):
+        marks = LandmarksParams(config=params.landmarks, runner=params.runner, **common)
+        run("landmarks", lambda: run_on_runner(landmarks_flow, marks))
     if len(videos):
         track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner, **common)
         run("track", lambda: run_on_runner(track_flow, track))
@@ -50,10 +55,14 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
         from visemeflow.flows.animate import AnimateParams, animate_flow
 
         source = "tracked" if len(videos) else "procedural"
-        variant = params.tracking.variant if len(videos) else None
-        run("animate", lambda: animate_flow(AnimateParams(
-            store=params.store, n_shards=params.n_shards, characters=params.characters, source=source,
-            variant=variant, config=params.animate)))
+        # every tracked variant this run wrote: the guided one, and `unguided-...` for videos without an alignment
+        written = (result.get("track") or {}).get("variants") or params.tracking.variant
+        variants = sorted({v.strip() for v in written.split(",") if v.strip()}) if len(videos) else [None]
+        for variant in variants:
+            stage = "animate" if variant in (None, params.tracking.variant) else f"animate[{variant}]"
+            run(stage, lambda variant=variant: animate_flow(AnimateParams(
+                store=params.store, n_shards=params.n_shards, characters=params.characters, source=source,
+                variant=variant, config=params.animate)))
     if failures:
         message = "pipeline: " + "; ".join(failures)
         return Failed(message=message, data=StageFailed(message, result))

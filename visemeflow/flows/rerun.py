@@ -46,6 +46,35 @@ def _rerun_animate(store: Store, uid: str, run: dict | None, force: bool) -> dic
     return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}
 
 
+def _rerun_landmarks(store: Store, uid: str, run: dict | None, force: bool) -> dict:
+    """Detect one utterance's landmarks again (the last landmarks run's settings, else the defaults). The stage's
+    rejects keep every other utterance's rows; this one's are replaced by the outcome, so a fixed video leaves no
+    stale reject and a still-broken one is listed once."""
+    from visemeflow.flows.common import replace_stage_rejects
+    from visemeflow.flows.landmarks import LANDMARK_FIELDS
+    from visemeflow.schemas import C
+    from visemeflow.tasks.common import reject_row
+    from visemeflow.tasks.landmarks import STAGE, LandmarksError, landmarks_utterance
+    from visemeflow.tracking.facemesh import FaceMeshConfig
+
+    rows = store.read_table("utterances", utterance_ids=[uid]).select(LANDMARK_FIELDS).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    if not rows[0][C.VIDEO_PATH]:
+        raise RerunError(f"{uid} has no video in {store.root}: there are no landmarks to detect")
+    run = run or {"n_shards": 8, "config": FaceMeshConfig().model_dump(mode="json")}
+    others = [r for r in store.read_table("rejects", STAGE).to_pylist() if r[C.UTTERANCE_ID] != uid]
+    task = landmarks_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    try:
+        report = task(str(store.root), rows[0], FaceMeshConfig(**run["config"]))
+    except LandmarksError as exc:
+        replace_stage_rejects(store, STAGE, others + [reject_row(uid, STAGE, exc.error_type, str(exc), exc.path)],
+                              run["n_shards"])
+        raise
+    replace_stage_rejects(store, STAGE, others, run["n_shards"])
+    return report
+
+
 @flow(name="rerun", flow_run_name="rerun[{params.utterance_id}:{params.stage}]")
 def rerun_flow(params: RerunParams) -> dict[str, int]:
     """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
@@ -64,6 +93,8 @@ def rerun_flow(params: RerunParams) -> dict[str, int]:
         report = task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
     elif params.stage == "animate":
         report = _rerun_animate(store, uid, run, params.force)
+    elif params.stage == "landmarks":
+        report = _rerun_landmarks(store, uid, run, params.force)
     elif params.stage == "track":
         rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
         if not rows:

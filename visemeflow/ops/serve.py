@@ -53,6 +53,7 @@ def build_deployments(
     from visemeflow.flows.evaluate import evaluate_flow
     from visemeflow.flows.import_curves import import_curves_flow
     from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.landmarks import landmarks_flow
     from visemeflow.flows.pipeline import pipeline_flow
     from visemeflow.flows.predict import predict_flow
     from visemeflow.flows.procedural import procedural_flow
@@ -76,6 +77,8 @@ def build_deployments(
                    concurrency_limit=1, description="Every stage on the corpus; unchanged utterances are cache hits."),
         deployment(ingest_flow, on_corpus),
         deployment(procedural_flow, on_store),
+        deployment(landmarks_flow, on_store,
+                   description="MediaPipe FaceMesh landmarks of every video without a landmark file."),
         deployment(track_flow, on_store),
         deployment(train_flow, on_store),
         deployment(sweep_flow, on_store),
