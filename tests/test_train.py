@@ -84,6 +84,25 @@ def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None
         assert torch.equal(v, b[k]), k
 
 
+def test_a_custom_loss_is_the_objective(data):
+    """`train_model(loss=...)` trains on that objective: a loss with zero gradient leaves the initial weights
+    (Adam's step is 0 for a zero gradient) where the default L1 moves them; the reported train L1 is that loss."""
+    train, _ = data
+    cfg = TrainConfig(preset="fbank-blstm", epochs=1, d_model=8, lr=3e-3, seed=0)
+    initial = _params(build_training_model(cfg, FPS))
+    calls: list[tuple[int, ...]] = []
+
+    def flat(pred, target, mask):
+        calls.append(tuple(pred.shape))
+        return (pred * 0.0).sum() + 0.25
+
+    res = train_model(train, [], cfg, loss=flat)
+    _assert_same(initial, _params(res.model))
+    assert len(calls) == len(train) and res.history[0].train_l1_x100 == pytest.approx(25.0)
+    moved = _params(train_model(train, [], cfg).model)
+    assert any(not torch.equal(initial[k], moved[k]) for k in initial)
+
+
 @pytest.mark.parametrize("preset", ["fbank-blstm", "fbank-tcn"])
 def test_exact_resume(preset, tmp_path):
     train = make_examples(3, seed=5, learnable=False)

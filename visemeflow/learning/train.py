@@ -428,6 +428,7 @@ def train_model(
     device: str | torch.device = "cpu",
     precision: str | None = "auto",
     encoder_cache: bool | str | Path | EncoderOutputCache | None = True,
+    loss: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
 ) -> TrainResult:
     """Train ``config.preset`` on ``train`` (see the module docstring); validate on ``val`` each epoch.
 
@@ -442,6 +443,9 @@ def train_model(
     aside) and the same training data, else ``ValueError``. ``device``, ``precision`` and
     ``encoder_cache``: see the module docstring (:class:`~visemeflow.learning.device.DeviceError`
     for a device or precision this machine does not have). The returned model is on ``device``.
+    ``loss(pred, target, mask) -> scalar`` replaces the paper's masked L1 (:func:`l1_loss`) as the training
+    objective, for experiments such as ``bench/domain_gap.py``'s weighted losses; it is not part of the config, so
+    neither model files nor checkpoints record it (validation L1 stays the plain L1).
     """
     if not train:
         raise ValueError("no training examples")
@@ -574,13 +578,13 @@ def train_model(
                 feats = augment(preset, feats, feat_lengths, generator=spec_gen)
                 target, n_frames = _pad_curves([it.curves for it in items], dev)
                 pred, mask = model.head(feats, feat_lengths, n_frames, targets=target, fps=fps_of[int(batch[0])])
-            loss = l1_loss(pred.float(), target, mask)
+            step_loss = (loss or l1_loss)(pred.float(), target, mask)
             optimizer.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
+            scaler.scale(step_loss).backward()
             scaler.step(optimizer)
             scaler.update()
             step += 1
-            losses.append(float(loss.detach()))
+            losses.append(float(step_loss.detach()))
             frames += int(n_frames.sum())
         secs = time.perf_counter() - t0
         val_l1 = evaluate(model, val)[0] if val else None
