@@ -1,0 +1,270 @@
+"""Bones from blendshapes (paper 6.2): SSDR bone poses, one per viseme, blended per frame by the 16 curves.
+
+SSDR (smooth skinning decomposition with rigid bones, Le and Deng 2012) through `py_dem_bones` (bindings of
+Electronic Arts' Dem Bones): the frames are the neutral followed by the 16 viseme meshes (the character's own
+shapes as its binding drives them from a one-hot curve), the rest pose is the neutral, so the neutral is a solved
+frame (Dem Bones returns identity transforms for it) and the bind pose is the neutral mesh itself. Dem Bones returns
+per-vertex weights (convex, at most `max_influences` = 4 non-zero: one glTF JOINTS_0/WEIGHTS_0 set) and one rigid
+transform M[f, b] (rotation R, translation t, skin space) per frame and bone, with v_f = sum_b w_vb M[f, b] u_v.
+
+Bones: SSDR gives no bone positions, only transforms. Bone b's bind matrix is a translation to the weighted
+centroid c_b of the vertices it moves (bind rotation identity), so a rotation pivots about the part of the face it
+moves; all bones are children of one root joint at the origin (a flat skeleton: SSDR transforms are independent).
+Pose of bone b for viseme s, relative to the bind pose: rotation q_sb = quat(R), translation d_sb = R c_b + t - c_b
+(the joint's local translation is c_b + d_sb); the skinning matrix of that pose is then exactly M[s, b].
+
+Blend (per frame, curves c in [0, 1], one weight per viseme pose), what every export carries:
+- translation: c_b + sum_s c_s d_sb (linear, additive about the bind pose);
+- rotation: normalise(q_I + sum_s c_s (q_sb - q_I)), q_I the identity, every q_sb on the hemisphere of q_I
+  (w >= 0): normalised weighted quaternion blending about the bind pose, i.e. the identity takes the weight
+  1 - sum c; a one-hot curve gives the viseme's pose exactly, all-zero curves the bind pose;
+- scale: SSDR bones are rigid, every pose has unit scale, so the blended scale is 1 (no scale channel is written);
+- then linear blend skinning: v = sum_k w_vk (R_jk (u_v - c_jk) + c_jk + d_jk), at most 4 influences per vertex.
+docs/bones.md says how this relates to Unreal's Pose Assets and Unity's Direct Blend Trees.
+
+Quaternions here are (w, x, y, z) (kornia's order); the writers convert (glTF: x, y, z, w; USD: real, imaginary).
+Pure numpy / torch / kornia: arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
+from visemeflow.animation.character import Character, validate_character
+from visemeflow.visemes import VISEMES
+
+__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "skin_vertices",
+           "solve_bones", "viseme_meshes", "MAX_INFLUENCES", "MIN_VERTICES_PER_BONE"]
+
+MAX_INFLUENCES = 4
+"""Influences per vertex: one glTF JOINTS_0 / WEIGHTS_0 set (and what most engines skin with by default)."""
+MIN_VERTICES_PER_BONE = 3
+"""A rigid transform needs three non-collinear points: SSDR cannot determine a bone that moves fewer."""
+DEFAULT_BONES = 32
+DEFAULT_ITERATIONS = 30
+
+
+class BoneError(ValueError):
+    """Bones that cannot be solved or blended: the message names the character and what is wrong."""
+
+
+@dataclass(frozen=True, eq=False)
+class BoneRig:
+    """A character's SSDR bones: bind pose, skin weights and one pose per viseme (see the module doc)."""
+
+    name: str
+    neutral: np.ndarray
+    """(V, 3) float32 bind-pose vertices (the character's neutral)."""
+    faces: np.ndarray
+    """(F, 3) int32 triangles."""
+    pose_names: tuple[str, ...]
+    """The P poses' names (the 16 visemes, in `VISEMES` order)."""
+    bone_names: tuple[str, ...]
+    """The B bones' names ("bone_00", ...); their parent is the root joint `ROOT`."""
+    bind_translations: np.ndarray
+    """(B, 3) float64 bone heads c_b in skin space (bind rotation identity; the root joint sits at the origin)."""
+    joints: np.ndarray
+    """(V, 4) int: the bones each vertex follows (unused slots: bone 0 with weight 0)."""
+    weights: np.ndarray
+    """(V, 4) float32 skin weights, each row summing to 1 (non-increasing along the row)."""
+    rotations: np.ndarray
+    """(P, B, 4) float64 unit quaternions (w, x, y, z), w >= 0: each pose's bone rotations relative to the bind."""
+    translations: np.ndarray
+    """(P, B, 3) float64 each pose's bone translations relative to the bind (joint local = bind + this)."""
+    fit_rms: np.ndarray
+    """(P,) RMS vertex error of SSDR's own fit of each pose (mesh units)."""
+    bind_error: float
+    """Largest deviation of SSDR's neutral frame transforms from the identity."""
+    solve_seconds: float
+    """Wall-clock seconds of the SSDR solve."""
+    solve_cpu_seconds: float
+    """CPU seconds of this process during the solve (Dem Bones' threads included: set OMP_NUM_THREADS=1 for one
+    core)."""
+    vertex_colors: np.ndarray | None = None
+
+    ROOT = "root"
+
+    @property
+    def n_bones(self) -> int:
+        return len(self.bone_names)
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.pose_names)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.neutral.shape[0])
+
+    def inverse_bind_matrices(self) -> np.ndarray:
+        """(B, 4, 4) float64 column-vector inverse bind matrices: translations by -c_b."""
+        m = np.tile(np.eye(4), (self.n_bones, 1, 1))
+        m[:, :3, 3] = -self.bind_translations
+        return m
+
+
+# ---- inputs -----------------------------------------------------------------------------------------------
+def viseme_meshes(character: Character, binding=None) -> np.ndarray:
+    """(16, V, 3) float64: each viseme at full weight on the character. With a `conventions.Binding`, the shapes
+    its one-hot curve drives; without one, the character's shapes must be the 16 visemes (any order)."""
+    neutral = np.asarray(character.neutral, np.float64)
+    deltas = np.asarray(character.deltas, np.float64)
+    if binding is not None:
+        w = np.asarray(binding.weights(np.eye(len(VISEMES), dtype=np.float32)), np.float64)   # (16, S)
+        return neutral[None] + np.einsum("ps,svc->pvc", w, deltas)
+    missing = [v for v in VISEMES if v not in character.shape_names]
+    if missing:
+        raise BoneError(f"{character.where()}: no shape for viseme(s) {', '.join(missing)}; give a binding "
+                        "(conventions.bind) to drive other shape names")
+    return neutral[None] + deltas[[character.shape_index(v) for v in VISEMES]]
+
+
+def max_bones(n_vertices: int) -> int:
+    """The most bones `n_vertices` vertices can support: every bone must move at least MIN_VERTICES_PER_BONE."""
+    return int(n_vertices) // MIN_VERTICES_PER_BONE
+
+
+# ---- SSDR -------------------------------------------------------------------------------------------------
+def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, binding=None,
+                iterations: int = DEFAULT_ITERATIONS) -> BoneRig:
+    """SSDR of the character's 16 visemes into `bone_count` rigid bones (see the module doc).
+
+    BoneError for a bone count that is not an integer >= 1 or larger than the vertices can support (`max_bones`),
+    a character without triangles, or non-finite vertices (CharacterError, also a ValueError, from validation).
+    Dem Bones may leave a bone without any vertex; such bones are dropped, so the rig can have fewer bones."""
+    from py_dem_bones import solve_skinning
+
+    validate_character(character)
+    where = character.where()
+    if isinstance(bone_count, bool) or not isinstance(bone_count, (int, np.integer)) or bone_count < 1:
+        raise BoneError(f"{where}: the bone count must be an integer >= 1, got {bone_count!r}")
+    limit = max_bones(character.n_vertices)
+    if bone_count > limit:
+        raise BoneError(f"{where}: {bone_count} bones are more than its {character.n_vertices} vertices can "
+                        f"support (at most {limit}: each bone must move at least {MIN_VERTICES_PER_BONE} vertices)")
+    if not len(character.faces):
+        raise BoneError(f"{where}: no triangles; SSDR seeds its bones on the mesh's faces")
+    poses = viseme_meshes(character, binding)
+    if not np.isfinite(poses).all():
+        raise BoneError(f"{where}: the viseme meshes hold NaN or infinite coordinates")
+    rest = np.asarray(character.neutral, np.float64)
+    frames = np.concatenate([rest[None], poses])            # the neutral is frame 0: the bind pose is solved
+    start, cpu = time.perf_counter(), time.process_time()
+    result = solve_skinning(rest, frames, int(bone_count), faces=np.asarray(character.faces),
+                            max_influences=MAX_INFLUENCES, iterations=int(iterations))
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    weights = np.asarray(result.weights, np.float64)          # (B, V)
+    transforms = np.asarray(result.transforms, np.float64)    # (F, B, 4, 4) column-vector
+    used = np.flatnonzero(weights.sum(axis=1) > 0)
+    weights, transforms = weights[used], transforms[:, used]
+    n_bones = len(used)
+
+    # bone heads: the weighted centroid of what each bone moves
+    mass = weights.sum(axis=1)
+    centres = (weights @ rest) / mass[:, None]
+
+    # at most 4 influences per vertex, largest first, renormalised in float32 (glTF asks for sums of 1)
+    order = np.argsort(-weights, axis=0, kind="stable")[:MAX_INFLUENCES].T       # (V, 4)
+    w4 = np.take_along_axis(weights.T, order, axis=1)
+    if n_bones < MAX_INFLUENCES:
+        pad = MAX_INFLUENCES - n_bones
+        order = np.concatenate([order, np.zeros((len(order), pad), order.dtype)], axis=1)
+        w4 = np.concatenate([w4, np.zeros((len(w4), pad))], axis=1)
+    w4[w4 < 1e-6] = 0.0
+    w4 /= w4.sum(axis=1, keepdims=True)
+    joints = np.where(w4 > 0, order, 0)
+    w4 = w4.astype(np.float32)
+    w4[:, 0] += np.float32(1.0) - w4.sum(axis=1, dtype=np.float32)              # float32 sum exactly 1 (or 1 ulp)
+
+    rot = transforms[1:, :, :3, :3]
+    trans = transforms[1:, :, :3, 3]
+    rot = _nearest_rotation(rot)
+    q = rotation_matrix_to_quaternion(torch.from_numpy(rot.reshape(-1, 3, 3))).numpy().reshape(len(poses),
+                                                                                               n_bones, 4)
+    q = _unit_hemisphere(q)
+    rot = quaternion_to_rotation_matrix(torch.from_numpy(q.reshape(-1, 4))).numpy().reshape(rot.shape)
+    d = np.einsum("pbij,bj->pbi", rot, centres) + trans - centres[None]
+    rig = BoneRig(name=character.name, neutral=np.asarray(character.neutral, np.float32),
+                  faces=np.asarray(character.faces, np.int32), pose_names=VISEMES,
+                  bone_names=tuple(f"bone_{b:02d}" for b in range(n_bones)), bind_translations=centres,
+                  joints=joints.astype(np.int64), weights=w4, rotations=q, translations=d,
+                  fit_rms=np.zeros(len(poses)), bind_error=float(np.abs(transforms[0] - np.eye(4)).max()),
+                  solve_seconds=seconds, solve_cpu_seconds=cpu, vertex_colors=character.vertex_colors)
+    fitted = skin_vertices(rig, *blend_poses(rig, np.eye(len(poses), dtype=np.float32)))
+    object.__setattr__(rig, "fit_rms", np.sqrt(((fitted - poses) ** 2).sum(axis=2).mean(axis=1)))
+    return rig
+
+
+def _nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest each 3x3 matrix (polar decomposition): Dem Bones' rigid transforms, to rounding."""
+    u, _, vt = np.linalg.svd(m)
+    r = u @ vt
+    flip = np.linalg.det(r) < 0
+    if flip.any():
+        u[flip, :, -1] *= -1
+        r = u @ vt
+    return r
+
+
+def _unit_hemisphere(q: np.ndarray) -> np.ndarray:
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+# ---- blending and skinning ----------------------------------------------------------------------------------
+def check_curves(rig: BoneRig, curves, where: str = "") -> np.ndarray:
+    """(T, P) float64 pose weights; BoneError for a wrong shape or non-finite values."""
+    c = np.asarray(curves, np.float64)
+    label = where or f"bones of {rig.name!r}"
+    if c.ndim != 2 or c.shape[1] != rig.n_poses or c.shape[0] < 1:
+        raise BoneError(f"{label}: curves must be (frames >= 1, {rig.n_poses}), got {c.shape}")
+    if not np.isfinite(c).all():
+        raise BoneError(f"{label}: curves hold NaN or infinite values")
+    return c
+
+
+def blend_poses(rig: BoneRig, curves) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame blended joint pose: ((T, B, 4) unit quaternions (w, x, y, z) and (T, B, 3) local translations =
+    bind + blended offset), from (T, P) curves (see the module doc for the blend)."""
+    c = torch.from_numpy(check_curves(rig, curves))
+    q = torch.from_numpy(rig.rotations)                            # (P, B, 4), w >= 0
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    blended = identity + torch.einsum("tp,pbk->tbk", c, q - identity)
+    norm = blended.norm(dim=-1, keepdim=True)
+    if bool((norm < 1e-12).any()):
+        raise BoneError(f"bones of {rig.name!r}: the weighted rotations cancel out (curves far beyond [0, 1])")
+    rotations = (blended / norm).numpy()
+    translations = rig.bind_translations[None] + np.einsum("tp,pbk->tbk", c.numpy(), rig.translations)
+    return rotations, translations
+
+
+def skinning_matrices(rig: BoneRig, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """(T, B, 3, 4) skin-space matrices x -> R (x - c_b) + t_b of joint poses (quaternions w, x, y, z)."""
+    q = torch.from_numpy(np.ascontiguousarray(rotations, np.float64))
+    r = quaternion_to_rotation_matrix(q.reshape(-1, 4)).numpy().reshape(q.shape[:-1] + (3, 3))
+    offset = np.asarray(translations, np.float64) - np.einsum("tbij,bj->tbi", r, rig.bind_translations)
+    return np.concatenate([r, offset[..., None]], axis=-1)
+
+
+def skin_vertices(rig: BoneRig, rotations: np.ndarray, translations: np.ndarray, *, chunk: int = 16) -> np.ndarray:
+    """(T, V, 3) float64 linear blend skinning of the bind-pose vertices by the joint poses."""
+    m = torch.from_numpy(skinning_matrices(rig, rotations, translations))       # (T, B, 3, 4)
+    u = torch.from_numpy(np.concatenate([rig.neutral.astype(np.float64), np.ones((rig.n_vertices, 1))], axis=1))
+    j = torch.from_numpy(rig.joints)
+    w = torch.from_numpy(rig.weights.astype(np.float64))
+    out = []
+    for start in range(0, m.shape[0], chunk):
+        mg = m[start:start + chunk][:, j]                                          # (t, V, 4, 3, 4)
+        per = torch.einsum("tvkij,vj->tvki", mg, u)
+        out.append(torch.einsum("tvki,vk->tvi", per, w))
+    return torch.cat(out).numpy()
+
+
+def bone_animation(rig: BoneRig, curves) -> np.ndarray:
+    """(T, V, 3) vertices of the bone animation of (T, P) curves: blend, then skin."""
+    return skin_vertices(rig, *blend_poses(rig, curves))
