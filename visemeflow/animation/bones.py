@@ -268,3 +268,154 @@ def skin_vertices(rig: BoneRig, rotations: np.ndarray, translations: np.ndarray,
 def bone_animation(rig: BoneRig, curves) -> np.ndarray:
     """(T, V, 3) vertices of the bone animation of (T, P) curves: blend, then skin."""
     return skin_vertices(rig, *blend_poses(rig, curves))
+
+
+# ---- pose table ---------------------------------------------------------------------------------------------
+POSE_TABLE_COLUMNS = ("pose", "bone", "parent", "qx", "qy", "qz", "qw", "tx", "ty", "tz", "bind_tx", "bind_ty",
+                      "bind_tz")
+
+
+def pose_table_rows(rig: BoneRig) -> list[dict]:
+    """One row per (pose, bone): the pose's rotation (unit quaternion x, y, z, w) and translation relative to the
+    bind pose, with the bone's parent and bind translation (its local translation at rest; bind rotation identity).
+    An engine building its own Pose Asset sets each joint's local transform to (bind + t, q)."""
+    rows = []
+    for p, pose in enumerate(rig.pose_names):
+        for b, bone in enumerate(rig.bone_names):
+            w, x, y, z = (float(v) for v in rig.rotations[p, b])
+            tx, ty, tz = (float(v) for v in rig.translations[p, b])
+            bx, by, bz = (float(v) for v in rig.bind_translations[b])
+            rows.append(dict(zip(POSE_TABLE_COLUMNS, (pose, bone, BoneRig.ROOT, x, y, z, w, tx, ty, tz, bx, by, bz))))
+    return rows
+
+
+def write_pose_table(path, rig: BoneRig, fmt: str | None = None):
+    """Write the pose table as CSV (one row per pose and bone, `POSE_TABLE_COLUMNS`) or JSON (by the suffix, or
+    `fmt` "csv" / "json"); floats written exactly (shortest repr). Atomic; returns the path."""
+    import csv
+    import io
+    import json
+    from pathlib import Path
+
+    from visemeflow.atomic import atomic_path
+
+    path = Path(path)
+    fmt = fmt or path.suffix.lower().lstrip(".")
+    rows = pose_table_rows(rig)
+    if fmt == "csv":
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=POSE_TABLE_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: repr(v) if isinstance(v, float) else v for k, v in row.items()})
+        text = buffer.getvalue()
+    elif fmt == "json":
+        doc = {
+            "character": rig.name, "rotation": "unit quaternion [x, y, z, w] relative to the bind pose",
+            "translation": "offset from the bind translation, joint local space (= skin space: the root is the "
+                           "identity), mesh units",
+            "blend": "per frame: translation = bind + sum_s w_s t_s; rotation = normalise(identity + "
+                     "sum_s w_s (q_s - identity)), every q_s with qw >= 0; then linear blend skinning",
+            "root": BoneRig.ROOT,
+            "bones": [{"name": b, "parent": BoneRig.ROOT, "bind_translation": [float(v) for v in c]}
+                      for b, c in zip(rig.bone_names, rig.bind_translations)],
+            "poses": {pose: {r["bone"]: {"rotation": [r["qx"], r["qy"], r["qz"], r["qw"]],
+                                         "translation": [r["tx"], r["ty"], r["tz"]]}
+                             for r in rows if r["pose"] == pose} for pose in rig.pose_names},
+        }
+        text = json.dumps(doc, indent=1) + "\n"
+    else:
+        raise ValueError(f"{path}: pose table format must be csv or json, got {fmt!r}")
+    with atomic_path(path, keep_suffix=True) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+    return path
+
+
+def read_pose_table(path) -> dict:
+    """Read a pose table (CSV or JSON by suffix) back: {"poses": names, "bones": names, "rotations": (P, B, 4)
+    w, x, y, z, "translations": (P, B, 3), "bind_translations": (B, 3)}; ValueError for a table with missing or
+    duplicate (pose, bone) rows or non-finite numbers."""
+    import csv
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        bones = [b["name"] for b in doc["bones"]]
+        bind = {b["name"]: b["bind_translation"] for b in doc["bones"]}
+        rows = [{"pose": p, "bone": b, "q": v["rotation"], "t": v["translation"], "bind": bind[b]}
+                for p, per in doc["poses"].items() for b, v in per.items()]
+    else:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            if tuple(reader.fieldnames or ()) != POSE_TABLE_COLUMNS:
+                raise ValueError(f"{path}: columns must be {', '.join(POSE_TABLE_COLUMNS)}")
+            rows = [{"pose": r["pose"], "bone": r["bone"], "q": [float(r[k]) for k in ("qx", "qy", "qz", "qw")],
+                     "t": [float(r[k]) for k in ("tx", "ty", "tz")],
+                     "bind": [float(r[k]) for k in ("bind_tx", "bind_ty", "bind_tz")]} for r in reader]
+    poses = list(dict.fromkeys(r["pose"] for r in rows))
+    bones = list(dict.fromkeys(r["bone"] for r in rows))
+    index = {(r["pose"], r["bone"]): r for r in rows}
+    if len(index) != len(rows) or len(index) != len(poses) * len(bones):
+        raise ValueError(f"{path}: every pose needs exactly one row per bone")
+    q = np.array([[index[p, b]["q"] for b in bones] for p in poses], np.float64)[..., [3, 0, 1, 2]]
+    t = np.array([[index[p, b]["t"] for b in bones] for p in poses], np.float64)
+    bind = np.array([index[poses[0], b]["bind"] for b in bones], np.float64)
+    if not (np.isfinite(q).all() and np.isfinite(t).all() and np.isfinite(bind).all()):
+        raise ValueError(f"{path}: non-finite numbers in the pose table")
+    return {"poses": tuple(poses), "bones": tuple(bones), "rotations": q, "translations": t,
+            "bind_translations": bind}
+
+
+# ---- one utterance's bone exports ----------------------------------------------------------------------------
+BONE_FORMATS: tuple[str, ...] = ("glb", "usd", "pose-csv", "pose-json")
+BONE_SUFFIXES = {"glb": ".bones.glb", "usd": ".bones.usd", "pose-csv": ".poses.csv", "pose-json": ".poses.json"}
+
+
+def export_bone_animation(character: Character, curves, fps: float, formats, out_dir, bone_count: int = DEFAULT_BONES,
+                          audio: tuple[np.ndarray, int] | None = None, *, stem: str | None = None,
+                          rig: BoneRig | None = None, binding=None) -> list:
+    """Solve the character's bones (or use `rig`), blend them by (T, 16) `curves` at `fps` and write each of
+    `formats` (any of `BONE_FORMATS`) into `out_dir` as `<stem><suffix>` (`BONE_SUFFIXES`; stem: the character's
+    name), the audio beside as `<stem>.wav` when given ((samples, rate)). Returns the paths written, in order.
+
+    CurvesError for non-finite curves or values outside [0, 1]; ValueError for an unknown format; BoneError as
+    `solve_bones`."""
+    from pathlib import Path
+
+    from visemeflow.animation.apply import check_curves as check_viseme_curves
+
+    formats = tuple(dict.fromkeys([formats] if isinstance(formats, str) else formats))
+    unknown = [f for f in formats if f not in BONE_FORMATS]
+    if unknown or not formats:
+        raise ValueError(f"unknown bone export format(s) {', '.join(unknown) or '(none given)'}; known: "
+                         f"{', '.join(BONE_FORMATS)}")
+    curves = check_viseme_curves(curves, stem or character.name)
+    fps = float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"frames per second must be a positive number, got {fps}")
+    if rig is None:
+        rig = solve_bones(character, bone_count, binding=binding)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = stem or "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in character.name)
+    written = []
+    for fmt in formats:
+        path = out_dir / f"{stem}{BONE_SUFFIXES[fmt]}"
+        if fmt == "glb":
+            from visemeflow.animation.skinned_gltf import write_skinned_glb
+
+            write_skinned_glb(path, rig, curves, fps, name=stem)
+        elif fmt == "usd":
+            from visemeflow.animation.usd_skel import write_usd_skel
+
+            write_usd_skel(path, rig, curves, fps, name=stem)
+        else:
+            write_pose_table(path, rig, fmt.removeprefix("pose-"))
+        written.append(path)
+    if audio is not None:
+        from visemeflow.animation.package import write_wav
+
+        written.append(write_wav(out_dir / f"{stem}.wav", *audio))
+    return written
