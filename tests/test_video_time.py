@@ -13,6 +13,7 @@ from visemeflow.tracking.video import (
     VideoError,
     frame_times,
     grid_rate,
+    iter_timed_frames,
     probe_video,
     read_timed_frames,
     read_video_frames,
@@ -150,3 +151,30 @@ def test_read_timed_frames_is_one_pass_of_frames_and_times():
     assert frames.shape == (135, 700, 700, 3) and frames.dtype == np.uint8
     assert np.array_equal(times, frame_times(VFR_CLIP))
     assert np.array_equal(frames[[0, 77, 134]], read_video_frames(VFR_CLIP)[[0, 77, 134]])
+
+
+@pytest.mark.parametrize("clip", [VFR_CLIP, CFR_CLIP, GRID_CLIP], ids=["vfr", "cfr", "grid"])
+def test_iter_timed_frames_is_frames_and_frame_times_in_one_pass(clip):
+    assert clip.is_file(), f"missing test data {clip}"
+    pairs = list(iter_timed_frames(clip))
+    times = np.array([t for _, t in pairs])
+    assert np.array_equal(times, frame_times(clip))
+    frames = read_video_frames(clip)
+    assert len(pairs) == len(frames)
+    assert all(np.array_equal(f, frames[i]) for i, (f, _) in enumerate(pairs))
+
+
+@pytest.mark.parametrize("clip", [VFR_CLIP, GRID_CLIP], ids=["vfr", "grid"])
+def test_frame_times_are_the_time_stamps_minus_the_audio_start_to_the_bit(clip):
+    """The one-pass decoder keeps the rule bit for bit: pts x time_base minus the audio stream's start."""
+    with av.open(str(clip)) as container:
+        audio = container.streams.audio[0]
+        start = float(audio.start_time * audio.time_base)
+        stamps = [float(f.pts * f.time_base) for f in container.decode(container.streams.video[0])]
+    assert np.array_equal(frame_times(clip), np.array(stamps) - start)
+
+
+def test_iter_timed_frames_on_a_file_without_frames_is_an_error_naming_it(tmp_path):
+    path = zeroed_video(tmp_path / "zeroed.mp4")
+    with pytest.raises(VideoError, match=r"zeroed\.mp4: video decoding failed"):
+        list(iter_timed_frames(path))

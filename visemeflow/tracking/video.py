@@ -224,31 +224,48 @@ def read_timed_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _decode_timed(path: Path, images: bool) -> tuple[list[np.ndarray], np.ndarray]:
-    raw: list[float | None] = []
     out: list[np.ndarray] = []
+    times: list[float] = []
+    for frame, t in _iter_timed(path, images):
+        if images:
+            out.append(frame)
+        times.append(t)
+    return out, np.asarray(times, np.float64)
+
+
+def iter_timed_frames(path: str | os.PathLike) -> Iterator[tuple[np.ndarray, float]]:
+    """Every decoded frame, RGB uint8 (H, W, 3), with its :func:`frame_times` time (s), one at a time from one
+    decoding pass (what :func:`read_timed_frames` gives, without holding the clip in memory). The times are those of
+    :func:`frame_times` to the bit; :class:`VideoError` naming the file when no frame decodes, or, when it is reached,
+    at the first frame whose time stamp does not increase (the frames before it have been yielded)."""
+    return _iter_timed(Path(path), True)
+
+
+def _iter_timed(path: Path, images: bool) -> Iterator[tuple[np.ndarray | None, float]]:
+    """(frame or None, time) per decoded frame. A frame without a time stamp is placed one nominal frame after the
+    previous one (0 for the first); times must increase; they are shifted to the audio's start (the first frame's
+    time without audio): the rules of :func:`frame_times`, applied as the frames come."""
     with _open(path) as container:
         stream = _video_stream(container, path)
         stream.thread_type = "AUTO"
         fps = _stream_fps(stream) or 25.0
-        for frame in _decode_video(container, stream, path):
-            raw.append(None if frame.pts is None or frame.time_base is None else float(frame.pts * frame.time_base))
-            if images:
-                out.append(frame.to_ndarray(format="rgb24"))
         audio_start = _audio_start_s(container)
-    if not raw:
-        raise VideoError(f"{path}: no decodable video frames")
-    times = np.empty(len(raw), np.float64)
-    for i, t in enumerate(raw):
-        if t is None:
-            t = times[i - 1] + 1.0 / fps if i else 0.0
-        times[i] = t
-    bad = np.flatnonzero(np.diff(times) <= 0)
-    if len(bad):
-        i = int(bad[0]) + 1
-        raise VideoError(f"{path}: frame {i} has presentation time {times[i]:.6f} s, not after frame {i - 1}'s "
-                         f"{times[i - 1]:.6f} s")
-    times -= times[0] if audio_start is None else audio_start
-    return out, times
+        offset = audio_start
+        previous: float | None = None          # the previous frame's time stamp (container clock)
+        i = -1
+        for i, frame in enumerate(_decode_video(container, stream, path)):
+            t = None if frame.pts is None or frame.time_base is None else float(frame.pts * frame.time_base)
+            if t is None:
+                t = previous + 1.0 / fps if previous is not None else 0.0
+            if previous is not None and not t > previous:
+                raise VideoError(f"{path}: frame {i} has presentation time {t:.6f} s, not after frame {i - 1}'s "
+                                 f"{previous:.6f} s")
+            if offset is None:
+                offset = t
+            previous = t
+            yield (frame.to_ndarray(format="rgb24") if images else None), t - offset
+        if i < 0:
+            raise VideoError(f"{path}: no decodable video frames")
 
 
 def iter_video_frames(path: str | os.PathLike) -> Iterator[np.ndarray]:
@@ -474,5 +491,6 @@ def _check_frame(frame: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
 
 __all__ = [
     "VideoError", "VideoInfo", "choose_audio_codec", "choose_video_codec", "frame_times", "grid_rate",
-    "iter_video_frames", "probe_video", "read_timed_frames", "read_video_audio", "read_video_frames", "write_video",
+    "iter_timed_frames", "iter_video_frames", "probe_video", "read_timed_frames", "read_video_audio",
+    "read_video_frames", "write_video",
 ]
