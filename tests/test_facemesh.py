@@ -103,6 +103,27 @@ def test_vfr_clip_keeps_presentation_times_and_agrees_with_the_reference(tmp_pat
     np.testing.assert_allclose(written, track.times, atol=5e-7)
 
 
+def test_detect_video_decodes_once_and_equals_detection_on_the_decoded_frames(monkeypatch):
+    """One decoding pass gives the frames and their times; the track is that of `detect_frames` on
+    `read_timed_frames`, with the frames' grid rate."""
+    import visemeflow.tracking.video as video
+
+    video_path = grid_video("bbaf2n")
+    frames, times = video.read_timed_frames(video_path)
+    expected = detect_frames(frames, times, name=str(video_path))
+    passes = []
+    one_pass = video.iter_timed_frames
+    monkeypatch.setattr(video, "iter_timed_frames", lambda p: passes.append(p) or one_pass(p))
+    monkeypatch.setattr(video, "frame_times", lambda p: pytest.fail("a second decoding pass for the times"))
+    track = detect_video(video_path)
+    assert len(passes) == 1
+    assert np.array_equal(track.points, expected.points, equal_nan=True)
+    assert np.array_equal(track.z, expected.z, equal_nan=True)
+    assert np.array_equal(track.times, times) and np.array_equal(track.detected, expected.detected)
+    assert track.fps == video.grid_rate(times) == 25.0
+    assert (track.width, track.height) == (360, 288)
+
+
 def test_30fps_clip_agrees_with_the_reference_on_its_first_two_seconds():
     frames = read_video_frames(data(HEADS / "4.mp4"), 0, 60)
     track = detect_frames(frames, fps=30, name="4.mp4[:60]")

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -131,26 +131,17 @@ class FaceMeshTrack:
 
 
 class _VideoFrames:
-    """Re-iterable (frame, time) of a video file: each iteration decodes from the first frame; the times are
-    :func:`visemeflow.tracking.video.frame_times` (presentation time stamps on the audio's clock)."""
+    """Re-iterable (frame, time) of a video file: each iteration decodes from the first frame, frames and their
+    times (:func:`visemeflow.tracking.video.frame_times`: presentation time stamps on the audio's clock) in one
+    pass (:func:`visemeflow.tracking.video.iter_timed_frames`)."""
 
     def __init__(self, path: Path):
-        from visemeflow.tracking.video import frame_times
-
         self.path = path
-        self.times = frame_times(path)
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, float]]:
-        from visemeflow.tracking.video import VideoError, iter_video_frames
+        from visemeflow.tracking.video import iter_timed_frames
 
-        n = 0
-        for n, frame in enumerate(iter_video_frames(self.path), start=1):
-            if n > len(self.times):
-                break
-            yield frame, float(self.times[n - 1])
-        if n != len(self.times):
-            raise VideoError(f"{self.path}: {len(self.times)} frames have time stamps but the decoding gave "
-                             f"{'more' if n > len(self.times) else n}")
+        return iter_timed_frames(self.path)
 
 
 class _ArrayFrames:
@@ -357,11 +348,11 @@ def detect_video(video: str | os.PathLike, config: FaceMeshConfig | None = None)
     path = Path(video)
     config = config or FaceMeshConfig()
     try:
-        frames = _VideoFrames(path)
-        # the rate of the frames' grid (1 / median interval; a variable-rate clip's times are the truth)
-        return _detect(frames, str(path), config, grid_rate(frames.times))
+        track = _detect(_VideoFrames(path), str(path), config, None)
     except VideoError as exc:
         raise FaceMeshError(str(path), "UnreadableVideo", str(exc).removeprefix(f"{path}: ")) from exc
+    # the rate of the frames' grid (1 / median interval; a variable-rate clip's times are the truth)
+    return replace(track, fps=grid_rate(track.times))
 
 
 # ---------------------------------------------------------------------------------------------------------------
