@@ -253,3 +253,19 @@ def test_bad_input_is_a_tracking_input_error_naming_the_file(tmp_path, rig):
     assert no_track.error_type == "MissingAudio" and no_track.path == str(silent)
     with pytest.raises(TrackingInputError, match="procedural curves have 75 frames, the video 74"):
         track_video(VideoInput(str(video), str(landmarks), 25.0, 74), procedural, rig, CONFIG)
+
+
+def test_a_clip_is_probed_once_for_its_audio_and_camera(monkeypatch, rig):
+    """track_video probes the video once (probing decodes a GRID .mpg to count its frames) and hands the result to
+    the audio check and the camera fit."""
+    import visemeflow.tracking.utterance as utterance
+
+    video, _, landmarks = grid_files()
+    probes = []
+    probe = utterance.probe_video
+    monkeypatch.setattr(utterance, "probe_video", lambda p: probes.append(p) or probe(p))
+    config = TrackingConfig(fast_iterations=2, pose_iterations=2, use_flow=False)
+    tracked = track_video(VideoInput(str(video), str(landmarks), 25.0, 75, audio_path=str(video)),
+                          np.zeros((75, N_VISEMES), np.float32), rig, config)
+    assert probes == [str(video)]
+    assert tracked.camera_info["identity"] == "fitted"

@@ -44,7 +44,7 @@ from visemeflow.tracking.solver import (
     solve_faithful,
     solve_fast,
 )
-from visemeflow.tracking.video import VideoError, frame_times, probe_video, read_timed_frames
+from visemeflow.tracking.video import VideoError, VideoInfo, frame_times, probe_video, read_timed_frames
 
 LANDMARK_FILES = "<name>.landmarks.csv|.parquet, .mediapipe478.csv, .openface.csv"
 FALLBACK_FOV_DEG = 25.0
@@ -203,17 +203,19 @@ def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path:
     return LandmarkTrack(points, valid, track.fps, track.source)
 
 
-def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack) -> tuple[VisemeRig, Intrinsics, dict]:
+def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack,
+                   info: VideoInfo | None = None) -> tuple[VisemeRig, Intrinsics, dict]:
     """The rig and intrinsics to track with.
 
     With `<name>.camera.json` beside the video (synthetic takes), its intrinsics and the rig as given. Otherwise
     (real video) the rig's identity is fitted to the speaker from the landmarks of neutral frames (paper 4.2, ICT
-    identity modes) together with the focal length, and the fitted rig and camera are used.
+    identity modes) together with the focal length, and the fitted rig and camera are used. `info`: the video's
+    `probe_video`, when the caller has it (probed here otherwise).
     """
     record = camera_record_path(video_path)
     if record.exists():
         return rig, Intrinsics.from_record(json.loads(record.read_text())), {"identity": "given camera"}
-    info = probe_video(video_path)
+    info = info or probe_video(video_path)
     fallback = Intrinsics.from_fov(info.width, info.height, FALLBACK_FOV_DEG)
     modes_path = demo_identity_path()
     modes = load_identity_modes(modes_path) if modes_path.exists() else None
@@ -237,13 +239,18 @@ def flow_term(frames: np.ndarray, rig: VisemeRig, track: LandmarkTrack) -> tuple
     return FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences), valid_fraction
 
 
-def check_audio(video: VideoInput) -> None:
-    """The utterance's audio must exist; when it is the video's own track, the video must have one."""
+def _audio_is_video(video: VideoInput) -> bool:
+    return video.audio_path is not None and (not video.audio_path or Path(video.audio_path) == Path(video.video_path))
+
+
+def check_audio(video: VideoInput, info: VideoInfo | None = None) -> None:
+    """The utterance's audio must exist; when it is the video's own track, the video must have one (`info`: the
+    video's `probe_video`, when the caller has it)."""
     audio = video.audio_path
     if audio is None:
         return
-    if not audio or Path(audio) == Path(video.video_path):
-        if not probe_video(video.video_path).has_audio:
+    if _audio_is_video(video):
+        if not (info or probe_video(video.video_path)).has_audio:
             raise TrackingInputError(video.video_path, "MissingAudio",
                                      "no audio file for the utterance and no audio track in its video")
     elif not Path(audio).is_file():
@@ -279,7 +286,9 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
         raise TrackingInputError(None, "FrameMismatch",
                                  f"procedural curves have {len(procedural)} frames, the video {n_grid}: rerun procedural")
     try:
-        check_audio(video)
+        # one probe for the audio check and the camera (probing decodes a clip whose container stores no frame count)
+        info = probe_video(video.video_path) if _audio_is_video(video) else None
+        check_audio(video, info)
         need_frames = config.use_flow or config.use_rgb
         frames, times = read_timed_frames(video.video_path) if need_frames else (None, frame_times(video.video_path))
         timeline = FrameTimeline(times, float(video.fps), n_grid)
@@ -294,7 +303,7 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
             prior = (timeline.to_frames(procedural).astype(np.float32) if guided
                      else np.zeros((n_frames, N_VISEMES), np.float32))
         track = load_track(video.landmark_path, video.fps, n_frames, video.video_path)
-        rig, camera, camera_info = rig_and_camera(video.video_path, rig, track)
+        rig, camera, camera_info = rig_and_camera(video.video_path, rig, track, info)
         flow = flow_valid = photo = None
         if config.use_flow and n_frames > 1:
             flow, flow_valid = flow_term(frames, rig, track)
