@@ -334,8 +334,12 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
                                source="ground_truth", variant=name, model_name=name))
 
     result = evaluate_flow(EvaluateParams(store=store.root, models=["mbp", "fff"], variant="cm"))
-    expected = {"mbp": {"mbp_closure": 100.0, "fff_closure": 0.0, "agreement": 400 / 6},
-                "fff": {"mbp_closure": 0.0, "fff_closure": 100.0, "agreement": 300 / 6}}
+    # false closures: of the 4 phones that are not b/p/m (AAA, FFF, FFF, EH), `mbp` shows MBP on top in all 4;
+    # of the 4 that are not f/v (MBP, AAA, EH, MBP), `fff` shows FFF on top in all 4
+    expected = {"mbp": {"mbp_closure": 100.0, "fff_closure": 0.0, "mbp_false_closure": 100.0,
+                        "fff_false_closure": 0.0, "agreement": 400 / 6},
+                "fff": {"mbp_closure": 0.0, "fff_closure": 100.0, "mbp_false_closure": 0.0,
+                        "fff_false_closure": 100.0, "agreement": 300 / 6}}
     by_model = {r["model"]: r for r in result["table"]}
     for model, values in expected.items():
         for metric, value in values.items():
@@ -345,7 +349,8 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
 
     metrics = store.read_metrics("mbp").to_pylist()
     runs = {r[C.RUN] for r in metrics}
-    assert runs == {"train", "final", "evaluate", "evaluate.mbp_closure", "evaluate.fff_closure", "evaluate.agreement"}
+    assert runs == {"train", "final", "evaluate", "evaluate.mbp_closure", "evaluate.fff_closure",
+                    "evaluate.mbp_false_closure", "evaluate.fff_false_closure", "evaluate.agreement"}
     agreement = [r for r in metrics if r[C.RUN] == "evaluate.agreement" and r[C.CONDITION] == "validation"]
     aggregate = next(r for r in agreement if r[C.UTTERANCE_ID] is None)
     assert aggregate[C.L1] == pytest.approx(4 / 6) and aggregate[C.L1_X100] == pytest.approx(400 / 6)
@@ -358,8 +363,9 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
     assert {source_id(u) for u in speed_ids if u} == {"spk/u0", "spk/u1"} and None in speed_ids
 
     text = (store.root / "reports" / "robustness.md").read_text()
-    assert "| MBP closure % | FFF closure % | agreement % |" in text
-    assert "| 100.0 (100.0 / 100.0 / 100.0 / 100.0) | 0.0 (0.0 / 0.0 / 0.0 / 0.0) | 66.7 (66.7 / 66.7 / 66.7 / 66.7) |" \
+    assert "| MBP closure % | FFF closure % | false MBP closure % | false FFF closure % | agreement % |" in text
+    full, none = "100.0 (100.0 / 100.0 / 100.0 / 100.0)", "0.0 (0.0 / 0.0 / 0.0 / 0.0)"
+    assert f"| {full} | {none} | {full} | {none} | 66.7 (66.7 / 66.7 / 66.7 / 66.7) |" \
         in text.split("| mbp |")[1].splitlines()[0]
     assert "On 2 validation utterances with phones: 2 b/p/m, 2 f/v and 6 non-silent phones." in text
     csv_head = (store.root / "reports" / "robustness.csv").read_text().splitlines()[0]
@@ -367,10 +373,12 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
 
     page = build_dashboard(store.root, tmp_path / "dashboard", max_utterances=0).path.read_text(encoding="utf-8")
     groups, headers = _html_headers(page)
-    assert groups[-3:] == [f"{m} % (real-speech metric)" for m in ("MBP closure", "FFF closure", "agreement")]
-    assert headers[-15:] == [*(("validation", *CONDITIONS) * 3)]
+    labels = ("MBP closure", "FFF closure", "false MBP closure", "false FFF closure", "agreement")
+    assert groups[-5:] == [f"{m} % (real-speech metric)" for m in labels]
+    assert headers[-25:] == [*(("validation", *CONDITIONS) * 5)]
     models, cells = _html_robustness(page)
     assert models == ["fff", "mbp"]
     for model, shown in zip(models, cells):
-        want = [expected[model][m] for m in ("mbp_closure", "fff_closure", "agreement") for _ in range(5)]
-        assert [float(x) for x in shown[-15:]] == pytest.approx(want, abs=5e-4)
+        want = [expected[model][m] for m in ("mbp_closure", "fff_closure", "mbp_false_closure", "fff_false_closure",
+                                             "agreement") for _ in range(5)]
+        assert [float(x) for x in shown[-25:]] == pytest.approx(want, abs=5e-4)

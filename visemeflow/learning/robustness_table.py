@@ -13,7 +13,8 @@ wins: the highest epoch, then the last row given, as a new evaluation replaces t
 Averaging them would mix a stale evaluation into a fresh one.
 
 Real-speech metrics (:mod:`visemeflow.learning.realspeech`: they need the phone alignment, not curve truth) are
-rows of runs ``evaluate.mbp_closure``, ``evaluate.fff_closure`` and ``evaluate.agreement`` (:data:`REALSPEECH_RUNS`)
+rows of runs ``evaluate.mbp_closure``, ``evaluate.fff_closure``, ``evaluate.mbp_false_closure``,
+``evaluate.fff_false_closure`` and ``evaluate.agreement`` (:data:`REALSPEECH_RUNS`)
 in the same schema: ``l1`` holds the share (0..1), ``l1_x100`` the percentage, and, on the aggregate rows of
 ``evaluate.agreement``, ``l1_<VISEME>`` the share of that viseme's phones (null where it has none). A metric
 that is undefined (no b/p/m phone among the validation utterances) has no row. The same latest-wins rule picks
@@ -31,7 +32,7 @@ from collections.abc import Iterable
 from visemeflow.learning.augment import CONDITIONS
 from visemeflow.learning.realspeech import CLOSURE_VISEMES, TOP_K
 
-__all__ = ["CLOSURE_METRICS", "COLUMNS", "REALSPEECH_LABELS", "REALSPEECH_METRICS", "REALSPEECH_RUNS", "RUN",
+__all__ = ["CLOSURE_METRICS", "COLUMNS", "FALSE_CLOSURE_METRICS", "REALSPEECH_LABELS", "REALSPEECH_METRICS", "REALSPEECH_RUNS", "RUN",
            "realspeech_metrics", "realspeech_note", "robustness_table", "table_columns", "table_csv",
            "table_markdown"]
 
@@ -40,8 +41,12 @@ COLUMNS = ("validation", *CONDITIONS)
 _FIXED_KEYS = {"group", "model", "preset", "train_augment"}
 # metric name -> the viseme whose closure it counts: mbp_closure (b/p/m), fff_closure (f/v)
 CLOSURE_METRICS = {f"{v.lower()}_closure": v for v in CLOSURE_VISEMES}
-REALSPEECH_METRICS = (*CLOSURE_METRICS, "agreement")
-REALSPEECH_LABELS = {**{m: f"{v} closure" for m, v in CLOSURE_METRICS.items()}, "agreement": "agreement"}
+# mbp_false_closure, fff_false_closure: the share of the *other* phones whose top viseme is MBP / FFF (recall alone
+# rewards a mouth kept shut; read the two together)
+FALSE_CLOSURE_METRICS = {f"{v.lower()}_false_closure": v for v in CLOSURE_VISEMES}
+REALSPEECH_METRICS = (*CLOSURE_METRICS, *FALSE_CLOSURE_METRICS, "agreement")
+REALSPEECH_LABELS = {**{m: f"{v} closure" for m, v in CLOSURE_METRICS.items()},
+                     **{m: f"false {v} closure" for m, v in FALSE_CLOSURE_METRICS.items()}, "agreement": "agreement"}
 REALSPEECH_RUNS = {f"{RUN}.{m}": m for m in REALSPEECH_METRICS}   # run name in `metrics` -> metric
 
 
@@ -134,7 +139,8 @@ def realspeech_note(conditions: list[str]) -> str:
     closures = ", ".join(f"{v} closure" for v in CLOSURE_METRICS.values())
     after = f"; in brackets under {' / '.join(conditions)}" if conditions else ""
     return (f"{closures}: % of the phones of that viseme (b/p/m, f/v) whose top predicted viseme within the phone "
-            f"(highest peak, strictly) is it; agreement: % of non-silent phones whose viseme is among the top "
+            f"(highest peak, strictly) is it; false closure: % of the other non-silent phones whose top is it "
+            f"(read with the closure: a mouth kept shut closes every b/p/m); agreement: % of non-silent phones whose viseme is among the top "
             f"{TOP_K} predicted at the phone's middle frame. On clean validation audio{after}; "
             "- where undefined (no such phone).")
 

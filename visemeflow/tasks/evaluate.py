@@ -17,7 +17,12 @@ from visemeflow.hashing import stable_hash
 from visemeflow.learning.augment import AugmentConfig, augment_utterance, augmented_id, draw_value
 from visemeflow.learning.realspeech import RealSpeechScores, Recall, phones_of, scale_phones
 from visemeflow.learning.robustness import realspeech_evaluation
-from visemeflow.learning.robustness_table import CLOSURE_METRICS, REALSPEECH_METRICS, REALSPEECH_RUNS
+from visemeflow.learning.robustness_table import (
+    CLOSURE_METRICS,
+    FALSE_CLOSURE_METRICS,
+    REALSPEECH_METRICS,
+    REALSPEECH_RUNS,
+)
 from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, load_model, resample_curves
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
@@ -78,13 +83,16 @@ _METRIC_RUNS = {metric: run for run, metric in REALSPEECH_RUNS.items()}
 def _recall(scores: RealSpeechScores, metric: str) -> Recall:
     if metric in CLOSURE_METRICS:
         return scores.closure.get(CLOSURE_METRICS[metric], Recall())
+    if metric in FALSE_CLOSURE_METRICS:
+        return scores.false_closure.get(FALSE_CLOSURE_METRICS[metric], Recall())
     return scores.agreement.overall
 
 
 def realspeech_rows(model: str, condition: str, pooled: RealSpeechScores,
                     per_utterance: dict[str, RealSpeechScores]) -> list[dict]:
     """Rows of the `metrics` table for the real-speech metrics of one (model, condition), runs
-    `evaluate.mbp_closure`, `evaluate.fff_closure`, `evaluate.agreement` (same schema as the L1 rows).
+    `evaluate.mbp_closure`, `evaluate.fff_closure`, `evaluate.mbp_false_closure`, `evaluate.fff_false_closure`,
+    `evaluate.agreement` (same schema as the L1 rows).
 
     `l1` holds the share (0..1) and `l1_x100` the percentage; the aggregate (pooled over phones) and one row per
     utterance, each only where defined (an utterance without b/p/m phones has no `evaluate.mbp_closure` row, a
