@@ -22,7 +22,9 @@ each with refine_landmarks on (478 points, the iris model) and off (468). Column
 on the one core it is pinned to: on a machine shared with other jobs the wall clock also counts their turns on
 that core, the CPU time does not), and by CPU time without the graph start (the mean CPU cost of starting and
 closing the graphs a clip needs, measured separately, subtracted). Then end to end: `detect_video` on the files
-(frame times from a first decoding pass, decoding to RGB, detection, graph start), default config, best of R.
+(frames and their presentation times from one decoding pass, detection, graph start), default config, best of R.
+The whole path video -> tracked curves (decoding, detection, identity fit, optical flow, solver) is timed by
+bench/end_to_end.py.
 
 Table 2, agreement with the reference files (default config, refine on; refine off for its 468 points): pixel
 distance per (frame, point) pooled over the set's frames, median and 95th percentile, on the 40 lip vertices
@@ -153,7 +155,7 @@ def main() -> None:
             steady = max(cpu - start * len(clips), 1e-9)
             print(f"{name:<22} {label:<30} {frames:>6} {frames / wall:>9.1f} {frames / cpu:>8.1f} "
                   f"{frames / steady:>16.1f} {1000 * cpu / frames:>13.2f}")
-    print("\nend to end, detect_video (decode + presentation times + detection), default config:")
+    print("\nend to end, detect_video (decode with presentation times in one pass + detection), default config:")
     for name, clips in SETS.items():
         wall, cpu, frames = 0.0, 0.0, 0
         for p in clips:

@@ -1,0 +1,369 @@
+"""Benchmark: video -> tracked curves end to end on one core (issue 15): decoding, FaceMesh detection, identity
+fit, optical flow and the solver, per clip, with the share of each step.
+
+Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare]
+
+Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
+(OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
+CPU (os.sched_setaffinity, so MediaPipe's and FFmpeg's own threads share it), as bench/tracking.py and
+bench/landmarks.py do: every frames/s is per core.
+
+Clips: ../shared/data/grid_s1/video/*.mpg with their align/*.align (360x288, 25 fps, 75 frames: guided) and
+../shared/data/talking_heads/{1,4}.mp4 (700x700; no alignment: unguided; 1.mp4 variable frame rate). They are
+copied into a temporary corpus and ingested in-process (`ingest_utterance`), the GRID procedural curves made as the
+procedural task makes them (`generate_procedural_curves` of the phones' viseme segments on the utterance's grid);
+none of that is timed. What is timed is what the pipeline runs per utterance, the product's own functions:
+  landmarks stage  `tasks.landmarks.landmarks_one` (FaceMesh `detect_video` on the file, the 478-point table
+                   written to a temporary Store)
+  track stage      `tracking.utterance.track_video` on the `VideoInput` `tasks.track.track_one` builds (the stored
+                   landmark file, the alignment's end), default TrackingConfig (fast solver, L_flow on), the demo
+                   rig; guided with the procedural curves, unguided (None) without an alignment.
+(Writing the tracked curves and diagnostics to the store is not timed: a few kB.)
+
+Steps are split by wrapping the functions those two call (exclusive time: a step's time excludes the steps it
+calls), so the split is of exactly the code the pipeline runs:
+  decode           every video decode and demux: frame times, decoded frames (in the landmarks stage and in
+                   tracking), `probe_video` (frame count: GRID's .mpg stores none, so probing decodes the clip)
+  detection        MediaPipe FaceMesh (graph start, face-detector probes, the mesh per frame) and the face choice
+  landmark I/O     writing the 478-point table to the store (Parquet) and reading it back (`load_track`)
+  identity         `rig_and_camera` without its probe: the identity + focal fit on neutral frames
+  flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
+  solver           `solve_fast`: pose initialisation and the Adam iterations
+  other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
+--compare also runs every clip through the path as it was before the one-pass decoding (same code otherwise): the
+landmarks stage decoding the clip twice (`frame_times`, then the frames) and tracking probing the video twice (the
+audio check and the camera fit each call `probe_video`); before and after alternate clip by clip in the same run,
+and their curves are compared bit for bit.
+Each clip runs R times (default 3); per clip the run with the least total wall time is kept (its steps), the
+spread is (slowest - fastest) / fastest of the R totals. Wall clock on a shared machine also counts other jobs'
+turns on the core: the CPU-time total (all of the process's threads) is printed too.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_name] = "1"
+
+import argparse  # noqa: E402
+import functools  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import visemeflow.tracking.facemesh as facemesh_mod  # noqa: E402
+import visemeflow.tracking.utterance as utterance_mod  # noqa: E402
+import visemeflow.tracking.video as video_mod  # noqa: E402
+import visemeflow.tasks.landmarks as landmarks_task  # noqa: E402
+from visemeflow.ingest import discover_corpus, ingest_utterance  # noqa: E402
+from visemeflow.ingest.config import IngestConfig  # noqa: E402
+from visemeflow.phonetics.types import VisemeSegment  # noqa: E402
+from visemeflow.procedural import generate_procedural_curves  # noqa: E402
+from visemeflow.rig import load_demo_rig  # noqa: E402
+from visemeflow.schemas import C  # noqa: E402
+from visemeflow.storage import Store  # noqa: E402
+from visemeflow.tracking.facemesh import FaceMeshConfig  # noqa: E402
+from visemeflow.tracking.solver import TrackingConfig  # noqa: E402
+from visemeflow.tracking.utterance import VideoInput, track_video  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+GRID = DATA / "grid_s1"
+HEADS = DATA / "talking_heads"
+STEPS = ("decode", "detection", "landmark I/O", "identity", "flow", "solver", "other")
+
+
+# ---- exclusive-time profiler over wrapped functions ---------------------------------------------------------------
+
+class Profile:
+    """Exclusive wall time per step of the wrapped functions (a step's time excludes the wrapped calls it makes)."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+        self.cpu: dict[str, float] = defaultdict(float)
+        self._stack: list[list[float]] = []     # [start wall, start CPU, wall of wrapped children, their CPU]
+
+    def enter(self) -> None:
+        self._stack.append([time.perf_counter(), time.process_time(), 0.0, 0.0])
+
+    def leave(self, step: str) -> None:
+        start, start_cpu, children, children_cpu = self._stack.pop()
+        elapsed, elapsed_cpu = time.perf_counter() - start, time.process_time() - start_cpu
+        self.seconds[step] += elapsed - children
+        self.cpu[step] += elapsed_cpu - children_cpu
+        if self._stack:
+            self._stack[-1][2] += elapsed
+            self._stack[-1][3] += elapsed_cpu
+
+
+PROFILE = Profile()
+
+
+def _wrap(fn, step: str):
+    @functools.wraps(fn)
+    def timed(*args, **kwargs):
+        PROFILE.enter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            PROFILE.leave(step)
+    return timed
+
+
+def _wrap_iter(fn, step: str):
+    """A generator function whose every `next` counts to `step` (decoding frames one at a time)."""
+    @functools.wraps(fn)
+    def timed(*args, **kwargs):
+        it = iter(fn(*args, **kwargs))
+        while True:
+            PROFILE.enter()
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            finally:
+                PROFILE.leave(step)
+            yield item
+    return timed
+
+
+class _TwoPassFrames:
+    """The landmarks stage's frames as they were decoded before: the times by a first pass (`frame_times`), then
+    the frames by a second (`iter_video_frames`)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.times = video_mod.frame_times(path)
+
+    def __iter__(self):
+        for n, frame in enumerate(video_mod.iter_video_frames(self.path)):
+            yield frame, float(self.times[n])
+
+
+PATHS: dict[str, dict] = {}
+
+
+def use_path(name: str) -> None:
+    """Switch between the current code ("after") and the code as it was before the one-pass decoding ("before")."""
+    for (owner, attr), value in PATHS[name].items():
+        setattr(owner, attr, value)
+
+
+def install_profile() -> None:
+    """Wrap, in the modules that call them, the functions each step consists of."""
+    patches = [
+        # decoding (every module that imported the functions keeps its own reference)
+        (video_mod, "_decode_timed", _wrap, "decode"),
+        (video_mod, "_packet_times", _wrap, "decode"),
+        (video_mod, "probe_video", _wrap, "decode"),
+        (utterance_mod, "probe_video", _wrap, "decode"),
+        (utterance_mod, "read_timed_frames", _wrap, "decode"),
+        (utterance_mod, "frame_times", _wrap, "decode"),
+        (video_mod, "frame_times", _wrap, "decode"),
+        (video_mod, "read_timed_frames", _wrap, "decode"),
+        (video_mod, "iter_video_frames", _wrap_iter, "decode"),
+        # detection: the landmarks stage's detect_video (decode inside it is subtracted)
+        (landmarks_task, "detect_video", _wrap, "detection"),
+        (landmarks_task, "mediapipe478_table", _wrap, "landmark I/O"),
+        (Store, "write_landmarks", _wrap, "landmark I/O"),
+        (utterance_mod, "load_track", _wrap, "landmark I/O"),
+        (utterance_mod, "rig_and_camera", _wrap, "identity"),
+        (utterance_mod, "flow_term", _wrap, "flow"),
+        (utterance_mod, "solve_fast", _wrap, "solver"),
+    ]
+    rig_and_camera = utterance_mod.rig_and_camera
+    for owner, name, wrapper, step in patches:
+        if hasattr(owner, name):
+            setattr(owner, name, wrapper(getattr(owner, name), step))
+    PATHS["after"] = {(facemesh_mod, "_VideoFrames"): facemesh_mod._VideoFrames,
+                      (utterance_mod, "rig_and_camera"): utterance_mod.rig_and_camera}
+    PATHS["before"] = {(facemesh_mod, "_VideoFrames"): _TwoPassFrames,
+                       (utterance_mod, "rig_and_camera"): _wrap(
+                           lambda path, rig, track, info=None: rig_and_camera(path, rig, track), "identity")}
+
+
+# ---- clips --------------------------------------------------------------------------------------------------------
+
+@dataclass
+class Clip:
+    set_name: str
+    utterance: dict
+    procedural: np.ndarray | None
+    alignment_end_s: float | None
+    runs: dict[str, list[tuple[float, float, dict]]] = field(default_factory=dict)   # path: (wall, cpu, steps)
+
+    @property
+    def uid(self) -> str:
+        return self.utterance[C.UTTERANCE_ID]
+
+    @property
+    def frames(self) -> int:
+        return int(self.utterance[C.N_FRAMES])
+
+
+def build_corpus(tmp: Path, limit: int | None) -> list[Clip]:
+    grid_dir, heads_dir = tmp / "corpus" / "s1", tmp / "corpus" / "talking_heads"
+    grid_dir.mkdir(parents=True)
+    heads_dir.mkdir(parents=True)
+    videos = sorted((GRID / "video").glob("*.mpg"))[:limit]
+    for v in videos:
+        align = GRID / "align" / f"{v.stem}.align"
+        if align.is_file():
+            shutil.copyfile(v, grid_dir / v.name)
+            shutil.copyfile(align, grid_dir / align.name)
+    for name in ("1.mp4", "4.mp4"):
+        if (HEADS / name).is_file():
+            shutil.copyfile(HEADS / name, heads_dir / name)
+    discovery = discover_corpus(tmp / "corpus")
+    clips = []
+    for entry in discovery.entries:
+        ingested = ingest_utterance(entry, IngestConfig())
+        u = ingested.utterance
+        segments = [VisemeSegment(p["viseme"], p["start_s"], p["end_s"], p["word_index"], p["phoneme"] or "")
+                    for p in ingested.phones if p["viseme"] is not None]
+        guided = bool(ingested.phones)
+        procedural = generate_procedural_curves(segments, int(u[C.N_FRAMES]), float(u[C.FPS])) if guided else None
+        end = max(float(p["end_s"]) for p in ingested.phones) if guided else None
+        name = "GRID 360x288 guided" if entry.speaker == "s1" else "talking_heads 700x700 unguided"
+        clips.append(Clip(name, u, procedural, end))
+    return clips
+
+
+def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMeshConfig) -> tuple[float, float, dict]:
+    """One clip through the landmarks stage and the track stage, as the pipeline runs them."""
+    u = clip.utterance
+    PROFILE.reset()
+    wall, cpu = time.perf_counter(), time.process_time()
+    PROFILE.enter()
+    landmarks_task.landmarks_one(store, u, mesh)
+    video = VideoInput(u[C.VIDEO_PATH], str(store.landmark_path(clip.uid)), u[C.FPS], int(u[C.N_FRAMES]),
+                       audio_path=u.get(C.AUDIO_PATH), alignment_path=u.get(C.ALIGNMENT_PATH) or None,
+                       alignment_end_s=clip.alignment_end_s)
+    tracked = track_video(video, clip.procedural, rig, config)
+    PROFILE.leave("other")
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    steps = dict(PROFILE.seconds)
+    steps.update({f"cpu {k}": v for k, v in PROFILE.cpu.items()})
+    steps["_curves"] = tracked.result.curves
+    return wall, cpu, steps
+
+
+def pin_one_core() -> str:
+    if not hasattr(os, "sched_setaffinity"):
+        return "not pinned (no sched_setaffinity on this system)"
+    allowed = sorted(os.sched_getaffinity(0))
+    core = allowed[-1]
+    os.sched_setaffinity(0, {core})
+    return f"pinned to CPU {core} of {len(allowed)} allowed"
+
+
+# ---- printing -----------------------------------------------------------------------------------------------------
+
+def print_set(name: str, clips: list[Clip], path: str) -> dict[str, float]:
+    frames = sum(c.frames for c in clips)
+    runs = [c.runs[path] for c in clips]
+    best = [min(r, key=lambda x: x[0]) for r in runs]
+    wall = sum(b[0] for b in best)
+    cpu = sum(b[1] for b in best)
+    spreads = [(max(x[0] for x in r) - min(x[0] for x in r)) / min(x[0] for x in r) for r in runs]
+    steps = {s: sum(b[2].get(s, 0.0) for b in best) for s in STEPS}
+    steps_cpu = {s: sum(b[2].get(f"cpu {s}", 0.0) for b in best) for s in STEPS}
+    print(f"{name} [{path}]: {len(clips)} clips, {frames} frames; best of {len(runs[0])} runs per clip, summed")
+    head = (f"  {'step':<14}{'wall s':>8}{'share':>8}{'frames/s':>10}{'ms/frame':>10}   "
+            f"{'CPU s':>8}{'share':>8}{'frames/s':>10}")
+    print(head)
+    print("  " + "-" * (len(head) - 2))
+
+    def rate(sec: float) -> str:
+        return f"{frames / sec:>10.1f}" if sec > 0 else f"{'-':>10}"
+
+    for s in STEPS:
+        sec, c = steps[s], steps_cpu[s]
+        print(f"  {s:<14}{sec:>8.3f}{100 * sec / wall:>7.1f}%{rate(sec)}{1000 * sec / frames:>10.2f}   "
+              f"{c:>8.3f}{100 * c / cpu:>7.1f}%{rate(c)}")
+    print(f"  {'total':<14}{wall:>8.3f}{100.0:>7.1f}%{rate(wall)}{1000 * wall / frames:>10.2f}   "
+          f"{cpu:>8.3f}{100.0:>7.1f}%{rate(cpu)}")
+    print(f"  spread of a clip's total over its runs: median {100 * float(np.median(spreads)):.1f}%, "
+          f"max {100 * max(spreads):.1f}%")
+    return {"frames": frames, "wall": wall, "cpu": cpu, **steps}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--clips", type=int, default=None, help="only the first N GRID clips (default all 10)")
+    parser.add_argument("--no-pin", action="store_true")
+    parser.add_argument("--compare", action="store_true", help="also run the path as it was before (see the doc)")
+    args = parser.parse_args()
+    if not (GRID / "video").is_dir():
+        print(f"missing benchmark data: {GRID}")
+        return 0
+    print("end-to-end bench:", "not pinned" if args.no_pin else pin_one_core(),
+          f"| torch {torch.__version__}, {torch.get_num_threads()} thread(s)")
+    config, mesh, rig = TrackingConfig(), FaceMeshConfig(), load_demo_rig()
+    print(f"TrackingConfig: solver {config.solver}, {config.fast_iterations} it, flow {config.use_flow}, pose init "
+          f"{config.pose_iterations} it; FaceMeshConfig: refine {mesh.refine_landmarks}, probe every "
+          f"{mesh.probe_every}")
+    paths = ("before", "after") if args.compare else ("after",)
+    with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
+        tmp = Path(tmp_name)
+        clips = build_corpus(tmp, args.clips)
+        install_profile()
+        store = Store(tmp / "store")
+        run_clip(clips[0], store, rig, config, mesh)            # warm-up: MediaPipe's and torch's first-use costs
+        started = time.perf_counter()
+        for r in range(args.repeats):
+            for clip in clips:
+                for path in paths:
+                    use_path(path)
+                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, config, mesh))
+            print(f"  [{time.perf_counter() - started:6.0f} s] run {r + 1} of {args.repeats}", file=sys.stderr,
+                  flush=True)
+        use_path("after")
+    print()
+    sets: dict[str, list[Clip]] = {}
+    for clip in clips:
+        sets.setdefault(clip.set_name, []).append(clip)
+    totals = {}
+    for name, members in sets.items():
+        for path in paths:
+            totals[(name, path)] = print_set(name, members, path)
+            print()
+    if args.compare:
+        print("before -> after (best runs; wall | CPU frames/s)")
+        for name in sets:
+            b, a = totals[(name, "before")], totals[(name, "after")]
+            print(f"  {name:<32} total {b['frames'] / b['wall']:.1f} -> {a['frames'] / a['wall']:.1f} | "
+                  f"{b['frames'] / b['cpu']:.1f} -> {a['frames'] / a['cpu']:.1f};  decode {b['decode']:.3f} -> "
+                  f"{a['decode']:.3f} s ({a['frames'] / b['decode']:.0f} -> {a['frames'] / a['decode']:.0f} frames/s)")
+        print()
+    print("per clip (best run): frames, total wall s, frames/s; decode / detection / flow / solver s; curves")
+    for clip in clips:
+        every = [run[2]["_curves"] for path in paths for run in clip.runs[path]]
+        same = all(np.array_equal(every[0], c) for c in every)
+        for path in paths:
+            wall, _, steps = min(clip.runs[path], key=lambda r: r[0])
+            print(f"  {clip.uid:<22}{path:<7}{clip.frames:>5}{wall:>8.3f}{clip.frames / wall:>8.1f}   "
+                  f"{steps.get('decode', 0):.3f} / {steps.get('detection', 0):.3f} / {steps.get('flow', 0):.3f} / "
+                  f"{steps.get('solver', 0):.3f}   "
+                  f"{'identical in every run' + (' and path' if args.compare else '') if same else 'DIFFER'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
