@@ -334,9 +334,6 @@ def _register(tpl: _Template, skin_vertices: np.ndarray, target_v, target_f, mar
     if outside.size:
         raise TransferError(f"markers: template vertex {int(outside[0])} is not on the template's skin (it is in "
                             f"{', '.join(CARRIED_REGIONS)}); place markers on the face surface")
-    used = np.unique(tpl.faces[skin_faces])
-    local = np.full(len(tpl.neutral), -1, np.int64)
-    local[used] = np.arange(len(used))
     src_points, dst_points = tpl.neutral[markers[:, 0]], target_v[markers[:, 1]]
     if np.linalg.matrix_rank(src_points - src_points.mean(0), tol=1e-6 * np.ptp(src_points).max()) < 3 and len(
             markers) < 3:
@@ -344,10 +341,26 @@ def _register(tpl: _Template, skin_vertices: np.ndarray, target_v, target_f, mar
                             "not on one line (the 68 landmarks, or 5+ spread over the face)")
     s, r, t = _similarity(src_points, dst_points)
     aligned = tpl.neutral @ (s * r).T + t
+    # register only the template skin that the target covers (within 5% of the target's size after the marker
+    # alignment): the rest has nothing to match and would slow the ICP down
+    from scipy.spatial import cKDTree
+
+    size = float(np.linalg.norm(np.ptp(target_v, axis=0)))
+    near = cKDTree(target_v).query(aligned, distance_upper_bound=0.05 * size)[0] < np.inf
+    is_marker = np.zeros(len(tpl.neutral), bool)
+    is_marker[markers[:, 0]] = True
+    corners = tpl.faces[skin_faces]
+    skin_faces = skin_faces[near[corners].all(axis=1) | is_marker[corners].any(axis=1)]
+    used = np.unique(tpl.faces[skin_faces])
+    local = np.full(len(tpl.neutral), -1, np.int64)
+    local[used] = np.arange(len(used))
+    if (local[markers[:, 0]] < 0).any():
+        raise TransferError(f"markers: template vertex {int(markers[local[markers[:, 0]] < 0, 0][0])} is on no "
+                            "template triangle near the target")
     source = trimesh.Trimesh(aligned[used], local[tpl.faces[skin_faces]], process=False)
     target = trimesh.Trimesh(target_v, target_f, process=False)
-    if steps is None:   # trimesh's default schedule, 4 iterations a step instead of 10, landmarks kept to the end
-        steps = [[0.01, 10, 0.5, 4], [0.02, 5, 0.5, 4], [0.03, 2.5, 0.5, 4], [0.01, 1, 0.0, 4]]
+    if steps is None:   # trimesh's default schedule, 3 iterations a step instead of 10, landmarks kept to the end
+        steps = [[0.01, 10, 0.5, 3], [0.02, 5, 0.5, 3], [0.03, 2.5, 0.5, 3], [0.01, 1, 0.0, 3]]
     registered_skin = nricp_amberg(source, target, source_landmarks=local[markers[:, 0]],
                                    target_positions=dst_points, steps=steps, distance_threshold=0.05,
                                    use_faces=False)
@@ -356,7 +369,6 @@ def _register(tpl: _Template, skin_vertices: np.ndarray, target_v, target_f, mar
     _, distance, _, _ = _closest(target_v, target_f, registered_skin)
     residual = float(np.sqrt(np.mean(distance**2)))
     marker_residual = float(np.sqrt(np.mean(np.sum((registered[markers[:, 0]] - dst_points) ** 2, axis=1))))
-    size = float(np.linalg.norm(np.ptp(target_v, axis=0)))
     if not np.isfinite(residual) or residual > max_residual * size or marker_residual > 4 * max_residual * size:
         raise TransferError(f"the non-rigid ICP did not converge: the registered template lies {residual:.4g} "
                             f"(RMS, {100 * residual / size:.2f}% of the target's size; limit "
