@@ -1,0 +1,138 @@
+"""Benchmark: deformation transfer of the demo rig's 16 visemes (visemeflow/animation/transfer.py) onto new faces.
+
+Run:  .venv/bin/python bench/transfer.py [--sheet docs/transfer_contact_sheet.png] [--size 180]
+
+Prints, never asserts (exit 0 whatever the figures). Targets, all built from the shipped demo rig
+(`load_demo_rig()`, 21,984 vertices, 43,393 triangles, centimetres) and its identity modes (ict_identities.npz):
+
+1. self: the template onto its own neutral (same topology): largest vertex error against the template's shapes.
+2. identity: an ICT identity (modes 0..4 at +1, -1, +1, -0.5, +0.5 sigma), same topology.
+3. remeshed: another identity (modes 0..2 at +0.8, +0.6, -0.7 sigma) cut to the ICT narrow face (vertices
+   0..6705), Loop-subdivided once by trimesh (`remesh.subdivide_loop`: every vertex moves, 4 triangles for each, so
+   no triangle is the template's), turned 20 degrees about y, scaled 1.15 and moved; its 68 landmarks are the
+   nearest vertices (the markers). This is the target of tests/test_transfer.py.
+
+For each: time per stage (registration, factorisation, solve, total), the gradient residual, and the landmark
+checks of the demo rig (tests/test_rig.py): inner-lip gap 62-66 of MBP (and of the neutral), AHH's gap and chin drop
+(and whether they are the largest), mouth width 48-54 of UUU (narrowest?) and IEE (widest?). Times are one run on a
+shared 2-core machine: noisy.
+
+With --sheet, the 16 transferred visemes on the remeshed face are drawn with the project's renderer
+(`synth.render.render_mesh`, the preview's camera `animation.preview.preview_camera`, framing "mouth") into a
+4 x 4 contact sheet (PNG), the face turned back to frontal for the picture.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from visemeflow.animation.character import make_character
+from visemeflow.animation.preview import preview_camera
+from visemeflow.animation.transfer import transfer_visemes
+from visemeflow.rig import load_demo_rig, rig_data_path
+from visemeflow.synth.render import render_mesh
+from visemeflow.visemes import VISEMES
+
+TURN = np.deg2rad(20.0)
+ROTATION = np.array([[np.cos(TURN), 0, np.sin(TURN)], [0, 1, 0], [-np.sin(TURN), 0, np.cos(TURN)]])
+
+
+def identity_face(demo, modes, values):
+    c = np.zeros(len(modes))
+    c[: len(values)] = values
+    return demo.neutral + np.tensordot(c, modes, axes=1)
+
+
+def remeshed_face(demo, modes):
+    face = identity_face(demo, modes, [0.8, 0.6, -0.7])
+    keep = np.zeros(len(face), bool)
+    keep[:6706] = True
+    faces = demo.faces[keep[demo.faces].all(axis=1)]
+    used = np.unique(faces)
+    local = np.full(len(face), -1)
+    local[used] = np.arange(len(used))
+    vertices, faces = trimesh.remesh.subdivide_loop(face[used], local[faces], iterations=1)
+    move = lambda p: 1.15 * p @ ROTATION.T + np.array([3.0, -2.0, 5.0])  # noqa: E731
+    _, landmarks = cKDTree(move(vertices)).query(move(face[demo.landmark_ids]))
+    return move(vertices), faces, landmarks
+
+
+def landmark_figures(character, landmark_ids, rotation=np.eye(3)) -> str:
+    lm = np.concatenate([character.neutral[None], character.neutral[None] + character.deltas])[:, landmark_ids]
+    lm = lm @ rotation
+    gap = np.linalg.norm(lm[:, 62] - lm[:, 66], axis=1)
+    width = np.linalg.norm(lm[:, 48] - lm[:, 54], axis=1)
+    chin = lm[:, 8, 1]
+    i = {v: 1 + VISEMES.index(v) for v in ("MBP", "AHH", "UUU", "IEE")}
+    return (f"neutral gap {gap[0]:.3f} width {width[0]:.2f} | MBP gap {gap[i['MBP']]:.3f} "
+            f"(smallest: {gap[1:].argmin() + 1 == i['MBP']}) | AHH gap {gap[i['AHH']]:.2f}, chin drop "
+            f"{chin[0] - chin[i['AHH']]:.2f} (largest: {gap[1:].argmax() + 1 == i['AHH']}, "
+            f"{chin[1:].argmin() + 1 == i['AHH']}) | UUU width {width[i['UUU']]:.2f} "
+            f"(narrowest: {width[1:].argmin() + 1 == i['UUU']}) | IEE width {width[i['IEE']]:.2f} "
+            f"(widest: {width[1:].argmax() + 1 == i['IEE']})")
+
+
+def contact_sheet(character, path: Path, size: int) -> int:
+    camera, pose = preview_camera(character, size, "mouth")
+    panels = []
+    for k, name in enumerate(character.shape_names):
+        image = render_mesh(character.neutral + character.deltas[k], character.faces, character.vertex_colors,
+                            camera, pose)
+        image = np.ascontiguousarray(image[:, :, ::-1])
+        cv2.putText(image, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+        panels.append(image)
+    rows = [np.concatenate(panels[r * 4:(r + 1) * 4], axis=1) for r in range(4)]
+    sheet = np.concatenate(rows, axis=0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), sheet, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    return path.stat().st_size
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sheet", type=Path, default=None, help="write the contact sheet PNG here")
+    parser.add_argument("--size", type=int, default=180, help="panel size in pixels")
+    args = parser.parse_args()
+    demo = load_demo_rig()
+    modes = np.load(rig_data_path("ict_identities.npz"))["modes"].astype(np.float64)
+    print(f"template: {demo.name}, {demo.n_vertices} vertices, {len(demo.faces)} triangles, 16 visemes")
+    print("template: " + landmark_figures(make_character("t", demo.neutral, demo.faces, VISEMES, demo.deltas),
+                                          demo.landmark_ids))
+
+    start = time.perf_counter()
+    result = transfer_visemes(demo, demo.neutral, demo.faces, name="self")
+    wall = time.perf_counter() - start
+    error = np.abs(result.character.deltas - demo.deltas).max()
+    print(f"\n1. self (same topology), {wall:.2f} s wall: largest vertex error {error:.2e} cm "
+          f"(the template moves up to {np.abs(demo.deltas).max():.2f} cm)")
+    print("   " + "\n   ".join(result.report.lines()))
+
+    result = transfer_visemes(demo, identity_face(demo, modes, [1.0, -1.0, 1.0, -0.5, 0.5]), demo.faces,
+                              name="identity")
+    print("\n2. identity (same topology)")
+    print("   " + "\n   ".join(result.report.lines()))
+    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids))
+
+    vertices, faces, landmarks = remeshed_face(demo, modes)
+    result = transfer_visemes(demo, vertices, faces, target_landmarks=landmarks, name="remeshed")
+    print(f"\n3. remeshed (different topology): target {len(vertices)} vertices, {len(faces)} triangles")
+    print("   " + "\n   ".join(result.report.lines()))
+    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+
+    if args.sheet is not None:
+        c = result.character
+        frontal = make_character(c.name, c.neutral @ ROTATION, c.faces, c.shape_names, c.deltas @ ROTATION,
+                                 vertex_colors=c.vertex_colors)
+        size = contact_sheet(frontal, args.sheet, args.size)
+        print(f"\ncontact sheet: {args.sheet} ({size / 1000:.0f} kB)")
+
+
+if __name__ == "__main__":
+    main()
