@@ -46,7 +46,7 @@ MAX_INFLUENCES = 4
 MIN_VERTICES_PER_BONE = 3
 """A rigid transform needs three non-collinear points: SSDR cannot determine a bone that moves fewer."""
 DEFAULT_BONES = 32
-DEFAULT_ITERATIONS = 30
+DEFAULT_ITERATIONS = 5
 
 
 class BoneError(ValueError):

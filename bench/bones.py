@@ -1,0 +1,129 @@
+"""Bone animation against blendshape animation on the demo rig (printed, never asserted; issue 16).
+
+For each bone count (default 8, 16, 32, 64): the SSDR solve of the demo rig's 16 visemes (`bones.solve_bones`,
+wall and CPU seconds: run with OMP_NUM_THREADS=1 for one core), then the vertex error of the bone animation (blend,
+then linear blend skinning) against the blendshape animation, in millimetres RMS (the rig is in centimetres:
+x 10), over the rig's "face" and "lips" regions (and all vertices, eyes, teeth and mouth interior included):
+- per viseme at full weight (one-hot curves), and the mean over the 16;
+- over real sequences: the synthetic true curves of examples/corpus/LJ (their alignments through the ingest stage
+  and `generate_ground_truth`, as bench/realspeech.py builds them), every frame of every utterance pooled.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bones.py [--bones 8 16 32 64] [--iterations 5] [--utterances 24]
+
+Targets (issue 16): lips below 0.5 mm RMS at 64 bones; SSDR under 60 s for 64 bones on one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from visemeflow.animation.bones import bone_animation, solve_bones, viseme_meshes
+from visemeflow.animation.character import character_from_rig
+from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance
+from visemeflow.phonetics.types import VisemeSegment
+from visemeflow.rig import load_demo_rig
+from visemeflow.synth.dynamics import generate_ground_truth
+from visemeflow.timebase import frame_count
+from visemeflow.visemes import VISEMES
+
+ROOT = Path(__file__).resolve().parent.parent
+FPS = 30.0
+
+
+def corpus_curves(limit: int) -> dict[str, np.ndarray]:
+    """The synthetic true curves (T, 16) of examples/corpus/LJ's utterances, by utterance id."""
+    out = {}
+    for entry in discover_corpus(ROOT / "examples" / "corpus").entries:
+        if entry.speaker != "LJ" or len(out) >= limit:
+            continue
+        result = ingest_utterance(entry, IngestConfig())
+        rows = sorted(result.phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
+        segments = [VisemeSegment(p["viseme"], p["start_s"], p["end_s"], p["word_index"], p["phoneme"] or "")
+                    for p in rows if p["viseme"] is not None]
+        n = frame_count(result.utterance["duration_s"], FPS)
+        out[entry.utterance_id] = generate_ground_truth(segments, n, FPS, entry.speaker, entry.utterance_id)
+    return out
+
+
+def squared_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T, V) squared vertex distances in mm^2 (mesh in cm)."""
+    return ((a - b) ** 2).sum(axis=-1) * 100.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bones", type=int, nargs="+", default=[8, 16, 32, 64])
+    parser.add_argument("--iterations", type=int, default=5)
+    parser.add_argument("--utterances", type=int, default=24)
+    args = parser.parse_args()
+
+    rig = load_demo_rig()
+    character = character_from_rig(rig)
+    regions = {"face": rig.regions["face"], "lips": rig.regions["lips"], "all": np.arange(rig.n_vertices)}
+    size = character.neutral.max(axis=0) - character.neutral.min(axis=0)
+    print(f"demo rig: {rig.n_vertices} vertices, {len(rig.faces)} triangles, extent {size.round(2).tolist()} "
+          f"(units: cm, a face ~{size[1]:.0f} tall), face {len(regions['face'])} / lips {len(regions['lips'])} "
+          f"vertices; OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, {os.cpu_count()} CPUs")
+    start = time.perf_counter()
+    sequences = corpus_curves(args.utterances)
+    total = sum(len(c) for c in sequences.values())
+    print(f"sequences: {len(sequences)} LJ utterances of examples/corpus, {total} frames at {FPS:g} fps "
+          f"({total / FPS:.1f} s; curves built in {time.perf_counter() - start:.1f} s)")
+    targets = viseme_meshes(character)
+    deltas = character.deltas.astype(np.float64)
+    still = {k: float(np.sqrt(squared_errors(character.neutral[None], targets)[:, ids].mean()))
+             for k, ids in regions.items()}
+    print(f"for scale, the visemes' own motion (neutral held): face {still['face']:.2f}, lips {still['lips']:.2f} "
+          f"mm RMS at full weight\n")
+
+    summary = []
+    per_viseme = {}
+    for n_bones in args.bones:
+        bones = solve_bones(character, n_bones, iterations=args.iterations)
+        full = squared_errors(bone_animation(bones, np.eye(16)), targets)            # (16, V)
+        per_viseme[n_bones] = {k: np.sqrt(full[:, regions[k]].mean(axis=1)) for k in ("face", "lips")}
+        sums = {k: 0.0 for k in regions}
+        worst_lips = 0.0
+        for curves in sequences.values():
+            c = np.asarray(curves, np.float64)
+            blend = character.neutral[None] + np.einsum("tp,pvc->tvc", c, deltas)
+            e = squared_errors(bone_animation(bones, c), blend)
+            for k, ids in regions.items():
+                sums[k] += float(e[:, ids].mean(axis=1).sum())
+            worst_lips = max(worst_lips, float(np.sqrt(e[:, regions["lips"]].mean(axis=1)).max()))
+        seq = {k: np.sqrt(v / total) for k, v in sums.items()}
+        row = dict(bones=bones.n_bones, wall=bones.solve_seconds, cpu=bones.solve_cpu_seconds,
+                   full_face=float(np.sqrt(full[:, regions["face"]].mean())),
+                   full_lips=float(np.sqrt(full[:, regions["lips"]].mean())),
+                   full_all=float(np.sqrt(full.mean())), seq_face=seq["face"], seq_lips=seq["lips"],
+                   seq_all=seq["all"], worst_lips=worst_lips)
+        summary.append(row)
+        print(f"{n_bones} bones: SSDR {row['wall']:.1f} s wall, {row['cpu']:.1f} s CPU; full weight face "
+              f"{row['full_face']:.3f} lips {row['full_lips']:.3f}; sequences face {row['seq_face']:.3f} lips "
+              f"{row['seq_lips']:.3f} (worst frame lips {worst_lips:.3f}) mm RMS", flush=True)
+
+    print("\n| bones | SSDR wall s | SSDR CPU s | full weight face | full weight lips | full weight all vertices | "
+          "sequences face | sequences lips | sequences all | worst frame lips |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in summary:
+        print(f"| {r['bones']} | {r['wall']:.1f} | {r['cpu']:.1f} | {r['full_face']:.3f} | {r['full_lips']:.3f} | "
+              f"{r['full_all']:.3f} | {r['seq_face']:.3f} | {r['seq_lips']:.3f} | {r['seq_all']:.3f} | "
+              f"{r['worst_lips']:.3f} |")
+    print("\nper viseme at full weight, lips mm RMS:")
+    print("| bones | " + " | ".join(VISEMES) + " |")
+    print("|---" * (len(VISEMES) + 1) + "|")
+    for n_bones, figures in per_viseme.items():
+        print(f"| {n_bones} | " + " | ".join(f"{x:.2f}" for x in figures["lips"]) + " |")
+    print("\nper viseme at full weight, face mm RMS:")
+    for n_bones, figures in per_viseme.items():
+        print(f"| {n_bones} | " + " | ".join(f"{x:.2f}" for x in figures["face"]) + " |")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
