@@ -234,3 +234,18 @@ def test_the_command_writes_a_valid_glb_that_reads_back_as_a_rig(tmp_path, demo,
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
     with pytest.raises(TransferError, match="the output must be a .glb"):
         transfer_command(rig_data_path("ict_visemes.npz"), target, None, tmp_path / "x.usd")
+
+
+def test_transfer_command_line_names_the_bad_file_and_exits_2(tmp_path):
+    """`visemeflow transfer` with a target that cannot be read: one line naming the file, exit status 2, no GLB."""
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+
+    missing = tmp_path / "nobody.obj"
+    out = tmp_path / "out.glb"
+    result = CliRunner().invoke(app, ["transfer", "--template", str(rig_data_path("ict_visemes.npz")), "--target", str(missing),
+                                      "--out", str(out)])
+    assert result.exit_code == 2
+    assert f"error: {missing}: cannot read OBJ" in result.output and "Traceback" not in result.output
+    assert not out.exists()

@@ -480,6 +480,26 @@ def import_curves(
     _print_rejects_hint(store)
 
 
+@app.command("transfer")
+def transfer(
+    template: Annotated[Path, typer.Option("--template", help="Viseme rig or character (folder, .glb, .npz) whose shapes are transferred.")],
+    target: Annotated[Path, typer.Option("--target", help="The new character's neutral mesh (.obj, .ply, .glb).")],
+    out: Annotated[Path, typer.Option("--out", help="The character GLB to write.")],
+    markers: Annotated[Optional[Path], typer.Option("--markers", help="CSV template_vertex,target_vertex; default: TARGET.landmarks.json beside the target (another topology needs one).")] = None,
+    no_parts: Annotated[bool, typer.Option("--no-parts", help="Leave out the template's mouth interior and eyes on a target of another topology.")] = False,
+) -> None:
+    """Deformation transfer (Sumner and Popovic 2004) of the template's visemes onto a new neutral mesh."""
+    from visemeflow.animation.transfer import TransferError, transfer_command
+
+    try:
+        report = transfer_command(template, target, markers, out, carry_parts=not no_parts)
+    except TransferError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(str(report))
+    typer.echo(f"wrote {out}")
+
+
 @app.command()
 def animate(
     utterances: Annotated[Optional[list[str]], typer.Argument(help="Utterance ids; default: all with such curves.")] = None,
