@@ -2,6 +2,7 @@
 reach characters in every format, cached per (utterance, character), bad input as rejects while the rest goes on."""
 
 import json
+from pathlib import Path
 
 import av
 import numpy as np
@@ -174,3 +175,44 @@ def test_preview_puts_the_sources_side_by_side_with_the_audio(tmp_path, characte
         assert video.codec_context.name == "h264" and container.streams.audio[0].codec_context.name == "aac"
         assert video.codec_context.width >= 2 * 96
         assert sum(1 for _ in container.decode(video=0)) == result["frames"] == 25
+
+
+def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_once(tmp_path, monkeypatch):
+    """`--mode bones`: glb becomes `<stem>.bones.glb` (a skinned glTF the Khronos validator accepts), pose tables are
+    written, the blendshape-independent formats are unchanged, and the SSDR solve runs once per character for all
+    utterances of the run; pose tables without bone mode are refused."""
+    import csv
+
+    from test_gltf import validate
+
+    from visemeflow.animation import bones as bones_module
+    from visemeflow.animation import package
+    from visemeflow.visemes import VISEMES
+
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2)
+    neutral = np.c_[grid, np.zeros(len(grid))]
+    faces = [[i, i + 1, i + 8] for i in range(55) if i % 8 != 7] + [[i + 1, i + 9, i + 8] for i in range(55) if i % 8 != 7]
+    character = make_character("grid", neutral, faces, list(VISEMES), rng.normal(0, 0.05, (16, len(neutral), 3)))
+    path = save_character_npz(character, tmp_path / "chars" / "grid.npz")
+    solves = []
+    real_solve = bones_module.solve_bones
+    monkeypatch.setattr(bones_module, "solve_bones", lambda *a, **k: solves.append(1) or real_solve(*a, **k))
+    monkeypatch.setattr(package, "_RIGS", {})
+
+    store = make_curve_store(tmp_path / "store", n=3)
+    config = AnimateConfig(formats=("glb", "pose-csv", "livelink"), mode="bones", bones=4)
+    result = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth", config=config))
+    assert result["packages"] == 3 and result["rejected"] == 0 and len(solves) == 1
+    for report in result["packages_written"]:
+        files = report["files"]
+        assert files["glb"].endswith(".bones.glb") and files["pose-csv"].endswith(".poses.csv")
+        issues = validate(Path(files["glb"]))["issues"]
+        assert issues["numErrors"] == 0 and issues["numWarnings"] == 0
+        with open(files["pose-csv"], newline="") as f:
+            rows = list(csv.DictReader(f))
+        assert {r["pose"] for r in rows} == set(VISEMES) and len({r["bone"] for r in rows}) >= 2
+        _, values, _ = read_livelink_csv(files["livelink"])
+        assert len(values) == report["frames"]
+    with pytest.raises(ValueError, match="bone-mode formats"):
+        AnimateConfig(formats=("pose-json",))

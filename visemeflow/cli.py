@@ -84,20 +84,26 @@ CharactersOpt = Annotated[Optional[list[Path]], typer.Option(
     "--character", help="Character: .glb/.gltf with morph targets, .npz, or a folder of meshes (repeat for several); "
                         "default: the shipped ICT demo character.")]
 FormatsOpt = Annotated[str, typer.Option(
-    "--format", help="Comma-separated: glb, usd, livelink, json, curves-csv, curves-json.")]
+    "--format", help="Comma-separated: glb, usd, livelink, json, curves-csv, curves-json; with --mode bones also "
+                     "pose-csv, pose-json.")]
+ModeOpt = Annotated[str, typer.Option(
+    "--mode", help="blendshape (the character's shapes) or bones (SSDR bones from its visemes: glb and usd become "
+                   "skinned bone animation).")]
+BonesOpt = Annotated[int, typer.Option("--bones", min=1, help="Bone count of the SSDR solve (--mode bones).")]
 MappingOpt = Annotated[Optional[Path], typer.Option(
     "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.")]
 ConventionOpt = Annotated[Optional[str], typer.Option(
     "--convention", help="arkit52, oculus15 or visemeflow16; default: detected from the shape names.")]
 
 
-def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool):
+def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool,
+                    mode: str = "blendshape", bones: int = 32):
     import pydantic
 
     from visemeflow.animation.package import AnimateConfig
 
     try:
-        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview)
+        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview, mode=mode, bones=bones)
     except pydantic.ValidationError as exc:
         typer.echo(f"error: {exc.errors()[0]['msg']}", err=True)
         raise typer.Exit(2) from None
@@ -513,6 +519,8 @@ def animate(
     mapping: MappingOpt = None,
     preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 of each package.")] = False,
     out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
+    mode: ModeOpt = "blendshape",
+    bones: BonesOpt = 32,
 ) -> None:
     """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
 
@@ -521,7 +529,7 @@ def animate(
     from visemeflow.flows.animate import AnimateParams, animate_flow
 
     params = dict(store=store, source=source, variant=variant, utterances=utterances or None, mapping=mapping,
-                  config=_animate_config(formats, fps, convention, preview), out=out)
+                  config=_animate_config(formats, fps, convention, preview, mode, bones), out=out)
     if character:
         params["characters"] = character
     _print_packages(dict(animate_flow(AnimateParams(**params))))
@@ -540,6 +548,8 @@ def speak(
     mapping: MappingOpt = None,
     preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 (the character speaking, with the audio).")] = False,
     out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
+    mode: ModeOpt = "blendshape",
+    bones: BonesOpt = 32,
 ) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     from visemeflow.flows.animate import SpeakParams, speak_flow
@@ -551,7 +561,7 @@ def speak(
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
-                  config=_animate_config(formats, None, convention, preview))
+                  config=_animate_config(formats, None, convention, preview, mode, bones))
     if character:
         params["characters"] = character
     _print_packages(dict(speak_flow(SpeakParams(**params))))

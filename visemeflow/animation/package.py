@@ -10,6 +10,19 @@ bound to the character's shapes and written in every requested format into one f
 | `curves-csv`  | `<stem>.curves.csv`   | the 16 viseme curves, one row per frame                      |
 | `curves-json` | `<stem>.curves.json`  | the 16 viseme curves, one list per viseme                    |
 
+Bone mode (`AnimateConfig.mode = "bones"`, `visemeflow animate --mode bones --bones N`): the character's visemes become
+N SSDR bones (`visemeflow.animation.bones`, solved once per character, binding and bone count in a process and
+reused by every utterance of the run), and `glb` / `usd` are written as bone animation instead of blendshapes:
+
+| format      | file               | for                                                                       |
+|-------------|--------------------|---------------------------------------------------------------------------|
+| `glb`       | `<stem>.bones.glb` | skinned glTF: joints, inverse bind matrices, LINEAR joint TRS channels    |
+| `usd`       | `<stem>.bones.usd` | UsdSkel SkelAnimation with joints                                         |
+| `pose-csv`  | `<stem>.poses.csv` | per viseme per bone quaternion + translation (an engine's own Pose Asset) |
+| `pose-json` | `<stem>.poses.json`| the same as JSON                                                          |
+
+The other formats (Live Link CSV, web JSON, curves) are the same in both modes.
+
 glTF carries no audio: the utterance's audio goes beside the files as `<stem>.wav` (16-bit PCM at its own rate).
 Every file has exactly the frames and rate of the (resampled) curves: frame k at k / fps. The Live Link CSV holds
 ARKit weights whatever the character's convention (`conventions.arkit_weights`); the other character formats hold
@@ -18,12 +31,15 @@ the character's own shapes.
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import soundfile as sf
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from visemeflow.animation.apply import check_curves, resample
 from visemeflow.animation.character import Character
@@ -31,10 +47,12 @@ from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.atomic import atomic_path
 
-EXPORT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json")
+POSE_FORMATS: tuple[str, ...] = ("pose-csv", "pose-json")   # bone mode only
+EXPORT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json", *POSE_FORMATS)
 DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
 SUFFIXES = {"glb": ".glb", "usd": ".usd", "livelink": ".livelink.csv", "json": ".web.json",
             "curves-csv": ".curves.csv", "curves-json": ".curves.json"}
+BONE_MODE_SUFFIXES = {"glb": ".bones.glb", "usd": ".bones.usd", "pose-csv": ".poses.csv", "pose-json": ".poses.json"}
 
 
 class AnimateConfig(BaseModel):
@@ -51,6 +69,17 @@ class AnimateConfig(BaseModel):
     audio: bool = Field(True, description="Write the utterance's audio beside the exports as <stem>.wav.")
     preview: bool = Field(False, description="Also render <stem>.mp4: the character driven by these curves, with "
                                              "the audio and the current phone (H.264 + AAC).")
+    mode: Literal["blendshape", "bones"] = Field(
+        "blendshape", description="blendshape: the character's shapes are animated; bones: its visemes become SSDR "
+                                  "bones and glb/usd are skinned bone animation (pose-csv/pose-json: the poses).")
+    bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve in bone mode.")
+
+    @model_validator(mode="after")
+    def _pose_tables_need_bones(self):
+        poses = [f for f in self.formats if f in POSE_FORMATS]
+        if poses and self.mode != "bones":
+            raise ValueError(f"{', '.join(poses)} are bone-mode formats: add --mode bones")
+        return self
 
     @field_validator("formats", mode="before")
     @classmethod
@@ -83,9 +112,33 @@ class AnimationPackage:
     binding: dict = field(default_factory=dict)
 
 
-def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str]) -> dict[str, Path]:
-    """Where each format of one package goes."""
-    return {fmt: Path(out_dir) / f"{stem}{SUFFIXES[fmt]}" for fmt in formats}
+def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str],
+                 mode: str = "blendshape") -> dict[str, Path]:
+    """Where each format of one package goes (bone mode writes glb/usd as `.bones.glb`/`.bones.usd`)."""
+    suffixes = {**SUFFIXES, **BONE_MODE_SUFFIXES} if mode == "bones" else SUFFIXES
+    return {fmt: Path(out_dir) / f"{stem}{suffixes[fmt]}" for fmt in formats}
+
+
+_RIGS: dict[str, object] = {}
+_RIG_LOCKS: dict[str, threading.Lock] = {}
+_RIGS_GUARD = threading.Lock()
+
+
+def bone_rig(character: Character, binding: Binding, bone_count: int):
+    """The character's SSDR bone rig for this binding and bone count, solved once per process (tens of seconds) and
+    shared by every utterance animated in it; threads asking for the same rig wait for the one solve."""
+    from visemeflow.animation.bones import solve_bones
+
+    digest = hashlib.sha256()
+    for part in (character.neutral, character.faces, character.deltas, binding.matrix):
+        digest.update(np.ascontiguousarray(part).tobytes())
+    key = f"{digest.hexdigest()}:{bone_count}"
+    with _RIGS_GUARD:
+        lock = _RIG_LOCKS.setdefault(key, threading.Lock())
+    with lock:
+        if key not in _RIGS:
+            _RIGS[key] = solve_bones(character, bone_count, binding=binding)
+        return _RIGS[key]
 
 
 def write_wav(path: Path, samples: np.ndarray, rate: int) -> Path:
@@ -106,9 +159,18 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     rate = float(config.fps or fps)
     curves = resample(curves, float(fps), rate)
     weights = binding.weights(curves)
-    paths = export_paths(out_dir, stem, config.formats)
+    paths = export_paths(out_dir, stem, config.formats, config.mode)
     files: dict[str, str] = {}
+    bone_formats = [f for f in config.formats if f in BONE_MODE_SUFFIXES] if config.mode == "bones" else []
+    if bone_formats:
+        from visemeflow.animation.bones import export_bone_animation
+
+        rig = bone_rig(character, binding, config.bones)
+        written = export_bone_animation(character, curves, rate, bone_formats, out_dir, stem=stem, rig=rig)
+        files.update({fmt: str(path) for fmt, path in zip(bone_formats, written)})
     for fmt, path in paths.items():
+        if fmt in bone_formats:
+            continue
         if fmt == "glb":
             from visemeflow.animation.gltf import write_glb
 

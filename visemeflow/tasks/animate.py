@@ -142,7 +142,7 @@ def outputs_present(store: Store, out: str | None, character_name: str, utteranc
                     with_audio: bool) -> bool:
     """Whether every file a package of this config would write is on disk (a deleted file recomputes)."""
     folder = package_dir(store, out, character_name, utterance_id)
-    paths = list(export_paths(folder, folder.name, config.formats).values())
+    paths = list(export_paths(folder, folder.name, config.formats, config.mode).values())
     paths += [folder / f"{folder.name}.wav"] if with_audio and config.audio else []
     paths += [folder / f"{folder.name}.mp4"] if config.preview else []
     return all(p.is_file() for p in paths)
