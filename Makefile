@@ -35,7 +35,8 @@ $(STAMP): pyproject.toml | system-deps
 # The demo: render the shipped corpus (audio + alignments) as talking-face videos with known true curves,
 # then run the pipeline on those videos, train two models, predict, print the robustness table, and end with the
 # Mandarin utterance spoken by the demo character: a side-by-side preview, then GLB + USD + Live Link CSV + web JSON
-# + the wav + a preview MP4 from the audio alone (`speak`); their paths are printed.
+# + the wav + a preview MP4 from the audio alone (`speak`), then the same as bone animation (32 SSDR bones: a skinned
+# GLB, UsdSkel with joints and the pose table); their paths are printed.
 demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -48,6 +49,7 @@ demo: system-deps venv
 	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
 	$(BIN)/visemeflow preview SSB1624/SSB16240001 --sources procedural,tracked,ground_truth --store $(OUT)/store
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --format glb,usd,livelink,json --preview --out $(OUT)/speak
+	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --out $(OUT)/speak-bones
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed

@@ -6,6 +6,9 @@
 - exporters: `gltf` (GLB), `usd` (UsdSkel), `livelink` (Live Link Face CSV), `webjson` (TalkingHead), `export`
   (the 16 curves as CSV/JSON); `package` writes one utterance's set of them with the audio beside.
 - `preview`: side-by-side MP4 previews (H.264 + AAC) drawn with the synth renderer.
+- `transfer`: deformation transfer (Sumner and Popovic 2004) of a viseme rig's shapes onto a new neutral mesh.
+- `bones`: SSDR bone poses from the visemes (py-dem-bones), per-frame pose blending and skinning, pose tables;
+  `skinned_gltf` (skinned GLB) and `usd_skel` (UsdSkel SkelAnimation with joints) write the bone animation.
 
 Pure: arrays in, files out; imports `visemes`, `rig`, `synth` (the renderer) and `atomic`, never Prefect or the store.
 """
