@@ -16,7 +16,6 @@ from visemeflow.animation.bones import (
     BoneRig,
     blend_poses,
     bone_animation,
-    export_bone_animation,
     read_pose_table,
     skin_vertices,
     solve_bones,
@@ -24,6 +23,7 @@ from visemeflow.animation.bones import (
     write_pose_table,
 )
 from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
+from visemeflow.animation.package import export_bone_animation
 from visemeflow.rig import load_demo_rig
 from visemeflow.visemes import VISEMES
 

@@ -42,6 +42,7 @@ import soundfile as sf
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from visemeflow.animation.apply import check_curves, resample
+from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, solve_bones, write_pose_table
 from visemeflow.animation.character import Character
 from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
@@ -127,8 +128,6 @@ _RIGS_GUARD = threading.Lock()
 def bone_rig(character: Character, binding: Binding, bone_count: int):
     """The character's SSDR bone rig for this binding and bone count, solved once per process (tens of seconds) and
     shared by every utterance animated in it; threads asking for the same rig wait for the one solve."""
-    from visemeflow.animation.bones import solve_bones
-
     digest = hashlib.sha256()
     for part in (character.neutral, character.faces, character.deltas, binding.matrix):
         digest.update(np.ascontiguousarray(part).tobytes())
@@ -163,8 +162,6 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     files: dict[str, str] = {}
     bone_formats = [f for f in config.formats if f in BONE_MODE_SUFFIXES] if config.mode == "bones" else []
     if bone_formats:
-        from visemeflow.animation.bones import export_bone_animation
-
         rig = bone_rig(character, binding, config.bones)
         written = export_bone_animation(character, curves, rate, bone_formats, out_dir, stem=stem, rig=rig)
         files.update({fmt: str(path) for fmt, path in zip(bone_formats, written)})
@@ -195,3 +192,45 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     if config.audio and audio is not None:
         files["audio"] = str(write_wav(out_dir / f"{stem}.wav", *audio))
     return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary())
+
+
+def export_bone_animation(character: Character, curves, fps: float, formats, out_dir, bone_count: int = DEFAULT_BONES,
+                          audio: tuple[np.ndarray, int] | None = None, *, stem: str | None = None,
+                          rig: BoneRig | None = None, binding=None) -> list:
+    """Solve the character's bones (or use `rig`), blend them by (T, 16) `curves` at `fps` and write each of
+    `formats` (any of `BONE_FORMATS`) into `out_dir` as `<stem><suffix>` (`BONE_SUFFIXES`; stem: the character's
+    name), the audio beside as `<stem>.wav` when given ((samples, rate)). Returns the paths written, in order.
+
+    CurvesError for non-finite curves or values outside [0, 1]; ValueError for an unknown format; BoneError as
+    `solve_bones`."""
+    formats = tuple(dict.fromkeys([formats] if isinstance(formats, str) else formats))
+    unknown = [f for f in formats if f not in BONE_FORMATS]
+    if unknown or not formats:
+        raise ValueError(f"unknown bone export format(s) {', '.join(unknown) or '(none given)'}; known: "
+                         f"{', '.join(BONE_FORMATS)}")
+    curves = check_curves(curves, stem or character.name)
+    fps = float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"frames per second must be a positive number, got {fps}")
+    if rig is None:
+        rig = solve_bones(character, bone_count, binding=binding)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = stem or "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in character.name)
+    written = []
+    for fmt in formats:
+        path = out_dir / f"{stem}{BONE_SUFFIXES[fmt]}"
+        if fmt == "glb":
+            from visemeflow.animation.skinned_gltf import write_skinned_glb
+
+            write_skinned_glb(path, rig, curves, fps, name=stem)
+        elif fmt == "usd":
+            from visemeflow.animation.usd_skel import write_usd_skel
+
+            write_usd_skel(path, rig, curves, fps, name=stem)
+        else:
+            write_pose_table(path, rig, fmt.removeprefix("pose-"))
+        written.append(path)
+    if audio is not None:
+        written.append(write_wav(out_dir / f"{stem}.wav", *audio))
+    return written
