@@ -135,3 +135,29 @@ def test_pipeline_detects_landmarks_before_tracking_a_video_without_a_landmark_f
     assert store.has_landmarks("s/face") and store.has_curves("tracked", "guided-fast", "s/face")
     second = pipeline_flow(params)
     assert second["landmarks"]["cached"] == 1 and second["track"]["cached"] == 1
+
+
+@pytest.mark.flow
+def test_pipeline_animates_an_unaligned_clip_from_its_unguided_curves(corpus, tmp_path, prefect_harness):
+    """A video with its audio but no alignment and no landmark file, with a character: the pipeline ingests it without
+    phones, detects its landmarks, tracks it unguided and animates the `unguided-fast` curves (not only the guided
+    variant the configuration names)."""
+    from visemeflow.flows.params import PipelineParams
+    from visemeflow.flows.pipeline import pipeline_flow
+    from visemeflow.rig import rig_data_path
+    from visemeflow.storage import Store
+
+    clip = tmp_path / "corpus"
+    (clip / "s").mkdir(parents=True)
+    for ext in (".wav", ".mp4"):
+        shutil.copyfile(corpus / "s" / f"face{ext}", clip / "s" / f"face{ext}")
+    params = PipelineParams(corpus=clip, store=tmp_path / "store", n_shards=1,
+                            characters=[rig_data_path("ict_visemes.npz")])
+    result = pipeline_flow(params)
+    assert result["ingest"]["unaligned"] == 1 and result["landmarks"]["detected"] == 1
+    assert result["track"]["unguided"] == 1 and result["track"]["variants"] == "unguided-fast"
+    store = Store(tmp_path / "store")
+    assert store.has_curves("tracked", "unguided-fast", "s/face")
+    assert "animate[unguided-fast]" in result and "animate" not in result
+    packages = [p for p in store.animation_dirs() if p.name == "face"]
+    assert len(packages) == 1 and any(f.suffix == ".glb" for f in packages[0].iterdir())
