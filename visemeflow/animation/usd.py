@@ -124,14 +124,8 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     fps = float(fps)
     n_frames = int(w.shape[0])
 
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
-    stage.SetTimeCodesPerSecond(fps)
-    stage.SetFramesPerSecond(fps)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(n_frames - 1)
-    stage.GetRootLayer().documentation = f"visemeflow: {character.name} ({n_frames} frames at {fps:g} fps)"
+    stage = timed_stage(fps, n_frames, meters_per_unit,
+                        f"visemeflow: {character.name} ({n_frames} frames at {fps:g} fps)")
 
     root_path = Sdf.Path.absoluteRootPath.AppendChild(prim_name(name if name is not None else character.name))
     root = UsdSkel.Root.Define(stage, root_path)
@@ -189,6 +183,19 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
             shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta)))
         targets.append(shape.GetPath())
     binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    return stage
+
+
+def timed_stage(fps: float, n_frames: int, meters_per_unit: float, documentation: str):
+    """An in-memory stage, Y up, `meters_per_unit`, time codes = frames at `fps` from 0 to `n_frames - 1`."""
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
+    stage.SetTimeCodesPerSecond(fps)
+    stage.SetFramesPerSecond(fps)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(n_frames - 1)
+    stage.GetRootLayer().documentation = documentation
     return stage
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from visemeflow.animation.bones import BoneRig, blend_poses
-from visemeflow.animation.usd import _format_args, prim_name
+from visemeflow.animation.usd import _format_args, prim_name, timed_stage
 from visemeflow.atomic import atomic_path
 
 __all__ = ["build_skel_stage", "joint_paths", "write_usd_skel"]
@@ -51,15 +51,8 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
     fps = float(fps)
     n_frames = len(rotations)
 
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
-    stage.SetTimeCodesPerSecond(fps)
-    stage.SetFramesPerSecond(fps)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(n_frames - 1)
-    stage.GetRootLayer().documentation = (f"visemeflow bones: {rig.name} ({rig.n_bones} SSDR bones, {n_frames} "
-                                          f"frames at {fps:g} fps)")
+    stage = timed_stage(fps, n_frames, meters_per_unit, f"visemeflow bones: {rig.name} ({rig.n_bones} SSDR bones, "
+                                                        f"{n_frames} frames at {fps:g} fps)")
 
     root_path = Sdf.Path.absoluteRootPath.AppendChild(prim_name(name if name is not None else rig.name))
     root = UsdSkel.Root.Define(stage, root_path)

@@ -1,5 +1,6 @@
 """Helpers the flows share: shard grouping, waiting with progress, failure accounting."""
 
+import traceback
 from collections import defaultdict
 from collections.abc import Iterable
 
@@ -82,3 +83,30 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
     else:
         message = f"{stage}: all {total} utterances done"
     return Completed(message=message, data=summary)
+
+
+def collect_utterance_results(futures: dict, stage: str, expected: type[Exception], logger) -> tuple[list, list, int]:
+    """Wait for per-utterance task futures (future -> utterance id) with a progress artifact: (reports with their
+    `cached` flag, reject rows, count of unexpected errors). `expected` errors (with `error_type` and `path`) are
+    rejects; any other exception is a bug met on one utterance: logged with its trace and rejected too, so the
+    others still go on and the flow can end Failed."""
+    from visemeflow.tasks.common import reject_row
+
+    progress = create_progress_artifact(0.0, description=f"{stage}: utterances done") if futures else None
+    reports, rejects, unexpected = [], [], 0
+    for done, future in enumerate(as_completed(list(futures)), start=1):
+        uid = futures[future]
+        try:
+            report = dict(future.result())
+            report["cached"] = int(future.state.name == "Cached")
+            reports.append(report)
+        except expected as exc:
+            rejects.append(reject_row(uid, stage, exc.error_type, str(exc), exc.path))
+        except Exception as exc:
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("%s[%s]: unexpected %s\n%s", stage, uid, type(exc).__name__, trace)
+            rejects.append(reject_row(uid, stage, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
+            unexpected += 1
+        if progress is not None:
+            update_progress_artifact(progress, 100.0 * done / len(futures))
+    return reports, rejects, unexpected

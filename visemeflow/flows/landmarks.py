@@ -1,19 +1,16 @@
 """The `landmarks` flow: MediaPipe FaceMesh on every utterance with a video but no landmark file (one task each)."""
 
-import traceback
 
 from prefect import flow, get_run_logger
-from prefect.artifacts import create_progress_artifact, update_progress_artifact
-from prefect.futures import as_completed
 from pydantic import Field
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import finished, replace_stage_rejects
+from visemeflow.flows.common import collect_utterance_results, finished, replace_stage_rejects
 from visemeflow.flows.params import RunnerField, RunnerConfig, StoreParams
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.landmarks import STAGE, LandmarksError, landmarks_utterance, provenance
 from visemeflow.tracking.facemesh import FaceMeshConfig
 
@@ -54,24 +51,8 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
             result_storage=result_storage(store.root), refresh_cache=not present,
         ).submit(str(store.root), row, config)
         futures[future] = uid
-    progress = create_progress_artifact(0.0, description=f"{STAGE}: utterances done") if futures else None
     logger = get_run_logger()
-    reports, rejects, unexpected = [], [], 0
-    for done, future in enumerate(as_completed(list(futures)), start=1):
-        uid = futures[future]
-        try:
-            report = dict(future.result())
-            report["cached"] = int(future.state.name == "Cached")
-            reports.append(report)
-        except LandmarksError as exc:
-            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
-        except Exception as exc:  # a bug met on one utterance: the others still go on, the flow ends Failed
-            trace = "".join(traceback.format_exception(exc))
-            logger.error("landmarks[%s]: unexpected %s\n%s", uid, type(exc).__name__, trace)
-            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
-            unexpected += 1
-        if progress is not None:
-            update_progress_artifact(progress, 100.0 * done / len(futures))
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, logger)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {
         "utterances": len(rows), "detected": sum(1 for r in reports if not r["cached"]),

@@ -3,22 +3,19 @@
 Utterances without an alignment are tracked unguided (variant `unguided-...`, see tasks/track.py); the summary
 counts them (`unguided`) and says why (`unguided_why`)."""
 
-import traceback
 from pathlib import Path
 
 from prefect import flow, get_run_logger
-from prefect.artifacts import create_progress_artifact, update_progress_artifact
-from prefect.futures import as_completed
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import finished, replace_stage_rejects
+from visemeflow.flows.common import collect_utterance_results, finished, replace_stage_rejects
 from visemeflow.flows.params import TrackParams
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
 from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance, utterance_config
@@ -83,24 +80,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             result_storage=result_storage(store.root), refresh_cache=not present,
         ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
         futures[future] = uid
-    progress = create_progress_artifact(0.0, description=f"{STAGE}: utterances done") if futures else None
     logger = get_run_logger()
-    reports, rejects, unexpected = [], [], 0
-    for done, future in enumerate(as_completed(list(futures)), start=1):
-        uid = futures[future]
-        try:
-            report = dict(future.result())
-            report["cached"] = int(future.state.name == "Cached")
-            reports.append(report)
-        except TrackError as exc:
-            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
-        except Exception as exc:  # a bug met on one utterance: the others still go on, the flow ends Failed
-            trace = "".join(traceback.format_exception(exc))
-            logger.error("track[%s]: unexpected %s\n%s", uid, type(exc).__name__, trace)
-            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
-            unexpected += 1
-        if progress is not None:
-            update_progress_artifact(progress, 100.0 * done / len(futures))
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, logger)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     unguided = [r for r in reports if not r.get("guided", True)]
