@@ -8,6 +8,9 @@ uncaught exception, browser log entry and network request; `chromium_or_fail` fi
 """
 
 import contextlib
+import functools
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 import json
 import os
 import shutil
@@ -149,3 +152,24 @@ class Browser:
             self.ws.close()
             self.proc.wait(timeout=10)
         self.kill()
+
+
+class _QuietHandler(SimpleHTTPRequestHandler):
+    def log_message(self, format, *args):  # noqa: A002 (the base class's name)
+        pass
+
+
+@contextlib.contextmanager
+def serve_folder(root: Path, page: str, node_modules: Path):
+    """Serve `root` on 127.0.0.1 with `page` as its index.html and `node_modules` linked in; yields the base address."""
+    (root / "index.html").write_text(page, encoding="utf-8")
+    (root / "node_modules").symlink_to(node_modules, target_is_directory=True)
+    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(root)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(timeout=10)

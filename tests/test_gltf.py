@@ -12,20 +12,17 @@ The JS packages are pinned in tools/js/package-lock.json and installed by `make 
 `make test`); without them, node or chromium the tests fail with the command that installs them, never skip.
 """
 
-import functools
 import json
 import math
 import shutil
 import subprocess
-import threading
 import time
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
 import pygltflib as gl
 import pytest
-from browser import Browser, chromium_or_fail
+from browser import Browser, chromium_or_fail, serve_folder
 from factories import REPO
 
 from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
@@ -613,25 +610,13 @@ window.pageReady = true;
 """
 
 
-class _QuietHandler(SimpleHTTPRequestHandler):
-    def log_message(self, format, *args):  # noqa: A002 (the base class's name)
-        pass
-
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     """(root folder, base address): a page, the node_modules and the GLBs we put in root, served on 127.0.0.1."""
     node_or_fail()
     root = tmp_path_factory.mktemp("served")
-    (root / "index.html").write_text(PAGE, encoding="utf-8")
-    (root / "node_modules").symlink_to(NODE_MODULES, target_is_directory=True)
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(root)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield root, f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
-    thread.join(timeout=10)
+    with serve_folder(root, PAGE, NODE_MODULES) as address:
+        yield root, address
 
 
 @pytest.fixture(scope="module")

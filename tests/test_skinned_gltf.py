@@ -6,16 +6,13 @@ library (UsdSkel queries, `UsdSkel.BakeSkinning` reproducing our skinned points,
 
 The demo rig's bones are solved once per module (8 bones, 5 iterations)."""
 
-import functools
 import json
-import threading
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
 import pygltflib as gl
 import pytest
-from browser import Browser, chromium_or_fail
+from browser import Browser, chromium_or_fail, serve_folder
 from pxr import Gf, Usd, UsdGeom, UsdSkel, UsdValidation
 from test_gltf import NODE_MODULES, glb_arrays, node_or_fail, validate
 
@@ -188,24 +185,13 @@ window.playSkinned = async (url, times, vertexIds) => {
 """
 
 
-class _QuietHandler(SimpleHTTPRequestHandler):
-    def log_message(self, format, *args):  # noqa: A002
-        pass
-
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
+    """(root folder, base address): a page, the node_modules and the GLBs we put in root, served on 127.0.0.1."""
     node_or_fail()
     root = tmp_path_factory.mktemp("served")
-    (root / "index.html").write_text(PAGE, encoding="utf-8")
-    (root / "node_modules").symlink_to(NODE_MODULES, target_is_directory=True)
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(root)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield root, f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
-    thread.join(timeout=10)
+    with serve_folder(root, PAGE, NODE_MODULES) as address:
+        yield root, address
 
 
 @pytest.fixture(scope="module")
