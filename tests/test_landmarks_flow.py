@@ -151,8 +151,10 @@ def test_pipeline_animates_an_unaligned_clip_from_its_unguided_curves(corpus, tm
     (clip / "s").mkdir(parents=True)
     for ext in (".wav", ".mp4"):
         shutil.copyfile(corpus / "s" / f"face{ext}", clip / "s" / f"face{ext}")
+    from visemeflow.animation.package import AnimateConfig
+
     params = PipelineParams(corpus=clip, store=tmp_path / "store", n_shards=1,
-                            characters=[rig_data_path("ict_visemes.npz")])
+                            characters=[rig_data_path("ict_visemes.npz")], animate=AnimateConfig(formats=("glb",)))
     result = pipeline_flow(params)
     assert result["ingest"]["unaligned"] == 1 and result["landmarks"]["detected"] == 1
     assert result["track"]["unguided"] == 1 and result["track"]["variants"] == "unguided-fast"
