@@ -58,6 +58,8 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+from cpu import pin_one_core  # noqa: E402  (bench/, this script's folder)
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -143,15 +145,6 @@ def phones_for(seconds: float, seed: int) -> list[tuple[float, float, str]]:
         out.append((t, min(seconds, t + d), labels[int(rng.integers(len(labels)))]))
         t += d
     return out
-
-
-def pin_one_core() -> str:
-    if not hasattr(os, "sched_setaffinity"):
-        return "not pinned (no sched_setaffinity on this system)"
-    allowed = sorted(os.sched_getaffinity(0))
-    core = allowed[-1]
-    os.sched_setaffinity(0, {core})
-    return f"pinned to CPU {core} of {len(allowed)} allowed"
 
 
 def set_fsync(on: bool) -> None:

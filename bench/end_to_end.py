@@ -57,6 +57,8 @@ from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+from cpu import pin_one_core  # noqa: E402  (bench/, this script's folder)
 import torch  # noqa: E402
 
 torch.set_num_threads(1)
@@ -261,15 +263,6 @@ def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMe
     steps.update({f"cpu {k}": v for k, v in PROFILE.cpu.items()})
     steps["_curves"] = tracked.result.curves
     return wall, cpu, steps
-
-
-def pin_one_core() -> str:
-    if not hasattr(os, "sched_setaffinity"):
-        return "not pinned (no sched_setaffinity on this system)"
-    allowed = sorted(os.sched_getaffinity(0))
-    core = allowed[-1]
-    os.sched_setaffinity(0, {core})
-    return f"pinned to CPU {core} of {len(allowed)} allowed"
 
 
 # ---- printing -----------------------------------------------------------------------------------------------------

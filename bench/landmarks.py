@@ -49,6 +49,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from cpu import pin_one_core  # noqa: E402  (bench/, this script's folder)
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
@@ -80,15 +82,6 @@ def reference_of(video: Path) -> Path:
     if video.parent.name == "video":
         return video.parent.parent / "landmarks" / f"{video.stem}.mediapipe478.csv"
     return video.with_name(f"{video.stem}.mediapipe478.csv")
-
-
-def pin_one_core() -> str:
-    if not hasattr(os, "sched_setaffinity"):
-        return "not pinned (no sched_setaffinity on this system)"
-    allowed = sorted(os.sched_getaffinity(0))
-    core = allowed[-1]
-    os.sched_setaffinity(0, {core})
-    return f"pinned to CPU {core} of {len(allowed)} allowed"
 
 
 def graph_start_s(config: FaceMeshConfig, repeats: int = 3) -> float:
