@@ -49,7 +49,7 @@ demo: system-deps venv
 	$(BIN)/visemeflow evaluate --models demo-fbank-blstm,demo-mean-curve --store $(OUT)/store
 	$(BIN)/visemeflow preview SSB1624/SSB16240001 --sources procedural,tracked,ground_truth --store $(OUT)/store
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --format glb,usd,livelink,json --preview --out $(OUT)/speak
-	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --out $(OUT)/speak-bones
+	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --preview --out $(OUT)/speak-bones
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed

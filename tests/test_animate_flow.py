@@ -215,3 +215,42 @@ def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_onc
         assert len(values) == report["frames"]
     with pytest.raises(ValueError, match="bone-mode formats"):
         AnimateConfig(formats=("pose-json",))
+
+
+def test_preview_and_bone_mode_packages_show_bones_beside_blendshapes(tmp_path, monkeypatch):
+    """`preview --mode both`: each source's blendshape panel and its bone panel side by side (`--mode bones`: the
+    bone panels alone); `animate --mode bones --preview` shows the blendshapes beside the bones the exports play.
+    One SSDR solve serves them all."""
+    from visemeflow.animation import package
+    from visemeflow.visemes import VISEMES
+
+    rng = np.random.default_rng(4)
+    grid = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2)
+    neutral = np.c_[grid, np.zeros(len(grid))]
+    faces = [[i, i + 1, i + 8] for i in range(55) if i % 8 != 7] + [[i + 1, i + 9, i + 8] for i in range(55) if i % 8 != 7]
+    character = make_character("grid", neutral, faces, list(VISEMES), rng.normal(0, 0.05, (16, len(neutral), 3)))
+    path = save_character_npz(character, tmp_path / "chars" / "grid.npz")
+    solves = []
+    real_solve = package.solve_bones
+    monkeypatch.setattr(package, "solve_bones", lambda *a, **k: solves.append(1) or real_solve(*a, **k))
+    monkeypatch.setattr(package, "_RIGS", {})
+    store = make_curve_store(tmp_path / "store", n=1)
+
+    def width_and_frames(video_path):
+        with av.open(str(video_path)) as container:
+            return container.streams.video[0].codec_context.width, sum(1 for _ in container.decode(video=0))
+
+    both = preview_flow(PreviewParams(store=store.root, utterance_id="spk/u0", character=path, mode="both", bones=4,
+                                      sources=["ground_truth"], size=96, out=tmp_path / "both.mp4"))
+    assert both["sources"] == ["ground truth (cm)", "ground truth (cm) 4 bones"]
+    assert width_and_frames(tmp_path / "both.mp4") == (2 * 96, both["frames"])
+    bones = preview_flow(PreviewParams(store=store.root, utterance_id="spk/u0", character=path, mode="bones", bones=4,
+                                       sources=["ground_truth"], size=96, out=tmp_path / "bones.mp4"))
+    assert bones["sources"] == ["ground truth (cm) 4 bones"] and width_and_frames(tmp_path / "bones.mp4")[0] == 96
+    config = AnimateConfig(formats=("glb",), mode="bones", bones=4, preview=True)
+    result = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth", config=config))
+    report = result["packages_written"][0]
+    assert width_and_frames(report["files"]["preview"]) == (2 * 360, report["frames"])
+    assert len(solves) == 1
+    with pytest.raises(ValueError, match="mode"):
+        PreviewParams(store=store.root, utterance_id="spk/u0", mode="skeleton")

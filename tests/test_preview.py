@@ -252,3 +252,61 @@ def test_bad_inputs_are_refused_by_name_and_leave_no_file(tmp_path):
         render_preview(path, ch, {"ok": good}, FPS, size=32, phones=[(0.0, 0.1, "A"), (0.2, 0.1, "B")])
     assert path.read_bytes() == b"old preview"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mp4"]  # no temporary file left
+
+
+def rigid_and_bump_character(n: int = 12):
+    """The grid sheet with the 16 viseme names: AAA slides the lower half down (rigid: bones can play it exactly),
+    AHH raises the cone (no rigid bone can), the others rest."""
+    from visemeflow.visemes import VISEMES
+
+    sheet = grid_character(n)
+    deltas = np.zeros((16, n * n, 3), np.float32)
+    deltas[VISEMES.index("AAA")] = sheet.deltas[1] * 2.0
+    deltas[VISEMES.index("AHH")] = sheet.deltas[0]
+    return make_character("sheet", sheet.neutral, sheet.faces, list(VISEMES), deltas)
+
+
+def test_a_bone_panel_shows_the_skinned_bones_beside_the_blendshapes():
+    """`BoneSource`: the panel is the rig's poses blended by the curves and skinned (pixel for pixel the render of
+    `bone_animation`); where the bones can play the shape it looks like the blendshape panel beside it, where they
+    cannot (a cone from 2 rigid bones) it differs, and it is never copied from a blendshape panel with equal rows."""
+    from visemeflow.animation.bones import bone_animation, solve_bones
+    from visemeflow.animation.preview import BoneSource
+    from visemeflow.synth.render import render_mesh
+    from visemeflow.visemes import VISEMES
+
+    ch = rigid_and_bump_character()
+    rig = solve_bones(ch, 2)
+    curves = np.zeros((12, 16), np.float32)
+    curves[2:6, VISEMES.index("AAA")] = np.linspace(0.25, 1.0, 4)
+    curves[8:12, VISEMES.index("AHH")] = 1.0
+    layout = PreviewFrames(ch, {"shapes": curves, "2 bones": BoneSource(rig, curves)}, FPS, size=64)
+    frames = [f.copy() for f in layout]
+    shapes_box, bones_box = layout.panel_box(0), layout.panel_box(1)
+    skinned = bone_animation(rig, curves)
+    for i in (0, 3, 5, 9):
+        expected = render_mesh(skinned[i], np.asarray(ch.faces, np.int64), ch.vertex_colors, layout.camera,
+                               layout.pose)
+        assert np.array_equal(frames[i][bones_box], expected), i
+    assert np.array_equal(frames[0][bones_box], frames[0][shapes_box])       # at rest both show the neutral
+    assert diff(frames[0][bones_box], frames[5][bones_box]) > 1.0            # the slide shows on the bones
+    assert diff(frames[5][bones_box], frames[5][shapes_box]) < 0.5           # and matches the blendshapes
+    assert diff(frames[9][bones_box], frames[9][shapes_box]) > 1.0           # the cone does not
+
+
+def test_a_bone_source_of_another_mesh_or_width_is_refused_by_name(tmp_path):
+    from visemeflow.animation.bones import solve_bones
+    from visemeflow.animation.preview import BoneSource
+
+    ch = rigid_and_bump_character()
+    rig = solve_bones(ch, 2)
+    with pytest.raises(ValueError, match=r"character 'sheet'.*'bones'.*\(T, 16\).*pose of the bone rig.*AAA"):
+        render_preview(tmp_path / "a.mp4", ch, {"bones": BoneSource(rig, np.zeros((5, 15), np.float32))}, FPS,
+                       size=32)
+    nan = np.zeros((5, 16), np.float32)
+    nan[2, 7] = np.nan
+    with pytest.raises(ValueError, match=r"'bones' has a NaN or infinite curve \(first at frame 2, pose 'MBP'\)"):
+        render_preview(tmp_path / "a.mp4", ch, {"bones": BoneSource(rig, nan)}, FPS, size=32)
+    with pytest.raises(ValueError, match=r"bone rig of 'sheet' with 144 vertices, not of this character \(64"):
+        render_preview(tmp_path / "a.mp4", rigid_and_bump_character(8), {"bones": BoneSource(rig, nan)}, FPS, size=32)
+    assert not list(tmp_path.iterdir())

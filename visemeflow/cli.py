@@ -577,15 +577,26 @@ def preview_command(
     mapping: MappingOpt = None,
     size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 360,
     out: Annotated[Optional[Path], typer.Option(help="MP4 file; default: in the store's animations folder.")] = None,
+    mode: Annotated[str, typer.Option(help="blendshape, bones (the SSDR bone animation the bone exports play) or "
+                                           "both (blendshape and bone panels of each source side by side).")] = "blendshape",
+    bones: Annotated[int, typer.Option(help="Bone count in modes bones and both.")] = 32,
 ) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
+    import pydantic
+
     from visemeflow.flows.animate import PreviewParams, preview_flow
 
     params = dict(store=store, utterance_id=utterance_id, sources=[x.strip() for x in sources.split(",") if x.strip()],
-                  mapping=mapping, size=size, out=out)
+                  mapping=mapping, size=size, out=out, mode=mode, bones=bones)
     if character:
         params["character"] = character
-    result = preview_flow(PreviewParams(**params))
+    try:
+        params = PreviewParams(**params)
+    except pydantic.ValidationError as exc:
+        error = exc.errors()[0]
+        typer.echo(f"error: --{'-'.join(str(x) for x in error['loc'])}: {error['msg']}", err=True)
+        raise typer.Exit(2) from None
+    result = preview_flow(params)
     for skipped in result["skipped"]:
         typer.echo(f"left out {skipped}")
     typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "

@@ -29,6 +29,11 @@ characters replaced are listed in `PreviewReport.replaced_characters`. Without P
 `cv2.putText` (Hershey fonts, ASCII only): printable ASCII is kept and every other character becomes "?".
 Text too wide for its band is cut and ends in "...".
 
+Bone panels. A source may instead be a `BoneSource(rig, curves)`: the character's face moved by SSDR bones
+(`visemeflow.animation.bones`), the rig's poses blended by the (T, P) curves and linear-blend skinned, which is what
+the skinned GLB, the UsdSkel animation and an engine's pose blend play. Put it beside the blendshape panel of the
+same curves to see what the bones lose (`visemeflow preview --mode both`).
+
 Timing: frame k shows weights row k and the phone under way at time k / fps (`visemeflow.timebase`'s clock).
 """
 
@@ -44,6 +49,7 @@ import time
 import unicodedata
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 from fractions import Fraction
 from pathlib import Path
 
@@ -56,7 +62,10 @@ from visemeflow.atomic import atomic_path
 from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
 from visemeflow.timebase import frame_count
 
-__all__ = ["PreviewFrames", "PreviewReport", "TextPainter", "preview_camera", "render_preview"]
+if TYPE_CHECKING:
+    from visemeflow.animation.bones import BoneRig
+
+__all__ = ["BoneSource", "PreviewFrames", "PreviewReport", "TextPainter", "preview_camera", "render_preview"]
 
 log = logging.getLogger(__name__)
 
@@ -307,30 +316,69 @@ def _as_fps(fps) -> Fraction:
     return rate
 
 
-def _check_sources(character: Character, sources: Mapping[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
+@dataclass(frozen=True)
+class BoneSource:
+    """A panel moved by bones rather than blendshapes: `rig`'s poses blended by (T, P) `curves` (one column per
+    pose, in `rig.pose_names` order, e.g. the 16 viseme curves), then linear blend skinning (`bones.bone_animation`).
+    The rig must be of the previewed character's mesh (same vertex count)."""
+
+    rig: BoneRig
+    curves: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Panel:
+    label: str
+    rows: np.ndarray
+    """(T, C) float32: what drives the panel per frame (shape weights, or the bone rig's pose curves)."""
+    rig: BoneRig | None = None
+
+    def vertices(self, neutral: np.ndarray, deltas: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), V * 3) float32 vertices of the panel for these rows."""
+        if self.rig is None:
+            return neutral + rows @ deltas
+        from visemeflow.animation.bones import bone_animation
+
+        return bone_animation(self.rig, rows).reshape(len(rows), -1).astype(np.float32)
+
+
+def _check_rows(where: str, label: str, values, columns: tuple[str, ...], what: str) -> np.ndarray:
+    w = np.asarray(values)
+    if w.ndim != 2 or w.shape[1] != len(columns):
+        raise ValueError(f"{where}: source {label!r} has {what} of shape {w.shape}; expected (T, {len(columns)}), "
+                         f"one column per {'pose of the bone rig' if what == 'curves' else 'shape of the character'} "
+                         f"({', '.join(columns)})")
+    if w.shape[0] == 0:
+        raise ValueError(f"{where}: source {label!r} has no frames")
+    if not np.issubdtype(w.dtype, np.number) or np.iscomplexobj(w):
+        raise ValueError(f"{where}: source {label!r} {what} must be real numbers, got {w.dtype}")
+    w = np.ascontiguousarray(w, np.float32)
+    finite = np.isfinite(w)
+    if not finite.all():
+        row, col = (int(i) for i in np.argwhere(~finite)[0])
+        raise ValueError(f"{where}: source {label!r} has a NaN or infinite {what[:-1]} (first at frame {row}, "
+                         f"{'pose' if what == 'curves' else 'shape'} {columns[col]!r})")
+    return w
+
+
+def _check_sources(character: Character, sources: Mapping[str, object]) -> list[_Panel]:
     where = character.where()
     if not isinstance(sources, Mapping) or not sources:
         raise ValueError(f"{where}: no curve sources to preview; give an ordered dict label -> (T, S) weights")
     checked = []
-    n_shapes = character.n_shapes
-    for label, weights in sources.items():
+    for label, source in sources.items():
         if not isinstance(label, str):
             raise ValueError(f"{where}: source labels must be strings, got {label!r}")
-        w = np.asarray(weights)
-        if w.ndim != 2 or w.shape[1] != n_shapes:
-            raise ValueError(f"{where}: source {label!r} has weights of shape {w.shape}; expected (T, {n_shapes}), "
-                             f"one column per shape of the character ({', '.join(character.shape_names)})")
-        if w.shape[0] == 0:
-            raise ValueError(f"{where}: source {label!r} has no frames")
-        if not np.issubdtype(w.dtype, np.number) or np.iscomplexobj(w):
-            raise ValueError(f"{where}: source {label!r} weights must be real numbers, got {w.dtype}")
-        w = np.ascontiguousarray(w, np.float32)
-        finite = np.isfinite(w)
-        if not finite.all():
-            row, col = (int(i) for i in np.argwhere(~finite)[0])
-            raise ValueError(f"{where}: source {label!r} has a NaN or infinite weight (first at frame {row}, "
-                             f"shape {character.shape_names[col]!r})")
-        checked.append((label, w))
+        if isinstance(source, BoneSource):
+            rig = source.rig
+            if rig.n_vertices != character.n_vertices:
+                raise ValueError(f"{where}: source {label!r} is a bone rig of {rig.name!r} with {rig.n_vertices} "
+                                 f"vertices, not of this character ({character.n_vertices} vertices)")
+            checked.append(_Panel(label, _check_rows(where, label, source.curves, tuple(rig.pose_names), "curves"),
+                                  rig))
+        else:
+            checked.append(_Panel(label, _check_rows(where, label, source, tuple(character.shape_names),
+                                                     "weights")))
     return checked
 
 
@@ -401,7 +449,7 @@ class PreviewFrames:
     (height, width, 3) uint8 RGB array every time, overwritten in place: copy a frame to keep it.
     """
 
-    def __init__(self, character: Character, sources: Mapping[str, np.ndarray], fps, *,
+    def __init__(self, character: Character, sources: Mapping[str, np.ndarray | BoneSource], fps, *,
                  phones: Sequence[tuple[float, float, str]] | None = None, title: str | None = None,
                  size: int = 360, chunk_frames: int = 64, framing: str = "mouth", n_frames: int = 0,
                  painter: TextPainter | None = None):
@@ -418,7 +466,7 @@ class PreviewFrames:
             raise ValueError(f"title must be text, got {title!r}")
         self.size, self.chunk_frames, self.title = int(size), int(chunk_frames), title
         self.camera, self.pose = preview_camera(character, self.size, framing)
-        self.frames = max(int(n_frames), max(w.shape[0] for _, w in self.sources))
+        self.frames = max(int(n_frames), max(panel.rows.shape[0] for panel in self.sources))
 
         # layout: [title band] label band, panels, [caption band]; every band an even number of rows
         px = max(10, round(self.size * 0.05))
@@ -459,8 +507,8 @@ class PreviewFrames:
         canvas = np.empty((self.height, self.width, 3), np.uint8)
         if self.title_height:
             canvas[self.title_box()] = self.painter.band(self.title, self.width, self.title_height)
-        for k, (label, _) in enumerate(self.sources):
-            canvas[self.label_box(k)] = self.painter.band(label, size, self.label_height)
+        for k, panel in enumerate(self.sources):
+            canvas[self.label_box(k)] = self.painter.band(panel.label, size, self.label_height)
         deltas = np.ascontiguousarray(character.deltas, np.float32).reshape(character.n_shapes, -1)
         neutral = np.ascontiguousarray(character.neutral, np.float32).reshape(1, -1)
         faces = np.asarray(character.faces, np.int64)
@@ -469,15 +517,17 @@ class PreviewFrames:
         for start in range(0, self.frames, self.chunk_frames):
             stop = min(self.frames, start + self.chunk_frames)
             # a shorter source holds its last row
-            rows = [w[np.minimum(np.arange(start, stop), w.shape[0] - 1)] for _, w in self.sources]
-            vertices = [neutral + r @ deltas for r in rows]  # (chunk, V * 3) per source: the bounded memory
+            rows = [p.rows[np.minimum(np.arange(start, stop), p.rows.shape[0] - 1)] for p in self.sources]
+            # (chunk, V * 3) per source: the bounded memory
+            vertices = [p.vertices(neutral, deltas, r) for p, r in zip(self.sources, rows)]
             for i in range(start, stop):
                 for k in range(n):
                     row = rows[k][i - start]
                     if shown[k] is not None and np.array_equal(row, shown[k]):
                         continue  # unchanged: the canvas already shows it
                     box = self.panel_box(k)
-                    twin = next((j for j in range(k) if np.array_equal(row, rows[j][i - start])), None)
+                    twin = next((j for j in range(k) if self.sources[j].rig is self.sources[k].rig
+                                 and np.array_equal(row, rows[j][i - start])), None)
                     if twin is not None:
                         canvas[box] = canvas[self.panel_box(twin)]
                     else:
@@ -496,7 +546,7 @@ class PreviewFrames:
 def render_preview(
     path: str | os.PathLike,
     character: Character,
-    sources: Mapping[str, np.ndarray],
+    sources: Mapping[str, np.ndarray | BoneSource],
     fps,
     *,
     audio: tuple[np.ndarray, int] | None = None,
@@ -509,8 +559,9 @@ def render_preview(
 ) -> PreviewReport:
     """Write an H.264 + AAC `.mp4` preview of `character` driven by each source, side by side (see the module doc).
 
-    sources: ordered mapping label -> (T_i, S) weights in `character.shape_names` order; one `size` x `size` panel
-        per source, left to right in the mapping's order, its label above it. Weights are used as given (no clip).
+    sources: ordered mapping label -> (T_i, S) weights in `character.shape_names` order, or a `BoneSource` (a bone
+        rig of the character and its (T_i, P) pose curves); one `size` x `size` panel per source, left to right in
+        the mapping's order, its label above it. Weights are used as given (no clip).
     fps: frames per second (int, float or Fraction; a float is read as the nearest fraction with denominator
         <= 1001, so 29.97 stays 2997/100 and 30000/1001 can be given as a Fraction).
     audio: optional (samples float mono, sample_rate), muxed as AAC at its own rate when the encoder takes it

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import traceback
 from pathlib import Path
+from typing import Literal
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
@@ -224,6 +225,11 @@ class PreviewParams(BaseModel):
                                            "the utterance lacks are left out (at least one must exist).")
     size: int = Field(360, ge=64, le=2048, description="Panel size in pixels.")
     out: Path | None = Field(None, description="MP4 file; none: <store>/animations/<character>/.../<name>.preview.mp4")
+    mode: Literal["blendshape", "bones", "both"] = Field(
+        "blendshape", description="blendshape: the character's shapes; bones: its SSDR bones blended by the curves "
+                                  "(what the bone exports play); both: each source's blendshape and bone panels side "
+                                  "by side.")
+    bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve (modes bones and both).")
 
     @field_validator("utterance_id")
     @classmethod
@@ -253,7 +259,8 @@ def preview_flow(params: PreviewParams) -> dict:
     """Render one utterance's preview MP4: the character driven by each source side by side, labelled, the phone
     under way written under them, the audio muxed (H.264 + AAC)."""
     from visemeflow.animation.apply import check_curves, resample
-    from visemeflow.animation.preview import render_preview
+    from visemeflow.animation.package import bone_rig
+    from visemeflow.animation.preview import BoneSource, render_preview
     from visemeflow.ingest.audio import read_audio
     from visemeflow.tasks.animate import curves_and_fps, package_dir
 
@@ -275,7 +282,12 @@ def preview_flow(params: PreviewParams) -> dict:
             continue
         rate = rate or fps
         curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
-        panels[f"{source.replace('_', ' ')} ({variant})"] = binding.weights(curves)
+        label = f"{source.replace('_', ' ')} ({variant})"
+        if params.mode != "bones":
+            panels[label] = binding.weights(curves)
+        if params.mode != "blendshape":
+            rig = bone_rig(character, binding, params.bones)
+            panels[f"{label} {params.bones} bones"] = BoneSource(rig, curves)
     if not panels:
         raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()

@@ -20,7 +20,7 @@ from visemeflow.animation.apply import CurvesError, resample
 from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind
-from visemeflow.animation.package import AnimateConfig, export_animation, export_paths
+from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
 from visemeflow.schemas import C, curves_array
@@ -112,11 +112,15 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         raise AnimateError(utterance_id, curve_file, "CurvesError", str(exc)) from exc
     files = dict(package.files)
     if config.preview:
-        from visemeflow.animation.preview import render_preview
+        from visemeflow.animation.preview import BoneSource, render_preview
 
-        weights = binding.weights(resample(np.clip(curves, 0, 1), fps, package.fps))
+        played = resample(np.clip(curves, 0, 1), fps, package.fps)
+        panels = {f"{source} ({variant})": binding.weights(played)}
+        if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
+            panels = {f"{source} ({variant}) blendshapes": panels[f"{source} ({variant})"],
+                      f"{config.bones} bones": BoneSource(bone_rig(character, binding, config.bones), played)}
         path = folder / f"{stem}.mp4"
-        render_preview(path, character, {f"{source} ({variant})": weights}, package.fps, audio=audio, phones=phones,
+        render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
                        title=f"{utterance_id} - {character.name}")
         files["preview"] = str(path)
     seconds = time.perf_counter() - started
