@@ -8,7 +8,8 @@ x 10), over the rig's "face" and "lips" regions (and all vertices, eyes, teeth a
 - over real sequences: the synthetic true curves of examples/corpus/LJ (their alignments through the ingest stage
   and `generate_ground_truth`, as bench/realspeech.py builds them), every frame of every utterance pooled.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/bones.py [--bones 8 16 32 64] [--iterations 5] [--utterances 24]
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bones.py [--bones 8 16 32 64] [--iterations 5] [--init-iterations 20]
+        [--utterances 24]
 
 Targets (issue 16): lips below 0.5 mm RMS at 64 bones; SSDR under 60 s for 64 bones on one core.
 """
@@ -60,6 +61,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bones", type=int, nargs="+", default=[8, 16, 32, 64])
     parser.add_argument("--iterations", type=int, default=5)
+    parser.add_argument("--init-iterations", type=int, default=20, help="Dem Bones' bone-initialisation iterations")
     parser.add_argument("--utterances", type=int, default=24)
     args = parser.parse_args()
 
@@ -85,7 +87,7 @@ def main() -> None:
     summary = []
     per_viseme = {}
     for n_bones in args.bones:
-        bones = solve_bones(character, n_bones, iterations=args.iterations)
+        bones = solve_bones(character, n_bones, iterations=args.iterations, init_iterations=args.init_iterations)
         full = squared_errors(bone_animation(bones, np.eye(16)), targets)            # (16, V)
         per_viseme[n_bones] = {k: np.sqrt(full[:, regions[k]].mean(axis=1)) for k in ("face", "lips")}
         sums = {k: 0.0 for k in regions}
