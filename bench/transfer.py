@@ -11,6 +11,9 @@ Prints, never asserts (exit 0 whatever the figures). Targets, all built from the
    0..6705), Loop-subdivided once by trimesh (`remesh.subdivide_loop`: every vertex moves, 4 triangles for each, so
    no triangle is the template's), turned 20 degrees about y, scaled 1.15 and moved; its 68 landmarks are the
    nearest vertices (the markers). This is the target of tests/test_transfer.py.
+4. remeshed, automatic markers: the same target with no markers given; FaceMesh on renders of both meshes finds
+   the pairs (`visemeflow.animation.automarkers`): how many, how far their target points lie from the true
+   correspondence (the same ICT vertex moved with the face), and the transfer with them.
 
 For each: time per stage (registration, factorisation, solve, total), the gradient residual, and the landmark
 checks of the demo rig (tests/test_rig.py): inner-lip gap 62-66 of MBP (and of the neutral), AHH's gap and chin drop
@@ -35,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from visemeflow.animation.character import make_character
 from visemeflow.animation.preview import preview_camera
+from visemeflow.animation.automarkers import automatic_markers
 from visemeflow.animation.transfer import transfer_visemes
 from visemeflow.rig import load_demo_rig, rig_data_path
 from visemeflow.synth.render import render_mesh
@@ -126,7 +130,26 @@ def main() -> None:
     print("   " + "\n   ".join(result.report.lines()))
     print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
 
+    sheet_result = result
+
+    # the same target without markers: pairs found by FaceMesh on renders of both meshes (automarkers)
+    carried = np.union1d(demo.regions["mouth_interior"], demo.regions["eyes"])
+    start = time.perf_counter()
+    auto = automatic_markers(demo.neutral, demo.faces, vertices, faces, exclude=carried)
+    found_s = time.perf_counter() - start
+    truth = (1.15 * identity_face(demo, modes, [0.8, 0.6, -0.7]) @ ROTATION.T + np.array([3.0, -2.0, 5.0]))
+    error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth[auto.pairs[:, 0]], axis=1)
+    result = transfer_visemes(demo, vertices, faces, name="remeshed-auto")
+    placed = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
+    print(f"\n4. remeshed, automatic markers ({found_s:.1f} s to find them): {len(auto.pairs)} pairs, target points "
+          f"{np.median(error):.3f} cm from the true correspondence (median; 90th percentile "
+          f"{np.percentile(error, 90):.3f}, largest {error.max():.3f}); the 68 landmarks it places "
+          f"{np.median(placed):.3f} cm from the nearest-point truth (median)")
+    print("   " + "\n   ".join(result.report.lines()))
+    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+
     if args.sheet is not None:
+        result = sheet_result
         c = result.character
         frontal = make_character(c.name, c.neutral @ ROTATION, c.faces, c.shape_names, c.deltas @ ROTATION,
                                  vertex_colors=c.vertex_colors)

@@ -1,13 +1,15 @@
 """Deformation transfer of the 16 visemes onto new faces (visemeflow/animation/transfer.py), checked by meaning:
 
 - onto its own neutral the template comes back (vertex error near 0);
+- without markers, FaceMesh on renders of both meshes finds marker pairs near the true correspondence;
 - onto ICT identities (same topology: the shipped identity modes, and identity OBJs from shared data) and onto a
   face of another topology (the ICT face cut to the narrow face, Loop-subdivided by trimesh so no triangle is
   the template's, moved, turned and scaled, landmarks found by nearest point), the demo rig's landmark checks pass
   on the transferred visemes: MBP closes the lips, AHH opens the jaw most, UUU is the narrowest mouth and IEE the
   widest;
 - bad input: a non-manifold target, degenerate triangles (repaired with a note), markers naming missing vertices,
-  too few markers, no markers for another topology, an ICP that does not converge;
+  too few markers, another topology without markers where none can be found automatically (no face on
+  its render), an ICP that does not converge;
 - the command writes a GLB the Khronos validator accepts, read back as a 16-viseme rig with its landmarks.
 
 Tests that read ../shared/data fail, never skip, when it is missing.
@@ -150,6 +152,30 @@ def test_another_topology_gets_the_visemes(demo, remeshed):
     assert drop < -0.5 * (lm[0, 8, 1] - lm[1 + viseme_index("AHH"), 8, 1])
 
 
+def test_markers_are_found_automatically_on_another_topology(demo, modes):
+    """No markers: FaceMesh on renders of both meshes pairs their points (automarkers); the pairs lie near the true
+    correspondence, the registration converges as with the 68 true landmarks, and the visemes pass the checks."""
+    from visemeflow.animation.automarkers import automatic_markers
+
+    vertices, faces, landmarks = remeshed_face(demo, modes)
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    carried = np.union1d(demo.regions["mouth_interior"], demo.regions["eyes"])
+    auto = automatic_markers(demo.neutral, demo.faces, vertices, faces, exclude=carried)
+    assert len(auto.pairs) >= 100 and not np.isin(auto.pairs[:, 0], carried).any()
+    coefficients = np.zeros(len(modes))
+    coefficients[:3] = [0.8, 0.6, -0.7]
+    truth = 1.15 * (demo.neutral + np.tensordot(coefficients, modes, axes=1))[auto.pairs[:, 0]] @ ROTATION.T \
+        + np.array([3.0, -2.0, 5.0])
+    error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth, axis=1)
+    assert np.median(error) < 0.02 * size and np.percentile(error, 90) < 0.05 * size
+    result = transfer_visemes(demo, vertices, faces, name="remeshed")
+    assert any(note.startswith("markers found automatically") for note in result.report.notes)
+    assert result.report.icp_residual_relative < 0.005
+    found = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
+    assert np.median(found) < 0.01 * size
+    check_visemes(landmark_tracks(result.character, landmarks, ROTATION))
+
+
 def test_markers_from_a_csv_and_their_errors(tmp_path, demo, remeshed):
     vertices, faces, landmarks, _ = remeshed
     csv = tmp_path / "markers.csv"
@@ -168,8 +194,18 @@ def test_markers_from_a_csv_and_their_errors(tmp_path, demo, remeshed):
         transfer_visemes(demo, vertices, faces, pairs)
     with pytest.raises(TransferError, match="give at least 5"):
         transfer_visemes(demo, vertices, faces, pairs[:3])
-    with pytest.raises(TransferError, match="topology differs from the template's"):
-        transfer_visemes(demo, vertices, faces)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    with pytest.raises(TransferError, match=r"topology differs from the template's .* no markers could be found "
+                                            r"automatically \(ball: the [0-9]+ automatic marker pairs do not fit "
+                                            r"one similarity transform \(median residual [0-9.]+, [0-9.]+% of the "
+                                            r"mesh's size; limit 2.0%\)"):
+        transfer_visemes(demo, ball.vertices, ball.faces, name="ball")   # FaceMesh sees a "face" on a ball
+    with pytest.raises(TransferError, match=r"no markers could be found automatically \(flat: MediaPipe FaceMesh "
+                                            r"found no face on a frontal render"):
+        flat = trimesh.creation.box(extents=(30.0, 30.0, 1.0))
+        transfer_visemes(demo, flat.vertices, flat.faces, name="flat")
+    with pytest.raises(TransferError, match="neither marker pairs nor 'auto'"):
+        transfer_visemes(demo, vertices, faces, "automatic")
     with pytest.raises(TransferError, match="is not on the template's skin"):
         good = np.stack([demo.landmark_ids, landmarks], axis=1)[:6]
         transfer_visemes(demo, vertices, faces, np.concatenate([[[demo.regions["teeth"][0], 0]], good]))

@@ -491,7 +491,7 @@ def transfer(
     template: Annotated[Path, typer.Option("--template", help="Viseme rig or character (folder, .glb, .npz) whose shapes are transferred.")],
     target: Annotated[Path, typer.Option("--target", help="The new character's neutral mesh (.obj, .ply, .glb).")],
     out: Annotated[Path, typer.Option("--out", help="The character GLB to write.")],
-    markers: Annotated[Optional[Path], typer.Option("--markers", help="CSV template_vertex,target_vertex; default: TARGET.landmarks.json beside the target (another topology needs one).")] = None,
+    markers: Annotated[Optional[Path], typer.Option("--markers", help="CSV template_vertex,target_vertex; default: TARGET.landmarks.json beside the target, else (another topology) found by MediaPipe FaceMesh on renders of both meshes.")] = None,
     no_parts: Annotated[bool, typer.Option("--no-parts", help="Leave out the template's mouth interior and eyes on a target of another topology.")] = False,
 ) -> None:
     """Deformation transfer (Sumner and Popovic 2004) of the template's visemes onto a new neutral mesh."""

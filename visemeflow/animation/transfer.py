@@ -14,6 +14,8 @@ Method (docs/transfer.md has the reasoning and the limits):
    skin is registered onto the target by non-rigid ICP (`trimesh.registration.nricp_amberg`, markers as its
    landmarks), and each target triangle takes the gradient of the registered template triangle its centroid is
    closest to (a closest-triangle map). Gradients are turned into the target's frame: R S R^T.
+   Without markers the pairs are found automatically: MediaPipe FaceMesh on frontal renders of both meshes, each
+   point read back onto the vertex under it (`visemeflow.animation.automarkers`).
 3. One sparse least-squares system. Unknowns: the target's vertex displacements and one fourth vertex per target
    triangle (Sumner's formulation). Rows: sqrt(area_t) (T_t(x) - S_t) for every target triangle, T_t(x) the target
    triangle's gradient, linear in x; the same matrix A for x, y and z and for every shape. Anchors: the target
@@ -25,7 +27,8 @@ Method (docs/transfer.md has the reasoning and the limits):
    rig's mouth socket, gums, tongue, teeth and eyeballs) are carried over rigidly by the marker similarity
    transform, their shapes' displacements rotated and scaled with it (`carry_parts=False` leaves them out).
 
-Pure numpy / scipy / trimesh; arrays in, a Character out (and files for the command).
+numpy / scipy / trimesh (and MediaPipe for automatic markers); arrays in, a Character out (and files for the
+command).
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+from visemeflow.animation.automarkers import automatic_markers
+from visemeflow.animation.automarkers import similarity as _similarity
 from visemeflow.animation.character import Character, CharacterError, make_character
 from visemeflow.rig import N_LANDMARKS, RigError, VisemeRig
 from visemeflow.visemes import VISEMES
@@ -234,20 +239,6 @@ def _check_markers(markers, n_template: int, n_target: int) -> np.ndarray:
 
 
 # ---- correspondence (different topology) ------------------------------------------------------------------------
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: s, R, t minimising sum ||s R src + t - dst||^2."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sigma, vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2, 2] = -1
-    r = u @ d @ vt
-    var = (a**2).sum() / len(src)
-    s = float(np.trace(np.diag(sigma) @ d) / var) if var > 0 else 1.0
-    return s, r, mu_d - s * r @ mu_s
-
-
 def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """(n, 3) barycentric coordinates of the closest point to each p on triangle (a, b, c) (Ericson, Real-Time
     Collision Detection 5.1.5, vectorised); all arrays (n, 3)."""
@@ -472,7 +463,8 @@ def transfer_visemes(template: VisemeRig | Character, target_neutral, target_fac
     Same topology (the target's triangles equal the template's): triangle-for-triangle; `markers` are not needed.
     Different topology: `markers` (n, 2) pairs (template vertex, target vertex), or `target_landmarks` (68,) target
     vertex ids in Multi-PIE order (-1 = none) paired with the template's landmark ids, place the template before the
-    non-rigid ICP. `static_tol` (a fraction of the template's size) says which vertices count as not moved (anchors);
+    non-rigid ICP; with neither (or `markers="auto"`) the pairs are found by FaceMesh on renders of both meshes
+    (`visemeflow.animation.automarkers`, noted in the report). `static_tol` (a fraction of the template's size) says which vertices count as not moved (anchors);
     `max_icp_residual` (a fraction of the target's size) rejects a registration that did not converge.
     """
     start = time.perf_counter()
@@ -515,10 +507,21 @@ def transfer_visemes(template: VisemeRig | Character, target_neutral, target_fac
             markers = np.stack([tpl.landmark_ids[both], lm[both]], axis=1)
             if not both.any():
                 raise TransferError("the template or the target has no landmark vertex; give marker pairs")
-        if markers is None:
-            raise TransferError(f"the target's topology differs from the template's ({len(target_v)} vs "
-                                f"{len(tpl.neutral)} vertices, or other triangles): give marker pairs (template "
-                                "vertex, target vertex) or the target's 68 landmark vertex ids")
+        if markers is None or isinstance(markers, str):
+            if markers not in (None, "auto"):
+                raise TransferError(f"markers: {markers!r} is neither marker pairs nor 'auto'")
+            carried_ids = np.concatenate([np.asarray(tpl.regions[r], np.int64) for r in CARRIED_REGIONS
+                                          if r in tpl.regions] or [np.zeros(0, np.int64)])
+            try:
+                auto = automatic_markers(tpl.neutral, tpl.faces, target_v, target_f, exclude=carried_ids,
+                                         target_name=name)
+            except ValueError as exc:
+                raise TransferError(f"the target's topology differs from the template's ({len(target_v)} vs "
+                                    f"{len(tpl.neutral)} vertices, or other triangles) and no markers could be found "
+                                    f"automatically ({exc}): give marker pairs (template vertex, target vertex) or "
+                                    "the target's 68 landmark vertex ids") from None
+            markers = auto.pairs
+            report.notes.append(auto.note())
         markers = _check_markers(markers, len(tpl.neutral), len(target_v))
         if len(markers) < 5:
             raise TransferError(f"markers: {len(markers)} pair(s); give at least 5 spread over the face (eyes, nose, "
