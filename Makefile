@@ -60,8 +60,9 @@ $(JS_STAMP): tools/js/package.json tools/js/package-lock.json | system-deps
 	touch $(JS_STAMP)
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
+# One pytest-xdist worker per core, each test file whole in one worker (its module fixtures are built once).
 test: system-deps venv js-deps
-	$(BIN)/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
+	$(BIN)/python -m pytest -q -n auto --dist loadfile; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
 
 bench: venv
 	$(BIN)/python bench/ingest_procedural.py
