@@ -22,7 +22,8 @@ ALLOWED = {
     "procedural": {"phonetics"},
     "tracking": {"rig"},
     "learning": {"schemas"},  # the utterance-id rules, for augmented ids
-    "animation": {"rig", "synth"},  # synth: the preview reuses its renderer
+    # synth: the preview reuses its renderer; tracking: FaceMesh finds transfer markers on renders (automarkers)
+    "animation": {"rig", "synth", "tracking"},
     "synth": {"phonetics", "procedural", "rig", "tracking"},
     # tracking.video: the audio track of a video; animation: captured takes (Live Link reader, ARKit -> visemes fit)
     "ingest": {"phonetics", "schemas", "tracking", "animation"},
