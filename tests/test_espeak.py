@@ -295,6 +295,9 @@ def test_every_mandarin_syllable_aligns_to_initial_and_final(needs_espeak):
 def test_language_voice_and_argument_errors(needs_espeak):
     with pytest.raises(ValueError, match="unknown espeak-ng voice"):
         synthesize("hello", "xx-nonexistent")
+    for mbrola in ("mb-us2", "mb-en1+f2"):   # refused whether or not the MBROLA voices are installed
+        with pytest.raises(ValueError, match=r"is an MBROLA voice: .* its alignments would be wrong"):
+            synthesize("hello", mbrola)
     with pytest.raises(ValueError, match="variant"):
         synthesize("hello", "en+nosuchvariant")
     with pytest.raises(ValueError, match="Mandarin"):

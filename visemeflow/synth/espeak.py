@@ -282,6 +282,9 @@ def _load_library() -> ctypes.CDLL:
     lib.espeak_Synchronize.restype = ctypes.c_int
     lib.espeak_Info.argtypes = [ctypes.POINTER(ctypes.c_char_p)]
     lib.espeak_Info.restype = ctypes.c_char_p
+    if hasattr(lib, "espeak_ng_GetSampleRate"):   # espeak-ng >= 1.49: the rate of the voice in use
+        lib.espeak_ng_GetSampleRate.argtypes = []
+        lib.espeak_ng_GetSampleRate.restype = ctypes.c_int
     return lib
 
 
@@ -379,8 +382,17 @@ class _Engine:
             self.error = exc
             return 1
 
-    def run(self, voices: Sequence[str], text: str, rate_wpm: int, pitch: int) -> tuple[str, bytes, list]:
-        """Synthesise with the first of `voices` espeak knows: (voice used, int16 bytes, events)."""
+    def output_rate(self) -> int:
+        """The sample rate of what the voice in use produces: espeak's own 22050 Hz, or an MBROLA voice's database
+        rate (16000 Hz for mb-us1..3 and mb-en1), which espeak_Initialize's return value does not tell."""
+        if hasattr(self.lib, "espeak_ng_GetSampleRate"):
+            rate = int(self.lib.espeak_ng_GetSampleRate())
+            if rate > 0:
+                return rate
+        return self.sample_rate
+
+    def run(self, voices: Sequence[str], text: str, rate_wpm: int, pitch: int) -> tuple[str, bytes, list, int]:
+        """Synthesise with the first of `voices` espeak knows: (voice used, int16 bytes, events, sample rate)."""
         if _FORK:
             _LIBC_SRAND(1)  # breathy variants draw noise from libc rand(): same seed in every child
         for name in voices:
@@ -400,7 +412,7 @@ class _Engine:
             raise EspeakError(f"the synth callback failed: {self.error!r}")
         if status != _EE_OK:
             raise EspeakError(f"espeak_Synth failed with status {status} for {text!r}")
-        return name, b"".join(self.chunks), self.events
+        return name, b"".join(self.chunks), self.events, self.output_rate()
 
 
 def _libc_srand():
@@ -494,6 +506,11 @@ def _private_data_dir(system_dir: str) -> str:
 def _voice_candidates(engine: _Engine, voice: str, mandarin: bool) -> list[str]:
     """espeak names to try for `voice` (base plus optional `+variant`); ValueError when it cannot work."""
     base, plus, variant = voice.strip().partition("+")
+    if base.lower().startswith(("mb-", "mb/")):
+        raise ValueError(f"voice {voice!r} is an MBROLA voice: espeak-ng's phoneme events do not follow MBROLA's "
+                         "timing (measured with mb-us2: each label lags the audio by about one phone, the closure of "
+                         "a b sits under the vowel before it), so its alignments would be wrong; use an espeak-ng "
+                         "voice (`espeak-ng --voices`)")
     if plus and not (variant and (Path(engine.data_dir) / "voices" / "!v" / variant).is_file()):
         raise ValueError(f"unknown espeak-ng voice variant {variant!r} in {voice!r}; see {engine.data_dir}/voices/!v")
     suffix = f"+{variant}" if plus else ""
@@ -511,11 +528,11 @@ def _synth_raw(voice: str, mandarin: bool, text: str, rate_wpm: int, pitch: int)
     engine = _engine()
     candidates = _voice_candidates(engine, voice, mandarin)
     if _FORK:
-        name, pcm, events = _call_isolated(lambda: engine.run(candidates, text, rate_wpm, pitch))
+        name, pcm, events, rate = _call_isolated(lambda: engine.run(candidates, text, rate_wpm, pitch))
     else:
         with _LOCK:
-            name, pcm, events = engine.run(candidates, text, rate_wpm, pitch)
-    return name, np.frombuffer(pcm, dtype=np.int16).copy(), events, engine.sample_rate
+            name, pcm, events, rate = engine.run(candidates, text, rate_wpm, pitch)
+    return name, np.frombuffer(pcm, dtype=np.int16).copy(), events, rate
 
 
 # --- synthesis -----------------------------------------------------------------------------------
