@@ -9,7 +9,10 @@ x 10), over the rig's "face" and "lips" regions (and all vertices, eyes, teeth a
   and `generate_ground_truth`, as bench/realspeech.py builds them), every frame of every utterance pooled.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bones.py [--bones 8 16 32 64] [--iterations 5] [--init-iterations 20]
-        [--utterances 24]
+        [--utterances 24] [--no-lock]
+
+The eyes, teeth and mouth interior are printed per region too: with the default locked parts (`solve_bones`'s
+`lock_parts`) the eyes and the teeth get bones of their own; `--no-lock` is plain SSDR over every vertex.
 
 Targets (issue 16): lips below 0.5 mm RMS at 64 bones; SSDR under 60 s for 64 bones on one core.
 """
@@ -63,11 +66,15 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=5)
     parser.add_argument("--init-iterations", type=int, default=20, help="Dem Bones' bone-initialisation iterations")
     parser.add_argument("--utterances", type=int, default=24)
+    parser.add_argument("--no-lock", action="store_true",
+                        help="plain SSDR over every vertex (no static / rigid bones for the eyes and teeth)")
     args = parser.parse_args()
 
     rig = load_demo_rig()
     character = character_from_rig(rig)
-    regions = {"face": rig.regions["face"], "lips": rig.regions["lips"], "all": np.arange(rig.n_vertices)}
+    regions = {"face": rig.regions["face"], "lips": rig.regions["lips"], "eyes": rig.regions["eyes"],
+               "teeth": rig.regions["teeth"], "mouth interior": rig.regions["mouth_interior"],
+               "all": np.arange(rig.n_vertices)}
     size = character.neutral.max(axis=0) - character.neutral.min(axis=0)
     print(f"demo rig: {rig.n_vertices} vertices, {len(rig.faces)} triangles, extent {size.round(2).tolist()} "
           f"(units: cm, a face ~{size[1]:.0f} tall), face {len(regions['face'])} / lips {len(regions['lips'])} "
@@ -87,19 +94,24 @@ def main() -> None:
     summary = []
     per_viseme = {}
     for n_bones in args.bones:
-        bones = solve_bones(character, n_bones, iterations=args.iterations, init_iterations=args.init_iterations)
+        bones = solve_bones(character, n_bones, iterations=args.iterations, init_iterations=args.init_iterations,
+                            lock_parts=not args.no_lock)
         full = squared_errors(bone_animation(bones, np.eye(16)), targets)            # (16, V)
         per_viseme[n_bones] = {k: np.sqrt(full[:, regions[k]].mean(axis=1)) for k in ("face", "lips")}
         sums = {k: 0.0 for k in regions}
         worst_lips = 0.0
         for curves in sequences.values():
             c = np.asarray(curves, np.float64)
-            blend = character.neutral[None] + np.einsum("tp,pvc->tvc", c, deltas)
+            blend = character.neutral[None] + (c @ deltas.reshape(len(deltas), -1)).reshape(len(c), -1, 3)
             e = squared_errors(bone_animation(bones, c), blend)
             for k, ids in regions.items():
                 sums[k] += float(e[:, ids].mean(axis=1).sum())
             worst_lips = max(worst_lips, float(np.sqrt(e[:, regions["lips"]].mean(axis=1)).max()))
         seq = {k: np.sqrt(v / total) for k, v in sums.items()}
+        full_regions = {k: float(np.sqrt(full[:, ids].mean())) for k, ids in regions.items()}
+        print(f"{n_bones} bones ({', '.join(n for n in bones.bone_names if not n.startswith('bone_')) or 'none locked'}"
+              f"): full weight mm RMS by region: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in full_regions.items()), flush=True)
         row = dict(bones=bones.n_bones, wall=bones.solve_seconds, cpu=bones.solve_cpu_seconds,
                    full_face=float(np.sqrt(full[:, regions["face"]].mean())),
                    full_lips=float(np.sqrt(full[:, regions["lips"]].mean())),

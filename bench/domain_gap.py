@@ -46,7 +46,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from learning_data import load_data  # noqa: E402
+from learning_data import corpus_data, load_data  # noqa: E402
+from mbrola_data import available as mbrola_available  # noqa: E402
+from mbrola_data import ensure_corpus as ensure_mbrola_corpus  # noqa: E402
 from realspeech import FPS, SAMPLE_RATE, SHARED, read_corpus  # noqa: E402
 
 from visemeflow.animation.capture import fit_visemes  # noqa: E402
@@ -105,11 +107,12 @@ class Sets:
     test_audio: np.ndarray         # FACEGOOD take 05
     test_curves: np.ndarray
     floor: np.ndarray              # (16,) mean curve of the FACEGOOD training takes
+    mbrola: list[Example] | None = None   # MBROLA voices (bench/mbrola_data.py), training split; None: not installed
 
 
-def load_sets(synthetic: bool = True) -> Sets:
+def load_sets(synthetic: bool = True, mbrola_utterances: int = 0) -> Sets:
     """The training sets and the held-out real speech (see the module); `synthetic=False` skips the espeak corpus
-    (for judging a trained model only)."""
+    (for judging a trained model only); `mbrola_utterances` > 0 adds an MBROLA corpus of that size."""
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         lj = [u for u in read_corpus(ROOT / "examples" / "corpus") if u.speaker == "LJ"]
@@ -123,7 +126,8 @@ def load_sets(synthetic: bool = True) -> Sets:
     real = [Example(u.uid, u.audio, u.truth.astype(np.float32), FPS) for u in lj] + captured
     test_audio, test_curves = facegood_take(HELD_OUT_TAKE)
     floor = np.concatenate([e.curves for e in captured]).mean(axis=0)
-    return Sets(load_data(700, 500) if synthetic else None, real, held_out, test_audio, test_curves, floor)
+    mbrola = corpus_data(ensure_mbrola_corpus(mbrola_utterances)).train if synthetic and mbrola_utterances else None
+    return Sets(load_data(700, 500) if synthetic else None, real, held_out, test_audio, test_curves, floor, mbrola)
 
 
 def judge(sets: Sets, predict) -> dict:
@@ -179,7 +183,9 @@ def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, lr: float
 def recipe_data(sets: Sets, recipe: str) -> list[Example]:
     lj = [e for e in sets.real if not e.utterance_id.startswith("facegood/")]
     data = {"synthetic": lambda: sets.synthetic.train, "real": lambda: sets.real,
-            "lj+synthetic": lambda: lj + sets.synthetic.train, "mixed": lambda: sets.synthetic.train + sets.real}
+            "lj+synthetic": lambda: lj + sets.synthetic.train, "mixed": lambda: sets.synthetic.train + sets.real,
+            "mbrola": lambda: sets.mbrola, "synthetic+mbrola": lambda: sets.synthetic.train + sets.mbrola,
+            "mixed+mbrola": lambda: sets.synthetic.train + sets.real + sets.mbrola}
     base = recipe.removesuffix("+aug")
     if base not in data:
         raise SystemExit(f"unknown recipe {recipe!r}: {', '.join(data)}, each optionally with +aug")
@@ -193,11 +199,18 @@ def main() -> int:
     parser.add_argument("--losses", default=",".join(LOSSES), help="training losses: l1, closure:W, activation:W")
     parser.add_argument("--d-model", type=int, default=128)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--recipes", default=",".join(RECIPES))
+    parser.add_argument("--recipes", default=",".join(RECIPES),
+                        help="also: mbrola, synthetic+mbrola, mixed+mbrola (needs the MBROLA voices)")
+    parser.add_argument("--mbrola-utterances", type=int, default=600, help="size of the MBROLA corpus")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    sets = load_sets()
+    recipes = args.recipes.split(",")
+    wants_mbrola = [r for r in recipes if "mbrola" in r]
+    if wants_mbrola and not mbrola_available():
+        print(f"left out {', '.join(wants_mbrola)}: the MBROLA voices are not installed (bench/mbrola_data.py)")
+        recipes = [r for r in recipes if r not in wants_mbrola]
+    sets = load_sets(mbrola_utterances=args.mbrola_utterances if wants_mbrola and mbrola_available() else 0)
     print(f"data in {time.perf_counter() - t0:.0f} s: synthetic {len(sets.synthetic.train)} train utterances; real "
           f"{len(sets.real)} examples (LJ + FACEGOOD pieces); judged on {len(sets.held_out)} held-out utterances "
           f"and FACEGOOD {HELD_OUT_TAKE} ({len(sets.test_curves)} frames)", flush=True)
@@ -211,7 +224,7 @@ def main() -> int:
             row("alignment's procedural curves (FACEGOOD columns: floor)", judge(sets, of_alignment("procedural"))),
             row("mean curve of the FACEGOOD training takes (floor)",
                 judge(sets, lambda audio, n: np.tile(sets.floor, (n, 1)).astype(np.float32)))]
-    for recipe in args.recipes.split(","):
+    for recipe in recipes:
         train = recipe_data(sets, recipe)
         for lr_word in args.lrs.split(","):
             lr = None if lr_word == "preset" else float(lr_word)

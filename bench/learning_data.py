@@ -65,7 +65,11 @@ def ensure_corpus(n_english: int, n_mandarin: int, seed: int = 0) -> Path:
 
 
 def load_data(n_english: int, n_mandarin: int, seed: int = 0, val_fraction: float = 0.1) -> Data:
-    corpus = ensure_corpus(n_english, n_mandarin, seed)
+    return corpus_data(ensure_corpus(n_english, n_mandarin, seed), val_fraction)
+
+
+def corpus_data(corpus: Path, val_fraction: float = 0.1) -> Data:
+    """Examples (16 kHz audio, synthetic true curves at 30 fps) of any aligned corpus under `OUT`, cached."""
     cache = OUT / f"examples-{stable_hash(corpus.name, FPS, val_fraction, 'v1', size=6)}.npz"
     if not cache.exists():
         t0 = time.perf_counter()

@@ -242,11 +242,11 @@ def test_preview_and_bone_mode_packages_show_bones_beside_blendshapes(tmp_path, 
 
     both = preview_flow(PreviewParams(store=store.root, utterance_id="spk/u0", character=path, mode="both", bones=4,
                                       sources=["ground_truth"], size=96, out=tmp_path / "both.mp4"))
-    assert both["sources"] == ["ground truth (cm)", "ground truth (cm) 4 bones"]
+    assert both["sources"] == ["ground truth (cm)", "ground truth, 4 bones"]
     assert width_and_frames(tmp_path / "both.mp4") == (2 * 96, both["frames"])
     bones = preview_flow(PreviewParams(store=store.root, utterance_id="spk/u0", character=path, mode="bones", bones=4,
                                        sources=["ground_truth"], size=96, out=tmp_path / "bones.mp4"))
-    assert bones["sources"] == ["ground truth (cm) 4 bones"] and width_and_frames(tmp_path / "bones.mp4")[0] == 96
+    assert bones["sources"] == ["ground truth, 4 bones"] and width_and_frames(tmp_path / "bones.mp4")[0] == 96
     config = AnimateConfig(formats=("glb",), mode="bones", bones=4, preview=True)
     result = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth", config=config))
     report = result["packages_written"][0]

@@ -72,7 +72,10 @@ def rms_mm(a: np.ndarray, b: np.ndarray, ids=None) -> float:
 
 def test_ssdr_skin_has_at_most_four_influences_summing_to_one(bones8, demo):
     rig = bones8
-    assert rig.n_bones == 8 and rig.bone_names[0] == "bone_00" and rig.pose_names == VISEMES
+    # SSDR's bones, then the locked parts (a quarter of 8: the static vertices and the largest rigid part); Dem
+    # Bones may leave a bone empty (dropped)
+    assert 6 <= rig.n_bones <= 8 and rig.bone_names[0] == "bone_00" and rig.pose_names == VISEMES
+    assert rig.bone_names[-2:] == ("rigid_00", "static")
     assert rig.joints.shape == rig.weights.shape == (demo.n_vertices, MAX_INFLUENCES)
     assert rig.weights.dtype == np.float32 and (rig.weights >= 0).all()
     sums = rig.weights.sum(axis=1, dtype=np.float32)
@@ -88,11 +91,11 @@ def test_ssdr_skin_has_at_most_four_influences_summing_to_one(bones8, demo):
         mask = rig.joints == b
         w = np.where(mask, rig.weights, 0).sum(axis=1)
         assert w.sum() > 0
-    assert rig.bind_translations.shape == (8, 3)
+    assert rig.bind_translations.shape == (rig.n_bones, 3)
     lo, hi = demo.neutral.min(axis=0), demo.neutral.max(axis=0)
     assert ((rig.bind_translations >= lo) & (rig.bind_translations <= hi)).all()
     # poses: unit quaternions on the w >= 0 hemisphere
-    assert rig.rotations.shape == (16, 8, 4) and rig.translations.shape == (16, 8, 3)
+    assert rig.rotations.shape == (16, rig.n_bones, 4) and rig.translations.shape == (16, rig.n_bones, 3)
     np.testing.assert_allclose(np.linalg.norm(rig.rotations, axis=-1), 1.0, atol=1e-12)
     assert (rig.rotations[..., 0] >= 0).all()
     assert rig.solve_seconds > 0 and rig.solve_cpu_seconds > 0
@@ -102,7 +105,7 @@ def test_the_bind_pose_is_a_solved_frame_and_reproduces_the_neutral(bones8, demo
     # Dem Bones solved the neutral (frame 0) with identity transforms, so zero curves give the neutral mesh
     assert bones8.bind_error < 1e-6
     q, t = blend_poses(bones8, np.zeros((2, 16)))
-    assert np.array_equal(q, np.tile([1.0, 0, 0, 0], (2, 8, 1)))
+    assert np.array_equal(q, np.tile([1.0, 0, 0, 0], (2, bones8.n_bones, 1)))
     np.testing.assert_array_equal(t, np.tile(bones8.bind_translations, (2, 1, 1)))
     np.testing.assert_allclose(skin_vertices(bones8, q, t)[1], demo.neutral, rtol=0, atol=1e-5)
 
@@ -157,7 +160,7 @@ def test_64_bones_reproduce_the_blendshape_animation(demo, demo_rig):
     full weight per viseme and over 3 s of cross-fading visemes (bench/bones.py: real sequences too). Many visemes
     at full weight at once blend worse (bone poses, not vertex deltas: docs/bones.md)."""
     rig = solve_bones(demo, 64, iterations=5)
-    assert rig.n_bones == 64
+    assert 60 <= rig.n_bones <= 64 and rig.bone_names[-1] == "static"
     lips, face = demo_rig.regions["lips"], demo_rig.regions["face"]
     full = bone_animation(rig, np.eye(16))
     target = viseme_meshes(demo)
@@ -179,6 +182,32 @@ def test_64_bones_reproduce_the_blendshape_animation(demo, demo_rig):
     assert rms_mm(np.broadcast_to(demo.neutral, blend.shape), blend, lips) > 5
 
 
+def test_parts_that_do_not_move_or_move_rigidly_get_their_own_bone(demo, demo_rig):
+    """Locked parts: the eyes (which no viseme moves) stay exactly still and the lower teeth follow the jaw within
+    the rigid tolerance, where plain SSDR (`lock_parts=False`) lets the eyes drift and the teeth lag by millimetres;
+    the lips lose nothing at 32 bones."""
+    from visemeflow.animation.bones import RIGID_TOL
+
+    target = viseme_meshes(demo)
+    figures = {}
+    for lock in (True, False):
+        rig = solve_bones(demo, 32, lock_parts=lock)
+        full = bone_animation(rig, np.eye(16))
+        figures[lock] = {region: rms_mm(full, target, demo_rig.regions[region])
+                         for region in ("eyes", "teeth", "lips")}
+        if lock:
+            assert rig.bone_names[-1] == "static" and sum(n.startswith("rigid_") for n in rig.bone_names) >= 1
+            eyes = demo_rig.regions["eyes"]
+            assert np.abs(full[:, eyes] - demo.neutral[eyes]).max() < 1e-5          # exactly still
+            size = np.linalg.norm(np.ptp(demo.neutral, axis=0))
+            teeth = demo_rig.regions["teeth"]
+            assert np.linalg.norm(full[:, teeth] - target[:, teeth], axis=-1).max() < RIGID_TOL * size
+    print(f"\n32 bones, mm RMS at full weight: locked {figures[True]}, plain SSDR {figures[False]}")
+    assert figures[True]["eyes"] < 1e-3 < 0.5 < figures[False]["eyes"]
+    assert figures[True]["teeth"] < 0.5 < 2.0 < figures[False]["teeth"]
+    assert figures[True]["lips"] < 1.05 * figures[False]["lips"]
+
+
 def test_pose_table_round_trips_in_csv_and_json(bones8, tmp_path):
     for suffix in ("csv", "json"):
         path = write_pose_table(tmp_path / f"poses.{suffix}", bones8)
@@ -189,7 +218,7 @@ def test_pose_table_round_trips_in_csv_and_json(bones8, tmp_path):
         assert np.array_equal(back["bind_translations"], bones8.bind_translations)
     lines = (tmp_path / "poses.csv").read_text().splitlines()
     assert lines[0] == "pose,bone,parent,qx,qy,qz,qw,tx,ty,tz,bind_tx,bind_ty,bind_tz"
-    assert len(lines) == 1 + 16 * 8 and lines[1].startswith("AAA,bone_00,root,")
+    assert len(lines) == 1 + 16 * bones8.n_bones and lines[1].startswith("AAA,bone_00,root,")
     doc = json.loads((tmp_path / "poses.json").read_text())
     assert doc["poses"]["MBP"]["bone_03"]["rotation"][3] == bones8.rotations[VISEMES.index("MBP"), 3, 0]
     (tmp_path / "broken.csv").write_text("\n".join(lines[:-1]) + "\n")      # one bone of the last pose missing

@@ -30,7 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["AutoMarkers", "NoFaceFound", "automatic_markers", "mesh_face_points", "similarity"]
+from visemeflow.animation.fit import similarity
+
+__all__ = ["AutoMarkers", "NoFaceFound", "automatic_markers", "mesh_face_points"]
 
 N_FACE_POINTS = 468
 """FaceMesh's face points (the 10 iris points after them sit on the eyeballs and are not used)."""
@@ -107,20 +109,6 @@ def mesh_face_points(vertices, faces, *, size: int = 512, min_facing: float = 0.
         if facing[vertex] >= min_facing:
             out[i] = vertex
     return out
-
-
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: s, R, t minimising sum ||s R src + t - dst||^2."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sigma, vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2, 2] = -1
-    r = u @ d @ vt
-    var = (a**2).sum() / len(src)
-    s = float(np.trace(np.diag(sigma) @ d) / var) if var > 0 else 1.0
-    return s, r, mu_d - s * r @ mu_s
 
 
 def automatic_markers(template_vertices, template_faces, target_vertices, target_faces, *, exclude=(),

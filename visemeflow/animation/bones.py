@@ -38,7 +38,7 @@ from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_
 from visemeflow.animation.character import Character, validate_character
 from visemeflow.visemes import VISEMES
 
-__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "skin_vertices",
+__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "locked_parts", "skin_vertices",
            "solve_bones", "viseme_meshes", "MAX_INFLUENCES", "MIN_VERTICES_PER_BONE"]
 
 MAX_INFLUENCES = 4
@@ -69,7 +69,8 @@ class BoneRig:
     pose_names: tuple[str, ...]
     """The P poses' names (the 16 visemes, in `VISEMES` order)."""
     bone_names: tuple[str, ...]
-    """The B bones' names ("bone_00", ...); their parent is the root joint `ROOT`."""
+    """The B bones' names: SSDR's "bone_00", ..., then the locked parts' "rigid_00", ... and "static" (`locked_parts`);
+    their parent is the root joint `ROOT`."""
     bind_translations: np.ndarray
     """(B, 3) float64 bone heads c_b in skin space (bind rotation identity; the root joint sits at the origin)."""
     joints: np.ndarray
@@ -135,8 +136,15 @@ def max_bones(n_vertices: int) -> int:
 
 # ---- SSDR -------------------------------------------------------------------------------------------------
 def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, binding=None,
-                iterations: int = DEFAULT_ITERATIONS, init_iterations: int = DEFAULT_INIT_ITERATIONS) -> BoneRig:
+                iterations: int = DEFAULT_ITERATIONS, init_iterations: int = DEFAULT_INIT_ITERATIONS,
+                lock_parts: bool = True) -> BoneRig:
     """SSDR of the character's 16 visemes into `bone_count` rigid bones (see the module doc).
+
+    With `lock_parts` (default), the vertices no viseme moves go to one bone `static` (identity in every pose) and
+    the connected parts that every viseme moves rigidly (the lower teeth with the jaw) to one bone `rigid_NN` per
+    common motion (`locked_parts`), at most a quarter of the bones (static first, then the largest parts); SSDR
+    shares the other bones among the rest. Without it, SSDR fits every vertex alike and lets the eyes drift and the
+    teeth lag (bench/bones.py --no-lock).
 
     BoneError for a bone count that is not an integer >= 1 or larger than the vertices can support (`max_bones`),
     a character without triangles, or non-finite vertices (CharacterError, also a ValueError, from validation).
@@ -159,16 +167,48 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     rest = np.asarray(character.neutral, np.float64)
     frames = np.concatenate([rest[None], poses])            # the neutral is frame 0: the bind pose is solved
     start, cpu = time.perf_counter(), time.process_time()
-    solver = DemBones()
-    solver.nInitIters = int(init_iterations)
-    result = solve_skinning(rest, frames, int(bone_count), faces=np.asarray(character.faces),
-                            max_influences=MAX_INFLUENCES, iterations=int(iterations), solver=solver)
+    faces = np.asarray(character.faces, np.int64)
+    locked = locked_parts(rest, frames, faces) if lock_parts else []
+    if len(locked) > int(bone_count) // 4:   # keep three quarters of the bones for SSDR: static first, then the
+        order = sorted(range(len(locked)), key=lambda k: (locked[k][0] != "static", -len(locked[k][1])))
+        locked = [locked[k] for k in sorted(order[: int(bone_count) // 4])]     # largest rigid parts
+    free = np.ones(len(rest), bool)
+    for _, ids, _ in locked:
+        free[ids] = False
+    n_free = int(bone_count) - len(locked)
+    if free.any() and n_free < 1:
+        raise BoneError(f"{where}: {bone_count} bone(s) are too few: its parts that move rigidly or not at all take "
+                        f"{len(locked)} ({', '.join(name for name, _, _ in locked)}) and the rest needs at least one")
+    blocks_w, blocks_m, names = [], [], []
+    if free.any():
+        ids = np.flatnonzero(free)
+        local = np.full(len(rest), -1)
+        local[ids] = np.arange(len(ids))
+        sub_faces = local[faces[free[faces].all(axis=1)]]
+        if not len(sub_faces):
+            raise BoneError(f"{where}: no triangle joins the vertices that deform; SSDR seeds its bones on faces")
+        solver = DemBones()
+        solver.nInitIters = int(init_iterations)
+        result = solve_skinning(rest[ids], frames[:, ids], min(n_free, max_bones(len(ids))), faces=sub_faces,
+                                max_influences=MAX_INFLUENCES, iterations=int(iterations), solver=solver)
+        w_free = np.asarray(result.weights, np.float64)              # (B_free, V_free)
+        m_free = np.asarray(result.transforms, np.float64)           # (F, B_free, 4, 4) column-vector
+        used = np.flatnonzero(w_free.sum(axis=1) > 0)
+        full = np.zeros((len(used), len(rest)))
+        full[:, ids] = w_free[used]
+        blocks_w.append(full)
+        blocks_m.append(m_free[:, used])
+        names += [f"bone_{b:02d}" for b in range(len(used))]
+    for name, ids, m in locked:
+        row = np.zeros((1, len(rest)))
+        row[0, ids] = 1.0
+        blocks_w.append(row)
+        blocks_m.append(m[:, None])
+        names.append(name)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
-    weights = np.asarray(result.weights, np.float64)          # (B, V)
-    transforms = np.asarray(result.transforms, np.float64)    # (F, B, 4, 4) column-vector
-    used = np.flatnonzero(weights.sum(axis=1) > 0)
-    weights, transforms = weights[used], transforms[:, used]
-    n_bones = len(used)
+    weights = np.concatenate(blocks_w)                       # (B, V)
+    transforms = np.concatenate(blocks_m, axis=1)            # (F, B, 4, 4)
+    n_bones = len(names)
 
     # bone heads: the weighted centroid of what each bone moves
     mass = weights.sum(axis=1)
@@ -197,13 +237,70 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     d = np.einsum("pbij,bj->pbi", rot, centres) + trans - centres[None]
     rig = BoneRig(name=character.name, neutral=np.asarray(character.neutral, np.float32),
                   faces=np.asarray(character.faces, np.int32), pose_names=VISEMES,
-                  bone_names=tuple(f"bone_{b:02d}" for b in range(n_bones)), bind_translations=centres,
+                  bone_names=tuple(names), bind_translations=centres,
                   joints=joints.astype(np.int64), weights=w4, rotations=q, translations=d,
                   fit_rms=np.zeros(len(poses)), bind_error=float(np.abs(transforms[0] - np.eye(4)).max()),
                   solve_seconds=seconds, solve_cpu_seconds=cpu, vertex_colors=character.vertex_colors)
     fitted = skin_vertices(rig, *blend_poses(rig, np.eye(len(poses), dtype=np.float32)))
     object.__setattr__(rig, "fit_rms", np.sqrt(((fitted - poses) ** 2).sum(axis=2).mean(axis=1)))
     return rig
+
+
+
+STATIC_TOL = 1e-6
+"""A vertex no viseme moves farther than this share of the mesh's size (bounding-box diagonal) is static."""
+RIGID_TOL = 2e-3
+"""A part whose vertices a rigid transform per viseme puts within this share of the mesh's size is rigid (the demo
+rig's lower teeth: 0.44 mm on a 30 cm head, 1.5e-3)."""
+
+
+def locked_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, static_tol: float = STATIC_TOL,
+                 rigid_tol: float = RIGID_TOL) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The parts that need no SSDR: [(bone name, vertex ids, (F, 4, 4) transforms)]. Vertices that no frame moves
+    (`static`, identity); connected parts with no static vertex that one rigid transform per frame fits (the
+    frames' rotation and translation by Kabsch, largest vertex error at most `rigid_tol` x size), parts that move
+    together sharing one bone (`rigid_00`, ...)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from visemeflow.animation.fit import similarity
+
+    size = float(np.linalg.norm(np.ptp(rest, axis=0))) or 1.0
+    moved = np.linalg.norm(frames - rest[None], axis=2).max(axis=0)
+    static = moved <= static_tol * size
+    out: list[tuple[str, np.ndarray, np.ndarray]] = []
+    identity = np.tile(np.eye(4), (len(frames), 1, 1))
+
+    def rigid(ids: np.ndarray) -> np.ndarray | None:
+        """(F, 4, 4) rigid transforms putting rest[ids] on every frame within the tolerance, else None."""
+        m = identity.copy()
+        for f, frame in enumerate(frames):
+            _, r, t = similarity(rest[ids], frame[ids], scale=False)
+            if np.linalg.norm(rest[ids] @ r.T + t - frame[ids], axis=1).max() > rigid_tol * size:
+                return None
+            m[f, :3, :3], m[f, :3, 3] = r, t
+        return m
+
+    n = len(rest)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    groups: list[np.ndarray] = []
+    for part in np.unique(label[~static]):
+        ids = np.flatnonzero(label == part)
+        if static[ids].any() or len(ids) < MIN_VERTICES_PER_BONE or rigid(ids) is None:
+            continue
+        for g, members in enumerate(groups):             # one bone per common motion
+            if rigid(np.concatenate([members, ids])) is not None:
+                groups[g] = np.concatenate([members, ids])
+                break
+        else:
+            groups.append(ids)
+    for g, ids in enumerate(sorted(groups, key=len, reverse=True)):
+        out.append((f"rigid_{g:02d}", np.sort(ids), rigid(ids)))
+    if static.any():
+        out.append(("static", np.flatnonzero(static), identity))
+    return out
 
 
 def _nearest_rotation(m: np.ndarray) -> np.ndarray:

@@ -287,7 +287,7 @@ def preview_flow(params: PreviewParams) -> dict:
             panels[label] = binding.weights(curves)
         if params.mode != "blendshape":
             rig = bone_rig(character, binding, params.bones)
-            panels[f"{label} {params.bones} bones"] = BoneSource(rig, curves)
+            panels[f"{source.replace('_', ' ')}, {params.bones} bones"] = BoneSource(rig, curves)
     if not panels:
         raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()

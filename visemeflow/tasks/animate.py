@@ -117,7 +117,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         played = resample(np.clip(curves, 0, 1), fps, package.fps)
         panels = {f"{source} ({variant})": binding.weights(played)}
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
-            panels = {f"{source} ({variant}) blendshapes": panels[f"{source} ({variant})"],
+            panels = {"blendshapes": panels[f"{source} ({variant})"],
                       f"{config.bones} bones": BoneSource(bone_rig(character, binding, config.bones), played)}
         path = folder / f"{stem}.mp4"
         render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
