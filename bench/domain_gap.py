@@ -12,6 +12,8 @@ Training data (all shippable):
   animator's captured curves, converted to our 16 visemes by `visemeflow.animation.capture`), cut into 8 s pieces.
 Recipes: `synthetic`, `real`, `lj+synthetic` (the LJ examples and the espeak corpus: every target in the style of
 our alignment-driven curves), `mixed` (all of it), and each with `+aug` (train-time augmentation, probability 0.5).
+With the MBROLA voices installed (bench/mbrola_data.py, non-free, not installed by make): `mbrola`,
+`synthetic+mbrola`, `mixed+mbrola` (`--mbrola-utterances`, default 600).
 One fbank-blstm each (`--d-model`), seed 0, one utterance per step, the same budget of `--steps` steps for every
 recipe (so a small real set is seen for more epochs), at each learning rate of `--lrs` (the preset's is 1e-4, which
 underfits at these budgets: its predictions stay within a few hundredths of the mean curve) and with each training

@@ -48,9 +48,10 @@ MIN_VERTICES_PER_BONE = 3
 DEFAULT_BONES = 32
 DEFAULT_ITERATIONS = 5
 DEFAULT_INIT_ITERATIONS = 20
-"""Dem Bones' bone-initialisation iterations (its own default is 10). On the demo rig at 64 bones, 10 / 20 / 30 / 40 give
-lips errors of 0.512 / 0.492 / 0.485 / 0.529 mm RMS at about the same CPU time (bench/bones.py --init-iterations):
-the clustering lands differently each time, so the figure moves by a few hundredths of a millimetre either way."""
+"""Dem Bones' bone-initialisation iterations (its own default is 10). On the demo rig at 64 bones without locked parts,
+10 / 20 / 30 / 40 gave lips errors of 0.512 / 0.492 / 0.485 / 0.529 mm RMS at about the same CPU time
+(bench/bones.py --no-lock --init-iterations N): the clustering lands differently each time, so the figure moves by
+a few hundredths of a millimetre either way."""
 
 
 class BoneError(ValueError):
