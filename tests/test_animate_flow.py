@@ -177,18 +177,13 @@ def test_preview_puts_the_sources_side_by_side_with_the_audio(tmp_path, characte
         assert sum(1 for _ in container.decode(video=0)) == result["frames"] == 25
 
 
-def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_once(tmp_path, monkeypatch):
-    """`--mode bones`: glb becomes `<stem>.bones.glb` (a skinned glTF the Khronos validator accepts), pose tables are
-    written, the blendshape-independent formats are unchanged, and the SSDR solve runs once per character for all
-    utterances of the run; pose tables without bone mode are refused."""
-    import csv
-
-    from test_gltf import validate
-
+def viseme_grid_counting_solves(tmp_path, monkeypatch, seed: int):
+    """An 8 x 8 grid character with 16 random viseme shapes (saved as .npz), and a list that grows by one per SSDR
+    solve of the animate package (its per-process rig cache emptied)."""
     from visemeflow.animation import package
     from visemeflow.visemes import VISEMES
 
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     grid = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2)
     neutral = np.c_[grid, np.zeros(len(grid))]
     faces = [[i, i + 1, i + 8] for i in range(55) if i % 8 != 7] + [[i + 1, i + 9, i + 8] for i in range(55) if i % 8 != 7]
@@ -198,6 +193,20 @@ def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_onc
     real_solve = package.solve_bones
     monkeypatch.setattr(package, "solve_bones", lambda *a, **k: solves.append(1) or real_solve(*a, **k))
     monkeypatch.setattr(package, "_RIGS", {})
+    return path, solves
+
+
+def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_once(tmp_path, monkeypatch):
+    """`--mode bones`: glb becomes `<stem>.bones.glb` (a skinned glTF the Khronos validator accepts), pose tables are
+    written, the blendshape-independent formats are unchanged, and the SSDR solve runs once per character for all
+    utterances of the run; pose tables without bone mode are refused."""
+    import csv
+
+    from test_gltf import validate
+
+    from visemeflow.visemes import VISEMES
+
+    path, solves = viseme_grid_counting_solves(tmp_path, monkeypatch, seed=3)
 
     store = make_curve_store(tmp_path / "store", n=3)
     config = AnimateConfig(formats=("glb", "pose-csv", "livelink"), mode="bones", bones=4)
@@ -221,19 +230,7 @@ def test_preview_and_bone_mode_packages_show_bones_beside_blendshapes(tmp_path, 
     """`preview --mode both`: each source's blendshape panel and its bone panel side by side (`--mode bones`: the
     bone panels alone); `animate --mode bones --preview` shows the blendshapes beside the bones the exports play.
     One SSDR solve serves them all."""
-    from visemeflow.animation import package
-    from visemeflow.visemes import VISEMES
-
-    rng = np.random.default_rng(4)
-    grid = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2)
-    neutral = np.c_[grid, np.zeros(len(grid))]
-    faces = [[i, i + 1, i + 8] for i in range(55) if i % 8 != 7] + [[i + 1, i + 9, i + 8] for i in range(55) if i % 8 != 7]
-    character = make_character("grid", neutral, faces, list(VISEMES), rng.normal(0, 0.05, (16, len(neutral), 3)))
-    path = save_character_npz(character, tmp_path / "chars" / "grid.npz")
-    solves = []
-    real_solve = package.solve_bones
-    monkeypatch.setattr(package, "solve_bones", lambda *a, **k: solves.append(1) or real_solve(*a, **k))
-    monkeypatch.setattr(package, "_RIGS", {})
+    path, solves = viseme_grid_counting_solves(tmp_path, monkeypatch, seed=4)
     store = make_curve_store(tmp_path / "store", n=1)
 
     def width_and_frames(video_path):
