@@ -38,8 +38,8 @@ from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_
 from visemeflow.animation.character import Character, validate_character
 from visemeflow.visemes import VISEMES
 
-__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "locked_parts", "skin_vertices",
-           "solve_bones", "viseme_meshes", "MAX_INFLUENCES", "MIN_VERTICES_PER_BONE"]
+__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "locked_parts",
+           "skin_vertices", "solve_bones", "viseme_meshes", "MAX_INFLUENCES", "MIN_VERTICES_PER_BONE"]
 
 MAX_INFLUENCES = 4
 """Influences per vertex: one glTF JOINTS_0 / WEIGHTS_0 set (and what most engines skin with by default)."""
@@ -245,7 +245,6 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     fitted = skin_vertices(rig, *blend_poses(rig, np.eye(len(poses), dtype=np.float32)))
     object.__setattr__(rig, "fit_rms", np.sqrt(((fitted - poses) ** 2).sum(axis=2).mean(axis=1)))
     return rig
-
 
 
 STATIC_TOL = 1e-6
