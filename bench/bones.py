@@ -27,13 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from realspeech import read_corpus  # noqa: E402
+
 from visemeflow.animation.bones import bone_animation, solve_bones, viseme_meshes
 from visemeflow.animation.character import character_from_rig
-from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance
-from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_demo_rig
-from visemeflow.synth.dynamics import generate_ground_truth
-from visemeflow.timebase import frame_count
 from visemeflow.visemes import VISEMES
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,18 +40,9 @@ FPS = 30.0
 
 
 def corpus_curves(limit: int) -> dict[str, np.ndarray]:
-    """The synthetic true curves (T, 16) of examples/corpus/LJ's utterances, by utterance id."""
-    out = {}
-    for entry in discover_corpus(ROOT / "examples" / "corpus").entries:
-        if entry.speaker != "LJ" or len(out) >= limit:
-            continue
-        result = ingest_utterance(entry, IngestConfig())
-        rows = sorted(result.phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
-        segments = [VisemeSegment(p["viseme"], p["start_s"], p["end_s"], p["word_index"], p["phoneme"] or "")
-                    for p in rows if p["viseme"] is not None]
-        n = frame_count(result.utterance["duration_s"], FPS)
-        out[entry.utterance_id] = generate_ground_truth(segments, n, FPS, entry.speaker, entry.utterance_id)
-    return out
+    """The synthetic true curves (T, 16) of examples/corpus/LJ's first `limit` utterances, by utterance id."""
+    utterances = [u for u in read_corpus(ROOT / "examples" / "corpus") if u.speaker == "LJ"][:limit]
+    return {u.uid: u.truth for u in utterances}
 
 
 def squared_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -16,12 +16,12 @@ Tests that read ../shared/data fail, never skip, when it is missing.
 """
 
 import gzip
+import sys
 
 import numpy as np
 import pytest
 import trimesh
-from factories import SHARED_DATA
-from scipy.spatial import cKDTree
+from factories import REPO, SHARED_DATA
 from test_gltf import validate
 
 from visemeflow.animation.character import make_character
@@ -30,8 +30,8 @@ from visemeflow.rig import load_demo_rig, load_rig, read_obj, rig_data_path
 from visemeflow.visemes import VISEMES
 
 SHARED_ICT = SHARED_DATA / "ict_facekit"
-TURN = np.deg2rad(20.0)
-ROTATION = np.array([[np.cos(TURN), 0, np.sin(TURN)], [0, 1, 0], [-np.sin(TURN), 0, np.cos(TURN)]])
+sys.path.insert(0, str(REPO / "bench"))
+from transfer import REMESHED_IDENTITY, ROTATION, identity_face, placed, remeshed_face  # noqa: E402  (bench/transfer.py)
 
 
 def viseme_index(name: str) -> int:
@@ -106,24 +106,6 @@ def test_ict_identity_files_from_shared_data(demo):
 
 
 # ---- another topology -------------------------------------------------------------------------------------------
-def remeshed_face(demo, modes):
-    """The ICT narrow face (vertices 0..6705) of another identity, Loop-subdivided (every vertex moves, 4 triangles
-    for each), turned 20 degrees, scaled 1.15 and moved; its 68 landmarks are the nearest vertices."""
-    coefficients = np.zeros(len(modes))
-    coefficients[:3] = [0.8, 0.6, -0.7]
-    face = demo.neutral + np.tensordot(coefficients, modes, axes=1)
-    keep = np.zeros(len(face), bool)
-    keep[:6706] = True
-    faces = demo.faces[keep[demo.faces].all(axis=1)]
-    used = np.unique(faces)
-    local = np.full(len(face), -1)
-    local[used] = np.arange(len(used))
-    vertices, faces = trimesh.remesh.subdivide_loop(face[used], local[faces], iterations=1)
-    move = lambda p: 1.15 * p @ ROTATION.T + np.array([3.0, -2.0, 5.0])  # noqa: E731
-    _, landmarks = cKDTree(move(vertices)).query(move(face[demo.landmark_ids]))
-    return move(vertices), faces, landmarks
-
-
 @pytest.fixture(scope="module")
 def remeshed(demo, modes):
     vertices, faces, landmarks = remeshed_face(demo, modes)
@@ -162,10 +144,7 @@ def test_markers_are_found_automatically_on_another_topology(demo, modes):
     carried = np.union1d(demo.regions["mouth_interior"], demo.regions["eyes"])
     auto = automatic_markers(demo.neutral, demo.faces, vertices, faces, exclude=carried)
     assert len(auto.pairs) >= 100 and not np.isin(auto.pairs[:, 0], carried).any()
-    coefficients = np.zeros(len(modes))
-    coefficients[:3] = [0.8, 0.6, -0.7]
-    truth = 1.15 * (demo.neutral + np.tensordot(coefficients, modes, axes=1))[auto.pairs[:, 0]] @ ROTATION.T \
-        + np.array([3.0, -2.0, 5.0])
+    truth = placed(identity_face(demo, modes, REMESHED_IDENTITY)[auto.pairs[:, 0]])
     error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth, axis=1)
     assert np.median(error) < 0.02 * size and np.percentile(error, 90) < 0.05 * size
     result = transfer_visemes(demo, vertices, faces, name="remeshed")
