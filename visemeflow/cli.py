@@ -409,7 +409,8 @@ def evaluate(
 def predict(
     audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
     model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models); "
-                                                       "default: the model shipped with the package.")] = "default",
+                                                       "default: the model shipped with the package; phones: no "
+                                                       "model, phones recognised in the audio (English).")] = "default",
     store: StoreOpt = DEFAULT_STORE,
     fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
     out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
@@ -426,7 +427,7 @@ def predict(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if model != "default" and not s.has_model(model):
+    if model not in ("default", "phones") and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
                    "`visemeflow train`", err=True)
         raise typer.Exit(2)
@@ -539,7 +540,8 @@ def animate(
 @app.command()
 def speak(
     audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
-    model: Annotated[str, typer.Option("--model", help="Model name in the store; default: the shipped model.")] = "default",
+    model: Annotated[str, typer.Option("--model", help="Model name in the store; default: the shipped model; phones: "
+                                                       "no model, phones recognised in the audio (English).")] = "default",
     character: CharactersOpt = None,
     store: StoreOpt = DEFAULT_STORE,
     formats: FormatsOpt = "glb,usd,livelink,json",
@@ -557,7 +559,7 @@ def speak(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if model != "default" and not s.has_model(model):
+    if model not in ("default", "phones") and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,

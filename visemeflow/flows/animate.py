@@ -184,7 +184,8 @@ class SpeakParams(BaseModel):
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     model: str = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
-                                              "with the package.")
+                                              "with the package; `phones`: no model, phones recognised in the audio "
+                                              "(English).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
     characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
                                    description="Character files or folders; default: the shipped ICT demo character.")

@@ -11,6 +11,7 @@ from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.device import DeviceWord, Precision
 from visemeflow.learning.train import TrainConfig
 from visemeflow.procedural import ProceduralConfig
+from visemeflow.procedural.recognised import RECOGNISED_MODEL
 from visemeflow.schemas import normalize_utterance_id, validate_name
 from visemeflow.synth.take import SynthConfig
 from visemeflow.tracking.facemesh import FaceMeshConfig
@@ -134,6 +135,9 @@ class TrainParams(BaseModel):
     @field_validator("model_name")
     @classmethod
     def _safe_model(cls, name: str | None) -> str | None:
+        if name == RECOGNISED_MODEL:
+            raise ValueError(f"the model name {RECOGNISED_MODEL!r} is reserved for curves from recognised phones "
+                             "(`visemeflow predict --model phones`); choose another")
         return None if name is None else validate_name(name, "model name")
 
 

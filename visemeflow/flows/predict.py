@@ -7,6 +7,10 @@ With `out`, CSV and JSON copies of each file's curves (`visemeflow.animation.exp
 artifact lists the outputs and the real-time factor of each file. The model runs on `device` (float32), which is not
 part of the cache key: curves predicted on the CPU are a cache hit for a GPU run. A device this machine does not have
 fails first, in one line (`visemeflow.learning.device.DeviceError`).
+
+The model name `phones` is reserved: no trained model, but phones recognised in the audio (pocketsphinx's English
+model) turned into curves by the procedural rules (`visemeflow.procedural.recognised`), keyed on the recogniser's
+settings instead of a model file.
 """
 
 import re
@@ -21,6 +25,7 @@ from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
 from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
 from visemeflow.learning.device import DeviceWord, resolve_device
+from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_model_hash
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
@@ -36,7 +41,8 @@ class PredictParams(BaseModel):
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     model: str = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
-                                                   "with the package (installed into the store on first use).")
+                                                   "with the package (installed into the store on first use); "
+                                                   "`phones`: no model, phones recognised in the audio (English).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
     fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the curves.")
     out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
@@ -106,14 +112,15 @@ def predict_flow(params: PredictParams) -> dict:
     resolve_device(params.device)
     store = Store(params.store)
     ensure_model(store, params.model)
-    if not store.has_model(params.model):
+    if params.model != RECOGNISED_MODEL and not store.has_model(params.model):
         known = store.model_names()
         raise LookupError(f"no trained model named {params.model} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
     missing = [str(p) for p in params.audio if not Path(p).is_file()]
     if missing:
         raise LookupError(f"no such audio file: {', '.join(missing)}")
-    model_hash = file_hash(store.model_path(params.model))
+    model_hash = (recognised_model_hash() if params.model == RECOGNISED_MODEL
+                  else file_hash(store.model_path(params.model)))
     rows = []
     for audio in params.audio:
         uid = prediction_id(audio)

@@ -1,5 +1,6 @@
 """Prediction task: the viseme curves of one audio file (or a video's audio track) from one trained model, written
-to the store as source `predicted`, variant = the model's name."""
+to the store as source `predicted`, variant = the model's name. The reserved model name `phones` is no trained
+model: phones recognised in the audio and the procedural rules (`visemeflow.procedural.recognised`)."""
 
 import functools
 import time
@@ -10,6 +11,7 @@ from prefect.cache_policies import TASK_SOURCE, Inputs
 from visemeflow.ingest.audio import read_audio
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.train import load_model, predict_curves
+from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
@@ -38,10 +40,15 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     `device`: auto, cpu, cuda or cuda:N, resolved here, where the work runs).
     """
     store = Store(store_root)
-    model = _model(str(store.model_path(model_name)), model_hash, str(resolve_device(device)))
-    started = time.perf_counter()
-    samples, rate = read_audio(audio_path)
-    curves = predict_curves(model, samples, rate, fps)
+    if model_name == RECOGNISED_MODEL:
+        started = time.perf_counter()
+        samples, rate = read_audio(audio_path)
+        curves = recognised_curves(samples, rate, fps, source=audio_path)
+    else:
+        model = _model(str(store.model_path(model_name)), model_hash, str(resolve_device(device)))
+        started = time.perf_counter()
+        samples, rate = read_audio(audio_path)
+        curves = predict_curves(model, samples, rate, fps)
     seconds = time.perf_counter() - started
     duration = len(samples) / rate
     path = store.write_curves(curves_table(utterance_id, SOURCE, model_name, curves, fps),
