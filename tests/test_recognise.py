@@ -2,6 +2,9 @@
 judged on real speech: the shipped LJSpeech examples, a voice none of this was trained on, against their MFA
 alignments."""
 
+import math
+from pathlib import Path
+
 import numpy as np
 import pytest
 import soundfile as sf
@@ -38,17 +41,17 @@ def lj():
 
 
 def test_recognised_curves_close_the_lips_on_real_speech_with_few_false_closures(lj):
-    # Measured on all 24 (bench/domain_gap.py prints the same): 47 of 154 b/p/m phones closed (31%), 88 of 1,585
-    # other phones closed falsely (5.6%; the alignment's own procedural curves: 6.8%), FFF 33 of 85, top-2 agreement
-    # 54%. The espeak-trained model closes none of the 154, and never falsely either.
+    # Measured on all 24 (bench/realspeech.py prints the same): 60 of 154 b/p/m phones closed (39%), 93 of 1,585 other
+    # phones closed falsely (5.9%; the alignment's own procedural curves: 6.8%), FFF 41 of 85, top-2 agreement 55%.
+    # The espeak-trained model closes none of the 154 (and never falsely either).
     scores = pool(score_utterance(recognised_curves(audio, rate, FPS, source=str(path)), FPS, phones)
                   for path, audio, rate, phones in lj)
     mbp, false, agree = scores.closure["MBP"], scores.false_closure["MBP"], scores.agreement.overall
     assert mbp.total == 154 and false.total == 1585
-    assert mbp.share >= 0.25, f"b/p/m closed at {mbp.hits}/{mbp.total}"
-    assert false.share <= 0.08, f"false closures at {false.hits}/{false.total}"
-    assert scores.closure["FFF"].share >= 0.3
-    assert agree.share >= 0.45, f"top-2 agreement {agree.hits}/{agree.total}"
+    assert mbp.share >= 0.35, f"b/p/m closed at {mbp.hits}/{mbp.total}"
+    assert false.share <= 0.07, f"false closures at {false.hits}/{false.total}"
+    assert scores.closure["FFF"].share >= 0.4
+    assert agree.share >= 0.5, f"top-2 agreement {agree.hits}/{agree.total}"
 
 
 def test_recognised_phones_cover_the_audio_in_order_at_any_rate(lj):
@@ -77,6 +80,12 @@ def test_a_closure_bias_hears_more_bilabials(lj):
     stock, biased = closures(shared_recogniser()), closures(PhoneRecogniser(closure_bias=16))
     assert biased > stock > 0
     assert "bias=16" in PhoneRecogniser(closure_bias=16).settings
+    # the biased language model is the stock one, read back the same every time (pocketsphinx's readfile() + write()
+    # wrote garbage now and then), with log10(16) added where a closure phone is predicted
+    from visemeflow.phonetics.recognise import _biased_lm
+
+    text = Path(_biased_lm(16.0)).read_text()
+    assert "-1.6002\t</s>\t-3.6378" in text and f"{-1.7159 + math.log10(16):.4f}\tB\t" in text
     assert recognised_model_hash(PhoneRecogniser(closure_bias=16)) != recognised_model_hash()
 
 
