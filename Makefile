@@ -36,7 +36,8 @@ $(STAMP): pyproject.toml | system-deps
 # then run the pipeline on those videos, train two models, predict, print the robustness table, and end with the
 # Mandarin utterance spoken by the demo character: a side-by-side preview, then GLB + USD + Live Link CSV + web JSON
 # + the wav + a preview MP4 from the audio alone (`speak`), then the same as bone animation (32 SSDR bones: a skinned
-# GLB, UsdSkel with joints and the pose table); their paths are printed.
+# GLB, UsdSkel with joints and the pose table), and an English utterance spoken with no model at all (`--model
+# phones`: phones recognised in the audio); their paths are printed.
 demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -50,6 +51,7 @@ demo: system-deps venv
 	$(BIN)/visemeflow preview SSB1624/SSB16240001 --sources procedural,tracked,ground_truth --store $(OUT)/store
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --format glb,usd,livelink,json --preview --out $(OUT)/speak
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --preview --out $(OUT)/speak-bones
+	$(BIN)/visemeflow speak examples/corpus/LJ/LJ001-0002.wav --model phones --store $(OUT)/store --format glb,json --preview --out $(OUT)/speak-phones
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed

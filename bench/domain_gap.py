@@ -23,6 +23,10 @@ loss of `--losses`:
   much as the long vowels around them (`train_model(loss=...)`);
 - `activation:W`: L1 with each weight weighted 1 + W * its target (every viseme's activations alike).
 
+Beside the recipes, with no training at all: the procedural curves of phones recognised in the audio by PocketSphinx's
+English model (`predict --model phones`, `visemeflow.phonetics.recognise`), at each closure bias of
+`--recogniser-bias`.
+
 Judged on real speech of speakers no recipe trained on:
 - GRID s1 (10 clips, male English; phones from the word alignment and CMUdict) and the charsiu Mandarin
   utterance (AISHELL-3 speaker SSB1624 -- excluded from training): MBP and FFF closure recall, false MBP closures
@@ -59,6 +63,8 @@ from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E4
 from visemeflow.learning.features import resample_audio  # noqa: E402
 from visemeflow.learning.realspeech import compare_curves, pool, score_utterance  # noqa: E402
 from visemeflow.learning.train import Example, TrainConfig, predict_curves, train_model  # noqa: E402
+from visemeflow.phonetics.recognise import shared_recogniser  # noqa: E402
+from visemeflow.procedural.recognised import recognised_curves  # noqa: E402
 from visemeflow.visemes import VISEME_INDEX  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -204,10 +210,12 @@ def main() -> int:
     parser.add_argument("--recipes", default=",".join(RECIPES),
                         help="also: mbrola, synthetic+mbrola, mixed+mbrola (needs the MBROLA voices)")
     parser.add_argument("--mbrola-utterances", type=int, default=600, help="size of the MBROLA corpus")
+    parser.add_argument("--recogniser-bias", default="1,16",
+                        help="closure biases of the recognised-phone rows (comma-separated; empty: none)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    recipes = args.recipes.split(",")
+    recipes = [r for r in args.recipes.split(",") if r]
     wants_mbrola = [r for r in recipes if "mbrola" in r]
     if wants_mbrola and not mbrola_available():
         print(f"left out {', '.join(wants_mbrola)}: the MBROLA voices are not installed (bench/mbrola_data.py)")
@@ -226,6 +234,11 @@ def main() -> int:
             row("alignment's procedural curves (FACEGOOD columns: floor)", judge(sets, of_alignment("procedural"))),
             row("mean curve of the FACEGOOD training takes (floor)",
                 judge(sets, lambda audio, n: np.tile(sets.floor, (n, 1)).astype(np.float32)))]
+    for bias in [float(b) for b in args.recogniser_bias.split(",") if b]:
+        recogniser = shared_recogniser(closure_bias=bias)
+        rows.append(row(f"phones recognised by pocketsphinx, closure bias {bias:g} (no training)", judge(
+            sets, lambda audio, n, r=recogniser: recognised_curves(audio, SAMPLE_RATE, FPS, n, recogniser=r))))
+        print(rows[-1], flush=True)
     for recipe in recipes:
         train = recipe_data(sets, recipe)
         for lr_word in args.lrs.split(","):

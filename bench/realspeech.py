@@ -25,6 +25,8 @@ Rows (curves at 30 fps, frame k at k / 30 s, as many frames as `frame_count(dura
   each utterance is predicted by the model that did not train on it (the demo's own model trains on 23 of them,
   so its numbers on these files would be in-sample). Mandarin: the fold-0 model (English only: out of language);
 - `mean-curve (LJ folds)`: per fold, the frame-weighted mean of its training targets;
+- `phones recognised by pocketsphinx (no training)`: `predict --model phones`, the procedural curves of the phones
+  PocketSphinx's English model recognises in the audio (no alignment; none of these voices trained it);
 - `procedural (alignment)`: the JALI-like curves from the alignment itself (needs the phones: not a model of the
   audio; MBP and FFF always reach full closure, so its closure recall is the ceiling of the definition);
 - `synthetic truth (alignment)`: the LJ models' targets themselves (Cohen-Massaro dynamics): what perfect
@@ -72,6 +74,7 @@ from visemeflow.learning.realspeech import (
 from visemeflow.learning.train import Example, TrainConfig, predict_curves
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import generate_procedural_curves
+from visemeflow.procedural.recognised import recognised_curves
 from visemeflow.synth.dynamics import generate_ground_truth
 from visemeflow.timebase import frame_count
 
@@ -224,6 +227,8 @@ def main() -> int:
         fold = {u.uid: fold_of.get(u.uid, 0) for u in utts}    # same ids in both LJ sets; Mandarin: fold 0
         curves["fbank-blstm (LJ, k-fold)"] = {u.uid: predict(fold_models[fold[u.uid]], u) for u in utts}
         curves["mean-curve (LJ folds)"] = {u.uid: np.tile(fold_means[fold[u.uid]], (u.n, 1)) for u in utts}
+        curves["phones recognised by pocketsphinx (no training)"] = {
+            u.uid: recognised_curves(u.audio, SAMPLE_RATE, FPS, u.n) for u in utts}
         curves["procedural (alignment)"] = {u.uid: u.procedural for u in utts}
         curves["synthetic truth (alignment)"] = {u.uid: u.truth for u in utts}
         print(f"### {name}: {len(utts)} utterances")
