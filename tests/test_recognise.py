@@ -146,3 +146,34 @@ def test_predict_flow_with_the_phones_model_needs_no_trained_model(tmp_path):
     assert second["predictions"][0]["cached"]
     with pytest.raises(ValidationError, match="reserved for curves from recognised phones"):
         TrainParams(store=store.root, model_name="phones")
+
+
+def test_recognised_curves_close_the_lips_of_a_speaker_no_model_heard_grid_s1(tmp_path):
+    """GRID s1 (a man; ../shared/data, its phones spread over the word alignment with CMUdict): 9 of 14 b/p/m
+    closed, 10 of 146 other phones falsely (the alignment's procedural curves: 14 of 14 and 11 of 158 with the
+    Mandarin utterance); the shipped learned model closes none."""
+    import shutil
+
+    from factories import SHARED_DATA
+
+    from visemeflow.ingest.audio import read_audio
+
+    grid = SHARED_DATA / "grid_s1"
+    assert (grid / "align").is_dir(), f"test data {grid} is missing (../shared/data must hold grid_s1)"
+    folder = tmp_path / "grid" / "s1"
+    folder.mkdir(parents=True)
+    for align in sorted((grid / "align").glob("*.align")):
+        shutil.copyfile(align, folder / align.name)
+        shutil.copyfile(grid / "video" / f"{align.stem}.mpg", folder / f"{align.stem}.mpg")
+    scores = []
+    for entry in discover_corpus(tmp_path / "grid").entries:
+        rows = sorted(ingest_utterance(entry, IngestConfig()).phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
+        audio, rate = read_audio(entry.audio_path)
+        scores.append(score_utterance(recognised_curves(audio, rate, FPS, source=str(entry.audio_path)), FPS,
+                                      phones_of(rows)))
+    pooled = pool(scores)
+    mbp, false = pooled.closure["MBP"], pooled.false_closure["MBP"]
+    assert len(scores) == 10 and mbp.total == 14
+    assert mbp.hits >= 8, f"b/p/m closed at {mbp.hits}/{mbp.total}"
+    assert false.share <= 0.1, f"false closures at {false.hits}/{false.total}"
+    assert pooled.agreement.overall.share >= 0.45
