@@ -104,8 +104,12 @@ def test_bad_audio_is_an_error_naming_the_file_and_the_sample():
         recognised_curves(audio, 16000, FPS, source="take.wav")
     with pytest.raises(RecogniserError, match="take.wav: audio must be"):
         shared_recogniser().recognise(np.zeros((2, 2, 2)), 16000, "take.wav")
+    with pytest.raises(RecogniserError, match="take.wav: sample rate must be positive, got 0"):
+        shared_recogniser().recognise(audio, 0, "take.wav")
     with pytest.raises(ValueError, match="closure_bias"):
         PhoneRecogniser(closure_bias=0)
+    with pytest.raises(ValueError, match="shift_s"):
+        PhoneRecogniser(shift_s=float("nan"))
 
 
 def test_viseme_segments_map_through_the_arpabet_table_and_refuse_labels_it_does_not_know():

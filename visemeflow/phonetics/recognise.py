@@ -15,8 +15,10 @@ Errors are :class:`RecogniserError` naming the audio: samples that are not finit
 
 from __future__ import annotations
 
+import atexit
 import functools
 import math
+import shutil
 import tempfile
 import threading
 from collections.abc import Sequence
@@ -65,6 +67,7 @@ def _biased_lm(bias: float) -> str:
     (written once per process and bias)."""
     ps = _pocketsphinx()
     folder = Path(tempfile.mkdtemp(prefix="visemeflow-phone-lm-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
     stock = folder / "stock.arpa"
     # With NGramModel.readfile the model's LogMath can be freed before write() and the file holds garbage now and
     # then; a LogMath of our own, alive throughout, writes the same file every time.
@@ -100,11 +103,11 @@ class PhoneRecogniser:
             raise ValueError(f"lm_weight must be a positive number, got {lm_weight!r}")
         if not (math.isfinite(closure_bias) and closure_bias > 0):
             raise ValueError(f"closure_bias must be a positive number, got {closure_bias!r}")
+        if not (math.isfinite(shift_s) and abs(shift_s) < 0.5):
+            raise ValueError(f"shift_s must be a number of seconds below 0.5 in size, got {shift_s!r}")
         ps = _pocketsphinx()
         lm = (ps.get_model_path("en-us/en-us-phone.lm.bin") if closure_bias == 1.0
               else _biased_lm(float(closure_bias)))
-        if not (math.isfinite(shift_s) and abs(shift_s) < 0.5):
-            raise ValueError(f"shift_s must be a number of seconds below 0.5 in size, got {shift_s!r}")
         self.lm_weight, self.closure_bias, self.shift_s = float(lm_weight), float(closure_bias), float(shift_s)
         self._decoder = ps.Decoder(allphone=lm, lm=None, lw=self.lm_weight, beam=1e-20, pbeam=1e-20,
                                    loglevel="FATAL")
@@ -120,6 +123,8 @@ class PhoneRecogniser:
 
     def recognise(self, audio: np.ndarray, sample_rate: int, source: str = "<audio>") -> list[RecognisedPhone]:
         """Timed phones of `audio` ((samples,) or (samples, channels), any rate, float in [-1, 1]) covering it."""
+        if not sample_rate > 0:
+            raise RecogniserError(f"{source}: sample rate must be positive, got {sample_rate}")
         x = np.asarray(audio, dtype=np.float64)
         if x.ndim == 2:
             x = x.mean(axis=1)
@@ -128,15 +133,13 @@ class PhoneRecogniser:
         if not np.isfinite(x).all():
             bad = int(np.flatnonzero(~np.isfinite(x))[0])
             raise RecogniserError(f"{source}: audio sample {bad} ({bad / sample_rate:.3f} s) is not a finite number")
-        if sample_rate <= 0:
-            raise RecogniserError(f"{source}: sample rate must be positive, got {sample_rate}")
         if sample_rate != SAMPLE_RATE:
             from scipy.signal import resample_poly
 
             g = math.gcd(int(sample_rate), SAMPLE_RATE)
             x = resample_poly(x, SAMPLE_RATE // g, int(sample_rate) // g)
         duration = len(x) / SAMPLE_RATE
-        if len(x) < SAMPLE_RATE * 0.05:  # shorter than pocketsphinx's shortest utterance: nothing to hear
+        if len(x) < SAMPLE_RATE * 0.05:  # too short to hold a phone (5 frames): silence
             return [RecognisedPhone("", 0.0, duration)] if duration > 0 else []
         pcm = (np.clip(x, -1.0, 1.0) * 32767).astype("<i2").tobytes()
         with self._lock:
