@@ -382,3 +382,41 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
         want = [expected[model][m] for m in ("mbp_closure", "fff_closure", "mbp_false_closure", "fff_false_closure",
                                              "agreement") for _ in range(5)]
         assert [float(x) for x in shown[-25:]] == pytest.approx(want, abs=5e-4)
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_evaluate_flow_scores_recognised_phones_as_the_baseline_that_needs_no_training(tmp_path):
+    import shutil
+
+    from factories import DEMO_CORPUS
+
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, TrainParams
+    from visemeflow.flows.train import train_flow, training_rows
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.procedural.recognised import recognised_curves
+    from visemeflow.schemas import C
+    from visemeflow.tasks.train import load_examples
+    from visemeflow.visemes import VISEME_INDEX
+
+    store = make_curve_store(tmp_path / "store")
+    # the first validation utterance speaks (LJ001-0002: "in being comparatively modern", a b at 0.15 s)
+    shutil.copyfile(DEMO_CORPUS / "LJ" / "LJ001-0002.wav", tmp_path / "store-audio" / "u0.wav")
+    with pytest.raises(LookupError, match="`phones` alone has no training curves to name the targets; pass --variant"):
+        evaluate_flow(EvaluateParams(store=store.root, models=["phones"]))
+    train_flow(TrainParams(store=store.root, config=TrainConfig(preset="mean-curve", epochs=1),
+                           source="ground_truth", model_name="mean"))
+    result = evaluate_flow(EvaluateParams(store=store.root, models=["mean", "phones"]))
+    assert sorted(r["model"] for r in result["table"]) == ["mean", "phones"]
+
+    _, val, _ = training_rows(store, "ground_truth", "cm")
+    speech = next(ex for ex in load_examples(store, val, "ground_truth", "cm") if ex.utterance_id == "spk/u0")
+    curves = recognised_curves(np.asarray(speech.audio, np.float32), 16000, speech.fps, len(speech.curves))
+    assert curves[:, VISEME_INDEX["MBP"]].max() == pytest.approx(1.0)
+    rows = [r for r in store.read_metrics("phones").to_pylist() if r[C.RUN] == "evaluate"]
+    scored = next(r for r in rows if r[C.UTTERANCE_ID] == "spk/u0" and r[C.CONDITION] == "validation")
+    assert scored[C.L1_X100] == pytest.approx(100 * np.abs(curves - speech.curves).mean(), rel=1e-5)
+    assert {r[C.CONDITION] for r in rows} == {"validation", *CONDITIONS}
+    text = (store.root / "reports" / "robustness.md").read_text()
+    assert "| phones | phones (pocketsphinx, no training) | no |" in text

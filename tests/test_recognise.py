@@ -41,8 +41,8 @@ def lj():
 
 
 def test_recognised_curves_close_the_lips_on_real_speech_with_few_false_closures(lj):
-    # Measured on all 24 (bench/realspeech.py prints the same): 60 of 154 b/p/m phones closed (39%), 93 of 1,585 other
-    # phones closed falsely (5.9%; the alignment's own procedural curves: 6.8%), FFF 41 of 85, top-2 agreement 55%.
+    # Measured on all 24 (bench/recogniser.py prints the same): 59 of 154 b/p/m phones closed (38%), 92 of 1,585 other
+    # phones closed falsely (5.8%; the alignment's own procedural curves: 6.8%), FFF 41 of 85, top-2 agreement 55%.
     # The espeak-trained model closes none of the 154 (and never falsely either).
     scores = pool(score_utterance(recognised_curves(audio, rate, FPS, source=str(path)), FPS, phones)
                   for path, audio, rate, phones in lj)
@@ -71,6 +71,16 @@ def test_recognised_phones_cover_the_audio_in_order_at_any_rate(lj):
     again = shared_recogniser().recognise(np.stack([resample_poly(audio, 441, 160)] * 2, axis=1), 44100)
     same = sum(a.label == b.label for a, b in zip(recognised, again))
     assert same >= 0.9 * len(recognised)
+
+
+def test_the_phones_of_a_file_do_not_depend_on_what_was_recognised_before(lj):
+    # one decoder for every file carried its cepstral mean and noise estimate over: after a loud pure tone the same
+    # speech came out as other phones (and a cached result would have depended on the order of the files)
+    _, audio, rate, _ = lj[1]
+    recogniser = PhoneRecogniser()
+    first = recogniser.recognise(audio, rate)
+    recogniser.recognise(0.5 * np.sin(2 * np.pi * 220 * np.arange(16000) / 16000), 16000)
+    assert recogniser.recognise(audio, rate) == first
 
 
 def test_a_closure_bias_hears_more_bilabials(lj):

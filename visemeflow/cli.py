@@ -384,7 +384,8 @@ def sweep(
 
 @app.command()
 def evaluate(
-    models: Annotated[str, typer.Option("--models", help="Comma-separated names of trained models in the store.")],
+    models: Annotated[str, typer.Option("--models", help="Comma-separated names of trained models in the store; "
+                                                         "phones: recognised phones, the no-training baseline.")],
     store: StoreOpt = DEFAULT_STORE,
     conditions: Annotated[str, typer.Option(help="Augmented conditions to judge on.")] = "volume,pitch,speed,noise",
     seed: Annotated[int, typer.Option(help="Seed of the augmentations (same seed, same augmented audio).")] = 0,

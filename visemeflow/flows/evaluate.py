@@ -2,7 +2,8 @@
 by L1 x 100 against the target curves and, on validation utterances with phones, by real-speech metrics that need
 no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`).
 
-Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
+The name `phones` joins the models as the baseline that needs no training (curves of phones recognised in the
+audio; `visemeflow.tasks.evaluate.RecognisedPhonesModel`). Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
 on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line."""
 
 from prefect import flow, get_run_logger
@@ -15,6 +16,7 @@ from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import REALSPEECH_RUNS
 from visemeflow.learning.train import load_model
+from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_model_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.evaluate import augmented_task_for, evaluation_task_for
@@ -46,17 +48,20 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files."""
     resolve_device(params.device)
     store = Store(params.store)
-    paths = {m: store.model_path(m) for m in params.models}
-    missing = [m for m in params.models if not store.has_model(m)]
+    trained = [m for m in params.models if m != RECOGNISED_MODEL]
+    paths = {m: store.model_path(m) for m in trained}
+    missing = [m for m in trained if not store.has_model(m)]
     if missing:
         known = store.model_names()
         raise LookupError(f"no trained model named {', '.join(missing)} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
-    lineage = load_model(paths[params.models[0]])[2]
+    lineage = load_model(paths[trained[0]])[2] if trained else {}
     source = params.source or lineage.get("source", "tracked")
     variant = params.variant or lineage.get("variant")
     if not variant:
-        raise LookupError(f"the model {params.models[0]} has no curve variant in its lineage; pass --variant")
+        raise LookupError(f"the model {trained[0]} has no curve variant in its lineage; pass --variant" if trained
+                          else f"`{RECOGNISED_MODEL}` alone has no training curves to name the targets; pass --variant")
+    hashes = {m: recognised_model_hash() if m == RECOGNISED_MODEL else file_hash(paths[m]) for m in params.models}
     _, val, _ = training_rows(store, source, variant)
     if not val:
         raise LookupError(f"no validation utterance in {store.root} has {source} curves of variant {variant!r}")
@@ -70,7 +75,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     targets = {r[C.UTTERANCE_ID]: store.curves_provenance(source, variant, r[C.UTTERANCE_ID]) for r in val}
     phones = validation_phones(store, val)
     futures = [
-        evaluation_task_for(store, m).submit(str(store.root), m, file_hash(paths[m]), val, augmented, source, variant,
+        evaluation_task_for(store, m).submit(str(store.root), m, hashes[m], val, augmented, source, variant,
                                              targets, phones, params.device)
         for m in params.models
     ]

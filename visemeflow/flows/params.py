@@ -175,7 +175,8 @@ class EvaluateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    models: list[str] = Field(..., min_length=1, description="Names of trained models in the store.")
+    models: list[str] = Field(..., min_length=1, description="Names of trained models in the store; `phones`: the "
+                                                             "curves of phones recognised in the audio (no training).")
     conditions: list[Literal["volume", "pitch", "speed", "noise"]] = Field(
         ["volume", "pitch", "speed", "noise"], description="Augmented copies of the validation set to judge on."
     )

@@ -20,7 +20,6 @@ import functools
 import math
 import shutil
 import tempfile
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +38,7 @@ WINDOW_CENTRE_S = 0.025625 / 2
 LM_WEIGHT = 2.0  # all-phone decoding: the language model weighs less than in word decoding (its default 6.5)
 CLOSURE_PHONES = {"B": "MBP", "P": "MBP", "M": "MBP", "F": "FFF", "V": "FFF"}
 SILENCE = "SIL"
+CMN = "batch"
 
 
 class RecogniserError(ValueError):
@@ -95,7 +95,7 @@ def _biased_lm(bias: float) -> str:
 
 
 class PhoneRecogniser:
-    """All-phone decoding with pocketsphinx's English model; one decoder, used by one thread at a time."""
+    """All-phone decoding with pocketsphinx's English model; a fresh decoder for each audio, so any thread may call."""
 
     def __init__(self, lm_weight: float = LM_WEIGHT, closure_bias: float = 1.0,
                  shift_s: float = WINDOW_CENTRE_S) -> None:
@@ -109,9 +109,12 @@ class PhoneRecogniser:
         lm = (ps.get_model_path("en-us/en-us-phone.lm.bin") if closure_bias == 1.0
               else _biased_lm(float(closure_bias)))
         self.lm_weight, self.closure_bias, self.shift_s = float(lm_weight), float(closure_bias), float(shift_s)
-        self._decoder = ps.Decoder(allphone=lm, lm=None, lw=self.lm_weight, beam=1e-20, pbeam=1e-20,
-                                   loglevel="FATAL")
-        self._lock = threading.Lock()
+        # A decoder carries state from one utterance into the next (its cepstral mean, its noise estimate): the
+        # phones of a file would depend on what was decoded before it. Each call gets a fresh decoder (0.15 s), and
+        # "batch" normalises each utterance by its own cepstral mean.
+        self._config = dict(allphone=lm, lm=None, lw=self.lm_weight, beam=1e-20, pbeam=1e-20, cmn=CMN,
+                            loglevel="FATAL")
+        ps.Decoder(**self._config)  # a bad setting fails here, not at the first file
 
     @property
     def settings(self) -> str:
@@ -119,7 +122,7 @@ class PhoneRecogniser:
         from importlib.metadata import version
 
         return (f"pocketsphinx {version('pocketsphinx')} en-us allphone lw={self.lm_weight:g} "
-                f"bias={self.closure_bias:g} shift={self.shift_s:g}")
+                f"bias={self.closure_bias:g} shift={self.shift_s:g} cmn={CMN}")
 
     def recognise(self, audio: np.ndarray, sample_rate: int, source: str = "<audio>") -> list[RecognisedPhone]:
         """Timed phones of `audio` ((samples,) or (samples, channels), any rate, float in [-1, 1]) covering it."""
@@ -139,14 +142,16 @@ class PhoneRecogniser:
             g = math.gcd(int(sample_rate), SAMPLE_RATE)
             x = resample_poly(x, SAMPLE_RATE // g, int(sample_rate) // g)
         duration = len(x) / SAMPLE_RATE
-        if len(x) < SAMPLE_RATE * 0.05:  # too short to hold a phone (5 frames): silence
+        # too short to hold a phone (5 frames), or digital silence (under 2 steps of 16 bits, where batch
+        # normalisation would make phones of nothing): silence
+        if len(x) < SAMPLE_RATE * 0.05 or np.abs(x).max() < 2 / 32768:
             return [RecognisedPhone("", 0.0, duration)] if duration > 0 else []
         pcm = (np.clip(x, -1.0, 1.0) * 32767).astype("<i2").tobytes()
-        with self._lock:
-            self._decoder.start_utt()
-            self._decoder.process_raw(pcm, full_utt=True)
-            self._decoder.end_utt()
-            segments = [(s.word, s.start_frame, s.end_frame) for s in self._decoder.seg()]
+        decoder = _pocketsphinx().Decoder(**self._config)
+        decoder.start_utt()
+        decoder.process_raw(pcm, full_utt=True)
+        decoder.end_utt()
+        segments = [(s.word, s.start_frame, s.end_frame) for s in decoder.seg()]
         phones = []
         for k, (word, first, last) in enumerate(segments):
             start = 0.0 if k == 0 else min(first * FRAME_S + self.shift_s, duration)
