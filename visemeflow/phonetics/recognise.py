@@ -33,7 +33,7 @@ SAMPLE_RATE = 16000
 FRAME_S = 0.01  # pocketsphinx's frame rate is 100 per second
 # Frame i is analysed over [i * 10 ms, i * 10 ms + 25.625 ms] (its default window): it describes the sound at the
 # window's centre, 12.8 ms after the frame's start. Times are moved there, which the LJ alignments confirm: b/p/m
-# phones closed 47 -> 60 of 154 with false closures 5.6 -> 5.9% (bench/domain_gap.py, --recogniser-shift).
+# phones closed 46 -> 59 of 154, false closures 5.6 -> 5.8% (bench/recogniser.py, "frame starts").
 WINDOW_CENTRE_S = 0.025625 / 2
 LM_WEIGHT = 2.0  # all-phone decoding: the language model weighs less than in word decoding (its default 6.5)
 CLOSURE_PHONES = {"B": "MBP", "P": "MBP", "M": "MBP", "F": "FFF", "V": "FFF"}
