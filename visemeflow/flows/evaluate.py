@@ -3,7 +3,9 @@ by L1 x 100 against the target curves and, on validation utterances with phones,
 no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`).
 
 The name `phones` joins the models as the baseline that needs no training (curves of phones recognised in the
-audio; `visemeflow.tasks.evaluate.RecognisedPhonesModel`). Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
+audio; `visemeflow.tasks.evaluate.RecognisedPhonesModel`).
+
+Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
 on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line."""
 
 from prefect import flow, get_run_logger

@@ -4,8 +4,8 @@ training of ours.
 PocketSphinx (CMU, BSD-2) decodes the audio with CMU's English acoustic model, which its wheel carries (no
 download), in its all-phone mode: every phone may follow every other, weighed by the phone-trigram language model
 that comes with it. Its acoustic model was trained on many real speakers, which no model of ours can be here; that
-is the point: `bench/domain_gap.py` measures the procedural curves of these phones against every learned recipe on
-speakers nothing was trained on.
+is the point: `bench/recogniser.py` and `bench/domain_gap.py` measure the procedural curves of these phones against
+the learned models on speakers nothing was trained on.
 
 `closure_bias` multiplies the language model's probability of every b/p/m and f/v phone (1: the stock model); more
 closures are heard, and more falsely (`bench/domain_gap.py --recogniser-bias` prints the trade-off).
@@ -165,13 +165,13 @@ class PhoneRecogniser:
 @functools.lru_cache(maxsize=4)
 def shared_recogniser(lm_weight: float = LM_WEIGHT, closure_bias: float = 1.0,
                       shift_s: float = WINDOW_CENTRE_S) -> PhoneRecogniser:
-    """One recogniser per setting and process (loading the acoustic model takes a few tenths of a second)."""
+    """One recogniser per setting and process (a biased language model is written once)."""
     return PhoneRecogniser(lm_weight, closure_bias, shift_s)
 
 
 def viseme_segments(phones: Sequence[RecognisedPhone], source: str = "<audio>") -> list[VisemeSegment]:
-    """The viseme segments of recognised phones, as an alignment's: silence dropped, diphthongs split by the ARPAbet
-    table's weights. Each phone is its own word (recognition finds no word boundaries)."""
+    """The viseme segments of recognised phones, as an alignment's: silence dropped, a phone of several visemes split
+    by the ARPAbet table's weights. Each phone is its own word (recognition finds no word boundaries)."""
     out: list[VisemeSegment] = []
     for index, phone in enumerate(phones):
         if not phone.label:
