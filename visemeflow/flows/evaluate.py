@@ -3,7 +3,7 @@ by L1 x 100 against the target curves and, on validation utterances with phones,
 no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`).
 
 The name `phones` joins the models as the baseline that needs no training (curves of phones recognised in the
-audio; `visemeflow.tasks.evaluate.RecognisedPhonesModel`).
+audio; `visemeflow.tasks.models`).
 
 Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
 on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line."""
@@ -13,15 +13,15 @@ from prefect.artifacts import create_markdown_artifact
 
 from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.train import training_rows
-from visemeflow.hashing import file_hash
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import REALSPEECH_RUNS
 from visemeflow.learning.train import load_model
-from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_model_hash
+from visemeflow.procedural.recognised import RECOGNISED_MODEL
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.evaluate import augmented_task_for, evaluation_task_for
+from visemeflow.tasks.models import is_trained, model_hash
 
 
 def validation_phones(store: Store, rows: list[dict]) -> dict[str, list[dict]]:
@@ -50,7 +50,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files."""
     resolve_device(params.device)
     store = Store(params.store)
-    trained = [m for m in params.models if m != RECOGNISED_MODEL]
+    trained = [m for m in params.models if is_trained(m)]
     paths = {m: store.model_path(m) for m in trained}
     missing = [m for m in trained if not store.has_model(m)]
     if missing:
@@ -63,7 +63,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     if not variant:
         raise LookupError(f"the model {trained[0]} has no curve variant in its lineage; pass --variant" if trained
                           else f"`{RECOGNISED_MODEL}` alone has no training curves to name the targets; pass --variant")
-    hashes = {m: recognised_model_hash() if m == RECOGNISED_MODEL else file_hash(paths[m]) for m in params.models}
+    hashes = {m: model_hash(store, m) for m in params.models}
     _, val, _ = training_rows(store, source, variant)
     if not val:
         raise LookupError(f"no validation utterance in {store.root} has {source} curves of variant {variant!r}")

@@ -25,10 +25,10 @@ from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
 from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
 from visemeflow.learning.device import DeviceWord, resolve_device
-from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_model_hash
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
+from visemeflow.tasks.models import is_trained, model_hash
 from visemeflow.tasks.predict import SOURCE, prediction_task_for
 
 EXPORT_FORMATS = ("csv", "json")
@@ -112,20 +112,19 @@ def predict_flow(params: PredictParams) -> dict:
     resolve_device(params.device)
     store = Store(params.store)
     ensure_model(store, params.model)
-    if params.model != RECOGNISED_MODEL and not store.has_model(params.model):
+    if is_trained(params.model) and not store.has_model(params.model):
         known = store.model_names()
         raise LookupError(f"no trained model named {params.model} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
     missing = [str(p) for p in params.audio if not Path(p).is_file()]
     if missing:
         raise LookupError(f"no such audio file: {', '.join(missing)}")
-    model_hash = (recognised_model_hash() if params.model == RECOGNISED_MODEL
-                  else file_hash(store.model_path(params.model)))
+    digest = model_hash(store, params.model)
     rows = []
     for audio in params.audio:
         uid = prediction_id(audio)
         state = prediction_task_for(store, params.model, uid)(
-            str(store.root), params.model, model_hash, str(audio), file_hash(audio), uid, float(params.fps),
+            str(store.root), params.model, digest, str(audio), file_hash(audio), uid, float(params.fps),
             params.device, return_state=True,
         )
         result = state.result()  # raises the task's error (unreadable audio, ...)

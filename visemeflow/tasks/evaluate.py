@@ -3,16 +3,14 @@ on the validation set and on each augmented copy, with the real-speech metrics (
 agreement) of the validation utterances that have phones.
 
 The evaluation task runs its model on the device it is given, in float32; the device is not part of its cache key
-(`EVALUATE_CACHE_POLICY`). The reserved model name `phones` is scored like a model: the curves of phones recognised
-in each audio (`visemeflow.procedural.recognised`), so its row in the robustness table is the baseline that needs no
-training."""
+(`EVALUATE_CACHE_POLICY`). The reserved model name `phones` is scored like a model (`visemeflow.tasks.models`): its
+row in the robustness table is the baseline that needs no training."""
 
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import soundfile as sf
-import torch
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
@@ -26,32 +24,15 @@ from visemeflow.learning.robustness_table import (
     REALSPEECH_METRICS,
     REALSPEECH_RUNS,
 )
-from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, load_model, resample_curves
-from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_curves
+from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, resample_curves
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, result_storage
+from visemeflow.tasks.models import load_curve_model
 from visemeflow.tasks.train import load_audio, load_examples, metrics_rows
 
 RUN = "evaluate"
 
-
-class RecognisedPhonesModel(torch.nn.Module):
-    """`phones` in the calling convention of a trained model (16 kHz audio, lengths, frame counts -> curves, mask),
-    so `evaluate` and the real-speech metrics score it exactly as they score a model."""
-
-    preset = "phones (pocketsphinx, no training)"
-
-    def forward(self, audio: torch.Tensor, lengths: torch.Tensor, n_frames: torch.Tensor, targets=None,
-                fps: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        fps = 30.0 if fps is None else float(fps)
-        out = torch.zeros(audio.shape[0], int(n_frames.max()) if len(n_frames) else 0, 16)
-        for b in range(audio.shape[0]):
-            n = int(n_frames[b])
-            curves = recognised_curves(audio[b, : int(lengths[b])].cpu().numpy(), SAMPLE_RATE, fps, n)
-            out[b, :n] = torch.from_numpy(curves)
-        mask = torch.arange(out.shape[1])[None, :] < n_frames.cpu()[:, None]
-        return out, mask
 # INPUTS + TASK_SOURCE like every task, without where the model runs
 EVALUATE_CACHE_POLICY = Inputs(exclude=["device"]) + TASK_SOURCE
 
@@ -153,11 +134,7 @@ def evaluate_model(
     changed curves or a changed alignment. `device` (auto, cpu, cuda, cuda:N): where the model runs (float32).
     """
     store = Store(store_root)
-    if model_name == RECOGNISED_MODEL:
-        model, preset, train_augment = RecognisedPhonesModel(), RecognisedPhonesModel.preset, False
-    else:
-        model, config, _ = load_model(store.model_path(model_name), device=device)
-        preset, train_augment = config.preset, config.train_augment
+    model, preset, train_augment = load_curve_model(store, model_name, device)
     val = load_examples(store, val_rows, source, variant)
     by_id = {ex.utterance_id: ex for ex in val}
     aligned = {uid: phones_of(rows) for uid, rows in (phones or {}).items() if uid in by_id}

@@ -1,6 +1,6 @@
 """Prediction task: the viseme curves of one audio file (or a video's audio track) from one trained model, written
 to the store as source `predicted`, variant = the model's name. The reserved model name `phones` is no trained
-model: phones recognised in the audio and the procedural rules (`visemeflow.procedural.recognised`)."""
+model: phones recognised in the audio and the procedural rules (`visemeflow.tasks.models`)."""
 
 import functools
 import time
@@ -10,11 +10,11 @@ from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.ingest.audio import read_audio
 from visemeflow.learning.device import resolve_device
-from visemeflow.learning.train import load_model, predict_curves
-from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_curves
+from visemeflow.learning.train import predict_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.models import load_curve_model
 
 SOURCE = "predicted"
 # INPUTS + TASK_SOURCE like every task, but not keyed on where the audio lies: its content hash is an input, so the
@@ -24,10 +24,10 @@ PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path", "device"]) + TASK_SOURCE
 
 
 @functools.lru_cache(maxsize=2)
-def _model(path: str, model_hash: str, device: str = "cpu"):
-    """The loaded model of `path` on `device` (one load for all the files of a run); the hash keys a retrained
+def _model(store_root: str, name: str, model_hash: str, device: str = "cpu"):
+    """The loaded model `name` on `device` (one load for all the files of a run); the hash keys a retrained
     model apart."""
-    return load_model(path, device=device)[0]
+    return load_curve_model(Store(store_root), name, device)[0]
 
 
 @task(cache_policy=PREDICT_CACHE_POLICY, persist_result=True, task_run_name="predict[{utterance_id}]")
@@ -40,15 +40,10 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     `device`: auto, cpu, cuda or cuda:N, resolved here, where the work runs).
     """
     store = Store(store_root)
-    if model_name == RECOGNISED_MODEL:
-        started = time.perf_counter()
-        samples, rate = read_audio(audio_path)
-        curves = recognised_curves(samples, rate, fps, source=audio_path)
-    else:
-        model = _model(str(store.model_path(model_name)), model_hash, str(resolve_device(device)))
-        started = time.perf_counter()
-        samples, rate = read_audio(audio_path)
-        curves = predict_curves(model, samples, rate, fps)
+    model = _model(store_root, model_name, model_hash, str(resolve_device(device)))
+    started = time.perf_counter()
+    samples, rate = read_audio(audio_path)
+    curves = predict_curves(model, samples, rate, fps)
     seconds = time.perf_counter() - started
     duration = len(samples) / rate
     path = store.write_curves(curves_table(utterance_id, SOURCE, model_name, curves, fps),
