@@ -18,7 +18,8 @@ Rows: `off` runs the encoder at every step (the behaviour before the cache); `me
 epoch skips the encoder). Columns: epoch 1 (the cache fills), later epochs (the fastest one), steps/s in it, the
 speed-up of later epochs against `off` (each timing the fastest of `--repeats` runs: the machine may be shared),
 and whether the final weights equal `off`'s bit for bit (batch size 1) or their largest difference (batches: the
-uncached batch runs the CNN on zero-padded audio). On CUDA also the peak GPU memory. Then the CNN encoder's time
+uncached batch runs the CNN on zero-padded audio). On CUDA also the run's peak GPU memory, and whether two runs of a
+row give the same weights (cuDNN's and autocast's kernels need not be deterministic). Then the CNN encoder's time
 measured on its own: its forward without gradient against the whole wav2vec2 model's forward + backward, one 2 s
 utterance, fastest of 3 (what the cache takes out of a step, roughly: in training the CNN's large activations also
 slow what follows them, so the measured speed-up can exceed this share). Last line: the inference real-time factor
@@ -61,18 +62,28 @@ def examples(n: int, seed: int = 0) -> list[Example]:
 
 
 def run(train, config, device, precision, cache) -> dict:
+    """One training run. The model comes back on the CPU, so that runs kept for the table hold no GPU memory and
+    each run's peak counts only what it allocated itself (above what was allocated when it started)."""
     device = resolve_device(device)
+    base = 0
     if device.type == "cuda":
+        torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
+        base = torch.cuda.memory_allocated(device)
     t0 = time.perf_counter()
     result = train_model(train, [], config, device=device, precision=precision, encoder_cache=cache)
     total = time.perf_counter() - t0
     secs = [h.seconds for h in result.history]
     later = secs[1:] or secs
     steps = result.history[-1].steps
-    return {"model": result.model, "epoch1": secs[0], "later": min(later), "steps_per_s": steps / min(later),
-            "total": total, "state": {k: v.detach().float().cpu() for k, v in result.model.state_dict().items()},
-            "peak_gb": torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None}
+    peak = (torch.cuda.max_memory_allocated(device) - base) / 1e9 if device.type == "cuda" else None
+    state = {k: v.detach().float().cpu() for k, v in result.model.state_dict().items()}
+    return {"model": result.model.cpu(), "epoch1": secs[0], "later": min(later), "steps_per_s": steps / min(later),
+            "total": total, "state": state, "peak_gb": peak}
+
+
+def largest_difference(a: dict, b: dict) -> float:
+    return max(float((a[k] - b[k]).abs().max()) for k in a)
 
 
 def encoder_share(w2v_path: Path, device: torch.device) -> tuple[float, float]:
@@ -133,8 +144,12 @@ def main() -> int:
           f"{args.epochs} epochs, batch {args.batch_size}, {device} ({args.precision}), {args.threads} thread(s)",
           flush=True)
 
+    run_to_run = []
+
     def fastest(cache) -> dict:
         runs = [run(train, config, device, args.precision, cache()) for _ in range(max(1, args.repeats))]
+        if len(runs) > 1:
+            run_to_run.append(largest_difference(runs[0]["state"], runs[1]["state"]))
         best = min(runs, key=lambda r: r["later"])
         return {**best, "epoch1": min(r["epoch1"] for r in runs)}
 
@@ -148,17 +163,20 @@ def main() -> int:
         header += f" {'peak GB':>8}"
     print(header)
     for name, r in rows.items():
-        diff = max(float((r["state"][k] - ref["state"][k]).abs().max()) for k in ref["state"])
+        diff = largest_difference(r["state"], ref["state"])
         same = "yes" if diff == 0.0 else f"{diff:.1e}"
         line = (f"{name:<11} {r['epoch1']:>9.3f} {r['later']:>13.3f} {r['steps_per_s']:>8.2f} "
                 f"{ref['later'] / r['later']:>7.2f}x {same:>13}")
         if device.type == "cuda":
             line += f" {r['peak_gb']:>8.2f}"
         print(line)
+    if run_to_run:
+        print(f"two runs of the same row, same seed: largest weight difference {max(run_to_run):.1e} "
+              f"({'bit-identical' if max(run_to_run) == 0 else 'the kernels are not deterministic here'})")
     cnn_s, step_s = encoder_share(w2v, device)
     print(f"CNN encoder alone vs a whole wav2vec2 forward + backward (2 s utterance): {cnn_s:.3f} s of {step_s:.3f} s "
           f"({cnn_s / step_s:.1%})")
-    model = ref["model"]
+    model = ref["model"].to(device)
     predict_curves(model, train[0].audio, SR, FPS)  # warm-up
     if device.type == "cuda":
         torch.cuda.synchronize(device)

@@ -328,5 +328,8 @@ def test_on_a_real_gpu(tmp_path):
         path = save_model(res.model, cfg, tmp_path / f"{precision}.pt", {})
         cpu = load_model(path, device="cpu")[0]
         assert model_device(cpu) == torch.device("cpu")
-        np.testing.assert_allclose(predict_curves(cpu, train[0].audio, 16000, 25.0),
-                                   predict_curves(res.model, train[0].audio, 16000, 25.0), atol=1e-4)
+        on_cpu = predict_curves(cpu, train[0].audio, 16000, 25.0)
+        # float32 on CUDA: cuDNN's convolutions and LSTMs use TF32 tensor cores (PyTorch's default), 10-bit mantissas
+        np.testing.assert_allclose(on_cpu, predict_curves(res.model, train[0].audio, 16000, 25.0), atol=2e-3)
+        with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
+            np.testing.assert_allclose(on_cpu, predict_curves(res.model, train[0].audio, 16000, 25.0), atol=1e-5)
