@@ -3,6 +3,7 @@
 
 Run: .venv/bin/python bench/wav2vec2_cache.py [--encoder tiny|xlsr-cnn|xlsr53] [--epochs 4] [--utterances 8]
      [--batch-size 1] [--device cpu|cuda|auto] [--precision auto|fp32|bf16|fp16] [--threads 1] [--repeats 3]
+     [--seconds 1,3]
 
 Model: the `wav2vec2-blstm` preset (d_model 16 unless --d-model) on a randomly initialised Wav2Vec2 (no weights can be
 downloaded here):
@@ -11,7 +12,7 @@ downloaded here):
 - xlsr-cnn: XLSR-53's CNN feature encoder (7 conv layers of 512 channels, strides 5,2,2,2,2,2,2) with the tiny
   transformer: the encoder's cost as in the paper's model, the rest small;
 - xlsr53: the whole XLSR-53 architecture (24 layers of 1024, 315 M parameters): for a GPU.
-Data: `--utterances` synthetic utterances of 1-3 s (noise under a slow envelope), random target curves at 25 fps.
+Data: `--utterances` synthetic utterances of 1-3 s (`--seconds`; noise under a slow envelope), random target curves at 25 fps.
 
 Rows: `off` runs the encoder at every step (the behaviour before the cache); `memory` keeps its outputs for the run
 (the default of `train_model`); `disk, warm` is a second run reading the files a first `disk` run wrote (every
@@ -49,11 +50,11 @@ XLSR53 = {**XLSR_CNN, "hidden_size": 1024, "num_hidden_layers": 24, "num_attenti
           "intermediate_size": 4096, "num_conv_pos_embeddings": 128, "num_conv_pos_embedding_groups": 16}
 
 
-def examples(n: int, seed: int = 0) -> list[Example]:
+def examples(n: int, seed: int = 0, seconds: tuple[float, float] = (1.0, 3.0)) -> list[Example]:
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
-        dur = float(rng.uniform(1.0, 3.0))
+        dur = float(rng.uniform(*seconds))
         t = np.arange(int(dur * SR)) / SR
         env = 0.5 + 0.5 * np.sin(2 * np.pi * rng.uniform(0.7, 2.0) * t)
         audio = (0.3 * env * rng.standard_normal(t.size)).astype(np.float32)
@@ -129,13 +130,15 @@ def main() -> int:
     ap.add_argument("--precision", default="auto")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seconds", default="1,3", help="utterance durations drawn uniformly in MIN,MAX seconds")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     work = Path(tempfile.mkdtemp(prefix="w2v-cache-bench-"))
     overrides = {"tiny": {}, "xlsr-cnn": XLSR_CNN, "xlsr53": XLSR53}[args.encoder]
     w2v = make_tiny_wav2vec2(work / "w2v", seed=0, **overrides)
-    train = examples(args.utterances)
+    low, high = (float(x) for x in args.seconds.split(","))
+    train = examples(args.utterances, seconds=(low, high))
     config = TrainConfig(preset="wav2vec2-blstm", epochs=args.epochs, d_model=args.d_model, seed=0,
                          wav2vec2_model=str(w2v), batch_size=args.batch_size)
     device = resolve_device(args.device)
