@@ -12,7 +12,8 @@ downloaded here):
 - xlsr-cnn: XLSR-53's CNN feature encoder (7 conv layers of 512 channels, strides 5,2,2,2,2,2,2) with the tiny
   transformer: the encoder's cost as in the paper's model, the rest small;
 - xlsr53: the whole XLSR-53 architecture (24 layers of 1024, 315 M parameters): for a GPU.
-Data: `--utterances` synthetic utterances of 1-3 s (`--seconds`; noise under a slow envelope), random target curves at 25 fps.
+Data: `--utterances` synthetic utterances of 1-3 s (`--seconds`; noise under a slow envelope), random target curves
+at 25 fps.
 
 Rows: `off` runs the encoder at every step (the behaviour before the cache); `memory` keeps its outputs for the run
 (the default of `train_model`); `disk, warm` is a second run reading the files a first `disk` run wrote (every
