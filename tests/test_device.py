@@ -333,3 +333,28 @@ def test_on_a_real_gpu(tmp_path):
         np.testing.assert_allclose(on_cpu, predict_curves(res.model, train[0].audio, 16000, 25.0), atol=2e-3)
         with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
             np.testing.assert_allclose(on_cpu, predict_curves(res.model, train[0].audio, 16000, 25.0), atol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_wav2vec2_batches_and_the_encoder_cache_on_a_real_gpu(tmp_path):
+    """Padded batches and the frozen CNN's outputs on the GPU: a disk cache filled by one run answers every step of
+    the next, and its keys hold the precision (a float32 run computes its own)."""
+    from visemeflow.learning.features import EncoderOutputCache, make_tiny_wav2vec2
+    from visemeflow.learning.train import TrainConfig, predict_curves, train_model
+
+    w2v = make_tiny_wav2vec2(tmp_path / "w2v", seed=0)
+    train = _examples(4, 2)
+    cfg = TrainConfig(preset="wav2vec2-blstm", epochs=3, d_model=16, wav2vec2_model=str(w2v), batch_size=2)
+    first = EncoderOutputCache(tmp_path / "enc")
+    trained = train_model(train, [], cfg, device="cuda", encoder_cache=first)
+    assert (first.misses, first.hits) == (4, 8) and len(list((tmp_path / "enc").glob("*.pt"))) == 4
+    again = EncoderOutputCache(tmp_path / "enc")
+    retrained = train_model(train, [], cfg, device="cuda", encoder_cache=again)
+    assert (again.misses, again.hits) == (0, 12)
+    fp32 = EncoderOutputCache(tmp_path / "enc")
+    train_model(train, [], cfg, device="cuda", precision="fp32", encoder_cache=fp32)
+    assert fp32.misses == 4 and len(list((tmp_path / "enc").glob("*.pt"))) == 8
+    for result in (trained, retrained):
+        assert model_device(result.model).type == "cuda" and np.isfinite(result.history[-1].train_l1_x100)
+        curves = predict_curves(result.model, train[0].audio, 16000, 25.0)
+        assert curves.shape[1] == 16 and np.isfinite(curves).all()
