@@ -11,7 +11,7 @@ from pathlib import Path
 from factories import REPO
 
 PACKAGE = REPO / "visemeflow"
-BASE = {"visemes", "hashing", "timebase", "atomic"}
+BASE = {"visemes", "articulation", "hashing", "timebase", "atomic"}
 DOMAIN = {"phonetics", "procedural", "rig", "tracking", "learning", "animation", "synth", "ingest"}
 # part -> the parts of ours it may import (besides itself and BASE)
 ALLOWED = {

@@ -21,9 +21,11 @@ from visemeflow.procedural import (
     segment_keys,
     smoothstep,
 )
+from visemeflow.articulation import close_lips
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
 
 CFG = ProceduralConfig()
+RAW = ProceduralConfig(closure_rule=False)   # the JALI key rules alone, before the lip rules of articulation.py
 FINE_FPS = 1000.0  # 1 ms frames: timing checks do not depend on where frames happen to fall
 
 
@@ -31,8 +33,8 @@ def seg(viseme: str, start: float, end: float, word: int | None = 0) -> VisemeSe
     return VisemeSegment(viseme, start, end, word)
 
 
-def channel(segments, viseme: str, seconds: float = 2.0, fps: float = FINE_FPS, config=CFG) -> np.ndarray:
-    """One viseme's curve (frames,) and nothing else."""
+def channel(segments, viseme: str, seconds: float = 2.0, fps: float = FINE_FPS, config=RAW) -> np.ndarray:
+    """One viseme's curve (frames,) by the key rules alone (the lip rules are tested on their own)."""
     curves = generate_procedural_curves(segments, int(round(seconds * fps)), fps, config)
     return curves[:, viseme_index(viseme)]
 
@@ -275,7 +277,7 @@ def dense_reference(segments, n_frames, fps):
     times = np.arange(n_frames) / fps
     for i, c in enumerate(keys.channel):
         curves[:, c] = np.maximum(curves[:, c], key_envelopes(keys, np.full(n_frames, i), times))
-    return curves
+    return close_lips(curves) if CFG.closure_rule else curves
 
 
 @settings(max_examples=200, deadline=None)

@@ -90,6 +90,9 @@ ModeOpt = Annotated[str, typer.Option(
     "--mode", help="blendshape (the character's shapes) or bones (SSDR bones from its visemes: glb and usd become "
                    "skinned bone animation).")]
 BonesOpt = Annotated[int, typer.Option("--bones", min=1, help="Bone count of the SSDR solve (--mode bones).")]
+ClosureOpt = Annotated[bool, typer.Option(
+    "--closure-rule/--no-closure-rule", help="Lips close at b/p/m and touch the teeth at f/v whatever else is active, "
+                                             "and no blend opens wider than AHH (visemeflow.articulation).")]
 MappingOpt = Annotated[Optional[Path], typer.Option(
     "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.")]
 ConventionOpt = Annotated[Optional[str], typer.Option(
@@ -97,13 +100,14 @@ ConventionOpt = Annotated[Optional[str], typer.Option(
 
 
 def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool,
-                    mode: str = "blendshape", bones: int = 32):
+                    mode: str = "blendshape", bones: int = 32, closure_rule: bool = True):
     import pydantic
 
     from visemeflow.animation.package import AnimateConfig
 
     try:
-        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview, mode=mode, bones=bones)
+        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview, mode=mode, bones=bones,
+                             closure_rule=closure_rule)
     except pydantic.ValidationError as exc:
         typer.echo(f"error: {exc.errors()[0]['msg']}", err=True)
         raise typer.Exit(2) from None
@@ -523,6 +527,7 @@ def animate(
     out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
     mode: ModeOpt = "blendshape",
     bones: BonesOpt = 32,
+    closure_rule: ClosureOpt = True,
 ) -> None:
     """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
 
@@ -531,7 +536,7 @@ def animate(
     from visemeflow.flows.animate import AnimateParams, animate_flow
 
     params = dict(store=store, source=source, variant=variant, utterances=utterances or None, mapping=mapping,
-                  config=_animate_config(formats, fps, convention, preview, mode, bones), out=out)
+                  config=_animate_config(formats, fps, convention, preview, mode, bones, closure_rule), out=out)
     if character:
         params["characters"] = character
     _print_packages(dict(animate_flow(AnimateParams(**params))))
@@ -553,6 +558,7 @@ def speak(
     out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
     mode: ModeOpt = "blendshape",
     bones: BonesOpt = 32,
+    closure_rule: ClosureOpt = True,
 ) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     from visemeflow.flows.animate import SpeakParams, speak_flow
@@ -564,7 +570,7 @@ def speak(
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
-                  config=_animate_config(formats, None, convention, preview, mode, bones))
+                  config=_animate_config(formats, None, convention, preview, mode, bones, closure_rule))
     if character:
         params["characters"] = character
     _print_packages(dict(speak_flow(SpeakParams(**params))))
@@ -583,6 +589,7 @@ def preview_command(
     mode: Annotated[str, typer.Option(help="blendshape, bones (the SSDR bone animation the bone exports play) or "
                                            "both (blendshape and bone panels of each source side by side).")] = "blendshape",
     bones: Annotated[int, typer.Option(help="Bone count in modes bones and both.")] = 32,
+    closure_rule: ClosureOpt = True,
 ) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
     import pydantic
@@ -590,7 +597,7 @@ def preview_command(
     from visemeflow.flows.animate import PreviewParams, preview_flow
 
     params = dict(store=store, utterance_id=utterance_id, sources=[x.strip() for x in sources.split(",") if x.strip()],
-                  mapping=mapping, size=size, out=out, mode=mode, bones=bones)
+                  mapping=mapping, size=size, out=out, mode=mode, bones=bones, closure_rule=closure_rule)
     if character:
         params["character"] = character
     try:

@@ -42,6 +42,7 @@ import soundfile as sf
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from visemeflow.animation.apply import check_curves, resample
+from visemeflow.articulation import close_lips
 from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, solve_bones, write_pose_table
 from visemeflow.animation.character import Character
 from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
@@ -74,6 +75,10 @@ class AnimateConfig(BaseModel):
         "blendshape", description="blendshape: the character's shapes are animated; bones: its visemes become SSDR "
                                   "bones and glb/usd are skinned bone animation (pose-csv/pose-json: the poses).")
     bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve in bone mode.")
+    closure_rule: bool = Field(
+        True, description="Apply the lip rules of visemeflow.articulation before the curves drive the character: "
+                          "lips close at b/p/m and touch the teeth at f/v whatever else is active, and no blend opens "
+                          "wider than the widest viseme (AHH).")
 
     @model_validator(mode="after")
     def _pose_tables_need_bones(self):
@@ -157,6 +162,8 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     curves = check_curves(curves, where or utterance_id)
     rate = float(config.fps or fps)
     curves = resample(curves, float(fps), rate)
+    if config.closure_rule:
+        curves = close_lips(curves)
     weights = binding.weights(curves)
     paths = export_paths(out_dir, stem, config.formats, config.mode)
     files: dict[str, str] = {}

@@ -8,7 +8,12 @@ writes an H.264 + AAC `.mp4`:
     | procedural  |   tracked    |   predicted      |   label band: each source's label above its panel
     |   [face]    |   [face]     |    [face]        |   one `size` x `size` panel per source, no margins
     |                    AH                         |   caption band: the phone under way (only with `phones`)
-    +-----------------------------------------------+
+    |  lips 1.1 mm | lips 14.2 mm |  lips 0.9 mm    |   lip band: each panel's inner-lip gap (characters with
+    +-----------------------------------------------+   landmarks: the demo character, transferred characters)
+
+The lip band shows the gap between the inner lips of the mesh as rendered (the three inner-lip landmark pairs of the
+68-point layout, in millimetres, `Character.mm_per_unit`): green when closed (below `articulation.CLOSED_MM`), red
+when the phone under way is a bilabial (b, p, m) and the lips are not closed, so a failed closure shows at a glance.
 
 Panels are rendered by the synthetic corpus's numpy rasteriser (`visemeflow.synth.render.render_mesh`, Lambert +
 ambient shading, grey skin) from one fixed camera and pose per character, so only the blendshape motion changes.
@@ -58,6 +63,7 @@ import cv2
 import numpy as np
 
 from visemeflow.animation.character import Character
+from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
 from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
 from visemeflow.timebase import frame_count
@@ -72,6 +78,24 @@ log = logging.getLogger(__name__)
 BAND_COLOR = (24, 25, 30)
 TEXT_COLOR = (235, 235, 240)
 CAPTION_COLOR = (255, 214, 120)
+CLOSED_COLOR = (120, 230, 140)
+OPEN_AT_CLOSURE_COLOR = (255, 90, 90)
+_INNER_LIP_PAIRS = ((61, 67), (62, 66), (63, 65))
+_BILABIALS = frozenset({"b", "p", "m", "em", "bh", "ph", "mb"})
+
+
+def is_bilabial(label: str) -> bool:
+    """Whether a phone label (ARPAbet, IPA, X-SAMPA, a pinyin initial) is a bilabial stop or nasal."""
+    return label.strip().lower().rstrip("0123456789ːʰ") in _BILABIALS
+
+
+def inner_lip_pairs(character: Character) -> np.ndarray | None:
+    """(3, 2) vertex ids of the inner-lip landmark pairs (upper, lower), or None when the character lacks them."""
+    ids = character.landmark_ids
+    if ids is None or len(ids) < 68:
+        return None
+    pairs = np.asarray([[ids[a], ids[b]] for a, b in _INNER_LIP_PAIRS], np.int64)
+    return pairs if (pairs >= 0).all() and (pairs < character.n_vertices).all() else None
 FRAMINGS = ("mouth", "face")
 _MOVING_FRACTION = 0.1
 """`framing="mouth"` frames the vertices that some shape moves by at least this fraction of the largest move."""
@@ -477,9 +501,12 @@ class PreviewFrames:
         self.title_height = band if title else 0
         self.label_height = band
         self.caption_height = band if phones is not None else 0
+        self.lip_pairs = inner_lip_pairs(character)
+        self.lip_height = band if self.lip_pairs is not None else 0
         self.panel_top = self.title_height + self.label_height
         self.caption_top = self.panel_top + self.size
-        self.height = self.caption_top + self.caption_height
+        self.lip_top = self.caption_top + self.caption_height
+        self.height = self.lip_top + self.lip_height
 
     def panel_box(self, k: int) -> tuple[slice, slice]:
         """(rows, columns) of panel k in a frame."""
@@ -487,7 +514,16 @@ class PreviewFrames:
 
     def caption_box(self) -> tuple[slice, slice]:
         """(rows, columns) of the caption band (empty when there are no phones)."""
-        return slice(self.caption_top, self.height), slice(0, self.width)
+        return slice(self.caption_top, self.lip_top), slice(0, self.width)
+
+    def lip_box(self, k: int) -> tuple[slice, slice]:
+        """(rows, columns) of panel k's lip readout (empty when the character has no inner-lip landmarks)."""
+        return slice(self.lip_top, self.height), slice(k * self.size, (k + 1) * self.size)
+
+    def lip_gap_mm(self, vertices: np.ndarray) -> float:
+        """The inner-lip gap (mm) of one frame's (V, 3) vertices."""
+        pairs = vertices[self.lip_pairs]
+        return float(np.linalg.norm(pairs[:, 0] - pairs[:, 1], axis=1).mean() * self.character.mm_per_unit)
 
     def label_box(self, k: int) -> tuple[slice, slice]:
         return slice(self.title_height, self.panel_top), slice(k * self.size, (k + 1) * self.size)
@@ -513,6 +549,7 @@ class PreviewFrames:
         neutral = np.ascontiguousarray(character.neutral, np.float32).reshape(1, -1)
         faces = np.asarray(character.faces, np.int64)
         shown: list[np.ndarray | None] = [None] * n  # the weights row each panel shows now
+        readouts: list[tuple | None] = [None] * n     # the lip text and colour each panel shows now
         caption = None
         for start in range(0, self.frames, self.chunk_frames):
             stop = min(self.frames, start + self.chunk_frames)
@@ -534,6 +571,16 @@ class PreviewFrames:
                         canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces,
                                                   self.character.vertex_colors, self.camera, self.pose)
                     shown[k] = row
+                if self.lip_height:
+                    phone = self.phone_at(i)
+                    for k in range(n):
+                        gap = self.lip_gap_mm(vertices[k][i - start].reshape(-1, 3))
+                        color = CLOSED_COLOR if gap < CLOSED_MM else \
+                            OPEN_AT_CLOSURE_COLOR if is_bilabial(phone) else TEXT_COLOR
+                        readout = (f"{phone + '  ' if phone else ''}lips {gap:.1f} mm", color)
+                        if readout != readouts[k]:
+                            canvas[self.lip_box(k)] = self.painter.band(readout[0], size, self.lip_height, color)
+                            readouts[k] = readout
                 if self.caption_height:
                     text = self.phone_at(i)
                     if text != caption:

@@ -231,6 +231,8 @@ class PreviewParams(BaseModel):
                                   "(what the bone exports play); both: each source's blendshape and bone panels side "
                                   "by side.")
     bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve (modes bones and both).")
+    closure_rule: bool = Field(True, description="Apply the lip rules (visemeflow.articulation) as the exports do: "
+                                                 "lips close at b/p/m and touch the teeth at f/v, bounded opening.")
 
     @field_validator("utterance_id")
     @classmethod
@@ -261,6 +263,7 @@ def preview_flow(params: PreviewParams) -> dict:
     under way written under them, the audio muxed (H.264 + AAC)."""
     from visemeflow.animation.apply import check_curves, resample
     from visemeflow.animation.package import bone_rig
+    from visemeflow.articulation import close_lips
     from visemeflow.animation.preview import BoneSource, render_preview
     from visemeflow.ingest.audio import read_audio
     from visemeflow.tasks.animate import curves_and_fps, package_dir
@@ -283,6 +286,8 @@ def preview_flow(params: PreviewParams) -> dict:
             continue
         rate = rate or fps
         curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
+        if params.closure_rule:
+            curves = close_lips(curves)
         label = f"{source.replace('_', ' ')} ({variant})"
         if params.mode != "bones":
             panels[label] = binding.weights(curves)

@@ -93,6 +93,13 @@ class ProceduralConfig(BaseModel):
             "word (the lips must close for them); other lip-heavy visemes co-articulate, as in 'stew'."
         ),
     )
+    closure_rule: bool = Field(
+        True,
+        description=(
+            "Apply the lip rules of visemeflow.articulation to the curves: other visemes yield during MBP and FFF, "
+            "so bilabials close and labiodentals touch the teeth on the mesh, and no blend opens wider than AHH."
+        ),
+    )
 
     @field_validator("lip_heavy", "closure_visemes", "tongue_only", "lookahead_blockers")
     @classmethod

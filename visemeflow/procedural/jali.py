@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from visemeflow.articulation import close_lips
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural.config import ProceduralConfig
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
@@ -217,7 +218,8 @@ def generate_procedural_curves(
 ) -> np.ndarray:
     """Procedural viseme curves (frames, 16) float32 in [0, 1]; frame k is sampled at k / fps.
 
-    `segments` are sorted, non-overlapping, real visemes only (silence and transparent phones removed).
+    `segments` are sorted, non-overlapping, real visemes only (silence and transparent phones removed). With
+    `config.closure_rule` (the default) the lip rules of `visemeflow.articulation.close_lips` are applied last.
     """
     if n_frames < 0 or not fps > 0:
         raise ValueError(f"need n_frames >= 0 and fps > 0, got n_frames={n_frames}, fps={fps}")
@@ -229,4 +231,5 @@ def generate_procedural_curves(
     keys = apply_word_lookahead(keys, config)
     samples = key_frames(keys, n_frames, fps)
     values = key_envelopes(keys, samples.key, samples.frame / fps)
-    return combine_channels(keys.channel[samples.key], samples.frame, values, n_frames)
+    curves = combine_channels(keys.channel[samples.key], samples.frame, values, n_frames)
+    return close_lips(curves) if config.closure_rule else curves

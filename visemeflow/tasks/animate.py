@@ -21,6 +21,7 @@ from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind
 from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
+from visemeflow.articulation import close_lips
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
 from visemeflow.schemas import C, curves_array
@@ -115,6 +116,8 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         from visemeflow.animation.preview import BoneSource, render_preview
 
         played = resample(np.clip(curves, 0, 1), fps, package.fps)
+        if config.closure_rule:   # the preview shows what the exports play
+            played = close_lips(played)
         panels = {f"{source} ({variant})": binding.weights(played)}
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
             panels = {"blendshapes": panels[f"{source} ({variant})"],
