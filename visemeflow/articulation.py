@@ -4,16 +4,16 @@ Blendshapes add. A bilabial at full weight (MBP = 1) co-active with a rounded vo
 mm open on the demo character, though the curve table says "closed"; a JALI animator would never let that through:
 bilabials and labiodentals close the lips whatever the co-articulation (Edwards et al. 2016, section 4). So:
 
-1. **Bilabial closure.** During MBP every other viseme yields in proportion: w_v <- w_v (1 - MBP). At MBP = 1 the
-   mouth is exactly the MBP shape (closed); at MBP = 0 nothing changes; in between the blend is continuous.
-2. **Labiodental contact.** Then, during FFF, every viseme but MBP and FFF yields the same way: w_v <- w_v (1 - FFF),
-   so the lower lip reaches the upper teeth at an f or v however open the vowel around it.
+1. **Bilabial closure.** During MBP every other viseme yields: w_v <- min(w_v, 1 - MBP). At MBP = 1 the mouth is
+   exactly the MBP shape (closed); at MBP = 0 nothing changes; in between the blend is continuous.
+2. **Labiodental contact.** Then, during FFF, every viseme but MBP and FFF yields the same way: w_v <- min(w_v,
+   1 - FFF), so the lower lip reaches the upper teeth at an f or v however open the vowel around it.
 3. **Bounded opening.** The mouth never opens past the rig's widest single shape. Each viseme's lip opening is
    roughly linear in its weight; `OPENING` holds it relative to AHH's (the widest). When sum_v w_v OPENING[v] > 1 the
-   opening visemes are scaled down together until the sum is 1, so no blend opens wider than AHH alone.
+   opening visemes other than FFF are scaled down together until the sum is 1, so no blend opens wider than AHH.
 
-`close_lips(curves)` applies the three in that order; it is idempotent on its own output (up to float rounding) and
-leaves curves in [0, 1]. The procedural stage applies it to the curves it stores (`ProceduralConfig.closure_rule`)
+`close_lips(curves)` applies the three in that order and leaves curves in [0, 1]. It is idempotent: curves that already
+obey it (procedural curves, stored with the rule) pass through the animation stage's application unchanged. The procedural stage applies it to the curves it stores (`ProceduralConfig.closure_rule`)
 and the animation stage to curves of every source before they drive a character (`AnimateConfig.closure_rule`), so
 tracked and learned curves and a user's CSV get it too. Both switches default to on.
 """
@@ -61,15 +61,15 @@ def close_lips(curves: np.ndarray, *, bilabial: bool = True, labiodental: bool =
         raise ValueError(f"curves must be (frames, {N_VISEMES}), got {out.shape}")
     np.clip(out, 0.0, 1.0, out=out)
     if bilabial:
-        out[:, _ALL_BUT_MBP] *= (1.0 - out[:, _MBP])[:, None]
+        out[:, _ALL_BUT_MBP] = np.minimum(out[:, _ALL_BUT_MBP], (1.0 - out[:, _MBP])[:, None])
     if labiodental:
-        out[:, _ALL_BUT_LIPS] *= (1.0 - out[:, _FFF])[:, None]
+        out[:, _ALL_BUT_LIPS] = np.minimum(out[:, _ALL_BUT_LIPS], (1.0 - out[:, _FFF])[:, None])
     if bound_opening:
-        total = out @ OPENING
-        over = total > 1.0
+        lips = out[:, _FFF] * OPENING[_FFF]
+        rest = out[:, _ALL_BUT_LIPS] @ OPENING[_ALL_BUT_LIPS]
+        over = lips + rest > 1.0
         if over.any():
             scale = np.ones(len(out), np.float32)
-            scale[over] = 1.0 / total[over]
-            opens = OPENING > 0
-            out[:, opens] *= scale[:, None]
+            scale[over] = (1.0 - lips[over]) / rest[over]
+            out[:, _ALL_BUT_LIPS] *= scale[:, None]
     return out
