@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from visemeflow.animation.character import character_from_rig
-from visemeflow.animation.lips import LipProbe
-from visemeflow.animation.preview import CLOSED_COLOR, OPEN_AT_CLOSURE_COLOR, PreviewFrames, is_bilabial
+from visemeflow.animation.lips import LipProbe, is_bilabial
+from visemeflow.animation.preview import CLOSED_COLOR, OPEN_AT_CLOSURE_COLOR, PreviewFrames
 from visemeflow.articulation import CLOSED_MM, CONTACT_MM, OPENING, close_lips, opening
 from visemeflow.learning.lipscore import pool_lips, score_lips
 from visemeflow.learning.realspeech import Phone

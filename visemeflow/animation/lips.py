@@ -139,3 +139,62 @@ class LipProbe:
         one = np.zeros((1, N_VISEMES), np.float32)
         one[0, viseme_index(viseme)] = 1.0
         return float(self.measure(one).gap_mm[0])
+
+
+# ---- any character with inner-lip landmarks, in its own shapes ---------------------------------------------------
+_INNER_LIP_PAIRS = ((61, 67), (62, 66), (63, 65))
+_BILABIALS = frozenset({"b", "p", "m", "em", "bh", "ph", "mb"})
+
+
+def is_bilabial(label: str) -> bool:
+    """Whether a phone label (ARPAbet, IPA, X-SAMPA, a pinyin initial) is a bilabial stop or nasal."""
+    return label.strip().lower().rstrip("0123456789ːʰ") in _BILABIALS
+
+
+def inner_lip_pairs(character) -> np.ndarray | None:
+    """(3, 2) vertex ids of a `Character`'s inner-lip landmark pairs (upper, lower), or None when it lacks them."""
+    ids = character.landmark_ids
+    if ids is None or len(ids) < 68:
+        return None
+    pairs = np.asarray([[ids[a], ids[b]] for a, b in _INNER_LIP_PAIRS], np.int64)
+    return pairs if (pairs >= 0).all() and (pairs < character.n_vertices).all() else None
+
+
+def character_gap_mm(character, weights: np.ndarray) -> np.ndarray | None:
+    """(T,) inner-lip gap (mm) of a `Character` driven by (T, S) weights in its own shape order; None without
+    inner-lip landmarks. Only the six lip vertices are deformed."""
+    pairs = inner_lip_pairs(character)
+    if pairs is None:
+        return None
+    ids = pairs.ravel()
+    at = character.neutral[ids][None] + np.tensordot(np.asarray(weights, np.float32), character.deltas[:, ids], axes=1)
+    at = at.reshape(len(at), 3, 2, 3)
+    return (np.linalg.norm(at[:, :, 0] - at[:, :, 1], axis=-1).mean(axis=1) * character.mm_per_unit).astype(np.float32)
+
+
+def closure_report(character, binding, weights: np.ndarray, fps: float,
+                   phones: list[tuple[float, float, str]] | None) -> dict:
+    """What a user should know of one package's lips: the gap of the character's own MBP (a warning when that does not
+    close: the rig cannot show a closure) and, with phones, how many b/p/m closed below `CLOSED_MM` on the mesh.
+    {} for a character without inner-lip landmarks."""
+    one = np.zeros((1, N_VISEMES), np.float32)
+    one[0, viseme_index("MBP")] = 1.0
+    own = character_gap_mm(character, binding.weights(one))
+    if own is None:
+        return {}
+    report: dict = {"mbp_shape_gap_mm": round(float(own[0]), 2)}
+    if own[0] >= CLOSED_MM:
+        report["warning"] = (f"{character.where()}: its MBP shape leaves the lips {own[0]:.1f} mm apart (closed is "
+                             f"below {CLOSED_MM} mm); no curve can close this character's mouth")
+    gap = character_gap_mm(character, weights)
+    if phones and gap is not None and len(gap):
+        apexes = []
+        for start, end, label in phones:
+            if is_bilabial(label):
+                first = min(max(int(np.ceil(start * fps - 1e-9)), 0), len(gap) - 1)
+                last = min(max(int(np.ceil(end * fps - 1e-9)), first + 1), len(gap))
+                apexes.append(float(gap[first:last].min()))
+        if apexes:
+            report.update(bilabials=len(apexes), closed=int(sum(g < CLOSED_MM for g in apexes)),
+                          median_gap_mm=round(float(np.median(apexes)), 2))
+    return report

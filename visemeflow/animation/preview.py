@@ -63,6 +63,7 @@ import cv2
 import numpy as np
 
 from visemeflow.animation.character import Character
+from visemeflow.animation.lips import inner_lip_pairs, is_bilabial
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
 from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
@@ -80,22 +81,6 @@ TEXT_COLOR = (235, 235, 240)
 CAPTION_COLOR = (255, 214, 120)
 CLOSED_COLOR = (120, 230, 140)
 OPEN_AT_CLOSURE_COLOR = (255, 90, 90)
-_INNER_LIP_PAIRS = ((61, 67), (62, 66), (63, 65))
-_BILABIALS = frozenset({"b", "p", "m", "em", "bh", "ph", "mb"})
-
-
-def is_bilabial(label: str) -> bool:
-    """Whether a phone label (ARPAbet, IPA, X-SAMPA, a pinyin initial) is a bilabial stop or nasal."""
-    return label.strip().lower().rstrip("0123456789ːʰ") in _BILABIALS
-
-
-def inner_lip_pairs(character: Character) -> np.ndarray | None:
-    """(3, 2) vertex ids of the inner-lip landmark pairs (upper, lower), or None when the character lacks them."""
-    ids = character.landmark_ids
-    if ids is None or len(ids) < 68:
-        return None
-    pairs = np.asarray([[ids[a], ids[b]] for a, b in _INNER_LIP_PAIRS], np.int64)
-    return pairs if (pairs >= 0).all() and (pairs < character.n_vertices).all() else None
 FRAMINGS = ("mouth", "face")
 _MOVING_FRACTION = 0.1
 """`framing="mouth"` frames the vertices that some shape moves by at least this fraction of the largest move."""
