@@ -347,10 +347,20 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
                 assert by_model[model][f"{metric}_{condition}"] == pytest.approx(value), (model, metric, condition)
         assert by_model[model]["validation"] > 0                              # the L1 columns are still there
 
+    # what the mesh shows: `mbp`'s constant MBP 0.9 tops every b/p/m phone, yet with every other viseme at 0.1 (the
+    # closure rule's cap) the demo character's lips stand open at every b/p/m; neither model reaches the teeth at f/v
+    for model in ("mbp", "fff"):
+        for condition in ("validation", *CONDITIONS):
+            row = by_model[model]
+            assert row[f"lip_closed_{condition}"] == 0.0 and row[f"lip_closed_raw_{condition}"] == 0.0, model
+            assert row[f"fv_contact_{condition}"] == 0.0 and row[f"lip_false_closed_{condition}"] == 0.0, model
+            assert row[f"lip_gap_mm_{condition}"] > 10.0, model
     metrics = store.read_metrics("mbp").to_pylist()
     runs = {r[C.RUN] for r in metrics}
     assert runs == {"train", "final", "evaluate", "evaluate.mbp_closure", "evaluate.fff_closure",
-                    "evaluate.mbp_false_closure", "evaluate.fff_false_closure", "evaluate.agreement"}
+                    "evaluate.mbp_false_closure", "evaluate.fff_false_closure", "evaluate.agreement",
+                    "evaluate.lip_closed", "evaluate.lip_gap_mm", "evaluate.fv_contact", "evaluate.vowel_opening",
+                    "evaluate.lip_false_closed", "evaluate.lip_closed_raw"}
     agreement = [r for r in metrics if r[C.RUN] == "evaluate.agreement" and r[C.CONDITION] == "validation"]
     aggregate = next(r for r in agreement if r[C.UTTERANCE_ID] is None)
     assert aggregate[C.L1] == pytest.approx(4 / 6) and aggregate[C.L1_X100] == pytest.approx(400 / 6)
@@ -369,19 +379,21 @@ def test_evaluate_flow_adds_realspeech_metrics_where_validation_utterances_have_
         in text.split("| mbp |")[1].splitlines()[0]
     assert "On 2 validation utterances with phones: 2 b/p/m, 2 f/v and 6 non-silent phones." in text
     csv_head = (store.root / "reports" / "robustness.csv").read_text().splitlines()[0]
-    assert csv_head.endswith(",agreement_validation,agreement_volume,agreement_pitch,agreement_speed,agreement_noise")
+    assert ",agreement_validation,agreement_volume,agreement_pitch,agreement_speed,agreement_noise,lip_closed_validation" \
+        in csv_head and csv_head.endswith(",lip_closed_raw_speed,lip_closed_raw_noise")
 
     page = build_dashboard(store.root, tmp_path / "dashboard", max_utterances=0).path.read_text(encoding="utf-8")
     groups, headers = _html_headers(page)
     labels = ("MBP closure", "FFF closure", "false MBP closure", "false FFF closure", "agreement")
-    assert groups[-5:] == [f"{m} % (real-speech metric)" for m in labels]
-    assert headers[-25:] == [*(("validation", *CONDITIONS) * 5)]
+    assert groups[-11:-6] == [f"{m} % (real-speech metric)" for m in labels]   # then the 6 lip metrics
+    assert groups[-6] == "lips closed at b/p/m % (on the mesh)"
+    assert headers[-55:] == [*(("validation", *CONDITIONS) * 11)]
     models, cells = _html_robustness(page)
     assert models == ["fff", "mbp"]
     for model, shown in zip(models, cells):
         want = [expected[model][m] for m in ("mbp_closure", "fff_closure", "mbp_false_closure", "fff_false_closure",
                                              "agreement") for _ in range(5)]
-        assert [float(x) for x in shown[-25:]] == pytest.approx(want, abs=5e-4)
+        assert [float(x) for x in shown[-55:-30]] == pytest.approx(want, abs=5e-4)
 
 
 @pytest.mark.flow

@@ -1,6 +1,10 @@
 """The `evaluate` flow: models judged on the validation set and on augmented copies of it (paper 5.2, Tables 1-3),
 by L1 x 100 against the target curves and, on validation utterances with phones, by real-speech metrics that need
-no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`).
+no curve truth (closure recall of MBP and FFF, activation agreement: `visemeflow.learning.realspeech`), and by
+what the viewer sees of the same curves: lips closed at b/p/m, lip-teeth contact at f/v and the vowel opening,
+measured in millimetres on the demo character's mesh after the closure rule (`visemeflow.learning.lipscore`). The
+report opens with one line per model that puts the top-viseme closure score beside the lips on the mesh (a constant
+mean curve can top every b/p/m with MBP and still never close the mouth).
 
 The name `phones` joins the models as the baseline that needs no training (curves of phones recognised in the
 audio; `visemeflow.tasks.models`).
@@ -15,7 +19,7 @@ from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.train import training_rows
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
-from visemeflow.learning.robustness_table import REALSPEECH_RUNS
+from visemeflow.learning.robustness_table import TABLE_RUNS
 from visemeflow.learning.train import load_model
 from visemeflow.procedural.recognised import RECOGNISED_MODEL
 from visemeflow.schemas import C
@@ -41,8 +45,12 @@ def _realspeech_counts(results: list[dict], n_utterances: int) -> str | None:
     counts = next((r["realspeech"]["validation"] for r in results if r.get("realspeech", {}).get("validation")), None)
     if counts is None:
         return None
-    return (f"On {n_utterances} validation utterances with phones: {counts['mbp_closure'][1]} b/p/m, "
+    text = (f"On {n_utterances} validation utterances with phones: {counts['mbp_closure'][1]} b/p/m, "
             f"{counts['fff_closure'][1]} f/v and {counts['agreement'][1]} non-silent phones.")
+    lips = next((r["lips"]["validation"] for r in results if r.get("lips", {}).get("validation")), None)
+    if lips is not None:
+        text += f" Lips: {lips['bilabials']} b/p/m, {lips['labiodentals']} f/v, {lips['vowels']} vowels scored."
+    return text
 
 
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
@@ -83,7 +91,7 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     ]
     results = [f.result() for f in futures]
 
-    runs = {"evaluate", *REALSPEECH_RUNS}
+    runs = {"evaluate", *TABLE_RUNS}
     metrics = [r for m in params.models for r in store.read_metrics(m).to_pylist() if r[C.RUN] in runs]
     table = robustness_table(metrics, presets={r["model"]: r["preset"] for r in results},
                              augmented={r["model"]: r["train_augment"] for r in results})

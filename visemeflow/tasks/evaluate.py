@@ -4,8 +4,15 @@ agreement) of the validation utterances that have phones.
 
 The evaluation task runs its model on the device it is given, in float32; the device is not part of its cache key
 (`EVALUATE_CACHE_POLICY`). The reserved model name `phones` is scored like a model (`visemeflow.tasks.models`): its
-row in the robustness table is the baseline that needs no training."""
+row in the robustness table is the baseline that needs no training.
 
+Lip metrics: the same predicted curves of the utterances with phones, as the demo character shows them (through the
+closure rule `articulation.close_lips`, which the animation stage applies to curves of every source), measured on its
+mesh in millimetres (`animation.lips.LipProbe`) and scored per phone (`learning.lipscore`): runs `evaluate.lip_*`
+(`lip_rows`). The geometry is computed here, in the task layer: `learning/` may not import `animation/` or `rig/`.
+`evaluate.lip_closed_raw` is the closed share of the model's own curves, without the rule."""
+
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -14,17 +21,22 @@ import soundfile as sf
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
+from visemeflow.animation.lips import LipProbe
 from visemeflow.hashing import stable_hash
 from visemeflow.learning.augment import AugmentConfig, augment_utterance, augmented_id, draw_value
+from visemeflow.learning.lipscore import LipScores
 from visemeflow.learning.realspeech import RealSpeechScores, Recall, phones_of, scale_phones
-from visemeflow.learning.robustness import realspeech_evaluation
+from visemeflow.learning.robustness import example_curves, lip_evaluation, realspeech_evaluation
 from visemeflow.learning.robustness_table import (
     CLOSURE_METRICS,
     FALSE_CLOSURE_METRICS,
+    LIP_RUNS,
+    LIP_SUMMARY_KEYS,
     REALSPEECH_METRICS,
     REALSPEECH_RUNS,
 )
 from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, resample_curves
+from visemeflow.rig import load_demo_rig
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import CACHE_POLICY, result_storage
@@ -119,6 +131,55 @@ def realspeech_rows(model: str, condition: str, pooled: RealSpeechScores,
     return rows
 
 
+@lru_cache(maxsize=1)
+def demo_lip_probe() -> LipProbe:
+    """The lip probe of the shipped demo character (ICT face, centimetres), built once per process."""
+    return LipProbe.from_rig(load_demo_rig())
+
+
+def lip_scores(curves: dict[str, np.ndarray], fps: dict[str, float], phones: dict, probe: LipProbe | None = None,
+               closure_rule: bool = True) -> tuple[LipScores, dict[str, LipScores]]:
+    """(pooled, per utterance) lip scores of curves on a character's mesh (default: the demo character), through
+    the closure rule unless `closure_rule` is False."""
+    probe = probe or demo_lip_probe()
+
+    def measure(c: np.ndarray):
+        frames = probe.measure(c)
+        return frames.gap_mm, frames.teeth_mm
+
+    return lip_evaluation(curves, fps, phones, measure, probe.single_shape_gap("AHH"), closure_rule)
+
+
+_LIP_METRIC_RUNS = {metric: run for run, metric in LIP_RUNS.items()}
+
+
+def lip_rows(model: str, condition: str, pooled: LipScores, per_utterance: dict[str, LipScores],
+             pooled_raw: LipScores, per_raw: dict[str, LipScores]) -> list[dict]:
+    """Rows of the `metrics` table for the lip metrics of one (model, condition): runs `evaluate.lip_closed`,
+    `evaluate.lip_gap_mm`, `evaluate.fv_contact`, `evaluate.vowel_opening`, `evaluate.lip_false_closed` (curves
+    through the closure rule) and `evaluate.lip_closed_raw` (without it).
+
+    `l1` holds the share (0..1), the median gap in mm or the median vowel opening (a ratio to the widest single
+    shape), `l1_x100` is 100 x `l1`; the aggregate (pooled over phones) and one row per utterance, each only where
+    defined (no b/p/m phone: no `lip_closed` row)."""
+    rows = []
+    for metric, key in LIP_SUMMARY_KEYS.items():
+        base = {C.RUN: _LIP_METRIC_RUNS[metric], C.MODEL: model, C.CONDITION: condition, C.EPOCH: None}
+        raw = metric.endswith("_raw")
+        for uid, scores in [(None, pooled_raw if raw else pooled), *sorted((per_raw if raw else per_utterance).items())]:
+            value = scores.summary()[key]
+            if value is None:
+                continue
+            rows.append({**base, C.UTTERANCE_ID: uid, C.L1: float(value), C.L1_X100: 100.0 * float(value)})
+    return rows
+
+
+def _lip_counts(pooled: LipScores) -> dict:
+    summary = pooled.summary()
+    return {m: summary[k] for m, k in LIP_SUMMARY_KEYS.items() if not m.endswith("_raw")} | {
+        "bilabials": summary["bilabials"], "labiodentals": summary["labiodentals"], "vowels": summary["vowels"]}
+
+
 @task(cache_policy=EVALUATE_CACHE_POLICY, persist_result=True, task_run_name="evaluate[{model_name}]")
 def evaluate_model(
     store_root: str, model_name: str, model_hash: str, val_rows: list[dict], augmented: dict[str, list[dict]],
@@ -129,7 +190,8 @@ def evaluate_model(
 
     `phones` (validation utterance id -> its phone rows: `start_s`, `end_s`, `viseme`) adds the real-speech
     metrics of those utterances on every condition (runs `evaluate.<metric>`, see `realspeech_rows`); the phones
-    of a speed copy are scaled by its time factor. `model_hash` (the model file's content hash), `targets` (the
+    of a speed copy are scaled by its time factor; and the lip metrics of the same curves on the demo character's
+    mesh, through the closure rule (runs `evaluate.lip_*`, see `lip_rows`). `model_hash` (the model file's content hash), `targets` (the
     target curves' provenance) and `phones` are inputs so that the cache is invalidated by a retrained model,
     changed curves or a changed alignment. `device` (auto, cpu, cuda, cuda:N): where the model runs (float32).
     """
@@ -148,20 +210,27 @@ def evaluate_model(
         ]
         set_phones[condition] = {item["utterance_id"]: scale_phones(aligned[item["source_id"]], item["time_factor"])
                                  for item in items if item["source_id"] in aligned}
-    rows, summary, real = [], {}, {}
+    rows, summary, real, lips = [], {}, {}, {}
     for condition, examples in sets.items():
         overall, per_utt, per_vis = evaluate(model, examples)
         rows += metrics_rows(RUN, model_name, condition, overall, per_utt, per_vis)
         summary[condition] = overall
         if set_phones[condition]:
-            pooled, per = realspeech_evaluation(model, examples, set_phones[condition])
+            with_phones = [ex for ex in examples if ex.utterance_id in set_phones[condition]]
+            curves = {ex.utterance_id: example_curves(model, ex) for ex in with_phones}   # predicted once
+            pooled, per = realspeech_evaluation(model, examples, set_phones[condition], curves=curves)
             rows += realspeech_rows(model_name, condition, pooled, per)
             real[condition] = {m: [_recall(pooled, m).hits, _recall(pooled, m).total] for m in REALSPEECH_METRICS}
+            fps = {ex.utterance_id: ex.fps for ex in with_phones}
+            lip, lip_per = lip_scores(curves, fps, set_phones[condition])
+            raw, raw_per = lip_scores(curves, fps, set_phones[condition], closure_rule=False)
+            rows += lip_rows(model_name, condition, lip, lip_per, raw, raw_per)
+            lips[condition] = _lip_counts(lip) | {"lip_closed_raw": raw.closed.share}
     store.write_metrics(model_name, RUN, pa.Table.from_pylist(rows, schema=METRICS))
-    get_run_logger().info("%s: L1 x 100 %s; real speech (hits, phones) %s", model_name,
-                          {k: round(v, 3) for k, v in summary.items()}, real)
+    get_run_logger().info("%s: L1 x 100 %s; real speech (hits, phones) %s; lips on the demo character %s",
+                          model_name, {k: round(v, 3) for k, v in summary.items()}, real, lips.get("validation"))
     return {"model": model_name, "preset": preset, "train_augment": train_augment, "l1_x100": summary,
-            "realspeech": real}
+            "realspeech": real, "lips": lips}
 
 
 def evaluation_task_for(store: Store, model_name: str):
