@@ -33,11 +33,13 @@ from visemeflow.dashboards import plots
 # same order (DESIGN lets dashboards import schemas and storage; this module is the exception, pure and torch-free).
 from visemeflow.learning.robustness_table import (
     COLUMNS,
-    REALSPEECH_LABELS,
-    REALSPEECH_RUNS,
+    LIP_METRICS,
     RUN,
-    realspeech_metrics,
+    TABLE_RUNS,
+    lip_headline,
+    metric_heading,
     table_columns,
+    table_metrics,
 )
 from visemeflow.learning.robustness_table import robustness_table as shared_robustness_table
 from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
@@ -265,9 +267,11 @@ class RobustnessTable:
     models: list[str]
     conditions: list[str]
     values: dict[tuple[str, str], float]    # (model, condition) -> L1 x 100
-    # real-speech metrics (closure recall, activation agreement) with any cell, and (model, metric, condition) -> %
+    # real-speech metrics (closure recall, activation agreement) and lip metrics on the mesh with any cell, and
+    # (model, metric, condition) -> % (lip millimetres and opening ratios in their own units: LIP_UNITS)
     realspeech_metrics: list[str] = field(default_factory=list)
     realspeech: dict[tuple[str, str, str], float] = field(default_factory=dict)
+    headline: str = ""          # one line per model: top-viseme closure beside the lips on the mesh (markdown)
 
     def realspeech_conditions(self, metric: str) -> list[str]:
         """The conditions, in the table's order, where some model has a value of `metric`."""
@@ -321,17 +325,17 @@ def robustness_table(metrics: pa.Table, presets: dict[str, str] | None = None,
     """The `evaluate` report's table (`visemeflow.learning.robustness_table.robustness_table`) of these metrics:
     aggregate rows of run `evaluate` and of its real-speech runs, the latest per (model, condition), models in
     the report's order."""
-    rows = _aggregate_rows(metrics, [RUN, *REALSPEECH_RUNS])
-    rows = rows.select([C.RUN, C.MODEL, C.CONDITION, C.UTTERANCE_ID, C.EPOCH, C.L1_X100])
+    rows = _aggregate_rows(metrics, [RUN, *TABLE_RUNS])
+    rows = rows.select([C.RUN, C.MODEL, C.CONDITION, C.UTTERANCE_ID, C.EPOCH, C.L1, C.L1_X100])
     table = shared_robustness_table(rows.to_pylist(), presets, augmented)
     columns = table_columns(table)
     values = {(r["model"], c): r[c] for r in table for c in columns if not math.isnan(r[c])}
     models = [r["model"] for r in table]
-    real = {(r["model"], m, c): r[f"{m}_{c}"] for r in table for m in realspeech_metrics(table) for c in columns
+    real = {(r["model"], m, c): r[f"{m}_{c}"] for r in table for m in table_metrics(table) for c in columns
             if not math.isnan(r[f"{m}_{c}"])}
     conditions = [c for c in columns if any((m, c) in values for m in models) or any(k[2] == c for k in real)]
-    metrics_shown = [m for m in realspeech_metrics(table) if any(k[1] == m for k in real)]
-    return RobustnessTable(models, conditions, values, metrics_shown, real)
+    metrics_shown = [m for m in table_metrics(table) if any(k[1] == m for k in real)]
+    return RobustnessTable(models, conditions, values, metrics_shown, real, lip_headline(table))
 
 
 def robustness_html(table: RobustnessTable) -> str:
@@ -345,7 +349,8 @@ def robustness_html(table: RobustnessTable) -> str:
     real = {metric: table.realspeech_conditions(metric) for metric in table.realspeech_metrics}
     for metric, conditions in real.items():
         headers += conditions
-        groups.append((f"{REALSPEECH_LABELS[metric]} % (real-speech metric)", len(conditions)))
+        kind = "on the mesh" if metric in LIP_METRICS else "real-speech metric"
+        groups.append((f"{metric_heading(metric)} ({kind})", len(conditions)))
     rows = []
     for m in table.models:
         row: list[object] = [m] + [table.values.get((m, c)) for c in table.conditions]
@@ -358,6 +363,15 @@ def robustness_html(table: RobustnessTable) -> str:
     note = "" if has_base else (f'<p class="note">no <code>{BASELINE_CONDITION}</code> condition: '
                                 "ratios cannot be computed.</p>")
     return html_table(headers, rows, numeric, table_id="robustness-table", groups=groups) + note
+
+
+def _headline_html(headline: str) -> str:
+    """The report's per-model headline (markdown: a lead line, then `- **model** (preset): ...` items) as HTML."""
+    lines = [line for line in headline.splitlines() if line.strip()]
+    if not lines:
+        return ""
+    items = "".join(f"<li>{esc(line.removeprefix('- ').replace('**', ''))}</li>" for line in lines[1:])
+    return f'<p class="note">{esc(lines[0])}</p><ul id="lip-headline">{items}</ul>'
 
 
 def training_html(metrics: pa.Table) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
@@ -592,10 +606,17 @@ def build_dashboard(
                     "(runs <code>evaluate.&lt;metric&gt;</code>): MBP / FFF closure, the % of b/p/m (f/v) phones "
                     "whose top predicted viseme within the phone is MBP (FFF); agreement, the % of non-silent "
                     "phones whose viseme is among the top two predicted at the phone's middle frame.")
+        if any(m in LIP_METRICS for m in robust.realspeech_metrics):
+            real += (" Lip metrics (runs <code>evaluate.lip_*</code>), what the viewer sees: the same curves through "
+                     "the closure rule, measured in millimetres on the demo character's mesh: lips closed, the % of "
+                     "b/p/m phones whose smallest inner-lip gap is below 1.5 mm (and the median gap); f/v contact, "
+                     "the % of f/v phones whose lower lip comes within 2 mm of the upper teeth; AA/AH opening, the "
+                     "median widest gap of open vowels over the widest single shape's (good 0.6-1.1); vowels never "
+                     "open, the % of vowels whose gap stays below 1.5 mm; raw curves, without the closure rule.")
         page.add('<p class="note">Validation L1 x 100 on clean audio and under each augmentation (run '
                  "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation); "
                  "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model."
-                 f"{real}</p>", robustness_html(robust))
+                 f"{real}</p>", _headline_html(robust.headline), robustness_html(robust))
     else:
         page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
                  "metrics rows).</p>")
