@@ -95,22 +95,44 @@ ClosureOpt = Annotated[bool, typer.Option(
                                              "and no blend opens wider than AHH (visemeflow.articulation).")]
 MappingOpt = Annotated[Optional[Path], typer.Option(
     "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.")]
+MeshOpt = Annotated[Optional[list[str]], typer.Option(
+    "--mesh", help="A mesh of a .glb/.gltf character to drive (repeat for several: head, teeth, eyes ...); default: "
+                   "every mesh whose morph targets match, printed with the run.")]
 ConventionOpt = Annotated[Optional[str], typer.Option(
     "--convention", help="arkit52, oculus15 or visemeflow16; default: detected from the shape names.")]
 
 
 def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool,
-                    mode: str = "blendshape", bones: int = 32, closure_rule: bool = True):
+                    mode: str = "blendshape", bones: int = 32, closure_rule: bool = True,
+                    meshes: list[str] | None = None):
     import pydantic
 
     from visemeflow.animation.package import AnimateConfig
 
     try:
         return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview, mode=mode, bones=bones,
-                             closure_rule=closure_rule)
+                             closure_rule=closure_rule, meshes=tuple(meshes or ()))
     except pydantic.ValidationError as exc:
         typer.echo(f"error: {exc.errors()[0]['msg']}", err=True)
         raise typer.Exit(2) from None
+
+
+def _check_meshes(characters: list[Path] | None, meshes: list[str] | None) -> None:
+    """With --mesh, each character must be a glTF scene holding those meshes: else exit 2, the meshes listed."""
+    if not meshes:
+        return
+    from visemeflow.animation.character import CharacterError
+    from visemeflow.animation.load import load_character
+
+    if not characters:
+        typer.echo("error: --mesh chooses meshes of a .glb/.gltf --character", err=True)
+        raise typer.Exit(2)
+    for path in characters:
+        try:
+            load_character(path, meshes=meshes)
+        except CharacterError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
 
 
 def _print_summary(title: str, summary: dict) -> None:
@@ -241,15 +263,18 @@ def pipeline(
     character: Annotated[Optional[list[Path]], typer.Option(
         "--character", help="Also animate the tracked curves on this character (repeat for several).")] = None,
     formats: FormatsOpt = "glb,usd,livelink,json",
+    mesh: MeshOpt = None,
 ) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
+    _check_meshes(character, mesh)
+
     result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards,
                                           runner=_runner(runner, dask_workers, dask_address, threads),
                                           characters=character or [],
-                                          animate=_animate_config(formats, None, None, False)))
+                                          animate=_animate_config(formats, None, None, False, meshes=mesh)))
     for stage, summary in result.items():
         if stage == "animate":
             _print_packages(dict(summary))
@@ -451,6 +476,8 @@ def predict(
 
 def _print_packages(result: dict) -> None:
     packages = result.pop("packages_written", [])
+    for choice in result.pop("character_choices", []):
+        typer.echo(choice)
     _print_summary("animate", result)
     for report in packages:
         cached = " (cached)" if report.get("cached") else ""
@@ -528,6 +555,7 @@ def animate(
     mode: ModeOpt = "blendshape",
     bones: BonesOpt = 32,
     closure_rule: ClosureOpt = True,
+    mesh: MeshOpt = None,
 ) -> None:
     """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
 
@@ -536,7 +564,8 @@ def animate(
     from visemeflow.flows.animate import AnimateParams, animate_flow
 
     params = dict(store=store, source=source, variant=variant, utterances=utterances or None, mapping=mapping,
-                  config=_animate_config(formats, fps, convention, preview, mode, bones, closure_rule), out=out)
+                  config=_animate_config(formats, fps, convention, preview, mode, bones, closure_rule, mesh), out=out)
+    _check_meshes(character, mesh)
     if character:
         params["characters"] = character
     _print_packages(dict(animate_flow(AnimateParams(**params))))
@@ -559,6 +588,7 @@ def speak(
     mode: ModeOpt = "blendshape",
     bones: BonesOpt = 32,
     closure_rule: ClosureOpt = True,
+    mesh: MeshOpt = None,
 ) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     from visemeflow.flows.animate import SpeakParams, speak_flow
@@ -570,7 +600,8 @@ def speak(
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
-                  config=_animate_config(formats, None, convention, preview, mode, bones, closure_rule))
+                  config=_animate_config(formats, None, convention, preview, mode, bones, closure_rule, mesh))
+    _check_meshes(character, mesh)
     if character:
         params["characters"] = character
     _print_packages(dict(speak_flow(SpeakParams(**params))))
@@ -590,6 +621,7 @@ def preview_command(
                                            "both (blendshape and bone panels of each source side by side).")] = "blendshape",
     bones: Annotated[int, typer.Option(help="Bone count in modes bones and both.")] = 32,
     closure_rule: ClosureOpt = True,
+    mesh: MeshOpt = None,
 ) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
     import pydantic
@@ -600,6 +632,8 @@ def preview_command(
                   mapping=mapping, size=size, out=out, mode=mode, bones=bones, closure_rule=closure_rule)
     if character:
         params["character"] = character
+    _check_meshes([character] if character else None, mesh)
+    params["meshes"] = mesh or []
     try:
         params = PreviewParams(**params)
     except pydantic.ValidationError as exc:
@@ -607,6 +641,7 @@ def preview_command(
         typer.echo(f"error: --{'-'.join(str(x) for x in error['loc'])}: {error['msg']}", err=True)
         raise typer.Exit(2) from None
     result = preview_flow(params)
+    typer.echo(result["character"])
     for skipped in result["skipped"]:
         typer.echo(f"left out {skipped}")
     typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "

@@ -5,7 +5,9 @@ character's own names and order. `conventions.py` says how our 16 viseme curves 
 (glTF, USD, Live Link, web JSON) and the preview write or show the character's own shapes.
 
 Loaders (`load.load_character(path)` picks one by the path):
-- a `.glb` / `.gltf` with morph targets (`gltf.read_character_glb`, through pygltflib),
+- a `.glb` / `.gltf` scene with morph targets (`gltf.read_character_glb`, through pygltflib): every mesh whose
+  targets match (head, teeth, eyes ...) joined as the scene places them, each kept as a `CharacterPart` (its vertex
+  range and own target order) so the GLB export animates the user's own asset (`gltf_asset`),
 - a compact `.npz` written by `save_character_npz` (or one of our 16-viseme rig files, `rig.save_rig_npz`),
 - a folder of meshes (OBJ/PLY, gzipped or not): `neutral.<ext>` and one file per shape, named by the shape.
 Every loader ends in `validate_character`, which names the file and what is wrong: no shapes, an empty or
@@ -15,7 +17,7 @@ duplicate shape name, non-finite vertices, deltas of the wrong size, faces outsi
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,34 @@ from visemeflow.visemes import VISEMES
 
 class CharacterError(ValueError):
     """A character that cannot be used: the message names the file and what is wrong with it."""
+
+
+@dataclass(frozen=True)
+class CharacterPart:
+    """One mesh of a glTF scene that the character drives (a head, the teeth, an eye ...)."""
+
+    mesh: int
+    """The mesh's index in the file's `meshes`."""
+    nodes: tuple[int, ...]
+    """The nodes that instance it (each gets a `weights` channel in the exported GLB)."""
+    name: str
+    start: int
+    """Its first vertex in the character's joined arrays."""
+    stop: int
+    """One past its last vertex."""
+    target_names: tuple[str, ...]
+    """Its own morph target names, in its own order."""
+    placement: str = ""
+    """How its vertices were put in the scene's space (node transform, skin rest pose)."""
+
+    @property
+    def n_vertices(self) -> int:
+        return self.stop - self.start
+
+    def columns(self, shape_names: tuple[str, ...] | list[str]) -> list[int]:
+        """The character's shape index of each of its targets, in its target order."""
+        index = {n: i for i, n in enumerate(shape_names)}
+        return [index[n] for n in self.target_names]
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,6 +76,16 @@ class Character:
     """(S, V, 3) float32, shape - neutral, in `shape_names` order."""
     vertex_colors: np.ndarray | None = None
     """(V, 3) float32 RGB in [0, 1] for previews (lips, teeth, mouth socket), or None (grey)."""
+    parts: tuple[CharacterPart, ...] = ()
+    """For a glTF character: the driven meshes, their vertex ranges in the joined arrays above and their own target
+    orders (the exported GLB animates each in its order); () for characters of one mesh from elsewhere."""
+    left_out: tuple[str, ...] = ()
+    """For a glTF character: the scene's meshes that are not driven, each with why ("Body (no targets)")."""
+    landmark_ids: np.ndarray | None = None
+    """(68,) int64 Multi-PIE landmark vertex ids (-1 = none) when known (the demo rig, transferred characters):
+    then the lips can be measured on the mesh (`animation.lips`); None otherwise."""
+    mm_per_unit: float = 1000.0
+    """Millimetres per mesh unit: 1000 for metres (glTF's unit), 10 for the ICT demo rig's centimetres."""
 
     @property
     def n_vertices(self) -> int:
@@ -60,6 +100,20 @@ class Character:
 
     def where(self) -> str:
         return f"character {self.name!r}" + (f" ({self.source})" if self.source else "")
+
+    def describe(self) -> str:
+        """Which meshes it drives, for people: `character a.glb: driving Head (2,162 v), Teeth (480 v): 67 shared
+        targets; not driven: Body (no targets)`."""
+        label = Path(self.source).name if self.source else self.name
+        if not self.parts:
+            return f"character {label}: {self.n_vertices:,} vertices, {self.n_shapes} shapes"
+        driving = ", ".join(f"{p.name} ({p.n_vertices:,} v)" for p in self.parts)
+        shared = set(self.parts[0].target_names).intersection(*(p.target_names for p in self.parts[1:]))
+        text = f"character {label}: driving {driving}: "
+        text += f"{len(shared)} shared targets" if len(self.parts) > 1 else f"{self.n_shapes} targets"
+        if len(shared) != self.n_shapes and len(self.parts) > 1:
+            text += f" ({self.n_shapes} in all)"
+        return text + (f"; not driven: {', '.join(self.left_out)}" if self.left_out else "")
 
 
 def validate_character(character: Character) -> Character:
@@ -100,22 +154,37 @@ def validate_character(character: Character) -> Character:
     if colors is not None and (np.shape(colors) != neutral.shape or not np.isfinite(colors).all()
                                or np.min(colors) < 0 or np.max(colors) > 1):
         raise CharacterError(f"{where}: vertex colours must be ({neutral.shape[0]}, 3) RGB in [0, 1]")
+    end = 0
+    for part in character.parts:
+        if part.start != end or part.stop <= part.start or part.stop > neutral.shape[0]:
+            raise CharacterError(f"{where}: part {part.name!r} covers vertices {part.start}..{part.stop}; parts must "
+                                 f"tile the {neutral.shape[0]} vertices in order")
+        unknown = [n for n in part.target_names if n not in seen]
+        if unknown or len(set(part.target_names)) != len(part.target_names):
+            raise CharacterError(f"{where}: part {part.name!r} has targets {unknown or list(part.target_names)} "
+                                 "that are not the character's shapes once each")
+        end = part.stop
+    if character.parts and end != neutral.shape[0]:
+        raise CharacterError(f"{where}: its parts cover {end} of its {neutral.shape[0]} vertices")
     return character
 
 
 def make_character(name: str, neutral, faces, shape_names, deltas, source: str | os.PathLike = "",
-                   vertex_colors=None) -> Character:
+                   vertex_colors=None, parts=(), left_out=()) -> Character:
     """A validated Character from arrays (converted to float32 / int32)."""
     return validate_character(Character(
         name=name, source=str(source), neutral=np.ascontiguousarray(neutral, np.float32),
         faces=np.ascontiguousarray(faces, np.int32), shape_names=tuple(shape_names),
         deltas=np.ascontiguousarray(deltas, np.float32),
-        vertex_colors=None if vertex_colors is None else np.ascontiguousarray(vertex_colors, np.float32)))
+        vertex_colors=None if vertex_colors is None else np.ascontiguousarray(vertex_colors, np.float32),
+        parts=tuple(parts), left_out=tuple(left_out)))
 
 
 def character_from_rig(rig: VisemeRig, source: str | os.PathLike = "") -> Character:
-    """A 16-viseme rig (our convention: one shape per viseme, named as `visemes.VISEMES`) as a character."""
-    return make_character(rig.name, rig.neutral, rig.faces, VISEMES, rig.deltas, source, rig.vertex_colors)
+    """A 16-viseme rig (our convention: one shape per viseme, named as `visemes.VISEMES`) as a character, with its
+    landmarks (so its lips can be measured) and the rigs' centimetres."""
+    character = make_character(rig.name, rig.neutral, rig.faces, VISEMES, rig.deltas, source, rig.vertex_colors)
+    return replace(character, landmark_ids=np.asarray(rig.landmark_ids, np.int64), mm_per_unit=10.0)
 
 
 _NPZ_KEYS = ("neutral", "faces", "shape_names", "deltas")

@@ -171,7 +171,7 @@ def detect_convention(character: Character) -> str:
             f"{character.where()}: its {character.n_shapes} shape names follow no known convention "
             f"(names found: {shown}); known conventions: visemeflow16 (our 16 visemes: {', '.join(VISEMES)}), "
             f"arkit52 (ARKit blendshapes such as jawOpen, mouthFunnel), oculus15 (viseme_sil .. viseme_U); "
-            "or give a mapping CSV (viseme,shape,weight)")
+            "or give a mapping CSV (viseme,shape,weight)" + (f"; {character.describe()}" if character.parts else ""))
     return max(scores, key=lambda c: (scores[c], -CONVENTIONS.index(c)))
 
 

@@ -27,10 +27,14 @@ index view ELEMENT_ARRAY_BUFFER, sparse ids and values and animation views none.
 deltas: a viewer shades the moving mouth with the neutral's normals (adding them would double the file for a
 shading detail).
 
-Reading (`read_character_glb`): a thin wrapper over the rig layer's glTF reader, `rig.gltf.read_gltf_mesh` (the
-first mesh with morph targets in scene order, primitives joined, sparse / strided / quantized accessors, target
-names from `extras.targetNames`, COLOR_0 as vertex colours; node transforms not applied), whose `RigError`s become
-`CharacterError`s naming the file; `validate_character` checks the rest.
+`write_glb` is for characters that are not glTF scenes (and for tests); a character read from a glTF scene is
+written back as its own whole asset with the clip added (`gltf_asset.write_character_glb` chooses).
+
+Reading (`read_character_glb`): a glTF scene as one character, through the rig layer's glTF reader
+(`rig.gltf.GltfScene`: every mesh described, the chosen ones read with primitives joined, sparse / strided /
+quantized accessors, target names from `extras.targetNames`, COLOR_0 as vertex colours, and placed by their node's
+world transform or their skin's rest pose), whose `RigError`s become `CharacterError`s naming the file; which
+meshes are driven is in the function's doc; `validate_character` checks the rest.
 """
 
 from __future__ import annotations
@@ -41,10 +45,12 @@ from pathlib import Path
 import numpy as np
 import pygltflib as gl
 
-from visemeflow.animation.character import Character, CharacterError, make_character, validate_character
+from visemeflow.animation.character import Character, CharacterError, CharacterPart, make_character, \
+    validate_character
+from visemeflow.animation.conventions import CONVENTION_NAMES, normalize_shape_name
 from visemeflow.atomic import atomic_path
 from visemeflow.rig import RigError
-from visemeflow.rig.gltf import read_gltf_mesh, srgb_to_linear
+from visemeflow.rig.gltf import GltfMeshInfo, GltfScene, read_gltf_mesh, srgb_to_linear
 
 __all__ = ["read_character_glb", "vertex_normals", "write_glb"]
 
@@ -228,22 +234,138 @@ def write_glb(path: str | os.PathLike, character: Character, weights, fps: float
 
 
 # ---- reading -----------------------------------------------------------------------------------------------
-def read_character_glb(path: str | os.PathLike, name: str | None = None) -> Character:
-    """The character of a .glb / .gltf: its first mesh with morph targets, read by `rig.gltf.read_gltf_mesh`
-    (see that module for which mesh and how), COLOR_0 as its vertex colours; validated.
+_CONVENTION_KEYS = frozenset(normalize_shape_name(n) for names in CONVENTION_NAMES.values() for n in names)
 
-    Its name: `name`, else the mesh's name, else the file's stem. Raises CharacterError naming the file when it is
-    not glTF 2.0, has no mesh, no mesh with morph targets, no target names (`extras.targetNames`), primitives other
-    than triangles, targets that differ between primitives, or data that `validate_character` rejects.
+
+def _mesh_summary(info: GltfMeshInfo, names: int = 0) -> str:
+    """`Head (2,162 v, 67 targets)`, with the first `names` target names when asked."""
+    if not info.n_targets:
+        targets = "no targets"
+    elif info.target_names is None:
+        targets = f"{info.n_targets} targets without names"
+    else:
+        shown = ", ".join(info.target_names[:names]) + (" ..." if info.n_targets > names else "")
+        targets = f"{info.n_targets} targets" + (f": {shown}" if names else "")
+    return f"{info.label} ({info.n_vertices:,} v, {targets})"
+
+
+def _choose_meshes(path: Path, infos: list[GltfMeshInfo], meshes, extra_names) -> tuple[list, list[str]]:
+    """(the driven meshes' infos, primary first; "label (why)" of each other mesh). See `read_character_glb`."""
+    listing = "; ".join(_mesh_summary(i) for i in infos)
+    if meshes:
+        chosen = []
+        for wanted in dict.fromkeys(meshes):
+            hits = [i for i in infos if wanted in (i.label, str(i.index))]
+            if not hits:
+                raise CharacterError(f"{path}: no mesh {wanted!r}; its meshes: {listing}")
+            for info in hits:
+                if not info.n_targets:
+                    raise CharacterError(f"{path}: mesh {info.label!r} has no morph targets; its meshes: {listing}")
+                if info.target_names is None:
+                    raise CharacterError(f"{path}: mesh {info.label!r} has {info.n_targets} morph targets but no "
+                                         "names (mesh.extras.targetNames or the primitive's extras.targetNames)")
+                if info not in chosen:
+                    chosen.append(info)
+        return chosen, [f"{i.label} (not asked for)" for i in infos if i not in chosen]
+    keys = _CONVENTION_KEYS | {normalize_shape_name(n) for n in extra_names or ()}
+    named = [i for i in infos if i.n_targets and i.target_names is not None]
+    if any(i.nodes for i in named):
+        named = [i for i in named if i.nodes]
+    if not named:
+        unnamed = [i for i in infos if i.n_targets]
+        if unnamed:   # the reader names the first such mesh and what it expected
+            read_gltf_mesh(path)
+        raise CharacterError(f"{path}: no mesh has morph targets ({len(infos)} meshes: {listing}); a character "
+                             "needs its blendshapes as glTF morph targets")
+    usable = {i.index: {n for n in i.target_names if normalize_shape_name(n) in keys} for i in named}
+    if any(usable.values()):
+        primary = max(named, key=lambda i: (len(usable[i.index]), i.n_vertices, -named.index(i)))
+        keys_of = {i.index: {normalize_shape_name(n) for n in usable[i.index]} for i in named}
+        chosen = [primary] + [i for i in named if i is not primary and keys_of[i.index] & keys_of[primary.index]]
+    elif len(named) == 1:     # one mesh of other names: a mapping CSV may drive them, `bind` says if none does
+        chosen = named
+    else:
+        raise CharacterError(
+            f"{path}: no mesh has morph targets visemeflow can drive (ARKit, Oculus viseme or visemeflow names, or "
+            f"a mapping CSV's); its meshes: {'; '.join(_mesh_summary(i, 6) for i in infos)}; choose meshes with "
+            "--mesh and give a mapping CSV (viseme,shape,weight)")
+    left_out = []
+    for i in infos:
+        if i in chosen:
+            continue
+        if not i.n_targets:
+            why = "no targets"
+        elif i.target_names is None:
+            why = "targets without names"
+        elif not i.nodes and i not in named:
+            why = "no node uses it"
+        elif usable.get(i.index):
+            why = f"targets share nothing with {chosen[0].label}'s"
+        else:
+            shown = ", ".join(i.target_names[:4]) + (" ..." if i.n_targets > 4 else "")
+            why = f"targets {shown}: none usable"
+        left_out.append(f"{i.label} ({why})")
+    return chosen, left_out
+
+
+def read_character_glb(path: str | os.PathLike, name: str | None = None, meshes=None,
+                       extra_names=None) -> Character:
+    """The character of a .glb / .gltf scene: every mesh whose morph targets it drives, as one character; validated.
+
+    Which meshes (avatars split the face into head, teeth, tongue, eyes, beard, all with the same target names):
+    `meshes` (mesh names, or node names where a mesh has none, or indices as text) when given; otherwise the mesh
+    with the most usable target names (a known convention's: ARKit 52, Oculus visemes, ours; or `extra_names`, a
+    mapping CSV's shapes) and every mesh that shares a usable name with it. Meshes used by a node are preferred
+    over meshes no node uses. A scene with a single mesh with targets drives it whatever its names. The others are
+    not driven and listed in `Character.left_out` with why: no targets, nothing usable, nothing shared.
+
+    The joined arrays (neutral, faces, deltas, colours) put the parts together as the scene shows them: each part
+    read by `rig.gltf` (primitives joined, sparse / strided / quantized accessors, target names from
+    `extras.targetNames`, COLOR_0) and placed by `GltfScene.placed_mesh` (node world transform, or the skin's rest
+    pose for a skinned mesh; a mesh instanced by several nodes is placed by the first). Shapes are the union of the
+    parts' target names (the first part's order, then new names in part order); `Character.parts` keeps each
+    part's vertex range and its own target order, which the exported GLB animates (`gltf_asset`).
+
+    Its name: `name`, else the single driven mesh's name, else the file's stem. Raises CharacterError naming the
+    file: not glTF 2.0, compressed geometry (Draco, meshopt), no mesh, no mesh with targets, several meshes with
+    targets none of which is usable, a `meshes` entry that is not there (the error lists the meshes), targets
+    without names, primitives other than triangles, targets that differ between primitives, or data that
+    `validate_character` rejects.
     """
     path = Path(path)
     try:
-        mesh = read_gltf_mesh(path)
+        scene = GltfScene(path)
+        if not scene.meshes:
+            raise RigError(f"{path}: no mesh in this glTF file")
+        chosen, left_out = _choose_meshes(path, scene.meshes, meshes, extra_names)
+        placed = [(info, *scene.placed_mesh(info.index)) for info in chosen]
     except RigError as exc:   # its message starts with the path
         message = str(exc)
         raise CharacterError(message if str(path) in message else f"{path}: {message}") from None
-    if not mesh.target_names:
-        raise CharacterError(f"{path}: no mesh has morph targets ({mesh.n_meshes} meshes); a character needs its "
-                             "blendshapes as glTF morph targets")
-    return make_character(name or mesh.name or path.stem, mesh.neutral, mesh.faces, mesh.target_names,
-                          mesh.deltas, source=path, vertex_colors=mesh.colors)
+    for info, mesh, *_ in placed:
+        seen: dict[str, int] = {}
+        for k, n in enumerate(mesh.target_names):
+            if n in seen:
+                raise CharacterError(f"{path}: mesh {info.label!r}: the shape name {n!r} is used twice (targets "
+                                     f"{seen[n]} and {k})")
+            seen[n] = k
+    names = list(dict.fromkeys(n for _, mesh, *_ in placed for n in mesh.target_names))
+    column = {n: k for k, n in enumerate(names)}
+    n_vertices = sum(len(neutral) for _, _, neutral, _, _ in placed)
+    deltas = np.zeros((len(names), n_vertices, 3), np.float32)
+    parts, positions, faces, colors, start = [], [], [], [], 0
+    for info, mesh, neutral, part_deltas, how in placed:
+        stop = start + len(neutral)
+        deltas[[column[n] for n in mesh.target_names], start:stop] = part_deltas
+        positions.append(neutral)
+        faces.append(mesh.faces + start)
+        colors.append(mesh.colors)
+        parts.append(CharacterPart(mesh=info.index, nodes=info.nodes, name=info.label, start=start, stop=stop,
+                                   target_names=tuple(mesh.target_names), placement=how))
+        start = stop
+    rgb = None
+    if any(c is not None for c in colors):
+        rgb = np.concatenate([np.ones((len(p), 3), np.float32) if c is None else c for p, c in zip(positions, colors)])
+    label = name or (placed[0][1].name if len(placed) == 1 else None) or path.stem
+    return make_character(label, np.concatenate(positions), np.concatenate(faces), names, deltas, source=path,
+                          vertex_colors=rgb, parts=parts, left_out=left_out)

@@ -12,16 +12,23 @@ from visemeflow.animation.character import Character, CharacterError, load_chara
 from visemeflow.animation.gltf import read_character_glb
 
 
-def load_character(path: str | os.PathLike, name: str | None = None) -> Character:
-    """Read a character from a .glb/.gltf, a .npz (ours or a viseme rig) or a folder of meshes; validated."""
+def load_character(path: str | os.PathLike, name: str | None = None, meshes=None, extra_names=None) -> Character:
+    """Read a character from a .glb/.gltf, a .npz (ours or a viseme rig) or a folder of meshes; validated.
+
+    For a glTF scene, `meshes` names the meshes to drive (default: chosen by their target names) and `extra_names`
+    are shape names that count as usable besides the known conventions' (a mapping CSV's); see
+    `gltf.read_character_glb`. `meshes` on another kind of character is an error."""
     path = Path(path)
+    glb = path.suffix.lower() in (".glb", ".gltf") and not path.is_dir()
+    if meshes and not glb:
+        raise CharacterError(f"{path}: --mesh chooses meshes of a .glb/.gltf scene; this character is one mesh")
     if path.is_dir():
         return load_character_folder(path, name)
     if not path.is_file():
         raise CharacterError(f"{path}: no such character file or folder")
     suffix = path.suffix.lower()
-    if suffix in (".glb", ".gltf"):
-        return read_character_glb(path, name=name)
+    if glb:
+        return read_character_glb(path, name=name, meshes=meshes, extra_names=extra_names)
     if suffix == ".npz":
         return load_character_npz(path, name)
     raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .npz or a folder of meshes")

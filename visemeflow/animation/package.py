@@ -10,6 +10,9 @@ bound to the character's shapes and written in every requested format into one f
 | `curves-csv`  | `<stem>.curves.csv`   | the 16 viseme curves, one row per frame                      |
 | `curves-json` | `<stem>.curves.json`  | the 16 viseme curves, one list per viseme                    |
 
+The `glb` of a character read from a glTF scene is that whole scene with the clip added (`gltf_asset`); of other
+characters, a new single-mesh GLB (`gltf.write_glb`).
+
 Bone mode (`AnimateConfig.mode = "bones"`, `visemeflow animate --mode bones --bones N`): the character's visemes become
 N SSDR bones (`visemeflow.animation.bones`, solved once per character, binding and bone count in a process and
 reused by every utterance of the run), and `glb` / `usd` are written as bone animation instead of blendshapes:
@@ -79,6 +82,8 @@ class AnimateConfig(BaseModel):
         True, description="Apply the lip rules of visemeflow.articulation before the curves drive the character: "
                           "lips close at b/p/m and touch the teeth at f/v whatever else is active, and no blend opens "
                           "wider than the widest viseme (AHH).")
+    meshes: tuple[str, ...] = Field((), description="Meshes of a .glb/.gltf character to drive (mesh names); none: "
+                                                    "every mesh whose morph targets match (see gltf.read_character_glb).")
 
     @model_validator(mode="after")
     def _pose_tables_need_bones(self):
@@ -176,9 +181,9 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
         if fmt in bone_formats:
             continue
         if fmt == "glb":
-            from visemeflow.animation.gltf import write_glb
+            from visemeflow.animation.gltf_asset import write_character_glb
 
-            write_glb(path, character, weights, rate, name=stem)
+            write_character_glb(path, character, weights, rate, name=stem)
         elif fmt == "usd":
             from visemeflow.animation.usd import write_usd
 

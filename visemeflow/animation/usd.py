@@ -19,6 +19,9 @@ The layout follows what NVIDIA Audio2Face and Maya USD exchange for blendshape-d
 Blend shapes need a bound Skeleton in UsdSkel: the weights live on the SkelAnimation, which only reaches the mesh
 through the skeleton that `skel:skeleton` names, so a blendshape-only character still has one.
 
+A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.parts`) is written as its joined
+mesh, the parts placed as in the scene, one set of blendshapes over all of them; the GLB export keeps the parts.
+
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
 Stage: upAxis Y, `metersPerUnit` as given (0.01: the demo rig is in centimetres).
 

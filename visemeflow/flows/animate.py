@@ -124,14 +124,17 @@ def animate_flow(params: AnimateParams):
         per_utterance[uid] = (audio, file_hash(audio) if audio else None,
                               store.curves_provenance(params.source, variant, uid) or "")
     out = str(params.out) if params.out else None
-    rejects, reports, futures, unexpected = [], [], {}, 0
+    rejects, reports, futures, unexpected, choices = [], [], {}, 0, []
     for character in params.characters:
         path = str(Path(character).resolve())
         try:
             if mapping and not params.mapping.is_file():
                 raise CharacterError(f"{params.mapping}: no such mapping CSV")
             character_hash = content_hash(path)
-            bound_character(path, character_hash, params.config.convention, mapping, mapping_hash)
+            loaded, _ = bound_character(path, character_hash, params.config.convention, mapping, mapping_hash,
+                                        params.config.meshes)
+            choices.append(loaded.describe())
+            logger.info("animate: %s", choices[-1])
         except (CharacterError, OSError) as exc:  # the whole character is unusable: one reject, next character
             rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
             logger.warning("animate: %s", exc)
@@ -175,7 +178,8 @@ def animate_flow(params: AnimateParams):
     # a character that could not be loaded fails every utterance it was asked for
     lost = sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
     failed = sum(1 for r in rejects if r[C.UTTERANCE_ID] is not None) + lost
-    return finished(STAGE, {**summary, "source": params.source, "variant": variant, "packages_written": reports},
+    return finished(STAGE, {**summary, "source": params.source, "variant": variant, "packages_written": reports,
+                            "character_choices": choices},
                     failed, len(futures) + lost, unexpected)
 
 
@@ -231,6 +235,8 @@ class PreviewParams(BaseModel):
                                   "(what the bone exports play); both: each source's blendshape and bone panels side "
                                   "by side.")
     bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve (modes bones and both).")
+    meshes: list[str] = Field([], description="Meshes of a .glb/.gltf character to drive (mesh names); none: every "
+                                              "mesh whose morph targets match.")
     closure_rule: bool = Field(True, description="Apply the lip rules (visemeflow.articulation) as the exports do: "
                                                  "lips close at b/p/m and touch the teeth at f/v, bounded opening.")
 
@@ -274,7 +280,7 @@ def preview_flow(params: PreviewParams) -> dict:
     character_hash = content_hash(path)
     mapping = str(params.mapping.resolve()) if params.mapping else None
     character, binding = bound_character(path, character_hash, None, mapping,
-                                         file_hash(mapping) if mapping else None)
+                                         file_hash(mapping) if mapping else None, tuple(params.meshes))
     panels, skipped, rate = {}, [], None
     for spec in params.sources:
         source, _, variant = spec.partition(":")
@@ -306,4 +312,5 @@ def preview_flow(params: PreviewParams) -> dict:
     get_run_logger().info("preview %s: %s (%d frames, %s); left out: %s", uid, out, report.frames,
                           ", ".join(panels), "; ".join(skipped) or "nothing")
     return {"utterance_id": uid, "path": str(out), "sources": list(panels), "skipped": skipped,
+            "character": character.describe(),
             "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}

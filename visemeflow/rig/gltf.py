@@ -1,7 +1,8 @@
 """The one glTF 2.0 reader: a mesh, its named morph targets and vertex colours as plain arrays, through pygltflib.
 
-`read_gltf_mesh(path)` is used by the rig loaders (`rig.io.load_rig_glb`, `rig.io.read_mesh`) and, through
-`animation.gltf.read_character_glb`, by the character loaders. pygltflib parses the container (GLB or glTF JSON);
+`read_gltf_mesh(path)` is used by the rig loaders (`rig.io.load_rig_glb`, `rig.io.read_mesh`); `GltfScene(path)`
+(every mesh described, any mesh read and placed in the scene: node world transforms, skin rest poses) by the
+character loader, `animation.gltf.read_character_glb`, which drives several meshes of one avatar. pygltflib parses the container (GLB or glTF JSON);
 this module turns accessors into numpy arrays and checks what a mesh reader needs.
 
 Which mesh: with `morph_targets=True`, the first mesh with morph targets in scene order (the default scene's node
@@ -12,7 +13,9 @@ mesh in that order, its targets not read.
 What is read: every primitive must be TRIANGLES and carry the same number of targets; primitives are joined into one
 vertex array in primitive order (primitives that share their POSITION, COLOR_0 and target accessors share their
 vertices). Accessors may be strided, sparse, or integer (normalized or not, as KHR_mesh_quantization allows).
-Target names come from `mesh.extras.targetNames`, else the first primitive's. Node transforms are not applied.
+Target names come from `mesh.extras.targetNames`, else the first primitive's. `read_gltf_mesh` applies no node
+transform (`GltfScene.placed_mesh` does). Files that require Draco or meshopt compression are refused with how to
+decompress them.
 Buffers may be the GLB's binary chunk, data URIs or files beside a .gltf (no other URI is followed).
 
 Vertex colours: `COLOR_0` (VEC3 or VEC4, float or normalized unsigned byte / short; alpha dropped) holds *linear*
@@ -39,7 +42,11 @@ import pygltflib as gl
 
 from visemeflow.rig.model import RigError
 
-__all__ = ["GltfMesh", "linear_to_srgb", "read_gltf_mesh", "srgb_to_linear"]
+__all__ = ["COMPRESSION_EXTENSIONS", "GltfMesh", "GltfMeshInfo", "GltfScene", "linear_to_srgb", "read_gltf_mesh",
+           "srgb_to_linear"]
+
+COMPRESSION_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
+"""Geometry compression extensions: a file that requires one is refused with how to decompress it."""
 
 _GLB_MAGIC = b"glTF"
 _COMPONENT_DTYPES = {
@@ -47,7 +54,7 @@ _COMPONENT_DTYPES = {
     gl.UNSIGNED_SHORT: np.dtype("<u2"), gl.UNSIGNED_INT: np.dtype("<u4"), gl.FLOAT: np.dtype("<f4"),
 }
 _INDEX_TYPES = (gl.UNSIGNED_BYTE, gl.UNSIGNED_SHORT, gl.UNSIGNED_INT)
-_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 _MODES = {gl.POINTS: "POINTS", gl.LINES: "LINES", gl.LINE_LOOP: "LINE_LOOP", gl.LINE_STRIP: "LINE_STRIP",
           gl.TRIANGLES: "TRIANGLES", gl.TRIANGLE_STRIP: "TRIANGLE_STRIP", gl.TRIANGLE_FAN: "TRIANGLE_FAN"}
 
@@ -88,6 +95,11 @@ class GltfMesh:
     """(V, 3) float32 sRGB in [0, 1] from COLOR_0, or None when no primitive has COLOR_0."""
     extras: dict = field(default_factory=dict)
     """The mesh's `extras` when it is a JSON object, else {}."""
+    joints: np.ndarray | None = None
+    """(V, 4) int64 JOINTS_0 (indices into the skin's joints) when read with skin attributes and every primitive
+    has them, else None."""
+    weights: np.ndarray | None = None
+    """(V, 4) float32 WEIGHTS_0 (dequantized, each row scaled to sum 1), alongside `joints`."""
 
 
 # ---- accessors -------------------------------------------------------------------------------------------------
@@ -189,6 +201,34 @@ class _Reader:
                             f"got {'normalized ' if self.gltf.accessors[index].normalized else ''}{values.dtype}")
         return np.clip(rgb, 0.0, 1.0)
 
+    def skin_influences(self, joints_index: int, weights_index: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """JOINTS_0 as (count, 4) int64 and WEIGHTS_0 as (count, 4) float32, each row scaled to sum 1 (a row of
+        zeros stays zero)."""
+        joints = self.accessor(joints_index, f"{what} JOINTS_0", ("VEC4",))
+        if joints.dtype.kind != "u":
+            raise self.fail(f"{what} JOINTS_0 (accessor {joints_index}): expected unsigned byte or short, got "
+                            f"{joints.dtype}")
+        weights = self.accessor(weights_index, f"{what} WEIGHTS_0", ("VEC4",))
+        if weights.dtype.kind == "f":
+            weights = np.asarray(weights, np.float32)
+        elif weights.dtype.kind == "u" and self.gltf.accessors[weights_index].normalized:
+            weights = _dequantize(weights)
+        else:
+            raise self.fail(f"{what} WEIGHTS_0 (accessor {weights_index}): expected float or normalized unsigned "
+                            f"byte/short, got {weights.dtype}")
+        if len(joints) != len(weights):
+            raise self.fail(f"{what}: {len(joints)} JOINTS_0 but {len(weights)} WEIGHTS_0")
+        total = weights.sum(axis=1, keepdims=True)
+        weights = np.where(total > 0, weights / np.where(total > 0, total, 1), 0).astype(np.float32)
+        return joints.astype(np.int64), weights
+
+    def matrices(self, index: int, what: str) -> np.ndarray:
+        """A MAT4 float accessor as (count, 4, 4) float64 row-major matrices (glTF stores them column-major)."""
+        values = self.accessor(index, what, ("MAT4",))
+        if values.dtype.kind != "f":
+            raise self.fail(f"{what} (accessor {index}): matrices must be float, got {values.dtype}")
+        return np.asarray(values, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+
     def indices(self, index: int | None, n_vertices: int, what: str) -> np.ndarray:
         if index is None:   # non-indexed: every three vertices are a triangle
             if n_vertices % 3:
@@ -244,6 +284,12 @@ def _load(path: Path) -> gl.GLTF2:
     version = str(getattr(gltf.asset, "version", "") or "")
     if not version.startswith("2"):
         raise RigError(f"{path}: glTF version {version or '(none)'}; only glTF 2.0 is read")
+    compressed = [e for e in gltf.extensionsRequired or [] if e in COMPRESSION_EXTENSIONS]
+    if compressed:
+        raise RigError(f"{path}: its geometry is compressed with {', '.join(compressed)}, which visemeflow does not "
+                       "decode; write an uncompressed copy first, e.g. `npx @gltf-transform/cli copy "
+                       f"{path.name} {path.stem}-plain{path.suffix}` (gltf-transform decodes both), or import it "
+                       "in Blender and export glTF without compression")
     return gltf
 
 
@@ -303,12 +349,17 @@ def read_gltf_mesh(path: str | os.PathLike, *, morph_targets: bool = True) -> Gl
     gltf = _load(path)
     if not gltf.meshes:
         raise RigError(f"{path}: no mesh in this glTF file")
-    reader = _Reader(path, gltf)
+    order = _mesh_order(gltf)
+    index = order[0]
+    if morph_targets:
+        index = next((m for m in order if any(p.targets for p in gltf.meshes[m].primitives or [])), index)
+    return _read_mesh(_Reader(path, gltf), index, morph_targets=morph_targets)
+
+
+def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin: bool = False) -> GltfMesh:
+    """Mesh `index` of the reader's document as arrays (primitives joined); with `skin`, JOINTS_0 / WEIGHTS_0 too."""
+    path, gltf = reader.path, reader.gltf
     try:
-        order = _mesh_order(gltf)
-        index = order[0]
-        if morph_targets:
-            index = next((m for m in order if any(p.targets for p in gltf.meshes[m].primitives or [])), index)
         mesh = gltf.meshes[index]
         where = f"mesh {index}" + (f" ({mesh.name!r})" if mesh.name else "")
         if not mesh.primitives:
@@ -329,7 +380,9 @@ def read_gltf_mesh(path: str | os.PathLike, *, morph_targets: bool = True) -> Gl
         deltas: list[np.ndarray] = []
         colors: list[np.ndarray | None] = []
         faces: list[np.ndarray] = []
-        shared: dict[tuple, tuple[int, int]] = {}   # (POSITION, COLOR_0, target POSITIONs) -> (first vertex, count)
+        skins: list[tuple[np.ndarray, np.ndarray] | None] = []
+        # (POSITION, COLOR_0, target POSITIONs, JOINTS_0, WEIGHTS_0) -> (first vertex, count)
+        shared: dict[tuple, tuple[int, int]] = {}
         n_vertices = 0
         for k, primitive in enumerate(mesh.primitives):
             what = f"{where} primitive {k}"
@@ -345,7 +398,9 @@ def read_gltf_mesh(path: str | os.PathLike, *, morph_targets: bool = True) -> Gl
                 raise RigError(f"{path}: {what} has no POSITION attribute")
             color_index = _attribute(primitive.attributes, "COLOR_0")
             target_ids = tuple(_attribute(t, "POSITION") for t in targets)
-            key = (position_index, color_index, target_ids)
+            skin_ids = (_attribute(primitive.attributes, "JOINTS_0"), _attribute(primitive.attributes, "WEIGHTS_0")) \
+                if skin else (None, None)
+            key = (position_index, color_index, target_ids, skin_ids)
             if key in shared:
                 first, count = shared[key]
             else:
@@ -365,8 +420,15 @@ def read_gltf_mesh(path: str | os.PathLike, *, morph_targets: bool = True) -> Gl
                     if len(rgb) != count:
                         raise RigError(f"{path}: {what} COLOR_0 has {len(rgb)} colours, the primitive {count} "
                                        "positions")
+                influences = None
+                if None not in skin_ids:
+                    influences = reader.skin_influences(*skin_ids, what)
+                    if len(influences[0]) != count:
+                        raise RigError(f"{path}: {what} JOINTS_0/WEIGHTS_0 have {len(influences[0])} elements, "
+                                       f"the primitive {count} positions")
                 first = n_vertices
                 shared[key] = (first, count)
+                skins.append(influences)
                 positions.append(vertices)
                 deltas.append(block)
                 colors.append(rgb)
@@ -381,8 +443,180 @@ def read_gltf_mesh(path: str | os.PathLike, *, morph_targets: bool = True) -> Gl
         linear = np.concatenate([np.ones((len(p), 3), np.float32) if c is None else c
                                  for p, c in zip(positions, colors)])
         rgb = linear_to_srgb(linear)
+    joints = weights = None
+    if skins and all(k is not None for k in skins):
+        joints = np.concatenate([k[0] for k in skins])
+        weights = np.concatenate([k[1] for k in skins])
     return GltfMesh(path=path, index=index, name=mesh.name or None, n_meshes=len(gltf.meshes),
                     neutral=np.concatenate(positions).astype(np.float32, copy=False),
                     faces=np.concatenate(faces).astype(np.int32),
                     target_names=tuple(names), deltas=np.concatenate(deltas, axis=1), colors=rgb,
-                    extras=mesh.extras if isinstance(mesh.extras, dict) else {})
+                    extras=mesh.extras if isinstance(mesh.extras, dict) else {}, joints=joints, weights=weights)
+
+
+# ---- the scene -------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GltfMeshInfo:
+    """What a scene's mesh is, read without its vertex arrays."""
+
+    index: int
+    """The mesh's index in the file's `meshes`."""
+    label: str
+    """Its name, else the name of the first node that instances it, else "mesh <index>"."""
+    nodes: tuple[int, ...]
+    """The nodes that instance it, in scene order (default scene depth first, then other nodes)."""
+    n_vertices: int
+    """Vertices of its primitives (primitives sharing a POSITION accessor counted once)."""
+    n_targets: int
+    target_names: tuple[str, ...] | None
+    """Its morph target names, () without targets, None when its targets have no (valid) names."""
+    skin: int | None
+    """The skin of its first node, if that node has one."""
+
+
+def _quaternion_matrix(q) -> np.ndarray:
+    x, y, z, w = (float(c) for c in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _local_matrix(node: gl.Node) -> np.ndarray:
+    """A node's local transform (glTF 2.0 5.25: `matrix`, column-major, else T * R * S) as a 4x4 row-major."""
+    if node.matrix is not None and len(node.matrix) == 16:
+        return np.asarray(node.matrix, np.float64).reshape(4, 4).T
+    m = np.eye(4)
+    rotation = _quaternion_matrix(node.rotation) if node.rotation is not None else np.eye(3)
+    scale = np.asarray(node.scale if node.scale is not None else (1, 1, 1), np.float64)
+    m[:3, :3] = rotation * scale[None, :]
+    if node.translation is not None:
+        m[:3, 3] = node.translation
+    return m
+
+
+class GltfScene:
+    """A glTF file as a scene: every mesh described (`meshes`, scene order), any mesh's arrays placed in the
+    scene's space (`placed_mesh`). Errors are RigErrors whose message starts with the path."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.gltf = _load(self.path)
+        self.reader = _Reader(self.path, self.gltf)
+        try:
+            self.meshes = self._describe()
+        except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
+            raise RigError(f"{self.path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+        self._world: dict[int, np.ndarray] = {}
+
+    def _node_order(self) -> list[int]:
+        nodes, scenes = self.gltf.nodes or [], self.gltf.scenes or []
+        roots = []
+        if isinstance(self.gltf.scene, int) and 0 <= self.gltf.scene < len(scenes):
+            roots += scenes[self.gltf.scene].nodes or []
+        for scene in scenes:
+            roots += scene.nodes or []
+        roots += range(len(nodes))
+        order, seen = [], set()
+        for root in roots:
+            stack = [root]
+            while stack:
+                i = stack.pop()
+                if not isinstance(i, int) or not 0 <= i < len(nodes) or i in seen:
+                    continue
+                seen.add(i)
+                order.append(i)
+                stack.extend(reversed(nodes[i].children or []))
+        return order
+
+    def _describe(self) -> list[GltfMeshInfo]:
+        gltf = self.gltf
+        nodes = gltf.nodes or []
+        users: dict[int, list[int]] = {}
+        for i in self._node_order():
+            if isinstance(nodes[i].mesh, int):
+                users.setdefault(nodes[i].mesh, []).append(i)
+        infos = []
+        for m in _mesh_order(gltf):
+            mesh = gltf.meshes[m]
+            primitives = mesh.primitives or []
+            n_targets = max((len(p.targets or []) for p in primitives), default=0)
+            names: tuple[str, ...] | None = ()
+            if n_targets:
+                found = _target_names(mesh)
+                names = tuple(found) if isinstance(found, list) and len(found) == n_targets and \
+                    all(isinstance(n, str) for n in found) else None
+            counts = {}
+            for p in primitives:
+                position = _attribute(p.attributes, "POSITION")
+                if isinstance(position, int) and 0 <= position < len(gltf.accessors):
+                    counts[position] = int(gltf.accessors[position].count or 0)
+            used_by = tuple(users.get(m, ()))
+            label = mesh.name or next((nodes[n].name for n in used_by if nodes[n].name), None) or f"mesh {m}"
+            skin = nodes[used_by[0]].skin if used_by and isinstance(nodes[used_by[0]].skin, int) else None
+            infos.append(GltfMeshInfo(m, label, used_by, sum(counts.values()), n_targets, names, skin))
+        return infos
+
+    def world_matrix(self, node: int) -> np.ndarray:
+        """(4, 4) float64: the node's transform in the scene (its parents' times its own), in the rest pose."""
+        if not self._world:
+            parents = {}
+            for i, n in enumerate(self.gltf.nodes or []):
+                for child in n.children or []:
+                    parents.setdefault(child, i)
+            nodes = self.gltf.nodes or []
+            for i in range(len(nodes)):
+                chain, j = [], i
+                while j is not None and j not in self._world and j not in chain:
+                    chain.append(j)
+                    j = parents.get(j)
+                base = self._world.get(j, np.eye(4)) if j is not None else np.eye(4)
+                for k in reversed(chain):
+                    base = base @ _local_matrix(nodes[k])
+                    self._world[k] = base
+        return self._world[node]
+
+    def placed_mesh(self, index: int) -> tuple[GltfMesh, np.ndarray, np.ndarray, str]:
+        """Mesh `index` read (targets, colours, skin attributes) and placed in the scene as its first node shows
+        it: (mesh, neutral (V, 3) float32, deltas (S, V, 3) float32, how it was placed).
+
+        A skinned node (glTF ignores its own transform) is put in its rest pose: each vertex moved by the blend,
+        by WEIGHTS_0, of world(joint) @ inverseBindMatrix over its JOINTS_0 (linear blend skinning, what a viewer
+        shows with the joints at rest), its target deltas by the linear part of that blend (targets apply before
+        skinning). Another node's world transform moves the neutral, its linear part the deltas. A mesh no node
+        uses stays as stored."""
+        info = next(i for i in self.meshes if i.index == index)
+        mesh = _read_mesh(self.reader, index, skin=info.skin is not None)
+        if not info.nodes:
+            return mesh, mesh.neutral, mesh.deltas, "as stored (no node)"
+        node = info.nodes[0]
+        if info.skin is not None and mesh.joints is not None:
+            blend = self._skin_blend(info.skin, mesh)
+            how = f"rest pose of skin {info.skin}"
+        else:
+            blend = np.broadcast_to(self.world_matrix(node), (len(mesh.neutral), 4, 4))
+            how = f"node {node} world transform"
+        linear = blend[:, :3, :3]
+        neutral = np.einsum("vij,vj->vi", linear, mesh.neutral.astype(np.float64)) + blend[:, :3, 3]
+        deltas = np.einsum("vij,svj->svi", linear, mesh.deltas.astype(np.float64))
+        return mesh, neutral.astype(np.float32), deltas.astype(np.float32), how
+
+    def _skin_blend(self, skin_index: int, mesh: GltfMesh) -> np.ndarray:
+        """(V, 4, 4): per vertex, sum_k weight_k * world(joint_k) @ inverseBindMatrix_k."""
+        path = self.path
+        if not 0 <= skin_index < len(self.gltf.skins or []):
+            raise RigError(f"{path}: skin {skin_index} does not exist")
+        skin = self.gltf.skins[skin_index]
+        joints = list(skin.joints or [])
+        if skin.inverseBindMatrices is None:
+            inverse = np.broadcast_to(np.eye(4), (len(joints), 4, 4))
+        else:
+            inverse = self.reader.matrices(skin.inverseBindMatrices, f"skin {skin_index} inverseBindMatrices")
+            if len(inverse) != len(joints):
+                raise RigError(f"{path}: skin {skin_index} has {len(joints)} joints but {len(inverse)} inverse "
+                               "bind matrices")
+        if mesh.joints.size and int(mesh.joints.max()) >= len(joints):
+            raise RigError(f"{path}: mesh {mesh.index} JOINTS_0 names joint {int(mesh.joints.max())} of skin "
+                           f"{skin_index}, which has {len(joints)}")
+        per_joint = np.stack([self.world_matrix(j) @ inverse[k] for k, j in enumerate(joints)]) if joints else \
+            np.zeros((1, 4, 4))
+        return np.einsum("vk,vkij->vij", mesh.weights.astype(np.float64), per_joint[mesh.joints])

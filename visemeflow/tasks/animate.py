@@ -19,7 +19,7 @@ from prefect.cache_policies import TASK_SOURCE, Inputs
 from visemeflow.animation.apply import CurvesError, resample
 from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
-from visemeflow.animation.conventions import Binding, bind
+from visemeflow.animation.conventions import Binding, bind, load_mapping_csv
 from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
 from visemeflow.articulation import close_lips
 from visemeflow.hashing import file_hash, stable_hash
@@ -46,9 +46,13 @@ class AnimateError(ValueError):
 
 @functools.lru_cache(maxsize=4)
 def bound_character(path: str, character_hash: str, convention: str | None, mapping: str | None,
-                    mapping_hash: str | None) -> tuple[Character, Binding]:
-    """The character of `path` bound to the 16 visemes (one load per run; the hashes key a changed file apart)."""
-    character = load_character(path)
+                    mapping_hash: str | None, meshes: tuple[str, ...] = ()) -> tuple[Character, Binding]:
+    """The character of `path` bound to the 16 visemes (one load per run; the hashes key a changed file apart).
+
+    `meshes`: the meshes of a glTF scene to drive (default: chosen by their target names, a mapping CSV's shapes
+    counting as usable names)."""
+    extra = sorted({s for row in load_mapping_csv(mapping).values() for s in row}) if mapping else None
+    character = load_character(path, meshes=meshes or None, extra_names=extra)
     return character, bind(character, convention, mapping)
 
 
@@ -90,7 +94,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     """Export one utterance for one character; AnimateError naming the utterance and file for bad input."""
     try:
         character, binding = bound_character(character_path, character_hash, config.convention, mapping_path,
-                                             mapping_hash)
+                                             mapping_hash, config.meshes)
     except CharacterError as exc:
         raise AnimateError(utterance_id, character_path, "CharacterError", str(exc)) from exc
     try:
@@ -128,6 +132,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         files["preview"] = str(path)
     seconds = time.perf_counter() - started
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
+            "meshes": [part.name for part in character.parts],
             "folder": str(folder), "files": files, "frames": package.frames, "fps": package.fps,
             "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4)}
 

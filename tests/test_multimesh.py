@@ -1,0 +1,446 @@
+"""Avatars whose face is several meshes sharing morph target names (Ready Player Me, VRoid, Mixamo, MetaHuman,
+Character Creator): one character drives them all, and the GLB export is the user's whole asset with our clip added.
+
+The avatar is built here with pygltflib: a skinned head (JOINTS_0/WEIGHTS_0, inverse bind matrices that do not
+cancel the joints' rest transforms), teeth with the mouth targets in another order, two eyes with blink and mouth
+targets (zero deltas), a body without targets, a textured material (an embedded PNG), a node hierarchy with
+translations, and an existing animation (a rotation of the eyes' group). Checked: which meshes are driven and why
+the others are not, `--mesh`, the errors, the Khronos validator, byte/JSON identity of everything that was there,
+three.js playing the new clip on every driven mesh, and the animate flow writing the whole asset.
+"""
+
+import io
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pygltflib as gl
+import pytest
+from browser import serve_folder
+from factories import make_curve_store
+from test_gltf import NODE_MODULES, browser, node_or_fail, validate  # noqa: F401 (browser: a fixture)
+
+from visemeflow.animation.character import CharacterError
+from visemeflow.animation.conventions import bind
+from visemeflow.animation.gltf_asset import write_character_glb
+from visemeflow.animation.load import load_character
+from visemeflow.animation.package import AnimateConfig
+
+HEAD_TARGETS = ["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft", "mouthSmileRight",
+                "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthLowerDownLeft", "mouthLowerDownRight",
+                "mouthUpperUpLeft", "mouthStretchLeft", "mouthStretchRight", "eyeBlinkLeft", "eyeBlinkRight"]
+TEETH_TARGETS = ["mouthClose", "jawOpen", "mouthFunnel", "tongueOut"]          # another order, one name of its own
+EYE_TARGETS = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft"]
+HEAD_JOINT_OFFSET = np.array([0.0, 0.5, 0.0])   # world(head joint) @ its inverse bind matrix: a rest-pose shift
+AVATAR_AT = np.array([1.0, 0.0, 0.0])           # the root node's translation
+TEETH_AT = np.array([0.0, 1.4, 0.1])
+EYES_AT = np.array([0.0, 1.6, 0.1])
+
+
+class _Blob:
+    def __init__(self, g: gl.GLTF2):
+        self.g, self.data = g, bytearray()
+
+    def view(self, data: bytes, target: int | None = None) -> int:
+        self.data += bytes(-len(self.data) % 4)
+        self.g.bufferViews.append(gl.BufferView(buffer=0, byteOffset=len(self.data), byteLength=len(data),
+                                                target=target))
+        self.data += data
+        return len(self.g.bufferViews) - 1
+
+    def accessor(self, array: np.ndarray, kind: str, target: int | None = None, bounds: bool = False,
+                 normalized: bool = False) -> int:
+        array = np.ascontiguousarray(array)
+        component = {np.dtype("float32"): gl.FLOAT, np.dtype("uint8"): gl.UNSIGNED_BYTE,
+                     np.dtype("uint16"): gl.UNSIGNED_SHORT}[array.dtype]
+        flat = array.reshape(len(array), -1)
+        self.g.accessors.append(gl.Accessor(
+            bufferView=self.view(array.tobytes(), target), componentType=component, count=len(array), type=kind,
+            normalized=normalized or None, min=flat.min(0).tolist() if bounds else None,
+            max=flat.max(0).tolist() if bounds else None))
+        return len(self.g.accessors) - 1
+
+
+def _grid(nx: int, ny: int, size: float) -> tuple[np.ndarray, np.ndarray]:
+    xs, ys = np.meshgrid(np.linspace(-size, size, nx), np.linspace(-size, size, ny))
+    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(nx * ny)], 1).astype(np.float32)
+    faces = [(r * nx + c, r * nx + c + 1, (r + 1) * nx + c + 1) for r in range(ny - 1) for c in range(nx - 1)] + \
+        [(r * nx + c, (r + 1) * nx + c + 1, (r + 1) * nx + c) for r in range(ny - 1) for c in range(nx - 1)]
+    return vertices, np.asarray(faces, np.uint16)
+
+
+def _png() -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(np.array([[[200, 150, 120], [90, 60, 50]], [[240, 200, 180], [30, 20, 20]]], np.uint8)).save(
+        out, format="PNG")
+    return out.getvalue()
+
+
+def _mesh(b: _Blob, name: str, vertices, faces, names: list[str], deltas, extra: dict | None = None,
+          material: int = 1) -> int:
+    attributes = gl.Attributes(POSITION=b.accessor(vertices, gl.VEC3, gl.ARRAY_BUFFER, bounds=True), **(extra or {}))
+    targets = [{"POSITION": b.accessor(d.astype(np.float32), gl.VEC3, gl.ARRAY_BUFFER, bounds=True)} for d in deltas]
+    primitive = gl.Primitive(attributes=attributes, indices=b.accessor(faces.ravel(), gl.SCALAR,
+                                                                      gl.ELEMENT_ARRAY_BUFFER),
+                             material=material, targets=targets or None,
+                             extras={"targetNames": names} if names else {})
+    b.g.meshes.append(gl.Mesh(name=name, primitives=[primitive], weights=[0.0] * len(names) if names else None,
+                              extras={"targetNames": names} if names else {}))
+    return len(b.g.meshes) - 1
+
+
+def make_avatar(path: Path, body_targets: list[str] | None = None) -> dict:
+    """Write the multi-mesh avatar GLB (see the module); returns the arrays it holds, by mesh name."""
+    rng = np.random.default_rng(3)
+    g = gl.GLTF2(asset=gl.Asset(version="2.0", generator="test avatar"))
+    b = _Blob(g)
+    head, head_faces = _grid(6, 5, 0.1)
+    head[:, 1] += 1.5
+    head_deltas = rng.normal(0, 0.01, (len(HEAD_TARGETS), len(head), 3)).astype(np.float32)
+    joints = np.zeros((len(head), 4), np.uint8)
+    head_weight = np.linspace(0.0, 1.0, len(head)).astype(np.float32)      # from the hips joint to the head joint
+    joints[:, 1] = head_weight > 0
+    weights = np.zeros((len(head), 4), np.float32)
+    weights[:, 0], weights[:, 1] = 1 - head_weight, head_weight
+    uv = np.c_[np.linspace(0, 1, len(head)), np.linspace(1, 0, len(head))].astype(np.float32)
+    teeth, teeth_faces = _grid(3, 2, 0.03)
+    teeth_deltas = rng.normal(0, 0.005, (len(TEETH_TARGETS), len(teeth), 3)).astype(np.float32)
+    eye, eye_faces = _grid(2, 2, 0.01)
+    body, body_faces = _grid(3, 3, 0.3)
+    body_names = body_targets or []
+
+    g.images.append(gl.Image(bufferView=b.view(_png()), mimeType="image/png", name="skin"))
+    g.samplers.append(gl.Sampler(magFilter=gl.LINEAR, minFilter=gl.LINEAR))
+    g.textures.append(gl.Texture(sampler=0, source=0))
+    g.materials.append(gl.Material(name="skin", pbrMetallicRoughness=gl.PbrMetallicRoughness(
+        baseColorTexture=gl.TextureInfo(index=0), metallicFactor=0.0, roughnessFactor=0.7)))
+    g.materials.append(gl.Material(name="plain", pbrMetallicRoughness=gl.PbrMetallicRoughness(metallicFactor=0.0)))
+    _mesh(b, "Wolf3D_Head", head, head_faces, HEAD_TARGETS, head_deltas, {
+        "TEXCOORD_0": b.accessor(uv, gl.VEC2, gl.ARRAY_BUFFER),
+        "JOINTS_0": b.accessor(joints, gl.VEC4, gl.ARRAY_BUFFER),
+        "WEIGHTS_0": b.accessor(weights, gl.VEC4, gl.ARRAY_BUFFER)}, material=0)
+    _mesh(b, "Wolf3D_Teeth", teeth, teeth_faces, TEETH_TARGETS, teeth_deltas)
+    _mesh(b, "EyeLeft", eye, eye_faces, EYE_TARGETS, np.zeros((len(EYE_TARGETS), len(eye), 3)))
+    _mesh(b, "EyeRight", eye, eye_faces, EYE_TARGETS, np.zeros((len(EYE_TARGETS), len(eye), 3)))
+    _mesh(b, "Wolf3D_Body", body, body_faces, body_names,
+          rng.normal(0, 0.01, (len(body_names), len(body), 3)))
+
+    hips_world = np.eye(4)
+    hips_world[:3, 3] = AVATAR_AT
+    head_world = hips_world.copy()
+    head_world[:3, 3] += [0, 1.0, 0]
+    head_inverse_bind = np.linalg.inv(head_world)
+    head_inverse_bind[:3, 3] += HEAD_JOINT_OFFSET     # world(head joint) @ this = a shift by HEAD_JOINT_OFFSET
+    ibm = np.stack([np.linalg.inv(hips_world), head_inverse_bind]).transpose(0, 2, 1).astype(np.float32)
+    g.nodes = [
+        gl.Node(name="Avatar", translation=AVATAR_AT.tolist(), children=[1, 4, 5, 8]),             # 0
+        gl.Node(name="Hips", children=[2]),                                                         # 1
+        gl.Node(name="HeadJoint", translation=[0.0, 1.0, 0.0]),                                    # 2
+        gl.Node(name="HeadNode", mesh=0, skin=0),                                                   # 3
+        gl.Node(name="TeethNode", mesh=1, translation=TEETH_AT.tolist()),                           # 4
+        gl.Node(name="Eyes", translation=EYES_AT.tolist(), children=[6, 7]),                        # 5
+        gl.Node(name="EyeLeftNode", mesh=2, translation=[-0.03, 0.0, 0.0]),                         # 6
+        gl.Node(name="EyeRightNode", mesh=3, translation=[0.03, 0.0, 0.0]),                         # 7
+        gl.Node(name="BodyNode", mesh=4),                                                           # 8
+    ]
+    g.skins.append(gl.Skin(name="Armature", joints=[1, 2], skeleton=1,
+                           inverseBindMatrices=b.accessor(ibm.reshape(2, 16), gl.MAT4)))
+    times = np.array([0.0, 1.0], np.float32)
+    turn = np.array([[0, 0, 0, 1], [0, np.sin(0.2), 0, np.cos(0.2)]], np.float32)
+    g.animations.append(gl.Animation(name="idle", samplers=[gl.AnimationSampler(
+        input=b.accessor(times, gl.SCALAR, bounds=True), output=b.accessor(turn, gl.VEC4), interpolation="LINEAR")],
+        channels=[gl.AnimationChannel(sampler=0, target=gl.AnimationChannelTarget(node=5, path="rotation"))]))
+    g.scenes = [gl.Scene(name="Scene", nodes=[0, 3])]    # a skinned node at the root, as the validator asks
+    g.scene = 0
+    b.data += bytes(-len(b.data) % 4)
+    g.buffers = [gl.Buffer(byteLength=len(b.data))]
+    g.set_binary_blob(bytes(b.data))
+    g.save_binary(str(path))
+    return {"head": head, "head_deltas": head_deltas, "head_weight": head_weight, "teeth": teeth,
+            "teeth_deltas": teeth_deltas, "eye": eye}
+
+
+@pytest.fixture(scope="module")
+def avatar(tmp_path_factory) -> tuple[Path, dict]:
+    path = tmp_path_factory.mktemp("avatar") / "avatar.glb"
+    return path, make_avatar(path)
+
+
+def glb_parts(path: Path) -> tuple[dict, bytes]:
+    """(JSON document, binary chunk) of a GLB, read here without our code."""
+    data = path.read_bytes()
+    assert data[:4] == b"glTF" and struct.unpack_from("<II", data, 4) == (2, len(data))
+    json_length, json_type = struct.unpack_from("<II", data, 12)
+    assert json_type == 0x4E4F534A
+    document = json.loads(data[20:20 + json_length])
+    bin_length, bin_type = struct.unpack_from("<II", data, 20 + json_length)
+    assert bin_type == 0x004E4942
+    return document, data[28 + json_length: 28 + json_length + bin_length]
+
+
+# ---- the loader -------------------------------------------------------------------------------------------------
+def test_the_loader_drives_head_teeth_and_eyes_in_place_and_names_the_body(avatar):
+    path, arrays = avatar
+    c = load_character(path)
+    assert [p.name for p in c.parts] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
+    assert c.left_out == ("Wolf3D_Body (no targets)",)
+    assert c.name == "avatar" and c.shape_names == tuple(HEAD_TARGETS + ["tongueOut"])
+    assert c.describe() == ("character avatar.glb: driving Wolf3D_Head (30 v), Wolf3D_Teeth (6 v), EyeLeft (4 v), "
+                            "EyeRight (4 v): 1 shared targets (17 in all); not driven: Wolf3D_Body (no targets)")
+    head, teeth, left, right = c.parts
+    assert (head.start, head.stop, teeth.stop, left.stop, right.stop) == (0, 30, 36, 40, 44) == (0, 30, 36, 40,
+                                                                                                   c.n_vertices)
+    assert head.nodes == (3,) and teeth.nodes == (4,) and left.nodes == (6,) and right.nodes == (7,)
+    assert teeth.target_names == tuple(TEETH_TARGETS) and teeth.columns(c.shape_names) == [1, 0, 2, 16]
+    # the skinned head in its rest pose: each vertex shifted by its head-joint weight times the joint's offset
+    expected_head = arrays["head"] + arrays["head_weight"][:, None] * HEAD_JOINT_OFFSET
+    np.testing.assert_allclose(c.neutral[:30], expected_head, atol=1e-6)
+    np.testing.assert_allclose(c.deltas[:16, :30], arrays["head_deltas"], atol=1e-6)   # translations only
+    assert "skin 0" in head.placement and "node 4" in teeth.placement
+    # the other meshes by their nodes' world transforms (the root's translation included)
+    np.testing.assert_allclose(c.neutral[30:36], arrays["teeth"] + AVATAR_AT + TEETH_AT, atol=1e-6)
+    np.testing.assert_allclose(c.neutral[36:40], arrays["eye"] + AVATAR_AT + EYES_AT + [-0.03, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(c.neutral[40:44], arrays["eye"] + AVATAR_AT + EYES_AT + [0.03, 0, 0], atol=1e-6)
+    # each part's targets in its columns, zeros elsewhere
+    np.testing.assert_allclose(c.deltas[[1, 0, 2, 16], 30:36], arrays["teeth_deltas"], atol=1e-7)
+    assert not c.deltas[3:16, 30:36].any() and not c.deltas[16, :30].any() and not c.deltas[:, 36:].any()
+    assert c.faces.max() == 43 and c.faces[len(c.faces) - 1].min() >= 40
+    assert bind(c).convention == "arkit52"
+
+
+def test_mesh_option_chooses_meshes_and_an_unknown_one_lists_them(avatar):
+    path, _ = avatar
+    c = load_character(path, meshes=["Wolf3D_Teeth", "Wolf3D_Head"])
+    assert [p.name for p in c.parts] == ["Wolf3D_Teeth", "Wolf3D_Head"]
+    assert c.shape_names[:4] == tuple(TEETH_TARGETS) and c.n_vertices == 36
+    assert "EyeLeft (not asked for)" in c.left_out and "Wolf3D_Body (not asked for)" in c.left_out
+    with pytest.raises(CharacterError) as info:
+        load_character(path, meshes=["Wolf3D_Haed"])
+    message = str(info.value)
+    assert str(path) in message and "no mesh 'Wolf3D_Haed'" in message
+    assert "Wolf3D_Head (30 v, 16 targets)" in message and "Wolf3D_Body (9 v, no targets)" in message
+    with pytest.raises(CharacterError, match="'Wolf3D_Body' has no morph targets"):
+        load_character(path, meshes=["Wolf3D_Body"])
+
+
+def test_a_body_with_other_targets_is_named_and_a_scene_with_nothing_usable_names_every_mesh(tmp_path):
+    path = tmp_path / "breathing.glb"
+    make_avatar(path, body_targets=["breathe"])
+    c = load_character(path)
+    assert [p.name for p in c.parts] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
+    assert c.left_out == ("Wolf3D_Body (targets breathe: none usable)",)
+
+    d = gl.GLTF2.load(str(path))
+    for mesh in d.meshes:                  # every name made unusable: a head with "a0".. and a body with "breathe"
+        names = mesh.extras.get("targetNames")
+        if names and names != ["breathe"]:
+            mesh.extras = mesh.primitives[0].extras = {"targetNames": [f"{mesh.name}_{k}" for k in range(len(names))]}
+    d.save_binary(str(tmp_path / "nothing.glb"))
+    with pytest.raises(CharacterError) as info:
+        load_character(tmp_path / "nothing.glb")
+    message = str(info.value)
+    assert str(tmp_path / "nothing.glb") in message and "can drive" in message
+    for expected in ("Wolf3D_Head (30 v, 16 targets: Wolf3D_Head_0,", "Wolf3D_Teeth (6 v, 4 targets",
+                     "EyeLeft (4 v", "EyeRight (4 v", "Wolf3D_Body (9 v, 1 targets: breathe)"):
+        assert expected in message, (expected, message)
+
+
+@pytest.mark.parametrize("extension", ["KHR_draco_mesh_compression", "EXT_meshopt_compression"])
+def test_compressed_geometry_is_refused_with_how_to_decompress(tmp_path, avatar, extension):
+    d = gl.GLTF2.load(str(avatar[0]))
+    d.extensionsUsed, d.extensionsRequired = [extension], [extension]
+    d.save_binary(str(tmp_path / "packed.glb"))
+    with pytest.raises(CharacterError) as info:
+        load_character(tmp_path / "packed.glb")
+    message = str(info.value)
+    assert str(tmp_path / "packed.glb") in message and extension in message
+    assert "gltf-transform" in message and "Blender" in message
+
+
+# ---- the whole asset back -----------------------------------------------------------------------------------
+def _weights(c, n: int = 40, seed: int = 5) -> np.ndarray:
+    return np.random.default_rng(seed).random((n, c.n_shapes)).astype(np.float32)
+
+
+KEPT = ("asset", "scene", "scenes", "nodes", "meshes", "materials", "textures", "images", "samplers", "skins")
+
+
+def assert_whole_asset_kept(source: Path, written: Path) -> tuple[dict, bytes]:
+    before, before_bin = glb_parts(source)
+    after, after_bin = glb_parts(written)
+    for key in KEPT:
+        assert after.get(key) == before.get(key), key
+    n_views, n_accessors = len(before["bufferViews"]), len(before["accessors"])
+    assert after["bufferViews"][:n_views] == before["bufferViews"]
+    assert after["accessors"][:n_accessors] == before["accessors"]
+    assert after["animations"][:-1] == before["animations"]
+    for view in before["bufferViews"]:
+        start, stop = view.get("byteOffset", 0), view.get("byteOffset", 0) + view["byteLength"]
+        assert after_bin[start:stop] == before_bin[start:stop]
+    assert after["buffers"] == [{"byteLength": len(after_bin.rstrip(b"\0")) + (-len(after_bin.rstrip(b"\0")) % 4)}] \
+        or after["buffers"][0]["byteLength"] <= len(after_bin)
+    return after, after_bin
+
+
+def test_the_glb_export_is_the_whole_asset_with_one_clip_added_that_the_validator_accepts(tmp_path, avatar):
+    path, _ = avatar
+    c = load_character(path)
+    w = _weights(c)
+    out = write_character_glb(tmp_path / "spoken.glb", c, w, 30.0, name="hello")
+    after, after_bin = assert_whole_asset_kept(path, out)
+    clip = after["animations"][-1]
+    assert clip["name"] == "hello" and len(after["animations"]) == 2
+    assert [ch["target"] for ch in clip["channels"]] == [{"node": n, "path": "weights"} for n in (3, 4, 6, 7)]
+    accessors = after["accessors"]
+    times = accessors[clip["samplers"][0]["input"]]
+    assert times["count"] == 40 and times["min"] == [0.0] and times["max"] == pytest.approx([39 / 30])
+    for part, sampler in zip(c.parts, clip["samplers"]):
+        assert sampler["interpolation"] == "LINEAR"
+        output = accessors[sampler["output"]]
+        view = after["bufferViews"][output["bufferView"]]
+        values = np.frombuffer(after_bin, "<f4", output["count"], view["byteOffset"]).reshape(40, -1)
+        assert np.array_equal(values, w[:, part.columns(c.shape_names)]), part.name
+    report = validate(out)
+    issues = report["issues"]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
+    assert report["info"]["animationCount"] == 2 and report["info"]["hasTextures"]
+
+
+def test_a_gltf_with_external_buffer_and_image_comes_back_as_one_self_contained_glb(tmp_path, avatar):
+    path, _ = avatar
+    folder = tmp_path / "split"
+    folder.mkdir()
+    d = gl.GLTF2.load(str(path))
+    blob = d.binary_blob()
+    image_view = d.bufferViews[d.images[0].bufferView]
+    png = blob[image_view.byteOffset: image_view.byteOffset + image_view.byteLength]
+    (folder / "skin.png").write_bytes(png)
+    d.images[0].bufferView, d.images[0].mimeType, d.images[0].uri = None, None, "skin.png"
+    (folder / "avatar.bin").write_bytes(blob)
+    d.buffers[0].uri = "avatar.bin"
+    d._glb_data = None
+    d.save_json(str(folder / "avatar.gltf"))
+    c = load_character(folder / "avatar.gltf")
+    assert [p.name for p in c.parts] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
+    out = write_character_glb(tmp_path / "spoken.glb", c, _weights(c, 10), 30.0, name="hi")
+    after, after_bin = glb_parts(out)
+    image = after["images"][0]
+    assert "uri" not in image and image["mimeType"] == "image/png"
+    view = after["bufferViews"][image["bufferView"]]
+    assert after_bin[view["byteOffset"]: view["byteOffset"] + view["byteLength"]] == png
+    assert after["buffers"] == [{"byteLength": after["buffers"][0]["byteLength"]}]
+    assert validate(out)["issues"]["numErrors"] == 0
+    again = load_character(out)
+    np.testing.assert_array_equal(again.neutral, c.neutral)
+    np.testing.assert_array_equal(again.deltas, c.deltas)
+
+
+# ---- three.js -------------------------------------------------------------------------------------------------
+PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>avatar check</title><link rel="icon" href="data:,">
+<script type="importmap">
+{"imports": {"three": "/node_modules/three/build/three.module.js",
+             "three/addons/": "/node_modules/three/examples/jsm/"}}
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+
+// Load `url`, play the clip named `clip` and read every morphing mesh's influences (by its node's name) at `times`.
+window.playClip = async (url, clip, times) => {
+  const gltf = await new GLTFLoader().loadAsync(url);
+  const meshes = [];
+  gltf.scene.traverse((o) => { if (o.isMesh && o.morphTargetInfluences) meshes.push(o); });
+  const mixer = new THREE.AnimationMixer(gltf.scene);
+  const action = mixer.clipAction(THREE.AnimationClip.findByName(gltf.animations, clip));
+  action.setLoop(THREE.LoopOnce, 1);
+  action.clampWhenFinished = true;
+  const influences = Object.fromEntries(meshes.map((m) => [m.name, []]));
+  for (const t of times) {
+    action.reset().play();
+    mixer.setTime(t);
+    for (const m of meshes) influences[m.name].push(Array.from(m.morphTargetInfluences));
+  }
+  return { clips: gltf.animations.map((c) => c.name), influences,
+           dictionaries: Object.fromEntries(meshes.map((m) => [m.name, m.morphTargetDictionary])),
+           skinned: meshes.filter((m) => m.isSkinnedMesh).map((m) => m.name),
+           textured: meshes.filter((m) => m.material.map).map((m) => m.name) };
+};
+window.pageReady = true;
+</script></head><body></body></html>
+"""
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    node_or_fail()
+    root = tmp_path_factory.mktemp("served-avatar")
+    with serve_folder(root, PAGE, NODE_MODULES) as address:
+        yield root, address
+
+
+def test_three_js_plays_the_new_clip_on_every_driven_mesh(tmp_path, avatar, served, browser):
+    path, _ = avatar
+    c = load_character(path)
+    fps, n = 30.0, 40
+    w = _weights(c, n)
+    out = write_character_glb(tmp_path / "played.glb", c, w, fps, name="speech")
+    root, base = served
+    (root / out.name).write_bytes(out.read_bytes())
+    state = browser.load(f"{base}/index.html")
+    assert state["errors"] == [], state
+    times = [0.0, 0.5 / fps, 7 / fps, 12.25 / fps, 30.5 / fps, (n - 1) / fps]
+    call = f"window.playClip({json.dumps('/' + out.name)}, 'speech', {json.dumps(times)})"
+    result = browser.send("Runtime.evaluate", {"expression": call, "awaitPromise": True, "returnByValue": True})
+    assert "exceptionDetails" not in result, result["exceptionDetails"]
+    got = result["result"]["value"]
+    assert got["clips"] == ["idle", "speech"]
+    assert got["skinned"] == ["HeadNode"] and got["textured"] == ["HeadNode"]
+    frame_times = np.arange(n) / fps
+    nodes = {"HeadNode": c.parts[0], "TeethNode": c.parts[1], "EyeLeftNode": c.parts[2], "EyeRightNode": c.parts[3]}
+    assert set(got["influences"]) == set(nodes)
+    for node, part in nodes.items():
+        assert got["dictionaries"][node] == {name: k for k, name in enumerate(part.target_names)}
+        own = w[:, part.columns(c.shape_names)]
+        expected = np.stack([[np.interp(t, frame_times, own[:, k]) for k in range(own.shape[1])] for t in times])
+        np.testing.assert_allclose(np.array(got["influences"][node]), expected, atol=1e-3, err_msg=node)
+
+
+# ---- the flow -----------------------------------------------------------------------------------------------
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_the_animate_flow_writes_the_whole_avatar_and_says_what_it_drives(tmp_path, avatar):
+    from visemeflow.flows.animate import AnimateParams, animate_flow
+
+    path, _ = avatar
+    store = make_curve_store(tmp_path / "store", n=1)
+    result = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth",
+                                        config=AnimateConfig(formats=("glb", "usd", "json"), fps=30.0)))
+    assert result["character_choices"] == [load_character(path).describe()]
+    (report,) = result["packages_written"]
+    assert report["meshes"] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
+    after, _ = assert_whole_asset_kept(path, Path(report["files"]["glb"]))
+    assert [a["name"] for a in after["animations"]] == ["idle", Path(report["files"]["glb"]).stem]
+    assert validate(Path(report["files"]["glb"]))["issues"]["numErrors"] == 0
+
+    chosen = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth",
+                                        config=AnimateConfig(formats=("glb",), fps=30.0,
+                                                             meshes=("Wolf3D_Head",)), out=tmp_path / "head"))
+    (report,) = chosen["packages_written"]
+    assert report["meshes"] == ["Wolf3D_Head"]
+    channels = glb_parts(Path(report["files"]["glb"]))[0]["animations"][-1]["channels"]
+    assert [ch["target"]["node"] for ch in channels] == [3]
+
+
+def test_the_cli_refuses_an_unknown_mesh_listing_the_meshes(avatar):
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+
+    path, _ = avatar
+    result = CliRunner().invoke(app, ["animate", "--character", str(path), "--mesh", "Nope"])
+    assert result.exit_code == 2
+    assert "no mesh 'Nope'" in result.output and "Wolf3D_Teeth (6 v, 4 targets)" in result.output

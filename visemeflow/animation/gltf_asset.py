@@ -1,0 +1,215 @@
+"""The user's own glTF asset back, with our animation added: `write_character_glb`.
+
+A character read from a .glb / .gltf scene (`gltf.read_character_glb`, `Character.parts`) is exported as that whole
+scene: every mesh, material, texture, image, skin, camera, light, extension, node of the hierarchy and existing
+animation stays, byte for byte and JSON value for JSON value, and one new animation is appended, named by the
+utterance, with one `weights` channel per node that instances a driven mesh (nodes sharing a mesh share its
+sampler). Each sampler is LINEAR; its input is the frame times k / fps (float32, with the min/max the specification
+asks), its output the frames' weights of that mesh's own targets in that mesh's own order (a teeth mesh with 12
+targets gets 12 columns, whatever the head has).
+
+How: the document is edited as plain JSON (not through a typed model, which could drop or reorder what it does not
+know), the new binary data (frame times, weights, 4-byte aligned) is appended to the end of buffer 0, the GLB's
+binary chunk, and `buffers[0].byteLength` is updated; new buffer views, accessors and the animation are appended to
+their arrays, so every existing index stays valid. Only the buffer entry (its new length) changes.
+
+A `.gltf` (JSON) input, or a GLB whose buffers live in other files, is written as a self-contained GLB: the buffers
+are concatenated into the binary chunk (each 16-byte aligned; buffer views re-pointed with their offsets shifted),
+images stored as files get a buffer view and a `mimeType` in place of their `uri`; data: URIs are decoded as
+buffers and left as they are for images. Only files beside the glTF are read (no absolute paths, no `://`).
+
+Characters that are not glTF scenes (npz, mesh folders, our rigs, characters built in memory) are written by
+`gltf.write_glb`, a new single-mesh GLB.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import struct
+import urllib.parse
+from pathlib import Path
+
+import numpy as np
+
+from visemeflow.animation.character import Character, CharacterError
+from visemeflow.animation.gltf import _check_animation, write_glb
+from visemeflow.atomic import atomic_path
+
+__all__ = ["write_asset_glb", "write_character_glb"]
+
+_MAGIC = b"glTF"
+_JSON = 0x4E4F534A
+_BIN = 0x004E4942
+_FLOAT = 5126
+_LINEAR = "LINEAR"
+_MIME = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".webp": "image/webp",
+         ".ktx2": "image/ktx2"}
+
+
+def write_character_glb(path: str | os.PathLike, character: Character, weights, fps: float, *,
+                        name: str | None = None) -> Path:
+    """The GLB of `character` playing (T, S) `weights` at `fps`: its own asset with the clip added when it was read
+    from a glTF scene (`write_asset_glb`), else a new single-mesh GLB (`gltf.write_glb`)."""
+    if character.parts and Path(character.source).suffix.lower() in (".glb", ".gltf"):
+        return write_asset_glb(path, character, weights, fps, name=name)
+    return write_glb(path, character, weights, fps, name=name)
+
+
+def _read_document(source: Path) -> tuple[dict, bytes | None]:
+    """(the JSON document, the GLB binary chunk or None)."""
+    try:
+        data = source.read_bytes()
+    except OSError as exc:
+        raise CharacterError(f"{source}: the character's file cannot be read to write its asset back "
+                             f"({exc.strerror or exc})") from None
+    try:
+        if data[:4] != _MAGIC:
+            return json.loads(data.decode("utf-8-sig")), None
+        length = struct.unpack_from("<I", data, 8)[0]
+        document, binary, offset = None, None, 12
+        while offset + 8 <= min(length, len(data)):
+            size, kind = struct.unpack_from("<II", data, offset)
+            chunk = data[offset + 8: offset + 8 + size]
+            if kind == _JSON and document is None:
+                document = json.loads(chunk.decode("utf-8"))
+            elif kind == _BIN and binary is None:
+                binary = chunk
+            offset += 8 + size
+        if not isinstance(document, dict):
+            raise ValueError("no JSON chunk")
+        return document, binary
+    except (ValueError, UnicodeDecodeError, struct.error) as exc:
+        raise CharacterError(f"{source}: not a readable glTF 2.0 / GLB file ({exc})") from None
+
+
+def _external(source: Path, uri: str, what: str) -> bytes:
+    """The bytes of a data: URI or of a file beside the glTF."""
+    if uri.startswith("data:"):
+        header, _, payload = uri.partition(",")
+        return base64.b64decode(payload) if header.endswith(";base64") else urllib.parse.unquote_to_bytes(payload)
+    relative = urllib.parse.unquote(uri)
+    if "://" in uri or Path(relative).is_absolute():
+        raise CharacterError(f"{source}: {what}: only data: URIs and files beside the glTF are read, not {uri!r}")
+    try:
+        return (source.parent / relative).read_bytes()
+    except OSError as exc:
+        raise CharacterError(f"{source}: {what} ({uri}) cannot be read: {exc.strerror or exc}") from None
+
+
+def _one_buffer(source: Path, document: dict, binary: bytes | None) -> bytearray:
+    """The bytes of the GLB's buffer 0 once every buffer and image file is inside it (see the module)."""
+    buffers = document.get("buffers") or []
+    if not buffers:
+        return bytearray()
+    if len(buffers) == 1 and "uri" not in buffers[0]:
+        if binary is None or len(binary) < buffers[0].get("byteLength", 0):
+            raise CharacterError(f"{source}: buffer 0 has no (or a short) GLB binary chunk")
+        return bytearray(binary[: buffers[0]["byteLength"]])
+    blob, starts = bytearray(), []
+    for k, buffer in enumerate(buffers):
+        blob += bytes(-len(blob) % 16)
+        starts.append(len(blob))
+        if "uri" in buffer:
+            data = _external(source, buffer["uri"], f"buffer {k}")
+        elif k == 0 and binary is not None:
+            data = binary
+        else:
+            raise CharacterError(f"{source}: buffer {k} has no uri and is not the GLB binary chunk")
+        blob += data[: buffer.get("byteLength", len(data))]
+    for view in document.get("bufferViews") or []:
+        view["byteOffset"] = view.get("byteOffset", 0) + starts[view["buffer"]]
+        view["buffer"] = 0
+    for k, image in enumerate(document.get("images") or []):
+        uri = image.get("uri")
+        if uri is None or uri.startswith("data:"):
+            continue
+        data = _external(source, uri, f"image {k}")
+        mime = image.get("mimeType") or _MIME.get(Path(urllib.parse.unquote(uri)).suffix.lower())
+        if mime is None:
+            raise CharacterError(f"{source}: image {k} ({uri}): unknown image type; expected "
+                                 f"{', '.join(_MIME)}")
+        blob += bytes(-len(blob) % 4)
+        document.setdefault("bufferViews", []).append({"buffer": 0, "byteOffset": len(blob),
+                                                       "byteLength": len(data)})
+        blob += data
+        del image["uri"]
+        image["bufferView"] = len(document["bufferViews"]) - 1
+        image["mimeType"] = mime
+    document["buffers"] = [{"byteLength": len(blob)}]
+    return blob
+
+
+def _append(document: dict, blob: bytearray, values: np.ndarray, bounds: bool = False) -> int:
+    """Append float32 SCALAR `values` as a buffer view (4-byte aligned) and an accessor; its index."""
+    data = np.ascontiguousarray(values, dtype="<f4").ravel()
+    blob += bytes(-len(blob) % 4)
+    views = document.setdefault("bufferViews", [])
+    views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": data.nbytes})
+    blob += data.tobytes()
+    accessor = {"bufferView": len(views) - 1, "componentType": _FLOAT, "count": int(data.size), "type": "SCALAR"}
+    if bounds:
+        accessor["min"], accessor["max"] = [float(data.min())], [float(data.max())]
+    accessors = document.setdefault("accessors", [])
+    accessors.append(accessor)
+    return len(accessors) - 1
+
+
+def _target_names(mesh: dict) -> list | None:
+    for extras in [mesh.get("extras")] + [p.get("extras") for p in (mesh.get("primitives") or [])[:1]]:
+        if isinstance(extras, dict) and isinstance(extras.get("targetNames"), list):
+            return extras["targetNames"]
+    return None
+
+
+def _glb(document: dict, blob: bytes) -> bytes:
+    """A GLB container: header, JSON chunk (space padded), BIN chunk (zero padded) when there is binary data."""
+    text = json.dumps(document, ensure_ascii=False, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), _JSON) + text
+    if blob:
+        data = bytes(blob) + bytes(-len(blob) % 4)
+        chunks += struct.pack("<II", len(data), _BIN) + data
+    return _MAGIC + struct.pack("<II", 2, 12 + len(chunks)) + chunks
+
+
+def write_asset_glb(path: str | os.PathLike, character: Character, weights, fps: float, *,
+                    name: str | None = None) -> Path:
+    """Write the scene `character` was read from, whole, with one new animation (named `name`, else the
+    character's name) playing (T, S) `weights` (columns in `character.shape_names` order, frame k at k / fps) on
+    each driven mesh's nodes, as a GLB at `path` (atomically); returns `path`. See the module for what is kept.
+
+    CharacterError naming the file when it cannot be read back, no longer holds the driven meshes with the same
+    target names (changed since it was loaded), or no node instances a driven mesh; ValueError for bad weights."""
+    path = Path(path)
+    source = Path(character.source)
+    times, w = _check_animation(character, weights, fps)
+    document, binary = _read_document(source)
+    meshes = document.get("meshes") or []
+    for part in character.parts:
+        if not 0 <= part.mesh < len(meshes) or tuple(_target_names(meshes[part.mesh]) or ()) != part.target_names:
+            raise CharacterError(f"{source}: mesh {part.mesh} ({part.name}) is not the one loaded (its targets "
+                                 "differ); the file changed since the character was read")
+    if not any(part.nodes for part in character.parts):
+        raise CharacterError(f"{source}: no node instances the driven meshes "
+                             f"({', '.join(p.name for p in character.parts)}); a weights animation needs one")
+    blob = _one_buffer(source, document, binary)
+    frame_times = _append(document, blob, times, bounds=True)
+    samplers, channels = [], []
+    for part in character.parts:
+        if not part.nodes:
+            continue
+        output = _append(document, blob, w[:, part.columns(character.shape_names)])
+        samplers.append({"input": frame_times, "output": output, "interpolation": _LINEAR})
+        channels += [{"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
+                     for node in part.nodes]
+    document.setdefault("animations", []).append({"name": name or character.name, "samplers": samplers,
+                                                  "channels": channels})
+    document.setdefault("buffers", [{}])
+    if not document["buffers"]:
+        document["buffers"].append({})
+    document["buffers"][0]["byteLength"] = len(blob)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(_glb(document, blob))
+    return path
