@@ -19,8 +19,10 @@ The layout follows what NVIDIA Audio2Face and Maya USD exchange for blendshape-d
 Blend shapes need a bound Skeleton in UsdSkel: the weights live on the SkelAnimation, which only reaches the mesh
 through the skeleton that `skel:skeleton` names, so a blendshape-only character still has one.
 
-A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.parts`) is written as its joined
-mesh, the parts placed as in the scene, one set of blendshapes over all of them; the GLB export keeps the parts.
+A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.parts`) gets one Mesh prim per part
+(named by the part, made a valid prim name) in place of `Mesh`, placed as in the scene, each with only its own
+targets as BlendShapes and its own `skel:blendShapes` order, all bound to the one Skeleton: the SkelAnimation's
+`blendShapes` (the union of the names) drives every part by name.
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
 Stage: upAxis Y, `metersPerUnit` as given (0.01: the demo rig is in centimetres).
@@ -159,34 +161,53 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     skel_binding = UsdSkel.BindingAPI.Apply(skeleton.GetPrim())
     skel_binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
 
-    mesh = UsdGeom.Mesh.Define(stage, root_path.AppendChild(MESH))
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(character.neutral))
-    faces = np.ascontiguousarray(character.faces, dtype=np.int32)
+    if len(character.parts) > 1:
+        for prim, part in zip(_unique_prim_names(p.name for p in character.parts), character.parts):
+            columns = part.columns(character.shape_names)
+            inside = (character.faces >= part.start).all(axis=1) & (character.faces < part.stop).all(axis=1)
+            _define_mesh(stage, root_path.AppendChild(prim), skeleton, character.neutral[part.start:part.stop],
+                         character.faces[inside] - part.start, part.target_names,
+                         character.deltas[columns, part.start:part.stop])
+    else:
+        _define_mesh(stage, root_path.AppendChild(MESH), skeleton, character.neutral, character.faces,
+                     character.shape_names, character.deltas)
+    return stage
+
+
+def _define_mesh(stage: Usd.Stage, path: Sdf.Path, skeleton: UsdSkel.Skeleton, neutral: np.ndarray,
+                 faces: np.ndarray, shape_names, deltas: np.ndarray) -> UsdGeom.Mesh:
+    """A Mesh prim bound rigidly to the skeleton's root joint, with one BlendShape child per shape (see the module)."""
+    identity = Gf.Matrix4d(1.0)
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(neutral, dtype=np.float32)))
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    mesh.CreateExtentAttr(extent)
+    neg, pos = np.minimum(deltas, 0).sum(axis=0), np.maximum(deltas, 0).sum(axis=0)
+    lo, hi = (neutral + neg).min(axis=0), (neutral + pos).max(axis=0)
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
 
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
     binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
     binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
     binding.CreateGeomBindTransformAttr(identity)
-    binding.CreateBlendShapesAttr(shape_tokens)
+    binding.CreateBlendShapesAttr(Vt.TokenArray(list(shape_names)))
 
     targets = []
-    n_vertices = character.n_vertices
-    for shape_prim, delta in zip(_unique_prim_names(character.shape_names), character.deltas):
+    n_vertices = len(neutral)
+    for shape_prim, delta in zip(_unique_prim_names(shape_names), deltas):
         shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(shape_prim))
         moving = np.flatnonzero((delta != 0).any(axis=1)).astype(np.int32)
         if len(moving) < _SPARSE_BELOW * n_vertices:
-            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moving])))
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moving], dtype=np.float32)))
             shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moving))
         else:
-            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta)))
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta, dtype=np.float32)))
         targets.append(shape.GetPath())
     binding.CreateBlendShapeTargetsRel().SetTargets(targets)
-    return stage
+    return mesh
 
 
 def timed_stage(fps: float, n_frames: int, meters_per_unit: float, documentation: str):
