@@ -68,9 +68,9 @@ LIP_SUMMARY_KEYS = {"lip_closed": "closed", "lip_gap_mm": "median_gap_mm", "fv_c
 LIP_METRICS = tuple(LIP_SUMMARY_KEYS)
 LIP_UNITS = {"lip_closed": "%", "lip_gap_mm": "mm", "fv_contact": "%", "vowel_opening": "x AHH",
              "lip_false_closed": "%", "lip_closed_raw": "%"}
-LIP_LABELS = {"lip_closed": "lips closed at b/p/m", "lip_gap_mm": "b/p/m lip gap", "fv_contact": "f/v lip-teeth contact",
-              "vowel_opening": "AA/AH opening", "lip_false_closed": "vowels never open",
-              "lip_closed_raw": "lips closed at b/p/m, raw curves"}
+LIP_LABELS = {"lip_closed": "lips closed at b/p/m", "lip_gap_mm": "b/p/m lip gap",
+              "fv_contact": "f/v lip-teeth contact", "vowel_opening": "AA/AH opening",
+              "lip_false_closed": "vowels never open", "lip_closed_raw": "lips closed at b/p/m, raw curves"}
 LIP_RUNS = {f"{RUN}.{m}": m for m in LIP_METRICS}
 TABLE_METRICS = (*REALSPEECH_METRICS, *LIP_METRICS)
 TABLE_RUNS = {**REALSPEECH_RUNS, **LIP_RUNS}   # every run besides `evaluate` whose aggregate rows make cells

@@ -166,7 +166,8 @@ def lip_rows(model: str, condition: str, pooled: LipScores, per_utterance: dict[
     for metric, key in LIP_SUMMARY_KEYS.items():
         base = {C.RUN: _LIP_METRIC_RUNS[metric], C.MODEL: model, C.CONDITION: condition, C.EPOCH: None}
         raw = metric.endswith("_raw")
-        for uid, scores in [(None, pooled_raw if raw else pooled), *sorted((per_raw if raw else per_utterance).items())]:
+        pooled_scores, per = (pooled_raw, per_raw) if raw else (pooled, per_utterance)
+        for uid, scores in [(None, pooled_scores), *sorted(per.items())]:
             value = scores.summary()[key]
             if value is None:
                 continue
@@ -191,9 +192,10 @@ def evaluate_model(
     `phones` (validation utterance id -> its phone rows: `start_s`, `end_s`, `viseme`) adds the real-speech
     metrics of those utterances on every condition (runs `evaluate.<metric>`, see `realspeech_rows`); the phones
     of a speed copy are scaled by its time factor; and the lip metrics of the same curves on the demo character's
-    mesh, through the closure rule (runs `evaluate.lip_*`, see `lip_rows`). `model_hash` (the model file's content hash), `targets` (the
-    target curves' provenance) and `phones` are inputs so that the cache is invalidated by a retrained model,
-    changed curves or a changed alignment. `device` (auto, cpu, cuda, cuda:N): where the model runs (float32).
+    mesh, through the closure rule (runs `evaluate.lip_*`, see `lip_rows`). `model_hash` (the model file's
+    content hash), `targets` (the target curves' provenance) and `phones` are inputs so that the cache is
+    invalidated by a retrained model, changed curves or a changed alignment. `device` (auto, cpu, cuda, cuda:N):
+    where the model runs (float32).
     """
     store = Store(store_root)
     model, preset, train_augment = load_curve_model(store, model_name, device)
