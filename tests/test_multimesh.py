@@ -217,6 +217,8 @@ def test_mesh_option_chooses_meshes_and_an_unknown_one_lists_them(avatar):
     assert [p.name for p in c.parts] == ["Wolf3D_Teeth", "Wolf3D_Head"]
     assert c.shape_names[:4] == tuple(TEETH_TARGETS) and c.n_vertices == 36
     assert "EyeLeft (not asked for)" in c.left_out and "Wolf3D_Body (not asked for)" in c.left_out
+    by_node = load_character(path, meshes=["EyeRightNode"])          # a node's name finds the mesh it instances
+    assert [p.name for p in by_node.parts] == ["EyeRight"] and by_node.parts[0].nodes == (7,)
     with pytest.raises(CharacterError) as info:
         load_character(path, meshes=["Wolf3D_Haed"])
     message = str(info.value)

@@ -255,7 +255,8 @@ def _choose_meshes(path: Path, infos: list[GltfMeshInfo], meshes, extra_names) -
     if meshes:
         chosen = []
         for wanted in dict.fromkeys(meshes):
-            hits = [i for i in infos if wanted in (i.label, str(i.index))]
+            hits = [i for i in infos if wanted in (i.label, str(i.index))] or \
+                [i for i in infos if wanted in i.node_names]
             if not hits:
                 raise CharacterError(f"{path}: no mesh {wanted!r}; its meshes: {listing}")
             for info in hits:
@@ -313,7 +314,7 @@ def read_character_glb(path: str | os.PathLike, name: str | None = None, meshes=
     """The character of a .glb / .gltf scene: every mesh whose morph targets it drives, as one character; validated.
 
     Which meshes (avatars split the face into head, teeth, tongue, eyes, beard, all with the same target names):
-    `meshes` (mesh names, or node names where a mesh has none, or indices as text) when given; otherwise the mesh
+    `meshes` (mesh names, else names of the nodes that instance them, or mesh indices as text) when given; else the mesh
     with the most usable target names (a known convention's: ARKit 52, Oculus visemes, ours; or `extra_names`, a
     mapping CSV's shapes) and every mesh that shares a usable name with it. Meshes used by a node are preferred
     over meshes no node uses. A scene with a single mesh with targets drives it whatever its names. The others are

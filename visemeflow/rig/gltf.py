@@ -2,8 +2,8 @@
 
 `read_gltf_mesh(path)` is used by the rig loaders (`rig.io.load_rig_glb`, `rig.io.read_mesh`); `GltfScene(path)`
 (every mesh described, any mesh read and placed in the scene: node world transforms, skin rest poses) by the
-character loader, `animation.gltf.read_character_glb`, which drives several meshes of one avatar. pygltflib parses the container (GLB or glTF JSON);
-this module turns accessors into numpy arrays and checks what a mesh reader needs.
+character loader, `animation.gltf.read_character_glb`, which drives several meshes of one avatar. pygltflib parses
+the container (GLB or glTF JSON); this module turns accessors into numpy arrays and checks what a mesh reader needs.
 
 Which mesh: with `morph_targets=True`, the first mesh with morph targets in scene order (the default scene's node
 tree depth first, then the other scenes, then nodes in no scene, then meshes no node uses), else the first mesh in
@@ -472,6 +472,8 @@ class GltfMeshInfo:
     """Its morph target names, () without targets, None when its targets have no (valid) names."""
     skin: int | None
     """The skin of its first node, if that node has one."""
+    node_names: tuple[str, ...] = ()
+    """The names of `nodes` (those that have one)."""
 
 
 def _quaternion_matrix(q) -> np.ndarray:
@@ -553,7 +555,8 @@ class GltfScene:
             used_by = tuple(users.get(m, ()))
             label = mesh.name or next((nodes[n].name for n in used_by if nodes[n].name), None) or f"mesh {m}"
             skin = nodes[used_by[0]].skin if used_by and isinstance(nodes[used_by[0]].skin, int) else None
-            infos.append(GltfMeshInfo(m, label, used_by, sum(counts.values()), n_targets, names, skin))
+            infos.append(GltfMeshInfo(m, label, used_by, sum(counts.values()), n_targets, names, skin,
+                                      tuple(nodes[n].name for n in used_by if nodes[n].name)))
         return infos
 
     def world_matrix(self, node: int) -> np.ndarray:
@@ -591,6 +594,8 @@ class GltfScene:
         node = info.nodes[0]
         if info.skin is not None and mesh.joints is not None:
             blend = self._skin_blend(info.skin, mesh)
+            unweighted = mesh.weights.sum(axis=1) == 0      # no influence: left where its node puts it
+            blend[unweighted] = self.world_matrix(node)
             how = f"rest pose of skin {info.skin}"
         else:
             blend = np.broadcast_to(self.world_matrix(node), (len(mesh.neutral), 4, 4))
