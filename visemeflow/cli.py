@@ -485,6 +485,12 @@ def _print_packages(result: dict) -> None:
                    f"{report['frames']} frames at {report['fps']:g} fps{cached}:")
         for path in report["files"].values():
             typer.echo(f"  {path}")
+        lips = report.get("lips") or {}
+        if lips.get("bilabials"):
+            typer.echo(f"  lips on the mesh: {lips['closed']} of {lips['bilabials']} b/p/m closed below 1.5 mm "
+                       f"(median gap {lips['median_gap_mm']:.1f} mm)")
+        if lips.get("warning"):
+            typer.echo(f"  warning: {lips['warning']}", err=True)
 
 
 @app.command("import-curves")

@@ -21,6 +21,7 @@ from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind, load_mapping_csv
 from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
+from visemeflow.animation.lips import closure_report
 from visemeflow.articulation import close_lips
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
@@ -116,12 +117,13 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     except CurvesError as exc:
         raise AnimateError(utterance_id, curve_file, "CurvesError", str(exc)) from exc
     files = dict(package.files)
+    played = resample(np.clip(curves, 0, 1), fps, package.fps)
+    if config.closure_rule:   # the preview and the lip report show what the exports play
+        played = close_lips(played)
+    lips = closure_report(character, binding, binding.weights(played), package.fps, phones)
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 
-        played = resample(np.clip(curves, 0, 1), fps, package.fps)
-        if config.closure_rule:   # the preview shows what the exports play
-            played = close_lips(played)
         panels = {f"{source} ({variant})": binding.weights(played)}
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
             panels = {"blendshapes": panels[f"{source} ({variant})"],
@@ -134,7 +136,8 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
             "meshes": [part.name for part in character.parts],
             "folder": str(folder), "files": files, "frames": package.frames, "fps": package.fps,
-            "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4)}
+            "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4),
+            "lips": lips}
 
 
 @task(cache_policy=ANIMATE_CACHE_POLICY, persist_result=True, task_run_name="animate[{utterance_id}:{character_name}]")
