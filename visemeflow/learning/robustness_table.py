@@ -193,7 +193,9 @@ def lip_note() -> str:
             "in mm beside it); f/v contact = % of f/v phones whose lower lip comes within 2 mm of the upper teeth; "
             "AA/AH opening = median widest gap of open vowels over the widest single shape's (AHH alone; good "
             "0.6-1.1); vowels never open = % of vowels whose gap stays below 1.5 mm; raw curves = the model's "
-            "curves without the closure rule. A constant curve closes no b/p/m.")
+            "curves without the closure rule. The mouth at rest (1.1 mm on the demo character) counts as closed: a "
+            "curve that never opens closes every b/p/m, and its vowels never open; a constant curve closes b/p/m "
+            "only that way.")
 
 
 def lip_headline(table: list[dict]) -> str:
