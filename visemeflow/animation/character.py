@@ -110,7 +110,8 @@ class Character:
         driving = ", ".join(f"{p.name} ({p.n_vertices:,} v)" for p in self.parts)
         shared = set(self.parts[0].target_names).intersection(*(p.target_names for p in self.parts[1:]))
         text = f"character {label}: driving {driving}: "
-        text += f"{len(shared)} shared targets" if len(self.parts) > 1 else f"{self.n_shapes} targets"
+        text += (f"{len(shared)} shared target{'s' if len(shared) != 1 else ''}" if len(self.parts) > 1
+                 else f"{self.n_shapes} targets")
         if len(shared) != self.n_shapes and len(self.parts) > 1:
             text += f" ({self.n_shapes} in all)"
         return text + (f"; not driven: {', '.join(self.left_out)}" if self.left_out else "")
