@@ -49,7 +49,6 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -58,55 +57,24 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from domain_gap import grid_corpus  # noqa: E402
-from realspeech import FPS, SAMPLE_RATE, SHARED  # noqa: E402
+from realspeech import FPS, SAMPLE_RATE, SHARED, Utterance, read_corpus  # noqa: E402
 
 from visemeflow.animation.lips import LipProbe  # noqa: E402
 from visemeflow.articulation import close_lips  # noqa: E402
-from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance  # noqa: E402
-from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import default_model_path  # noqa: E402
-from visemeflow.learning.features import resample_audio  # noqa: E402
 from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
-from visemeflow.learning.realspeech import phones_of  # noqa: E402
 from visemeflow.learning.train import load_model, predict_curves  # noqa: E402
-from visemeflow.phonetics.types import VisemeSegment  # noqa: E402
-from visemeflow.procedural import generate_procedural_curves  # noqa: E402
 from visemeflow.procedural.config import ProceduralConfig  # noqa: E402
 from visemeflow.procedural.recognised import recognised_curves  # noqa: E402
 from visemeflow.rig import load_demo_rig, rig_data_path  # noqa: E402
-from visemeflow.synth.dynamics import generate_ground_truth  # noqa: E402
-from visemeflow.timebase import frame_count  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RAW = ProceduralConfig(closure_rule=False)
 
 
-@dataclass
-class Utterance:
-    uid: str
-    audio: np.ndarray          # 16 kHz
-    phones: list               # realspeech.Phone
-    procedural: np.ndarray     # raw (no closure rule)
-    truth: np.ndarray
-
-    @property
-    def n(self) -> int:
-        return len(self.truth)
-
-
 def read_set(root: Path) -> list[Utterance]:
-    out = []
-    for entry in discover_corpus(root).entries:
-        result = ingest_utterance(entry, IngestConfig())
-        rows = sorted(result.phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
-        segments = [VisemeSegment(p["viseme"], p["start_s"], p["end_s"], p["word_index"], p["phoneme"] or "")
-                    for p in rows if p["viseme"] is not None]
-        n = frame_count(result.utterance["duration_s"], FPS)
-        samples, rate = read_audio(entry.audio_path)
-        out.append(Utterance(entry.utterance_id, resample_audio(samples, rate, SAMPLE_RATE), phones_of(rows),
-                             generate_procedural_curves(segments, n, FPS, RAW),
-                             generate_ground_truth(segments, n, FPS, entry.speaker, entry.utterance_id)))
-    return out
+    """The corpus's utterances with their procedural curves before the lip rules (the rule is applied per row)."""
+    return read_corpus(root, procedural=RAW)
 
 
 def corpora(tmp: Path, quick: bool) -> dict[str, list[Utterance]]:

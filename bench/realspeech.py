@@ -73,7 +73,7 @@ from visemeflow.learning.realspeech import (
 )
 from visemeflow.learning.train import Example, TrainConfig, predict_curves
 from visemeflow.phonetics.types import VisemeSegment
-from visemeflow.procedural import generate_procedural_curves
+from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
 from visemeflow.procedural.recognised import recognised_curves
 from visemeflow.synth.dynamics import generate_ground_truth
 from visemeflow.timebase import frame_count
@@ -98,7 +98,10 @@ class Utterance:
         return len(self.truth)
 
 
-def read_corpus(root: Path, ids: set[str] | None = None) -> list[Utterance]:
+def read_corpus(root: Path, ids: set[str] | None = None,
+                procedural: ProceduralConfig = ProceduralConfig()) -> list[Utterance]:
+    """The aligned utterances of a corpus folder, with their synthetic truth and procedural curves (`procedural`:
+    the rules' config, e.g. `closure_rule=False` for the curves before the lip rules)."""
     out = []
     for entry in discover_corpus(root).entries:
         if ids is not None and entry.utterance_id not in ids:
@@ -111,7 +114,7 @@ def read_corpus(root: Path, ids: set[str] | None = None) -> list[Utterance]:
         samples, rate = read_audio(entry.audio_path)
         out.append(Utterance(entry.utterance_id, entry.speaker, resample_audio(samples, rate, SAMPLE_RATE),
                              phones_of(rows), generate_ground_truth(segments, n, FPS, entry.speaker, entry.utterance_id),
-                             generate_procedural_curves(segments, n, FPS)))
+                             generate_procedural_curves(segments, n, FPS, procedural)))
     return out
 
 
