@@ -280,6 +280,18 @@ def activation_agreement(curves: np.ndarray, fps: float,
     return _agreement(score_phones(curves, fps, phones)[0], k)
 
 
+def frame_visemes(phones: pa.Table | Iterable[Mapping[str, object] | Phone], n_frames: int, fps: float) -> np.ndarray:
+    """(n_frames,) int64: the index (``VISEME_INDEX``) of the viseme of the phone at each frame (frame k at k / fps;
+    a phone covers ``[start_s, end_s)``, the later phone wins on an overlap), -1 where there is none (silence, a gap,
+    past the last phone): the labels of the auxiliary viseme loss (``TrainConfig.viseme_loss_weight``)."""
+    out = np.full(int(n_frames), -1, np.int64)
+    t = np.arange(int(n_frames)) / float(fps)
+    for p in sorted(phones_of(phones), key=lambda p: p.start_s):
+        if p.viseme is not None:
+            out[(t >= p.start_s) & (t < p.end_s)] = VISEME_INDEX[p.viseme]
+    return out
+
+
 def score_utterance(curves: np.ndarray, fps: float, phones: pa.Table | Iterable[Mapping[str, object] | Phone],
                     visemes: Sequence[str] = CLOSURE_VISEMES, k: int = TOP_K) -> RealSpeechScores:
     """Closure recall and activation agreement of one utterance's curves, its phones scored once."""

@@ -95,7 +95,7 @@ from visemeflow.learning.features import (
     build_feature_extractor,
     resample_audio,
 )
-from visemeflow.learning.model import AudioCurveModel, MeanCurveBaseline, l1_loss
+from visemeflow.learning.model import AudioCurveModel, CurveModel, MeanCurveBaseline, l1_loss
 from visemeflow.learning.presets import (
     Preset,
     augment,
@@ -142,6 +142,9 @@ class Example:
     audio: np.ndarray
     curves: np.ndarray
     fps: float
+    # (T,) int: the viseme index (visemeflow.visemes.VISEME_INDEX) of the phone at each curve frame, -1 where there
+    # is none (silence, no alignment); only read by the auxiliary viseme loss (TrainConfig.viseme_loss_weight)
+    visemes: np.ndarray | None = None
 
 
 class TrainConfig(BaseModel):
@@ -164,6 +167,10 @@ class TrainConfig(BaseModel):
     batch_size: int = Field(1, ge=1)
     # batch_size > 1: a length bucket holds this many batches (1: batches as drawn, sorted only inside)
     bucket_batches: int = Field(8, ge=1)
+    # auxiliary viseme classification (0: off, the paper's recipe): a linear layer on the decoder's features predicts
+    # each frame's viseme (Example.visemes), cross-entropy weighted by this, added to the curve loss; the layer
+    # serves training only (model files hold the curve model alone). Curve heads (CurveModel) only.
+    viseme_loss_weight: float = Field(0.0, ge=0)
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -180,7 +187,8 @@ class TrainConfig(BaseModel):
         return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
 
 
-_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None}
+_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
+                                   "viseme_loss_weight": 0.0}
 
 
 @dataclass
@@ -412,6 +420,7 @@ class _Item:
     audio: np.ndarray
     curves: np.ndarray
     original: bool
+    visemes: np.ndarray | None = None
 
 
 def _encoder_cache(option: bool | str | Path | EncoderOutputCache | None) -> EncoderOutputCache | None:
@@ -420,6 +429,54 @@ def _encoder_cache(option: bool | str | Path | EncoderOutputCache | None) -> Enc
     if isinstance(option, EncoderOutputCache):
         return option
     return EncoderOutputCache(None if option is True else Path(option))
+
+
+def _resample_labels(labels: np.ndarray | None, n: int) -> np.ndarray | None:
+    """Per-frame labels stretched to ``n`` frames (nearest frame), as :func:`resample_curves` stretches curves."""
+    if labels is None:
+        return None
+    labels = np.asarray(labels)
+    if len(labels) == 0 or n == len(labels):
+        return labels
+    idx = np.minimum((np.arange(n) * len(labels) / n).astype(np.int64), len(labels) - 1)
+    return labels[idx]
+
+
+class _VisemeAux:
+    """The auxiliary viseme classifier of ``TrainConfig.viseme_loss_weight``: a linear layer (built after the model,
+    from the seeded torch RNG) on the decoder's output features, which a forward hook keeps from each step."""
+
+    def __init__(self, model: AudioCurveModel, config: TrainConfig, device: torch.device) -> None:
+        head = model.head
+        if not isinstance(head, CurveModel):
+            raise ValueError(f"viseme_loss_weight needs a curve-model preset (f_proj -> decoder -> f_fc); "
+                             f"{config.preset!r} has {type(head).__name__}")
+        self.weight = float(config.viseme_loss_weight)
+        self.linear = nn.Linear(head.f_fc.in_features, N_VISEMES).to(device)
+        self.hidden: Tensor | None = None
+        self._handle = head.drop.register_forward_hook(self._keep)
+
+    def _keep(self, module: nn.Module, args: Any, output: Tensor) -> None:
+        self.hidden = output
+
+    def close(self) -> None:
+        self._handle.remove()
+
+    def loss(self, items: Sequence[_Item], mask: Tensor) -> Tensor:
+        assert self.hidden is not None
+        h = self.hidden.float()
+        labels = torch.full(mask.shape, -1, dtype=torch.long)
+        for b, it in enumerate(items):
+            if it.visemes is not None:
+                v = torch.as_tensor(np.asarray(it.visemes, dtype=np.int64)[: mask.shape[1]])
+                labels[b, : len(v)] = v
+        labels = labels.to(h.device)
+        labels[~mask.to(h.device)] = -1
+        if not bool((labels >= 0).any()):
+            return h.sum() * 0.0
+        logits = self.linear(h)
+        return self.weight * nn.functional.cross_entropy(logits.reshape(-1, N_VISEMES), labels.reshape(-1),
+                                                         ignore_index=-1)
 
 
 def train_model(
@@ -486,6 +543,9 @@ def train_model(
     optimizer = build_optimizer(preset, model)
     if optimizer is None:
         raise ValueError(f"preset {preset.name!r} has no trainable parameters")
+    aux = _VisemeAux(model, config, dev) if config.viseme_loss_weight > 0 else None
+    if aux is not None:
+        optimizer.add_param_group({"params": list(aux.linear.parameters())})
     scaler = grad_scaler(dev, amp)
     shuffle_rng = np.random.default_rng(config.seed)
     augment_rng = np.random.default_rng([config.seed, 2])
@@ -503,6 +563,8 @@ def train_model(
         if ck.get("data") != fingerprint:
             raise ValueError(f"{ckpt_path} was written for different training data")
         model.load_state_dict(ck["model"])
+        if aux is not None:
+            aux.linear.load_state_dict(ck["viseme_aux"])
         optimizer.load_state_dict(ck["optimizer"])
         if ck.get("scaler") and scaler.is_enabled():
             scaler.load_state_dict(ck["scaler"])
@@ -576,16 +638,19 @@ def train_model(
                 if hook is not None:
                     raw, factor = hook(ex.audio, augment_rng)
                     if raw is not ex.audio or float(factor) != 1.0:
-                        items.append(_Item(int(i), np.asarray(raw, dtype=np.float32),
-                                           resample_curves(ex.curves, float(factor)), False))
+                        curves = resample_curves(ex.curves, float(factor))
+                        items.append(_Item(int(i), np.asarray(raw, dtype=np.float32), curves, False,
+                                           _resample_labels(ex.visemes, len(curves))))
                         continue
-                items.append(_Item(int(i), ex.audio, np.asarray(ex.curves, dtype=np.float32), True))
+                items.append(_Item(int(i), ex.audio, np.asarray(ex.curves, dtype=np.float32), True, ex.visemes))
             with autocast_context(dev, amp):
                 feats, feat_lengths = features_of(items)
                 feats = augment(preset, feats, feat_lengths, generator=spec_gen)
                 target, n_frames = _pad_curves([it.curves for it in items], dev)
                 pred, mask = model.head(feats, feat_lengths, n_frames, targets=target, fps=fps_of[int(batch[0])])
             step_loss = (loss or l1_loss)(pred.float(), target, mask)
+            if aux is not None:
+                step_loss = step_loss + aux.loss(items, mask)
             optimizer.zero_grad(set_to_none=True)
             scaler.scale(step_loss).backward()
             scaler.step(optimizer)
@@ -623,9 +688,13 @@ def train_model(
             }
             if scaler.is_enabled():
                 state["scaler"] = scaler.state_dict()
+            if aux is not None:
+                state["viseme_aux"] = aux.linear.state_dict()
             _atomic_torch_save(state, ckpt_path)
         if on_epoch is not None:
             on_epoch(report)
+    if aux is not None:
+        aux.close()
     model.eval()
     return TrainResult(model, history, ckpt_path)
 
