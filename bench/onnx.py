@@ -55,7 +55,8 @@ WAV2VEC2_SIZES = {
                  conv_bias=True, num_conv_pos_embeddings=128, num_conv_pos_embedding_groups=16),
     "tiny": {},
 }
-DEFAULT_PRESETS = [p for p in EXPORTABLE_PRESETS if PRESETS[p].feature != "wav2vec2"] + ["wav2vec2-blstm"]
+DEFAULT_PRESETS = [p for p in EXPORTABLE_PRESETS if PRESETS[p].feature not in ("wav2vec2", "whisper")] + [
+    "wav2vec2-blstm", "whisper-base-blstm"]
 
 
 def speech(seconds: float) -> np.ndarray:

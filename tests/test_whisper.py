@@ -310,7 +310,7 @@ def test_whisper_base_presets_smoke(base_encoder):
 
 
 def test_whisper_small_preset_on_a_local_folder_trains_saves_and_loads(tiny_dir, tmp_path):
-    from visemeflow.learning.train import Example, TrainConfig, load_model, save_model, train_model
+    from visemeflow.learning.train import Example, TrainConfig, load_model, predict_curves, save_model, train_model
 
     rng = np.random.default_rng(1)
     train = [Example(f"u{i}", (rng.standard_normal(16000 + 4000 * i) * 0.1).astype(np.float32),
@@ -340,10 +340,12 @@ def test_whisper_small_preset_on_a_local_folder_trains_saves_and_loads(tiny_dir,
     torch.save(blob, tmp_path / "m2.pt")
     with pytest.raises(ValueError, match="trained on other Whisper encoder weights"):
         load_model(tmp_path / "m2.pt")
-    # ONNX: refused with the reason (issue 25 item 5), no file left
+    # ONNX (issue 25 item 5; the package model in tests/test_onnx_whisper.py): a local-folder model exports too
     if importlib.util.find_spec("onnx") is not None:
         from visemeflow.learning import onnx_export as ox
 
-        with pytest.raises(ox.OnnxExportError, match="Whisper encoder .* no ONNX graph yet"):
-            ox.export_onnx(path, tmp_path / "m.onnx")
-        assert not (tmp_path / "m.onnx").exists()
+        report = ox.export_onnx(path, tmp_path / "m.onnx")
+        assert report.max_abs_diff is not None and report.max_abs_diff <= ox.WHISPER_TOLERANCE
+        got = ox.onnx_curves(report.path, train[1].audio)
+        want = predict_curves(model, train[1].audio, 16000, 30.0)
+        assert got.shape == want.shape and np.abs(got - want).max() <= ox.WHISPER_TOLERANCE

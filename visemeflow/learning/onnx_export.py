@@ -92,6 +92,7 @@ from visemeflow.learning.features import (
     FilterbankExtractor,
     LpcExtractor,
     Wav2Vec2Extractor,
+    WhisperExtractor,
     _sinc_kernels,
 )
 from visemeflow.learning.model import (
@@ -106,11 +107,15 @@ from visemeflow.learning.model import (
     periodic_positional_encoding,
 )
 from visemeflow.learning.presets import PRESETS
+from visemeflow.learning.whisper import HOP as WHISPER_HOP
+from visemeflow.learning.whisper import N_FFT as WHISPER_N_FFT
+from visemeflow.learning.whisper import mel_filters as whisper_mel_filters
 from visemeflow.visemes import N_VISEMES, VISEMES
 
 __all__ = [
     "DEFAULT_OPSET",
     "DEFAULT_TOLERANCE",
+    "WHISPER_TOLERANCE",
     "EXPORTABLE_PRESETS",
     "NOT_EXPORTABLE",
     "ExportReport",
@@ -120,6 +125,7 @@ __all__ = [
     "n_frames_for",
     "onnx_curves",
     "check_signal",
+    "windowed_curves",
 ]
 
 DEFAULT_OPSET = 17
@@ -128,6 +134,7 @@ MAX_OPSET = 21
 _NATIVE_OPSET = 18  # what torch.onnx's dynamo exporter writes
 MODEL_SAMPLE_RATE = 16000  # every trained model's feature rate (FeatureConfig.sample_rate)
 DEFAULT_TOLERANCE = 1e-4  # max |onnx - torch| over the check signal's curves
+WHISPER_TOLERANCE = 1e-3  # the same for whisper models (a 6-layer float32 encoder over 30 s of log-mel)
 
 NOT_EXPORTABLE: dict[str, str] = {
     name: (
@@ -138,14 +145,6 @@ NOT_EXPORTABLE: dict[str, str] = {
     for name, p in PRESETS.items()
     if p.architecture == "faceformer"
 }
-NOT_EXPORTABLE.update({
-    name: (
-        "the Whisper encoder (30-s windows crossfaded, log-mel with a global floor) has no ONNX graph yet (issue 25, "
-        "item 5); use predict_curves in Python"
-    )
-    for name, p in PRESETS.items()
-    if p.feature == "whisper"
-})
 EXPORTABLE_PRESETS: tuple[str, ...] = tuple(n for n in PRESETS if n not in NOT_EXPORTABLE)
 
 
@@ -170,6 +169,8 @@ class ExportReport:
     max_abs_diff: float | None = None  # onnxruntime vs predict_curves on the check signal; None: not checked
     check_seconds: float | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    # longest input the graph takes (whisper: one 30-s window at the input rate); None: any length
+    max_samples: int | None = None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -318,7 +319,75 @@ class _Wav2Vec2Graph(nn.Module):
         return self.cmvn(feats) if self.cmvn is not None else feats
 
 
+class _WhisperMel(nn.Module):
+    """whisper.log_mel of one window: ``(1, n) -> (1, n_mels, window)``, the audio padded with zeros to the window
+    (Whisper's short-audio padding); framing + periodic-Hann 400-point real DFT in one strided Conv.
+
+    Padded signal as in whisper.py: ``audio[1:201]`` reversed (the STFT's reflect centering), the audio, then
+    zeros; frame t covers samples ``[160 t, 160 t + 400)`` of it. The zeros are ``max_samples - n`` long (then the
+    signal is cut to what the window's frames read): a negative length, audio over one window, makes the runtime
+    fail (ConstantOfShape) instead of silently cutting the audio.
+    """
+
+    def __init__(self, n_mels: int, window: int) -> None:
+        super().__init__()
+        self.window = window
+        self.max_samples = (window + 1) * WHISPER_HOP - 1  # n // 160 <= window: one window in whisper.py
+        self.span = (window - 1) * WHISPER_HOP + WHISPER_N_FFT  # padded samples the frames read
+        j = torch.arange(WHISPER_N_FFT, dtype=torch.float64)[:, None]
+        k = torch.arange(WHISPER_N_FFT // 2 + 1, dtype=torch.float64)[None, :]
+        ang = 2.0 * math.pi * j * k / WHISPER_N_FFT
+        w = torch.hann_window(WHISPER_N_FFT, periodic=True, dtype=torch.float64)[:, None]
+        basis = torch.cat([w * torch.cos(ang), -w * torch.sin(ang)], dim=1)  # (400, 2 * 201)
+        self.register_buffer("basis", basis.T.to(torch.float32)[:, None, :].contiguous())  # (402, 1, 400)
+        self.n_bins = WHISPER_N_FFT // 2 + 1
+        self.register_buffer("filters", whisper_mel_filters(n_mels).clone())  # (n_mels, 201)
+
+    def forward(self, audio: Tensor) -> Tensor:
+        half = WHISPER_N_FFT // 2
+        zeros = audio.new_zeros(1, self.max_samples - audio.shape[1])  # < 0 over one window: a runtime error
+        x = torch.cat([audio[:, 1 : half + 1].flip(1), audio, zeros], dim=1)[:, : self.span]
+        spec = nn.functional.conv1d(x[:, None, :], self.basis, stride=WHISPER_HOP)  # (1, 402, window)
+        re, im = spec[:, : self.n_bins], spec[:, self.n_bins :]
+        mel = self.filters @ (re * re + im * im)  # (1, n_mels, window)
+        logs = torch.log10(torch.clamp(mel, min=1e-10))
+        logs = torch.maximum(logs, logs.max() - 8.0)
+        return (logs + 4.0) / 4.0
+
+
+class _WhisperGraph(nn.Module):
+    """WhisperExtractor for audio up to one window: log-mel (padded to the window), the encoder, the encoder frames
+    that carry audio (``ceil((n // 160) / 2)``), the learned layer weights, CMVN when configured."""
+
+    def __init__(self, ext: WhisperExtractor) -> None:
+        super().__init__()
+        cfg = ext.config
+        if not cfg.whisper_pad_short:
+            raise OnnxExportError("whisper_pad_short=False is not exported (every whisper preset pads short audio "
+                                  "to one window, as Whisper was trained)")
+        self.mel = _WhisperMel(ext.encoder.dims.n_mels, ext.windows.window)
+        self.encoder = ext.encoder
+        self.weighted = ext.weighted
+        if self.weighted:
+            self.register_buffer("layer_weights", torch.softmax(ext.layer_weights.detach().float(), dim=0))
+        self.cmvn = _Cmvn() if cfg.normalize else None
+
+    @property
+    def max_samples(self) -> int:
+        return self.mel.max_samples
+
+    def forward(self, audio: Tensor) -> Tensor:
+        t = (audio.shape[1] // WHISPER_HOP + 1) // 2  # encoder_frames(n) for n >= 160
+        y = self.encoder(self.mel(audio), all_layers=self.weighted)
+        if self.weighted:
+            y = (y * self.layer_weights[None, :, None, None]).sum(1)
+        feats = y[:, :t]
+        return self.cmvn(feats) if self.cmvn is not None else feats
+
+
 def _feature_graph(ext: nn.Module) -> nn.Module:
+    if isinstance(ext, WhisperExtractor):
+        return _WhisperGraph(ext)
     if isinstance(ext, FilterbankExtractor):
         if ext.config.mfcc_deltas:
             raise OnnxExportError("MFCC deltas are not exported (no preset trains with them)")
@@ -337,6 +406,8 @@ def _min_feature_samples(ext: nn.Module) -> int:
         while int(ext.output_lengths(torch.tensor([n]))[0]) < 1:
             n += 1
         return n
+    if isinstance(ext, WhisperExtractor):
+        return WHISPER_N_FFT  # one full STFT frame (the reflect centering reads audio[1:201])
     assert isinstance(ext, FeatureExtractor)
     return int(ext.config.win_length)
 
@@ -536,6 +607,19 @@ class CurveGraph(nn.Module):
         while self.resample is not None and self.resample.out_len(m) < need:
             m += 1
         self.min_samples = max(n, m)
+        # longest input: whisper graphs take one window (after resampling, when the graph resamples)
+        self.max_samples: int | None = None
+        top = getattr(self.features, "max_samples", None)
+        if top is not None:
+            if self.resample is None:
+                self.max_samples = int(top)
+            else:  # the largest n whose resampled length fits
+                m = top * self.resample.down // self.resample.up
+                while self.resample.out_len(m + 1) <= top:
+                    m += 1
+                while self.resample.out_len(m) > top:
+                    m -= 1
+                self.max_samples = int(m)
 
     def forward(self, audio: Tensor) -> Tensor:
         t = _round_half_even(audio.shape[1] * self.t_num, self.t_den)
@@ -681,11 +765,57 @@ def check_signal(seconds: float, sample_rate: int = MODEL_SAMPLE_RATE, seed: int
     return (0.2 * voiced * env + 0.05 * noise + floor).astype(np.float32)
 
 
-def onnx_curves(path: str | Path, audio: np.ndarray, *, threads: int | None = None) -> np.ndarray:
-    """(T, 16) curves of mono float32 ``audio`` (at the export's sample rate) from an exported file (onnxruntime)."""
-    sess = _session(Path(path), threads)
-    x = np.ascontiguousarray(np.asarray(audio, dtype=np.float32).reshape(1, -1))
-    return sess.run(["curves"], {"audio": x})[0][0]
+WINDOW_S = 30.0  # the caller's windows for whisper graphs (whisper.py's window and overlap)
+OVERLAP_S = 5.0
+
+
+def onnx_curves(path: str | Path | Any, audio: np.ndarray, *, threads: int | None = None) -> np.ndarray:
+    """(T, 16) curves of mono float32 ``audio`` (at the export's sample rate) from an exported file (onnxruntime;
+    ``path`` may also be an open ``InferenceSession`` of one).
+
+    A graph with a ``visemeflow.max_samples`` limit (whisper: one 30-s window) is run on longer audio in windows
+    (:func:`windowed_curves`)."""
+    sess = path if hasattr(path, "run") else _session(Path(path), threads)
+    x = np.ascontiguousarray(np.asarray(audio, dtype=np.float32).reshape(-1))
+    meta = sess.get_modelmeta().custom_metadata_map
+    limit = meta.get("visemeflow.max_samples")
+    if limit is not None and x.shape[0] > int(limit):
+        return windowed_curves(lambda a: sess.run(["curves"], {"audio": a[None]})[0][0], x,
+                               int(meta["visemeflow.sample_rate"]), float(meta["visemeflow.fps"]))
+    return sess.run(["curves"], {"audio": x[None]})[0][0]
+
+
+def windowed_curves(run: Any, audio: np.ndarray, sample_rate: int, fps: float,
+                    window_s: float = WINDOW_S, overlap_s: float = OVERLAP_S) -> np.ndarray:
+    """Curves of audio longer than one whisper graph's window: ``run(samples) -> (frames, 16)`` on windows of
+    ``window_s`` every ``window_s - overlap_s`` (the last one moved back to end where the audio ends, as
+    whisper.py's windows), each window's curves placed at ``n_frames_for(start)`` and crossfaded linearly over
+    the overlaps (whisper.py's ramp, on curves instead of encoder features)."""
+    n = audio.shape[0]
+    win, ov = round(window_s * sample_rate), round(overlap_s * sample_rate)
+    total = n_frames_for(n, sample_rate, fps)
+    if n <= win:
+        return run(audio)
+    starts = list(range(0, n - win, win - ov))
+    if n - win > starts[-1]:
+        starts.append(n - win)
+    out = np.zeros((total, N_VISEMES), np.float64)
+    weight = np.zeros(total, np.float64)
+    spans = [(n_frames_for(s, sample_rate, fps), n_frames_for(s + win, sample_rate, fps)) for s in starts]
+    for i, s in enumerate(starts):
+        y = run(np.ascontiguousarray(audio[s : s + win]))
+        f0 = spans[i][0]
+        m = min(y.shape[0], total - f0)
+        w = np.ones(m)
+        if i > 0:
+            k = min(m, spans[i - 1][1] - f0)
+            w[:k] = np.arange(1, k + 1) / (k + 1)
+        if i + 1 < len(starts):
+            k = min(m, f0 + m - spans[i + 1][0])
+            w[m - k :] = np.minimum(w[m - k :], np.arange(k, 0, -1) / (k + 1))
+        out[f0 : f0 + m] += w[:, None] * y[:m]
+        weight[f0 : f0 + m] += w
+    return (out / weight[:, None]).astype(np.float32)
 
 
 def _session(model: Path | bytes, threads: int | None = None) -> Any:
@@ -748,13 +878,14 @@ def export_onnx(
     fps: float | None = None,
     check: bool = True,
     check_seconds: float = 3.0,
-    tolerance: float = DEFAULT_TOLERANCE,
+    tolerance: float | None = None,
 ) -> ExportReport:
     """Export the model saved at ``model_path`` to ``out_path`` (one .onnx file; see the module docstring).
 
     ``fps`` defaults to the model's training fps. With ``check`` (default) the file is run with
     onnxruntime on :func:`check_signal` (``check_seconds``) and compared with ``predict_curves``;
-    a difference over ``tolerance`` raises :class:`OnnxExportError` (the file is left for inspection).
+    a difference over ``tolerance`` (default :data:`DEFAULT_TOLERANCE`, :data:`WHISPER_TOLERANCE` for whisper
+    models) raises :class:`OnnxExportError` (the file is left for inspection).
     """
     _require(check)
     import onnx
@@ -769,6 +900,9 @@ def export_onnx(
     if config.preset in NOT_EXPORTABLE:
         raise OnnxExportError(f"preset {config.preset!r} cannot be exported to ONNX: {NOT_EXPORTABLE[config.preset]}")
     graph = build_export_module(model, sample_rate, fps)
+    whisper = isinstance(graph.features, _WhisperGraph)
+    if tolerance is None:
+        tolerance = WHISPER_TOLERANCE if whisper else DEFAULT_TOLERANCE
     t0 = time.perf_counter()
     proto = _to_onnx(graph, torch.from_numpy(check_signal(1.0, sample_rate))[None], opset, f"preset {config.preset!r}")
     meta = {
@@ -781,6 +915,13 @@ def export_onnx(
         "visemeflow.input": "audio: float32 (1, n_samples) mono",
         "visemeflow.output": "curves: float32 (1, n_frames, 16) in [0, 1]",
     }
+    if graph.max_samples is not None:
+        meta["visemeflow.max_samples"] = str(graph.max_samples)
+        meta["visemeflow.long_audio"] = (
+            f"inputs over max_samples fail (ConstantOfShape, negative size); split longer audio into windows of "
+            f"{WINDOW_S:g} s every {WINDOW_S - OVERLAP_S:g} s, the last ending where the audio ends, and crossfade "
+            f"the curves linearly over each overlap (visemeflow.learning.onnx_export.onnx_curves does)"
+        )
     del proto.metadata_props[:]
     for k, v in meta.items():
         proto.metadata_props.add(key=k, value=v)
@@ -794,6 +935,12 @@ def export_onnx(
         notes.append(f"resamples {sample_rate} Hz -> {MODEL_SAMPLE_RATE} Hz inside the graph (float32 polyphase sinc)")
     else:
         notes.append("input must be 16 kHz mono: downmix (channel mean) and resample before calling")
+    if whisper:
+        notes.append(
+            f"whisper: log-mel padded to one 30-s window and the encoder inside (weights float32); inputs up to "
+            f"{graph.max_samples} samples; longer audio in windows crossfaded on the curves by the caller "
+            "(onnx_curves), which is not what predict_curves computes (it crossfades encoder features)"
+        )
     uses_float64 = _uses_float64(proto)
     if uses_float64:
         notes.append(
@@ -806,6 +953,7 @@ def export_onnx(
         min_samples=graph.min_samples, size_bytes=out_path.stat().st_size,
         stored_values=sum(int(np.prod(i.dims)) for i in proto.graph.initializer),
         ops=ops, uses_float64=uses_float64, export_seconds=secs, notes=tuple(notes),
+        max_samples=graph.max_samples,
     )
     if not check:
         return report
