@@ -29,7 +29,8 @@ and dropped):
   by the convolution's stride), power, mel ``MatMul``, log, DCT ``MatMul`` for MFCC, per-utterance
   CMVN; LPC as a framing ``Conv`` (windowed identity kernel), autocorrelation lags 0..p as sums of
   products and Levinson-Durbin unrolled over the p orders (float64); wav2vec2 as the model's own graph
-  (per-utterance waveform normalisation, CNN encoder, transformer). No ``DFT``/``STFT`` operator.
+  (per-utterance waveform normalisation, CNN encoder, transformer); Whisper's log-mel and encoder (see
+  "Whisper models" below). No ``DFT``/``STFT`` operator.
   Tensors are float32 and int64 (engines with 32-bit ints: the index arithmetic stays below 2**31
   for clips under about two hours at 30 fps), except in LPC graphs, which keep torch's float64 for
   the autocorrelation and Levinson-Durbin (``ExportReport.uses_float64``): in float32 the recursion
@@ -61,6 +62,42 @@ behind) and validated with the full ONNX checker. ``opset`` 17 (default) or 18 f
 and wav2vec2 models (``LayerNormalization`` is opset 17); the others also convert to 15, the
 highest opset Unity Sentis before 2.6 officially reads (2.6 reads up to 25). Unreal NNE's ORT
 runtimes are ONNX Runtime builds.
+
+Whisper models (``whisper-*`` presets; issue 25 item 5). The graph holds what
+:class:`~visemeflow.learning.features.WhisperExtractor` computes for audio of one window or less, exactly as
+:mod:`visemeflow.learning.whisper` does: the signal ``audio[1:201]`` reversed (the STFT's reflect centering), the
+audio, then zeros up to the 30-s window (Whisper's short-audio padding, ``whisper_pad_short``; 3000 mel frames);
+a ``Conv`` with the periodic-Hann 400-point real DFT basis, stride 160; power, the Slaney mel ``MatMul``,
+``log10(max(x, 1e-10))``, the floor ``max - 8`` over the whole window, ``(x + 4) / 4``; the encoder (conv1/conv2 +
+GELU, sinusoidal positions, 6 pre-LN blocks with ``LayerNormalization``, attention as ``MatMul``/``Softmax``,
+exact GELU through ``Erf``; the learned layer mix for ``whisper_layers="weighted"``); then the ``ceil((n // 160)
+/ 2)`` encoder frames that carry audio go to the head. Weights are stored in float32 (the package's float16
+values widened, as torch runs them): a whisper-base-blstm graph is about 91 MB (the encoder's 20.6 M weights
+~82 MB). Opset 17 (``LayerNormalization``). The encoder weights come from wherever the saved model's
+``whisper_source`` points (the ``visemeflow[whisper]`` package, a folder, a hub id), checked by its digest as
+``load_model`` does.
+
+Longer audio. One graph call takes at most ``ExportReport.max_samples`` samples (metadata
+``visemeflow.max_samples``: 480,159 at 16 kHz, i.e. ``n // 160 <= 3000`` mel frames, whisper.py's single
+window); a longer input makes the runtime fail in the padding's ``ConstantOfShape`` (negative size) instead of
+silently cutting the audio. Building whisper.py's windows into the graph was not attempted: as one dynamic
+batch of windows it would hold every window's activations at once (memory growing with the clip, unbounded for
+hour-long files); as an ONNX ``Loop`` it needs the exporter's ``while_loop`` path, untried here. The caller splits
+longer audio
+(:func:`onnx_curves` does it, with :func:`windowed_curves`): windows of 30 s every 25 s, the last one moved back
+to end where the audio ends (whisper.py's rule), each window's curves placed at ``n_frames_for(start)`` and
+crossfaded linearly over each 5-s overlap. That is **not** what ``predict_curves`` computes past 30 s: torch
+crossfades the encoder *features* (one log-mel floor over the whole file) and runs the decoder once over the
+whole clip, so the windowed curves differ from torch's away from the first window (measured: 40 s of LJSpeech,
+small trained head: max |diff| 0.12, mean 0.004; 70 s, untrained default-size head: max 0.098, mean 0.0024;
+exactly equal to the windows' own curves outside the overlaps). Up to one window the graph equals
+``predict_curves`` (tolerance :data:`WHISPER_TOLERANCE`, 1e-3; measured 1.3e-6 on a 30-s LJSpeech clip).
+
+Speed (one CPU thread, 30 s of LJSpeech, whisper-base-blstm at the preset's d_model, the 2-core development
+machine, shared with a training run at the time: load average 2.9): onnxruntime (``intra_op_num_threads=1``)
+0.72-0.81 s, real-time factor 0.024-0.027; torch ``predict_curves`` (``torch.set_num_threads(1)``) 0.71-0.83 s,
+0.024-0.028 (two runs, best of 3 and median of 5): the same within the noise. Any clip up to 30 s costs the same
+(padded to the window). Export takes about 10 s.
 
 Inputs shorter than ``ExportReport.min_samples`` (one 25 ms feature window and one curve frame:
 400 samples at 16 kHz) are not supported, as in torch.
@@ -159,7 +196,7 @@ class ExportReport:
     opset: int
     sample_rate: int  # of the graph's audio input
     fps: float  # of its curve output
-    feature: str  # fbank / mfcc / lpc / wav2vec2 (computed inside the graph)
+    feature: str  # fbank / mfcc / lpc / wav2vec2 / whisper (computed inside the graph)
     min_samples: int  # shortest input supported (one feature frame and one curve frame; 400 at 16 kHz, 30 fps)
     size_bytes: int
     stored_values: int  # numbers stored in the file: weights and constant tables (DFT basis, filterbank, PPE)
