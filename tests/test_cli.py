@@ -165,7 +165,8 @@ def test_export_model_writes_an_onnx_graph_that_onnxruntime_runs(tmp_path):
     import onnxruntime
 
     out = tmp_path / "default.onnx"
-    result = runner.invoke(app, ["export-model", "default", "--out", str(out), "--store", str(tmp_path / "store")])
+    result = runner.invoke(app, ["export-model", "default-fbank", "--out", str(out), "--store",
+                                 str(tmp_path / "store")])
     assert result.exit_code == 0, result.output
     assert "onnxruntime vs torch max |diff|" in result.output and out.is_file()
     session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])

@@ -260,11 +260,12 @@ def test_the_lstm_op_matches_torch_in_both_directions_and_layers():
 
 
 def test_the_shipped_default_model_exports(tmp_path, speech):
-    """A trained model (the package's default fbank-blstm, d 128), not only untrained ones."""
-    from visemeflow.learning.default_model import default_model_path
+    """A trained model (the package's previous default, fbank-blstm, d 128), not only untrained ones; the whisper
+    default's encoder does not export yet (issue 25 item 5)."""
+    from visemeflow.learning.default_model import shipped_model_path
     from visemeflow.learning.train import load_model
 
-    path = default_model_path()
+    path = shipped_model_path("default-fbank")
     assert path.is_file(), f"{path} missing: the package ships a default model (examples/train_default_model.py)"
     model, config, _ = load_model(path)
     report = ox.export_onnx(path, tmp_path / "default.onnx")

@@ -457,7 +457,7 @@ def predict(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if model not in ("default", "phones") and not s.has_model(model):
+    if model not in ("default", "default-fbank", "phones") and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
                    "`visemeflow train`", err=True)
         raise typer.Exit(2)
@@ -602,7 +602,7 @@ def speak(
     from visemeflow.storage import Store
 
     s = Store(store)
-    if model not in ("default", "phones") and not s.has_model(model):
+    if model not in ("default", "default-fbank", "phones") and not s.has_model(model):
         typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
         raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
@@ -666,14 +666,14 @@ def export_model(
     check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4).")] = True,
 ) -> None:
     """Export a trained model for engines: an ONNX graph, audio samples in, (1, frames, 16) curves out."""
-    from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
+    from visemeflow.learning.default_model import is_shipped, shipped_model_path
     from visemeflow.storage import Store
 
     if format != "onnx":
         typer.echo(f"error: unknown format {format!r}; use onnx", err=True)
         raise typer.Exit(2)
     s = Store(store)
-    path = s.model_path(model) if s.has_model(model) or model != DEFAULT_MODEL else default_model_path()
+    path = s.model_path(model) if s.has_model(model) or not is_shipped(model) else shipped_model_path(model)
     if not path.is_file():
         typer.echo(f"error: no model {model!r} in {s.root} ({path} missing)", err=True)
         raise typer.Exit(2)

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.hashing import file_hash
-from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path
+from visemeflow.learning.default_model import DEFAULT_MODEL, is_shipped, shipped_model_path
 from visemeflow.learning.device import DeviceWord, resolve_device
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
@@ -56,14 +56,42 @@ class PredictParams(BaseModel):
 
 
 def ensure_model(store: Store, model: str) -> None:
-    """Install the package's default model into the store when `model` is `default` and the store has none."""
-    if model == DEFAULT_MODEL and not store.has_model(model):
-        shipped = default_model_path()
+    """Install a model shipped with the package (`default`, `default-fbank`) into the store when it is asked for and
+    the store has none of that name; a model that needs the Whisper weights stops here, with one line naming the
+    extra to install, when they are missing (no fallback to another model)."""
+    if is_shipped(model) and not store.has_model(model):
+        shipped = shipped_model_path(model)
         if not shipped.is_file():
-            raise LookupError(f"this installation ships no default model ({shipped} missing); train one with "
+            raise LookupError(f"this installation ships no {model} model ({shipped} missing); train one with "
                               "`visemeflow train` and pass --model NAME")
         store.install_model(model, shipped)
-        get_run_logger().info("installed the shipped default model into %s", store.model_path(model))
+        get_run_logger().info("installed the shipped %s model into %s", model, store.model_path(model))
+    if is_trained(model) and store.has_model(model):
+        check_whisper_weights(store.model_path(model))
+
+
+def check_whisper_weights(path: Path) -> None:
+    """LookupError naming the `visemeflow[whisper]` extra when the model at `path` runs on the packaged Whisper
+    weights and they are not installed."""
+    import json
+
+    import torch
+
+    from visemeflow.learning.features import FeatureConfig
+
+    blob = torch.load(path, map_location="cpu", weights_only=True)
+    fcfg = FeatureConfig.model_validate_json(blob["feature_config"])
+    if fcfg.kind != "whisper" or fcfg.whisper_source != "package":
+        return
+    from visemeflow.learning import whisper
+
+    if (whisper.whisper_cache_dir() / whisper.PACKAGE_DIRNAME / "model.bin").is_file():
+        return  # assembled before (loading verifies it)
+    try:
+        whisper._package_part_paths()
+    except whisper.WhisperWeightsMissing:
+        raise LookupError(f"model {json.loads(blob['config']).get('preset')} needs the Whisper-base weights, "
+                          f"which are not installed: {whisper.PACKAGE_EXTRA_HINT}") from None
 
 
 def prediction_id(path: Path | str) -> str:
