@@ -1,0 +1,318 @@
+"""Learned curves that close the lips on voices the model never heard: training recipes for whisper-base-blstm
+(issue 25, items 3 and 6), each judged on real speech of speakers no recipe trained on. Printed, never asserted.
+
+Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
+     [--espeak 200,100] [--threads 2] [--baseline]
+
+Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
+512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
+learning rate 1e-3. The encoder's outputs are kept in `bench/out/encoders/cache` (EncoderOutputCache), so a second
+run encodes nothing it has seen.
+
+Training data (all shippable; nothing of the judged speakers):
+- `lj`: the 24 LJSpeech utterances of `examples/corpus/LJ` (public domain, MIT alignments); targets: the procedural
+  curves of the alignment, *with* the closure rule (read afresh: `ProceduralConfig()`);
+- `fg`: FACEGOOD takes 1114_2_02..04 (MIT), the animator's captured curves converted to our visemes, 8-s pieces
+  (bench/domain_gap.py);
+- `es`: the espeak-ng corpus of bench/learning_data.py at `--espeak EN,ZH` utterances (synthetic voices made here),
+  its training split; targets: procedural curves of its alignment with the closure rule;
+- `ljt`: the LJ examples with the synthetic (Cohen-Massaro) truth of the alignment as targets instead;
+- `+cls` / `+clsW`: the auxiliary viseme-classification loss (`TrainConfig.viseme_loss_weight`, 0.5 or W) on the
+  examples with an alignment (LJ, espeak; the FACEGOOD pieces have none and add only the curve loss).
+A part named twice is seen twice as often. `--losses`: the curve loss (bench/domain_gap.py's `l1`, `closure:W`, ...);
+`--seeds`: one row per training seed (20 b/p/m phones judged: seeds show how much of a difference is noise).
+
+Judged on (none trained on by any recipe): GRID s1 (10 clips, male English), the charsiu Mandarin utterance
+(AISHELL-3 SSB1624), praatio's examples (bobby, mary: American English) -- top-viseme closure recall of MBP and FFF,
+false MBP closures and top-2 agreement (`visemeflow.learning.realspeech`), and the lips on the demo character's mesh
+after the closure rule (`articulation.close_lips`, as the animation stage applies it; `animation.lips.LipProbe`,
+`learning.lipscore`): b/p/m closed below 1.5 mm, their median gap, the median open-vowel opening (x AHH) and vowels
+that never open; FACEGOOD take 1114_2_05 (a held-out take of the captured speaker): L1 x 100 against the captured
+curves with the training takes' mean curve as floor, and the Pearson correlation of the predicted mouth opening (the
+inner-lip gap on the demo mesh) with the animator's jawOpen channel. RTF: seconds per second of audio of `predict`
+on a 30-s file on one CPU thread (encoder included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from domain_gap import (  # noqa: E402
+    FACEGOOD,
+    HELD_OUT_TAKE,
+    ROOT,
+    TRAIN_TAKES,
+    facegood_take,
+    grid_corpus,
+    make_loss,
+    pieces,
+)
+from realspeech import FPS, SAMPLE_RATE, SHARED, Utterance, read_corpus  # noqa: E402
+
+from visemeflow.animation.conventions import ARKIT_52  # noqa: E402
+from visemeflow.animation.lips import LipProbe  # noqa: E402
+from visemeflow.articulation import close_lips  # noqa: E402
+from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
+from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
+from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
+from visemeflow.learning.realspeech import compare_curves, frame_visemes, pool, score_utterance  # noqa: E402
+from visemeflow.learning.train import Example, TrainConfig, _audio_hash, predict_curves, train_model  # noqa: E402
+from visemeflow.rig import load_demo_rig  # noqa: E402
+
+CACHE = Path(__file__).resolve().parent / "out" / "encoders" / "cache"
+AUX_WEIGHT = 0.5
+LR = 1e-3
+
+
+def labelled(u: Utterance, targets: str = "procedural") -> Example:
+    """An aligned utterance as a training example: procedural targets (closure rule) or the synthetic truth
+    (`targets="truth"`), and per-frame visemes."""
+    curves = u.procedural if targets == "procedural" else u.truth
+    return Example(u.uid, u.audio, curves.astype(np.float32), FPS, frame_visemes(u.phones, u.n, FPS))
+
+
+def held_out_sets(tmp: Path) -> dict[str, list[Utterance]]:
+    sets = {"GRID s1": read_corpus(grid_corpus(tmp))}
+    zh = tmp / "charsiu" / "SSB1624"
+    zh.mkdir(parents=True)
+    shutil.copyfile(SHARED / "charsiu_mandarin" / "SSB16240001_16k.wav", zh / "SSB16240001.wav")
+    shutil.copyfile(SHARED / "charsiu_mandarin" / "SSB16240001.TextGrid", zh / "SSB16240001.TextGrid")
+    sets["Mandarin"] = read_corpus(zh.parent)
+    folder = tmp / "praatio" / "praatio"
+    folder.mkdir(parents=True)
+    for name, grid in (("bobby", "bobby_phones.TextGrid"), ("mary", "mary.TextGrid")):
+        shutil.copyfile(SHARED / "praatio_examples" / f"{name}.wav", folder / f"{name}.wav")
+        shutil.copyfile(SHARED / "praatio_examples" / grid, folder / f"{name}.TextGrid")
+    sets["praatio"] = read_corpus(folder.parent)
+    return sets
+
+
+@dataclass
+class Sets:
+    lj: list[Example]
+    lj_truth: list[Example]        # the same utterances with the synthetic (Cohen-Massaro) truth as targets
+    facegood: list[Example]
+    espeak: list[Example]
+    held_out: dict[str, list[Utterance]]
+    test_audio: np.ndarray
+    test_curves: np.ndarray
+    test_jaw: np.ndarray           # (T,) the animator's jawOpen of the held-out take
+    floor: np.ndarray
+
+
+def load_sets(espeak: tuple[int, int] | None = None) -> Sets:
+    """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None."""
+    lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus") if u.speaker == "LJ"]
+    lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
+    with tempfile.TemporaryDirectory() as tmp:
+        held = held_out_sets(Path(tmp))
+    facegood = [e for name in TRAIN_TAKES for e in pieces(f"facegood/{name}", *facegood_take(name))]
+    es: list[Example] = []
+    if espeak:
+        from learning_data import ensure_corpus
+
+        from visemeflow.ingest.utterance import assign_split
+
+        root = ensure_corpus(*espeak)
+        es = [labelled(u) for u in read_corpus(root) if assign_split(u.uid, 0.1) == "train"]
+    test_audio, test_curves = facegood_take(HELD_OUT_TAKE)
+    table = read_channel_table(ROOT / "examples" / "facegood" / "voice2face_arkit.csv")
+    take = read_take(FACEGOOD / f"bs_value_{HELD_OUT_TAKE}.npy", "npy", table=table,
+                     names=FACEGOOD / "shirley_1015_bs_name.npy", fps=FPS)
+    jaw = np.asarray(take.arkit)[:, ARKIT_52.index("jawOpen")]
+    floor = np.concatenate([e.curves for e in facegood]).mean(axis=0)
+    return Sets(lj, lj_truth, facegood, es, held, test_audio, test_curves, jaw, floor)
+
+
+def recipe_data(sets: Sets, recipe: str) -> list[Example]:
+    parts = [p for p in recipe.split("+") if not p.startswith("cls")]
+    data = {"lj": sets.lj, "ljt": sets.lj_truth, "fg": sets.facegood, "es": sets.espeak}
+    unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)]
+    if unknown:
+        raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak)")
+    return [e for p in parts for e in data[p]]
+
+
+def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0) -> TrainConfig:
+    """`+cls` adds the auxiliary viseme loss at weight 0.5, `+clsW` at weight W."""
+    epochs = -(-steps // n_train)
+    cls = [p for p in recipe.split("+") if p.startswith("cls")]
+    weight = (float(cls[0][3:]) if cls[0][3:] else AUX_WEIGHT) if cls else 0.0
+    return TrainConfig(preset="whisper-base-blstm", d_model=d_model, epochs=epochs, seed=seed, lr=LR,
+                       max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight)
+
+
+class CachedPredictor:
+    """`predict(model, audio, n)` as predict_curves gives it, with the frozen encoder's outputs from the cache."""
+
+    def __init__(self, directory: Path = CACHE) -> None:
+        self.cache = EncoderOutputCache(directory)
+
+    def __call__(self, model, audio: np.ndarray, n: int) -> np.ndarray:
+        feats = model.features
+        if not isinstance(feats, WhisperExtractor):
+            return predict_curves(model, audio, SAMPLE_RATE, FPS, n_frames=n)
+        a = torch.from_numpy(np.ascontiguousarray(audio, np.float32))[None]
+        lengths = torch.tensor([a.shape[1]])
+        with torch.no_grad():
+            enc = self.cache.get_or_encode(feats, feats.encoder_fingerprint(), a, _audio_hash(audio), "cpu-fp32")
+            f, fl = feats(a, lengths, encoded=enc)
+            pred, _ = model.head(f, fl, torch.tensor([n]), fps=FPS)
+        return np.clip(pred[0, :n].numpy(), 0.0, 1.0).astype(np.float32)
+
+
+_PROBE: LipProbe | None = None
+
+
+def probe() -> LipProbe:
+    global _PROBE
+    if _PROBE is None:
+        _PROBE = LipProbe.from_rig(load_demo_rig())
+    return _PROBE
+
+
+def judge(sets: Sets, predict) -> dict:
+    """All figures of `predict(audio, n_frames) -> (n, 16)` (module docstring)."""
+    p = probe()
+    widest = p.single_shape_gap("AHH")
+    utts = [u for us in sets.held_out.values() for u in us]
+    curves = {u.uid: predict(u.audio, u.n) for u in utts}
+    scores = pool(score_utterance(curves[u.uid], FPS, u.phones) for u in utts)
+    per_set = {name: pool(score_utterance(curves[u.uid], FPS, u.phones) for u in us).closure["MBP"]
+               for name, us in sets.held_out.items()}
+    lips = []
+    for u in utts:
+        m = p.measure(close_lips(curves[u.uid]))
+        lips.append(score_lips(m.gap_mm, m.teeth_mm, FPS, u.phones, widest))
+    lip = pool_lips(lips).summary()
+    test = predict(sets.test_audio, len(sets.test_curves))
+    comparison = compare_curves(test, sets.test_curves, FPS)
+    floor = compare_curves(np.tile(sets.floor, (len(sets.test_curves), 1)), sets.test_curves, FPS)
+    gap = p.measure(close_lips(test)).gap_mm
+    n = min(len(gap), len(sets.test_jaw))
+    jaw = float(np.corrcoef(gap[:n], sets.test_jaw[:n])[0, 1]) if np.std(gap[:n]) > 0 else float("nan")
+    return {"mbp": scores.closure["MBP"], "fff": scores.closure["FFF"], "false_mbp": scores.false_closure["MBP"],
+            "agreement": scores.agreement.overall, "mbp_per_set": per_set, "lips": lip,
+            "captured_l1_x100": comparison.l1_x100, "floor_l1_x100": floor.l1_x100, "jaw_r": jaw}
+
+
+def share(r) -> str:
+    return f"{r.hits}/{r.total} ({100 * (r.share or 0):.0f}%)"
+
+
+HEADER = ("| recipe | MBP closure | false MBP | FFF closure | top-2 agreement | MBP GRID / zh / praatio | "
+          "mesh b/p/m closed | median b/p/m gap mm | vowel opening (x AHH) | vowels never open | "
+          "FACEGOOD 05 L1 x100 (vs floor) | jaw r | train s |\n" + "|---" * 13 + "|")
+
+
+def row(name: str, j: dict, seconds: float | None = None) -> str:
+    lip = j["lips"]
+    per = " / ".join(f"{r.hits}/{r.total}" for r in j["mbp_per_set"].values())
+    below = 100 * (1 - j["captured_l1_x100"] / j["floor_l1_x100"])
+
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.0f}%"
+
+    def num(x, d=2):
+        return "-" if x is None else f"{x:.{d}f}"
+
+    return (f"| {name} | {share(j['mbp'])} | {share(j['false_mbp'])} | {share(j['fff'])} | {share(j['agreement'])} | "
+            f"{per} | {pct(lip['closed'])} | {num(lip['median_gap_mm'])} | {num(lip['vowel_opening'])} | "
+            f"{pct(lip['false_closed'])} | {j['captured_l1_x100']:.2f} ({below:+.0f}% below) | {j['jaw_r']:.2f} | "
+            f"{'-' if seconds is None else f'{seconds:.0f}'} |")
+
+
+def rtf(model, seconds: float = 30.0) -> float:
+    """predict_curves seconds per second of audio on one thread, 30 s of speech (LJ concatenated), encoder included."""
+    import soundfile as sf
+
+    parts = [sf.read(p, dtype="float32")[0] for p in sorted((ROOT / "examples/corpus/LJ").glob("*.wav"))]
+    audio = np.concatenate(parts)[: int(seconds * SAMPLE_RATE)]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        predict_curves(model, audio[:SAMPLE_RATE], SAMPLE_RATE, FPS)
+        t0 = time.perf_counter()
+        predict_curves(model, audio, SAMPLE_RATE, FPS)
+        return (time.perf_counter() - t0) / seconds
+    finally:
+        torch.set_num_threads(threads)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=2400)
+    parser.add_argument("--d-model", type=int, default=128)
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads (1: with another process busy, 2 OpenMP threads on 2 cores ran ~40x "
+                             "slower here)")
+    parser.add_argument("--losses", default="l1", help="training losses (bench/domain_gap.py): l1, closure:W, ...")
+    parser.add_argument("--seeds", default="0", help="training seeds (comma-separated): one row each")
+    parser.add_argument("--recipes", default="lj,lj+cls,lj+fg,lj+fg+cls")
+    parser.add_argument("--espeak", default="", help="EN,ZH utterances of the espeak corpus for `es` recipes")
+    parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
+    parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
+    sets = load_sets(espeak)
+    print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
+          f"espeak {len(sets.espeak)}; held out: "
+          + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)
+    predict = CachedPredictor()
+    rows = []
+    if args.baseline:
+        from visemeflow.learning.default_model import default_model_path
+        from visemeflow.learning.train import load_model
+
+        rows.append(row("procedural curves of the alignment (ceiling; FACEGOOD: floor)", judge(
+            sets, lambda a, n: next((u.procedural for us in sets.held_out.values() for u in us if u.audio is a),
+                                    np.tile(sets.floor, (n, 1)).astype(np.float32)))))
+        rows.append(row("synthetic truth of the alignment (Cohen-Massaro; FACEGOOD: floor)", judge(
+            sets, lambda a, n: next((u.truth for us in sets.held_out.values() for u in us if u.audio is a),
+                                    np.tile(sets.floor, (n, 1)).astype(np.float32)))))
+        rows.append(row("mean curve of the FACEGOOD training takes (floor)",
+                        judge(sets, lambda a, n: np.tile(sets.floor, (n, 1)).astype(np.float32))))
+        for path in (default_model_path(), default_model_path().with_name("default-fbank.pt")):
+            if path.is_file():
+                m, cfg, _ = load_model(path)
+                rows.append(row(f"shipped {path.name} ({cfg.preset})", judge(sets, lambda a, n, m=m: predict(m, a, n))))
+        for r in rows:
+            print(r, flush=True)
+    runs = [(r, loss, int(seed)) for r in args.recipes.split(",") if r for loss in args.losses.split(",")
+            for seed in args.seeds.split(",")]
+    for recipe, loss, seed in runs:
+        train = recipe_data(sets, recipe)
+        started = time.perf_counter()
+        model = train_model(train, [], recipe_config(recipe, len(train), args.steps, args.d_model, seed),
+                            encoder_cache=CACHE, loss=make_loss(loss)).model
+        secs = time.perf_counter() - started
+        rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed} ({len(train)} ex, {args.steps} steps, "
+                        f"d {args.d_model})", judge(sets, lambda a, n, m=model: predict(m, a, n)), secs))
+        print(rows[-1], flush=True)
+        if args.rtf:
+            print(f"RTF (one thread, 30 s): {rtf(model):.3f}", flush=True)
+            args.rtf = False
+    print()
+    print(HEADER)
+    for r in rows:
+        print(r)
+    print(f"\ntargets: MBP >= 90% with false <= 3%; FFF >= 70%; FACEGOOD L1 >= 30% below the floor, jaw r >= 0.7; "
+          f"mesh b/p/m closed >= 90%. total {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
