@@ -22,7 +22,7 @@ any curves drive a character; `raw` = the curves as the source makes them):
 - `synthetic truth`: the Cohen-Massaro curves of the alignment (`synth.dynamics.generate_ground_truth`): what the demo
   renders and the tracker recovers (tracked curves approximate them at L1 x 100 ~5.7; tracking itself means
   rendering and fitting videos, minutes per utterance, so tracked curves are not measured here);
-- `default model`: the shipped learned model (`visemeflow.learning.default_model`, fbank-blstm; it trained on the 24
+- `default model`: the shipped learned model (`visemeflow.learning.default_model`, whisper-base-blstm; it trained on the 24
   LJ examples: in-sample there, held out on GRID, Mandarin and praatio);
 - `phones`: `predict --model phones`, procedural curves of the phones PocketSphinx recognises in the audio (raw:
   without the rule);
