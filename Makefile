@@ -37,7 +37,8 @@ $(STAMP): pyproject.toml | system-deps
 # Mandarin utterance spoken by the demo character: a side-by-side preview, then GLB + USD + Live Link CSV + web JSON
 # + the wav + a preview MP4 from the audio alone (`speak`), then the same as bone animation (32 SSDR bones: a skinned
 # GLB, UsdSkel with joints and the pose table), and an English utterance spoken with no model at all (`--model
-# phones`: phones recognised in the audio); their paths are printed.
+# phones`: phones recognised in the audio), and last the Mandarin utterance spoken by the shipped default model
+# (Whisper-base encoder; a voice it never heard); their paths are printed.
 demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -52,6 +53,7 @@ demo: system-deps venv
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --format glb,usd,livelink,json --preview --out $(OUT)/speak
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --preview --out $(OUT)/speak-bones
 	$(BIN)/visemeflow speak examples/corpus/LJ/LJ001-0002.wav --model phones --store $(OUT)/store --format glb,json --preview --out $(OUT)/speak-phones
+	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --store $(OUT)/store --format glb,usd,json --preview --out $(OUT)/speak-default
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed
