@@ -663,7 +663,7 @@ def export_model(
     opset: Annotated[int, typer.Option(help="ONNX opset (15 for Unity Sentis before 2.6).")] = 17,
     sample_rate: Annotated[int, typer.Option(help="Rate of the graph's audio input (mono float32).")] = 16000,
     fps: Annotated[Optional[float], typer.Option(help="Curve frame rate; default: the model's own.")] = None,
-    check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4).")] = True,
+    check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4; 1e-3 for Whisper models).")] = True,
 ) -> None:
     """Export a trained model for engines: an ONNX graph, audio samples in, (1, frames, 16) curves out."""
     from visemeflow.learning.default_model import is_shipped, shipped_model_path
