@@ -65,6 +65,19 @@ def test_predict_without_a_model_installs_and_uses_the_default_and_the_old_one_b
     assert s.has_curves("predicted", "default-fbank", "predict/SSB16240001")
 
 
+def test_a_store_from_an_older_release_gets_the_packages_default_not_its_old_copy(tmp_path):
+    """A store whose `default` is an older release's shipped model (here the fbank one) is updated on the next
+    predict: upgrading the package must not leave users on the old model silently."""
+    from visemeflow.cli import app
+
+    s = Store(tmp_path / "store")
+    s.install_model(DEFAULT_MODEL, shipped_model_path("default-fbank"))
+    assert s.model_path(DEFAULT_MODEL).read_bytes() != default_model_path().read_bytes()
+    result = CliRunner().invoke(app, ["predict", str(AUDIO), "--store", str(s.root)])
+    assert result.exit_code == 0, result.output
+    assert s.model_path(DEFAULT_MODEL).read_bytes() == default_model_path().read_bytes()
+
+
 def test_unheard_speakers_lips_close_and_the_recorded_figures_reproduce(tmp_path):
     sys.path.insert(0, str(REPO / "bench"))
     from encoders import held_out_sets

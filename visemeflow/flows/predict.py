@@ -57,15 +57,21 @@ class PredictParams(BaseModel):
 
 def ensure_model(store: Store, model: str) -> None:
     """Install a model shipped with the package (`default`, `default-fbank`) into the store when it is asked for and
-    the store has none of that name; a model that needs the Whisper weights stops here, with one line naming the
+    the store has none of that name or another file under it (an older release's); a model that needs the Whisper weights stops here, with one line naming the
     extra to install, when they are missing (no fallback to another model)."""
-    if is_shipped(model) and not store.has_model(model):
+    if is_shipped(model):
         shipped = shipped_model_path(model)
         if not shipped.is_file():
-            raise LookupError(f"this installation ships no {model} model ({shipped} missing); train one with "
-                              "`visemeflow train` and pass --model NAME")
-        store.install_model(model, shipped)
-        get_run_logger().info("installed the shipped %s model into %s", model, store.model_path(model))
+            if not store.has_model(model):
+                raise LookupError(f"this installation ships no {model} model ({shipped} missing); train one with "
+                                  "`visemeflow train` and pass --model NAME")
+        elif not store.has_model(model) or file_hash(store.model_path(model)) != file_hash(shipped):
+            # a store made by an older release holds that release's shipped model under this name: the package's
+            # own wins (the names of shipped models are reserved), so an upgrade is not silently ignored
+            replaced = store.has_model(model)
+            store.install_model(model, shipped)
+            get_run_logger().info("%s the shipped %s model into %s", "updated" if replaced else "installed", model,
+                                  store.model_path(model))
     if is_trained(model) and store.has_model(model):
         check_whisper_weights(store.model_path(model))
 
