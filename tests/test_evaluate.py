@@ -183,6 +183,11 @@ def test_robustness_table_pivots_groups_and_ratios():
     csv = table_csv(table).splitlines()
     assert csv[0].startswith("group,model,preset,train_augment,validation,volume,pitch,speed,noise,ratio_volume")
     assert len(csv) == 4
+    # a feature under the BLSTM decoder is a Table 1 row whatever its name's parts (whisper-base-blstm)
+    table = robustness_table([_row("w", "validation", 4.0), _row("t", "validation", 5.0)],
+                             presets={"w": "whisper-base-blstm", "t": "whisper-base-tcn"}, augmented={})
+    assert [(r["model"], r["group"]) for r in table] == [("w", "features, BLSTM decoder (Table 1)"),
+                                                         ("t", "decoders (Table 2)")]
 
 
 def _dashboard_view(table):
@@ -432,3 +437,21 @@ def test_evaluate_flow_scores_recognised_phones_as_the_baseline_that_needs_no_tr
     assert {r[C.CONDITION] for r in rows} == {"validation", *CONDITIONS}
     text = (store.root / "reports" / "robustness.md").read_text()
     assert "| phones | phones (pocketsphinx, no training) | no |" in text
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_evaluate_flow_installs_the_shipped_models_it_is_asked_for(tmp_path):
+    """`evaluate --models default-fbank` (a shipped model) works on any store, as `predict` does: the model is installed
+    from the package; the targets are named by --variant since a shipped model's lineage names none of this store."""
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams
+    from visemeflow.learning.default_model import shipped_model_path
+
+    store = make_curve_store(tmp_path / "store")
+    assert not store.has_model("default-fbank")
+    result = evaluate_flow(EvaluateParams(store=store.root, models=["default-fbank"], source="ground_truth",
+                                          variant="cm", conditions=["volume"]))
+    assert store.model_path("default-fbank").read_bytes() == shipped_model_path("default-fbank").read_bytes()
+    (row,) = result["table"]
+    assert row["model"] == "default-fbank" and row["group"] == "features, BLSTM decoder (Table 1)"
+    assert np.isfinite(row["validation"])

@@ -16,7 +16,9 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
 from visemeflow.flows.params import EvaluateParams
+from visemeflow.flows.predict import ensure_model
 from visemeflow.flows.train import training_rows
+from visemeflow.learning.default_model import is_shipped
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import TABLE_RUNS
@@ -59,6 +61,9 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     resolve_device(params.device)
     store = Store(params.store)
     trained = [m for m in params.models if is_trained(m)]
+    for model in trained:   # the models shipped with the package (default, default-fbank) are installed when named
+        if is_shipped(model):
+            ensure_model(store, model)
     paths = {m: store.model_path(m) for m in trained}
     missing = [m for m in trained if not store.has_model(m)]
     if missing:

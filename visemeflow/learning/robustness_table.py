@@ -99,7 +99,7 @@ def _group(preset: str | None) -> tuple[int, str]:
         return 3, "other"
     if preset == "mean-curve" or preset.startswith(("karras", "faceformer")):
         return 2, "baselines and floors (Table 3)"
-    if preset.partition("-")[2] == "blstm":
+    if preset.endswith("-blstm"):   # any feature under the BLSTM decoder (whisper-base-blstm too)
         return 0, "features, BLSTM decoder (Table 1)"
     return 1, "decoders (Table 2)"
 
