@@ -144,13 +144,15 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
     return [e for p in parts for e in data[p]]
 
 
-def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0) -> TrainConfig:
+def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0,
+                  layers: str | None = None) -> TrainConfig:
     """`+cls` adds the auxiliary viseme loss at weight 0.5, `+clsW` at weight W."""
     epochs = -(-steps // n_train)
     cls = [p for p in recipe.split("+") if p.startswith("cls")]
     weight = (float(cls[0][3:]) if cls[0][3:] else AUX_WEIGHT) if cls else 0.0
     return TrainConfig(preset="whisper-base-blstm", d_model=d_model, epochs=epochs, seed=seed, lr=LR,
-                       max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight)
+                       max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight,
+                       whisper_layers=layers)
 
 
 class CachedPredictor:
@@ -263,6 +265,8 @@ def main() -> int:
     parser.add_argument("--espeak", default="", help="EN,ZH utterances of the espeak corpus for `es` recipes")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
+    parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
+                                                         "last, weighted (a learned sum of every layer): one row each")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -291,15 +295,16 @@ def main() -> int:
                 rows.append(row(f"shipped {path.name} ({cfg.preset})", judge(sets, lambda a, n, m=m: predict(m, a, n))))
         for r in rows:
             print(r, flush=True)
-    runs = [(r, loss, int(seed)) for r in args.recipes.split(",") if r for loss in args.losses.split(",")
-            for seed in args.seeds.split(",")]
-    for recipe, loss, seed in runs:
+    runs = [(r, loss, int(seed), layers) for r in args.recipes.split(",") if r for loss in args.losses.split(",")
+            for seed in args.seeds.split(",") for layers in args.layers.split(",")]
+    for recipe, loss, seed, layers in runs:
         train = recipe_data(sets, recipe)
         started = time.perf_counter()
-        model = train_model(train, [], recipe_config(recipe, len(train), args.steps, args.d_model, seed),
+        model = train_model(train, [], recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers),
                             encoder_cache=CACHE, loss=make_loss(loss)).model
         secs = time.perf_counter() - started
-        rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed} ({len(train)} ex, {args.steps} steps, "
+        rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
+                        f"{args.steps} steps, "
                         f"d {args.d_model})", judge(sets, lambda a, n, m=model: predict(m, a, n)), secs))
         print(rows[-1], flush=True)
         if args.rtf:

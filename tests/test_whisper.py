@@ -302,6 +302,16 @@ def test_whisper_base_presets_smoke(base_encoder):
     model = build_training_model(TrainConfig(preset="whisper-base-blstm", d_model=32), 30.0)
     curves, _ = model(audio, torch.tensor([audio.shape[1]]), torch.tensor([90]))
     assert curves.shape == (1, 90, 16)
+    assert model.features.config.whisper_layers == "last"
+    # TrainConfig.whisper_layers chooses the learned sum of every layer; left out of the JSON when not set
+    weighted = build_training_model(TrainConfig(preset="whisper-base-blstm", d_model=32, whisper_layers="weighted"),
+                                    30.0)
+    assert weighted.features.weighted and weighted.features.config.whisper_layers == "weighted"
+    curves, _ = weighted(audio, torch.tensor([audio.shape[1]]), torch.tensor([90]))
+    assert curves.shape == (1, 90, 16)
+    assert "whisper_layers" not in TrainConfig(preset="whisper-base-blstm").model_dump_json()
+    assert '"whisper_layers":"weighted"' in TrainConfig(preset="whisper-base-blstm",
+                                                         whisper_layers="weighted").model_dump_json()
 
 
 def test_whisper_small_preset_on_a_local_folder_trains_saves_and_loads(tiny_dir, tmp_path):

@@ -71,7 +71,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -159,6 +159,9 @@ class TrainConfig(BaseModel):
     wav2vec2_model: str | None = None  # local path or hub id, wav2vec2 presets only
     # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
     whisper_source: str | None = None
+    # whisper presets: which encoder outputs feed the decoder, "last" (the preset's) or "weighted" (a learned
+    # softmax-weighted sum of every layer); None: the preset's own
+    whisper_layers: Literal["last", "weighted"] | None = None
     # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
     # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
     train_augment: bool = False
@@ -188,7 +191,7 @@ class TrainConfig(BaseModel):
 
 
 _ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
-                                   "viseme_loss_weight": 0.0}
+                                   "viseme_loss_weight": 0.0, "whisper_layers": None}
 
 
 @dataclass
@@ -218,7 +221,8 @@ def _feature_config(config: TrainConfig, preset: Preset) -> FeatureConfig:
             raise ValueError(f"preset {preset.name!r} needs TrainConfig.wav2vec2_model (path or hub id)")
         return FeatureConfig(kind="wav2vec2", wav2vec2_model=config.wav2vec2_model)
     if preset.feature == "whisper":
-        return FeatureConfig(kind="whisper", whisper_source=config.whisper_source or preset.whisper_source or "package")
+        return FeatureConfig(kind="whisper", whisper_source=config.whisper_source or preset.whisper_source or "package",
+                             whisper_layers=config.whisper_layers or "last")
     return FeatureConfig(kind=preset.feature, normalize=True)
 
 
