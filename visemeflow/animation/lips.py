@@ -168,8 +168,12 @@ def character_gap_mm(character, weights: np.ndarray) -> np.ndarray | None:
         return None
     ids = pairs.ravel()
     at = character.neutral[ids][None] + np.tensordot(np.asarray(weights, np.float32), character.deltas[:, ids], axes=1)
-    at = at.reshape(len(at), 3, 2, 3)
-    return (np.linalg.norm(at[:, :, 0] - at[:, :, 1], axis=-1).mean(axis=1) * character.mm_per_unit).astype(np.float32)
+    return pair_gap_mm(at.reshape(len(at), 3, 2, 3), character.mm_per_unit)
+
+
+def pair_gap_mm(pairs: np.ndarray, mm_per_unit: float) -> np.ndarray:
+    """The gap (mm) of (..., 3, 2, 3) inner-lip pair positions (upper, lower): the mean of the three distances."""
+    return (np.linalg.norm(pairs[..., 0, :] - pairs[..., 1, :], axis=-1).mean(axis=-1) * mm_per_unit).astype(np.float32)
 
 
 def closure_report(character, binding, weights: np.ndarray, fps: float,

@@ -121,6 +121,10 @@ class AnimationPackage:
     source_fps: float
     resampled: bool
     binding: dict = field(default_factory=dict)
+    curves: np.ndarray | None = None
+    """(frames, 16) the curves the files play: resampled to `fps`, through the closure rule when it is on."""
+    weights: np.ndarray | None = None
+    """(frames, S) those curves in the character's own shapes (`binding.weights(curves)`)."""
 
 
 def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str],
@@ -203,7 +207,8 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
         files[fmt] = str(path)
     if config.audio and audio is not None:
         files["audio"] = str(write_wav(out_dir / f"{stem}.wav", *audio))
-    return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary())
+    return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary(), curves,
+                            weights)
 
 
 def export_bone_animation(character: Character, curves, fps: float, formats, out_dir, bone_count: int = DEFAULT_BONES,

@@ -63,7 +63,7 @@ import cv2
 import numpy as np
 
 from visemeflow.animation.character import Character
-from visemeflow.animation.lips import inner_lip_pairs, is_bilabial
+from visemeflow.animation.lips import inner_lip_pairs, is_bilabial, pair_gap_mm
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
 from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
@@ -507,8 +507,7 @@ class PreviewFrames:
 
     def lip_gap_mm(self, vertices: np.ndarray) -> float:
         """The inner-lip gap (mm) of one frame's (V, 3) vertices."""
-        pairs = vertices[self.lip_pairs]
-        return float(np.linalg.norm(pairs[:, 0] - pairs[:, 1], axis=1).mean() * self.character.mm_per_unit)
+        return float(pair_gap_mm(vertices[self.lip_pairs], self.character.mm_per_unit))
 
     def label_box(self, k: int) -> tuple[slice, slice]:
         return slice(self.title_height, self.panel_top), slice(k * self.size, (k + 1) * self.size)

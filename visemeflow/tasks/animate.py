@@ -16,13 +16,12 @@ import numpy as np
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
-from visemeflow.animation.apply import CurvesError, resample
+from visemeflow.animation.apply import CurvesError
 from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind, load_mapping_csv
 from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
 from visemeflow.animation.lips import closure_report
-from visemeflow.articulation import close_lips
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
 from visemeflow.schemas import C, curves_array
@@ -117,14 +116,12 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     except CurvesError as exc:
         raise AnimateError(utterance_id, curve_file, "CurvesError", str(exc)) from exc
     files = dict(package.files)
-    played = resample(np.clip(curves, 0, 1), fps, package.fps)
-    if config.closure_rule:   # the preview and the lip report show what the exports play
-        played = close_lips(played)
-    lips = closure_report(character, binding, binding.weights(played), package.fps, phones)
+    played = package.curves   # the preview and the lip report show what the exports play
+    lips = closure_report(character, binding, package.weights, package.fps, phones)
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 
-        panels = {f"{source} ({variant})": binding.weights(played)}
+        panels = {f"{source} ({variant})": package.weights}
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
             panels = {"blendshapes": panels[f"{source} ({variant})"],
                       f"{config.bones} bones": BoneSource(bone_rig(character, binding, config.bones), played)}
