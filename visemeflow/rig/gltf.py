@@ -293,33 +293,36 @@ def _load(path: Path) -> gl.GLTF2:
     return gltf
 
 
-def _mesh_order(gltf: gl.GLTF2) -> list[int]:
-    """Mesh indices: those of nodes in the default scene's tree first (depth first), then the other scenes',
-    then nodes in no scene, then meshes no node uses."""
-    nodes, meshes = gltf.nodes or [], gltf.meshes or []
-    scenes = gltf.scenes or []
-    scene_order = ([gltf.scene] if isinstance(gltf.scene, int) and 0 <= gltf.scene < len(scenes) else []) + \
-        list(range(len(scenes)))
-    seen_nodes: set[int] = set()
-    order: list[int] = []
-
-    def visit(node_index: int) -> None:
-        stack = [node_index]
+def _node_order(gltf: gl.GLTF2) -> list[int]:
+    """Node indices: the default scene's tree first (depth first), then the other scenes', then nodes in no scene."""
+    nodes, scenes = gltf.nodes or [], gltf.scenes or []
+    roots: list = []
+    if isinstance(gltf.scene, int) and 0 <= gltf.scene < len(scenes):
+        roots += scenes[gltf.scene].nodes or []
+    for scene in scenes:
+        roots += scene.nodes or []
+    roots += range(len(nodes))
+    order, seen = [], set()
+    for root in roots:
+        stack = [root]
         while stack:
             i = stack.pop()
-            if not isinstance(i, int) or not 0 <= i < len(nodes) or i in seen_nodes:
+            if not isinstance(i, int) or not 0 <= i < len(nodes) or i in seen:
                 continue
-            seen_nodes.add(i)
-            node = nodes[i]
-            if isinstance(node.mesh, int) and 0 <= node.mesh < len(meshes) and node.mesh not in order:
-                order.append(node.mesh)
-            stack.extend(reversed(node.children or []))
+            seen.add(i)
+            order.append(i)
+            stack.extend(reversed(nodes[i].children or []))
+    return order
 
-    for s in scene_order:
-        for root in scenes[s].nodes or []:
-            visit(root)
-    for i in range(len(nodes)):
-        visit(i)
+
+def _mesh_order(gltf: gl.GLTF2) -> list[int]:
+    """Mesh indices: those of the nodes in `_node_order`, then meshes no node uses."""
+    nodes, meshes = gltf.nodes or [], gltf.meshes or []
+    order: list[int] = []
+    for i in _node_order(gltf):
+        mesh = nodes[i].mesh
+        if isinstance(mesh, int) and 0 <= mesh < len(meshes) and mesh not in order:
+            order.append(mesh)
     return order + [m for m in range(len(meshes)) if m not in order]
 
 
@@ -510,31 +513,11 @@ class GltfScene:
             raise RigError(f"{self.path}: malformed glTF ({type(exc).__name__}: {exc})") from None
         self._world: dict[int, np.ndarray] = {}
 
-    def _node_order(self) -> list[int]:
-        nodes, scenes = self.gltf.nodes or [], self.gltf.scenes or []
-        roots = []
-        if isinstance(self.gltf.scene, int) and 0 <= self.gltf.scene < len(scenes):
-            roots += scenes[self.gltf.scene].nodes or []
-        for scene in scenes:
-            roots += scene.nodes or []
-        roots += range(len(nodes))
-        order, seen = [], set()
-        for root in roots:
-            stack = [root]
-            while stack:
-                i = stack.pop()
-                if not isinstance(i, int) or not 0 <= i < len(nodes) or i in seen:
-                    continue
-                seen.add(i)
-                order.append(i)
-                stack.extend(reversed(nodes[i].children or []))
-        return order
-
     def _describe(self) -> list[GltfMeshInfo]:
         gltf = self.gltf
         nodes = gltf.nodes or []
         users: dict[int, list[int]] = {}
-        for i in self._node_order():
+        for i in _node_order(gltf):
             if isinstance(nodes[i].mesh, int):
                 users.setdefault(nodes[i].mesh, []).append(i)
         infos = []
