@@ -8,12 +8,12 @@ import time
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
-from visemeflow.ingest.audio import read_audio
 from visemeflow.learning.device import resolve_device
+from visemeflow.learning.longform import open_audio, predict_long
 from visemeflow.learning.train import predict_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.tasks.models import load_curve_model
 
 SOURCE = "predicted"
@@ -30,7 +30,8 @@ def _model(store_root: str, name: str, model_hash: str, device: str = "cpu"):
     return load_curve_model(Store(store_root), name, device)[0]
 
 
-@task(cache_policy=PREDICT_CACHE_POLICY, persist_result=True, task_run_name="predict[{utterance_id}]")
+@task(cache_policy=DataOnlyCache(policy=PREDICT_CACHE_POLICY), persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="predict[{utterance_id}]")
 def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path: str, audio_hash: str,
                   utterance_id: str, fps: float, device: str = "auto") -> dict:
     """Predict one file's curves and store them; returns where they are and the real-time factor of this run.
@@ -41,23 +42,38 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     """
     store = Store(store_root)
     model = _model(store_root, model_name, model_hash, str(resolve_device(device)))
+    logger = get_run_logger()
     started = time.perf_counter()
-    samples, rate = read_audio(audio_path)
-    curves = predict_curves(model, samples, rate, fps)
+    source = open_audio(audio_path)
+    duration = source.n_samples / source.rate
+
+    def progress(done: int, total: int) -> None:
+        if total > 1:
+            logger.info("%s: chunk %d/%d of %.0f s of audio", utterance_id, done, total, duration)
+
+    # In chunks read from the file as needed: the peak memory of a two-hour file is that of a minute of it.
+    curves = predict_long(lambda a, r, n: predict_curves(model, a, r, fps, n_frames=n), source, fps,
+                          on_chunk=progress)
     seconds = time.perf_counter() - started
-    duration = len(samples) / rate
     path = store.write_curves(curves_table(utterance_id, SOURCE, model_name, curves, fps),
-                              provenance=f"{SOURCE}:{model_name}:{model_hash}:{audio_hash}", fps=fps)
+                              provenance=prediction_provenance(model_name, model_hash, audio_hash, fps), fps=fps)
     rtf = seconds / max(duration, 1e-9)
-    get_run_logger().info("%s: %d frames of %.2f s of audio in %.3f s (real-time factor %.4f)", utterance_id,
-                          len(curves), duration, seconds, rtf)
+    logger.info("%s: %d frames of %.2f s of audio in %.3f s (real-time factor %.4f)", utterance_id,
+                len(curves), duration, seconds, rtf)
     return {"utterance_id": utterance_id, "path": str(path), "frames": int(len(curves)), "duration_s": duration,
             "seconds": seconds, "real_time_factor": rtf}
 
 
-def prediction_task_for(store: Store, model_name: str, utterance_id: str):
-    """`predict_audio` with the store's result storage; recomputed when its curves file is missing."""
+def prediction_provenance(model_name: str, model_hash: str, audio_hash: str, fps: float) -> str:
+    """What stored predicted curves were made from: the model's and the audio's content hashes and the frame rate."""
+    return f"{SOURCE}:{model_name}:{model_hash}:{audio_hash}:{float(fps)!r}"
+
+
+def prediction_task_for(store: Store, model_name: str, utterance_id: str, provenance: str):
+    """`predict_audio` with the store's result storage; recomputed unless the stored curves were made from
+    `provenance` (`prediction_provenance`): a missing file, or one another file of the same name or another frame
+    rate wrote since, is made again rather than served as a cache hit."""
     return predict_audio.with_options(
         result_storage=result_storage(store.root),
-        refresh_cache=not store.has_curves(SOURCE, model_name, utterance_id),
+        refresh_cache=store.curves_provenance(SOURCE, model_name, utterance_id) != provenance,
     )
