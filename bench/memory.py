@@ -1,6 +1,6 @@
 """Peak memory of predicting long audio: the whole file at once (the faithful path, as `predict` did before) against
 chunks read from the file as needed (`visemeflow.learning.longform`, what `predict` does now), side by side on the
-same file, each in a fresh process so that its peak resident memory (ru_maxrss) is its own.
+same file, each in a fresh process so that its peak resident memory (VmHWM) is its own.
 
     .venv/bin/python bench/memory.py [--model default-fbank] [--minutes 10,60,120] [--skip-whole-above 60]
 
@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -30,6 +29,15 @@ sys.path.insert(0, str(ROOT))
 FPS = 30.0
 
 
+def peak_mb() -> float:
+    """This process's peak resident memory (VmHWM). Not ru_maxrss: Linux carries the parent's peak into a child
+    across exec, so a child spawned by a parent that held the test input would report the parent's size."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
+
+
 def child(mode: str, model_name: str, wav: str, out: str) -> None:
     """One measurement in this (fresh) process: predict `wav` whole or chunked, save the curves, print JSON."""
     from visemeflow.ingest.audio import read_audio
@@ -38,7 +46,7 @@ def child(mode: str, model_name: str, wav: str, out: str) -> None:
     from visemeflow.learning.train import load_model, predict_curves
 
     model = load_model(shipped_model_path(model_name))[0]
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = peak_mb()
     started = time.perf_counter()
     if mode == "whole":
         samples, rate = read_audio(wav)
@@ -47,8 +55,7 @@ def child(mode: str, model_name: str, wav: str, out: str) -> None:
         curves = predict_long(lambda a, r, n: predict_curves(model, a, r, FPS, n_frames=n), open_audio(wav), FPS)
     seconds = time.perf_counter() - started
     np.save(out, curves)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"seconds": seconds, "peak_mb": peak / 1024, "model_mb": base / 1024}))
+    print(json.dumps({"seconds": seconds, "peak_mb": peak_mb(), "model_mb": base}))
 
 
 def measure(mode: str, model: str, wav: Path, out: Path) -> dict:

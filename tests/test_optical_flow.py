@@ -531,3 +531,37 @@ def test_grid_consecutive_frames(grid_pair, preset):
     assert np.median(np.linalg.norm(disp[ok], axis=1)) < 2.0
     photo = estimate_optical_flow(grid_pair, FlowConfig(preset=preset, photometric_threshold=10.0), roi=GRID_FACE)
     assert photo.valid_fraction(1) > 0.5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Large frames: the ROI shrunk to FlowConfig.max_roi_px, frames taken one at a time
+
+
+def test_large_roi_is_shrunk_and_queries_stay_in_image_pixels():
+    """A 960 x 800 texture moving by whole and fractional pixels: with the ROI shrunk to 240 px the flows take
+    1/16 of the memory and the correspondences still give the motion in image pixels."""
+    big = texture(800, 960, seed=5, sigma=8.0)
+    moves = np.array([[0.0, 0.0], [4.0, -2.5], [9.5, 1.0]])
+    frames = [shifted(big, *m) for m in moves]
+    full = estimate_optical_flow(frames, FlowConfig(max_roi_px=None))
+    small = estimate_optical_flow(frames, FlowConfig(max_roi_px=240))
+    assert full.scale == 1.0 and small.scale == pytest.approx(0.25)
+    assert small.forward.shape == (2, 200, 240, 2) and small.nbytes * 16 == full.nbytes
+    pts = np.stack(np.meshgrid(np.linspace(150, 800, 6) + 0.3, np.linspace(150, 650, 5) + 0.7), -1).reshape(-1, 2)
+    for j in (1, 2):
+        want = moves[j] - moves[j - 1]
+        u, ok = small.correspondences(j, pts)
+        assert ok.mean() > 0.9
+        assert np.abs(u[ok] - want).max() < 0.5
+        b, okb = small.backward_correspondences(j - 1, pts)
+        assert np.abs(b[okb] + want).max() < 0.5
+
+
+def test_frames_may_come_one_at_a_time():
+    frames = moving_frames()
+    whole = estimate_optical_flow(frames)
+    streamed = estimate_optical_flow(f for f in frames)
+    np.testing.assert_array_equal(streamed.forward, whole.forward)
+    np.testing.assert_array_equal(streamed.backward_valid, whole.backward_valid)
+    with pytest.raises(ValueError, match="at least one frame"):
+        estimate_optical_flow(iter(()))

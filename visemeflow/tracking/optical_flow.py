@@ -24,7 +24,8 @@ returns full-image coordinates and treats points outside the ROI as invalid.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -59,6 +60,11 @@ class FlowConfig:
         a specular highlight): DIS propagates its neighbours' smooth flow into such a region in both directions
         and the two agree. 20 suits compressed video such as GRID.
     photometric_window: side in pixels (odd) of the box the photometric error is averaged over.
+    max_roi_px: the region of interest is shrunk (``cv2.INTER_AREA``) until its longer side is at most this many
+        pixels before DIS runs, and the flows are stored at that size (None: never). A face fills a few hundred
+        pixels of a GRID or webcam frame, which keeps its full size; in a 4K frame it is over a thousand, and the
+        flows of a 2-s clip at full size took gigabytes. Queries still take and give full-image pixels;
+        ``fb_threshold_px`` stays in full-image pixels.
     """
 
     preset: str = "medium"
@@ -67,6 +73,7 @@ class FlowConfig:
     storage_dtype: str = "float16"
     photometric_threshold: float | None = None
     photometric_window: int = 5
+    max_roi_px: int | None = 480
 
     def __post_init__(self) -> None:
         if self.preset.lower() not in PRESETS:
@@ -79,6 +86,8 @@ class FlowConfig:
             raise ValueError(f"photometric_threshold must be None or positive, got {self.photometric_threshold}")
         if self.photometric_window < 1 or self.photometric_window % 2 == 0:
             raise ValueError(f"photometric_window must be a positive odd size, got {self.photometric_window}")
+        if self.max_roi_px is not None and self.max_roi_px < 16:
+            raise ValueError(f"max_roi_px must be None or at least 16, got {self.max_roi_px}")
 
     @property
     def cv_preset(self) -> int:
@@ -319,7 +328,9 @@ class FlowField:
     Pair i (0 <= i < T-1) is frames (i, i+1): ``forward[i]`` is the flow i -> i+1 on frame i's pixels and
     ``backward[i]`` the flow i+1 -> i on frame i+1's pixels, each (h, w, 2) in ``storage_dtype`` (see FlowConfig),
     with its mask ``forward_valid[i]`` / ``backward_valid[i]`` (h, w) bool (see :func:`flow_masks`). The arrays cover
-    ``roi`` (x0, y0, w, h) of the (width x height) frames; queries take and give full-image pixels.
+    ``roi`` (x0, y0, w, h) of the (width x height) frames, sampled at ``scale`` array pixels per image pixel (1, or
+    less where the ROI was shrunk: FlowConfig.max_roi_px), the flows in array pixels; queries take and give
+    full-image pixels.
     """
 
     forward: np.ndarray
@@ -329,6 +340,7 @@ class FlowField:
     roi: Roi
     width: int
     height: int
+    scale: float = 1.0
 
     @property
     def n_pairs(self) -> int:
@@ -351,7 +363,11 @@ class FlowField:
     def _query(self, flow: np.ndarray, valid: np.ndarray, points) -> tuple[np.ndarray, np.ndarray]:
         pts = _as_points(points)
         x0, y0, _, _ = self.roi
-        return sample_flow(flow, valid, pts - np.array([x0, y0], dtype=np.float64))
+        if self.scale == 1.0:
+            return sample_flow(flow, valid, pts - np.array([x0, y0], dtype=np.float64))
+        # pixel centres: image pixel p covers array pixel (p + 0.5) * scale - 0.5
+        u, ok = sample_flow(flow, valid, (pts - np.array([x0, y0], dtype=np.float64) + 0.5) * self.scale - 0.5)
+        return (u / self.scale).astype(np.float32), ok
 
     def correspondences(self, j: int, points_prev) -> tuple[np.ndarray, np.ndarray]:
         """Forward pass, frame j >= 1: the flow displacement u_k (N, 2) float32 carrying the (N, 2) points of frame
@@ -367,7 +383,7 @@ class FlowField:
         return self._query(self.backward[i], self.backward_valid[i], points_next)
 
     def forward_flow(self, j: int) -> np.ndarray:
-        """The float32 flow j-1 -> j on the ROI, (h, w, 2)."""
+        """The float32 flow j-1 -> j on the ROI as stored, (h, w, 2) in array pixels (see ``scale``)."""
         return self.forward[self._pair(j - 1, f"forward_flow(j={j})")].astype(np.float32)
 
     def valid_fraction(self, j: int) -> float:
@@ -375,23 +391,42 @@ class FlowField:
         return float(self.forward_valid[self._pair(j - 1, f"valid_fraction(j={j})")].mean())
 
 
-def estimate_optical_flow(frames: Sequence[np.ndarray] | np.ndarray, config: FlowConfig = DEFAULT_CONFIG,
+def roi_scale(roi: Roi, config: FlowConfig = DEFAULT_CONFIG) -> float:
+    """Array pixels per image pixel of the flows on ``roi``: 1, or less so that its longer side fits
+    ``config.max_roi_px``."""
+    longer = max(roi[2], roi[3])
+    return 1.0 if config.max_roi_px is None or longer <= config.max_roi_px else config.max_roi_px / longer
+
+
+def estimate_optical_flow(frames: Iterable[np.ndarray] | np.ndarray, config: FlowConfig = DEFAULT_CONFIG,
                roi: Sequence[int] | None = None) -> FlowField:
     """Bi-directional DIS flow and forward-backward masks for every consecutive pair of ``frames`` ((T, H, W, 3)
-    uint8 RGB, or a sequence of such frames), on ``roi`` (x0, y0, w, h; the whole frame when None), computed once
-    per utterance. Each frame is converted to gray once and one DIS instance serves all pairs."""
-    seq = list(frames)   # an array iterates over its first (time) axis
-    if len(seq) == 0:
-        raise ValueError("estimate_optical_flow needs at least one frame")
-    gray = [_to_channel(f, config) for f in seq]
-    height, width = gray[0].shape
-    for t, g in enumerate(gray):
-        if g.shape != (height, width):
+    uint8 RGB, or an iterable of such frames, e.g. frames decoded one at a time), on ``roi`` (x0, y0, w, h; the
+    whole frame when None), computed once per utterance. Each frame is converted to gray, cropped to the ROI and
+    shrunk to ``config.max_roi_px`` as it comes, so only the crops are held; one DIS instance serves all pairs."""
+    crops: list[np.ndarray] = []
+    height = width = 0
+    box: Roi = (0, 0, 0, 0)
+    scale = 1.0
+    for t, f in enumerate(frames):   # an array iterates over its first (time) axis
+        g = _to_channel(f, config)
+        if t == 0:
+            height, width = g.shape
+            box = clip_roi(roi, width, height)
+            scale = roi_scale(box, config)
+        elif g.shape != (height, width):
             raise ValueError(f"frame {t} is {g.shape[1]}x{g.shape[0]}, frame 0 is {width}x{height}")
-    box = clip_roi(roi, width, height)
-    crops = [_crop(g, box) for g in gray]
+        crop = _crop(g, box)
+        if scale != 1.0:
+            crop = cv2.resize(crop, (max(1, round(box[2] * scale)), max(1, round(box[3] * scale))),
+                              interpolation=cv2.INTER_AREA)
+        crops.append(crop)
+    if not crops:
+        raise ValueError("estimate_optical_flow needs at least one frame")
+    if scale != 1.0:
+        config = dataclasses.replace(config, fb_threshold_px=config.fb_threshold_px * scale)
     n_pairs = len(crops) - 1
-    h, w = box[3], box[2]
+    h, w = crops[0].shape[:2]
     dtype = STORAGE_DTYPES[config.storage_dtype]
     forward = np.empty((n_pairs, h, w, 2), dtype=dtype)
     backward = np.empty((n_pairs, h, w, 2), dtype=dtype)
@@ -404,4 +439,4 @@ def estimate_optical_flow(frames: Sequence[np.ndarray] | np.ndarray, config: Flo
         fvalid[i], bvalid[i] = flow_masks(crops[i], crops[i + 1], fwd, bwd, config)
         forward[i] = fwd
         backward[i] = bwd
-    return FlowField(forward, backward, fvalid, bvalid, box, int(width), int(height))
+    return FlowField(forward, backward, fvalid, bvalid, box, int(width), int(height), scale)
