@@ -472,3 +472,40 @@ def test_usd_has_one_mesh_per_part_with_its_own_shapes_that_usdskel_deforms(tmp_
         for part in c.parts:
             points = np.asarray(meshes[part.name].GetPointsAttr().Get(k))
             np.testing.assert_allclose(points, expected[part.start:part.stop], atol=1e-5, err_msg=part.name)
+
+
+# ---- output errors ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("fmt", ["glb", "usd", "json", "audio"])
+def test_a_full_disk_while_writing_an_export_names_the_output_file(tmp_path, avatar, monkeypatch, fmt):
+    """ENOSPC when one export of a package is flushed to disk: the error names that output file (after the
+    utterance), not the character file it was made from, and says what failed; no file is left half-written."""
+    import errno
+
+    import visemeflow.atomic as atomic
+    from visemeflow.animation.package import SUFFIXES
+    from visemeflow.tasks.animate import AnimateError, animate, content_hash
+
+    path, _ = avatar
+    store = make_curve_store(tmp_path / "store", n=1)
+    out = tmp_path / "out"
+    suffix = {**SUFFIXES, "audio": ".wav"}[fmt]
+    real_fsync = atomic._fsync_path
+
+    def disk_full_for(temporary: Path) -> None:
+        if f"u0{suffix}." in Path(temporary).name:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(temporary)
+
+    monkeypatch.setenv("VISEMEFLOW_FSYNC", "1")
+    monkeypatch.setattr(atomic, "_fsync_path", disk_full_for)
+    config = AnimateConfig(formats=("glb", "usd", "json"), fps=30.0)
+    audio = store.read_table("utterances").column("audio_path")[0].as_py()
+    with pytest.raises(AnimateError) as caught:
+        animate(store, "spk/u0", "ground_truth", "cm", str(path), content_hash(path), None, None, config, audio,
+                str(out))
+    failed = next(out.rglob("u0")) / f"u0{suffix}"
+    assert caught.value.path == str(failed)
+    assert caught.value.error_type == "ExportWriteError"
+    assert str(caught.value).startswith(f"spk/u0: {failed}: "), str(caught.value)
+    assert "No space left on device" in str(caught.value) and str(path) not in str(caught.value)
+    assert not failed.exists() and not [p for p in failed.parent.iterdir() if p.name.startswith(".")]

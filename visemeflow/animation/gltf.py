@@ -50,7 +50,8 @@ from visemeflow.animation.character import Character, CharacterError, CharacterP
 from visemeflow.animation.conventions import CONVENTION_NAMES, normalize_shape_name
 from visemeflow.atomic import atomic_path
 from visemeflow.rig import RigError
-from visemeflow.rig.gltf import GltfMeshInfo, GltfScene, read_gltf_mesh, srgb_to_linear
+from visemeflow.rig.gltf import MAX_MORPH_VALUES, MAX_VERTICES, GltfMeshInfo, GltfScene, read_gltf_mesh, \
+    srgb_to_linear
 
 __all__ = ["read_character_glb", "vertex_normals", "write_glb"]
 
@@ -309,6 +310,21 @@ def _choose_meshes(path: Path, infos: list[GltfMeshInfo], meshes, extra_names) -
     return chosen, left_out
 
 
+def _check_sizes(path: Path, chosen: list[GltfMeshInfo]) -> None:
+    """The driven meshes together, as their accessors declare them, fit `MAX_VERTICES` and `MAX_MORPH_VALUES`
+    (the joined deltas are shapes x vertices x 3); CharacterError naming the meshes otherwise."""
+    n_vertices = sum(i.n_vertices for i in chosen)
+    n_shapes = len({n for i in chosen for n in i.target_names or ()})
+    meshes = ", ".join(_mesh_summary(i) for i in chosen)
+    if n_vertices > MAX_VERTICES:
+        raise CharacterError(f"{path}: the driven meshes have {n_vertices} vertices together, more than the "
+                             f"{MAX_VERTICES} visemeflow animates ({meshes})")
+    if n_shapes * n_vertices * 3 > MAX_MORPH_VALUES:
+        raise CharacterError(f"{path}: the driven meshes' {n_shapes} morph targets on {n_vertices} vertices are "
+                             f"{n_shapes * n_vertices * 3} values, more than the {MAX_MORPH_VALUES} visemeflow "
+                             f"reads (shapes x vertices x 3; {meshes})")
+
+
 def read_character_glb(path: str | os.PathLike, name: str | None = None, meshes=None,
                        extra_names=None) -> Character:
     """The character of a .glb / .gltf scene: every mesh whose morph targets it drives, as one character; validated.
@@ -339,6 +355,7 @@ def read_character_glb(path: str | os.PathLike, name: str | None = None, meshes=
         if not scene.meshes:
             raise RigError(f"{path}: no mesh in this glTF file")
         chosen, left_out = _choose_meshes(path, scene.meshes, meshes, extra_names)
+        _check_sizes(path, chosen)
         placed = [(info, *scene.placed_mesh(info.index)) for info in chosen]
     except RigError as exc:   # its message starts with the path
         message = str(exc)

@@ -16,7 +16,9 @@ their arrays, so every existing index stays valid. Only the buffer entry (its ne
 A `.gltf` (JSON) input, or a GLB whose buffers live in other files, is written as a self-contained GLB: the buffers
 are concatenated into the binary chunk (each 16-byte aligned; buffer views re-pointed with their offsets shifted),
 images stored as files get a buffer view and a `mimeType` in place of their `uri`; data: URIs are decoded as
-buffers and left as they are for images. Only files beside the glTF are read (no absolute paths, no `://`).
+buffers and left as they are for images. Only files inside the glTF's folder are read (`rig.gltf.resolve_gltf_uri`:
+no scheme, no absolute path, no way out through `..`, percent-encoding or a link), each declared byteLength must
+fit its data, and the GLB written may hold at most `MAX_FILE_BYTES`.
 
 Characters that are not glTF scenes (npz, mesh folders, our rigs, characters built in memory) are written by
 `gltf.write_glb`, a new single-mesh GLB.
@@ -24,7 +26,6 @@ Characters that are not glTF scenes (npz, mesh folders, our rigs, characters bui
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import struct
@@ -36,6 +37,7 @@ import numpy as np
 from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.gltf import _check_animation, write_glb
 from visemeflow.atomic import atomic_path
+from visemeflow.rig.gltf import MAX_FILE_BYTES, read_gltf_uri
 
 __all__ = ["write_asset_glb", "write_character_glb"]
 
@@ -60,7 +62,12 @@ def write_character_glb(path: str | os.PathLike, character: Character, weights, 
 def _read_document(source: Path) -> tuple[dict, bytes | None]:
     """(the JSON document, the GLB binary chunk or None)."""
     try:
-        data = source.read_bytes()
+        with open(source, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size > MAX_FILE_BYTES:
+                raise CharacterError(f"{source}: {size} bytes, more than the {MAX_FILE_BYTES} bytes a character "
+                                     "file may have")
+            data = handle.read(size)
     except OSError as exc:
         raise CharacterError(f"{source}: the character's file cannot be read to write its asset back "
                              f"({exc.strerror or exc})") from None
@@ -84,18 +91,21 @@ def _read_document(source: Path) -> tuple[dict, bytes | None]:
         raise CharacterError(f"{source}: not a readable glTF 2.0 / GLB file ({exc})") from None
 
 
-def _external(source: Path, uri: str, what: str) -> bytes:
-    """The bytes of a data: URI or of a file beside the glTF."""
-    if uri.startswith("data:"):
-        header, _, payload = uri.partition(",")
-        return base64.b64decode(payload) if header.endswith(";base64") else urllib.parse.unquote_to_bytes(payload)
-    relative = urllib.parse.unquote(uri)
-    if "://" in uri or Path(relative).is_absolute():
-        raise CharacterError(f"{source}: {what}: only data: URIs and files beside the glTF are read, not {uri!r}")
+def _external(source: Path, uri, what: str) -> bytes:
+    """The bytes of a data: URI or of a file inside the glTF's folder (`rig.gltf.read_gltf_uri`)."""
+    if not isinstance(uri, str):
+        raise CharacterError(f"{source}: {what}: its uri must be a string, got {uri!r}")
     try:
-        return (source.parent / relative).read_bytes()
+        return read_gltf_uri(source, uri)
+    except ValueError as exc:
+        raise CharacterError(f"{source}: {what}: {exc}") from None
     except OSError as exc:
         raise CharacterError(f"{source}: {what} ({uri}) cannot be read: {exc.strerror or exc}") from None
+
+
+def _fits(source: Path, blob: bytearray, adding: int, what: str) -> None:
+    if len(blob) + adding > MAX_FILE_BYTES:
+        raise CharacterError(f"{source}: with {what} the exported GLB would hold more than {MAX_FILE_BYTES} bytes")
 
 
 def _one_buffer(source: Path, document: dict, binary: bytes | None) -> bytearray:
@@ -103,29 +113,35 @@ def _one_buffer(source: Path, document: dict, binary: bytes | None) -> bytearray
     buffers = document.get("buffers") or []
     if not buffers:
         return bytearray()
-    if len(buffers) == 1 and "uri" not in buffers[0]:
-        if binary is None or len(binary) < buffers[0].get("byteLength", 0):
-            raise CharacterError(f"{source}: buffer 0 has no (or a short) GLB binary chunk")
-        return bytearray(binary[: buffers[0]["byteLength"]])
     blob, starts = bytearray(), []
     for k, buffer in enumerate(buffers):
-        blob += bytes(-len(blob) % 16)
-        starts.append(len(blob))
+        if not isinstance(buffer, dict):
+            raise CharacterError(f"{source}: buffer {k} is not a JSON object")
         if "uri" in buffer:
             data = _external(source, buffer["uri"], f"buffer {k}")
         elif k == 0 and binary is not None:
             data = binary
         else:
             raise CharacterError(f"{source}: buffer {k} has no uri and is not the GLB binary chunk")
-        blob += data[: buffer.get("byteLength", len(data))]
+        declared = buffer.get("byteLength")
+        if not isinstance(declared, int) or not 0 <= declared <= len(data):
+            raise CharacterError(f"{source}: buffer {k} declares {declared!r} bytes (byteLength) but its data "
+                                 f"holds {len(data)}")
+        if len(buffers) == 1 and "uri" not in buffer:
+            return bytearray(data[:declared])
+        blob += bytes(-len(blob) % 16)
+        _fits(source, blob, declared, f"buffer {k}")
+        starts.append(len(blob))
+        blob += data[:declared]
     for view in document.get("bufferViews") or []:
         view["byteOffset"] = view.get("byteOffset", 0) + starts[view["buffer"]]
         view["buffer"] = 0
     for k, image in enumerate(document.get("images") or []):
-        uri = image.get("uri")
-        if uri is None or uri.startswith("data:"):
+        uri = image.get("uri") if isinstance(image, dict) else None
+        if uri is None or (isinstance(uri, str) and uri.startswith("data:")):
             continue
         data = _external(source, uri, f"image {k}")
+        _fits(source, blob, len(data) + 3, f"image {k}")
         mime = image.get("mimeType") or _MIME.get(Path(urllib.parse.unquote(uri)).suffix.lower())
         if mime is None:
             raise CharacterError(f"{source}: image {k} ({uri}): unknown image type; expected "

@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import hashlib
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -46,7 +48,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from visemeflow.animation.apply import check_curves, resample
 from visemeflow.articulation import close_lips
-from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, solve_bones, write_pose_table
+from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, BoneRig, solve_bones, \
+    write_pose_table
 from visemeflow.animation.character import Character
 from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
@@ -58,6 +61,28 @@ DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
 SUFFIXES = {"glb": ".glb", "usd": ".usd", "livelink": ".livelink.csv", "json": ".web.json",
             "curves-csv": ".curves.csv", "curves-json": ".curves.json"}
 BONE_MODE_SUFFIXES = {"glb": ".bones.glb", "usd": ".bones.usd", "pose-csv": ".poses.csv", "pose-json": ".poses.json"}
+
+
+class ExportWriteError(Exception):
+    """An export file that could not be written (disk full, no permission, ...): names that file, not the inputs."""
+
+    def __init__(self, path: str, fmt: str, reason: str):
+        super().__init__(f"{path}: the {fmt} export cannot be written ({reason})")
+        self.path, self.fmt, self.reason = str(path), fmt, reason
+
+    def __reduce__(self):  # picklable with its three-argument constructor (Prefect ships exceptions)
+        return (type(self), (self.path, self.fmt, self.reason))
+
+
+@contextmanager
+def _writing(path: Path, fmt: str) -> Iterator[None]:
+    """Turn an OSError met while writing `path` into an ExportWriteError naming it (an error from the write
+    itself, ENOSPC at the flush, names no file or only the temporary one)."""
+    try:
+        yield
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise ExportWriteError(str(path), fmt, reason.removeprefix(f"{path}: ")) from exc
 
 
 class AnimateConfig(BaseModel):
@@ -155,8 +180,9 @@ def bone_rig(character: Character, binding: Binding, bone_count: int):
 
 
 def write_wav(path: Path, samples: np.ndarray, rate: int) -> Path:
-    """16-bit PCM WAV, atomically (what every DCC and engine imports)."""
-    with atomic_path(path, keep_suffix=True) as tmp:
+    """16-bit PCM WAV, atomically (what every DCC and engine imports); ExportWriteError naming `path` if the disk
+    refuses it."""
+    with _writing(path, "audio"), atomic_path(path, keep_suffix=True) as tmp:
         sf.write(tmp, np.clip(np.asarray(samples, np.float32), -1.0, 1.0), int(rate), subtype="PCM_16", format="WAV")
     return path
 
@@ -166,7 +192,8 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
                      audio: tuple[np.ndarray, int] | None = None) -> AnimationPackage:
     """Check `curves` (T, 16) at `fps`, resample to `config.fps`, and write each format of `config` into `out_dir`.
 
-    CurvesError (naming `where`, default the utterance) for non-finite curves or values outside [0, 1]."""
+    CurvesError (naming `where`, default the utterance) for non-finite curves or values outside [0, 1];
+    ExportWriteError naming the output file that the disk refused (full, read-only, no permission)."""
     out_dir = Path(out_dir)
     curves = check_curves(curves, where or utterance_id)
     rate = float(config.fps or fps)
@@ -184,31 +211,38 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     for fmt, path in paths.items():
         if fmt in bone_formats:
             continue
-        if fmt == "glb":
-            from visemeflow.animation.gltf_asset import write_character_glb
-
-            write_character_glb(path, character, weights, rate, name=stem)
-        elif fmt == "usd":
-            from visemeflow.animation.usd import write_usd
-
-            write_usd(path, character, weights, rate, name=stem)
-        elif fmt == "livelink":
-            from visemeflow.animation.livelink import write_livelink_csv
-
-            write_livelink_csv(path, arkit_weights(curves), rate)
-        elif fmt == "json":
-            from visemeflow.animation.webjson import write_web_json
-
-            write_web_json(path, character.shape_names, weights, rate, name=stem)
-        else:
-            n = len(curves)
-            track = CurveTrack(utterance_id, "", "", curves, np.arange(n) / rate, np.arange(n))
-            write_export(track, path, fmt.removeprefix("curves-"))
+        with _writing(path, fmt):
+            _write_format(fmt, path, character, curves, weights, rate, stem, utterance_id)
         files[fmt] = str(path)
     if config.audio and audio is not None:
         files["audio"] = str(write_wav(out_dir / f"{stem}.wav", *audio))
     return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary(), curves,
                             weights)
+
+
+def _write_format(fmt: str, path: Path, character: Character, curves: np.ndarray, weights: np.ndarray, rate: float,
+                  stem: str, utterance_id: str) -> None:
+    """Write one blendshape-mode format of a package (see `export_animation`)."""
+    if fmt == "glb":
+        from visemeflow.animation.gltf_asset import write_character_glb
+
+        write_character_glb(path, character, weights, rate, name=stem)
+    elif fmt == "usd":
+        from visemeflow.animation.usd import write_usd
+
+        write_usd(path, character, weights, rate, name=stem)
+    elif fmt == "livelink":
+        from visemeflow.animation.livelink import write_livelink_csv
+
+        write_livelink_csv(path, arkit_weights(curves), rate)
+    elif fmt == "json":
+        from visemeflow.animation.webjson import write_web_json
+
+        write_web_json(path, character.shape_names, weights, rate, name=stem)
+    else:
+        n = len(curves)
+        track = CurveTrack(utterance_id, "", "", curves, np.arange(n) / rate, np.arange(n))
+        write_export(track, path, fmt.removeprefix("curves-"))
 
 
 def export_bone_animation(character: Character, curves, fps: float, formats, out_dir, bone_count: int = DEFAULT_BONES,
@@ -237,16 +271,17 @@ def export_bone_animation(character: Character, curves, fps: float, formats, out
     written = []
     for fmt in formats:
         path = out_dir / f"{stem}{BONE_SUFFIXES[fmt]}"
-        if fmt == "glb":
-            from visemeflow.animation.skinned_gltf import write_skinned_glb
+        with _writing(path, fmt):
+            if fmt == "glb":
+                from visemeflow.animation.skinned_gltf import write_skinned_glb
 
-            write_skinned_glb(path, rig, curves, fps, name=stem)
-        elif fmt == "usd":
-            from visemeflow.animation.usd_skel import write_usd_skel
+                write_skinned_glb(path, rig, curves, fps, name=stem)
+            elif fmt == "usd":
+                from visemeflow.animation.usd_skel import write_usd_skel
 
-            write_usd_skel(path, rig, curves, fps, name=stem)
-        else:
-            write_pose_table(path, rig, fmt.removeprefix("pose-"))
+                write_usd_skel(path, rig, curves, fps, name=stem)
+            else:
+                write_pose_table(path, rig, fmt.removeprefix("pose-"))
         written.append(path)
     if audio is not None:
         written.append(write_wav(out_dir / f"{stem}.wav", *audio))

@@ -42,6 +42,7 @@ import unicodedata
 import warnings
 import xml.etree.ElementTree as ET
 import zipfile
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -95,7 +96,14 @@ INDEX_COLUMNS = frozenset({"frame", "time", "time_s", "timestamp", "timecode"})
 TIMECODE_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 72.0, 90.0, 100.0, 120.0, 240.0)
 VARYING = 1e-3
 """A channel whose values span more than this varies (unused varying channels are reported)."""
-_MAX_XLSX_PART = 64 << 20
+_MAX_XLSX_FILE = 16 << 20
+"""The largest .xlsx channel table read (FACEGOOD's is 25 KB; a table names channels, a few hundred rows)."""
+_MAX_XLSX_PART = 4 << 20
+"""The most bytes one part of it (workbook, shared strings, sheet) may unpack to: 200 times FACEGOOD's sheet, and
+an XML tree of that size stays in the hundreds of MB."""
+_MAX_XLSX_RATIO = 100
+"""The most a part may have been compressed (unpacked / packed bytes) when it unpacks to more than 1 MiB:
+spreadsheet XML packs 2-10 times (FACEGOOD's parts 1.8-7.9), deflate at most about 1032 times."""
 _ARKIT_FOLDED = {name.lower(): name for name in ARKIT_52}
 _ARKIT_INDEX = {name: i for i, name in enumerate(ARKIT_52)}
 _MAX_CALL = re.compile(r"^max\s*\((.*)\)$", re.IGNORECASE | re.DOTALL)
@@ -188,14 +196,31 @@ def _column_number(ref: str) -> int | None:
 
 
 def _xlsx_part(archive: zipfile.ZipFile, name: str, path: Path) -> ET.Element:
+    """Part `name` parsed, its declared sizes checked before it is unpacked and its unpacking capped by them
+    (zipfile stops at the declared size and then checks the CRC, so a size that lies cannot unpack more)."""
     try:
         info = archive.getinfo(name)
     except KeyError:
         raise CaptureReadError(str(path), "BadXlsx", f"not a spreadsheet: no {name} inside") from None
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        raise CaptureReadError(str(path), "BadXlsx", f"{name} is packed with zip compression method "
+                               f"{info.compress_type}; an .xlsx part is stored or deflated")
     if info.file_size > _MAX_XLSX_PART:
-        raise CaptureReadError(str(path), "BadXlsx", f"{name} unpacks to {info.file_size} bytes; too large for a table")
+        raise CaptureReadError(str(path), "BadXlsx", f"{name} unpacks to {info.file_size} bytes; too large for a "
+                               f"table (at most {_MAX_XLSX_PART})")
+    if info.file_size > max(_MAX_XLSX_RATIO * info.compress_size, 1 << 20):
+        raise CaptureReadError(str(path), "BadXlsx", f"{name} declares {info.file_size} bytes packed into "
+                               f"{info.compress_size}, a compression ratio over {_MAX_XLSX_RATIO}:1 that no "
+                               "spreadsheet has")
     try:
-        return ET.fromstring(archive.read(name))
+        # a size keeps each inflate step bounded: read() without one asks zlib for up to 2 GiB at once
+        with archive.open(info) as member:
+            data = member.read(info.file_size)
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, RuntimeError) as exc:  # RuntimeError: encrypted
+        raise CaptureReadError(str(path), "BadXlsx", f"{name} cannot be unpacked ({exc}); the file is damaged or "
+                               f"its zip directory's size ({info.file_size} bytes) lies") from None
+    try:
+        return ET.fromstring(data)
     except ET.ParseError as exc:
         raise CaptureReadError(str(path), "BadXlsx", f"{name} is not well-formed XML ({exc})") from None
 
@@ -207,6 +232,10 @@ def read_xlsx_rows(path: str | Path) -> list[tuple[int, list[str]]]:
     sheet), enough for tables of names and numbers; numbers come back as the text stored in the file."""
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > _MAX_XLSX_FILE:
+            raise CaptureReadError(str(path), "BadXlsx", f"{size} bytes; a channel table .xlsx has at most "
+                                   f"{_MAX_XLSX_FILE}")
         archive = zipfile.ZipFile(path)
     except (OSError, zipfile.BadZipFile) as exc:
         raise CaptureReadError(str(path), "BadXlsx", f"cannot open as an .xlsx spreadsheet ({exc})") from None

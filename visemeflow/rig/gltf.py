@@ -16,7 +16,14 @@ vertices). Accessors may be strided, sparse, or integer (normalized or not, as K
 Target names come from `mesh.extras.targetNames`, else the first primitive's. `read_gltf_mesh` applies no node
 transform (`GltfScene.placed_mesh` does). Files that require Draco or meshopt compression are refused with how to
 decompress them.
-Buffers may be the GLB's binary chunk, data URIs or files beside a .gltf (no other URI is followed).
+Buffers may be the GLB's binary chunk, data URIs or files inside the glTF's folder: every buffer and image URI
+is checked at load (`resolve_gltf_uri`: percent-decoded, then refused when absolute, with a scheme, or leading out of
+the folder through `..` or a link), so a character cannot make an export copy a file from elsewhere.
+
+Declared sizes are checked before anything is allocated from them: a buffer's byteLength against its data, every
+accessor against its buffer view and `MAX_ACCESSOR_VALUES`, a mesh's vertices against `MAX_VERTICES`, its morph
+targets times vertices against `MAX_MORPH_VALUES`, its triangles against `MAX_TRIANGLES`, and a buffer file's size
+against `MAX_FILE_BYTES`; a file of a few hundred bytes cannot ask for gigabytes.
 
 Vertex colours: `COLOR_0` (VEC3 or VEC4, float or normalized unsigned byte / short; alpha dropped) holds *linear*
 RGB (glTF 2.0, 3.7.2.1), while the package's colours (`VisemeRig.vertex_colors`, `Character.vertex_colors`, the
@@ -30,9 +37,12 @@ Every problem is a `RigError` whose message starts with the file's path.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
 import os
 import struct
+import urllib.parse
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,11 +52,26 @@ import pygltflib as gl
 
 from visemeflow.rig.model import RigError
 
-__all__ = ["COMPRESSION_EXTENSIONS", "GltfMesh", "GltfMeshInfo", "GltfScene", "linear_to_srgb", "read_gltf_mesh",
-           "srgb_to_linear"]
+__all__ = ["COMPRESSION_EXTENSIONS", "MAX_ACCESSOR_VALUES", "MAX_FILE_BYTES", "MAX_MORPH_VALUES", "MAX_TRIANGLES",
+           "MAX_VERTICES", "GltfMesh", "GltfMeshInfo", "GltfScene", "linear_to_srgb", "read_gltf_mesh",
+           "read_gltf_uri", "resolve_gltf_uri", "srgb_to_linear"]
 
 COMPRESSION_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
 """Geometry compression extensions: a file that requires one is refused with how to decompress it."""
+
+MAX_FILE_BYTES = 1 << 30
+"""The largest glTF, GLB, buffer or image file read (1 GiB; a GLB can hold 4 GiB, a talking character is far
+smaller)."""
+MAX_ACCESSOR_VALUES = 1 << 26
+"""The most values (elements x components) one accessor may declare: 67M, 256 MiB as float32."""
+MAX_VERTICES = 1 << 21
+"""The most vertices of one mesh, and of all the meshes one character drives: 2,097,152 (the skin rest pose
+blends a 4 x 4 matrix per vertex and influence, 512 bytes a vertex)."""
+MAX_TRIANGLES = 1 << 22
+"""The most triangles of one mesh (primitives joined)."""
+MAX_MORPH_VALUES = 1 << 27
+"""The most morph target values (targets x vertices x 3) of one mesh or character: 134M, 512 MiB as float32
+(800 targets on a 50,000-vertex face is 120M)."""
 
 _GLB_MAGIC = b"glTF"
 _COMPONENT_DTYPES = {
@@ -70,6 +95,69 @@ def linear_to_srgb(values) -> np.ndarray:
     """Linear RGB in [0, 1] (clipped) to sRGB-encoded values, float32; the inverse of `srgb_to_linear`."""
     c = np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
     return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1.0 / 2.4) - 0.055).clip(0.0, 1.0).astype(np.float32)
+
+
+# ---- URIs ------------------------------------------------------------------------------------------------------
+def resolve_gltf_uri(source: Path, uri: str) -> Path:
+    """The file that `uri`, a relative reference of the glTF at `source` (not a data: URI), names inside
+    `source`'s folder, links resolved. ValueError saying why for anything else: a scheme (http:, file:), an
+    absolute path, or a path that leads out of the folder (`..`, a link to elsewhere). Percent-encoding is decoded
+    first (glTF 2.0 URIs are RFC 3986 references), so `%2E%2E/` is `../`."""
+    if not isinstance(uri, str) or not uri:
+        raise ValueError(f"{uri!r} is not a URI")
+    folder = source.parent.resolve()
+    parts = urllib.parse.urlsplit(uri)
+    if parts.scheme or parts.netloc:
+        raise ValueError(f"{uri!r} is not a file inside the character's folder {folder}; only data: URIs and "
+                         "relative paths are read")
+    relative = urllib.parse.unquote(parts.path)
+    if "\0" in relative or os.path.isabs(relative):
+        raise ValueError(f"{uri!r} leads outside the character's folder {folder} (an absolute path); only data: "
+                         "URIs and files inside it are read")
+    target = (folder / relative).resolve()
+    if not target.is_relative_to(folder):
+        raise ValueError(f"{uri!r} leads outside the character's folder {folder} (to {target}); only data: URIs "
+                         "and files inside it are read")
+    return target
+
+
+def read_gltf_uri(source: Path, uri: str) -> bytes:
+    """The bytes of a data: URI, or of the file a relative URI names inside `source`'s folder (see
+    `resolve_gltf_uri`). FileNotFoundError when that file is missing; ValueError saying why for a URI that leads
+    elsewhere, a file larger than `MAX_FILE_BYTES` or a data: URI that does not decode."""
+    if isinstance(uri, str) and uri.startswith("data:"):
+        header, comma, payload = uri.partition(",")
+        if not comma:
+            raise ValueError("a data: URI without a comma before its data")
+        try:
+            if header.endswith(";base64"):
+                return base64.b64decode(payload)   # lenient, as pygltflib: line breaks in the data are skipped
+            return urllib.parse.unquote_to_bytes(payload)
+        except binascii.Error as exc:
+            raise ValueError(f"its data: URI is not valid base64 ({exc})") from None
+    target = resolve_gltf_uri(source, uri)
+    if target.exists() and not target.is_file():   # a FIFO or device would block or never end
+        raise ValueError(f"{uri!r} is not a regular file")
+    with open(target, "rb") as handle:   # sized through the handle: the file checked is the file read
+        size = os.fstat(handle.fileno()).st_size
+        if size > MAX_FILE_BYTES:
+            raise ValueError(f"{uri!r} is {size} bytes, more than the {MAX_FILE_BYTES} bytes a character file may "
+                             "have")
+        return handle.read(size)   # read(n) reserves n bytes first: never more than the file's size
+
+
+def _check_uris(path: Path, gltf: gl.GLTF2) -> None:
+    """Every buffer and image URI of the document resolves inside `path`'s folder (RigError naming the first that
+    does not): the export copies them all, used by a mesh or not."""
+    entries = [("buffer", k, b.uri) for k, b in enumerate(gltf.buffers or [])]
+    entries += [("image", k, i.uri) for k, i in enumerate(gltf.images or [])]
+    for kind, k, uri in entries:
+        if uri is None or (isinstance(uri, str) and uri.startswith("data:")):
+            continue
+        try:
+            resolve_gltf_uri(path, uri)
+        except ValueError as exc:
+            raise RigError(f"{path}: {kind} {k}: {exc}") from None
 
 
 # ---- the result ------------------------------------------------------------------------------------------------
@@ -115,22 +203,45 @@ class _Reader:
         return RigError(f"{self.path}: {message}")
 
     def buffer(self, index: int) -> bytes:
+        """Buffer `index`'s bytes, cut to its declared byteLength (which its data must hold)."""
         if index not in self.buffers:
             if not isinstance(index, int) or not 0 <= index < len(self.gltf.buffers):
                 raise self.fail(f"buffer {index} does not exist ({len(self.gltf.buffers)} buffers)")
-            uri = self.gltf.buffers[index].uri
-            if uri is not None and not uri.startswith("data:") and ("://" in uri or Path(uri).is_absolute()):
-                raise self.fail(f"buffer {index}: only data: URIs and files beside the glTF are read, not {uri!r}")
-            try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    data = self.gltf.get_data_from_buffer_uri(uri)
-            except (OSError, ValueError) as exc:
-                raise self.fail(f"buffer {index} ({uri or 'GLB binary chunk'}) cannot be read: {exc}") from None
+            buffer = self.gltf.buffers[index]
+            uri = buffer.uri
+            if uri is None:
+                data = self.gltf.binary_blob() if index == 0 else None
+            else:
+                try:
+                    data = read_gltf_uri(self.path, uri)
+                except FileNotFoundError:
+                    data = None
+                except ValueError as exc:
+                    raise self.fail(f"buffer {index}: {exc}") from None
+                except OSError as exc:
+                    raise self.fail(f"buffer {index} ({uri}) cannot be read: {exc.strerror or exc}") from None
             if data is None:
                 raise self.fail(f"buffer {index} ({uri or 'GLB binary chunk'}) is missing")
-            self.buffers[index] = bytes(data)
+            declared = buffer.byteLength
+            if not isinstance(declared, int) or not 0 <= declared <= len(data):
+                source = "GLB binary chunk" if uri is None else "data: URI" if uri.startswith("data:") else uri
+                raise self.fail(f"buffer {index} declares {declared!r} bytes (byteLength) but its data ({source}) "
+                                f"holds {len(data)}")
+            self.buffers[index] = bytes(data[:declared])
         return self.buffers[index]
+
+    def declared_count(self, index: int | None, what: str) -> int:
+        """The element count accessor `index` declares, checked against `MAX_ACCESSOR_VALUES` (nothing read)."""
+        if not isinstance(index, int) or not 0 <= index < len(self.gltf.accessors):
+            raise self.fail(f"{what}: accessor {index} does not exist")
+        acc = self.gltf.accessors[index]
+        count, width = acc.count, _WIDTHS.get(acc.type, 1)
+        if not isinstance(count, int) or count < 0:
+            raise self.fail(f"{what} (accessor {index}): count must be a whole number >= 0, got {count!r}")
+        if count * width > MAX_ACCESSOR_VALUES:
+            raise self.fail(f"{what} (accessor {index}): declares {count} {acc.type} elements ({count * width} "
+                            f"values), more than the {MAX_ACCESSOR_VALUES} values visemeflow reads from one accessor")
+        return count
 
     def _elements(self, view_index: int | None, byte_offset: int | None, count: int, width: int, dtype: np.dtype,
                   what: str) -> np.ndarray:
@@ -140,6 +251,15 @@ class _Reader:
         data = self.buffer(view.buffer)
         element = width * dtype.itemsize
         stride = view.byteStride or element
+        for name, value in (("byteOffset", view.byteOffset), ("byteLength", view.byteLength),
+                            ("byteStride", view.byteStride), ("accessor byteOffset", byte_offset)):
+            if value is not None and (not isinstance(value, int) or value < 0):
+                raise self.fail(f"{what}: buffer view {view_index} {name} must be a whole number >= 0, got {value!r}")
+        if not isinstance(count, int) or count < 0:
+            raise self.fail(f"{what}: count must be a whole number >= 0, got {count!r}")
+        if stride < element:
+            raise self.fail(f"{what}: buffer view {view_index} byteStride {stride} is shorter than its {element}-byte "
+                            "elements")
         start = (view.byteOffset or 0) + (byte_offset or 0)
         needed = (count - 1) * stride + element if count else 0
         if (byte_offset or 0) + needed > view.byteLength or (view.byteOffset or 0) + view.byteLength > len(data):
@@ -155,11 +275,12 @@ class _Reader:
         if not isinstance(index, int) or not 0 <= index < len(self.gltf.accessors):
             raise self.fail(f"{what}: accessor {index} does not exist")
         acc = self.gltf.accessors[index]
+        count = self.declared_count(index, what)
         what = f"{what} (accessor {index})"
         if acc.type not in types or acc.componentType not in _COMPONENT_DTYPES:
             raise self.fail(f"{what}: expected {' or '.join(types)}, got {acc.type} of component type "
                             f"{acc.componentType}")
-        dtype, width, count = _COMPONENT_DTYPES[acc.componentType], _WIDTHS[acc.type], int(acc.count or 0)
+        dtype, width = _COMPONENT_DTYPES[acc.componentType], _WIDTHS[acc.type]
         if acc.bufferView is None:
             values = np.zeros((count, width), dtype)
         else:
@@ -256,7 +377,11 @@ def _dequantize(values: np.ndarray) -> np.ndarray:
 def _load(path: Path) -> gl.GLTF2:
     """The glTF document (a GLB, or glTF JSON), checked to be glTF 2.x; RigError otherwise."""
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size > MAX_FILE_BYTES:
+                raise RigError(f"{path}: {size} bytes, more than the {MAX_FILE_BYTES} bytes a character file may have")
+            data = handle.read(size)   # read(n) reserves n bytes first: never more than the file's size
     except OSError as exc:
         raise RigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     try:
@@ -278,9 +403,9 @@ def _load(path: Path) -> gl.GLTF2:
                 if not isinstance(document, dict) or not isinstance(document.get("asset"), dict):
                     raise ValueError("no glTF asset object")
                 gltf = gl.GLTF2.gltf_from_json(json.dumps(document))
-                gltf._path = path.parent
     except (ValueError, TypeError, KeyError, AttributeError, OSError, struct.error) as exc:
         raise RigError(f"{path}: not a glTF 2.0 / GLB file ({exc})") from None
+    _check_uris(path, gltf)
     version = str(getattr(gltf.asset, "version", "") or "")
     if not version.startswith("2"):
         raise RigError(f"{path}: glTF version {version or '(none)'}; only glTF 2.0 is read")
@@ -386,7 +511,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         skins: list[tuple[np.ndarray, np.ndarray] | None] = []
         # (POSITION, COLOR_0, target POSITIONs, JOINTS_0, WEIGHTS_0) -> (first vertex, count)
         shared: dict[tuple, tuple[int, int]] = {}
-        n_vertices = 0
+        n_vertices = n_triangles = 0
         for k, primitive in enumerate(mesh.primitives):
             what = f"{where} primitive {k}"
             mode = gl.TRIANGLES if primitive.mode is None else primitive.mode
@@ -409,6 +534,13 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
             else:
                 vertices = reader.floats(position_index, f"{what} POSITION")
                 count = len(vertices)
+                if n_vertices + count > MAX_VERTICES:
+                    raise RigError(f"{path}: {where} has more than {MAX_VERTICES} vertices ({n_vertices + count} "
+                                   f"up to {what}), the most visemeflow reads in one mesh")
+                if n_targets * (n_vertices + count) * 3 > MAX_MORPH_VALUES:
+                    raise RigError(f"{path}: {where}: {n_targets} morph targets on {n_vertices + count} vertices "
+                                   f"are {n_targets * (n_vertices + count) * 3} values, more than the "
+                                   f"{MAX_MORPH_VALUES} visemeflow reads (targets x vertices x 3)")
                 block = np.zeros((n_targets, count, 3), np.float32)
                 for t, target_index in enumerate(target_ids):
                     if target_index is not None:     # a target that moves no position (e.g. NORMAL only)
@@ -436,6 +568,11 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                 deltas.append(block)
                 colors.append(rgb)
                 n_vertices += count
+            n_triangles += (reader.declared_count(primitive.indices, f"{what} indices")
+                            if primitive.indices is not None else count) // 3
+            if n_triangles > MAX_TRIANGLES:
+                raise RigError(f"{path}: {where} has more than {MAX_TRIANGLES} triangles ({n_triangles} up to {what}), "
+                               "the most visemeflow reads in one mesh")
             faces.append(reader.indices(primitive.indices, count, what) + first)
     except RigError:
         raise
@@ -509,6 +646,8 @@ class GltfScene:
         self.reader = _Reader(self.path, self.gltf)
         try:
             self.meshes = self._describe()
+        except RigError:
+            raise
         except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
             raise RigError(f"{self.path}: malformed glTF ({type(exc).__name__}: {exc})") from None
         self._world: dict[int, np.ndarray] = {}
@@ -531,10 +670,10 @@ class GltfScene:
                 names = tuple(found) if isinstance(found, list) and len(found) == n_targets and \
                     all(isinstance(n, str) for n in found) else None
             counts = {}
-            for p in primitives:
+            for k, p in enumerate(primitives):
                 position = _attribute(p.attributes, "POSITION")
                 if isinstance(position, int) and 0 <= position < len(gltf.accessors):
-                    counts[position] = int(gltf.accessors[position].count or 0)
+                    counts[position] = self.reader.declared_count(position, f"mesh {m} primitive {k} POSITION")
             used_by = tuple(users.get(m, ()))
             label = mesh.name or next((nodes[n].name for n in used_by if nodes[n].name), None) or f"mesh {m}"
             skin = nodes[used_by[0]].skin if used_by and isinstance(nodes[used_by[0]].skin, int) else None
