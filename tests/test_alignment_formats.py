@@ -7,10 +7,12 @@ import struct
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from factories import textgrid_long, write_wav
 from visemeflow.ingest import CorpusEntry, IngestConfig, IngestError, discover_corpus, ingest_utterance
-from visemeflow.phonetics.htk import LabelFileError, load_mlf, parse_htk_label, parse_mlf
+from visemeflow.phonetics.htk import LabelFileError, load_mlf, parse_htk_label, parse_mlf, wildcard_match
 from visemeflow.phonetics.textgrid import (
     TextGridData,
     TextGridError,
@@ -340,6 +342,14 @@ def test_mlf_layout_and_lookup():
         MlfIndex(entries[-1:], "all.mlf").tiers("x", "far")
     with pytest.raises(LabelFileError, match=r"all\.mlf: no entry matches x/nothing"):
         MlfIndex(entries[:1], "all.mlf").tiers("x", "nothing")
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.text("ab*?%.", max_size=8), st.text("ab.%*?", max_size=8))
+def test_mlf_wildcards_match_as_the_regex_translation_does(pattern, name):
+    """The step-bounded matcher agrees with the obvious (backtracking) regex on short patterns and names."""
+    regex = "".join({"*": ".*", "?": ".", "%": "."}.get(ch, re.escape(ch)) for ch in pattern)
+    assert wildcard_match(pattern, name) == bool(re.fullmatch(regex, name, re.DOTALL))
 
 
 @pytest.mark.parametrize(("text", "message"), [

@@ -388,3 +388,63 @@ def test_animation_packages_are_listed_with_links_and_previews_as_video_elements
     assert "<code>张三/第一句</code> on ict_visemes" in page
     empty = build_dashboard(Store(tmp_path / "other"), tmp_path / "r2").path.read_text()
     assert 'id="no-animations"' in empty
+
+
+# ---- long utterances ------------------------------------------------------------------------------------
+def _long_utterance_store(root: Path, n_phones: int, fps: float = 30.0, rate: int = 1000) -> Store:
+    """One utterance of `n_phones` phones of 0.08 s, procedural curves and audio over the whole of it."""
+    s = Store(root / "store")
+    seconds = n_phones * 0.08
+    wav = write_wav(root / "long.wav", seconds, rate=rate)
+    s.write_shard("utterances", 0, table_from_rows([_utterance_row("spk/long", wav, None, seconds, fps, "train")],
+                                                   UTTERANCES))
+    labels = [("sil", None), ("HH", "GK"), ("AH0", "SCHWA"), ("M", "MBP")]
+    s.write_shard("phones", 0, table_from_rows([
+        {C.UTTERANCE_ID: "spk/long", C.INDEX: k, C.PART: 0, C.LABEL: labels[k % 4][0], C.PHONEME: labels[k % 4][0],
+         C.VISEME: labels[k % 4][1], C.START_S: k * 0.08, C.END_S: (k + 1) * 0.08} for k in range(n_phones)], PHONES))
+    frames = round(seconds * fps)
+    s.write_curves(curves_table("spk/long", "procedural", "jali",
+                                np.random.default_rng(0).random((frames, 16)).astype(np.float32), fps), fps=fps)
+    return s
+
+
+def test_a_long_utterance_draws_its_first_phones_and_says_how_much_was_left_out(tmp_path, monkeypatch):
+    """20,000 phones (27 minutes): the chart draws a bounded window from the start (phones, curve frames and audio
+    within it) and the page says how much was left out. Drawing all of 100k phones took 201 s and 4.2 GB."""
+    from visemeflow.dashboards import html as dash
+    from visemeflow.dashboards import plots
+
+    s = _long_utterance_store(tmp_path, 20_000)
+    drawn = []
+    real_figure = plots.utterance_figure
+    monkeypatch.setattr(plots, "utterance_figure", lambda *args: drawn.append(args) or b"\x89PNG\r\n\x1a\n")
+    page = build_dashboard(s, tmp_path / "out").path.read_text(encoding="utf-8")
+    [(title, duration, waveform, _, phones, panels)] = drawn
+    assert title == "spk/long" and 0 < len(phones) < 20_000
+    assert len(phones) <= dash.MAX_DRAWN_PHONES
+    assert [p.start_s for p in phones] == pytest.approx([k * 0.08 for k in range(len(phones))])
+    assert duration == pytest.approx(phones[-1].end_s) and duration < 20_000 * 0.08
+    [panel] = panels
+    assert len(panel.time_s) <= dash.MAX_DRAWN_FRAMES and panel.time_s[-1] <= duration
+    samples, rate = waveform
+    assert rate == 1000 and len(samples) == pytest.approx(duration * rate, abs=1)
+    note = re.search(r'<span class="note" id="drawn-window-0">([^<]*)</span>', page)
+    assert note is not None, "no note saying what was left out"
+    assert f"{len(phones)} of 20000 phones" in note[1] and f"first {duration:.1f} s of 1600.0 s" in note[1]
+    assert "20000 phones" in page
+
+    monkeypatch.setattr(plots, "utterance_figure", real_figure)
+    result = build_dashboard(s, tmp_path / "real")
+    assert result.charts == ["chart-curves-0"]
+
+
+def test_a_short_utterance_is_drawn_whole_without_a_note(tmp_path, monkeypatch):
+    from visemeflow.dashboards import plots
+
+    s = _long_utterance_store(tmp_path, 50)
+    drawn = []
+    monkeypatch.setattr(plots, "utterance_figure", lambda *args: drawn.append(args) or b"\x89PNG\r\n\x1a\n")
+    page = build_dashboard(s, tmp_path / "out").path.read_text(encoding="utf-8")
+    [(_, duration, (samples, _), _, phones, [panel])] = drawn
+    assert len(phones) == 50 and duration == pytest.approx(4.0) and len(panel.time_s) == 120
+    assert len(samples) == 4000 and 'id="drawn-window-0"' not in page

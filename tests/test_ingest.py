@@ -113,6 +113,31 @@ def test_manifest_rejects_duplicates_and_missing_files(tmp_path):
     assert found.rejects[1].path == str((tmp_path / "s" / "two.wav").resolve())
 
 
+def test_manifest_split_and_language_are_checked_naming_the_line(tmp_path):
+    """`split` is train or val (training takes every split but val: a `test` row would be trained on); `language`
+    is a language tag (`en`, `zh-CN`, `cmn`), not free text that the inventory choice would silently ignore."""
+    make_corpus(tmp_path, {"s/one": HELLO})
+    good = {"audio": "s/one.wav", "alignment": "s/one.TextGrid"}
+    manifest = write_manifest(tmp_path / "m.csv", [
+        {"utterance_id": "s/a", **good, "split": "train", "language": "en"},
+        {"utterance_id": "s/b", **good, "split": "test"},
+        {"utterance_id": "s/c", **good, "language": "English; DROP TABLE"},
+        {"utterance_id": "s/d", **good, "split": "Val", "language": "zh-CN"},
+        {"utterance_id": "s/e", **good, "language": "x" * 200},
+        {"utterance_id": "s/f", **good, "language": "cmn_Hans"},
+    ])
+    found = discover_corpus(manifest)
+    assert [(e.utterance_id, e.split, e.language) for e in found.entries] == [
+        ("s/a", "train", "en"), ("s/d", "val", "zh-CN"), ("s/f", None, "cmn_Hans")]
+    assert [(r.utterance_id, r.error_type) for r in found.rejects] == [
+        ("s/b", "BadSplit"), ("s/c", "BadLanguage"), ("s/e", "BadLanguage")]
+    split, language, long = found.rejects
+    assert split.message.startswith(f"{manifest}:3: s/b: split 'test'") and "train, val" in split.message
+    assert language.message.startswith(f"{manifest}:4: s/c: language 'English; DROP TABLE'")
+    assert "en, zh-CN" in language.message and len(long.message) < 400
+    assert {r.path for r in found.rejects} == {str(manifest)}
+
+
 def test_manifest_without_required_columns(tmp_path):
     (tmp_path / "m.csv").write_text("id,wav\nx/y,y.wav\n")
     with pytest.raises(ValueError, match="alignment"):
@@ -273,6 +298,23 @@ def test_interval_ending_before_it_starts(tmp_path):
     message = assert_names(info.value, "s/back", tg.resolve())
     assert info.value.error_type == "NegativeDuration"
     assert "interval 2" in message and "'HH'" in message
+
+
+def test_negative_start_times_are_rejects_naming_the_interval(tmp_path):
+    """A phone starting at -500 s (a TextGrid whose xmin is -500, an HTK label in seconds) is no time in the audio."""
+    negative = [(-500.0, 0.2, "sil"), (0.2, 0.3, "HH"), (0.3, 1.0, "AH0")]
+    write_wav(tmp_path / "s" / "tg.wav", 1.0)
+    (tmp_path / "s" / "tg.TextGrid").write_text(textgrid_long(negative, 1.0, xmin=-500.0), encoding="utf-8")
+    write_wav(tmp_path / "s" / "lab.wav", 1.0)
+    (tmp_path / "s" / "lab.lab").write_text("".join(f"{a:.6f} {b:.6f} {x}\n" for a, b, x in negative))
+    for uid, name in (("s/tg", "tg.TextGrid"), ("s/lab", "lab.lab")):
+        with pytest.raises(IngestError) as info:
+            ingest_utterance(entry_of(tmp_path, uid), CONFIG)
+        message = assert_names(info.value, uid, (tmp_path / "s" / name).resolve())
+        assert info.value.error_type == "NegativeTime"
+        assert "interval 1" in message and "'sil'" in message and "-500.000 s" in message
+    (tmp_path / "s" / "lab.lab").write_text("0.000000 0.200000 sil\n0.200000 1.000000 AH0\n")
+    assert ingest_utterance(entry_of(tmp_path, "s/lab"), CONFIG).phones
 
 
 def test_alignment_longer_than_audio(tmp_path):
@@ -551,6 +593,30 @@ def test_decomposed_folder_names_give_nfc_ids(tmp_path):
     assert entry_of(tmp_path, "Sprecher_\u00fc/a").audio_path == entry.audio_path
 
 
+def test_nfc_and_nfd_spellings_of_one_name_are_both_rejected_naming_both_files(tmp_path):
+    """`café` composed and decomposed are one id: two utterances under it would share one `utterances` id and
+    merge their phones. Both are refused, each reject naming every file; other utterances go on."""
+    composed, decomposed = "caf\u00e9", "cafe\u0301"
+    make_corpus(tmp_path, {f"s/{composed}": HELLO, f"s/{decomposed}": HELLO[:3], "s/other": HELLO,
+                           "Jos\u00e9/a": HELLO, "Jose\u0301/a": HELLO})
+    found = discover_corpus(tmp_path)
+    assert [e.utterance_id for e in found.entries] == ["s/other"]
+    by_id: dict[str, list[DiscoveryReject]] = {}
+    for r in found.rejects:
+        by_id.setdefault(r.utterance_id, []).append(r)
+    assert sorted(by_id) == ["Jos\u00e9/a", "s/caf\u00e9"]
+    for uid, spellings in ((f"s/{composed}", [f"s/{composed}", f"s/{decomposed}"]),
+                           ("Jos\u00e9/a", ["Jos\u00e9/a", "Jose\u0301/a"])):
+        rejects = by_id[uid]
+        files = [str(tmp_path / f"{s}{ext}") for s in spellings for ext in (".wav", ".TextGrid")]
+        assert len(rejects) == 2 and {r.error_type for r in rejects} == {"IdCollision"}
+        assert sorted(Path(r.path).parent.name + "/" + Path(r.path).stem for r in rejects) == sorted(spellings)
+        for r in rejects:
+            assert all(f in r.message for f in files), r.message
+            assert "NFC" in r.message
+    assert discover_corpus(tmp_path, only=f"s/{decomposed}").entries == ()
+
+
 def test_a_symlink_leaving_the_corpus_is_a_reject(tmp_path):
     outside = make_corpus(tmp_path / "elsewhere", {"x/secret": HELLO})
     root = make_corpus(tmp_path / "corpus", {"s/a": HELLO})
@@ -570,7 +636,8 @@ def test_a_symlink_leaving_the_corpus_is_a_reject(tmp_path):
     assert discover_corpus(root, only="s/b").entries == ()
 
 
-def _float_wav(path: Path, seconds: float, bad: dict[int, float], rate: int = 16000, channels: int = 1) -> Path:
+def _float_wav(path: Path, seconds: float, bad: dict[int, float], rate: int = 16000, channels: int = 1,
+               subtype: str = "FLOAT") -> Path:
     import soundfile as sf
 
     n = int(round(seconds * rate))
@@ -578,7 +645,7 @@ def _float_wav(path: Path, seconds: float, bad: dict[int, float], rate: int = 16
     samples = np.repeat(samples[:, None], channels, axis=1)
     for index, value in bad.items():
         samples[index, channels - 1] = value
-    sf.write(path, samples, rate, subtype="FLOAT")
+    sf.write(path, samples, rate, subtype=subtype)
     return path
 
 
@@ -593,6 +660,37 @@ def test_float_audio_with_nan_or_inf_is_a_reject_naming_the_samples(tmp_path, ba
     assert info.value.error_type == "NonFiniteAudio"
     assert "samples 1000..1499" in message and "0.062..0.094 s" in message and "3 samples" in message
     assert ingest_utterance(entry_of(tmp_path, "s/good"), CONFIG).utterance[C.DURATION_S] == 1.0
+
+
+@pytest.mark.parametrize("subtype, peak", [("FLOAT", 3e38), ("FLOAT", -2.5e3), ("DOUBLE", 1e300)])
+def test_float_audio_of_absurd_amplitude_is_a_reject_naming_the_samples(tmp_path, subtype, peak):
+    """Finite samples of 3e38 passed ingest and trained a NaN model (the features overflow): float audio louder
+    than MAX_FLOAT_AMPLITUDE is refused. A double file's 1e300 is finite there, and infinite once read as float32."""
+    from visemeflow.ingest.audio import MAX_FLOAT_AMPLITUDE
+
+    make_corpus(tmp_path, {"s/loud": HELLO, "s/hot": HELLO})
+    wav = _float_wav(tmp_path / "s" / "loud.wav", 1.0, {1000: peak, 1200: 0.5, 1499: peak}, channels=2,
+                     subtype=subtype)
+    _float_wav(tmp_path / "s" / "hot.wav", 1.0, {100: 8.0, 200: -40.0})  # loud float audio past full scale is fine
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/loud"), CONFIG)
+    message = assert_names(info.value, "s/loud", wav.resolve())
+    assert info.value.error_type == "AmplitudeOutOfRange"
+    assert "samples 1000..1499 (0.062..0.094 s)" in message and "2 samples" in message, message
+    assert f"{abs(peak):.3g}" in message and f"{MAX_FLOAT_AMPLITUDE:g}" in message, message
+    assert ingest_utterance(entry_of(tmp_path, "s/hot"), CONFIG).utterance[C.DURATION_S] == 1.0
+
+
+def test_audio_loading_for_training_and_prediction_refuses_absurd_amplitude(tmp_path):
+    from visemeflow.ingest.audio import AudioAmplitudeError, read_audio
+    from visemeflow.tasks.train import load_audio
+
+    wav = _float_wav(tmp_path / "loud.wav", 0.5, {2000: 3e38}, rate=8000)
+    for load in (load_audio, lambda p: read_audio(p)[0]):
+        with pytest.raises(AudioAmplitudeError) as info:
+            load(str(wav))
+        assert str(wav) in str(info.value) and "samples 2000..2000 (0.250..0.250 s)" in str(info.value)
+        assert pickle.loads(pickle.dumps(info.value)).reason == info.value.reason
 
 
 def test_integer_audio_is_not_decoded_for_the_finiteness_check(tmp_path, monkeypatch):
@@ -631,8 +729,9 @@ def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
     from visemeflow.flows.procedural import procedural_flow
     from visemeflow.storage import Store
 
-    corpus = make_corpus(tmp_path / "corpus", {**UNICODE_SPEAKERS, "s/nan": HELLO, "s/link": HELLO})
+    corpus = make_corpus(tmp_path / "corpus", {**UNICODE_SPEAKERS, "s/nan": HELLO, "s/link": HELLO, "s/loud": HELLO})
     _float_wav(corpus / "s" / "nan.wav", 1.0, {8000: np.nan})
+    _float_wav(corpus / "s" / "loud.wav", 1.0, {8000: 3e38})
     outside = write_wav(tmp_path / "outside.wav", 1.0)
     (corpus / "s" / "link.wav").unlink()
     (corpus / "s" / "link.wav").symlink_to(outside)
@@ -647,7 +746,10 @@ def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
         curves = store.read_curves(uid, "procedural", "jali")
         assert set(curves.column(C.UTTERANCE_ID).to_pylist()) == {uid} and curves.num_rows == 30
     rejects = {r[C.UTTERANCE_ID]: r for r in store.read_table("rejects").to_pylist()}
-    assert sorted(rejects) == ["s/link", "s/nan"]
+    assert sorted(rejects) == ["s/link", "s/loud", "s/nan"]
     assert rejects["s/nan"][C.ERROR_TYPE] == "NonFiniteAudio" and "samples 8000..8000" in rejects["s/nan"][C.MESSAGE]
+    loud = rejects["s/loud"]
+    assert loud[C.ERROR_TYPE] == "AmplitudeOutOfRange" and "samples 8000..8000" in loud[C.MESSAGE]
+    assert str(corpus / "s" / "loud.wav") in loud[C.MESSAGE]
     assert rejects["s/link"][C.ERROR_TYPE] == "PathOutsideCorpus"
     assert str(corpus / "s" / "link.wav") in rejects["s/link"][C.MESSAGE]

@@ -366,6 +366,29 @@ def test_bad_files(tmp_path):
         read_landmarks(dup)
 
 
+def test_a_landmark_file_must_cover_the_video_frames_within_one(tmp_path):
+    """5 rows for a 47-frame video is refused, naming the file and both counts; one frame short or long is the
+    decoders' disagreement about a last partial frame, and is padded or cut."""
+    from visemeflow.tracking.utterance import TrackingInputError, load_track
+
+    def rows(n: int) -> Path:
+        path = tmp_path / f"rows{n}.landmarks.csv"
+        _generic_frame(np.random.default_rng(n).uniform(0, 100, size=(n, 68, 2))).to_csv(path, index=False)
+        return path
+
+    with pytest.raises(TrackingInputError) as err:
+        load_track(str(rows(5)), 25.0, 47, "v.mp4")
+    assert err.value.error_type == "LandmarkFrameMismatch" and err.value.path == str(rows(5))
+    assert "5 landmark frames" in err.value.reason and "47" in err.value.reason
+    with pytest.raises(TrackingInputError, match="45 landmark frames"):
+        load_track(str(rows(45)), 25.0, 47, "v.mp4")
+    for n in (46, 47, 48):
+        track = load_track(str(rows(n)), 25.0, 47, "v.mp4")
+        assert track.n_frames == 47 and track.valid[: min(n, 47)].all() and not track.valid[min(n, 47):].any()
+    with pytest.raises(TrackingInputError, match="49 landmark frames"):
+        load_track(str(rows(49)), 25.0, 47, "v.mp4")
+
+
 # ------------------------------------------------------------------------------------------------ round trip
 
 

@@ -389,6 +389,27 @@ def test_a_crash_while_replacing_rejects_keeps_them_readable(tmp_path, monkeypat
     assert sorted(store.read_table("rejects", "track").column(C.UTTERANCE_ID).to_pylist()) == ["s/a", "s/b", "s/c"]
 
 
+def test_reject_messages_are_capped_by_every_writer_of_rejects(tmp_path):
+    """A 7.5 MB message (an XML entity expanded into an error) is stored as its head and how much was cut."""
+    store = Store(tmp_path)
+    huge = "head " + "x" * 7_500_000
+
+    def one(uid: str, message: str) -> pa.Table:
+        table = _rejects_of(uid)
+        return table.set_column(table.schema.get_field_index(C.MESSAGE), C.MESSAGE, pa.array([message]))
+
+    store.write_shard("rejects", 0, one("s/a", huge), stage="track")
+    store.replace_utterance_rows("rejects", 0, "s/b", one("s/b", huge), stage="track")
+    store.replace_stage_rejects("ingest", {1: one("s/c", huge), 2: one("s/d", "short")})
+    for stage, uid in (("track", "s/a"), ("track", "s/b"), ("ingest", "s/c")):
+        [message] = store.read_table("rejects", stage, [uid]).column(C.MESSAGE).to_pylist()
+        assert len(message) < 10_000
+        head, _, tail = message.partition("... [")
+        assert huge.startswith(head) and len(head) > 1000
+        assert tail == f"{len(huge) - len(head)} characters cut]"
+    assert store.read_table("rejects", "ingest", ["s/d"]).column(C.MESSAGE).to_pylist() == ["short"]
+
+
 def test_the_track_flow_replaces_its_rejects_through_the_store():
     """The flow asks the store to replace the stage's rejects (new shards first), it deletes no shard by hand."""
     import inspect

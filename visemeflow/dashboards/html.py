@@ -6,7 +6,9 @@ keypoint error of each tracked variant; training results; dataset-size sweep plo
 The page fetches nothing: every chart is a PNG inside a `data:` URI, styles are inline, there is no script, and a
 Content-Security-Policy (`default-src 'none'`) makes the browser refuse any other load. Every value from the store
 (utterance ids, phone labels, reject messages, condition names) is HTML-escaped. Only a bounded number of
-utterances is drawn (`max_utterances`, or the ids asked for), so a store of 10,000 utterances stays quick to report.
+utterances is drawn (`max_utterances`, or the ids asked for), so a store of 10,000 utterances stays quick to report,
+and of each only a bounded window from its start (`MAX_DRAWN_PHONES`, `MAX_DRAWN_FRAMES`), with a note saying what
+was left out, so an utterance of 100k phones does too.
 """
 
 import base64
@@ -17,7 +19,7 @@ import math
 import os
 import zlib
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import quote
@@ -49,6 +51,11 @@ from visemeflow.storage import Store
 from visemeflow.visemes import VISEMES
 
 DEFAULT_MAX_UTTERANCES = 12
+MAX_DRAWN_PHONES = 500
+"""Phones one utterance chart draws at most (the first ones; ~40 s of speech, already more labels than its width
+shows). Each phone is three matplotlib artists per panel: 100k phones took 201 s and 4.2 GB."""
+MAX_DRAWN_FRAMES = 3000
+"""Curve frames one panel draws at most (100 s at 30 fps): curves without phones (`predict` on an hour of audio)."""
 MAX_REJECT_ROWS = 500
 MAX_ANIMATIONS = 50
 # Tracking diagnostics read per variant (a fixed sample beyond that): keeps a 10k-utterance store at ~1 s.
@@ -189,25 +196,57 @@ def select_utterances(
 
 
 # ---- data of one utterance -------------------------------------------------------------------------
-def load_waveform(row: dict | None) -> tuple[tuple[np.ndarray, int] | None, str]:
-    """((mono samples, rate), "") of an utterance's audio, or (None, why not). Videos are read through PyAV."""
+def _read_audio_head(path: str, seconds: float) -> tuple[np.ndarray, int] | None:
+    """(mono float32 samples, rate) of the first `seconds` of an audio file, read no further, and checked as
+    `read_audio` checks them; None when soundfile cannot read the file (`read_audio` then tries PyAV)."""
+    import soundfile as sf
+
+    from visemeflow.ingest.audio import check_finite
+
+    try:
+        with sf.SoundFile(path) as fh:
+            rate = fh.samplerate
+            samples = fh.read(frames=min(fh.frames, math.ceil(seconds * rate)), dtype="float32", always_2d=True)
+    except (RuntimeError, OSError):  # soundfile's LibsndfileError is a RuntimeError
+        return None
+    check_finite(samples, rate, path)
+    return samples.mean(axis=1, dtype=np.float32), int(rate)
+
+
+def load_waveform(row: dict | None, until_s: float | None = None) -> tuple[tuple[np.ndarray, int] | None, str]:
+    """((mono samples, rate), "") of an utterance's audio, up to `until_s` when given, or (None, why not). Videos
+    (and what soundfile cannot read) are read whole through `read_audio`, then cut."""
     if row is None:
         return None, "no row in the utterances table: audio unknown"
-    from visemeflow.ingest.audio import read_audio  # the one reader of audio files and videos' audio tracks
+    from visemeflow.ingest.audio import is_video_file, read_audio  # the one reader of audio files and videos' tracks
 
     errors = []
     for path in dict.fromkeys(p for p in (row.get(C.AUDIO_PATH), row.get(C.VIDEO_PATH)) if p):
         try:
-            return read_audio(path), ""
+            head = _read_audio_head(path, until_s) if until_s is not None and not is_video_file(path) else None
+            if head is not None:
+                return head, ""
+            samples, rate = read_audio(path)
+            return (samples if until_s is None else samples[:math.ceil(until_s * rate)], rate), ""
         except (OSError, ValueError) as exc:  # AudioError is a ValueError
             errors.append(str(exc))
     return None, "audio unreadable: " + ("; ".join(errors) if errors else "no audio path")
 
 
-def _phones_of(phones: pa.Table, uid: str) -> list[plots.Phone]:
-    rows = phones.filter(pc.equal(phones.column(C.UTTERANCE_ID), uid)).sort_by(
-        [(C.START_S, "ascending"), (C.INDEX, "ascending"), (C.PART, "ascending")]).to_pylist()
-    return [plots.Phone(r[C.START_S], r[C.END_S], r[C.LABEL], r[C.VISEME] is None) for r in rows]
+def _phones_of(phones: pa.Table, uid: str, limit: int = MAX_DRAWN_PHONES) -> tuple[list[plots.Phone], int]:
+    """(the first `limit` phones of `uid` by time, how many it has)."""
+    table = phones.filter(pc.equal(phones.column(C.UTTERANCE_ID), uid))
+    rows = table.sort_by([(C.START_S, "ascending"), (C.INDEX, "ascending"), (C.PART, "ascending")]).slice(0, limit)
+    return [plots.Phone(r[C.START_S], r[C.END_S], r[C.LABEL], r[C.VISEME] is None)
+            for r in rows.to_pylist()], table.num_rows
+
+
+def drawn_until(phones: list[plots.Phone], total_phones: int, panels: Sequence[plots.CurvePanel]) -> float | None:
+    """Where one utterance chart stops (seconds): the end of its MAX_DRAWN_PHONES-th phone or the time of a panel's
+    MAX_DRAWN_FRAMES-th frame, whichever comes first; None when everything fits."""
+    ends = [phones[-1].end_s] if phones and total_phones > len(phones) else []
+    ends += [float(p.time_s[MAX_DRAWN_FRAMES - 1]) for p in panels if len(p.time_s) > MAX_DRAWN_FRAMES]
+    return min(ends) if ends else None
 
 
 def _l1_x100(reference: pa.Table, other: pa.Table) -> float:
@@ -233,16 +272,26 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
             tables.append((source, variant, table))
             panels.append(plots.CurvePanel(f"{source}\n{variant}", table.column(C.TIME_S).to_numpy(),
                                            curves_array(table)))
-    waveform, note = load_waveform(row)
     duration = float(row[C.DURATION_S]) if row else 0.0
-    phone_list = _phones_of(phones, uid)
-    png = plots.utterance_figure(uid, duration, waveform, note, phone_list, panels)
+    phone_list, n_phones = _phones_of(phones, uid)
+    until = drawn_until(phone_list, n_phones, panels)
+    window = ""
+    if until is not None:
+        total_s = max([duration] + [float(p.time_s[-1]) for p in panels if len(p.time_s)])
+        frames = max((len(p.time_s) for p in panels), default=0)
+        phone_list = [replace(p, end_s=min(p.end_s, until)) for p in phone_list if p.start_s < until]
+        panels = [replace(p, time_s=p.time_s[p.time_s <= until], curves=p.curves[p.time_s <= until]) for p in panels]
+        window = (f"drawn: the first {until:.1f} s of {total_s:.1f} s ({len(phone_list)} of {n_phones} phones, "
+                  f"{max((len(p.time_s) for p in panels), default=0)} of {frames} curve frames); a chart draws at "
+                  f"most {MAX_DRAWN_PHONES} phones and {MAX_DRAWN_FRAMES} frames per panel")
+    waveform, note = load_waveform(row, until)
+    png = plots.utterance_figure(uid, duration if until is None else until, waveform, note, phone_list, panels)
 
     facts = []
     if row:
         facts += [f"speaker {esc(row[C.SPEAKER])}", f"language {esc(row[C.LANGUAGE] or '?')}",
                   f"split {esc(row[C.SPLIT])}", f"{row[C.DURATION_S]:.2f} s", f"{row[C.FPS]:g} fps",
-                  f"{len(phone_list)} phones"]
+                  f"{n_phones} phones"]
     else:
         facts.append("not in the utterances table")
     truth = next((t for s, _, t in tables if s == "ground_truth"), None)
@@ -253,6 +302,8 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
     shown = ", ".join(f"{esc(s)}/{esc(v)}" for s, v, _ in tables) or "none"
     caption = (f'<strong class="utterance-id">{esc(uid)}</strong> · ' + " · ".join(facts)
                + f"<br><span class=\"note\">curves: {shown}</span>")
+    if window:
+        caption += f'<br><span class="note" id="drawn-window-{n}">{esc(window)}</span>'
     if waveform is None:
         caption += f'<br><span class="empty">{esc(note)}</span>'
     page.image(f"chart-curves-{n}", png, f"viseme curves, phones and waveform of {uid}", caption)

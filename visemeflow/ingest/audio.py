@@ -2,12 +2,18 @@
 
 Ingest, training, evaluation, prediction and the dashboard all read an utterance's sound through `read_audio`,
 so they agree on which files are videos (`VIDEO_EXTS`), on mono downmixing, and on refusing samples that are
-NaN or infinite (`NonFiniteAudioError`, naming the file and the bad sample range). Such samples would turn
-features, losses and predicted curves into NaN far from their cause.
+NaN or infinite (`NonFiniteAudioError`) or beyond `MAX_FLOAT_AMPLITUDE` (`AudioAmplitudeError`), each naming the
+file and the bad sample range. Such samples would turn features, losses and predicted curves into NaN far from
+their cause: samples of 3e38 are finite, but their spectrum's power overflows float32, and a model trained on
+them had NaN weights.
+
+Out-of-range audio is refused, not normalised: a float file's full scale is 1.0, so a peak a thousand times
+beyond it (60 dB) is not a recording's headroom but a broken or mis-scaled file (integer PCM values stored as
+floats peak near 32768), and scaling it silently would hide that and make the samples differ from the file's.
 
 At ingest only the header is read (`check_audio_file_finite` reads the samples of float files only: integer
-PCM, the usual WAV and every FLAC, cannot hold NaN or infinity, so checking it would cost a full decode for
-nothing).
+PCM, the usual WAV and every FLAC, cannot hold NaN, infinity or a value beyond full scale, so checking it would
+cost a full decode for nothing).
 """
 
 import os
@@ -21,6 +27,8 @@ AUDIO_EXTS = (".wav", ".flac", ".ogg")
 VIDEO_EXTS = (".mp4", ".avi", ".mpg", ".mov", ".m4v", ".mkv", ".mpeg", ".webm")
 # soundfile subtypes whose samples are IEEE floats: the only ones that can be NaN or infinite.
 FLOAT_SUBTYPES = frozenset({"FLOAT", "DOUBLE"})
+# Largest |sample| accepted from a float file (full scale: 1.0): 60 dB of headroom, far below where features overflow.
+MAX_FLOAT_AMPLITUDE = 1e3
 _BLOCK_FRAMES = 1 << 20
 
 
@@ -42,6 +50,14 @@ class NonFiniteAudioError(AudioError):
         super().__init__(path, error_type, reason)
 
 
+class AudioAmplitudeError(AudioError):
+    """Audio with finite samples far beyond full scale (|x| > MAX_FLOAT_AMPLITUDE)."""
+
+    def __init__(self, path: str, error_type: str = "AmplitudeOutOfRange",
+                 reason: str = f"samples exceed |x| = {MAX_FLOAT_AMPLITUDE:g}"):
+        super().__init__(path, error_type, reason)
+
+
 def is_video_file(path: str | os.PathLike) -> bool:
     """Whether `path` is read as a video container (by its suffix, case-insensitive)."""
     return Path(path).suffix.lower() in VIDEO_EXTS
@@ -49,7 +65,18 @@ def is_video_file(path: str | os.PathLike) -> bool:
 
 def non_finite_span(samples: np.ndarray) -> tuple[int, int, int] | None:
     """(first, last, count) of the sample frames (rows) holding a NaN or infinite value, or None."""
-    bad = ~np.isfinite(samples)
+    return _span(~np.isfinite(samples))
+
+
+def out_of_range_span(samples: np.ndarray) -> tuple[int, int, int, float] | None:
+    """(first, last, count, peak |x|) of the sample frames (rows) holding a value beyond MAX_FLOAT_AMPLITUDE
+    (infinity too: `check_finite` reports non-finite samples first), or None."""
+    bad = (samples > MAX_FLOAT_AMPLITUDE) | (samples < -MAX_FLOAT_AMPLITUDE)  # no float copy of long audio
+    span = _span(bad)
+    return None if span is None else (*span, float(np.max(np.abs(samples[bad]))))
+
+
+def _span(bad: np.ndarray) -> tuple[int, int, int] | None:
     if bad.ndim > 1:
         bad = bad.any(axis=tuple(range(1, bad.ndim)))
     if not bad.any():
@@ -64,34 +91,54 @@ def non_finite_reason(first: int, last: int, count: int, rate: float) -> str:
             f"({count} sample{'s' if count != 1 else ''}); repair or re-export the audio")
 
 
+def out_of_range_reason(first: int, last: int, count: int, peak: float, rate: float) -> str:
+    """`samples 100..250 (0.006..0.016 s) reach |x| = 3e+38 ...` and what to do."""
+    return (f"samples {first}..{last} ({first / rate:.3f}..{last / rate:.3f} s) reach |x| = {peak:.3g}, beyond "
+            f"{MAX_FLOAT_AMPLITUDE:g} ({count} sample{'s' if count != 1 else ''}); float audio has full scale 1.0: "
+            "rescale or re-export the audio")
+
+
 def check_finite(samples: np.ndarray, rate: float, path: str | os.PathLike) -> None:
-    """Raise NonFiniteAudioError naming `path` and the bad sample range when `samples` are not all finite."""
+    """Raise NonFiniteAudioError (AudioAmplitudeError) naming `path` and the bad sample range when `samples` are
+    not all finite (not all within MAX_FLOAT_AMPLITUDE)."""
     span = non_finite_span(samples)
     if span is not None:
         raise NonFiniteAudioError(str(path), reason=non_finite_reason(*span, rate))
+    loud = out_of_range_span(samples)
+    if loud is not None:
+        raise AudioAmplitudeError(str(path), reason=out_of_range_reason(*loud, rate))
+
+
+def _merge_span(total: tuple | None, span: tuple | None, offset: int) -> tuple | None:
+    """The file's (first, last, count[, peak]) so far, with one block's span at frame `offset` added."""
+    if span is None:
+        return total
+    if total is None:
+        return (offset + span[0], offset + span[1], *span[2:])
+    return (total[0], offset + span[1], total[2] + span[2], *(max(a, b) for a, b in zip(total[3:], span[3:])))
 
 
 def check_audio_file_finite(path: str | os.PathLike, info: "sf._SoundFileInfo | None" = None) -> bool:
-    """Raise NonFiniteAudioError when a float audio file holds NaN or infinite samples.
+    """Raise NonFiniteAudioError when a float audio file holds NaN or infinite samples, AudioAmplitudeError when
+    it holds finite samples beyond MAX_FLOAT_AMPLITUDE.
 
     Only float subtypes are decoded (in blocks of about a million frames); integer files return at once.
-    Returns whether the samples were read.
+    Doubles are checked as read (a 1e300 is out of range, not infinite). Returns whether the samples were read.
     """
     info = info if info is not None else sf.info(str(path))
     if info.subtype not in FLOAT_SUBTYPES:
         return False
     dtype = "float64" if info.subtype == "DOUBLE" else "float32"
-    first = last = None
-    count = offset = 0
+    non_finite = loud = None
+    offset = 0
     for block in sf.blocks(str(path), blocksize=_BLOCK_FRAMES, dtype=dtype, always_2d=True):
-        span = non_finite_span(block)
-        if span is not None:
-            first = offset + span[0] if first is None else first
-            last = offset + span[1]
-            count += span[2]
+        non_finite = _merge_span(non_finite, non_finite_span(block), offset)
+        loud = _merge_span(loud, out_of_range_span(block), offset)
         offset += block.shape[0]
-    if first is not None:
-        raise NonFiniteAudioError(str(path), reason=non_finite_reason(first, last, count, info.samplerate))
+    if non_finite is not None:
+        raise NonFiniteAudioError(str(path), reason=non_finite_reason(*non_finite, info.samplerate))
+    if loud is not None:
+        raise AudioAmplitudeError(str(path), reason=out_of_range_reason(*loud, info.samplerate))
     return True
 
 
@@ -100,7 +147,8 @@ def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, 
 
     Samples are (frames,) when `mono` (mean of the channels), else (frames, channels). Files with a video
     suffix are decoded by PyAV; others by soundfile, then by PyAV when soundfile cannot read them (an .m4a).
-    Raises AudioError when nothing can read the file, NonFiniteAudioError when a sample is NaN or infinite.
+    Raises AudioError when nothing can read the file, NonFiniteAudioError when a sample is NaN or infinite,
+    AudioAmplitudeError when one is beyond MAX_FLOAT_AMPLITUDE.
     """
     from visemeflow.tracking.video import VideoError, read_video_audio
 

@@ -1,8 +1,12 @@
 """Find the utterances of a corpus: a folder `<speaker>/<name>.wav` + alignment, or a manifest CSV.
 
 Utterance ids are `<speaker folder>/<file stem>` (or the manifest's `utterance_id`), NFC-normalised, in any
-script (`Speaker One/take 1`, `张三/一`; rules in `schemas.ids`). Nothing outside the corpus folder is read:
+script (`Speaker One/take 1`, `张三/一`; rules in `schemas.ids`). Names that differ only in their Unicode form
+(`café` composed and decomposed) give one id: all of them are rejects (IdCollision) naming every file, never two
+utterances under one id. Nothing outside the corpus folder is read:
 a manifest path that leaves its folder and a symlink that points outside the corpus are rejects naming the file.
+A manifest's `split` (train or val) and `language` (a tag: `en`, `zh-CN`) are checked: another value is a reject
+naming the manifest line.
 
 Alignments: a file next to the audio with the same stem, `.TextGrid` (Praat, any variant, binary too), `.xra`
 (SPPAS), `.lab` (HTK label file) or `.align` (word spans, GRID), or an entry of an HTK master label file (`*.mlf`)
@@ -18,6 +22,7 @@ beside it. Audio without video and without an alignment is a reject (MissingAlig
 """
 
 import csv
+import re
 import unicodedata
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -35,6 +40,12 @@ ALIGNMENT_FORMATS = {".align": "word_align", ".xra": "xra", ".lab": "htk", ".mlf
 """`alignment_format` by file suffix (lower case); any other suffix is a Praat TextGrid ("textgrid")."""
 LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet", ".mediapipe478.csv", ".openface.csv")
 MANIFEST_COLUMNS = ("utterance_id", "audio", "alignment", "video", "landmarks", "language", "split")
+SPLITS = ("train", "val")
+"""The splits a manifest may give (any case): training takes every utterance not in `val`, so another name (`test`,
+`dev`) would silently be trained on."""
+LANGUAGE_TAG = re.compile(r"[A-Za-z]{2,3}(?:[-_][A-Za-z0-9]{1,8}){0,4}")
+"""A language tag as manifests write them: an ISO 639 code (`en`, `cmn`) with optional BCP 47 subtags (`zh-CN`,
+`zh-Hans-CN`, `en_US`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -161,6 +172,7 @@ def _nfc(name: str) -> str:
 def _discover_folder(root: Path, only: str | None = None) -> Discovery:
     entries: list[CorpusEntry] = []
     rejects: list[DiscoveryReject] = []
+    spellings: dict[str, list[list[Path]]] = {}  # id -> the files of each (folder, stem) spelling it
     real_root = root.resolve()
     speaker_dirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     root_mlfs = _mlf_indexes([p for p in root.iterdir() if p.is_file() and p.name.lower().endswith(MLF_EXT)],
@@ -200,6 +212,7 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                 continue
             if only is not None and utterance_id != only:
                 continue
+            spellings.setdefault(utterance_id, []).append(sorted(kinds.values()))
             outside = next((p for p in kinds.values() if not _inside(p, real_root)), None)
             if outside is not None:
                 rejects.append(DiscoveryReject(
@@ -235,7 +248,39 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                 str(kinds["landmarks"].resolve()) if "landmarks" in kinds else None,
                 alignment_key=key,
             ), mlf_entry))
-    return Discovery(tuple(entries), tuple(rejects))
+    return _without_id_collisions(entries, rejects, spellings)
+
+
+def _without_id_collisions(entries: list[CorpusEntry], rejects: list[DiscoveryReject],
+                           spellings: dict[str, list[list[Path]]]) -> Discovery:
+    """The discovery with every id that several spellings give (`café` composed and decomposed, in one folder or in
+    two speaker folders) refused: one reject per spelling, naming all their files. Keeping either would be a guess,
+    and keeping both would give two utterances one id, whose rows and phones then merge."""
+    collided = {uid: groups for uid, groups in spellings.items() if len(groups) > 1}
+    if not collided:
+        return Discovery(tuple(entries), tuple(rejects))
+    rejects = [r for r in rejects if r.utterance_id not in collided]
+    for uid, groups in collided.items():
+        files = ", ".join(str(p) for group in groups for p in group)
+        for group in groups:
+            rejects.append(DiscoveryReject(
+                uid, "IdCollision",
+                f"{uid}: {len(groups)} spellings of one name give this id (names equal after Unicode NFC "
+                f"normalisation): {files}; rename the files so each utterance is spelled one way", str(group[0])))
+    return Discovery(tuple(e for e in entries if e.utterance_id not in collided), tuple(rejects))
+
+
+def _check_split_and_language(where: str, utterance_id: str, split: str | None, language: str | None,
+                              manifest: Path) -> DiscoveryReject | None:
+    """A reject for a manifest row whose split is not one of SPLITS or whose language is not a LANGUAGE_TAG."""
+    if split is not None and split not in SPLITS:
+        return DiscoveryReject(utterance_id, "BadSplit", f"{where}: {utterance_id}: split {split!r} is not one of "
+                               f"{', '.join(SPLITS)} (or empty: chosen by a hash of the id)", str(manifest))
+    if language is not None and LANGUAGE_TAG.fullmatch(language) is None:
+        shown = language if len(language) <= 40 else language[:40] + "..."
+        return DiscoveryReject(utterance_id, "BadLanguage", f"{where}: {utterance_id}: language {shown!r} is not a "
+                               "language tag (expected e.g. en, zh-CN, cmn; or empty)", str(manifest))
+    return None
 
 
 def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
@@ -308,12 +353,15 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
                     bad = DiscoveryReject(utterance_id, "UnreadableAlignment",
                                           f"{where}: {utterance_id}: {paths['alignment']}: cannot read: {exc.strerror}",
                                           paths["alignment"])
+            language = (row.get("language") or "").strip() or None
+            split = (row.get("split") or "").strip().lower() or None
+            if bad is None:
+                bad = _check_split_and_language(where, utterance_id, split, language, manifest)
             if bad is not None:
                 rejects.append(bad)
                 continue
             entries.append(_with_hash(CorpusEntry(
                 utterance_id, paths["audio"], paths["alignment"] or "", paths["video"], paths["landmarks"],
-                (row.get("language") or "").strip() or None, (row.get("split") or "").strip() or None,
-                alignment_key=key,
+                language, split, alignment_key=key,
             ), mlf_entry))
     return Discovery(tuple(entries), tuple(rejects))

@@ -154,12 +154,16 @@ def _attach_words(items, words: tuple[WordInterval, ...]) -> tuple[PhoneInterval
 
 
 def check_intervals(entry: CorpusEntry, alignment: Alignment) -> None:
-    """Times must be finite, ordered and not overlapping."""
+    """Times must be finite, not before the audio starts (0 s), ordered and not overlapping."""
     prev_end = -math.inf
     for i, p in enumerate(alignment.phones):
         if not (math.isfinite(p.start_s) and math.isfinite(p.end_s)):
             raise IngestError(entry.utterance_id, entry.alignment_path, "NonFiniteTime",
                               f"interval {i + 1} ({p.label!r}) has a non-finite time ({p.start_s}, {p.end_s})")
+        if p.start_s < -1e-6:
+            raise IngestError(entry.utterance_id, entry.alignment_path, "NegativeTime",
+                              f"interval {i + 1} ({p.label!r}) starts at {p.start_s:.3f} s; times are seconds from "
+                              "the start of the audio, 0 or later")
         if p.end_s < p.start_s:
             raise IngestError(entry.utterance_id, entry.alignment_path, "NegativeDuration",
                               f"interval {i + 1} ({p.label!r}) ends at {p.end_s:.3f} s before it starts at {p.start_s:.3f} s")

@@ -8,7 +8,8 @@ decimal point or an exponent makes the whole file seconds; a file mixing both is
 
 A master label file (MLF) starts with `#!MLF!#` and holds one entry per utterance: a quoted file-name
 pattern (`"*/a01.lab"`, `"a01.rec"`, `"/data/spk1/a01.lab"`), its label lines, and a line holding only `.`.
-`*` and `?` (and HTK's `%`, one character) are wildcards; an utterance is found by its file stem (the
+`*` and `?` (and HTK's `%`, one character) are wildcards, matched without backtracking (`wildcard_match`:
+at most pattern x name steps, whatever the pattern); an utterance is found by its file stem (the
 pattern's last component without extension) and, when the pattern names a folder that is not a wildcard,
 its folder (the speaker); the first matching entry wins, as in HTK. Entries that point elsewhere
 (`"*/a.lab" -> dir`, `=> file`) are not followed: an utterance that needs one is a reject.
@@ -205,16 +206,33 @@ def parse_mlf(text: str, source: str = "<string>") -> tuple[MlfEntry, ...]:
     return tuple(entries)
 
 
-def _wildcard(text: str) -> re.Pattern[str]:
-    """HTK's pattern syntax: * any run, ? and % one character; everything else literal."""
-    parts = {"*": ".*", "?": ".", "%": "."}
-    return re.compile("".join(parts.get(ch, re.escape(ch)) for ch in text) + r"\Z", re.DOTALL)
+def wildcard_match(pattern: str, name: str) -> bool:
+    """Whether `name` matches HTK's pattern syntax whole: * any run, ? and % one character, all else literal.
+
+    Greedy, remembering only the last `*`: at most len(pattern) x len(name) steps. A regex translation
+    backtracks over every way of splitting the name between the stars: a crafted MLF pattern ("*a*a*...*b"
+    against a 60-character name) then runs for hours.
+    """
+    p = n = 0
+    star, resume = -1, 0  # the last `*` seen and the name position it has swallowed up to
+    while n < len(name):
+        if p < len(pattern) and pattern[p] != "*" and pattern[p] in ("?", "%", name[n]):
+            p, n = p + 1, n + 1
+        elif p < len(pattern) and pattern[p] == "*":
+            star, resume = p, n
+            p += 1
+        elif star >= 0:
+            resume += 1
+            p, n = star + 1, resume
+        else:
+            return False
+    return all(ch == "*" for ch in pattern[p:])
 
 
 @dataclass(frozen=True, slots=True)
 class _Key:
-    stem: re.Pattern[str]
-    folder: re.Pattern[str] | None
+    stem: str
+    folder: str | None
     literal_stem: str | None
 
 
@@ -224,7 +242,7 @@ def _key(pattern: str) -> _Key:
     stem = base.rsplit(".", 1)[0] if "." in base else base
     folder = parts[-2] if len(parts) >= 2 and parts[-2] not in ("", "*") else None
     literal = stem if not any(ch in stem for ch in "*?%") else None
-    return _Key(_wildcard(stem), _wildcard(folder) if folder is not None else None, literal)
+    return _Key(stem, folder, literal)
 
 
 class MlfIndex:
@@ -244,7 +262,7 @@ class MlfIndex:
     def find(self, folder: str, stem: str) -> MlfEntry | None:
         for i in sorted(self._by_stem.get(stem, []) + self._wild):
             key = self._keys[i]
-            if key.stem.match(stem) and (key.folder is None or key.folder.match(folder)):
+            if wildcard_match(key.stem, stem) and (key.folder is None or wildcard_match(key.folder, folder)):
                 return self.entries[i]
         return None
 

@@ -23,6 +23,8 @@ its folder, fsync, rename over the target), so a killed writer never leaves a ha
 old or the new file whole. Shard files that are read, changed and written back (a rerun of one utterance)
 are updated under a lock file so two writers cannot lose each other's rows. Curves and metrics are checked
 before they are written: a NaN or infinite value is refused with the utterance and the first bad value named.
+Reject messages are capped where they are written (`write_shard`, `replace_utterance_rows`): the head and
+how many characters were cut.
 """
 
 import errno
@@ -87,6 +89,29 @@ class NonFiniteValueError(ValueError):
 
 RESULTS_DIR = ".prefect-results"
 _SHARD_FILE = re.compile(r"^shard-([0-9]{4,})\.parquet$")
+MAX_REJECT_MESSAGE_CHARS = 4000
+"""Longest reject message stored, note included. Real reasons are a few hundred characters; an input can make them
+megabytes (an XML entity expanded into the value an error quotes), which would then fill the `rejects` output and
+every dashboard page."""
+
+
+def cap_message(message: str, limit: int = MAX_REJECT_MESSAGE_CHARS) -> str:
+    """`message` itself when it has at most `limit` characters, else its head and "... [N characters cut]", `limit`
+    characters in all (so a capped message is never cut again)."""
+    if len(message) <= limit:
+        return message
+    head = limit - len("... [ characters cut]") - len(str(len(message)))  # the count has at most that many digits
+    return f"{message[:head]}... [{len(message) - head} characters cut]"
+
+
+def _cap_messages(table: pa.Table) -> pa.Table:
+    """The rejects `table` with each message capped (`cap_message`)."""
+    column = table.column(C.MESSAGE)
+    if table.num_rows == 0 or pc.max(pc.utf8_length(column)).as_py() <= MAX_REJECT_MESSAGE_CHARS:
+        return table
+    capped = [cap_message(m) for m in column.to_pylist()]  # the column is not nullable
+    return table.set_column(table.schema.get_field_index(C.MESSAGE), table.schema.field(C.MESSAGE),
+                            pa.array(capped, column.type))
 
 
 def _first_non_finite(table: pa.Table, columns: list[str]) -> tuple[int, str, object, int] | None:
@@ -285,8 +310,11 @@ class Store:
         self, table_name: str, shard: int, table: pa.Table, stage: str | None = None,
         metadata: dict[bytes, bytes] | None = None,
     ) -> Path:
-        """Replace one shard file of a table with `table` (cast to the table's schema) and file metadata."""
+        """Replace one shard file of a table with `table` (cast to the table's schema) and file metadata; reject
+        messages are capped (`MAX_REJECT_MESSAGE_CHARS`)."""
         table = table.cast(TABLE_SCHEMAS[table_name])
+        if table_name == "rejects":
+            table = _cap_messages(table)
         if metadata:
             table = table.replace_schema_metadata(metadata)
         return self._write_atomic(table, self.shard_path(table_name, shard, stage))
@@ -404,6 +432,8 @@ class Store:
             old = _read_whole(path) if path.exists() else schema.empty_table()
             kept = old.filter(pc.invert(pc.equal(old.column(C.UTTERANCE_ID), utterance_id)))
             new = pa.concat_tables([kept.cast(schema), rows.cast(schema)])
+            if table_name == "rejects":
+                new = _cap_messages(new)
             # Keep the file's metadata (e.g. the config hash that lets later runs reuse these rows).
             return self._write_atomic(new.replace_schema_metadata(old.schema.metadata), path)
 

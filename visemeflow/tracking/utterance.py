@@ -16,7 +16,9 @@ frames with no video frame within half a grid step are the ones the video lacks:
 there, and their diagnostics (landmarks, mouth error, flow, every loss term) are missing, not invented.
 """
 
+import itertools
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,12 +46,24 @@ from visemeflow.tracking.solver import (
     solve_faithful,
     solve_fast,
 )
-from visemeflow.tracking.video import VideoError, VideoInfo, frame_times, probe_video, read_timed_frames
+from visemeflow.tracking.video import (
+    VideoError,
+    VideoInfo,
+    frame_times,
+    iter_timed_frames,
+    probe_video,
+    read_timed_frames,
+)
 
 LANDMARK_FILES = "<name>.landmarks.csv|.parquet, .mediapipe478.csv, .openface.csv"
 FALLBACK_FOV_DEG = 25.0
 UNIFORM_TOLERANCE_S = 1e-3
 """Frames within this of k / fps (every one of the grid's frames) are the grid: tracked on it as they are."""
+LANDMARK_FRAME_TOLERANCE = 1
+"""How many frames a landmark file may have more or fewer than the video: decoders (OpenCV's, which landmark tools
+use, and PyAV's) and the curve grid (duration x fps, rounded) can disagree about a last, partial frame. A shorter
+file is padded with missing frames, a longer one cut; any larger difference is a file of another clip or a broken one
+(5 rows for a 47-frame video), refused rather than tracked on mostly empty frames."""
 COVERAGE_TOLERANCE_S = 0.1
 """How far the curve grid or the alignment may run past the video's last frame (ingest's default tolerance)."""
 
@@ -182,7 +196,8 @@ def camera_record_path(video_path: str) -> Path:
 
 
 def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path: str | None = None) -> LandmarkTrack:
-    """The landmark track of a video of `n_frames` frames, padded with missing frames to its length."""
+    """The landmark track of a video of `n_frames` frames (the file within LANDMARK_FRAME_TOLERANCE of that), padded
+    with missing frames or cut to its length."""
     if not landmark_path:
         raise TrackingInputError(video_path, "NoLandmarks", f"no landmark file ({LANDMARK_FILES}) beside the video "
                                  "and none stored by the landmarks stage")
@@ -191,9 +206,11 @@ def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path:
     except LandmarkError as exc:
         raise TrackingInputError(landmark_path, "BadLandmarks",
                                  str(exc).removeprefix(f"{landmark_path}: ")) from exc
-    if track.n_frames > n_frames + 1:
+    if abs(track.n_frames - n_frames) > LANDMARK_FRAME_TOLERANCE:
         raise TrackingInputError(landmark_path, "LandmarkFrameMismatch",
-                                 f"{track.n_frames} landmark frames but the video has {n_frames}")
+                                 f"{track.n_frames} landmark frames but the video has {n_frames} (a landmark file "
+                                 f"has a row per video frame, up to its last; {LANDMARK_FRAME_TOLERANCE} frame more "
+                                 "or fewer is allowed)")
     points = np.full((n_frames, 68, 2), np.nan, np.float32)
     valid = np.zeros((n_frames, 68), bool)
     k = min(n_frames, track.n_frames)
@@ -229,13 +246,17 @@ def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack,
     return fitted, fit.camera, {"identity": "fitted", "identity_rms_px": round(float(fit.rms_px), 3)}
 
 
-def flow_term(frames: np.ndarray, rig: VisemeRig, track: LandmarkTrack) -> tuple[FlowTerm, np.ndarray]:
-    """Optical-flow correspondences over the face region of `frames` ((T, H, W, 3)), and the valid fraction per
-    frame ((T,), NaN at frame 0)."""
-    height, width = frames.shape[1:3]
+def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack) -> tuple[FlowTerm, np.ndarray]:
+    """Optical-flow correspondences over the face region of `frames` ((T, H, W, 3), or RGB frames one at a time:
+    only their face crops are kept), and the valid fraction per frame ((T,), NaN at frame 0)."""
+    it = iter(frames)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("flow_term needs at least one frame")
+    height, width = first.shape[:2]
     roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
-    flow = estimate_optical_flow(frames, FlowConfig(), roi)
-    valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, len(frames))], np.float32)
+    flow = estimate_optical_flow(itertools.chain([first], it), FlowConfig(), roi)
+    valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, flow.n_frames)], np.float32)
     return FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences), valid_fraction
 
 
@@ -289,8 +310,9 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
         # one probe for the audio check and the camera (probing decodes a clip whose container stores no frame count)
         info = probe_video(video.video_path) if _audio_is_video(video) else None
         check_audio(video, info)
-        need_frames = config.use_flow or config.use_rgb
-        frames, times = read_timed_frames(video.video_path) if need_frames else (None, frame_times(video.video_path))
+        # The clip is held whole only for the photometric term; flow decodes it again frame by frame and keeps the
+        # face crops, so a 4K clip never sits in memory (bench/memory_tracking.py).
+        frames, times = read_timed_frames(video.video_path) if config.use_rgb else (None, frame_times(video.video_path))
         timeline = FrameTimeline(times, float(video.fps), n_grid)
         check_coverage(video, times)
         uniform = timeline.uniform
@@ -306,7 +328,9 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
         rig, camera, camera_info = rig_and_camera(video.video_path, rig, track, info)
         flow = flow_valid = photo = None
         if config.use_flow and n_frames > 1:
-            flow, flow_valid = flow_term(frames, rig, track)
+            decoded = frames if frames is not None else (
+                f for f, _ in itertools.islice(iter_timed_frames(video.video_path), n_frames))
+            flow, flow_valid = flow_term(decoded, rig, track)
         if config.use_rgb:
             photo = PhotoTerm(rig, camera, frames, track.points)
         problem = TrackingProblem(rig, camera, track.points, track.valid, prior, flow=flow, rgb=photo)
