@@ -5,6 +5,7 @@ in-graph resampling, opsets, the frame-count rule, and clear errors for what can
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -203,11 +204,11 @@ def test_files_that_are_not_this_versions_models_are_refused(tmp_path):
         ox.export_onnx(tmp_path / "missing.pt", out)
     text = tmp_path / "notes.pt"
     text.write_text("not a model")
-    with pytest.raises(ox.OnnxExportError, match="is not a visemeflow curve model file"):
+    with pytest.raises(ox.OnnxExportError, match="is not a visemeflow model file"):
         ox.export_onnx(text, out)
     lst = tmp_path / "list.pt"
     torch.save([1, 2, 3], lst)
-    with pytest.raises(ox.OnnxExportError, match="is not a saved visemeflow curve model"):
+    with pytest.raises(ox.OnnxExportError, match="holds no visemeflow model"):
         ox.export_onnx(lst, out)
 
     good, _ = save_tiny(tmp_path / "good.pt", "fbank-tcn")
@@ -218,11 +219,11 @@ def test_files_that_are_not_this_versions_models_are_refused(tmp_path):
         ox.export_onnx(newer, out)
     extra = tmp_path / "extra.pt"  # a TrainConfig field this version does not know
     torch.save({**blob, "config": json.dumps({**json.loads(blob["config"]), "device": "cuda"})}, extra)
-    with pytest.raises(ox.OnnxExportError, match="does not load here.*another visemeflow version"):
+    with pytest.raises(ox.OnnxExportError, match="config does not validate.*another visemeflow version"):
         ox.export_onnx(extra, out)
     weights = tmp_path / "weights.pt"  # weights of another architecture
     torch.save({**blob, "state_dict": {k: v for k, v in blob["state_dict"].items() if "convs" not in k}}, weights)
-    with pytest.raises(ox.OnnxExportError, match="does not load here"):
+    with pytest.raises(ox.OnnxExportError, match="missing weights head.decoder.convs.0.weight"):
         ox.export_onnx(weights, out)
     assert not out.exists()
 
@@ -235,6 +236,28 @@ def test_the_check_fails_when_the_graph_disagrees(tmp_path, monkeypatch):
         ox.export_onnx(path, tmp_path / "m.onnx")
     report = ox.export_onnx(path, tmp_path / "m.onnx", check=False)
     assert report.max_abs_diff is None
+
+
+def test_a_failed_check_keeps_the_previous_export(tmp_path, monkeypatch):
+    """The graph is written beside the target and checked there; only a graph that passes replaces the file."""
+    path, _ = save_tiny(tmp_path / "m.pt", "mean-curve")
+    out = tmp_path / "m.onnx"
+    ox.export_onnx(path, out)
+    before = out.read_bytes()
+    checked = []
+    real = ox.onnx_curves
+
+    def off(p, a, **kw):
+        checked.append(Path(p))
+        return real(p, a, **kw) + 2e-4
+
+    monkeypatch.setattr(ox, "onnx_curves", off)
+    other, _ = save_tiny(tmp_path / "other.pt", "mean-curve", seed=1)
+    with pytest.raises(ox.OnnxExportError, match=f"{out}: ONNX curves differ from torch by 0.0002"):
+        ox.export_onnx(other, out)
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx", "m.pt", "other.pt"]
+    assert checked[0].parent == out.parent and checked[0] != out
 
 
 def test_lpc_white_noise_correction_survives_the_optimisers(speech):

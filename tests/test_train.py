@@ -234,8 +234,9 @@ def test_save_load_round_trip_and_weights_only(data, tmp_path, monkeypatch):
     bad = tmp_path / "bad.pt"
     with open(bad, "wb") as f:
         torch.save({"format": "visemeflow-curve-model/1", "x": Evil()}, f)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(T.ModelFileError, match="objects other than tensors and plain values") as info:
         load_model(bad)
+    assert isinstance(info.value.__cause__, pickle.UnpicklingError)
 
 
 def test_predict_curves_any_rate_stereo():
@@ -277,3 +278,98 @@ def test_speed_augment_shortens_targets(data):
     plain = train_model(train, val, cfg.model_copy(update={"train_augment": False}))
     assert a.history[0].train_l1_x100 == b.history[0].train_l1_x100
     assert a.history[0].train_l1_x100 != plain.history[0].train_l1_x100
+
+
+# ---- model files: what is written and what is read ------------------------------------------------------------
+
+
+def test_files_that_are_not_models_are_refused_naming_the_file(data, tmp_path):
+    """A text file gave "pop from empty list", an empty one EOFError: every reader of a model file says which file
+    is not a model and why (load_model, and the Whisper-weights check `predict` runs first)."""
+    from visemeflow.flows.predict import check_whisper_weights
+
+    cfg = TrainConfig(preset="fbank-tcn", epochs=0, d_model=16)
+    good = save_model(build_training_model(cfg, FPS), cfg, tmp_path / "good.pt", {})
+    blob = torch.load(good, weights_only=True)
+    cases = {"text.pt": ("this is a text file\nnot a model\n", "starts with b'this'"),
+             "empty.pt": ("", "the file is empty"),
+             "zip.pt": (b"PK\x03\x04 then nothing a zip archive holds", "cannot be read"),
+             "list.pt": ([1, 2, 3], "holds no visemeflow model"),
+             "newer.pt": ({**blob, "format": "visemeflow-curve-model/2"}, "another visemeflow version"),
+             "field.pt": ({**blob, "config": '{"preset": "fbank-tcn", "device": "cuda"}'}, "config does not validate"),
+             "preset.pt": ({**blob, "config": '{"preset": "no-such-preset"}'}, "unknown preset 'no-such-preset'"),
+             "lineage.pt": ({**blob, "lineage": "{not json"}, "lineage is not JSON"),
+             "weights.pt": ({**blob, "state_dict": {k: v for k, v in blob["state_dict"].items() if "convs" not in k}},
+                            "missing weights head.decoder.convs.0.weight")}
+    for name, (content, reason) in cases.items():
+        path = tmp_path / name
+        if isinstance(content, str):
+            path.write_text(content)
+        elif isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            torch.save(content, path)
+        for read in (load_model,) if name == "weights.pt" else (load_model, check_whisper_weights):
+            with pytest.raises(T.ModelFileError) as info:
+                read(path)
+            message = str(info.value)
+            assert message.startswith(f"{path} is not a visemeflow model file (expected a file written by visemeflow "
+                                      "train / save_model): "), message
+            assert reason in message, message
+            assert isinstance(info.value, ValueError) and pickle.loads(pickle.dumps(info.value)).path == str(path)
+
+
+def test_non_finite_weights_are_never_written_nor_loaded(tmp_path):
+    cfg = TrainConfig(preset="fbank-tcn", epochs=0, d_model=16)
+    model = build_training_model(cfg, FPS)
+    path = save_model(model, cfg, tmp_path / "model.pt", {"run": 1})
+    before = path.read_bytes()
+    with torch.no_grad():
+        model.head.f_fc.weight[0, :5] = float("nan")
+        model.head.f_fc.bias[3] = float("inf")
+    total = sum(v.numel() for v in model.state_dict().values())
+    with pytest.raises(T.NonFiniteWeightsError) as info:
+        save_model(model, cfg, path, {"run": 2})
+    assert str(path) in str(info.value) and f"6 of {total:,} weights are NaN or infinite" in str(info.value)
+    assert "head.f_fc.weight" in str(info.value)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]
+
+    poisoned = tmp_path / "poisoned.pt"  # such a file written by other means is refused on loading
+    blob = torch.load(path, weights_only=True)
+    blob["state_dict"]["head.f_fc.weight"][0, 0] = float("nan")
+    torch.save(blob, poisoned)
+    with pytest.raises(T.ModelFileError, match=f"1 of {total:,} weights are NaN or infinite"):
+        load_model(poisoned)
+
+
+def test_a_diverging_run_keeps_its_last_good_checkpoint(data, tmp_path):
+    train, _ = data
+    cfg = TrainConfig(preset="fbank-tcn", epochs=2, d_model=16, lr=1e-3)
+    steps = []
+
+    def loss(pred, target, mask):  # diverges in the second epoch
+        steps.append(1)
+        return T.l1_loss(pred, target, mask) * (float("nan") if len(steps) > len(train) else 1.0)
+
+    ckpt = tmp_path / "ckpt" / "last.pt"
+    with pytest.raises(T.NonFiniteWeightsError) as info:
+        train_model(train, [], cfg, checkpoint_dir=ckpt.parent, loss=loss)
+    assert str(ckpt) in str(info.value) and "epoch 2" in str(info.value)
+    state = torch.load(ckpt, weights_only=True)
+    assert state["epoch"] == 1 and all(torch.isfinite(v).all() for v in state["model"].values())
+    assert sorted(p.name for p in ckpt.parent.iterdir()) == ["last.pt"]
+
+
+def test_huge_finite_audio_trains_no_model(data, tmp_path):
+    """Samples of 3e38 (finite) overflow the features: the weights turn NaN and neither the checkpoint nor the
+    model is written (ingest refuses such audio; this is the last line for audio that did not pass through it)."""
+    train, _ = data
+    loud = [Example(ex.utterance_id, np.full_like(ex.audio, 3e38), ex.curves, ex.fps) for ex in train[:2]]
+    cfg = TrainConfig(preset="fbank-tcn", epochs=1, d_model=16, lr=1e-3)
+    with pytest.raises(T.NonFiniteWeightsError, match="last.pt"):
+        train_model(loud, [], cfg, checkpoint_dir=tmp_path / "ckpt")
+    assert not (tmp_path / "ckpt" / "last.pt").exists()
+    result = train_model(loud, [], cfg)
+    with pytest.raises(T.NonFiniteWeightsError, match="model.pt"):
+        save_model(result.model, cfg, tmp_path / "model.pt", {})
+    assert not (tmp_path / "model.pt").exists()

@@ -102,19 +102,19 @@ machine, shared with a training run at the time: load average 2.9): onnxruntime 
 Inputs shorter than ``ExportReport.min_samples`` (one 25 ms feature window and one curve frame:
 400 samples at 16 kHz) are not supported, as in torch.
 
-Checks: :func:`export_onnx` runs the exported file with onnxruntime (CPU) on a deterministic test
-signal and compares it with ``predict_curves`` (``ExportReport.max_abs_diff``); over
-:data:`DEFAULT_TOLERANCE` it raises. A file that is not a saved model, or one from another format
-version, raises :class:`OnnxExportError` (nothing is loaded silently).
+Checks: :func:`export_onnx` writes the graph to a temporary file beside the target, runs that file with
+onnxruntime (CPU) on a deterministic test signal and compares it with ``predict_curves``
+(``ExportReport.max_abs_diff``); over :data:`DEFAULT_TOLERANCE` it raises and the temporary file is removed, so a
+previous export at the target stays as it was; only a graph that passed replaces it (``os.replace``). A file that
+is not a saved model, or one from another format version, raises :class:`OnnxExportError` naming the file and why
+(:class:`~visemeflow.learning.train.ModelFileError`'s reason; nothing is loaded silently).
 """
 
 from __future__ import annotations
 
 import math
-import pickle
 import time
 import warnings
-import zipfile
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -687,33 +687,14 @@ def build_export_module(
 
 
 def _load(model_path: Path) -> tuple[AudioCurveModel, Any]:
-    from visemeflow.learning.train import _MODEL_FORMAT, load_model
+    from visemeflow.learning.train import ModelFileError, load_model
 
     if not model_path.is_file():
         raise OnnxExportError(f"{model_path}: no such model file")
     try:
-        blob = torch.load(model_path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
-        raise OnnxExportError(
-            f"{model_path} is not a visemeflow curve model file "
-            f"(torch.load failed: {type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
-        ) from exc
-    fmt = blob.get("format") if isinstance(blob, dict) else None
-    if fmt != _MODEL_FORMAT:
-        if isinstance(fmt, str) and fmt.startswith("visemeflow-curve-model/"):
-            raise OnnxExportError(
-                f"{model_path} was written by another visemeflow version (format {fmt!r}; this one reads "
-                f"{_MODEL_FORMAT!r}); export it with the version that trained it, or retrain"
-            )
-        raise OnnxExportError(f"{model_path} is not a saved visemeflow curve model (format field: {fmt!r})")
-    del blob
-    try:
         model, config, _ = load_model(model_path)
-    except Exception as exc:  # pydantic ValidationError, unknown preset, state_dict mismatch ...
-        raise OnnxExportError(
-            f"{model_path} has this version's format tag but does not load here ({type(exc).__name__}: "
-            f"{' '.join(str(exc).split())[:300]}); it was probably written by another visemeflow version"
-        ) from exc
+    except ModelFileError as exc:
+        raise OnnxExportError(str(exc)) from exc
     return model, config
 
 
@@ -922,13 +903,14 @@ def export_onnx(
     ``fps`` defaults to the model's training fps. With ``check`` (default) the file is run with
     onnxruntime on :func:`check_signal` (``check_seconds``) and compared with ``predict_curves``;
     a difference over ``tolerance`` (default :data:`DEFAULT_TOLERANCE`, :data:`WHISPER_TOLERANCE` for whisper
-    models) raises :class:`OnnxExportError` (the file is left for inspection).
+    models) raises :class:`OnnxExportError`. The graph is checked in a temporary file beside ``out_path`` and
+    replaces ``out_path`` only when it passed: a failed export leaves a previous file there as it was (``check=False``
+    writes the unchecked graph, for inspection).
     """
     _require(check)
     import onnx
 
-    from visemeflow.atomic import atomic_write
-    from visemeflow.learning.train import predict_curves
+    from visemeflow.atomic import atomic_path
 
     model_path, out_path = Path(model_path), Path(out_path)
     if not MIN_OPSET <= opset <= MAX_OPSET:
@@ -963,9 +945,18 @@ def export_onnx(
     for k, v in meta.items():
         proto.metadata_props.add(key=k, value=v)
     onnx.checker.check_model(proto)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(out_path, lambda tmp: onnx.save_model(proto, str(tmp)))
-    secs = time.perf_counter() - t0
+    with atomic_path(out_path, keep_suffix=True) as tmp:
+        onnx.save_model(proto, str(tmp))
+        report = _report(out_path, tmp, proto, graph, config, model, opset, sample_rate, whisper,
+                         time.perf_counter() - t0)
+        if check:
+            report = _check_export(tmp, out_path, report, model, graph, sample_rate, check_seconds, tolerance)
+    return report
+
+
+def _report(out_path: Path, written: Path, proto: Any, graph: CurveGraph, config: Any, model: AudioCurveModel,
+            opset: int, sample_rate: int, whisper: bool, secs: float) -> ExportReport:
+    """What :func:`export_onnx` wrote (the graph now at ``written``, to be at ``out_path``)."""
     ops = tuple(sorted({n.op_type for n in proto.graph.node}))
     notes: list[str] = []
     if sample_rate != MODEL_SAMPLE_RATE:
@@ -987,17 +978,24 @@ def export_onnx(
     report = ExportReport(
         path=out_path, preset=config.preset, opset=opset, sample_rate=graph.sample_rate, fps=graph.fps,
         feature=model.features.config.kind if graph.features is not None else "none",
-        min_samples=graph.min_samples, size_bytes=out_path.stat().st_size,
+        min_samples=graph.min_samples, size_bytes=written.stat().st_size,
         stored_values=sum(int(np.prod(i.dims)) for i in proto.graph.initializer),
         ops=ops, uses_float64=uses_float64, export_seconds=secs, notes=tuple(notes),
         max_samples=graph.max_samples,
     )
-    if not check:
-        return report
+    return report
+
+
+def _check_export(written: Path, out_path: Path, report: ExportReport, model: AudioCurveModel, graph: CurveGraph,
+                  sample_rate: int, check_seconds: float, tolerance: float) -> ExportReport:
+    """``report`` with the check's figures: the graph at ``written`` run with onnxruntime against torch, or
+    OnnxExportError naming ``out_path`` (where it was to go)."""
+    from visemeflow.learning.train import predict_curves
+
     t1 = time.perf_counter()
     audio = check_signal(check_seconds, sample_rate)
     want = predict_curves(model, audio, sample_rate, graph.fps)
-    got = onnx_curves(out_path, audio)
+    got = onnx_curves(written, audio)
     if got.shape != want.shape:
         raise OnnxExportError(f"{out_path}: ONNX gives {got.shape} curves, torch {want.shape} (check signal)")
     diff = float(np.abs(got - want).max()) if want.size else 0.0

@@ -3,6 +3,13 @@
 Pure domain code (torch/numpy, no Prefect). Files are touched only by the checkpoint functions
 inside :func:`train_model` (``checkpoint_dir/last.pt``) and by :func:`save_model` / :func:`load_model`.
 
+Model files are untrusted input and never hold NaN: a checkpoint or model whose weights turned NaN or infinite (a
+diverged run) is not written (:class:`NonFiniteWeightsError`; the previous file stays). Reading one
+(:func:`read_model_file`, :func:`load_model`) checks the format, the configs, that each weight is a tensor the file
+really stores and is finite, and then the weights' names and shapes against a skeleton of the configs' model on
+the meta device, before anything is built, so a crafted config cannot make loading allocate beyond what the file
+holds; anything else is a :class:`ModelFileError` naming the file and why.
+
 Recipe (as in the paper): one utterance per optimisation step, L1 loss on the valid curve frames,
 Adam at the preset's fixed learning rate (``TrainConfig.lr`` overrides it), SpecAugment on the
 features of hand-crafted-feature presets (:func:`visemeflow.learning.presets.augment`), utterance
@@ -66,7 +73,10 @@ import contextlib
 import hashlib
 import json
 import math
+import pickle
+import re
 import time
+import zipfile
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -75,7 +85,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, ValidationError, model_serializer
 from torch import Tensor, nn
 
 from visemeflow.atomic import atomic_write
@@ -109,6 +119,9 @@ __all__ = [
     "SAMPLE_RATE",
     "EpochReport",
     "Example",
+    "ModelFile",
+    "ModelFileError",
+    "NonFiniteWeightsError",
     "TrainConfig",
     "TrainResult",
     "apply_audio_augment",
@@ -117,6 +130,7 @@ __all__ = [
     "length_batches",
     "load_model",
     "predict_curves",
+    "read_model_file",
     "resample_curves",
     "save_model",
     "train_model",
@@ -128,6 +142,29 @@ _MODEL_FORMAT = "visemeflow-curve-model/1"
 _CKPT_FORMAT = "visemeflow-train-checkpoint/1"
 
 AudioAugment = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, float]]
+
+
+class ModelFileError(ValueError):
+    """A file given as a model that is not one this version can use; names the file and why."""
+
+    def __init__(self, path: str | Path, reason: str):
+        super().__init__(f"{path} is not a visemeflow model file (expected a file written by visemeflow train / "
+                         f"save_model): {reason}")
+        self.path, self.reason = str(path), reason
+
+    def __reduce__(self):  # keeps the two-argument constructor picklable (Prefect ships exceptions)
+        return (type(self), (self.path, self.reason))
+
+
+class NonFiniteWeightsError(ValueError):
+    """Weights holding NaN or infinite values, refused before a model or checkpoint file is written."""
+
+    def __init__(self, path: str | Path, reason: str):
+        super().__init__(f"{path}: not written: {reason}")
+        self.path, self.reason = str(path), reason
+
+    def __reduce__(self):
+        return (type(self), (self.path, self.reason))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -318,6 +355,32 @@ def _resume_key(config: TrainConfig) -> str:
 def _atomic_torch_save(obj: Any, path: Path) -> None:
     # visemeflow.atomic: stdlib-only, so this pure package need not import storage (DESIGN)
     atomic_write(path, lambda tmp: torch.save(obj, tmp))
+
+
+def _non_finite_weights(state: dict[str, Tensor]) -> str | None:
+    """`3,216 of 3,232 weights are NaN or infinite (in head.f_proj.weight, ...)`, or None when all are finite."""
+    bad, total, where = 0, 0, []
+    for name, value in state.items():
+        if not torch.is_floating_point(value):
+            continue
+        n = int((~torch.isfinite(value.detach())).sum())
+        total += value.numel()
+        if n:
+            bad += n
+            where.append(name)
+    if not bad:
+        return None
+    more = f", ... ({len(where)} tensors)" if len(where) > 3 else ""
+    return f"{bad:,} of {total:,} weights are NaN or infinite (in {', '.join(where[:3])}{more})"
+
+
+def _refuse_non_finite(state: dict[str, Tensor], path: Path, when: str) -> None:
+    """NonFiniteWeightsError before `path` is written, when `state` holds a NaN or infinite weight."""
+    found = _non_finite_weights(state)
+    if found is not None:
+        kept = "the previous file is kept" if path.exists() else "nothing was written"
+        raise NonFiniteWeightsError(path, f"{found} {when}: the training diverged (check the audio's amplitude and "
+                                          f"the learning rate); {kept}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -694,6 +757,9 @@ def train_model(
                 state["scaler"] = scaler.state_dict()
             if aux is not None:
                 state["viseme_aux"] = aux.linear.state_dict()
+            # a diverged run must not replace the last good epoch it could resume from
+            aux_state = {f"viseme_aux.{k}": v for k, v in state.get("viseme_aux", {}).items()}
+            _refuse_non_finite({**state["model"], **aux_state}, ckpt_path, f"after epoch {epoch + 1}")
             _atomic_torch_save(state, ckpt_path)
         if on_epoch is not None:
             on_epoch(report)
@@ -805,10 +871,14 @@ def save_model(model: nn.Module, config: TrainConfig, path: str | Path, lineage:
     lineage JSON.
 
     For wav2vec2 presets the Wav2Vec2 architecture config is stored too, so loading needs neither
-    the original pretrained model nor the network. Written atomically.
+    the original pretrained model nor the network. Written atomically; weights holding NaN or infinity are refused
+    (:class:`NonFiniteWeightsError`) and leave any earlier file at ``path`` as it was.
     """
     if not isinstance(model, AudioCurveModel):
         raise TypeError("save_model expects an AudioCurveModel (as returned by train_model)")
+    path = Path(path)
+    state = _cpu_state_dict(model)
+    _refuse_non_finite(state, path, "in the model to save")
     feats = model.features
     w2v_config = feats.model.config.to_json_string() if isinstance(feats, Wav2Vec2Extractor) else None
     blob = {
@@ -818,33 +888,207 @@ def save_model(model: nn.Module, config: TrainConfig, path: str | Path, lineage:
         "curve_fps": float(model.head.curve_fps),
         "wav2vec2_config": w2v_config,
         "lineage": json.dumps(lineage, sort_keys=True, default=str),
-        "state_dict": _cpu_state_dict(model),
+        "state_dict": state,
     }
-    path = Path(path)
     _atomic_torch_save(blob, path)
     return path
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """What a model file holds, read and checked by :func:`read_model_file` (nothing built yet)."""
+
+    path: Path
+    config: TrainConfig
+    feature_config: FeatureConfig
+    curve_fps: float
+    wav2vec2_config: dict[str, Any] | None  # the Wav2Vec2 architecture (wav2vec2 presets), else None
+    lineage: dict[str, Any]
+    state_dict: dict[str, Tensor]
+
+
+_ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format (a zip archive), the only one save_model writes
+# Values of the tables a parameter-free extractor computes from its config alone (window, mel filters, DCT), which
+# no weight in the file bounds: the presets' hold about 21 thousand.
+MAX_FEATURE_TABLE_VALUES = 1 << 22
+# What torch.load raises on a damaged archive or pickle stream (a text file gives IndexError, an empty one EOFError)
+_UNREADABLE = (RuntimeError, EOFError, IndexError, KeyError, ValueError, TypeError, AttributeError, zipfile.BadZipFile)
+
+
+def _one_line(exc: BaseException, limit: int = 300) -> str:
+    return " ".join(str(exc).split())[:limit]
+
+
+def read_model_file(path: str | Path) -> ModelFile:
+    """The parts of a :func:`save_model` file, each checked, or :class:`ModelFileError` naming the file and why.
+
+    Read with ``torch.load(weights_only=True, map_location="cpu")``: tensors and plain values only, whatever the
+    file holds. Checks the format tag, the configs, the lineage, and that every weight is a tensor whose values the
+    file really stores (no broadcast view claiming more) and is finite. The weights' names and shapes are checked
+    against the configs by :func:`load_model`, before the model is built.
+    """
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(len(_ZIP_MAGIC))
+    if not head:
+        raise ModelFileError(path, "the file is empty")
+    if head != _ZIP_MAGIC:
+        raise ModelFileError(path, f"it is not a torch.save zip archive (it starts with {head!r})")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        what = f" ({refused.group(1)})" if refused else ""
+        raise ModelFileError(path, f"it holds objects other than tensors and plain values{what}, which are never "
+                                   "unpickled") from exc
+    except _UNREADABLE as exc:
+        raise ModelFileError(path, f"it cannot be read as a torch.save file ({type(exc).__name__}: "
+                                   f"{_one_line(exc)})") from exc
+    fmt = blob.get("format") if isinstance(blob, dict) else None
+    if fmt != _MODEL_FORMAT:
+        if fmt == _CKPT_FORMAT:
+            raise ModelFileError(path, "it is a training checkpoint, not a finished model")
+        if isinstance(fmt, str) and fmt.startswith("visemeflow-curve-model/"):
+            raise ModelFileError(path, f"it was written by another visemeflow version (format {fmt!r}; this one "
+                                       f"reads {_MODEL_FORMAT!r}); use the version that trained it, or retrain")
+        raise ModelFileError(path, f"it holds no visemeflow model (format field: {_one_line(repr(fmt), 80)})")
+    kinds = {"config": str, "feature_config": str, "curve_fps": (int, float), "wav2vec2_config": (str, type(None)),
+             "lineage": str, "state_dict": dict}
+    for name, kind in kinds.items():
+        if not isinstance(blob.get(name), kind):
+            raise ModelFileError(path, f"its {name!r} field is {type(blob.get(name)).__name__}")
+    try:
+        config = TrainConfig.model_validate_json(blob["config"])
+        fcfg = FeatureConfig.model_validate_json(blob["feature_config"])
+    except ValidationError as exc:
+        raise ModelFileError(path, f"its config does not validate here (written by another visemeflow version?): "
+                                   f"{_one_line(exc)}") from exc
+    try:
+        config.resolved_preset()
+    except ValueError as exc:  # an unknown preset
+        raise ModelFileError(path, _one_line(exc)) from exc
+    curve_fps = float(blob["curve_fps"])
+    if not (math.isfinite(curve_fps) and curve_fps > 0):
+        raise ModelFileError(path, f"its curve frame rate is {curve_fps}")
+    parsed = {}
+    for name in ("lineage", "wav2vec2_config"):
+        if blob[name] is None:
+            parsed[name] = None
+            continue
+        try:
+            parsed[name] = json.loads(blob[name])
+        except json.JSONDecodeError as exc:
+            raise ModelFileError(path, f"its {name.replace('_', ' ')} is not JSON ({exc})") from exc
+        if not isinstance(parsed[name], dict):
+            raise ModelFileError(path, f"its {name.replace('_', ' ')} is not a JSON object")
+    if (fcfg.kind == "wav2vec2") != (parsed["wav2vec2_config"] is not None):
+        # without its architecture a wav2vec2 model would be fetched from config.wav2vec2_model (a hub id)
+        raise ModelFileError(path, f"its feature kind is {fcfg.kind} but it "
+                                   f"{'holds no' if fcfg.kind == 'wav2vec2' else 'holds a'} wav2vec2 architecture")
+    state = blob["state_dict"]
+    for key, value in state.items():
+        if not isinstance(key, str) or not isinstance(value, Tensor):
+            raise ModelFileError(path, f"its weights must map names to tensors; {key!r} holds a {type(value).__name__}")
+        stored = value.untyped_storage().nbytes() // max(value.element_size(), 1)
+        if value.numel() > stored:
+            raise ModelFileError(path, f"weight {key} is a broadcast view: it claims {value.numel():,} values "
+                                       f"{tuple(value.shape)} but the file stores {stored:,}")
+    found = _non_finite_weights(state)
+    if found is not None:
+        raise ModelFileError(path, found)
+    return ModelFile(path, config, fcfg, curve_fps, parsed["wav2vec2_config"], parsed["lineage"], state)
+
+
+def _layer_count(state: dict[str, Tensor], prefix: str) -> int:
+    """How many numbered layers `<prefix><i>.` the weights hold."""
+    return len({k[len(prefix):].split(".", 1)[0] for k in state if k.startswith(prefix)})
+
+
+def _wav2vec2_features(mf: ModelFile) -> Callable[[], nn.Module]:
+    """A builder of the file's Wav2Vec2 extractor, once its config's layer counts match the weights (building a
+    million layers would exhaust memory even on the meta device)."""
+    from transformers import Wav2Vec2Config, Wav2Vec2Model
+
+    assert mf.wav2vec2_config is not None
+    try:
+        w2v = Wav2Vec2Config.from_dict(mf.wav2vec2_config)
+    except (ValueError, TypeError) as exc:
+        raise ModelFileError(mf.path, f"its wav2vec2 config does not validate: {_one_line(exc)}") from exc
+    counts = {"num_hidden_layers": (w2v.num_hidden_layers, "features.model.encoder.layers."),
+              "conv_dim": (w2v.num_feat_extract_layers, "features.model.feature_extractor.conv_layers.")}
+    if w2v.add_adapter:
+        counts["num_adapter_layers"] = (w2v.num_adapter_layers, "features.model.adapter.layers.")
+    for name, (asked, prefix) in counts.items():
+        held = _layer_count(mf.state_dict, prefix)
+        if asked != held:
+            raise ModelFileError(mf.path, f"its wav2vec2 config asks for {asked} layers ({name}), its weights hold "
+                                          f"{held}")
+    return lambda: Wav2Vec2Extractor(mf.feature_config, model=Wav2Vec2Model(w2v))
+
+
+def _feature_table_values(fcfg: FeatureConfig) -> int:
+    """Values of the tables :class:`FilterbankExtractor` / :class:`LpcExtractor` compute from ``fcfg``."""
+    win = fcfg.win_length
+    if fcfg.kind == "lpc":
+        return win
+    n_fft = 1 << (win - 1).bit_length()  # the extractor's zero-padded FFT length
+    return win + fcfg.n_mels * (n_fft // 2 + 1) + fcfg.n_mels * fcfg.n_mfcc
+
+
+def _check_weights_fit(mf: ModelFile, skeleton: nn.Module) -> None:
+    """ModelFileError unless the file's weights have exactly the names and shapes the configs' model has."""
+    want = skeleton.state_dict()
+    missing = [k for k in want if k not in mf.state_dict]
+    unexpected = [k for k in mf.state_dict if k not in want]
+    if missing or unexpected:
+        parts = [f"{what} weights {', '.join(keys[:3])}{f', ... ({len(keys)} in all)' if len(keys) > 3 else ''}"
+                 for what, keys in (("missing", missing), ("unexpected", unexpected)) if keys]
+        raise ModelFileError(mf.path, f"its weights do not fit its config: {'; '.join(parts)}")
+    for key, value in want.items():
+        held = tuple(mf.state_dict[key].shape)
+        if tuple(value.shape) != held:
+            raise ModelFileError(mf.path, f"weight {key}: its config asks for {tuple(value.shape)}, the file holds "
+                                          f"{held}")
+
+
+def _build_checked(mf: ModelFile) -> AudioCurveModel:
+    """The model the file's configs describe, built only once its weights' names and shapes are those the configs
+    ask for (compared on a skeleton on the meta device, which allocates nothing): a config cannot make loading
+    allocate more than the file holds, besides the feature tables (MAX_FEATURE_TABLE_VALUES) and a Whisper
+    encoder, which comes from its own source."""
+    fcfg = mf.feature_config
+    if fcfg.kind == "wav2vec2":
+        build_features = _wav2vec2_features(mf)
+    else:
+        if fcfg.kind != "whisper" and _feature_table_values(fcfg) > MAX_FEATURE_TABLE_VALUES:
+            raise ModelFileError(mf.path, f"its feature config (n_mels={fcfg.n_mels}, a {fcfg.win_length}-sample "
+                                          f"window) asks for feature tables of {_feature_table_values(fcfg):,} "
+                                          f"values; a model may ask for at most {MAX_FEATURE_TABLE_VALUES:,}")
+        features = build_feature_extractor(fcfg)  # parameter-free or frozen: nothing of it is built from the file
+
+        def build_features() -> nn.Module:
+            return features
+    try:
+        with torch.device("meta"):
+            skeleton = _assemble(mf.config, build_features(), mf.curve_fps)
+    except (ValueError, AssertionError) as exc:  # e.g. an odd BLSTM width, heads that do not divide d_model
+        raise ModelFileError(mf.path, f"its config does not build a model: {_one_line(exc)}") from exc
+    _check_weights_fit(mf, skeleton)
+    return _assemble(mf.config, build_features(), mf.curve_fps)
 
 
 def load_model(
     path: str | Path, device: str | torch.device | None = None
 ) -> tuple[AudioCurveModel, TrainConfig, dict[str, Any]]:
     """Inverse of :func:`save_model` (``torch.load(weights_only=True, map_location="cpu")``, so a file written
-    from a GPU loads anywhere); the model is in eval mode, on ``device`` (default: the CPU)."""
-    blob = torch.load(Path(path), map_location="cpu", weights_only=True)
-    if not isinstance(blob, dict) or blob.get("format") != _MODEL_FORMAT:
-        raise ValueError(f"{path} is not a saved visemeflow curve model")
-    config = TrainConfig.model_validate_json(blob["config"])
-    fcfg = FeatureConfig.model_validate_json(blob["feature_config"])
-    if blob["wav2vec2_config"] is not None:
-        from transformers import Wav2Vec2Config, Wav2Vec2Model
+    from a GPU loads anywhere); the model is in eval mode, on ``device`` (default: the CPU).
 
-        w2v = Wav2Vec2Model(Wav2Vec2Config.from_dict(json.loads(blob["wav2vec2_config"])))
-        features: nn.Module = Wav2Vec2Extractor(fcfg, model=w2v)
-    else:
-        features = build_feature_extractor(fcfg)
-    model = _assemble(config, features, float(blob["curve_fps"]))
-    model.load_state_dict(blob["state_dict"])
+    :class:`ModelFileError` (naming the file and why) for anything that is not a model file of this version, before
+    the model is built (:func:`read_model_file`, then the weights' names and shapes against the configs)."""
+    mf = read_model_file(path)
+    model = _build_checked(mf)
+    model.load_state_dict(mf.state_dict)
     if device is not None:
         model.to(resolve_device(device))
     model.eval()
-    return model, config, json.loads(blob["lineage"])
+    return model, mf.config, mf.lineage
