@@ -5,7 +5,7 @@ Run:  .venv/bin/python bench/orchestration.py [--workers 2] [--keep DIR]
 It prints one table (metric, value, target, met?) and asserts nothing. The rendered demo corpus
 `visemeflow-out/demo-corpus` is used (rendered first with `visemeflow synth examples/corpus` when missing:
 25 utterances with video). A local Prefect server is started first (`visemeflow.ops.serve.ensure_server`,
-database in a temporary PREFECT_HOME) unless PREFECT_API_URL names one; its start-up is not timed.
+database in the work folder) unless PREFECT_API_URL names one; its start-up is not timed.
 
 (a) Overhead. `pipeline_flow` runs cold (a new store: ingest, procedural, tracking of the 25 videos, Prefect's
     default thread pool). Its wall time (the call, in this process) is compared with its tasks' run time as the
@@ -285,7 +285,7 @@ def main() -> None:
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="visemeflow-bench-orchestration-"))
     work.mkdir(parents=True, exist_ok=True)
-    # before Prefect is imported: a throw-away database for the server started below, no analytics
+    # before Prefect is imported: a throw-away Prefect home, no analytics
     os.environ.setdefault("PREFECT_HOME", str(work / "prefect-home"))
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
@@ -294,8 +294,8 @@ def main() -> None:
     corpus = ensure_demo_corpus(work)
     load_before = os.getloadavg()
     try:
-        with ensure_server(free_port()) as api_url:
-            print(f"Prefect API {api_url}; pipeline (cold)...", flush=True)
+        with ensure_server(work / "prefect-server", free_port()) as api:
+            print(f"Prefect API {api.url}; pipeline (cold)...", flush=True)
             pipeline = bench_pipeline(corpus, work / "store")
             tracking = bench_tracking(work / "store", work, args.workers, max(1, args.repeat), args.max_load)
         equal = tracked_stores_equal(tracking)

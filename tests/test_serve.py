@@ -2,15 +2,30 @@
 
 import importlib
 import os
+import re
 import socket
+import stat
 
+import httpx
 import pytest
 import yaml
 from factories import REPO
-from prefect.settings import PREFECT_API_URL, temporary_settings
+from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
 from visemeflow.ops import serve as serve_module
-from visemeflow.ops.serve import api_healthy, build_deployments, ensure_server
+from visemeflow.ops.serve import (
+    AUTH_FILE,
+    ROOTS_ENV,
+    SERVE_DIR,
+    PathOutsideRootsError,
+    ServerStartError,
+    api_healthy,
+    build_deployments,
+    check_paths_within,
+    ensure_server,
+    home_lock,
+    server_environment,
+)
 
 STAGES = ("pipeline", "ingest", "procedural", "landmarks", "track", "train", "sweep", "evaluate", "predict", "import_curves",
           "animate", "speak", "preview", "rerun")
@@ -105,19 +120,117 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def test_the_server_serve_starts_has_its_own_home_auth_csrf_and_cors_for_its_ui_only(tmp_path, monkeypatch):
+    """The settings are read back through Prefect itself, so a misspelt name (silently ignored) fails here."""
+    from prefect.settings import Settings
+
+    for name, value in server_environment(tmp_path / "home", 4321, "visemeflow:s3cret").items():
+        monkeypatch.setenv(name, value)
+    settings = Settings()
+    assert settings.home == tmp_path / "home"
+    assert settings.server.api.auth_string.get_secret_value() == "visemeflow:s3cret"
+    assert settings.server.api.csrf_protection_enabled is True
+    assert settings.server.api.cors_allowed_origins == "http://127.0.0.1:4321,http://localhost:4321"
+    assert "*" not in settings.server.api.cors_allowed_methods + settings.server.api.cors_allowed_headers
+    assert settings.server.ui.api_url == "http://127.0.0.1:4321/api"
+
+
+def test_a_second_serve_of_one_store_is_refused_not_sharing_its_database(tmp_path, monkeypatch):
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    home = tmp_path / "store" / SERVE_DIR
+    home.mkdir(parents=True)
+    with temporary_settings(restore_defaults={PREFECT_API_URL}), home_lock(home):
+        with pytest.raises(ServerStartError, match=rf"another `visemeflow serve` \(pid {os.getpid()}\) runs on"):
+            with ensure_server(home, free_port()):
+                pytest.fail("a second server started on the same Prefect database")
+
+
+def test_a_port_in_use_is_refused_not_shared(tmp_path, monkeypatch):
+    """Another serve's server there holds that serve's deployments: using it would re-point them."""
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    with socket.socket() as busy, temporary_settings(restore_defaults={PREFECT_API_URL}):
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(ServerStartError, match=f"port {port} on 127.0.0.1 is in use"):
+            with ensure_server(tmp_path / "home", port):
+                pytest.fail("serve used the server on a port it did not start")
+    assert not (tmp_path / "home").exists()
+
+
+def test_served_flow_runs_name_paths_under_the_roots_only(tmp_path):
+    from visemeflow.flows.predict import PredictParams
+    from visemeflow.rig import demo_rig_path
+
+    root, elsewhere = tmp_path / "root", tmp_path / "elsewhere"
+    (root / "audio").mkdir(parents=True)
+    elsewhere.mkdir()
+    (root / "audio" / "link.wav").symlink_to(elsewhere / "secret.wav")
+    inside = PredictParams(store=root / "store", audio=[root / "audio" / "a.wav"], out=root / "out")
+    check_paths_within({"params": inside}, [root])
+    check_paths_within({"character": demo_rig_path()}, [root])  # the shipped demo rig, every character's default
+    for params, name in ((PredictParams(store=root / "store", audio=[root / "audio" / "a.wav", elsewhere / "b.wav"]),
+                          "params.audio[1]"),
+                         (PredictParams(store=root / "store", audio=[root / "audio" / "link.wav"]), "params.audio[0]"),
+                         (PredictParams(store=root / ".." / "elsewhere", audio=[root / "a.wav"]), "params.store")):
+        with pytest.raises(PathOutsideRootsError, match=rf"flow parameter {re.escape(name)} = .* is outside the "
+                                                        rf"folders `visemeflow serve` was started with \({root}\)"):
+            check_paths_within({"params": params}, [root])
+    with pytest.raises(PathOutsideRootsError, match=ROOTS_ENV):
+        check_paths_within({"params": inside}, [])
+
+
+def test_model_sources_given_as_strings_are_checked_when_they_name_a_local_folder(tmp_path):
+    """`wav2vec2_model` and `whisper_source` take a local folder or a hub id: a folder is a path like any other."""
+    from visemeflow.flows.params import TrainParams
+    from visemeflow.learning.train import TrainConfig
+
+    root = tmp_path / "root"
+    hub = TrainParams(store=root / "store", config=TrainConfig(preset="wav2vec2-blstm", wav2vec2_model="org/model"))
+    check_paths_within({"params": hub}, [root])
+    local = TrainConfig(preset="wav2vec2-blstm", wav2vec2_model=str(tmp_path / "weights"))
+    with pytest.raises(PathOutsideRootsError, match=r"params\.config\.wav2vec2_model = "):
+        check_paths_within({"params": TrainParams(store=root / "store", config=local)}, [root])
+
+
+def test_the_served_entrypoints_check_their_paths_before_the_stage_runs(tmp_path, monkeypatch):
+    """Prefect's engine imports a served run's flow from its deployment's entrypoint: that flow is the confined one,
+    with the stage's own form."""
+    from prefect.flows import load_flow_from_entrypoint
+
+    outside = tmp_path / "elsewhere" / "store"
+    monkeypatch.setenv(ROOTS_ENV, str(tmp_path / "root"))
+    for deployment in build_deployments(tmp_path / "root" / "store", None):
+        module, name = deployment.entrypoint.rsplit(".", 1)
+        served = load_flow_from_entrypoint(deployment.entrypoint)
+        stage = getattr(importlib.import_module(serve_module.SERVED_FLOWS[name]), name)
+        assert module == "visemeflow.ops.serve" and served.fn is not stage.fn
+        assert served.name == stage.name == deployment.flow_name and served.parameters == stage.parameters
+    procedural = load_flow_from_entrypoint("visemeflow.ops.serve.procedural_flow")
+    with pytest.raises(PathOutsideRootsError, match=str(outside)):
+        procedural.fn(**procedural.validate_parameters({"params": {"store": str(outside)}}))
+    assert not outside.exists()
+
+
 @pytest.mark.server
 def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_path, monkeypatch):
     from prefect.client.orchestration import get_client
 
     port = free_port()
-    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect-home"))  # the server's database goes there
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect-home"))  # this process's, not the server's
     monkeypatch.delenv("PREFECT_API_URL", raising=False)
-    corpus = tmp_path / "corpus"
+    monkeypatch.delenv("PREFECT_API_AUTH_STRING", raising=False)
+    corpus, home = tmp_path / "corpus", tmp_path / "store" / SERVE_DIR
     corpus.mkdir()
-    with temporary_settings(restore_defaults={PREFECT_API_URL}):
-        with ensure_server(port) as api_url:
+    with temporary_settings(restore_defaults={PREFECT_API_URL, PREFECT_API_AUTH_STRING}):
+        with ensure_server(home, port) as api:
+            api_url = api.url
             assert api_url == f"http://127.0.0.1:{port}/api" and api_healthy(api_url)
             assert os.environ["PREFECT_API_URL"] == api_url and PREFECT_API_URL.value() == api_url
+            auth = api.auth_file.read_text()
+            assert api.auth_file == home / AUTH_FILE and stat.S_IMODE(api.auth_file.stat().st_mode) == 0o600
+            assert os.environ["PREFECT_API_AUTH_STRING"] == auth == PREFECT_API_AUTH_STRING.value()
+            assert httpx.get(f"{api_url}/deployments/count").status_code == 401  # without the auth string
             for deployment in build_deployments(tmp_path / "store", corpus):
                 deployment.apply()
             with get_client(sync_client=True) as client:
@@ -125,6 +238,9 @@ def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_p
                 pipeline = client.read_deployment_by_name("pipeline/served")
         assert not api_healthy(api_url)
         assert "PREFECT_API_URL" not in os.environ and not PREFECT_API_URL.value()
+        assert "PREFECT_API_AUTH_STRING" not in os.environ
+    assert (home / "prefect.db").is_file()  # the server's own database, not the one in PREFECT_HOME
+    assert not (tmp_path / "prefect-home" / "prefect.db").exists()
     form = rerun.parameter_openapi_schema["definitions"]["RerunParams"]["properties"]
     assert {"utterance_id", "stage", "force"} <= set(form)
     assert [s.schedule.cron for s in pipeline.schedules] == [serve_module.DEFAULT_CRON]

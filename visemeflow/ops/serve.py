@@ -1,24 +1,39 @@
-"""`visemeflow serve`: a local Prefect server when none is configured, and a deployment of every stage.
+"""`visemeflow serve`: a locked-down local Prefect server when none is configured, and a deployment of every stage.
 
 The `pipeline` deployment runs on a cron schedule; since every stage caches on content hashes, a scheduled run
 reprocesses only what changed. The other stages and `rerun` (one utterance, one stage) are deployments without a
 schedule, run from the UI's forms (flow parameters are pydantic models) or `prefect deployment run`.
+
+The server `serve` starts answers only callers holding its auth string, asks every change for a CSRF token, and
+allows cross-origin calls from its own UI only. Its database, log and auth string live in `<store>/.prefect-serve/`
+(mode 0700): two serves never share a database, and a second serve of one store is refused. A served flow run may
+name paths only under the folders `serve` was started with.
 """
 
+import ctypes
+import fcntl
+import functools
+import importlib
+import inspect
 import os
+import secrets
 import signal
+import socket
+import stat
 import subprocess
 import sys
-import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from pathlib import Path
+from dataclasses import dataclass
+from pathlib import Path, PurePath
 
 import httpx
+from prefect import Flow
 from prefect.deployments.runner import EntrypointType, RunnerDeployment
-from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+from pydantic import BaseModel
 
 from visemeflow.storage import Store
 
@@ -26,10 +41,44 @@ DEFAULT_CRON = "0 3 * * *"
 DEFAULT_PORT = 4200
 DEPLOYMENT = "served"
 TAGS = ["visemeflow"]
+SERVE_DIR = ".prefect-serve"
+AUTH_FILE = "auth-string"
+LOG_FILE = "server.log"
+LOCK_FILE = "serve.lock"
+ROOTS_ENV = "VISEMEFLOW_SERVE_ROOTS"
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+# What the UI sends (prefect/server/ui assets); cross-origin only from the UI's own origin.
+CORS_METHODS = "GET,POST,PUT,PATCH,DELETE"
+CORS_HEADERS = "Authorization,Content-Type,X-Prefect-UI,Prefect-Csrf-Token,Prefect-Csrf-Client,Prefect-Csrf-Retry-Count"
+
+# String fields naming a local folder or else a hub id (TrainConfig): checked as paths when they name a local one.
+PATH_OR_NAME = frozenset({"wav2vec2_model", "whisper_source"})
+
+# The served deployments' entrypoints: `visemeflow.ops.serve.<name>` (see `__getattr__`), module of each stage's flow.
+SERVED_FLOWS = {
+    "pipeline_flow": "visemeflow.flows.pipeline",
+    "ingest_flow": "visemeflow.flows.ingest",
+    "procedural_flow": "visemeflow.flows.procedural",
+    "landmarks_flow": "visemeflow.flows.landmarks",
+    "track_flow": "visemeflow.flows.track",
+    "train_flow": "visemeflow.flows.train",
+    "sweep_flow": "visemeflow.flows.sweep",
+    "evaluate_flow": "visemeflow.flows.evaluate",
+    "predict_flow": "visemeflow.flows.predict",
+    "import_curves_flow": "visemeflow.flows.import_curves",
+    "animate_flow": "visemeflow.flows.animate",
+    "speak_flow": "visemeflow.flows.animate",
+    "preview_flow": "visemeflow.flows.animate",
+    "rerun_flow": "visemeflow.flows.rerun",
+}
 
 
 class ServerStartError(RuntimeError):
-    """The local Prefect server did not answer its health check; the message quotes its log."""
+    """The local Prefect server was not started, or did not answer its health check; the message says why."""
+
+
+class PathOutsideRootsError(ValueError):
+    """A served flow run names a path outside the folders `visemeflow serve` was started with."""
 
 
 def last_ingested_corpus(store: Path) -> Path | None:
@@ -38,64 +87,141 @@ def last_ingested_corpus(store: Path) -> Path | None:
     return Path(run["corpus"]) if run and run.get("corpus") else None
 
 
+def serve_roots(store: Path, corpus: Path | None, extra: Sequence[Path] = ()) -> list[Path]:
+    """The folders served flow runs may name paths under: the store, the corpus (a manifest's folder) and `extra`."""
+    folders = [store, *extra]
+    if corpus is not None:
+        folders.append(corpus.parent if corpus.is_file() else corpus)
+    return sorted({folder.resolve() for folder in folders})
+
+
+def roots_from_environment() -> list[Path]:
+    return [Path(p) for p in os.environ.get(ROOTS_ENV, "").split(os.pathsep) if p]
+
+
+@contextmanager
+def using_roots(roots: Sequence[Path]) -> Iterator[None]:
+    """Served flow runs (processes this one starts) may name paths under `roots` only."""
+    with _environment({ROOTS_ENV: os.pathsep.join(map(str, roots))}):
+        yield
+
+
+def paths_in(value: object, name: str) -> Iterator[tuple[str, Path]]:
+    """Every path inside a parameter value (pydantic models, lists, dicts), with where it sits (`params.store`)."""
+    if isinstance(value, PurePath):
+        yield name, Path(value)
+    elif isinstance(value, BaseModel):
+        for field in type(value).model_fields:
+            item = getattr(value, field)
+            if field in PATH_OR_NAME and isinstance(item, str) and _local_path(item):
+                yield f"{name}.{field}", Path(item).expanduser()
+            else:
+                yield from paths_in(item, f"{name}.{field}")
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            yield from paths_in(item, f"{name}[{key!r}]")
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        for i, item in enumerate(value):
+            yield from paths_in(item, f"{name}[{i}]")
+
+
+def _local_path(text: str) -> bool:
+    return text.startswith(("/", "~", ".")) or Path(text).expanduser().exists()
+
+
+def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Path]) -> None:
+    """PathOutsideRootsError for the first path parameter outside `roots` (the shipped demo rig is always allowed)."""
+    from visemeflow.rig import demo_rig_path
+
+    shipped = {demo_rig_path().resolve()}
+    for name, path in (found for key, value in parameters.items() for found in paths_in(value, key)):
+        resolved = path.resolve()  # through links: a link inside a root to a file elsewhere is elsewhere
+        if resolved in shipped or any(resolved.is_relative_to(root) for root in roots):
+            continue
+        allowed = ", ".join(map(str, roots)) or f"none, {ROOTS_ENV} is not set: these entrypoints run under `serve`"
+        shown = path if resolved == path else f"{path} (resolved {resolved})"
+        raise PathOutsideRootsError(
+            f"flow parameter {name} = {shown} is outside the folders `visemeflow serve` was started with "
+            f"({allowed}); restart serve with `--root FOLDER` to allow another folder")
+
+
+def confined(flow: Flow) -> Flow:
+    """A copy of `flow`, importable from this module, that checks its path parameters against ROOTS_ENV before it
+    runs a line of the stage."""
+    fn = flow.fn
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def checked(*args, **kwargs):
+        check_paths_within(signature.bind(*args, **kwargs).arguments, roots_from_environment())
+        return fn(*args, **kwargs)
+
+    # Prefect validates parameters against this signature; some stages' annotations are strings of their module
+    checked.__signature__ = inspect.signature(fn, eval_str=True)
+    copy = flow.with_options()
+    copy.fn = checked
+    copy.__module__ = __name__  # the deployment's entrypoint, so a run started from the database is confined too
+    return copy
+
+
+@functools.cache
+def served_flow(name: str) -> Flow:
+    """The confined copy of a stage's flow, by the name of the flow object (`procedural_flow`)."""
+    return confined(getattr(importlib.import_module(SERVED_FLOWS[name]), name))
+
+
+def __getattr__(name: str) -> Flow:
+    """`visemeflow.ops.serve.procedural_flow` and the like: the entrypoints Prefect's engine imports for a served run."""
+    if name in SERVED_FLOWS:
+        return served_flow(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def build_deployments(
     store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
 ) -> list[RunnerDeployment]:
     """Deployments of `pipeline` (on `cron` in `timezone`), of each stage, `predict`, `speak`, `preview` and `rerun`; the store is their
-    default.
+    default. Each runs the stage confined to the folders `serve` allows (`confined`).
 
     Without `corpus`, the pipeline and ingest deployments default to the corpus the store last ingested; with
     neither, they have no default corpus and the pipeline no schedule (a run would have nothing to read).
     """
     from prefect.schedules import Cron
 
-    from visemeflow.flows.animate import animate_flow, preview_flow, speak_flow
-    from visemeflow.flows.evaluate import evaluate_flow
-    from visemeflow.flows.import_curves import import_curves_flow
-    from visemeflow.flows.ingest import ingest_flow
-    from visemeflow.flows.landmarks import landmarks_flow
-    from visemeflow.flows.pipeline import pipeline_flow
-    from visemeflow.flows.predict import predict_flow
-    from visemeflow.flows.procedural import procedural_flow
-    from visemeflow.flows.rerun import rerun_flow
-    from visemeflow.flows.sweep import sweep_flow
-    from visemeflow.flows.track import track_flow
-    from visemeflow.flows.train import train_flow
-
     store = store.resolve()
     corpus = corpus.resolve() if corpus else last_ingested_corpus(store)
     on_store = {"params": {"store": str(store)}}
     on_corpus = {"params": {"store": str(store), "corpus": str(corpus)}} if corpus else on_store
 
-    def deployment(flow, parameters: dict, **kwargs) -> RunnerDeployment:
-        return flow.to_deployment(
+    def deployment(name: str, parameters: dict, **kwargs) -> RunnerDeployment:
+        return served_flow(name).to_deployment(
             DEPLOYMENT, parameters=parameters, tags=TAGS, entrypoint_type=EntrypointType.MODULE_PATH, **kwargs
         )
 
     return [
-        deployment(pipeline_flow, on_corpus, schedule=Cron(cron, timezone=timezone) if corpus and cron else None,
+        deployment("pipeline_flow", on_corpus, schedule=Cron(cron, timezone=timezone) if corpus and cron else None,
                    concurrency_limit=1, description="Every stage on the corpus; unchanged utterances are cache hits."),
-        deployment(ingest_flow, on_corpus),
-        deployment(procedural_flow, on_store),
-        deployment(landmarks_flow, on_store,
+        deployment("ingest_flow", on_corpus),
+        deployment("procedural_flow", on_store),
+        deployment("landmarks_flow", on_store,
                    description="MediaPipe FaceMesh landmarks of every video without a landmark file."),
-        deployment(track_flow, on_store),
-        deployment(train_flow, on_store),
-        deployment(sweep_flow, on_store),
-        deployment(evaluate_flow, on_store,
+        deployment("track_flow", on_store),
+        deployment("train_flow", on_store),
+        deployment("sweep_flow", on_store),
+        deployment("evaluate_flow", on_store,
                    description="Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
-        deployment(predict_flow, on_store,
+        deployment("predict_flow", on_store,
                    description="Curves of new audio files from a trained model (the form asks for model and files)."),
-        deployment(import_curves_flow, on_store,
+        deployment("import_curves_flow", on_store,
                    description="Captured animation (Live Link CSV, channel files) as `captured` curves of real speech."),
-        deployment(animate_flow, on_store,
+        deployment("animate_flow", on_store,
                    description="Stored curves on characters: GLB, USD, Live Link CSV, web JSON and the audio."),
-        deployment(speak_flow, on_store,
+        deployment("speak_flow", on_store,
                    description="Audio files to talking characters: predict, then animate (the form asks for model, "
                                "files and characters)."),
-        deployment(preview_flow, on_store,
+        deployment("preview_flow", on_store,
                    description="One utterance's preview MP4: the character driven by each source side by side."),
-        deployment(rerun_flow, on_store,
+        deployment("rerun_flow", on_store,
                    description="One utterance through one stage (ingest, procedural, track, animate), even when cached."),
     ]
 
@@ -116,50 +242,175 @@ def api_healthy(api_url: str) -> bool:
 
 
 @contextmanager
-def using_api(api_url: str) -> Iterator[str]:
-    """This process and the processes it starts (served flow runs, Dask workers) talk to `api_url`."""
-    before = os.environ.get("PREFECT_API_URL")
-    os.environ["PREFECT_API_URL"] = api_url
+def _environment(values: Mapping[str, str]) -> Iterator[None]:
+    before = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
     try:
-        with temporary_settings(updates={PREFECT_API_URL: api_url}):
-            yield api_url
+        yield
     finally:
-        if before is None:
-            os.environ.pop("PREFECT_API_URL", None)
-        else:
-            os.environ["PREFECT_API_URL"] = before
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 @contextmanager
-def ensure_server(port: int = DEFAULT_PORT, timeout_s: float = 180.0) -> Iterator[str]:
-    """The configured Prefect API; else `prefect server start` on 127.0.0.1:`port` for the block. Yields the API URL.
-
-    A server already answering on that port (started by hand) is used as it is and left running.
-    """
-    configured = PREFECT_API_URL.value()
-    if configured:
-        yield str(configured)
-        return
-    api_url = f"http://127.0.0.1:{port}/api"
-    if api_healthy(api_url):
-        with using_api(api_url):
+def using_api(api_url: str, auth_string: str) -> Iterator[str]:
+    """This process and the processes it starts (served flow runs, Dask workers) talk to `api_url` with its auth
+    string."""
+    with _environment({"PREFECT_API_URL": api_url, "PREFECT_API_AUTH_STRING": auth_string}):
+        with temporary_settings(updates={PREFECT_API_URL: api_url, PREFECT_API_AUTH_STRING: auth_string}):
             yield api_url
-        return
-    log = Path(tempfile.gettempdir()) / f"visemeflow-prefect-server-{port}.log"
-    with log.open("wb") as out:
-        # its own session, so stopping it also stops the web server process it starts
+
+
+@dataclass(frozen=True)
+class ServedApi:
+    """The API serve's processes talk to; `log` and `auth_file` are set for a server serve started itself."""
+
+    url: str
+    log: Path | None = None
+    auth_file: Path | None = None  # none either when PREFECT_API_AUTH_STRING gave the auth string
+
+
+def server_environment(home: Path, port: int, auth_string: str, ui_api_url: str | None = None) -> dict[str, str]:
+    """Settings of the server serve starts: its own Prefect home, basic auth, CSRF tokens, CORS for its UI only.
+
+    `ui_api_url`: the API address the UI calls when it is not this machine's (a reverse proxy's `https://host/api`).
+    """
+    origins = f"http://127.0.0.1:{port},http://localhost:{port}"
+    return {
+        "PREFECT_HOME": str(home),
+        # the UI is served with the API address it calls; without this it calls port 4200 whatever `port` is
+        "PREFECT_SERVER_UI_API_URL": ui_api_url or f"http://127.0.0.1:{port}/api",
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "PREFECT_SERVER_API_AUTH_STRING": auth_string,
+        "PREFECT_SERVER_API_CSRF_PROTECTION_ENABLED": "true",
+        "PREFECT_SERVER_API_CORS_ALLOWED_ORIGINS": origins,
+        "PREFECT_SERVER_API_CORS_ALLOWED_METHODS": CORS_METHODS,
+        "PREFECT_SERVER_API_CORS_ALLOWED_HEADERS": CORS_HEADERS,
+    }
+
+
+def port_in_use(port: int) -> bool:
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: TIME_WAIT leaves it free
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
+def private_folder(folder: Path) -> Path:
+    """`folder`, made with mode 0700 or checked: a real folder of this user (no link), that only this user enters."""
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = os.lstat(folder)
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+        raise ServerStartError(f"{folder} must be a folder of this user, not a link or another user's: serve keeps "
+                               "its Prefect database, log and auth string there")
+    os.chmod(folder, 0o700)
+    return folder
+
+
+def write_private(path: Path, text: str) -> Path:
+    """`text` in a new file of mode 0600 replacing `path` (a link there is replaced, never followed)."""
+    temporary = path.with_name(f".{path.name}.{secrets.token_hex(8)}")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(text)
+    os.replace(temporary, path)
+    return path
+
+
+@contextmanager
+def home_lock(home: Path) -> Iterator[None]:
+    """Held while a serve runs on `home`: a second serve there would share its database and re-point its
+    deployments (the scheduled pipeline included) at its own store."""
+    fd = os.open(home / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise ServerStartError(
+                f"another `visemeflow serve` (pid {holder}) runs on this store: its Prefect database in {home} holds "
+                "that serve's deployments, which a second serve would re-point; stop it first, or serve another "
+                "store") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _dies_with_parent() -> Callable[[], None] | None:
+    """A preexec_fn asking Linux to SIGKILL the child when this thread's process dies, even by kill -9."""
+    if sys.platform != "linux":
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up before the fork: the child only calls it
+    parent = os.getpid()
+
+    def preexec() -> None:
+        if prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL)) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+        if os.getppid() != parent:  # serve died before the request took effect: nobody would stop this server
+            os._exit(1)
+
+    return preexec
+
+
+def start_server(home: Path, port: int, auth_string: str) -> tuple[subprocess.Popen, Path]:
+    """`prefect server start` on 127.0.0.1:`port`, locked down, logging to `home`/server.log; killed with this
+    process. The caller's thread must outlive the server: Linux sends the signal when the forking thread ends."""
+    log = home / LOG_FILE
+    ui_api_url = os.environ.get("PREFECT_SERVER_UI_API_URL") or os.environ.get("PREFECT_UI_API_URL")
+    log.unlink(missing_ok=True)
+    out = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    try:
+        # its own session, so Ctrl-C in the terminal reaches serve, which stops the server in order
         process = subprocess.Popen(
             [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
             stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-            # the UI is served with the API address it calls; without this it calls port 4200 whatever `port` is
-            env={**os.environ, "PREFECT_UI_API_URL": api_url, "PREFECT_SERVER_ANALYTICS_ENABLED": "false"},
+            env={**os.environ, **server_environment(home, port, auth_string, ui_api_url)},
+            preexec_fn=_dies_with_parent(),
         )
-    try:
-        wait_until_healthy(api_url, process, log, timeout_s)
-        with using_api(api_url):
-            yield api_url
     finally:
-        stop_server(process)
+        os.close(out)
+    return process, log
+
+
+@contextmanager
+def ensure_server(home: Path, port: int = DEFAULT_PORT, timeout_s: float = 180.0) -> Iterator[ServedApi]:
+    """The configured Prefect API; else a locked-down `prefect server start` on 127.0.0.1:`port` for the block, its
+    database, log and auth string in `home` (PREFECT_API_AUTH_STRING, else a new random one).
+
+    A port already in use is refused rather than shared: another serve's server there holds its own deployments.
+    """
+    configured = PREFECT_API_URL.value()
+    if configured:
+        yield ServedApi(str(configured))
+        return
+    api_url = f"http://127.0.0.1:{port}/api"
+    if port_in_use(port):
+        raise ServerStartError(f"port {port} on 127.0.0.1 is in use (another `visemeflow serve`?); choose another "
+                               "--port, or set PREFECT_API_URL and PREFECT_API_AUTH_STRING to use the server there")
+    home = private_folder(home)
+    with home_lock(home):
+        given = PREFECT_API_AUTH_STRING.value()
+        if given:
+            auth_string, auth_file = given, None
+            (home / AUTH_FILE).unlink(missing_ok=True)  # an earlier serve's would no longer let anyone in
+        else:
+            auth_string = f"visemeflow:{secrets.token_urlsafe(32)}"
+            auth_file = write_private(home / AUTH_FILE, auth_string)
+        process, log = start_server(home, port, auth_string)
+        try:
+            wait_until_healthy(api_url, process, log, timeout_s)
+            with using_api(api_url, auth_string):
+                yield ServedApi(api_url, log, auth_file)
+        finally:
+            stop_server(process)
 
 
 def wait_until_healthy(api_url: str, process: subprocess.Popen, log: Path, timeout_s: float) -> None:
@@ -200,8 +451,9 @@ def _tail(log: Path, lines: int = 30) -> str:
 
 
 def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
-                 port: int = DEFAULT_PORT, echo=print) -> None:
-    """Serve every deployment until interrupted, with a local server unless PREFECT_API_URL names one."""
+                 port: int = DEFAULT_PORT, echo=print, roots: Sequence[Path] = ()) -> None:
+    """Serve every deployment until interrupted, with a local server unless PREFECT_API_URL names one; flow runs may
+    name paths under the store, the corpus and `roots` only."""
     from prefect import serve
 
     def stop(signum: int, frame: object) -> None:  # systemd and `kill` stop with SIGTERM: leave like Ctrl-C does
@@ -209,10 +461,18 @@ def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CR
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, stop)  # until Prefect's runner installs its own, which also exits
-    with ensure_server(port) as api_url:
+    store = store.resolve()
+    corpus = corpus.resolve() if corpus else last_ingested_corpus(store)
+    allowed = serve_roots(store, corpus, roots)
+    with ensure_server(store / SERVE_DIR, port) as api, using_roots(allowed):
         deployments = build_deployments(store, corpus, cron, timezone)
         pipeline = deployments[0]
-        echo(f"Prefect UI: {ui_url(api_url)}  (API {api_url})")
+        echo(f"Prefect UI: {ui_url(api.url)}  (API {api.url})")
+        if api.log:
+            echo(f"server log: {api.log}")
+            echo(f"UI login: the auth string in {api.auth_file} (new at every start)" if api.auth_file
+                 else "UI login: the auth string in PREFECT_API_AUTH_STRING")
+        echo("flow runs may name paths under: " + ", ".join(map(str, allowed)))
         if pipeline.schedules:
             echo(f"pipeline on {pipeline.parameters['params']['corpus']}: cron '{cron}' ({timezone})")
         else:
