@@ -252,3 +252,74 @@ def test_preview_and_bone_mode_packages_show_bones_beside_blendshapes(tmp_path, 
     assert len(solves) == 1
     with pytest.raises(ValueError, match="mode"):
         PreviewParams(store=store.root, utterance_id="spk/u0", mode="skeleton")
+
+
+@pytest.fixture
+def two_named_good(tmp_path):
+    """c1/good.glb (ARKit shapes) and c2/good.glb (Oculus shapes): one file name, two characters."""
+    paths = []
+    for folder, names, seed in (("c1", list(ARKIT_52), 0), ("c2", list(OCULUS_15), 1)):
+        path = tmp_path / folder / "good.glb"
+        write_glb(path, tiny_character(names, seed=seed, name=folder), np.zeros((1, len(names)), np.float32), 30.0)
+        paths.append(path)
+    return paths
+
+
+def _glb_shapes(report) -> list[str]:
+    return list(load_character(report["files"]["glb"]).shape_names)
+
+
+def test_characters_of_one_file_name_in_different_folders_each_get_their_own_packages(tmp_path, two_named_good):
+    store = make_curve_store(tmp_path / "store", n=1)
+    result = animate_flow(AnimateParams(store=store.root, characters=two_named_good, source="ground_truth",
+                                        config=AnimateConfig(formats=("glb",))))
+    assert result["written"] == 2 and result["rejected"] == 0
+    folders = {r["folder"] for r in result["packages_written"]}
+    assert len(folders) == 2 and all(Path(f).parts[-3].startswith("good-") for f in folders)
+    assert sorted(len(_glb_shapes(r)) for r in result["packages_written"]) == [len(OCULUS_15), len(ARKIT_52)]
+    # the same batch again: all hits, the same folders
+    again = animate_flow(AnimateParams(store=store.root, characters=two_named_good, source="ground_truth",
+                                       config=AnimateConfig(formats=("glb",))))
+    assert again["cached"] == 2 and {r["folder"] for r in again["packages_written"]} == folders
+
+
+def test_a_cache_hit_never_serves_a_package_another_character_wrote(tmp_path, two_named_good):
+    store = make_curve_store(tmp_path / "store", n=1)
+    arkit, oculus = two_named_good
+
+    def run(character):
+        (report,) = animate_flow(AnimateParams(store=store.root, characters=[character], source="ground_truth",
+                                               config=AnimateConfig(formats=("glb",))))["packages_written"]
+        return report
+
+    assert _glb_shapes(run(arkit)) == list(ARKIT_52)
+    assert _glb_shapes(run(oculus)) == list(OCULUS_15)   # same folder animations/good/...: replaced
+    again = run(arkit)
+    assert not again["cached"] and _glb_shapes(again) == list(ARKIT_52)
+    assert run(arkit)["cached"]
+
+
+def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, characters):
+    store = Store(tmp_path / "store")
+    tiny_model(store)
+    text = tmp_path / "notes.wav"
+    text.write_text("not audio")
+    result = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[text, AUDIO], characters=[characters[0]],
+                                    out=tmp_path / "out", config=AnimateConfig(formats=("glb",))))
+    (report,) = result["packages_written"]
+    assert report["utterance_id"] == "predict/SSB16240001" and Path(report["files"]["glb"]).is_file()
+    assert result["audio_rejected"] == 1 and result["rejected"] == 0
+    assert [r["audio"] for r in result["rejects"]] == [str(text)]
+    (row,) = store.read_table("rejects", "predict").to_pylist()
+    assert row[C.PATH] == str(text) and row[C.ERROR_TYPE] == "UnreadableAudio"
+
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+
+    done = CliRunner().invoke(app, ["speak", str(text), str(AUDIO), "--model", "tiny", "--store", str(store.root),
+                                    "--character", str(characters[0]), "--format", "glb", "--out",
+                                    str(tmp_path / "out")])
+    assert done.exit_code == 1, done.output
+    assert "speak: packages 1, written 0, cached 1, rejected 0" in done.output and "audio_rejected 1" in done.output
+    assert f"rejected {text}: " in done.output

@@ -455,3 +455,40 @@ def test_evaluate_flow_installs_the_shipped_models_it_is_asked_for(tmp_path):
     (row,) = result["table"]
     assert row["model"] == "default-fbank" and row["group"] == "features, BLSTM decoder (Table 1)"
     assert np.isfinite(row["validation"])
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_bad_model_is_a_reject_and_the_others_are_judged(tmp_path):
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+    from visemeflow.schemas import C
+
+    store = make_curve_store(tmp_path / "store")
+    train_flow(TrainParams(store=store.root, config=TrainConfig(preset="mean-curve", epochs=1), source="ground_truth",
+                           model_name="mean"))
+    broken = store.model_path("broken")
+    broken.parent.mkdir(parents=True)
+    broken.write_text("not a model")
+    # the first model named is the broken one: the targets come from the first model that loads
+    result = evaluate_flow(EvaluateParams(store=store.root, models=["broken", "mean", "nope"], conditions=["volume"]))
+    assert [r["model"] for r in result["table"]] == ["mean"] and result["variant"] == "cm"
+    assert result["rejected"] == 2 and result["models"] == ["mean"]
+    rejects = {r[C.MESSAGE].split()[1].rstrip(":"): r for r in store.read_table("rejects", "evaluate").to_pylist()}
+    assert set(rejects) == {"broken", "nope"}
+    assert rejects["broken"][C.PATH] == str(broken)
+    assert rejects["broken"][C.MESSAGE].startswith(f"model broken ({broken}): ")
+    assert rejects["nope"][C.MESSAGE].startswith("model nope: no trained model named nope")
+    assert "| mean |" in (store.root / "reports" / "robustness.md").read_text()
+
+    done = CliRunner().invoke(app, ["evaluate", "--models", "mean,broken", "--store", str(store.root),
+                                    "--conditions", "volume"])
+    assert done.exit_code == 1, done.output
+    assert "evaluate: 1 of 2 models judged, 1 rejected" in done.output and f"rejected model broken ({broken})" in done.output
+    with pytest.raises(LookupError, match="no model to evaluate: model broken .*; model nope: no trained model"):
+        evaluate_flow(EvaluateParams(store=store.root, models=["broken", "nope"], conditions=["volume"]))

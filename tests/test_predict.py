@@ -14,6 +14,7 @@ from factories import DEMO_CORPUS, REPO
 
 from visemeflow.animation.export import FORMATS
 from visemeflow.learning.train import TrainConfig, build_training_model, save_model
+from visemeflow.schemas import curves_array
 from visemeflow.storage import Store
 
 AUDIO = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
@@ -47,6 +48,26 @@ def test_prediction_ids_keep_the_file_name_in_any_script_and_stay_safe():
     assert prediction_id("/x/....wav") == "predict/audio"
     assert prediction_id("clip.v2.mp4") == "predict/clip.v2"
     assert prediction_id("/x/a\\b\tc.wav") == "predict/a_b_c"
+
+
+def test_files_of_one_name_get_ids_of_their_own_that_the_same_batch_gets_again(tmp_path):
+    import unicodedata
+
+    from visemeflow.flows.predict import prediction_ids
+
+    nfc, nfd = unicodedata.normalize("NFC", "Sätze.wav"), unicodedata.normalize("NFD", "Sätze.wav")
+    batch = [tmp_path / "a" / "x.wav", tmp_path / "b" / "x.wav", tmp_path / "y.wav", tmp_path / nfc, tmp_path / nfd,
+             tmp_path / "a" / ".." / "y.wav"]
+    ids = prediction_ids(batch)
+    assert ids[2] == ids[5] == "predict/y"   # one file under two spellings of its path: one id
+    assert len(set(ids[:5])) == 5 and all(i.startswith("predict/x-") for i in ids[:2])
+    assert ids[3].startswith("predict/Sätze-") and ids[4].startswith("predict/Sätze-")
+    assert prediction_ids(batch) == ids and prediction_ids(list(reversed(batch))) == list(reversed(ids))
+    # a file named like a disambiguated one is told apart too; a name at the length limit still gets its suffix
+    taken = prediction_ids([tmp_path / ids[0].split("/")[1], *batch[:2]])
+    assert len(set(taken)) == 3
+    long = "n" * 200
+    assert len(set(prediction_ids([tmp_path / "a" / f"{long}.wav", tmp_path / "b" / f"{long}.wav"]))) == 2
 
 
 @pytest.mark.flow
@@ -107,7 +128,9 @@ def test_predict_flow_refuses_unknown_models_and_missing_files(store, tmp_path):
 
     with pytest.raises(LookupError, match="no trained model named nope.*known models: tiny"):
         predict_flow(PredictParams(store=store.root, model="nope", audio=[AUDIO]))
-    with pytest.raises(LookupError, match="no such audio file.*missing.wav"):
+    from visemeflow.flows.errors import StageFailed
+
+    with pytest.raises(StageFailed, match="every audio file was rejected.*missing.wav: no such audio file"):
         predict_flow(PredictParams(store=store.root, model="tiny", audio=[tmp_path / "missing.wav"]))
 
 
@@ -162,3 +185,102 @@ def test_predict_command_exits_cleanly_every_time(store, tmp_path, prefect_api_u
     assert not failures, (f"{len(failures)} of {READ_RUNS} processes ending with a store read aborted:\n"
                           + "\n".join(failures[:3]))
     print(f"{PREDICT_RUNS} predict runs and {READ_RUNS} reads in {time.perf_counter() - started:.1f} s")
+
+
+def _two_files_named_x(tmp_path) -> tuple[Path, Path]:
+    """a/x.wav (the demo utterance) and b/x.wav (the same sound reversed): one name, different curves."""
+    audio, rate = sf.read(AUDIO, dtype="float32")
+    a, b = tmp_path / "a" / "x.wav", tmp_path / "b" / "x.wav"
+    for path, samples in ((a, audio), (b, audio[::-1].copy())):
+        path.parent.mkdir()
+        sf.write(path, samples, rate)
+    return a, b
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_files_of_one_name_in_different_folders_each_keep_their_own_curves_and_copies(store, tmp_path):
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    a, b = _two_files_named_x(tmp_path)
+    out = tmp_path / "out"
+    rows = predict_flow(PredictParams(store=store.root, model="tiny", audio=[a, b, AUDIO], fps=25.0,
+                                      out=out))["predictions"]
+    ids = [r["utterance_id"] for r in rows]
+    assert len(set(ids)) == 3 and ids[2] == "predict/SSB16240001"  # a file whose name is its own keeps it
+    assert all(i.startswith("predict/x-") for i in ids[:2])
+    assert len({p for r in rows for p in r["exports"]}) == 6 and len(list(out.iterdir())) == 6
+    alone = predict_flow(PredictParams(store=store.root, model="tiny", audio=[b], fps=25.0))["predictions"][0]
+    assert alone["utterance_id"] == "predict/x"
+    # the same names in the same batch again: the same ids, each file's own curves
+    again = predict_flow(PredictParams(store=store.root, model="tiny", audio=[a, b], fps=25.0))["predictions"]
+    assert [r["utterance_id"] for r in again] == ids[:2]
+    curves = [curves_array(store.read_curves(i, "predicted", "tiny")) for i in ids[:2]]
+    assert not np.allclose(curves[0], curves[1])
+    np.testing.assert_array_equal(curves[1], curves_array(store.read_curves("predict/x", "predicted", "tiny")))
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_cache_hit_never_serves_curves_another_file_or_frame_rate_wrote(store, tmp_path):
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    a, b = _two_files_named_x(tmp_path)
+    out = tmp_path / "out"
+
+    def run(path, fps=25.0):
+        (row,) = predict_flow(PredictParams(store=store.root, model="tiny", audio=[path], fps=fps,
+                                            out=out))["predictions"]
+        return row, curves_array(store.read_curves("predict/x", "predicted", "tiny"))
+
+    first, curves_a = run(a)
+    run(b)   # same id, other sound: replaces a's curves in the store
+    rerun, curves = run(a)
+    assert not rerun["cached"]
+    np.testing.assert_array_equal(curves, curves_a)
+    exported = np.loadtxt(out / "x.csv", delimiter=",", skiprows=1)[:, 2:]
+    np.testing.assert_allclose(exported, curves_a, atol=1e-6)
+    run(a, fps=30.0)
+    at_25, curves = run(a)
+    assert not at_25["cached"] and len(curves) == len(curves_a)
+    assert run(a)[0]["cached"]   # and a true hit is still one
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_bad_audio_files_are_rejects_and_the_others_are_predicted(store, tmp_path):
+    from visemeflow.flows.errors import StageFailed
+    from visemeflow.flows.predict import PredictParams, predict_flow
+    from visemeflow.schemas import C
+
+    text = tmp_path / "notes.wav"
+    text.write_text("not audio")
+    missing = tmp_path / "missing.wav"
+    result = predict_flow(PredictParams(store=store.root, model="tiny", audio=[text, AUDIO, missing]))
+    assert [r["utterance_id"] for r in result["predictions"]] == ["predict/SSB16240001"]
+    assert store.has_curves("predicted", "tiny", "predict/SSB16240001")
+    assert result["rejected"] == 2 and result["files"] == 3
+    rejects = {r[C.PATH]: r for r in store.read_table("rejects", "predict").to_pylist()}
+    assert set(rejects) == {str(text), str(missing)}
+    assert str(text) in rejects[str(text)][C.MESSAGE] and rejects[str(text)][C.ERROR_TYPE] == "UnreadableAudio"
+    assert "no such audio file" in rejects[str(missing)][C.MESSAGE]
+    assert {r["audio"] for r in result["rejects"]} == {str(text), str(missing)}
+    with pytest.raises(StageFailed, match="every audio file was rejected.*notes.wav"):
+        predict_flow(PredictParams(store=store.root, model="tiny", audio=[text]))
+    # the next run's outcome replaces the stage's rejects
+    predict_flow(PredictParams(store=store.root, model="tiny", audio=[AUDIO]))
+    assert store.read_table("rejects", "predict").num_rows == 0
+
+
+@pytest.mark.flow
+def test_predict_command_exits_1_and_says_so_when_a_file_was_rejected(store, tmp_path, prefect_api_url):
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url}
+    text = tmp_path / "notes.wav"
+    text.write_text("not audio")
+    done = subprocess.run([str(Path(sys.executable).parent / "visemeflow"), "predict", str(text), str(AUDIO),
+                           "--model", "tiny", "--store", str(store.root)], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 1, done.stderr
+    assert "predict: 2 files, 1 predicted, 0 cached, 1 rejected" in done.stdout
+    assert f"rejected {text}: " in done.stderr
+    assert store.has_curves("predicted", "tiny", "predict/SSB16240001")

@@ -28,7 +28,7 @@ from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C, normalize_utterance_id, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
-    content_hash, outputs_present
+    character_keys, content_hash, outputs_present, package_inputs
 from visemeflow.tasks.common import reject_row, result_storage
 
 DEFAULT_STORE = Path("visemeflow-out/store")
@@ -125,8 +125,8 @@ def animate_flow(params: AnimateParams):
                               store.curves_provenance(params.source, variant, uid) or "")
     out = str(params.out) if params.out else None
     rejects, reports, futures, unexpected, choices = [], [], {}, 0, []
-    for character in params.characters:
-        path = str(Path(character).resolve())
+    paths = [str(Path(character).resolve()) for character in params.characters]
+    for path, key in zip(paths, character_keys(paths)):
         try:
             if mapping and not params.mapping.is_file():
                 raise CharacterError(f"{params.mapping}: no such mapping CSV")
@@ -139,10 +139,11 @@ def animate_flow(params: AnimateParams):
             rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
             logger.warning("animate: %s", exc)
             continue
-        key = character_key(path)
         for uid in ids:
             audio, audio_hash, provenance = per_utterance[uid]
-            present = outputs_present(store, out, key, uid, params.config, audio is not None)
+            inputs = package_inputs(uid, params.source, variant, provenance, character_hash, mapping_hash,
+                                    params.config, audio_hash, phones.get(uid))
+            present = outputs_present(store, out, key, uid, params.config, audio is not None, inputs)
             future = animate_one.with_options(result_storage=result_storage(store.root),
                                               refresh_cache=not present).submit(
                 str(store.root), uid, params.source, variant, provenance, path, character_hash, key, mapping,
@@ -206,16 +207,19 @@ class SpeakParams(BaseModel):
 
 @flow(name="speak", flow_run_name="speak[{params.model}]")
 def speak_flow(params: SpeakParams):
-    """Audio to talking characters: the `predict` flow, then the `animate` flow on its curves (both cached)."""
+    """Audio to talking characters: the `predict` flow, then the `animate` flow on its curves (both cached). An
+    audio file `predict` rejects is left out (`audio_rejected`, `rejects`); the others are animated."""
     from visemeflow.flows.predict import PredictParams, predict_flow
 
     predicted = predict_flow(PredictParams(store=params.store, model=params.model, audio=params.audio,
                                            fps=params.fps))
     rows = predicted["predictions"]
-    return animate_flow(AnimateParams(
+    animated = animate_flow(AnimateParams(
         store=params.store, characters=params.characters, source="predicted", variant=params.model,
         utterances=[r["utterance_id"] for r in rows], audio={r["utterance_id"]: Path(r["audio"]) for r in rows},
         mapping=params.mapping, config=params.config, out=params.out))
+    return {**animated, "audio_files": predicted["files"], "audio_rejected": predicted["rejected"],
+            "rejects": predicted["rejects"]}
 
 
 class PreviewParams(BaseModel):

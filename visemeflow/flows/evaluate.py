@@ -10,11 +10,20 @@ The name `phones` joins the models as the baseline that needs no training (curve
 audio; `visemeflow.tasks.models`).
 
 Models run on `params.device` in float32; the device is not part of the evaluation tasks' cache key (metrics computed
-on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line."""
+on the CPU stay valid for a GPU run). A device this machine does not have fails first, in one line.
+
+A model that is not in the store or cannot be loaded is a reject (stage `evaluate`, naming the model and its file)
+and the others are judged; with none left, the flow stops with every model's reason."""
+
+import pickle
+import traceback
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
+from prefect.states import Completed, Failed, State
 
+from visemeflow.flows.common import replace_stage_rejects
+from visemeflow.flows.errors import StageFailed
 from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.predict import ensure_model
 from visemeflow.flows.train import training_rows
@@ -26,8 +35,37 @@ from visemeflow.learning.train import load_model
 from visemeflow.procedural.recognised import RECOGNISED_MODEL
 from visemeflow.schemas import C
 from visemeflow.storage import Store
+from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.evaluate import augmented_task_for, evaluation_task_for
 from visemeflow.tasks.models import is_trained, model_hash
+
+STAGE = "evaluate"
+# what naming or loading a model that cannot be evaluated raises: not in the store (LookupError), not a visemeflow
+# model (ValueError, as `learning.train.ModelFileError`; torch's unpickler on another file: UnpicklingError, EOFError,
+# KeyError), unreadable (OSError)
+MODEL_ERRORS = (LookupError, ValueError, OSError, EOFError, pickle.UnpicklingError)
+
+
+def check_model(store: Store, model: str) -> dict | None:
+    """The lineage of a trained model of the store (None for `phones`), once it has loaded; installs a shipped
+    model when it is named. A MODEL_ERRORS error when it is missing or cannot be loaded."""
+    if not is_trained(model):
+        return None
+    if is_shipped(model):
+        ensure_model(store, model)
+    if not store.has_model(model):
+        known = store.model_names()
+        raise LookupError(f"no trained model named {model} in {store.root}; "
+                          f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
+    return load_model(store.model_path(model))[2]
+
+
+def model_reject(store: Store, model: str, exc: BaseException, trace: str = "") -> dict:
+    """The reject row of a model that could not be evaluated, naming the model, its file and the reason."""
+    path = store.model_path(model) if is_trained(model) else None
+    where = f"model {model} ({path})" if path is not None and path.exists() else f"model {model}"
+    reason = str(exc) or type(exc).__name__
+    return reject_row(None, STAGE, type(exc).__name__, f"{where}: {reason}{trace}", str(path) if path else None)
 
 
 def validation_phones(store: Store, rows: list[dict]) -> dict[str, list[dict]]:
@@ -56,27 +94,32 @@ def _realspeech_counts(results: list[dict], n_utterances: int) -> str | None:
 
 
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
-def evaluate_flow(params: EvaluateParams) -> dict:
-    """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files."""
+def evaluate_flow(params: EvaluateParams) -> State:
+    """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files.
+    A model that cannot be evaluated is a reject and the others are judged."""
     resolve_device(params.device)
     store = Store(params.store)
-    trained = [m for m in params.models if is_trained(m)]
-    for model in trained:   # the models shipped with the package (default, default-fbank) are installed when named
-        if is_shipped(model):
-            ensure_model(store, model)
-    paths = {m: store.model_path(m) for m in trained}
-    missing = [m for m in trained if not store.has_model(m)]
-    if missing:
-        known = store.model_names()
-        raise LookupError(f"no trained model named {', '.join(missing)} in {store.root}; "
-                          f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
-    lineage = load_model(paths[trained[0]])[2] if trained else {}
+    logger = get_run_logger()
+    rejects, usable, lineages = {}, [], {}   # rejects: model -> its reject row
+    for model in params.models:
+        try:
+            lineages[model] = check_model(store, model)
+        except MODEL_ERRORS as exc:
+            rejects[model] = model_reject(store, model, exc)
+            logger.warning("evaluate: rejected %s", rejects[model][C.MESSAGE])
+            continue
+        usable.append(model)
+    if not usable:
+        replace_stage_rejects(store, STAGE, list(rejects.values()), 1)
+        raise LookupError("no model to evaluate: " + "; ".join(r[C.MESSAGE] for r in rejects.values()))
+    trained = [m for m in usable if is_trained(m)]
+    lineage = lineages[trained[0]] if trained else {}
     source = params.source or lineage.get("source", "tracked")
     variant = params.variant or lineage.get("variant")
     if not variant:
         raise LookupError(f"the model {trained[0]} has no curve variant in its lineage; pass --variant" if trained
                           else f"`{RECOGNISED_MODEL}` alone has no training curves to name the targets; pass --variant")
-    hashes = {m: model_hash(store, m) for m in params.models}
+    hashes = {m: model_hash(store, m) for m in usable}
     _, val, _ = training_rows(store, source, variant)
     if not val:
         raise LookupError(f"no validation utterance in {store.root} has {source} curves of variant {variant!r}")
@@ -89,15 +132,32 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     augmented = {cond: f.result() for cond, f in aug_futures.items()}
     targets = {r[C.UTTERANCE_ID]: store.curves_provenance(source, variant, r[C.UTTERANCE_ID]) for r in val}
     phones = validation_phones(store, val)
-    futures = [
-        evaluation_task_for(store, m).submit(str(store.root), m, hashes[m], val, augmented, source, variant,
-                                             targets, phones, params.device)
-        for m in params.models
-    ]
-    results = [f.result() for f in futures]
+    futures = {
+        m: evaluation_task_for(store, m).submit(str(store.root), m, hashes[m], val, augmented, source, variant,
+                                                targets, phones, params.device)
+        for m in usable
+    }
+    results, unexpected = [], 0
+    for model, future in futures.items():
+        try:
+            results.append(future.result())
+        except MODEL_ERRORS as exc:
+            rejects[model] = model_reject(store, model, exc)
+        except Exception as exc:  # a bug met on one model: the others are judged, the flow ends Failed
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("evaluate[%s]: unexpected %s\n%s", model, type(exc).__name__, trace)
+            rejects[model] = model_reject(store, model, exc, "\n" + trace)
+            unexpected += 1
+    replace_stage_rejects(store, STAGE, list(rejects.values()), 1)
+    judged = [r["model"] for r in results]
+    counts = {"models": len(params.models), "judged": len(judged), "rejected": len(rejects)}
+    if not results:
+        message = f"{STAGE}: no model could be evaluated: " + "; ".join(
+            r[C.MESSAGE].split("\n", 1)[0] for r in rejects.values())
+        return Failed(message=message, data=StageFailed(message, counts))
 
     runs = {"evaluate", *TABLE_RUNS}
-    metrics = [r for m in params.models for r in store.read_metrics(m).to_pylist() if r[C.RUN] in runs]
+    metrics = [r for m in judged for r in store.read_metrics(m).to_pylist() if r[C.RUN] in runs]
     table = robustness_table(metrics, presets={r["model"]: r["preset"] for r in results},
                              augmented={r["model"]: r["train_augment"] for r in results})
     title = f"Validation L1 x 100 on {len(val)} utterances ({source}/{variant}); in brackets: ratio to validation"
@@ -106,7 +166,13 @@ def evaluate_flow(params: EvaluateParams) -> dict:
     csv = store.write_report_text("robustness.csv", table_csv(table))
     create_markdown_artifact(key="robustness-table", markdown=markdown,
                              description="Paper Tables 1-3 format: validation and augmented conditions")
-    get_run_logger().info("evaluate: %d models on %d utterances x %d conditions -> %s", len(results), len(val),
-                          len(params.conditions), md)
-    return {"table": table, "markdown": str(md), "csv": str(csv), "validation_utterances": len(val),
-            "source": source, "variant": variant}
+    logger.info("evaluate: %d models on %d utterances x %d conditions -> %s; %d rejected", len(results), len(val),
+                len(params.conditions), md, len(rejects))
+    summary = {"table": table, "markdown": str(md), "csv": str(csv), "validation_utterances": len(val),
+               "source": source, "variant": variant, "models": judged, "rejected": len(rejects),
+               "rejects": [{"model": m, "reason": r[C.MESSAGE]} for m, r in rejects.items()]}
+    if unexpected:
+        message = (f"{STAGE}: {unexpected} of {len(params.models)} models failed with an unexpected error (tracebacks "
+                   "in the run's logs; reasons in the rejects table)")
+        return Failed(message=message, data=StageFailed(message, counts))
+    return Completed(message=f"{STAGE}: {len(judged)} of {len(params.models)} models judged", data=summary)

@@ -1,8 +1,12 @@
 """The `predict` flow: viseme curves of new audio from a trained model (paper 5.1), one cached task per file.
 
-Each file becomes the utterance `predict/<file stem>` with curves of source `predicted`, variant = the model's name.
-A task is keyed on the model file's and the audio file's content hashes (and the frame rate), so running the flow
-again on the same files is all cache hits, and a retrained model or a changed file recomputes only what changed.
+Each file becomes the utterance `predict/<file stem>` with curves of source `predicted`, variant = the model's name;
+files of one stem in different folders in one batch get `predict/<stem>-<hash of the resolved path>` each
+(`prediction_ids`). A task is keyed on the model file's and the audio file's content hashes (and the frame rate), so
+running the flow again on the same files is all cache hits, and a retrained model or a changed file recomputes only
+what changed; a hit is used only while the stored curves record that they were made from those hashes and that rate.
+A file that is missing or cannot be read is a reject (stage `predict`, naming the file and the reason) and the
+others go on; the flow fails when every file was rejected.
 With `out`, CSV and JSON copies of each file's curves (`visemeflow.animation.export`) are written there. A markdown
 artifact lists the outputs and the real-time factor of each file. The model runs on `device` (float32), which is not
 part of the cache key: curves predicted on the CPU are a cache hit for a GPU run. A device this machine does not have
@@ -14,23 +18,31 @@ settings instead of a model file.
 """
 
 import re
+import traceback
 import unicodedata
+from collections import defaultdict
 from pathlib import Path
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
+from prefect.states import Completed, Failed, State
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.animation.export import CurveTrack, write_export
-from visemeflow.hashing import file_hash
+from visemeflow.flows.common import replace_stage_rejects
+from visemeflow.flows.errors import StageFailed
+from visemeflow.hashing import file_hash, stable_hash
+from visemeflow.ingest.audio import AudioError
 from visemeflow.learning.default_model import DEFAULT_MODEL, is_shipped, shipped_model_path
 from visemeflow.learning.device import DeviceWord, resolve_device
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.models import is_trained, model_hash
-from visemeflow.tasks.predict import SOURCE, prediction_task_for
+from visemeflow.tasks.common import reject_row
+from visemeflow.tasks.predict import SOURCE, prediction_provenance, prediction_task_for
 
+STAGE = "predict"
 EXPORT_FORMATS = ("csv", "json")
 # as flows.params.DEFAULT_STORE; not imported from there, which loads every stage's config (a second per `predict`)
 DEFAULT_STORE = Path("visemeflow-out/store")
@@ -78,15 +90,11 @@ def ensure_model(store: Store, model: str) -> None:
 
 def check_whisper_weights(path: Path) -> None:
     """LookupError naming the `visemeflow[whisper]` extra when the model at `path` runs on the packaged Whisper
-    weights and they are not installed."""
-    import json
+    weights and they are not installed; `ModelFileError` naming the file when it is not a model file."""
+    from visemeflow.learning.train import read_model_file
 
-    import torch
-
-    from visemeflow.learning.features import FeatureConfig
-
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    fcfg = FeatureConfig.model_validate_json(blob["feature_config"])
+    model_file = read_model_file(path)
+    fcfg = model_file.feature_config
     if fcfg.kind != "whisper" or fcfg.whisper_source != "package":
         return
     from visemeflow.learning import whisper
@@ -96,7 +104,7 @@ def check_whisper_weights(path: Path) -> None:
     try:
         whisper._package_part_paths()
     except whisper.WhisperWeightsMissing:
-        raise LookupError(f"model {json.loads(blob['config']).get('preset')} needs the Whisper-base weights, "
+        raise LookupError(f"model {model_file.config.preset} needs the Whisper-base weights, "
                           f"which are not installed: {whisper.PACKAGE_EXTRA_HINT}") from None
 
 
@@ -114,6 +122,38 @@ def prediction_id(path: Path | str) -> str:
             return make_utterance_id("predict", cleaned)
         except InvalidIdError:  # e.g. too long for a file name once encoded
             return make_utterance_id("predict", re.sub(r"[^A-Za-z0-9_.-]", "_", stem)[:100] or "audio")
+
+
+def _with_suffix(utterance_id: str, suffix: str) -> str:
+    """`predict/<name>-<suffix>`, the name shortened where the whole would be too long for a file name."""
+    name = utterance_id.split("/", 1)[1]
+    while True:
+        try:
+            return make_utterance_id("predict", f"{name}-{suffix}")
+        except InvalidIdError:
+            if not name:
+                raise
+            name = name[:-1].rstrip()
+
+
+def prediction_ids(paths: list[Path]) -> list[str]:
+    """The utterance id of each file of one batch: its `prediction_id`, unless different files (by resolved path)
+    would share one, as `a/x.wav` and `b/x.wav` or the NFC and NFD spellings of one name: then each of those gets
+    `-<8 hex digits>` of its resolved path. A batch like `spk1/001.wav spk2/001.wav` is common, and every file of it
+    is wanted, so the names are told apart rather than refused; the same batch gets the same ids again, and a file
+    whose name is its own in the batch keeps its plain id."""
+    ids = [prediction_id(p) for p in paths]
+    resolved = [str(Path(p).resolve()) for p in paths]
+    for size in (4, 8, 16):   # a longer hash only if a name met a suffixed one or two paths' short hashes met
+        owners: dict[str, set[str]] = defaultdict(set)
+        for uid, where in zip(ids, resolved):
+            owners[uid].add(where)
+        if all(len(w) == 1 for w in owners.values()):
+            return ids
+        ids = [_with_suffix(uid, stable_hash(where, size=size)) if len(owners[uid]) > 1 else uid
+               for uid, where in zip(ids, resolved)]
+    clashes = sorted({uid for uid in ids if ids.count(uid) > 1})
+    raise ValueError(f"cannot give the files of this batch names of their own ({', '.join(clashes)}); rename them")
 
 
 def export_paths(out: Path, utterance_id: str) -> dict[str, Path]:
@@ -140,36 +180,67 @@ def _markdown(model: str, rows: list[dict]) -> str:
                               "the curves; a cached file was not predicted again.\n"
 
 
+def _predict_file(store: Store, params: PredictParams, digest: str, audio: Path, uid: str) -> dict:
+    """One file's prediction row (curves in the store, copies under `out`); AudioError for a missing or
+    unreadable file."""
+    if not Path(audio).is_file():
+        raise AudioError(str(audio), "NoSuchFile", "no such audio file")
+    audio_hash = file_hash(audio)
+    provenance = prediction_provenance(params.model, digest, audio_hash, params.fps)
+    state = prediction_task_for(store, params.model, uid, provenance)(
+        str(store.root), params.model, digest, str(audio), audio_hash, uid, float(params.fps),
+        params.device, return_state=True,
+    )
+    result = state.result()  # raises the task's error
+    exports = []
+    if params.out is not None:
+        track = curve_track(store, uid, SOURCE, params.model)
+        exports = [str(write_export(track, path, fmt)) for fmt, path in export_paths(params.out, uid).items()]
+    return {**result, "audio": str(audio), "model": params.model, "cached": state.name == "Cached",
+            "exports": exports}
+
+
 @flow(name="predict", flow_run_name="predict[{params.model}]")
-def predict_flow(params: PredictParams) -> dict:
-    """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies."""
+def predict_flow(params: PredictParams) -> State:
+    """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies; a bad
+    file is a reject and the others go on."""
     resolve_device(params.device)
     store = Store(params.store)
+    logger = get_run_logger()
     ensure_model(store, params.model)
     if is_trained(params.model) and not store.has_model(params.model):
         known = store.model_names()
         raise LookupError(f"no trained model named {params.model} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
-    missing = [str(p) for p in params.audio if not Path(p).is_file()]
-    if missing:
-        raise LookupError(f"no such audio file: {', '.join(missing)}")
     digest = model_hash(store, params.model)
-    rows = []
-    for audio in params.audio:
-        uid = prediction_id(audio)
-        state = prediction_task_for(store, params.model, uid)(
-            str(store.root), params.model, digest, str(audio), file_hash(audio), uid, float(params.fps),
-            params.device, return_state=True,
-        )
-        result = state.result()  # raises the task's error (unreadable audio, ...)
-        exports = []
-        if params.out is not None:
-            track = curve_track(store, uid, SOURCE, params.model)
-            exports = [str(write_export(track, path, fmt)) for fmt, path in export_paths(params.out, uid).items()]
-        rows.append({**result, "audio": str(audio), "model": params.model, "cached": state.name == "Cached",
-                     "exports": exports})
-    markdown = _markdown(params.model, rows)
-    create_markdown_artifact(key="predictions", markdown=markdown,
-                             description=f"curves predicted by {params.model}, with real-time factors")
-    get_run_logger().info("predict %s: %d files, %d cached", params.model, len(rows), sum(r["cached"] for r in rows))
-    return {"model": params.model, "predictions": rows}
+    rows, rejects, unexpected = [], [], 0
+    for audio, uid in zip(params.audio, prediction_ids(params.audio)):
+        try:
+            rows.append(_predict_file(store, params, digest, audio, uid))
+        except AudioError as exc:
+            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), str(audio)))
+            logger.warning("predict: rejected %s", exc)
+        except Exception as exc:  # a bug met on one file: the others go on, the flow ends Failed
+            trace = "".join(traceback.format_exception(exc))
+            logger.error("predict[%s]: unexpected %s\n%s", audio, type(exc).__name__, trace)
+            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{audio}: {exc}\n{trace}", str(audio)))
+            unexpected += 1
+    replace_stage_rejects(store, STAGE, rejects, 1)
+    if rows:
+        create_markdown_artifact(key="predictions", markdown=_markdown(params.model, rows),
+                                 description=f"curves predicted by {params.model}, with real-time factors")
+    counts = {"files": len(params.audio), "predicted": sum(not r["cached"] for r in rows),
+              "cached": sum(r["cached"] for r in rows), "rejected": len(rejects)}
+    logger.info("predict %s: %s", params.model, counts)
+    summary = {"model": params.model, "predictions": rows, **counts,
+               "rejects": [{"audio": r[C.PATH], "utterance_id": r[C.UTTERANCE_ID], "error_type": r[C.ERROR_TYPE],
+                            "reason": r[C.MESSAGE]} for r in rejects]}
+    if unexpected or not rows:
+        what = (f"{unexpected} of {len(params.audio)} audio files failed with an unexpected error (tracebacks in "
+                "the run's logs)" if unexpected else "every audio file was rejected")
+        reasons = "; ".join(r[C.MESSAGE].split("\n", 1)[0] for r in rejects[:3])
+        more = f"; and {len(rejects) - 3} more" if len(rejects) > 3 else ""
+        message = f"{STAGE}: {what}: {reasons}{more} (see the rejects table)"
+        return Failed(message=message, data=StageFailed(message, counts))
+    done = f"{len(rows)} of {len(params.audio)} audio files predicted"
+    return Completed(message=done + (f", {len(rejects)} rejected" if rejects else ""), data=summary)

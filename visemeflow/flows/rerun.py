@@ -27,7 +27,7 @@ def _rerun_animate(store: Store, uid: str, run: dict | None, force: bool) -> dic
     from visemeflow.animation.package import AnimateConfig
     from visemeflow.hashing import file_hash
     from visemeflow.schemas import C
-    from visemeflow.tasks.animate import animate_one, character_key, content_hash
+    from visemeflow.tasks.animate import animate_one, character_keys, content_hash
 
     if run is None:
         raise RerunError(f"{store.root} has no animate run to repeat; run `visemeflow animate` first")
@@ -40,9 +40,9 @@ def _rerun_animate(store: Store, uid: str, run: dict | None, force: bool) -> dic
     task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
     packages = [task(str(store.root), uid, run["source"], run["variant"],
                      store.curves_provenance(run["source"], run["variant"], uid) or "", path, content_hash(path),
-                     character_key(path), mapping, file_hash(mapping) if mapping else None, config, audio,
+                     key, mapping, file_hash(mapping) if mapping else None, config, audio,
                      file_hash(audio) if audio else None, run.get("out"))
-                for path in run["characters"] if Path(path).exists()]
+                for path, key in zip(run["characters"], character_keys(run["characters"])) if Path(path).exists()]
     return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}
 
 
