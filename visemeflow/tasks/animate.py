@@ -2,13 +2,17 @@
 curve CSV/JSON, the audio beside them, optionally a preview MP4), into one folder.
 
 Cached on what decides the files: the curves' provenance, the character file's and mapping CSV's content hashes,
-the audio's content hash, the export config and the output folder; a missing output file recomputes.
+the audio's content hash, the export config and the output folder. Each package records those inputs in
+`.inputs.json` beside its files, written last: a cache hit is used only while every file is there and that record
+matches (a package another character of the same name wrote since, or one a kill left half written, recomputes).
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import re
+from collections import defaultdict
 import time
 from pathlib import Path
 
@@ -20,14 +24,17 @@ from visemeflow.animation.apply import CurvesError
 from visemeflow.animation.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.animation.conventions import Binding, bind, load_mapping_csv
-from visemeflow.animation.package import AnimateConfig, bone_rig, export_animation, export_paths
+from visemeflow.animation.package import AnimateConfig, ExportWriteError, bone_rig, export_animation, export_paths
+from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
 from visemeflow.schemas import C, curves_array
 from visemeflow.storage import Store
+from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache
 
 STAGE = "animate"
+INPUTS_FILE = ".inputs.json"
 # keyed on content hashes, not on where the character, mapping and audio files lie
 ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE
 
@@ -82,6 +89,28 @@ def character_key(path: str | Path) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).lstrip(".") or "character"
 
 
+def character_keys(paths: list[str]) -> list[str]:
+    """The package folder name of each character of one run: its `character_key`, unless different files (by
+    resolved path) share one, as `a/good.glb` and `b/good.glb`: then each of those gets `-<8 hex digits>` of its
+    resolved path, so neither overwrites the other's packages and the same list gets the same names again."""
+    keys = [character_key(p) for p in paths]
+    resolved = [str(Path(p).resolve()) for p in paths]
+    owners: dict[str, set[str]] = defaultdict(set)
+    for key, where in zip(keys, resolved):
+        owners[key].add(where)
+    return [f"{key}-{stable_hash(where, size=4)}" if len(owners[key]) > 1 else key
+            for key, where in zip(keys, resolved)]
+
+
+def package_inputs(utterance_id: str, source: str, variant: str, provenance: str, character_hash: str,
+                   mapping_hash: str | None, config: AnimateConfig, audio_hash: str | None,
+                   phones: list | None) -> dict:
+    """What one package is made from, as its `.inputs.json` records it (content hashes, not paths)."""
+    return {"utterance_id": utterance_id, "source": source, "variant": variant, "curves": provenance,
+            "character": character_hash, "mapping": mapping_hash, "audio": audio_hash,
+            "config": stable_hash(config), "phones": stable_hash(phones) if phones else None}
+
+
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
     """The folder of one (utterance, character) package: under `out` if given, else in the store."""
     folder = store.animation_dir(character, utterance_id)
@@ -90,8 +119,10 @@ def package_dir(store: Store, out: str | None, character: str, utterance_id: str
 
 def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
             mapping_path: str | None, mapping_hash: str | None, config: AnimateConfig, audio_path: str | None,
-            out: str | None, phones: list[tuple[float, float, str]] | None = None) -> dict:
-    """Export one utterance for one character; AnimateError naming the utterance and file for bad input."""
+            out: str | None, phones: list[tuple[float, float, str]] | None = None,
+            character_name: str | None = None) -> dict:
+    """Export one utterance for one character into the folder of `character_name` (default: its
+    `character_key`); AnimateError naming the utterance and file for bad input."""
     try:
         character, binding = bound_character(character_path, character_hash, config.convention, mapping_path,
                                              mapping_hash, config.meshes)
@@ -107,7 +138,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
             audio = read_audio(audio_path)
         except AudioError as exc:
             raise AnimateError(utterance_id, audio_path, "AudioError", str(exc)) from exc
-    folder = package_dir(store, out, character_key(character_path), utterance_id)
+    folder = package_dir(store, out, character_name or character_key(character_path), utterance_id)
     stem = folder.name
     started = time.perf_counter()
     try:
@@ -115,6 +146,9 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
                                    where=f"{source}/{variant} curves", audio=audio)
     except CurvesError as exc:
         raise AnimateError(utterance_id, curve_file, "CurvesError", str(exc)) from exc
+    except ExportWriteError as exc:   # the output's disk, not the character, is at fault: name the output file
+        raise AnimateError(utterance_id, exc.path, "ExportWriteError", str(exc).removeprefix(f"{exc.path}: ")) \
+            from exc
     files = dict(package.files)
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
@@ -137,24 +171,39 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
             "lips": lips}
 
 
-@task(cache_policy=ANIMATE_CACHE_POLICY, persist_result=True, task_run_name="animate[{utterance_id}:{character_name}]")
+@task(cache_policy=DataOnlyCache(policy=ANIMATE_CACHE_POLICY), persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="animate[{utterance_id}:{character_name}]")
 def animate_one(store_root: str, utterance_id: str, source: str, variant: str, provenance: str, character_path: str,
                 character_hash: str, character_name: str, mapping_path: str | None, mapping_hash: str | None,
                 config: AnimateConfig, audio_path: str | None, audio_hash: str | None, out: str | None,
                 phones: list | None = None) -> dict:
     """One (utterance, character) package; `provenance` and the hashes key the cache (see the module)."""
     report = animate(Store(store_root), utterance_id, source, variant, character_path, character_hash, mapping_path,
-                     mapping_hash, config, audio_path, out, [tuple(p) for p in phones] if phones else None)
+                     mapping_hash, config, audio_path, out, [tuple(p) for p in phones] if phones else None,
+                     character_name)
+    inputs = package_inputs(utterance_id, source, variant, provenance, character_hash, mapping_hash, config,
+                            audio_hash, phones)
+    with atomic_path(Path(report["folder"]) / INPUTS_FILE) as tmp:
+        tmp.write_text(json.dumps(inputs, sort_keys=True), encoding="utf-8")
     get_run_logger().info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"],
                           report["fps"], ", ".join(report["files"]))
     return report
 
 
 def outputs_present(store: Store, out: str | None, character_name: str, utterance_id: str, config: AnimateConfig,
-                    with_audio: bool) -> bool:
-    """Whether every file a package of this config would write is on disk (a deleted file recomputes)."""
+                    with_audio: bool, inputs: dict) -> bool:
+    """Whether every file a package of this config would write is on disk and the package records `inputs`
+    (`package_inputs`) as what it was made from: a deleted file, or a package made from other inputs under the same
+    folder, recomputes."""
     folder = package_dir(store, out, character_name, utterance_id)
     paths = list(export_paths(folder, folder.name, config.formats, config.mode).values())
     paths += [folder / f"{folder.name}.wav"] if with_audio and config.audio else []
     paths += [folder / f"{folder.name}.mp4"] if config.preview else []
-    return all(p.is_file() for p in paths)
+    return all(p.is_file() for p in paths) and _recorded_inputs(folder) == inputs
+
+
+def _recorded_inputs(folder: Path) -> dict | None:
+    try:
+        return json.loads((folder / INPUTS_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):   # none, or unreadable: the package is made again
+        return None

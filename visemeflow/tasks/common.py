@@ -1,15 +1,82 @@
-"""What every task shares: the cache policy, result storage and reject rows."""
+"""What every task shares: the cache policy, result storage and serializer, and reject rows."""
 
+import logging
+import os
+import stat
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
-from prefect.cache_policies import INPUTS, TASK_SOURCE
+from prefect import get_run_logger
+from prefect.cache_policies import INPUTS, TASK_SOURCE, CachePolicy
+from prefect.context import TaskRunContext
+from prefect.filesystems import LocalFileSystem
 
 from visemeflow.schemas import C
 from visemeflow.storage import Store
+from visemeflow.storage.results import StoreJSONSerializer, UntrustedResultError, check_result_record
+
+# Every persisted task writes its result as JSON data; `DataOnlyCache` keeps Prefect from reading anything else.
+RESULT_SERIALIZER = StoreJSONSerializer()
+
+
+@dataclass
+class DataOnlyCache(CachePolicy):
+    """`policy`'s cache key, with the record stored at that key checked to be a JSON record of ours first.
+
+    Prefect decodes a cached record with the serializer named in the record itself, inside its cache lookup, so
+    the check has to come before the lookup: here, once the key is known. A refused record (a pickle planted in a
+    copied store, a record of another serializer) is deleted with a warning naming it, never decoded; the task then
+    runs and writes a JSON record in its place, as after `visemeflow clean results`.
+    """
+
+    policy: CachePolicy = field(default_factory=lambda: INPUTS + TASK_SOURCE)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.key_storage, CachePolicy):
+            raise TypeError("the policy to wrap is passed as DataOnlyCache(policy=...), not as the key storage")
+        if self.key_storage is not None or self.policy.key_storage is not None:
+            raise ValueError("DataOnlyCache checks the records in a task's result storage; a policy with its own "
+                             "key storage would be read unchecked")
+        self.isolation_level = self.policy.isolation_level
+        self.lock_manager = self.policy.lock_manager
+
+    def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any],
+                    **kwargs: Any) -> str | None:
+        key = self.policy.compute_key(task_ctx, inputs, flow_parameters, **kwargs)
+        if key is not None:
+            discard_untrusted_record(task_ctx.result_store.result_storage, key, get_run_logger())
+        return key
+
+    # Combining must keep the check outermost: it checks the record of the final key.
+    def __add__(self, other: CachePolicy) -> "DataOnlyCache":
+        return DataOnlyCache(policy=self.policy + other)
+
+    def __sub__(self, other: str) -> "DataOnlyCache":
+        return DataOnlyCache(policy=self.policy - other)
+
+
+def discard_untrusted_record(storage: object, key: str, logger: logging.Logger | logging.LoggerAdapter) -> bool:
+    """Delete the record at `key` in `storage` unless it is a JSON record of ours; whether one was refused."""
+    if not isinstance(storage, LocalFileSystem):
+        raise TypeError(f"cached results are checked in a local folder; {type(storage).__name__} storage is not "
+                        "supported")
+    path = Path(storage.basepath or ".").expanduser() / key
+    if not os.path.lexists(path):
+        return False
+    try:
+        check_result_record(path)
+    except UntrustedResultError as exc:
+        logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
+        if not stat.S_ISDIR(os.lstat(path).st_mode):
+            path.unlink()
+        return True
+    return False
+
 
 # Deterministic tasks are keyed on their inputs (content hashes, configs, ids) and their own code.
-CACHE_POLICY = INPUTS + TASK_SOURCE
+CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE)
 
 
 def result_storage(store_root: str | Path) -> Path:

@@ -39,7 +39,7 @@ from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, resample_c
 from visemeflow.rig import load_demo_rig
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, result_storage
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.tasks.models import load_curve_model
 from visemeflow.tasks.train import load_audio, load_examples, metrics_rows
 
@@ -68,7 +68,8 @@ def _write_wav(store: Store, path: Path, audio: np.ndarray) -> None:
     store.write_file(path, lambda tmp: sf.write(tmp, audio, SAMPLE_RATE, subtype="FLOAT", format="WAV"))
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="augment[{condition}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="augment[{condition}]")
 def augment_condition(store_root: str, condition: str, seed: int, config: AugmentConfig, rows: list[dict]) -> list[dict]:
     """Write the augmented copy of every validation utterance under one condition; returns where and how."""
     store = Store(store_root)
@@ -181,7 +182,9 @@ def _lip_counts(pooled: LipScores) -> dict:
         "bilabials": summary["bilabials"], "labiodentals": summary["labiodentals"], "vowels": summary["vowels"]}
 
 
-@task(cache_policy=EVALUATE_CACHE_POLICY, persist_result=True, task_run_name="evaluate[{model_name}]")
+@task(cache_policy=DataOnlyCache(policy=EVALUATE_CACHE_POLICY), persist_result=True,
+      result_serializer=RESULT_SERIALIZER,
+      task_run_name="evaluate[{model_name}]")
 def evaluate_model(
     store_root: str, model_name: str, model_hash: str, val_rows: list[dict], augmented: dict[str, list[dict]],
     source: str, variant: str, targets: dict[str, str | None], phones: dict[str, list[dict]] | None = None,

@@ -26,7 +26,7 @@ from visemeflow.ingest.captured import (
 )
 from visemeflow.schemas import UTTERANCES, C, curves_table, shard_of, table_from_rows
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, reject_row, result_storage
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row, result_storage
 
 STAGE = "import_curves"
 SOURCE = "captured"
@@ -62,7 +62,8 @@ def outputs_present(store: Store, take: dict, variant: str, rejected: set[str]) 
     return take["utterance_id"] in rejected or store.has_curves(SOURCE, variant, take["utterance_id"])
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="import_curves[{take[utterance_id]}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="import_curves[{take[utterance_id]}]")
 def import_take_task(store_root: str, n_shards: int, take: dict, config: CaptureConfig, solver_digest: str,
                      ingested_audio: str | None = None) -> dict:
     """Import one take; returns its report (`reject` holds the reject row when its input is bad).

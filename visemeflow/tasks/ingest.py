@@ -16,7 +16,7 @@ from visemeflow.ingest import (
 from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
 from visemeflow.schemas.tables import NO_ALIGNMENT, has_alignment
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, reject_row
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
 
 STAGE = "ingest"
 CONFIG_KEY = b"visemeflow.ingest_config"
@@ -67,7 +67,8 @@ def _previous_rows(store: Store, shard: int, config_hash: str) -> dict[str, tupl
     return {u[C.UTTERANCE_ID]: (u[C.CONTENT_HASH], u, by_id.get(u[C.UTTERANCE_ID], [])) for u in utts}
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="ingest[shard-{shard:02d}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="ingest[shard-{shard:02d}]")
 def ingest_shard(store_root: str, shard: int, entries: list[dict], config: IngestConfig) -> dict[str, int]:
     """Ingest one shard of the corpus into the `utterances`, `phones` and `rejects` tables."""
     store = Store(store_root)
@@ -90,7 +91,8 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     return report
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="ingest[{entry[utterance_id]}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="ingest[{entry[utterance_id]}]")
 def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -> dict[str, int]:
     """Ingest one utterance and replace its rows in its shard (a rerun by hand)."""
     store = Store(store_root)

@@ -12,7 +12,7 @@ from prefect import get_run_logger, task
 from visemeflow.hashing import stable_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.tracking.facemesh import FaceMeshConfig, FaceMeshError, detect_video, mediapipe478_table
 
 STAGE = "landmarks"
@@ -54,7 +54,8 @@ def landmarks_one(store: Store, utterance: dict, config: FaceMeshConfig) -> dict
     }
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="landmarks[{utterance[utterance_id]}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="landmarks[{utterance[utterance_id]}]")
 def landmarks_utterance(store_root: str, utterance: dict, config: FaceMeshConfig) -> dict:
     """Landmarks of one utterance's video (cached on its content hash and the settings)."""
     report = landmarks_one(Store(store_root), utterance, config)

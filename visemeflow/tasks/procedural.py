@@ -11,7 +11,7 @@ from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
 from visemeflow.schemas import REJECTS, C, curves_table, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, reject_row
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
 from visemeflow.timebase import frame_count
 
 STAGE = "procedural"
@@ -101,7 +101,8 @@ def _generate_many(
     return generated, reused, rejects
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="procedural[shard-{shard:02d}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="procedural[shard-{shard:02d}]")
 def procedural_shard(
     store_root: str, shard: int, utterances: list[dict], config: ProceduralConfig, variant: str
 ) -> dict[str, int]:
@@ -117,7 +118,8 @@ def procedural_shard(
             "rejected": len(rejects)}
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="procedural[{utterance[utterance_id]}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="procedural[{utterance[utterance_id]}]")
 def procedural_one(
     store_root: str, shard: int, utterance: dict, config: ProceduralConfig, variant: str
 ) -> dict[str, int]:

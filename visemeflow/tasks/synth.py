@@ -16,7 +16,7 @@ from visemeflow.rig import load_rig
 from visemeflow.schemas import C, curves_table, split_utterance_id
 from visemeflow.storage import Store
 from visemeflow.synth.take import SynthConfig, camera_record, make_take, render_take
-from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.timebase import frame_count
 from visemeflow.tracking.landmarks import write_landmarks
 from visemeflow.tracking.video import write_video
@@ -32,7 +32,8 @@ def truth_variant(config: SynthConfig) -> str:
     return name
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="synth[{entry[utterance_id]}]", retries=0)
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="synth[{entry[utterance_id]}]", retries=0)
 def synth_utterance(
     entry: dict, out_root: str, rig_path: str, rig_hash: str, config: SynthConfig, store_root: str
 ) -> dict[str, object]:

@@ -30,7 +30,7 @@ from visemeflow.schemas import (
 )
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, VideoInput, track_video
 
@@ -134,7 +134,8 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     }
 
 
-@task(cache_policy=CACHE_POLICY, persist_result=True, task_run_name="track[{utterance[utterance_id]}]")
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="track[{utterance[utterance_id]}]")
 def track_utterance(
     store_root: str, utterance: dict, procedural_variant: str, procedural_provenance: str, rig_path: str,
     rig_hash: str, config: TrackingConfig,

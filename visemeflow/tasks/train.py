@@ -27,7 +27,7 @@ from visemeflow.learning.train import (
 )
 from visemeflow.schemas import METRICS, C, curves_array
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.visemes import VISEMES
 
 # INPUTS + TASK_SOURCE like every task, without the inputs that say where (not what) it computes
@@ -38,7 +38,8 @@ TRAIN_CACHE_POLICY = Inputs(exclude=RUN_SETTINGS) + TASK_SOURCE
 def load_audio(path: str) -> np.ndarray:
     """Mono 16 kHz float32 audio of an audio file or of a video's audio track (`ingest.audio.read_audio`).
 
-    Raises `ingest.audio.NonFiniteAudioError` (naming the file and the bad samples) for NaN or infinite samples.
+    Raises `ingest.audio.NonFiniteAudioError` (`AudioAmplitudeError`), naming the file and the bad samples, for NaN
+    or infinite samples (samples beyond `ingest.audio.MAX_FLOAT_AMPLITUDE`, which overflow the features).
     """
     audio, rate = read_audio(path)
     return resample_audio(audio, rate, SAMPLE_RATE)
@@ -69,13 +70,17 @@ def metrics_rows(run: str, model: str, condition: str, overall: float, per_utter
     return rows
 
 
-@task(cache_policy=TRAIN_CACHE_POLICY, persist_result=True, task_run_name="train[{model_name}]")
+@task(cache_policy=DataOnlyCache(policy=TRAIN_CACHE_POLICY), persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="train[{model_name}]")
 def train_model_task(
     store_root: str, model_name: str, train_rows: list[dict], val_rows: list[dict], source: str, variant: str,
     lineage: dict, config: TrainConfig, device: str = "auto", precision: str = "auto",
     encoder_cache_dir: str | None = None,
 ) -> dict:
     """Train (or resume) one model; its checkpoints, weights, lineage and per-epoch validation metrics go to the store.
+
+    Weights that turned NaN or infinite are never written (`learning.train.NonFiniteWeightsError`): the task fails,
+    the last good checkpoint and any earlier model file of this name stay as they were.
 
     `device` (auto, cpu, cuda, cuda:N) and `precision` are resolved here, where the work runs (a Dask worker may
     not be the flow's machine); `encoder_cache_dir` keeps wav2vec2's frozen encoder outputs as files.
