@@ -40,9 +40,9 @@ def peak_mb() -> float:
 
 def child(mode: str, model_name: str, wav: str, out: str) -> None:
     """One measurement in this (fresh) process: predict `wav` whole or chunked, save the curves, print JSON."""
-    from visemeflow.ingest.audio import read_audio
+    from visemeflow.ingest.audio import AudioFile, read_audio
     from visemeflow.learning.default_model import shipped_model_path
-    from visemeflow.learning.longform import open_audio, predict_long
+    from visemeflow.learning.longform import predict_long
     from visemeflow.learning.train import load_model, predict_curves
 
     model = load_model(shipped_model_path(model_name))[0]
@@ -52,7 +52,7 @@ def child(mode: str, model_name: str, wav: str, out: str) -> None:
         samples, rate = read_audio(wav)
         curves = predict_curves(model, samples, rate, FPS)
     else:
-        curves = predict_long(lambda a, r, n: predict_curves(model, a, r, FPS, n_frames=n), open_audio(wav), FPS)
+        curves = predict_long(lambda a, r, n: predict_curves(model, a, r, FPS, n_frames=n), AudioFile(wav), FPS)
     seconds = time.perf_counter() - started
     np.save(out, curves)
     print(json.dumps({"seconds": seconds, "peak_mb": peak_mb(), "model_mb": base}))

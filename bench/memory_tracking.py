@@ -22,19 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from memory import peak_mb  # bench/memory.py: this script's folder is on sys.path
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 CLIP = ROOT.parent / "shared" / "data" / "talking_heads" / "4.mp4"
 MARKS = CLIP.with_name("4.mediapipe478.csv")
-
-
-def peak_mb() -> float:
-    """This process's peak resident memory (VmHWM). Not ru_maxrss: Linux carries the parent's peak into a child
-    across exec, so a child spawned by a parent that held the test input would report the parent's size."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
 
 
 def child(mode: str, video: str, points_file: str, out: str) -> None:

@@ -13,7 +13,7 @@ from prefect.cache_policies import INPUTS, TASK_SOURCE
 from prefect.tasks import Task
 
 import visemeflow.tasks
-from visemeflow.storage.results import StoreJSONSerializer, check_result_record
+from visemeflow.tasks.results import StoreJSONSerializer, check_result_record
 from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache
 
 

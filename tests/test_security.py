@@ -175,7 +175,7 @@ def test_store_results_folder_refuses_what_visemeflow_did_not_write(tmp_path, ki
     from prefect.filesystems import LocalFileSystem
     from prefect.results import ResultStore
 
-    from visemeflow.storage.results import UntrustedResultError, check_result_record
+    from visemeflow.tasks.results import UntrustedResultError, check_result_record
     from visemeflow.tasks.common import RESULT_SERIALIZER, discard_untrusted_record
 
     marker = tmp_path / "code-ran"
@@ -199,7 +199,7 @@ def test_store_results_folder_refuses_links_and_special_files(tmp_path):
 
     from prefect.filesystems import LocalFileSystem
 
-    from visemeflow.storage.results import UntrustedResultError, check_result_record
+    from visemeflow.tasks.results import UntrustedResultError, check_result_record
     from visemeflow.tasks.common import discard_untrusted_record
 
     results = tmp_path / ".prefect-results"

@@ -592,3 +592,12 @@ def test_rerun_params_take_an_id_typed_in_decomposed_form_as_the_stored_one():
     assert RerunParams(utterance_id=typed).utterance_id == "Sprecher_ü/Satz 1"
     with pytest.raises(ValueError, match="exactly one '/'"):
         RerunParams(utterance_id="a/b/c")
+
+
+def test_reject_rows_are_capped_when_made_so_logs_quoting_them_stay_bounded():
+    from visemeflow.tasks.common import reject_row
+
+    huge = "entity " * 1_000_000
+    row = reject_row("s/a", "ingest", "BadXra", huge, "s/a.xra")
+    assert len(row[C.MESSAGE]) <= 4000 and row[C.MESSAGE].endswith("characters cut]")
+    assert reject_row("s/a", "ingest", "BadXra", "short", None)[C.MESSAGE] == "short"

@@ -332,12 +332,15 @@ def serve(
     cron: Annotated[str, typer.Option(help="Schedule of the pipeline (cron); '' for none.")] = "0 3 * * *",
     timezone: Annotated[str, typer.Option(help="Time zone of the schedule (IANA name).")] = "UTC",
     port: Annotated[int, typer.Option(help="Port of the local Prefect server started when PREFECT_API_URL is unset.")] = 4200,
+    root: Annotated[Optional[list[Path]], typer.Option(
+        help="Another folder flow runs may name paths under (audio, characters, takes, outputs); repeatable. "
+             "The store and the corpus always are.")] = None,
 ) -> None:
     """Serve every stage as a Prefect deployment (the pipeline on a schedule) with the UI; Ctrl-C stops."""
     from visemeflow.ops.serve import ServerStartError, serve_stages
 
     try:
-        serve_stages(store, corpus, cron or None, timezone, port, echo=typer.echo)
+        serve_stages(store, corpus, cron or None, timezone, port, echo=typer.echo, roots=root or [])
     except ServerStartError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
@@ -433,6 +436,13 @@ def evaluate(
     result = evaluate_flow(params)
     typer.echo(Path(result["markdown"]).read_text(encoding="utf-8"))
     typer.echo(f"table: {result['markdown']} and {result['csv']}")
+    typer.echo(f"evaluate: {len(result['models'])} of {len(params.models)} models judged, "
+               f"{result['rejected']} rejected")
+    for r in result["rejects"]:
+        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
+    if result["rejects"]:
+        typer.echo(f"see `visemeflow rejects --store {store} --stage evaluate`", err=True)
+        raise typer.Exit(1)
 
 
 @app.command()
@@ -453,7 +463,6 @@ def predict(
     """
     device = _device(device)
     from visemeflow.flows.predict import PredictParams, predict_flow
-    from visemeflow.ingest.audio import AudioError
     from visemeflow.storage import Store
 
     s = Store(store)
@@ -461,24 +470,27 @@ def predict(
         typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
                    "`visemeflow train`", err=True)
         raise typer.Exit(2)
-    try:
-        result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out, device=device))
-    except AudioError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out, device=device))
     for r in result["predictions"]:
         cached = ", cached" if r["cached"] else ""
         typer.echo(f"{r['audio']}: {r['frames']} frames -> {r['utterance_id']} "
                    f"(real-time factor {r['real_time_factor']:.4f}{cached})")
         for path in r["exports"]:
             typer.echo(f"wrote {path}")
+    typer.echo(f"predict: {result['files']} files, {result['predicted']} predicted, {result['cached']} cached, "
+               f"{result['rejected']} rejected")
+    for r in result["rejects"]:   # each reason starts with the file it names
+        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
+    if result["rejects"]:
+        typer.echo(f"see `visemeflow rejects --store {store} --stage predict`", err=True)
+        raise typer.Exit(1)
 
 
-def _print_packages(result: dict) -> None:
+def _print_packages(result: dict, title: str = "animate") -> None:
     packages = result.pop("packages_written", [])
     for choice in result.pop("character_choices", []):
         typer.echo(choice)
-    _print_summary("animate", result)
+    _print_summary(title, result)
     for report in packages:
         cached = " (cached)" if report.get("cached") else ""
         typer.echo(f"{report['utterance_id']} -> {report['character']} [{report['convention']}], "
@@ -610,8 +622,14 @@ def speak(
     _check_meshes(character, mesh)
     if character:
         params["characters"] = character
-    _print_packages(dict(speak_flow(SpeakParams(**params))))
+    result = dict(speak_flow(SpeakParams(**params)))
+    audio_rejects = result.pop("rejects")
+    _print_packages(result, "speak")
+    for r in audio_rejects:
+        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
     _print_rejects_hint(store)
+    if audio_rejects or result["rejected"]:   # an audio file or a package left out: the command did not do it all
+        raise typer.Exit(1)
 
 
 @app.command("preview")
@@ -663,7 +681,7 @@ def export_model(
     opset: Annotated[int, typer.Option(help="ONNX opset (15 for Unity Sentis before 2.6).")] = 17,
     sample_rate: Annotated[int, typer.Option(help="Rate of the graph's audio input (mono float32).")] = 16000,
     fps: Annotated[Optional[float], typer.Option(help="Curve frame rate; default: the model's own.")] = None,
-    check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4; 1e-3 for Whisper models).")] = True,
+    check: Annotated[bool, typer.Option(help="Run the graph with onnxruntime and compare with torch (1e-4; 1e-3 for Whisper models); a graph that fails replaces no file.")] = True,
 ) -> None:
     """Export a trained model for engines: an ONNX graph, audio samples in, (1, frames, 16) curves out."""
     from visemeflow.learning.default_model import is_shipped, shipped_model_path

@@ -98,15 +98,19 @@ def out_of_range_reason(first: int, last: int, count: int, peak: float, rate: fl
             "rescale or re-export the audio")
 
 
-def check_finite(samples: np.ndarray, rate: float, path: str | os.PathLike) -> None:
+def check_finite(samples: np.ndarray, rate: float, path: str | os.PathLike, offset: int = 0) -> None:
     """Raise NonFiniteAudioError (AudioAmplitudeError) naming `path` and the bad sample range when `samples` are
-    not all finite (not all within MAX_FLOAT_AMPLITUDE)."""
+    not all finite (not all within MAX_FLOAT_AMPLITUDE); `offset`: the file's sample index of `samples[0]`, for a
+    block read from the middle of a file."""
     span = non_finite_span(samples)
     if span is not None:
-        raise NonFiniteAudioError(str(path), reason=non_finite_reason(*span, rate))
+        first, last, count = span
+        raise NonFiniteAudioError(str(path), reason=non_finite_reason(first + offset, last + offset, count, rate))
     loud = out_of_range_span(samples)
     if loud is not None:
-        raise AudioAmplitudeError(str(path), reason=out_of_range_reason(*loud, rate))
+        first, last, count, peak = loud
+        raise AudioAmplitudeError(str(path), reason=out_of_range_reason(first + offset, last + offset, count, peak,
+                                                                        rate))
 
 
 def _merge_span(total: tuple | None, span: tuple | None, offset: int) -> tuple | None:
@@ -170,3 +174,34 @@ def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, 
     if mono:
         samples = samples.mean(axis=1, dtype=np.float32) if samples.shape[1] > 1 else samples[:, 0].copy()
     return np.asarray(samples, dtype=np.float32), int(rate)
+
+
+class AudioFile:
+    """The mono float32 samples of an audio file, read by range (``visemeflow.learning.longform.AudioSource``).
+
+    A file soundfile can seek in is read block by block and never whole (long audio in bounded memory), each block
+    checked as :func:`read_audio` checks the whole file; a video's track, or a format only PyAV reads, is decoded
+    whole by :func:`read_audio` (same errors)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = str(path)
+        self._samples: np.ndarray | None = None
+        if not is_video_file(self.path):
+            try:
+                with sf.SoundFile(self.path) as f:
+                    self.rate, self.n_samples = int(f.samplerate), int(f.frames)
+                return
+            except (RuntimeError, OSError):  # soundfile's LibsndfileError is a RuntimeError: let PyAV try
+                pass
+        self._samples, self.rate = read_audio(self.path)
+        self.n_samples = len(self._samples)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start,) float32 samples ``[start, stop)`` (fewer at the end of the file)."""
+        if self._samples is not None:
+            return self._samples[start:stop]
+        with sf.SoundFile(self.path) as f:
+            f.seek(start)
+            block = f.read(stop - start, dtype="float32", always_2d=True)
+        check_finite(block, self.rate, self.path, offset=start)
+        return block.mean(axis=1, dtype=np.float32) if block.shape[1] > 1 else block[:, 0]

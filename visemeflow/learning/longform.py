@@ -20,23 +20,21 @@ its first (context) frame, so every chunk's frame times line up with the whole f
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-import soundfile as sf
 
 from visemeflow.visemes import N_VISEMES
 
-__all__ = ["CHUNK_S", "CONTEXT_S", "AudioSource", "open_audio", "predict_long"]
+__all__ = ["CHUNK_S", "CONTEXT_S", "AudioSource", "predict_long"]
 
 CHUNK_S = 50.0
 CONTEXT_S = 5.0
 
 
 class AudioSource(Protocol):
-    """Mono float32 samples of a file, read by range."""
+    """Mono float32 samples of a file, read by range (``visemeflow.ingest.audio.AudioFile`` is one)."""
 
     rate: int
     n_samples: int
@@ -52,39 +50,6 @@ class _ArraySource:
 
     def read(self, start: int, stop: int) -> np.ndarray:
         return self.samples[start:stop]
-
-
-class _SoundFileSource:
-    """A soundfile-readable file, read block by block (never whole); each block is checked to be finite."""
-
-    def __init__(self, path: str) -> None:
-        with sf.SoundFile(path) as f:
-            self.rate, self.n_samples = int(f.samplerate), int(f.frames)
-        self.path = path
-
-    def read(self, start: int, stop: int) -> np.ndarray:
-        from visemeflow.ingest.audio import check_finite
-
-        with sf.SoundFile(self.path) as f:
-            f.seek(start)
-            block = f.read(stop - start, dtype="float32", always_2d=True)
-        check_finite(block, self.rate, self.path)
-        return block.mean(axis=1, dtype=np.float32) if block.shape[1] > 1 else block[:, 0]
-
-
-def open_audio(path: str | os.PathLike) -> AudioSource:
-    """The audio of `path` as an :class:`AudioSource`: read in blocks where soundfile can seek in the file; a
-    video's track (or a format only PyAV reads) is decoded whole by ``read_audio`` (same errors as it)."""
-    from visemeflow.ingest.audio import is_video_file, read_audio
-
-    p = str(path)
-    if not is_video_file(p):
-        try:
-            return _SoundFileSource(p)
-        except (RuntimeError, OSError):  # soundfile's LibsndfileError is a RuntimeError: let read_audio try PyAV
-            pass
-    samples, rate = read_audio(p)
-    return _ArraySource(samples, rate)
 
 
 def predict_long(predict: Callable[[np.ndarray, int, int], np.ndarray], source: AudioSource | np.ndarray,

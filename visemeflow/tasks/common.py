@@ -15,7 +15,8 @@ from prefect.filesystems import LocalFileSystem
 
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.storage.results import StoreJSONSerializer, UntrustedResultError, check_result_record
+from visemeflow.storage.store import cap_message
+from visemeflow.tasks.results import StoreJSONSerializer, UntrustedResultError, check_result_record
 
 # Every persisted task writes its result as JSON data; `DataOnlyCache` keeps Prefect from reading anything else.
 RESULT_SERIALIZER = StoreJSONSerializer()
@@ -85,7 +86,9 @@ def result_storage(store_root: str | Path) -> Path:
 
 
 def reject_row(utterance_id: str | None, stage: str, error_type: str, message: str, path: str | None) -> dict[str, object]:
+    """One row of the rejects table; the message capped as the store caps it, so the logs that quote the row stay
+    bounded too (an entity-expanding XML file made a 30 MB message)."""
     return {
-        C.UTTERANCE_ID: utterance_id, C.STAGE: stage, C.ERROR_TYPE: error_type, C.MESSAGE: message,
+        C.UTTERANCE_ID: utterance_id, C.STAGE: stage, C.ERROR_TYPE: error_type, C.MESSAGE: cap_message(message),
         C.PATH: path, C.TIME: datetime.now(timezone.utc),
     }

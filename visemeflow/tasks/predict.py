@@ -8,8 +8,9 @@ import time
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
+from visemeflow.ingest.audio import AudioFile
 from visemeflow.learning.device import resolve_device
-from visemeflow.learning.longform import open_audio, predict_long
+from visemeflow.learning.longform import predict_long
 from visemeflow.learning.train import predict_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
@@ -44,7 +45,7 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     model = _model(store_root, model_name, model_hash, str(resolve_device(device)))
     logger = get_run_logger()
     started = time.perf_counter()
-    source = open_audio(audio_path)
+    source = AudioFile(audio_path)
     duration = source.n_samples / source.rate
 
     def progress(done: int, total: int) -> None:
