@@ -70,7 +70,15 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, SerializerFunctionWrapHandler, model_serializer, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 from torch import nn
 
 from visemeflow.learning.whisper import (
@@ -107,7 +115,7 @@ class FeatureConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["fbank", "mfcc", "lpc", "wav2vec2", "whisper"]
+    kind: str  # a registered feature kind (FEATURE_KINDS; built in: fbank, mfcc, lpc, wav2vec2, whisper)
     sample_rate: int = 16000
     n_mels: int = 80
     win_ms: float = 25.0
@@ -127,6 +135,8 @@ class FeatureConfig(BaseModel):
     whisper_window_s: float = 30.0  # Whisper's context; long audio in windows of this, crossfaded over the overlap
     whisper_overlap_s: float = 5.0
     whisper_pad_short: bool = True  # audio shorter than a window padded to it, as Whisper was trained (whisper.py)
+    # parameters of a feature kind registered outside this module (register_feature), JSON values
+    options: dict[str, str | int | float | bool] = Field(default_factory=dict)
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -136,6 +146,14 @@ class FeatureConfig(BaseModel):
             if name in data and data[name] == default:
                 del data[name]
         return data
+
+    @field_validator("kind")
+    @classmethod
+    def _registered(cls, kind: str) -> str:
+        if kind not in FEATURE_KINDS:
+            raise ValueError(f"unknown feature kind {kind!r}; registered: {', '.join(sorted(FEATURE_KINDS))} "
+                             "(a new one: visemeflow.learning.features.register_feature)")
+        return kind
 
     @model_validator(mode="after")
     def _check(self) -> FeatureConfig:
@@ -164,7 +182,7 @@ class FeatureConfig(BaseModel):
 
 _ADDED_FEATURE_DEFAULTS: dict[str, Any] = {
     "whisper_source": "package", "whisper_layers": "last", "whisper_window_s": 30.0, "whisper_overlap_s": 5.0,
-    "whisper_pad_short": True,
+    "whisper_pad_short": True, "options": {},
 }
 
 
@@ -435,6 +453,27 @@ class FeatureExtractor(nn.Module, abc.ABC):
         return feats * mask, feat_lengths
 
 
+FEATURE_KINDS: dict[str, type[FeatureExtractor]] = {}
+"""Feature kind -> its extractor class (``cls(config)`` builds one): what FeatureConfig.kind accepts."""
+
+
+def register_feature(*kinds: str):
+    """Class decorator: ``cls`` computes the feature kinds ``kinds``. A new audio encoder is one module: its
+    FeatureExtractor subclass registered here, its parameters in ``FeatureConfig.options``, and a preset
+    (``visemeflow.learning.presets.register_preset``) that names the kind; training, saving, loading and prediction
+    need nothing else (ONNX export knows only the built-in kinds)."""
+    def add(cls: type[FeatureExtractor]) -> type[FeatureExtractor]:
+        if not (isinstance(cls, type) and issubclass(cls, FeatureExtractor)):
+            raise TypeError(f"register_feature needs a FeatureExtractor subclass, got {cls!r}")
+        for kind in kinds:
+            if FEATURE_KINDS.get(kind, cls) is not cls:
+                raise ValueError(f"feature kind {kind!r} is already computed by {FEATURE_KINDS[kind].__name__}")
+            FEATURE_KINDS[kind] = cls
+        return cls
+    return add
+
+
+@register_feature("fbank", "mfcc")
 class FilterbankExtractor(FeatureExtractor):
     """Log-mel filterbank ("fbank") or MFCC features (see module docstring)."""
 
@@ -488,6 +527,7 @@ class FilterbankExtractor(FeatureExtractor):
         return self._finish(feats, feat_lengths)
 
 
+@register_feature("lpc")
 class LpcExtractor(FeatureExtractor):
     """Per-frame LPC predictor coefficients by batched Levinson-Durbin (see module docstring)."""
 
@@ -530,6 +570,7 @@ class LpcExtractor(FeatureExtractor):
 # --------------------------------------------------------------------------------------------
 
 
+@register_feature("wav2vec2")
 class Wav2Vec2Extractor(FeatureExtractor):
     """Pretrained Wav2Vec2 (paper: XLSR-53) contextual features; transformer trainable."""
 
@@ -636,6 +677,7 @@ def _answering(module: nn.Module, output: torch.Tensor) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------
 
 
+@register_feature("whisper")
 class WhisperExtractor(FeatureExtractor):
     """OpenAI Whisper's audio encoder, frozen (:mod:`visemeflow.learning.whisper`): D = d_model (512 for base),
     50 Hz, any length of audio (30-s windows crossfaded), the last layer or a learned weighted sum of all layers.
@@ -868,11 +910,5 @@ def make_tiny_wav2vec2(path: str | Path, seed: int = 0, **overrides: Any) -> Pat
 
 
 def build_feature_extractor(config: FeatureConfig) -> FeatureExtractor:
-    """The extractor for ``config.kind``."""
-    if config.kind in ("fbank", "mfcc"):
-        return FilterbankExtractor(config)
-    if config.kind == "lpc":
-        return LpcExtractor(config)
-    if config.kind == "whisper":
-        return WhisperExtractor(config)
-    return Wav2Vec2Extractor(config)
+    """The extractor registered for ``config.kind``."""
+    return FEATURE_KINDS[config.kind](config)

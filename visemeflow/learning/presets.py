@@ -40,7 +40,7 @@ from visemeflow.learning.model import (
     spec_augment,
 )
 
-FeatureKind = Literal["fbank", "mfcc", "lpc", "wav2vec2", "whisper"]
+FeatureKind = str  # a registered feature kind (visemeflow.learning.features.FEATURE_KINDS)
 Architecture = Literal["curve", "karras", "faceformer", "mean"]
 
 LR_WAV2VEC2 = 1e-5  # paper, Section 5.1
@@ -69,6 +69,8 @@ class Preset(BaseModel):
     note: str = ""
     # whisper presets: where the encoder weights come from (FeatureConfig.whisper_source): "package" or a hub id
     whisper_source: str | None = None
+    # a registered feature kind's parameters (FeatureConfig.options)
+    feature_options: dict[str, str | int | float | bool] = Field(default_factory=dict)
 
     @property
     def trainable(self) -> bool:
@@ -124,6 +126,21 @@ _ALL: list[Preset] = [
 ]
 
 PRESETS: dict[str, Preset] = {p.name: p for p in _ALL}
+
+
+def register_preset(preset: Preset) -> Preset:
+    """Add ``preset`` to PRESETS (the names `train --preset`, TrainConfig and saved models accept); its feature
+    kind must be registered (``register_feature``). Registering the same preset again is a no-op; another preset
+    under a taken name is refused."""
+    from visemeflow.learning.features import FEATURE_KINDS
+
+    if preset.feature not in FEATURE_KINDS:
+        raise ValueError(f"preset {preset.name!r}: feature kind {preset.feature!r} is not registered "
+                         f"({', '.join(sorted(FEATURE_KINDS))})")
+    if PRESETS.get(preset.name, preset) != preset:
+        raise ValueError(f"a different preset is already named {preset.name!r}")
+    PRESETS[preset.name] = preset
+    return preset
 
 
 def get_preset(name: str) -> Preset:

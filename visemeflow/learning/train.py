@@ -260,7 +260,7 @@ def _feature_config(config: TrainConfig, preset: Preset) -> FeatureConfig:
     if preset.feature == "whisper":
         return FeatureConfig(kind="whisper", whisper_source=config.whisper_source or preset.whisper_source or "package",
                              whisper_layers=config.whisper_layers or "last")
-    return FeatureConfig(kind=preset.feature, normalize=True)
+    return FeatureConfig(kind=preset.feature, normalize=True, options=dict(preset.feature_options))
 
 
 def _assemble(config: TrainConfig, feature_module: nn.Module, curve_fps: float) -> AudioCurveModel:
