@@ -131,7 +131,51 @@ def test_sweep_flow_trains_each_size_and_plots(tmp_path):
     assert [p[0] for p in result["points"]] == [2, 4] and all(np.isfinite(p[1]) for p in result["points"])
     assert result["validation_utterances"] == 2
     assert (s.root / "reports" / "sweep-fbank-tcn.png").stat().st_size > 1000
-    assert {m[C.MODEL] for m in s.read_metrics().to_pylist()} == {"sweep-fbank-tcn-n2", "sweep-fbank-tcn-n4"}
+    names = {m[C.MODEL] for m in s.read_metrics().to_pylist()}
+    # named by size and a digest of the config and data
+    assert len(names) == 2 and {n.rsplit("-", 1)[0] for n in names} == {"sweep-fbank-tcn-n2", "sweep-fbank-tcn-n4"}
+
+
+def test_two_sweeps_of_other_configs_and_sources_on_one_store_keep_their_own_models(tmp_path):
+    """A second sweep with another --d-model (or another --source) trains models of its own: it neither resumes
+    nor overwrites the checkpoints and model files of the first."""
+    from visemeflow.flows.params import SweepParams
+    from visemeflow.flows.sweep import sweep_flow
+    from visemeflow.learning.train import TrainConfig, load_model
+    from visemeflow.schemas import C, curves_table
+
+    s = make_curve_store(tmp_path / "store")
+    small = SweepParams(store=s.root, config=TrainConfig(preset="fbank-tcn", d_model=8), sizes=[2, 4], steps=4,
+                        source="ground_truth")
+    first = sweep_flow(small)
+    first_models = set(s.model_names())
+    assert len(first_models) == 2
+    files = {name: s.model_path(name).read_bytes() for name in first_models}
+
+    wider = sweep_flow(small.model_copy(update={"config": TrainConfig(preset="fbank-tcn", d_model=12)}))
+    assert [p[0] for p in wider["points"]] == [2, 4] and all(np.isfinite(p[1]) for p in wider["points"])
+    wider_models = set(s.model_names()) - first_models
+    assert len(wider_models) == 2, s.model_names()
+    assert {load_model(s.model_path(name))[1].d_model for name in wider_models} == {12}
+    assert {name: s.model_path(name).read_bytes() for name in first_models} == files
+
+    # the same sweep on another source's curves (same utterances, other targets): models of its own too
+    rng = np.random.default_rng(1)
+    for uid in s.curve_ids("ground_truth", "cm"):
+        s.write_curves(curves_table(uid, "tracked", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
+    sweep_flow(small.model_copy(update={"source": "tracked"}))
+    assert len(set(s.model_names()) - first_models - wider_models) == 2, s.model_names()
+    assert {name: s.model_path(name).read_bytes() for name in first_models} == files
+
+    again = sweep_flow(small)  # the first sweep again: its models, cached
+    assert again["points"] == first["points"] and len(s.model_names()) == 6
+
+    # new target curves that record no provenance: told apart by their files' content
+    for uid in s.curve_ids("ground_truth", "cm"):
+        s.write_curves(curves_table(uid, "ground_truth", "cm", rng.random((25, 16)).astype(np.float32), 25.0))
+    sweep_flow(small)
+    assert len(s.model_names()) == 8 and {name: s.model_path(name).read_bytes() for name in first_models} == files
+    assert {m[C.MODEL] for m in s.read_metrics().to_pylist()} == set(s.model_names())
 
 
 def test_training_without_validation_utterances_finishes_and_reports_no_validation(tmp_path):

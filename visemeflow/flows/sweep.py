@@ -12,7 +12,9 @@ from visemeflow.dashboards import plots
 from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
+from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.learning.device import resolve_device, resolve_precision
+from visemeflow.learning.train import TrainConfig
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for
@@ -22,6 +24,21 @@ def nested_subsets(rows: list[dict], sizes: list[int]) -> dict[int, list[dict]]:
     """For each size, the first `size` training rows in a fixed pseudo-random order: every subset contains the smaller ones."""
     order = sorted(rows, key=lambda r: (zlib.crc32(r[C.UTTERANCE_ID].encode()), r[C.UTTERANCE_ID]))
     return {size: order[:size] for size in sorted(set(sizes)) if 0 < size <= len(order)}
+
+
+def data_digest(store: Store, lineage: dict, rows: list[dict], val: list[dict]) -> str:
+    """Digest of what a model is trained and judged on: the curves (`lineage`: source, variant, each utterance's
+    curves' provenance, or the curve file's own hash where none was recorded) and each utterance's input files."""
+    curves = {split: {uid: provenance or file_hash(store.curve_path(lineage["source"], lineage["variant"], uid))
+                      for uid, provenance in lineage[split].items()} for split in ("train", "val")}
+    audio = [[r[C.UTTERANCE_ID], r[C.CONTENT_HASH]] for r in rows + val]
+    return stable_hash(lineage["source"], lineage["variant"], curves, audio)
+
+
+def sweep_model_name(config: TrainConfig, size: int, data: str) -> str:
+    """`sweep-<preset>-n<size>-<digest of the config and data>`: a sweep of another config or other data trains
+    models (and checkpoints, in the model's folder) of its own, and a sweep run again finds its own."""
+    return f"sweep-{config.preset}-n{size}-{stable_hash(config, data, size=4)}"
 
 
 def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
@@ -53,10 +70,10 @@ def sweep_flow(params: SweepParams) -> dict:
     for size, rows in subsets.items():
         epochs = max(1, math.ceil(params.steps / size))  # equal iteration budget, one utterance per step
         config = params.config.model_copy(update={"epochs": epochs})
-        name = f"sweep-{params.config.preset}-n{size}"
         ids = {r[C.UTTERANCE_ID] for r in rows}
         sub_lineage = {**lineage, "train": {k: v for k, v in lineage["train"].items() if k in ids},
                        "config": config.model_dump(mode="json")}
+        name = sweep_model_name(config, size, data_digest(store, sub_lineage, rows, val))
         futures[size] = training_task_for(store, name).submit(
             str(store.root), name, rows, val, params.source, variant, sub_lineage, config, params.device,
             params.precision, None if params.encoder_cache_dir is None else str(params.encoder_cache_dir),

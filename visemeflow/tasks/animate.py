@@ -31,12 +31,13 @@ from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
 from visemeflow.schemas import C, curves_array
 from visemeflow.storage import Store
-from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache
+from visemeflow.tasks.code_version import code_digest
+from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
 # keyed on content hashes, not on where the character, mapping and audio files lie
-ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE
+ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE + CODE
 
 
 class AnimateError(ValueError):
@@ -105,10 +106,11 @@ def character_keys(paths: list[str]) -> list[str]:
 def package_inputs(utterance_id: str, source: str, variant: str, provenance: str, character_hash: str,
                    mapping_hash: str | None, config: AnimateConfig, audio_hash: str | None,
                    phones: list | None) -> dict:
-    """What one package is made from, as its `.inputs.json` records it (content hashes, not paths)."""
+    """What one package is made from, as its `.inputs.json` records it (content hashes, not paths), and the code."""
     return {"utterance_id": utterance_id, "source": source, "variant": variant, "curves": provenance,
             "character": character_hash, "mapping": mapping_hash, "audio": audio_hash,
-            "config": stable_hash(config), "phones": stable_hash(phones) if phones else None}
+            "config": stable_hash(config), "phones": stable_hash(phones) if phones else None,
+            "code": code_digest(__name__)}
 
 
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:

@@ -16,6 +16,7 @@ from prefect.filesystems import LocalFileSystem
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.storage.store import cap_message
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.results import StoreJSONSerializer, UntrustedResultError, check_result_record
 
 # Every persisted task writes its result as JSON data; `DataOnlyCache` keeps Prefect from reading anything else.
@@ -76,8 +77,20 @@ def discard_untrusted_record(storage: object, key: str, logger: logging.Logger |
     return False
 
 
-# Deterministic tasks are keyed on their inputs (content hashes, configs, ids) and their own code.
-CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE)
+@dataclass
+class CodeDigest(CachePolicy):
+    """The digest of the code a task runs (`code_version.code_digest` of its module): `TASK_SOURCE` sees the task's
+    own lines only, and a task is a thin wrapper of the domain functions that decide its outputs."""
+
+    def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any],
+                    **kwargs: Any) -> str:
+        return code_digest(task_ctx.task.fn.__module__)
+
+
+CODE = CodeDigest()
+
+# Deterministic tasks are keyed on their inputs (content hashes, configs, ids) and the code they run.
+CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE + CODE)
 
 
 def result_storage(store_root: str | Path) -> Path:

@@ -39,14 +39,14 @@ from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, resample_c
 from visemeflow.rig import load_demo_rig
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, DataOnlyCache, result_storage
+from visemeflow.tasks.common import CACHE_POLICY, CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.tasks.models import load_curve_model
 from visemeflow.tasks.train import load_audio, load_examples, metrics_rows
 
 RUN = "evaluate"
 
-# INPUTS + TASK_SOURCE like every task, without where the model runs
-EVALUATE_CACHE_POLICY = Inputs(exclude=["device"]) + TASK_SOURCE
+# INPUTS + TASK_SOURCE + CODE like every task, without where the model runs
+EVALUATE_CACHE_POLICY = Inputs(exclude=["device"]) + TASK_SOURCE + CODE
 
 
 def augmentation_name(condition: str, seed: int, config: AugmentConfig) -> str:

@@ -26,6 +26,7 @@ from visemeflow.ingest.captured import (
 )
 from visemeflow.schemas import UTTERANCES, C, curves_table, shard_of, table_from_rows
 from visemeflow.storage import Store
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row, result_storage
 
 STAGE = "import_curves"
@@ -33,8 +34,9 @@ SOURCE = "captured"
 
 
 def provenance(take: Take, config: CaptureConfig, solver_digest: str) -> str:
-    """What made a take's curves: its files' content hash, the conversion table and the config."""
-    return f"{SOURCE}:{take.format or 'auto'}:{take.content_hash}:{solver_digest}:{stable_hash(config)}"
+    """What made a take's curves: its files' content hash, the conversion table, the config and the code."""
+    return (f"{SOURCE}:{take.format or 'auto'}:{take.content_hash}:{solver_digest}:{stable_hash(config)}:"
+            f"{code_digest(__name__)}")
 
 
 def ingested_rows(store: Store, utterance_ids: list[str]) -> dict[str, dict]:

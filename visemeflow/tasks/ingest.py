@@ -16,6 +16,7 @@ from visemeflow.ingest import (
 from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
 from visemeflow.schemas.tables import NO_ALIGNMENT, has_alignment
 from visemeflow.storage import Store
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
 
 STAGE = "ingest"
@@ -72,7 +73,7 @@ def _previous_rows(store: Store, shard: int, config_hash: str) -> dict[str, tupl
 def ingest_shard(store_root: str, shard: int, entries: list[dict], config: IngestConfig) -> dict[str, int]:
     """Ingest one shard of the corpus into the `utterances`, `phones` and `rejects` tables."""
     store = Store(store_root)
-    config_hash = stable_hash(config)
+    config_hash = stable_hash(config, code_digest(__name__))  # rows made by other code are made again
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
     unaligned = sum(not has_alignment(u) for u in utterances)

@@ -12,6 +12,7 @@ from prefect import get_run_logger, task
 from visemeflow.hashing import stable_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.tracking.facemesh import FaceMeshConfig, FaceMeshError, detect_video, mediapipe478_table
 
@@ -30,8 +31,8 @@ class LandmarksError(ValueError):
 
 
 def provenance(utterance: dict, config: FaceMeshConfig) -> str:
-    """What made an utterance's stored landmarks: the stage, the utterance's content hash and the settings."""
-    return f"{STAGE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}"
+    """What made an utterance's stored landmarks: the stage, the utterance's content hash, the settings and the code."""
+    return f"{STAGE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"
 
 
 def landmarks_one(store: Store, utterance: dict, config: FaceMeshConfig) -> dict:

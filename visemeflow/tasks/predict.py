@@ -14,14 +14,15 @@ from visemeflow.learning.longform import predict_long
 from visemeflow.learning.train import predict_curves
 from visemeflow.schemas import curves_table
 from visemeflow.storage import Store
-from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache, result_storage
+from visemeflow.tasks.code_version import code_digest
+from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.tasks.models import load_curve_model
 
 SOURCE = "predicted"
-# INPUTS + TASK_SOURCE like every task, but not keyed on where the audio lies: its content hash is an input, so the
-# same sound under another folder (same utterance id) is a cache hit, and a changed file under the same path is not.
+# INPUTS + TASK_SOURCE + CODE like every task, but not keyed on where the audio lies: its content hash is an input, so
+# the same sound under another folder (same utterance id) is a cache hit, and a changed file under the same path is not.
 # Nor on where the model runs (`device`): curves predicted on the CPU stay valid for a GPU run.
-PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path", "device"]) + TASK_SOURCE
+PREDICT_CACHE_POLICY = Inputs(exclude=["audio_path", "device"]) + TASK_SOURCE + CODE
 
 
 @functools.lru_cache(maxsize=2)
@@ -66,8 +67,9 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
 
 
 def prediction_provenance(model_name: str, model_hash: str, audio_hash: str, fps: float) -> str:
-    """What stored predicted curves were made from: the model's and the audio's content hashes and the frame rate."""
-    return f"{SOURCE}:{model_name}:{model_hash}:{audio_hash}:{float(fps)!r}"
+    """What stored predicted curves were made from: the model's and the audio's content hashes, the frame rate and
+    the code."""
+    return f"{SOURCE}:{model_name}:{model_hash}:{audio_hash}:{float(fps)!r}:{code_digest(__name__)}"
 
 
 def prediction_task_for(store: Store, model_name: str, utterance_id: str, provenance: str):

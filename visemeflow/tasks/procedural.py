@@ -11,6 +11,7 @@ from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
 from visemeflow.schemas import REJECTS, C, curves_table, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
 from visemeflow.timebase import frame_count
 
@@ -38,7 +39,8 @@ def segments_from_phones(phones: pa.Table) -> list[VisemeSegment]:
 
 
 def provenance(content_hash: str, config: ProceduralConfig) -> str:
-    return f"procedural:{content_hash}:{stable_hash(config)}"
+    """What made an utterance's curves: its input files' content hash, the config and the code."""
+    return f"procedural:{content_hash}:{stable_hash(config)}:{code_digest(__name__)}"
 
 
 def generate_for_utterance(

@@ -16,6 +16,7 @@ from visemeflow.rig import load_rig
 from visemeflow.schemas import C, curves_table, split_utterance_id
 from visemeflow.storage import Store
 from visemeflow.synth.take import SynthConfig, camera_record, make_take, render_take
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.timebase import frame_count
 from visemeflow.tracking.landmarks import write_landmarks
@@ -64,7 +65,8 @@ def synth_utterance(
     variant = truth_variant(config)
     Store(store_root).write_curves(
         curves_table(source.utterance_id, SOURCE, variant, take.curves, config.fps),
-        provenance=f"{SOURCE}:{source.content_hash}:{stable_hash(config)}:{rig_hash}", fps=config.fps,
+        provenance=f"{SOURCE}:{source.content_hash}:{stable_hash(config)}:{rig_hash}:{code_digest(__name__)}",
+        fps=config.fps,
     )
     get_run_logger().info("%s: %d frames -> %s", source.utterance_id, n_frames, video)
     return {"utterance_id": source.utterance_id, "frames": n_frames, "video": str(video),

@@ -30,6 +30,7 @@ from visemeflow.schemas import (
 )
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
+from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, VideoInput, track_video
@@ -122,7 +123,8 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
         raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
     result, variant = tracked.result, config.variant
     store.write_curves(curves_table(uid, SOURCE, variant, result.curves, utterance[C.FPS]),
-                       provenance=f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}", fps=utterance[C.FPS])
+                       provenance=f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}",
+                       fps=utterance[C.FPS])
     store.write_tracking_frames(diagnostics_table(uid, variant, tracked))
     error = result.mouth_error_px
     return {

@@ -17,6 +17,7 @@ from visemeflow.ingest.audio import read_audio
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.features import resample_audio
 from visemeflow.learning.train import (
+    CHECKPOINT_NAME,
     SAMPLE_RATE,
     EpochReport,
     Example,
@@ -27,12 +28,14 @@ from visemeflow.learning.train import (
 )
 from visemeflow.schemas import METRICS, C, curves_array
 from visemeflow.storage import Store
-from visemeflow.tasks.common import RESULT_SERIALIZER, DataOnlyCache, result_storage
+from visemeflow.tasks.code_version import code_digest
+from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.visemes import VISEMES
 
-# INPUTS + TASK_SOURCE like every task, without the inputs that say where (not what) it computes
+# INPUTS + TASK_SOURCE + CODE like every task, without the inputs that say where (not what) it computes
 RUN_SETTINGS = ["device", "precision", "encoder_cache_dir"]
-TRAIN_CACHE_POLICY = Inputs(exclude=RUN_SETTINGS) + TASK_SOURCE
+TRAIN_CACHE_POLICY = Inputs(exclude=RUN_SETTINGS) + TASK_SOURCE + CODE
+CODE_FILE = "code_version"  # beside the checkpoint: the code digest of the training that wrote it
 
 
 def load_audio(path: str) -> np.ndarray:
@@ -54,6 +57,21 @@ def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> 
         fps = float(len(table) - 1) / float(table.column(C.TIME_S)[-1].as_py()) if len(table) > 1 else float(row[C.FPS])
         examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves_array(table), round(fps, 6)))
     return examples
+
+
+def checkpoint_of_this_code(store: Store, model_name: str) -> bool:
+    """Remove the checkpoint of `model_name` unless this code wrote it, and record this code for the next; whether
+    one was removed. Resuming another code's checkpoint (a finished one, after a fix) would keep its weights."""
+    folder = store.checkpoint_dir(model_name)
+    code, marker = code_digest(__name__), folder / CODE_FILE
+    if marker.is_file() and marker.read_text(encoding="utf-8") == code:
+        return False
+    removed = (folder / CHECKPOINT_NAME).exists()
+    if removed:
+        store.delete_path(folder / CHECKPOINT_NAME)
+    folder.mkdir(parents=True, exist_ok=True)
+    store.write_file(marker, lambda tmp: tmp.write_text(code, encoding="utf-8"))
+    return removed
 
 
 def metrics_rows(run: str, model: str, condition: str, overall: float, per_utterance: dict[str, float],
@@ -98,6 +116,8 @@ def train_model_task(
         logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %s, %.0f frames/s", model_name, epoch.epoch,
                     epoch.train_l1_x100, val, epoch.frames_per_s)
 
+    if checkpoint_of_this_code(store, model_name):
+        logger.info("%s: the checkpoint was written by other code; training starts over", model_name)
     logger.info("%s: training on %s (precision %s)", model_name, where, precision)
     result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report,
                          device=where, precision=precision, encoder_cache=encoder_cache_dir or True)
