@@ -15,6 +15,7 @@ from visemeflow.learning.train import (
     EpochReport,
     Example,
     TrainConfig,
+    Trainer,
     apply_audio_augment,
     build_training_model,
     evaluate,
@@ -101,6 +102,34 @@ def test_a_custom_loss_is_the_objective(data):
     assert len(calls) == len(train) and res.history[0].train_l1_x100 == pytest.approx(25.0)
     moved = _params(train_model(train, [], cfg).model)
     assert any(not torch.equal(initial[k], moved[k]) for k in initial)
+
+
+def test_trainer_steps_driven_by_hand_train_the_same_weights_as_train_model(tmp_path):
+    """The Trainer's parts are the training: resume, prepare the features, run the epochs, checkpoint each, as
+    fit() does; a subclass may replace one part (here: every step's items seen) and the weights stay bit-equal."""
+    train = make_examples(3, seed=5, learnable=False)
+    cfg = TrainConfig(preset="fbank-blstm", epochs=2, d_model=16, lr=1e-3, seed=7)
+    ref = _params(train_model(train, [], cfg).model)
+
+    class Counting(Trainer):
+        seen: list[int] = []
+
+        def items_of(self, batch):
+            items = super().items_of(batch)
+            self.seen.extend(it.index for it in items)
+            return items
+
+    t = Counting(train, [], cfg, checkpoint_dir=tmp_path)
+    t.resume()
+    t.prepare_features()
+    for epoch in range(t.start_epoch, cfg.epochs):
+        t.history.append(t.run_epoch(epoch))
+        t.checkpoint(epoch)
+    _assert_same(ref, _params(t.model))
+    assert sorted(t.seen) == [0, 0, 1, 1, 2, 2] and t.n_steps == 6
+    resumed = Trainer(train, [], cfg, checkpoint_dir=tmp_path)
+    resumed.resume()
+    assert resumed.start_epoch == 2 and [h.epoch for h in resumed.history] == [1, 2]
 
 
 @pytest.mark.parametrize("preset", ["fbank-blstm", "fbank-tcn"])

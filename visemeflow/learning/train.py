@@ -546,6 +546,267 @@ class _VisemeAux:
                                                          ignore_index=-1)
 
 
+class Trainer:
+    """One training run of :func:`train_model`, in the steps a maintainer changes one at a time: ``__init__`` sets
+    up the model, optimizer, auxiliary loss and random generators (in that order: the seeded torch generator builds
+    the model, then the auxiliary classifier), :meth:`resume` loads a checkpoint, :meth:`prepare_features` sets up
+    the feature caches, :meth:`features_of` computes (or takes cached) features, :meth:`items_of` applies the
+    augmentation hook, :meth:`step` is one optimisation step, :meth:`run_epoch` one epoch, :meth:`checkpoint` writes
+    ``last.pt``, :meth:`fit` runs them all.
+    Same arguments as :func:`train_model`."""
+
+    def __init__(
+        self,
+        train: Sequence[Example],
+        val: Sequence[Example],
+        config: TrainConfig,
+        checkpoint_dir: Path | None = None,
+        on_epoch: Callable[[EpochReport], None] | None = None,
+        augment_audio: AudioAugment | None = None,
+        *,
+        device: str | torch.device = "cpu",
+        precision: str | None = "auto",
+        encoder_cache: bool | str | Path | EncoderOutputCache | None = True,
+        loss: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
+    ) -> None:
+        if not train:
+            raise ValueError("no training examples")
+        _check_examples(train, "training example")
+        _check_examples(val, "validation example")
+        self.train, self.val, self.config, self.on_epoch, self.loss = train, val, config, on_epoch, loss
+        self.dev = resolve_device(device)
+        self.amp = resolve_precision(self.dev, precision)
+        self.hook: AudioAugment | None = None
+        if config.train_augment:
+            if augment_audio is None:
+                from visemeflow.learning.augment import train_augment_hook
+
+                augment_audio = train_augment_hook(probability=config.train_augment_probability,
+                                                   sample_rate=SAMPLE_RATE)
+            self.hook = augment_audio
+        self.preset = config.resolved_preset()
+        self.model = build_training_model(config, float(train[0].fps)).to(self.dev)
+        self.history: list[EpochReport] = []
+        self.ckpt_path = Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir is not None else None
+        self._encoder_cache_arg = encoder_cache
+        if not self.preset.trainable:
+            return
+        optimizer = build_optimizer(self.preset, self.model)
+        if optimizer is None:
+            raise ValueError(f"preset {self.preset.name!r} has no trainable parameters")
+        self.optimizer = optimizer
+        self.aux = _VisemeAux(self.model, config, self.dev) if config.viseme_loss_weight > 0 else None
+        if self.aux is not None:
+            optimizer.add_param_group({"params": list(self.aux.linear.parameters())})
+        self.scaler = grad_scaler(self.dev, self.amp)
+        self.shuffle_rng = np.random.default_rng(config.seed)
+        self.augment_rng = np.random.default_rng([config.seed, 2])
+        self.spec_gen = torch.Generator().manual_seed(config.seed + 1)
+        np.random.seed(config.seed % (2**32))  # legacy global RNG (wav2vec2 time masking in transformers)
+        self.start_epoch, self.n_steps = 0, 0
+        self.fingerprint = _data_fingerprint(train)
+        self.lengths_of = [len(ex.audio) for ex in train]
+        self.fps_of = [float(ex.fps) for ex in train]
+
+    def resume(self) -> None:
+        """Continue from ``last.pt`` when there is one; it must come from the same config and data."""
+        ckpt_path = self.ckpt_path
+        if ckpt_path is None or not ckpt_path.exists():
+            return
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if ck.get("format") != _CKPT_FORMAT or ck.get("resume_key") != _resume_key(self.config):
+            raise ValueError(f"{ckpt_path} was written for a different training config; remove it or use another dir")
+        if ck.get("data") != self.fingerprint:
+            raise ValueError(f"{ckpt_path} was written for different training data")
+        self.model.load_state_dict(ck["model"])
+        if self.aux is not None:
+            self.aux.linear.load_state_dict(ck["viseme_aux"])
+        self.optimizer.load_state_dict(ck["optimizer"])
+        if ck.get("scaler") and self.scaler.is_enabled():
+            self.scaler.load_state_dict(ck["scaler"])
+        self.start_epoch, self.n_steps = int(ck["epoch"]), int(ck["step"])
+        self.history = [EpochReport(**h) for h in ck["history"]]
+        torch.set_rng_state(ck["rng"]["torch"])
+        if "cuda" in ck["rng"] and self.dev.type == "cuda":
+            torch.cuda.set_rng_state(ck["rng"]["cuda"], self.dev)
+        self.spec_gen.set_state(ck["rng"]["spec_augment"])
+        _set_np_gen_state(self.shuffle_rng, ck["rng"]["shuffle"])
+        _set_np_gen_state(self.augment_rng, ck["rng"]["augment"])
+        _set_np_global_state(ck["rng"]["numpy_global"])
+
+    def prepare_features(self) -> None:
+        """Feature caches: parameter-free extractors keep each utterance's features; wav2vec2 keeps its frozen CNN
+        outputs, whisper its frozen encoder's (in the encoder cache)."""
+        feats = self.model.features
+        self.w2v = (feats if isinstance(feats, (Wav2Vec2Extractor, WhisperExtractor)) and feats.encoder_frozen
+                    else None)
+        self.enc_cache = (_encoder_cache(self._encoder_cache_arg)
+                          if self.w2v is not None and self.start_epoch < self.config.epochs else None)
+        self.enc_fingerprint = (self.w2v.encoder_fingerprint() if self.enc_cache is not None and self.w2v is not None
+                                else "")
+        self.enc_tag = f"{self.dev.type}-{self.amp or 'fp32'}"
+        self.audio_hashes: dict[int, str] = {}
+        self.has_feature_params = any(True for _ in feats.parameters())
+        self.feat_cache: dict[int, tuple[Tensor, Tensor]] = {}
+
+    def features_of(self, items: list[_Item]) -> tuple[Tensor, Tensor]:
+        """(features (B, T, D), lengths (B,)) of a step's items."""
+        model, dev, w2v = self.model, self.dev, self.w2v
+        if w2v is not None:  # per-utterance CNN outputs (cached for original audio), the transformer batched
+            audio, lengths = _pad_audio([it.audio for it in items], dev)
+            if self.enc_cache is None:
+                return model.features(audio, lengths)
+            encoded = []
+            for it in items:
+                one = _audio_tensors(it.audio, dev)[0]
+                if it.original:
+                    if it.index not in self.audio_hashes:
+                        self.audio_hashes[it.index] = _audio_hash(it.audio)
+                    encoded.append(self.enc_cache.get_or_encode(w2v, self.enc_fingerprint, one,
+                                                                self.audio_hashes[it.index], self.enc_tag))
+                else:
+                    encoded.append(w2v.encode(one))
+            return model.features(audio, lengths, encoded=_pad_time(encoded, 2))
+        if not self.has_feature_params:  # per utterance, float32 (outside autocast), padded with zeros
+            per = []
+            with torch.autocast(dev.type, enabled=False) if self.amp is not None else contextlib.nullcontext():
+                for it in items:
+                    if not it.original:
+                        per.append(model.features(*_audio_tensors(it.audio, dev)))
+                        continue
+                    if it.index not in self.feat_cache:
+                        with torch.no_grad():
+                            self.feat_cache[it.index] = model.features(*_audio_tensors(it.audio, dev))
+                    per.append(self.feat_cache[it.index])
+            if len(per) == 1:
+                return per[0]
+            return _pad_time([f for f, _ in per], 1), torch.cat([n for _, n in per])
+        return model.features(*_pad_audio([it.audio for it in items], dev))
+
+    def items_of(self, batch: Sequence[int]) -> list[_Item]:
+        """The batch's examples, through the augmentation hook (its targets resampled by the hook's time factor)."""
+        items = []
+        for i in batch:
+            ex = self.train[int(i)]
+            if self.hook is not None:
+                raw, factor = self.hook(ex.audio, self.augment_rng)
+                if raw is not ex.audio or float(factor) != 1.0:
+                    curves = resample_curves(ex.curves, float(factor))
+                    items.append(_Item(int(i), np.asarray(raw, dtype=np.float32), curves, False,
+                                       _resample_labels(ex.visemes, len(curves))))
+                    continue
+            items.append(_Item(int(i), ex.audio, np.asarray(ex.curves, dtype=np.float32), True, ex.visemes))
+        return items
+
+    def step(self, items: list[_Item], fps: float) -> tuple[float, int]:
+        """One optimisation step on ``items``: (its loss, the curve frames it trained on)."""
+        with autocast_context(self.dev, self.amp):
+            feats, feat_lengths = self.features_of(items)
+            feats = augment(self.preset, feats, feat_lengths, generator=self.spec_gen)
+            target, n_frames = _pad_curves([it.curves for it in items], self.dev)
+            pred, mask = self.model.head(feats, feat_lengths, n_frames, targets=target, fps=fps)
+        step_loss = (self.loss or l1_loss)(pred.float(), target, mask)
+        if self.aux is not None:
+            step_loss = step_loss + self.aux.loss(items, mask)
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(step_loss).backward()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.n_steps += 1
+        return float(step_loss.detach()), int(n_frames.sum())
+
+    def run_epoch(self, epoch: int) -> EpochReport:
+        """Epoch ``epoch`` (0-based): shuffled length batches, a step each, then validation."""
+        self.model.train()
+        config = self.config
+        order = self.shuffle_rng.permutation(len(self.train))
+        batches = length_batches(order, self.lengths_of, self.fps_of, config.batch_size, config.bucket_batches,
+                                 self.shuffle_rng)
+        if config.max_steps_per_epoch is not None:
+            batches = batches[: config.max_steps_per_epoch]
+        losses: list[float] = []
+        frames = 0
+        t0 = time.perf_counter()
+        for batch in batches:
+            step_loss, n = self.step(self.items_of(batch), self.fps_of[int(batch[0])])
+            losses.append(step_loss)
+            frames += n
+        secs = time.perf_counter() - t0
+        val_l1 = evaluate(self.model, self.val)[0] if self.val else None
+        return EpochReport(
+            epoch=epoch + 1, steps=len(batches), train_l1_x100=100.0 * float(np.mean(losses)) if losses else math.nan,
+            val_l1_x100=val_l1, seconds=secs, frames_per_s=frames / max(secs, 1e-9),
+        )
+
+    def checkpoint(self, epoch: int) -> None:
+        """Write ``last.pt`` after epoch ``epoch`` (0-based): weights, optimizer, history and every generator's
+        state, so a resumed run goes on exactly as an uninterrupted one; never a model with non-finite weights."""
+        assert self.ckpt_path is not None
+        dev = self.dev
+        rng_state: dict[str, Any] = {
+            "torch": torch.get_rng_state(),
+            "spec_augment": self.spec_gen.get_state(),
+            "shuffle": _np_gen_state(self.shuffle_rng),
+            "augment": _np_gen_state(self.augment_rng),
+            "numpy_global": _np_global_state(),
+        }
+        if dev.type == "cuda":
+            rng_state["cuda"] = torch.cuda.get_rng_state(dev)
+        state = {
+            "format": _CKPT_FORMAT,
+            "resume_key": _resume_key(self.config),
+            "data": self.fingerprint,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "epoch": epoch + 1,
+            "step": self.n_steps,
+            "history": [asdict(h) for h in self.history],
+            "rng": rng_state,
+        }
+        if self.scaler.is_enabled():
+            state["scaler"] = self.scaler.state_dict()
+        if self.aux is not None:
+            state["viseme_aux"] = self.aux.linear.state_dict()
+        # a diverged run must not replace the last good epoch it could resume from
+        aux_state = {f"viseme_aux.{k}": v for k, v in state.get("viseme_aux", {}).items()}
+        _refuse_non_finite({**state["model"], **aux_state}, self.ckpt_path, f"after epoch {epoch + 1}")
+        _atomic_torch_save(state, self.ckpt_path)
+
+    def _fit_mean(self) -> TrainResult:
+        """mean-curve: fitted, no steps."""
+        model = self.model
+        t0 = time.perf_counter()
+        if not isinstance(model.head, MeanCurveBaseline):
+            raise TypeError(f"preset {self.preset.name!r} is not trainable and has no fit()")
+        model.head.fit([ex.curves for ex in self.train])
+        secs = time.perf_counter() - t0
+        frames = sum(int(np.asarray(ex.curves).shape[0]) for ex in self.train)
+        train_l1, _, _ = evaluate(model, self.train)
+        val_l1 = evaluate(model, self.val)[0] if self.val else None
+        report = EpochReport(1, 0, train_l1, val_l1, secs, frames / max(secs, 1e-9))
+        if self.on_epoch is not None:
+            self.on_epoch(report)
+        return TrainResult(model, [report], None)
+
+    def fit(self) -> TrainResult:
+        """Resume if there is a checkpoint, train the remaining epochs (a checkpoint and ``on_epoch`` after each)."""
+        if not self.preset.trainable:
+            return self._fit_mean()
+        self.resume()
+        self.prepare_features()
+        for epoch in range(self.start_epoch, self.config.epochs):
+            report = self.run_epoch(epoch)
+            self.history.append(report)
+            if self.ckpt_path is not None:
+                self.checkpoint(epoch)
+            if self.on_epoch is not None:
+                self.on_epoch(report)
+        if self.aux is not None:
+            self.aux.close()
+        self.model.eval()
+        return TrainResult(self.model, self.history, self.ckpt_path)
+
+
 def train_model(
     train: Sequence[Example],
     val: Sequence[Example],
@@ -576,197 +837,8 @@ def train_model(
     objective, for experiments such as ``bench/domain_gap.py``'s weighted losses; it is not part of the config, so
     neither model files nor checkpoints record it (validation L1 stays the plain L1).
     """
-    if not train:
-        raise ValueError("no training examples")
-    _check_examples(train, "training example")
-    _check_examples(val, "validation example")
-    dev = resolve_device(device)
-    amp = resolve_precision(dev, precision)
-    hook: AudioAugment | None = None
-    if config.train_augment:
-        if augment_audio is None:
-            from visemeflow.learning.augment import train_augment_hook
-
-            augment_audio = train_augment_hook(probability=config.train_augment_probability, sample_rate=SAMPLE_RATE)
-        hook = augment_audio
-    preset = config.resolved_preset()
-    curve_fps = float(train[0].fps)
-    model = build_training_model(config, curve_fps).to(dev)
-
-    if not preset.trainable:  # mean-curve: fit, no steps
-        t0 = time.perf_counter()
-        if not isinstance(model.head, MeanCurveBaseline):
-            raise TypeError(f"preset {preset.name!r} is not trainable and has no fit()")
-        model.head.fit([ex.curves for ex in train])
-        secs = time.perf_counter() - t0
-        frames = sum(int(np.asarray(ex.curves).shape[0]) for ex in train)
-        train_l1, _, _ = evaluate(model, train)
-        val_l1 = evaluate(model, val)[0] if val else None
-        report = EpochReport(1, 0, train_l1, val_l1, secs, frames / max(secs, 1e-9))
-        if on_epoch is not None:
-            on_epoch(report)
-        return TrainResult(model, [report], None)
-
-    optimizer = build_optimizer(preset, model)
-    if optimizer is None:
-        raise ValueError(f"preset {preset.name!r} has no trainable parameters")
-    aux = _VisemeAux(model, config, dev) if config.viseme_loss_weight > 0 else None
-    if aux is not None:
-        optimizer.add_param_group({"params": list(aux.linear.parameters())})
-    scaler = grad_scaler(dev, amp)
-    shuffle_rng = np.random.default_rng(config.seed)
-    augment_rng = np.random.default_rng([config.seed, 2])
-    spec_gen = torch.Generator().manual_seed(config.seed + 1)
-    np.random.seed(config.seed % (2**32))  # legacy global RNG (wav2vec2 time masking in transformers)
-    history: list[EpochReport] = []
-    start_epoch, step = 0, 0
-    fingerprint = _data_fingerprint(train)
-
-    ckpt_path = Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir is not None else None
-    if ckpt_path is not None and ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if ck.get("format") != _CKPT_FORMAT or ck.get("resume_key") != _resume_key(config):
-            raise ValueError(f"{ckpt_path} was written for a different training config; remove it or use another dir")
-        if ck.get("data") != fingerprint:
-            raise ValueError(f"{ckpt_path} was written for different training data")
-        model.load_state_dict(ck["model"])
-        if aux is not None:
-            aux.linear.load_state_dict(ck["viseme_aux"])
-        optimizer.load_state_dict(ck["optimizer"])
-        if ck.get("scaler") and scaler.is_enabled():
-            scaler.load_state_dict(ck["scaler"])
-        start_epoch, step = int(ck["epoch"]), int(ck["step"])
-        history = [EpochReport(**h) for h in ck["history"]]
-        torch.set_rng_state(ck["rng"]["torch"])
-        if "cuda" in ck["rng"] and dev.type == "cuda":
-            torch.cuda.set_rng_state(ck["rng"]["cuda"], dev)
-        spec_gen.set_state(ck["rng"]["spec_augment"])
-        _set_np_gen_state(shuffle_rng, ck["rng"]["shuffle"])
-        _set_np_gen_state(augment_rng, ck["rng"]["augment"])
-        _set_np_global_state(ck["rng"]["numpy_global"])
-
-    # features: parameter-free extractors keep each utterance's features; wav2vec2 keeps its frozen CNN outputs,
-    # whisper its frozen encoder's
-    w2v = (model.features if isinstance(model.features, (Wav2Vec2Extractor, WhisperExtractor))
-           and model.features.encoder_frozen else None)
-    enc_cache = _encoder_cache(encoder_cache) if w2v is not None and start_epoch < config.epochs else None
-    enc_fingerprint = w2v.encoder_fingerprint() if enc_cache is not None and w2v is not None else ""
-    enc_tag = f"{dev.type}-{amp or 'fp32'}"
-    audio_hashes: dict[int, str] = {}
-    has_feature_params = any(True for _ in model.features.parameters())
-    feat_cache: dict[int, tuple[Tensor, Tensor]] = {}
-
-    def features_of(items: list[_Item]) -> tuple[Tensor, Tensor]:
-        if w2v is not None:  # per-utterance CNN outputs (cached for original audio), the transformer batched
-            audio, lengths = _pad_audio([it.audio for it in items], dev)
-            if enc_cache is None:
-                return model.features(audio, lengths)
-            encoded = []
-            for it in items:
-                one = _audio_tensors(it.audio, dev)[0]
-                if it.original:
-                    if it.index not in audio_hashes:
-                        audio_hashes[it.index] = _audio_hash(it.audio)
-                    encoded.append(enc_cache.get_or_encode(w2v, enc_fingerprint, one, audio_hashes[it.index], enc_tag))
-                else:
-                    encoded.append(w2v.encode(one))
-            return model.features(audio, lengths, encoded=_pad_time(encoded, 2))
-        if not has_feature_params:  # per utterance, float32 (outside autocast), padded with zeros
-            per = []
-            with torch.autocast(dev.type, enabled=False) if amp is not None else contextlib.nullcontext():
-                for it in items:
-                    if not it.original:
-                        per.append(model.features(*_audio_tensors(it.audio, dev)))
-                        continue
-                    if it.index not in feat_cache:
-                        with torch.no_grad():
-                            feat_cache[it.index] = model.features(*_audio_tensors(it.audio, dev))
-                    per.append(feat_cache[it.index])
-            if len(per) == 1:
-                return per[0]
-            return _pad_time([f for f, _ in per], 1), torch.cat([n for _, n in per])
-        return model.features(*_pad_audio([it.audio for it in items], dev))
-
-    lengths_of = [len(ex.audio) for ex in train]
-    fps_of = [float(ex.fps) for ex in train]
-    for epoch in range(start_epoch, config.epochs):
-        model.train()
-        order = shuffle_rng.permutation(len(train))
-        batches = length_batches(order, lengths_of, fps_of, config.batch_size, config.bucket_batches, shuffle_rng)
-        if config.max_steps_per_epoch is not None:
-            batches = batches[: config.max_steps_per_epoch]
-        losses: list[float] = []
-        frames = 0
-        t0 = time.perf_counter()
-        for batch in batches:
-            items = []
-            for i in batch:
-                ex = train[int(i)]
-                if hook is not None:
-                    raw, factor = hook(ex.audio, augment_rng)
-                    if raw is not ex.audio or float(factor) != 1.0:
-                        curves = resample_curves(ex.curves, float(factor))
-                        items.append(_Item(int(i), np.asarray(raw, dtype=np.float32), curves, False,
-                                           _resample_labels(ex.visemes, len(curves))))
-                        continue
-                items.append(_Item(int(i), ex.audio, np.asarray(ex.curves, dtype=np.float32), True, ex.visemes))
-            with autocast_context(dev, amp):
-                feats, feat_lengths = features_of(items)
-                feats = augment(preset, feats, feat_lengths, generator=spec_gen)
-                target, n_frames = _pad_curves([it.curves for it in items], dev)
-                pred, mask = model.head(feats, feat_lengths, n_frames, targets=target, fps=fps_of[int(batch[0])])
-            step_loss = (loss or l1_loss)(pred.float(), target, mask)
-            if aux is not None:
-                step_loss = step_loss + aux.loss(items, mask)
-            optimizer.zero_grad(set_to_none=True)
-            scaler.scale(step_loss).backward()
-            scaler.step(optimizer)
-            scaler.update()
-            step += 1
-            losses.append(float(step_loss.detach()))
-            frames += int(n_frames.sum())
-        secs = time.perf_counter() - t0
-        val_l1 = evaluate(model, val)[0] if val else None
-        report = EpochReport(
-            epoch=epoch + 1, steps=len(batches), train_l1_x100=100.0 * float(np.mean(losses)) if losses else math.nan,
-            val_l1_x100=val_l1, seconds=secs, frames_per_s=frames / max(secs, 1e-9),
-        )
-        history.append(report)
-        if ckpt_path is not None:
-            rng_state: dict[str, Any] = {
-                "torch": torch.get_rng_state(),
-                "spec_augment": spec_gen.get_state(),
-                "shuffle": _np_gen_state(shuffle_rng),
-                "augment": _np_gen_state(augment_rng),
-                "numpy_global": _np_global_state(),
-            }
-            if dev.type == "cuda":
-                rng_state["cuda"] = torch.cuda.get_rng_state(dev)
-            state = {
-                "format": _CKPT_FORMAT,
-                "resume_key": _resume_key(config),
-                "data": fingerprint,
-                "model": model.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "epoch": epoch + 1,
-                "step": step,
-                "history": [asdict(h) for h in history],
-                "rng": rng_state,
-            }
-            if scaler.is_enabled():
-                state["scaler"] = scaler.state_dict()
-            if aux is not None:
-                state["viseme_aux"] = aux.linear.state_dict()
-            # a diverged run must not replace the last good epoch it could resume from
-            aux_state = {f"viseme_aux.{k}": v for k, v in state.get("viseme_aux", {}).items()}
-            _refuse_non_finite({**state["model"], **aux_state}, ckpt_path, f"after epoch {epoch + 1}")
-            _atomic_torch_save(state, ckpt_path)
-        if on_epoch is not None:
-            on_epoch(report)
-    if aux is not None:
-        aux.close()
-    model.eval()
-    return TrainResult(model, history, ckpt_path)
+    return Trainer(train, val, config, checkpoint_dir, on_epoch, augment_audio, device=device, precision=precision,
+                   encoder_cache=encoder_cache, loss=loss).fit()
 
 
 # --------------------------------------------------------------------------------------------------
