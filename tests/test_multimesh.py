@@ -18,8 +18,7 @@ import numpy as np
 import pygltflib as gl
 import pytest
 from browser import serve_folder
-from factories import make_curve_store
-from test_gltf import NODE_MODULES, browser, node_or_fail, validate  # noqa: F401 (browser: a fixture)
+from factories import NODE_MODULES, make_curve_store, node_or_fail, validate
 
 from visemeflow.animation.character import CharacterError
 from visemeflow.animation.conventions import bind
@@ -482,13 +481,13 @@ def test_a_full_disk_while_writing_an_export_names_the_output_file(tmp_path, ava
     import errno
 
     import visemeflow.atomic as atomic
-    from visemeflow.animation.package import SUFFIXES
+    from visemeflow.animation.package import EXPORTERS
     from visemeflow.tasks.animate import AnimateError, animate, content_hash
 
     path, _ = avatar
     store = make_curve_store(tmp_path / "store", n=1)
     out = tmp_path / "out"
-    suffix = {**SUFFIXES, "audio": ".wav"}[fmt]
+    suffix = {**{name: e.suffix for name, e in EXPORTERS.items()}, "audio": ".wav"}[fmt]
     real_fsync = atomic._fsync_path
 
     def disk_full_for(temporary: Path) -> None:

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,12 +55,98 @@ from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.atomic import atomic_path
 
-POSE_FORMATS: tuple[str, ...] = ("pose-csv", "pose-json")   # bone mode only
-EXPORT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json", *POSE_FORMATS)
+@dataclass(frozen=True)
+class ExportTarget:
+    """What a blendshape-mode writer gets: the file to write and one package's played curves (T, 16) and shape
+    weights (T, shapes) at `fps` on `character`."""
+
+    path: Path
+    character: Character
+    curves: np.ndarray
+    weights: np.ndarray
+    fps: float
+    stem: str
+    utterance_id: str
+
+
+@dataclass(frozen=True)
+class Exporter:
+    """One export format: its name (`--format`), the suffix of its file in blendshape mode and the writer of it
+    (None: a bone-mode-only format), and the suffix bone mode writes it under (None: not written in bone mode;
+    bone-mode files come from the solved bone rig, `export_bone_animation`)."""
+
+    name: str
+    suffix: str | None
+    write: Callable[[ExportTarget], None] | None
+    bone_suffix: str | None = None
+
+
+def _glb(t: ExportTarget) -> None:
+    from visemeflow.animation.gltf_asset import write_character_glb
+
+    write_character_glb(t.path, t.character, t.weights, t.fps, name=t.stem)
+
+
+def _usd(t: ExportTarget) -> None:
+    from visemeflow.animation.usd import write_usd
+
+    write_usd(t.path, t.character, t.weights, t.fps, name=t.stem)
+
+
+def _livelink(t: ExportTarget) -> None:
+    from visemeflow.animation.livelink import write_livelink_csv
+
+    write_livelink_csv(t.path, arkit_weights(t.curves), t.fps)
+
+
+def _web_json(t: ExportTarget) -> None:
+    from visemeflow.animation.webjson import write_web_json
+
+    write_web_json(t.path, t.character.shape_names, t.weights, t.fps, name=t.stem)
+
+
+def _curve_table(kind: str) -> Callable[[ExportTarget], None]:
+    def write(t: ExportTarget) -> None:
+        n = len(t.curves)
+        write_export(CurveTrack(t.utterance_id, "", "", t.curves, np.arange(n) / t.fps, np.arange(n)), t.path, kind)
+    return write
+
+
+EXPORTERS: dict[str, Exporter] = {}
+"""Every export format, by name: `AnimateConfig.formats`, the package paths and the writers all read this table."""
+
+
+def register_exporter(exporter: Exporter) -> Exporter:
+    """Add an export format (a new one is its writer and this one call); another format under a taken name is
+    refused."""
+    if EXPORTERS.get(exporter.name, exporter) != exporter:
+        raise ValueError(f"export format {exporter.name!r} is already registered")
+    if exporter.suffix is None and exporter.bone_suffix is None:
+        raise ValueError(f"export format {exporter.name!r} has no suffix in either mode")
+    if (exporter.suffix is None) != (exporter.write is None):
+        raise ValueError(f"export format {exporter.name!r}: a blendshape-mode suffix needs a writer and vice versa")
+    EXPORTERS[exporter.name] = exporter
+    return exporter
+
+
+for _e in (Exporter("glb", ".glb", _glb, ".bones.glb"), Exporter("usd", ".usd", _usd, ".bones.usd"),
+           Exporter("livelink", ".livelink.csv", _livelink), Exporter("json", ".web.json", _web_json),
+           Exporter("curves-csv", ".curves.csv", _curve_table("csv")),
+           Exporter("curves-json", ".curves.json", _curve_table("json")),
+           Exporter("pose-csv", None, None, ".poses.csv"), Exporter("pose-json", None, None, ".poses.json")):
+    register_exporter(_e)
+
 DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
-SUFFIXES = {"glb": ".glb", "usd": ".usd", "livelink": ".livelink.csv", "json": ".web.json",
-            "curves-csv": ".curves.csv", "curves-json": ".curves.json"}
-BONE_MODE_SUFFIXES = {"glb": ".bones.glb", "usd": ".bones.usd", "pose-csv": ".poses.csv", "pose-json": ".poses.json"}
+
+
+def export_formats() -> tuple[str, ...]:
+    """The names of every registered export format."""
+    return tuple(EXPORTERS)
+
+
+def bone_only_formats() -> tuple[str, ...]:
+    """Formats written only in bone mode (the pose tables)."""
+    return tuple(name for name, e in EXPORTERS.items() if e.write is None)
 
 
 class ExportWriteError(Exception):
@@ -91,7 +177,7 @@ class AnimateConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     formats: tuple[str, ...] = Field(DEFAULT_FORMATS, min_length=1,
-                                     description=f"Export formats, any of {', '.join(EXPORT_FORMATS)}.")
+                                     description=f"Export formats, any of {', '.join(EXPORTERS)}.")
     fps: float | None = Field(None, gt=0, le=1000, description="Frame rate of the exports; none: the curves' own "
                                                                  "(other rates are resampled, never stretched).")
     convention: str | None = Field(None, description="arkit52, oculus15 or visemeflow16; none: detected from the "
@@ -112,7 +198,7 @@ class AnimateConfig(BaseModel):
 
     @model_validator(mode="after")
     def _pose_tables_need_bones(self):
-        poses = [f for f in self.formats if f in POSE_FORMATS]
+        poses = [f for f in self.formats if EXPORTERS[f].write is None]
         if poses and self.mode != "bones":
             raise ValueError(f"{', '.join(poses)} are bone-mode formats: add --mode bones")
         return self
@@ -122,9 +208,9 @@ class AnimateConfig(BaseModel):
     def _known_formats(cls, value):
         if isinstance(value, str):
             value = [f.strip() for f in value.split(",") if f.strip()]
-        unknown = [f for f in value if f not in EXPORT_FORMATS]
+        unknown = [f for f in value if f not in EXPORTERS]
         if unknown:
-            raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORT_FORMATS)}")
+            raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORTERS)}")
         return tuple(dict.fromkeys(value))
 
     @field_validator("convention")
@@ -155,8 +241,10 @@ class AnimationPackage:
 def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str],
                  mode: str = "blendshape") -> dict[str, Path]:
     """Where each format of one package goes (bone mode writes glb/usd as `.bones.glb`/`.bones.usd`)."""
-    suffixes = {**SUFFIXES, **BONE_MODE_SUFFIXES} if mode == "bones" else SUFFIXES
-    return {fmt: Path(out_dir) / f"{stem}{suffixes[fmt]}" for fmt in formats}
+    def suffix(fmt: str) -> str:
+        e = EXPORTERS[fmt]
+        return e.bone_suffix if mode == "bones" and e.bone_suffix else e.suffix
+    return {fmt: Path(out_dir) / f"{stem}{suffix(fmt)}" for fmt in formats}
 
 
 _RIGS: dict[str, object] = {}
@@ -203,7 +291,7 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     weights = binding.weights(curves)
     paths = export_paths(out_dir, stem, config.formats, config.mode)
     files: dict[str, str] = {}
-    bone_formats = [f for f in config.formats if f in BONE_MODE_SUFFIXES] if config.mode == "bones" else []
+    bone_formats = [f for f in config.formats if EXPORTERS[f].bone_suffix] if config.mode == "bones" else []
     if bone_formats:
         rig = bone_rig(character, binding, config.bones)
         written = export_bone_animation(character, curves, rate, bone_formats, out_dir, stem=stem, rig=rig)
@@ -212,37 +300,12 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
         if fmt in bone_formats:
             continue
         with _writing(path, fmt):
-            _write_format(fmt, path, character, curves, weights, rate, stem, utterance_id)
+            EXPORTERS[fmt].write(ExportTarget(path, character, curves, weights, rate, stem, utterance_id))
         files[fmt] = str(path)
     if config.audio and audio is not None:
         files["audio"] = str(write_wav(out_dir / f"{stem}.wav", *audio))
     return AnimationPackage(files, len(curves), rate, float(fps), abs(rate - fps) > 1e-9, binding.summary(), curves,
                             weights)
-
-
-def _write_format(fmt: str, path: Path, character: Character, curves: np.ndarray, weights: np.ndarray, rate: float,
-                  stem: str, utterance_id: str) -> None:
-    """Write one blendshape-mode format of a package (see `export_animation`)."""
-    if fmt == "glb":
-        from visemeflow.animation.gltf_asset import write_character_glb
-
-        write_character_glb(path, character, weights, rate, name=stem)
-    elif fmt == "usd":
-        from visemeflow.animation.usd import write_usd
-
-        write_usd(path, character, weights, rate, name=stem)
-    elif fmt == "livelink":
-        from visemeflow.animation.livelink import write_livelink_csv
-
-        write_livelink_csv(path, arkit_weights(curves), rate)
-    elif fmt == "json":
-        from visemeflow.animation.webjson import write_web_json
-
-        write_web_json(path, character.shape_names, weights, rate, name=stem)
-    else:
-        n = len(curves)
-        track = CurveTrack(utterance_id, "", "", curves, np.arange(n) / rate, np.arange(n))
-        write_export(track, path, fmt.removeprefix("curves-"))
 
 
 def export_bone_animation(character: Character, curves, fps: float, formats, out_dir, bone_count: int = DEFAULT_BONES,
