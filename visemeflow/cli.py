@@ -13,6 +13,8 @@ os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 import typer  # noqa: E402
 
+from visemeflow.timebase import DEFAULT_FPS  # noqa: E402
+
 app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True)
 curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True)
 app.add_typer(curves_app, name="curves")
@@ -147,7 +149,7 @@ def ingest(
     inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa, xsampa or pinyin.")] = "auto",
     phone_tier: Annotated[Optional[list[str]], typer.Option(help="Phone tier name (repeatable; default phones, phone, phons, phonemes, MAU, PhonAlign).")] = None,
     tolerance: Annotated[float, typer.Option(help="Allowed alignment/audio length difference, s.")] = 0.1,
-    fps: Annotated[float, typer.Option(help="Curve frame rate for audio-only utterances.")] = 30.0,
+    fps: Annotated[float, typer.Option(help="Curve frame rate for audio-only utterances.")] = DEFAULT_FPS,
 ) -> None:
     """Read alignments and audio into the `utterances` and `phones` tables."""
     from visemeflow.flows.ingest import ingest_flow
@@ -452,7 +454,7 @@ def predict(
                                                        "default: the model shipped with the package; phones: no "
                                                        "model, phones recognised in the audio (English).")] = "default",
     store: StoreOpt = DEFAULT_STORE,
-    fps: Annotated[float, typer.Option(help="Curve frame rate.")] = 30.0,
+    fps: Annotated[float, typer.Option(help="Curve frame rate.")] = DEFAULT_FPS,
     out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
@@ -598,7 +600,7 @@ def speak(
     character: CharactersOpt = None,
     store: StoreOpt = DEFAULT_STORE,
     formats: FormatsOpt = "glb,usd,livelink,json",
-    fps: Annotated[float, typer.Option(help="Frame rate of the curves and the exports.")] = 30.0,
+    fps: Annotated[float, typer.Option(help="Frame rate of the curves and the exports.")] = DEFAULT_FPS,
     convention: ConventionOpt = None,
     mapping: MappingOpt = None,
     preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 (the character speaking, with the audio).")] = False,

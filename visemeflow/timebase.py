@@ -2,6 +2,9 @@
 
 import math
 
+DEFAULT_FPS = 30.0
+"""The curve rate wherever none is given: audio-only utterances at ingest, predictions, exports, model heads."""
+
 
 def frame_count(duration_s: float, fps: float) -> int:
     """Number of frames covering `duration_s` at `fps` (at least one)."""

@@ -44,7 +44,7 @@ from visemeflow.learning.robustness_table import (
     table_metrics,
 )
 from visemeflow.learning.robustness_table import robustness_table as shared_robustness_table
-from visemeflow.schemas import TRACKING_FRAMES, C, curves_array
+from visemeflow.schemas import C, TRACKING_FRAMES, CurveSource, curves_array
 from visemeflow.schemas.ids import utterance_id_from_path_parts
 from visemeflow.schemas.tables import CURVE_SOURCES
 from visemeflow.storage import Store
@@ -294,9 +294,9 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
                   f"{n_phones} phones"]
     else:
         facts.append("not in the utterances table")
-    truth = next((t for s, _, t in tables if s == "ground_truth"), None)
+    truth = next((t for s, _, t in tables if s == CurveSource.GROUND_TRUTH), None)
     if truth is not None:
-        errors = [f"{esc(s)}/{esc(v)} {_l1_x100(truth, t):.2f}" for s, v, t in tables if s != "ground_truth"]
+        errors = [f"{esc(s)}/{esc(v)} {_l1_x100(truth, t):.2f}" for s, v, t in tables if s != CurveSource.GROUND_TRUTH]
         if errors:
             facts.append("L1 x 100 vs ground truth: " + ", ".join(errors))
     shown = ", ".join(f"{esc(s)}/{esc(v)}" for s, v, _ in tables) or "none"

@@ -25,14 +25,15 @@ from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
-from visemeflow.schemas import C, normalize_utterance_id, validate_name
+from visemeflow.schemas import C, CurveSource, normalize_utterance_id, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
     character_keys, content_hash, outputs_present, package_inputs
 from visemeflow.tasks.common import reject_row, result_storage
+from visemeflow.timebase import DEFAULT_FPS
 
 DEFAULT_STORE = Path("visemeflow-out/store")
-SOURCES = ("tracked", "procedural", "ground_truth", "predicted")
+SOURCES = (CurveSource.TRACKED, CurveSource.PROCEDURAL, CurveSource.GROUND_TRUTH, CurveSource.PREDICTED)
 
 
 class AnimateParams(BaseModel):
@@ -195,7 +196,7 @@ class SpeakParams(BaseModel):
     characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
                                    description="Character files or folders; default: the shipped ICT demo character.")
     mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
-    fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
+    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
     config: AnimateConfig = Field(default_factory=AnimateConfig)
     out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
 
@@ -215,7 +216,7 @@ def speak_flow(params: SpeakParams):
                                            fps=params.fps))
     rows = predicted["predictions"]
     animated = animate_flow(AnimateParams(
-        store=params.store, characters=params.characters, source="predicted", variant=params.model,
+        store=params.store, characters=params.characters, source=CurveSource.PREDICTED, variant=params.model,
         utterances=[r["utterance_id"] for r in rows], audio={r["utterance_id"]: Path(r["audio"]) for r in rows},
         mapping=params.mapping, config=params.config, out=params.out))
     return {**animated, "audio_files": predicted["files"], "audio_rejected": predicted["rejected"],

@@ -19,7 +19,7 @@ from visemeflow.flows.params import (
 from visemeflow.flows.procedural import procedural_flow
 from visemeflow.flows.track import track_flow
 from visemeflow.flows.runners import run_on_runner
-from visemeflow.schemas import C
+from visemeflow.schemas import C, CurveSource
 from visemeflow.storage import Store
 
 
@@ -54,7 +54,7 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     if params.characters:
         from visemeflow.flows.animate import AnimateParams, animate_flow
 
-        source = "tracked" if len(videos) else "procedural"
+        source = CurveSource.TRACKED if len(videos) else CurveSource.PROCEDURAL
         # every tracked variant this run wrote: the guided one, and `unguided-...` for videos without an alignment
         written = (result.get("track") or {}).get("variants") or params.tracking.variant
         variants = sorted({v.strip() for v in written.split(",") if v.strip()}) if len(videos) else [None]

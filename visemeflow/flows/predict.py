@@ -41,6 +41,7 @@ from visemeflow.storage import Store
 from visemeflow.tasks.models import is_trained, model_hash
 from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.predict import SOURCE, prediction_provenance, prediction_task_for
+from visemeflow.timebase import DEFAULT_FPS
 
 STAGE = "predict"
 EXPORT_FORMATS = ("csv", "json")
@@ -56,7 +57,7 @@ class PredictParams(BaseModel):
                                                    "with the package (installed into the store on first use); "
                                                    "`phones`: no model, phones recognised in the audio (English).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
-    fps: float = Field(30.0, gt=0, le=1000, description="Frame rate of the curves.")
+    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the curves.")
     out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
     device: DeviceWord = Field("auto", description="Where the model runs: auto (a CUDA GPU when there is one), cpu, "
                                                    "cuda or cuda:N (float32; not part of the cache key).")

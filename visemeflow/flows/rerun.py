@@ -9,7 +9,7 @@ from visemeflow.flows.procedural import UTTERANCE_FIELDS
 from visemeflow.flows.track import TRACK_FIELDS, procedural_variant_of, rig_and_hash
 from visemeflow.ingest import IngestConfig
 from visemeflow.procedural import ProceduralConfig
-from visemeflow.schemas import shard_of
+from visemeflow.schemas import CurveSource, shard_of
 from visemeflow.storage import Store
 from visemeflow.tasks import ingest as ingest_tasks
 from visemeflow.tasks import procedural as procedural_tasks
@@ -102,7 +102,7 @@ def rerun_flow(params: RerunParams) -> dict[str, int]:
         run = run or {"rig": None, "procedural_variant": None, "config": TrackingConfig().model_dump(mode="json")}
         rig_path, rig_hash = rig_and_hash(Path(run["rig"]) if run.get("rig") else None)
         variant = procedural_variant_of(store, run.get("procedural_variant"))
-        provenance = store.curves_provenance("procedural", variant, uid) or ""
+        provenance = store.curves_provenance(CurveSource.PROCEDURAL, variant, uid) or ""
         task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
         report = task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash,
                       TrackingConfig(**run["config"]))

@@ -4,6 +4,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from visemeflow.timebase import DEFAULT_FPS
+
 
 class IngestConfig(BaseModel):
     """How alignments and audio are read and checked."""
@@ -30,7 +32,7 @@ class IngestConfig(BaseModel):
         0.1, ge=0, description="Largest allowed difference between the alignment's end and the audio duration "
                                "(label files without a file end, HTK/MLF/XRA, may end earlier but not run past it)."
     )
-    fps: float = Field(30.0, gt=0, description="Curve frame rate for utterances without video.")
+    fps: float = Field(DEFAULT_FPS, gt=0, description="Curve frame rate for utterances without video.")
     val_fraction: float = Field(
         0.1, ge=0, le=1, description="Share of utterances (by a stable hash of the id) put in the 'val' split."
     )

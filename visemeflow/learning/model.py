@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
+from visemeflow.timebase import DEFAULT_FPS
 from visemeflow.visemes import N_VISEMES
 
 DecoderKind = Literal["blstm", "lstm", "tcn", "transformer"]
@@ -66,7 +67,7 @@ class ModelConfig(BaseModel):
 
     feature_dim: int = Field(ge=1)
     feature_rate_hz: float = Field(gt=0)
-    curve_fps: float = Field(30.0, gt=0)
+    curve_fps: float = Field(DEFAULT_FPS, gt=0)
     d_model: int = Field(512, ge=2)
     decoder: DecoderConfig = DecoderConfig()
     ppe_period_frames: int | None = Field(None, ge=1)  # None: round(curve_fps), FaceFormer's p
@@ -323,7 +324,7 @@ class CurveModel(_CurveHead):
 class MeanCurveBaseline(_CurveHead):
     """Predicts the training set's mean curve vector (frame-weighted) for every frame."""
 
-    def __init__(self, feature_rate_hz: float = 100.0, curve_fps: float = 30.0) -> None:
+    def __init__(self, feature_rate_hz: float = 100.0, curve_fps: float = DEFAULT_FPS) -> None:
         super().__init__()
         self.feature_rate_hz = feature_rate_hz
         self.curve_fps = curve_fps
@@ -364,7 +365,7 @@ class KarrasConvNet(_CurveHead):
     """
 
     def __init__(
-        self, feature_dim: int, feature_rate_hz: float, curve_fps: float = 30.0, channels: int = 256,
+        self, feature_dim: int, feature_rate_hz: float, curve_fps: float = DEFAULT_FPS, channels: int = 256,
         hidden: int = 150, window_ms: float = 520.0, window_frames: int | None = None,
         dropout: float = 0.0, output: Literal["linear", "sigmoid"] = "linear",
     ) -> None:
@@ -414,7 +415,7 @@ class FaceFormerDecoder(_CurveHead):
     """
 
     def __init__(
-        self, feature_dim: int, feature_rate_hz: float, curve_fps: float = 30.0, d_model: int = 64,
+        self, feature_dim: int, feature_rate_hz: float, curve_fps: float = DEFAULT_FPS, d_model: int = 64,
         layers: int = 1, heads: int = 4, dropout: float = 0.0, ppe_period_frames: int | None = None,
         output: Literal["linear", "sigmoid"] = "linear",
     ) -> None:

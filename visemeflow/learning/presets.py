@@ -39,6 +39,7 @@ from visemeflow.learning.model import (
     ModelConfig,
     spec_augment,
 )
+from visemeflow.timebase import DEFAULT_FPS
 
 FeatureKind = str  # a registered feature kind (visemeflow.learning.features.FEATURE_KINDS)
 Architecture = Literal["curve", "karras", "faceformer", "mean"]
@@ -151,7 +152,7 @@ def get_preset(name: str) -> Preset:
 
 
 def build_model(
-    preset: Preset | str, feature_dim: int, feature_rate_hz: float, curve_fps: float = 30.0,
+    preset: Preset | str, feature_dim: int, feature_rate_hz: float, curve_fps: float = DEFAULT_FPS,
     d_model: int | None = None,
 ) -> nn.Module:
     """The preset's model on features of ``feature_dim`` at ``feature_rate_hz``; ``d_model`` overrides the width."""

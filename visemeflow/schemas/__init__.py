@@ -22,6 +22,7 @@ from visemeflow.schemas.tables import (
     TRACKING_FRAMES,
     UTTERANCES,
     C,
+    CurveSource,
     curves_array,
     curves_table,
     table_from_rows,
@@ -30,6 +31,7 @@ from visemeflow.schemas.tables import (
 __all__ = [
     "C",
     "CURVES",
+    "CurveSource",
     "LOSS_TERMS",
     "METRICS",
     "PHONES",

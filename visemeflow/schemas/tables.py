@@ -1,6 +1,7 @@
 """pyarrow schemas of every table; the single source of column names and dtypes."""
 
 from collections.abc import Iterable, Mapping
+from enum import StrEnum
 
 import numpy as np
 import pyarrow as pa
@@ -78,7 +79,17 @@ def has_alignment(row: Mapping[str, object]) -> bool:
     return bool(row.get(C.ALIGNMENT_PATH))
 
 
-CURVE_SOURCES = ("procedural", "tracked", "predicted", "ground_truth", "captured")
+class CurveSource(StrEnum):
+    """Where a stored curve came from (the `source` column and the store's folder): the one spelling of each."""
+
+    PROCEDURAL = "procedural"
+    TRACKED = "tracked"
+    PREDICTED = "predicted"
+    GROUND_TRUTH = "ground_truth"
+    CAPTURED = "captured"
+
+
+CURVE_SOURCES = tuple(s.value for s in CurveSource)
 
 UTTERANCES = pa.schema([
     pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),

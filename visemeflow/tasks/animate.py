@@ -33,6 +33,7 @@ from visemeflow.schemas import C, curves_array
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
+from visemeflow.timebase import DEFAULT_FPS
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
@@ -68,7 +69,7 @@ def curves_and_fps(store: Store, utterance_id: str, source: str, variant: str) -
     """(T, 16) curves, their frame rate (from the frame times) and the file they came from."""
     table = store.read_curves(utterance_id, source, variant)
     times = table.column(C.TIME_S).to_numpy()
-    fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else 30.0
+    fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else DEFAULT_FPS
     return curves_array(table), float(round(fps, 6)), str(store.curve_path(source, variant, utterance_id))
 
 

@@ -24,13 +24,13 @@ from visemeflow.ingest.captured import (
     Take,
     import_take,
 )
-from visemeflow.schemas import UTTERANCES, C, curves_table, shard_of, table_from_rows
+from visemeflow.schemas import C, UTTERANCES, CurveSource, curves_table, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row, result_storage
 
 STAGE = "import_curves"
-SOURCE = "captured"
+SOURCE = CurveSource.CAPTURED
 
 
 def provenance(take: Take, config: CaptureConfig, solver_digest: str) -> str:

@@ -13,7 +13,7 @@ from visemeflow.ingest import (
     discover_corpus,
     ingest_utterance,
 )
-from visemeflow.schemas import PHONES, REJECTS, UTTERANCES, C, table_from_rows
+from visemeflow.schemas import C, PHONES, REJECTS, UTTERANCES, CurveSource, table_from_rows
 from visemeflow.schemas.tables import NO_ALIGNMENT, has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -109,7 +109,7 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
             "unaligned": sum(not has_alignment(u) for u in utterances)}
 
 
-CAPTURED_SOURCE = "captured"
+CAPTURED_SOURCE = CurveSource.CAPTURED
 
 
 def _is_captured(store: Store, row: dict) -> bool:

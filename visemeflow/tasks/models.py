@@ -11,6 +11,7 @@ from visemeflow.learning.train import SAMPLE_RATE, load_model
 from visemeflow.procedural.recognised import RECOGNISED_MODEL, recognised_curves, recognised_model_hash
 from visemeflow.storage import Store
 from visemeflow.visemes import N_VISEMES
+from visemeflow.timebase import DEFAULT_FPS
 
 
 class RecognisedPhonesModel(torch.nn.Module):
@@ -20,7 +21,7 @@ class RecognisedPhonesModel(torch.nn.Module):
 
     def forward(self, audio: torch.Tensor, lengths: torch.Tensor, n_frames: torch.Tensor, targets=None,
                 fps: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        fps = 30.0 if fps is None else float(fps)
+        fps = DEFAULT_FPS if fps is None else float(fps)
         out = torch.zeros(audio.shape[0], int(n_frames.max()) if len(n_frames) else 0, N_VISEMES)
         for b in range(audio.shape[0]):
             n = int(n_frames[b])

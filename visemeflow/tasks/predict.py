@@ -12,13 +12,13 @@ from visemeflow.ingest.audio import AudioFile
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.longform import predict_long
 from visemeflow.learning.train import predict_curves
-from visemeflow.schemas import curves_table
+from visemeflow.schemas import CurveSource, curves_table
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
 from visemeflow.tasks.models import load_curve_model
 
-SOURCE = "predicted"
+SOURCE = CurveSource.PREDICTED
 # INPUTS + TASK_SOURCE + CODE like every task, but not keyed on where the audio lies: its content hash is an input, so
 # the same sound under another folder (same utterance id) is a cache hit, and a changed file under the same path is not.
 # Nor on where the model runs (`device`): curves predicted on the CPU stay valid for a GPU run.

@@ -8,7 +8,7 @@ from prefect import get_run_logger, task
 from visemeflow.hashing import stable_hash
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
-from visemeflow.schemas import REJECTS, C, curves_table, table_from_rows
+from visemeflow.schemas import C, REJECTS, CurveSource, curves_table, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -16,7 +16,7 @@ from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
 from visemeflow.timebase import frame_count
 
 STAGE = "procedural"
-SOURCE = "procedural"
+SOURCE = CurveSource.PROCEDURAL
 
 
 def default_variant(config: ProceduralConfig) -> str:

@@ -13,7 +13,7 @@ from visemeflow.ingest.audio import read_audio
 from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_rig
-from visemeflow.schemas import C, curves_table, split_utterance_id
+from visemeflow.schemas import C, CurveSource, curves_table, split_utterance_id
 from visemeflow.storage import Store
 from visemeflow.synth.take import SynthConfig, camera_record, make_take, render_take
 from visemeflow.tasks.code_version import code_digest
@@ -22,7 +22,7 @@ from visemeflow.timebase import frame_count
 from visemeflow.tracking.landmarks import write_landmarks
 from visemeflow.tracking.video import write_video
 
-SOURCE = "ground_truth"
+SOURCE = CurveSource.GROUND_TRUTH
 
 
 def truth_variant(config: SynthConfig) -> str:

@@ -25,6 +25,7 @@ from visemeflow.schemas import (
     LOSS_TERMS,
     TRACKING_FRAMES,
     C,
+    CurveSource,
     curves_array,
     curves_table,
 )
@@ -36,7 +37,7 @@ from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, VideoInput, track_video
 
 STAGE = "track"
-SOURCE = "tracked"
+SOURCE = CurveSource.TRACKED
 NO_ALIGNMENT_REASON = "no alignment"
 GUIDANCE_OFF_REASON = "guidance off in the tracking config"
 
@@ -110,7 +111,7 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     procedural = end_s = None
     if has_alignment(utterance):
         try:
-            procedural = curves_array(store.read_curves(uid, "procedural", procedural_variant))
+            procedural = curves_array(store.read_curves(uid, CurveSource.PROCEDURAL, procedural_variant))
         except LookupError as exc:
             raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
         end_s = alignment_end_s(store, uid)

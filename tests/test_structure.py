@@ -1,0 +1,31 @@
+"""Names defined once: the curve sources (schemas.CurveSource) and the default curve rate (timebase.DEFAULT_FPS)
+are not spelled again across the package."""
+
+import re
+
+from factories import REPO
+
+from visemeflow.schemas import CurveSource
+from visemeflow.schemas.tables import CURVE_SOURCES
+
+PACKAGE = REPO / "visemeflow"
+
+
+def sources_of_the_package():
+    for path in sorted(PACKAGE.rglob("*.py")):
+        yield path, path.read_text(encoding="utf-8")
+
+
+def test_no_module_spells_the_default_frame_rate_again():
+    found = [f"{p.relative_to(REPO)}:{i}" for p, text in sources_of_the_package() if p.name != "timebase.py"
+             for i, line in enumerate(text.splitlines(), 1)
+             if re.search(r"fps.*[=(]\s*30(\.0)?\b|\b30\.0\b.*fps", line, re.I) and "TIMECODE" not in line]
+    assert not found, f"use visemeflow.timebase.DEFAULT_FPS: {found}"
+
+
+def test_stages_name_their_curve_source_by_the_enum():
+    found = [f"{p.relative_to(REPO)}:{i}" for p, text in sources_of_the_package() if p.name != "tables.py"
+             for i, line in enumerate(text.splitlines(), 1)
+             if re.search(r"SOURCE\s*=\s*\"", line)]
+    assert not found, f"use visemeflow.schemas.CurveSource: {found}"
+    assert CURVE_SOURCES == tuple(s.value for s in CurveSource) and CurveSource("tracked") is CurveSource.TRACKED
