@@ -84,6 +84,18 @@ def test_the_rerun_form_asks_for_utterance_stage_and_force():
     assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "landmarks", "track", "animate"}
 
 
+def test_prefect_yaml_is_what_the_stage_table_renders():
+    """prefect.yaml is made from visemeflow/flows/stages.py: a stage added to the table and not to the file (or the
+    other way round) fails here. Regenerate with
+    `.venv/bin/python -c "from visemeflow.ops.serve import render_prefect_yaml as r; open('prefect.yaml','w').write(r())"`."""
+    from visemeflow.flows.stages import STAGES as TABLE
+
+    assert (REPO / "prefect.yaml").read_text() == serve_module.render_prefect_yaml()
+    assert tuple(s.name for s in TABLE) == STAGES
+    for stage in TABLE:
+        assert stage.flow().name == stage.name  # the table names each flow as Prefect does
+
+
 def test_prefect_yaml_names_existing_flows_with_the_same_schedule():
     from prefect.cli.deploy._models import PrefectYamlModel
 

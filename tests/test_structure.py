@@ -29,3 +29,13 @@ def test_stages_name_their_curve_source_by_the_enum():
              if re.search(r"SOURCE\s*=\s*\"", line)]
     assert not found, f"use visemeflow.schemas.CurveSource: {found}"
     assert CURVE_SOURCES == tuple(s.value for s in CurveSource) and CurveSource("tracked") is CurveSource.TRACKED
+
+
+def test_rerun_knows_every_stage_its_form_offers():
+    import typing
+
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import RERUNS
+
+    offered = typing.get_args(RerunParams.model_fields["stage"].annotation)
+    assert set(offered) == set(RERUNS)

@@ -1,5 +1,6 @@
 """The `rerun` flow: one utterance through one stage, by hand, even when its cache is valid."""
 
+from collections.abc import Callable
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -75,48 +76,54 @@ def _rerun_landmarks(store: Store, uid: str, run: dict | None, force: bool) -> d
     return report
 
 
+def _rerun_ingest(store: Store, uid: str, run: dict | None, force: bool) -> dict:
+    if run is None:
+        raise RerunError(f"{store.root} has no ingest run to repeat; run `visemeflow ingest CORPUS` first")
+    config = IngestConfig(**run["config"])
+    found = ingest_tasks.discover_corpus_task(run["corpus"], only=uid)
+    if not found["entries"]:
+        reasons = "; ".join(r["message"] for r in found["rejects"]) or "no files for it"
+        raise RerunError(f"{uid} is not in the corpus {run['corpus']}: {reasons}")
+    task = ingest_tasks.ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
+
+
+def _rerun_track(store: Store, uid: str, run: dict | None, force: bool) -> dict:
+    rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    run = run or {"rig": None, "procedural_variant": None, "config": TrackingConfig().model_dump(mode="json")}
+    rig_path, rig_hash = rig_and_hash(Path(run["rig"]) if run.get("rig") else None)
+    variant = procedural_variant_of(store, run.get("procedural_variant"))
+    provenance = store.curves_provenance(CurveSource.PROCEDURAL, variant, uid) or ""
+    task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash, TrackingConfig(**run["config"]))
+
+
+def _rerun_procedural(store: Store, uid: str, run: dict | None, force: bool) -> dict:
+    run = run or {"n_shards": 8, "config": ProceduralConfig().model_dump(mode="json"), "variant": None}
+    config = ProceduralConfig(**run["config"])
+    variant = run["variant"] or procedural_tasks.default_variant(config)
+    rows = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    utterance = {k: rows[0][k] for k in UTTERANCE_FIELDS}
+    task = procedural_tasks.procedural_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), shard_of(uid, run["n_shards"]), utterance, config, variant)
+
+
+RERUNS: dict[str, Callable[[Store, str, dict | None, bool], dict]] = {
+    "ingest": _rerun_ingest, "procedural": _rerun_procedural, "landmarks": _rerun_landmarks, "track": _rerun_track,
+    "animate": _rerun_animate,
+}
+"""The stages one utterance can be rerun through (RerunParams.stage): each repeats that stage's last settings."""
+
+
 @flow(name="rerun", flow_run_name="rerun[{params.utterance_id}:{params.stage}]")
 def rerun_flow(params: RerunParams) -> dict[str, int]:
     """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
     store = Store(params.store)
     uid = params.utterance_id
-    run = store.read_run_config(params.stage)
-    if params.stage == "ingest":
-        if run is None:
-            raise RerunError(f"{store.root} has no ingest run to repeat; run `visemeflow ingest CORPUS` first")
-        config = IngestConfig(**run["config"])
-        found = ingest_tasks.discover_corpus_task(run["corpus"], only=uid)
-        if not found["entries"]:
-            reasons = "; ".join(r["message"] for r in found["rejects"]) or "no files for it"
-            raise RerunError(f"{uid} is not in the corpus {run['corpus']}: {reasons}")
-        task = ingest_tasks.ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
-        report = task(str(store.root), shard_of(uid, run["n_shards"]), found["entries"][0], config)
-    elif params.stage == "animate":
-        report = _rerun_animate(store, uid, run, params.force)
-    elif params.stage == "landmarks":
-        report = _rerun_landmarks(store, uid, run, params.force)
-    elif params.stage == "track":
-        rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
-        if not rows:
-            raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
-        run = run or {"rig": None, "procedural_variant": None, "config": TrackingConfig().model_dump(mode="json")}
-        rig_path, rig_hash = rig_and_hash(Path(run["rig"]) if run.get("rig") else None)
-        variant = procedural_variant_of(store, run.get("procedural_variant"))
-        provenance = store.curves_provenance(CurveSource.PROCEDURAL, variant, uid) or ""
-        task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=params.force)
-        report = task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash,
-                      TrackingConfig(**run["config"]))
-    else:
-        run = run or {"n_shards": 8, "config": ProceduralConfig().model_dump(mode="json"), "variant": None}
-        config = ProceduralConfig(**run["config"])
-        variant = run["variant"] or procedural_tasks.default_variant(config)
-        rows = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
-        if not rows:
-            raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
-        utterance = {k: rows[0][k] for k in UTTERANCE_FIELDS}
-        task = procedural_tasks.procedural_one.with_options(
-            result_storage=result_storage(store.root), refresh_cache=params.force
-        )
-        report = task(str(store.root), shard_of(uid, run["n_shards"]), utterance, config, variant)
+    report = RERUNS[params.stage](store, uid, store.read_run_config(params.stage), params.force)
     get_run_logger().info("rerun %s %s: %s", params.stage, uid, report)
     return report

@@ -35,6 +35,7 @@ from prefect.deployments.runner import EntrypointType, RunnerDeployment
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
 from pydantic import BaseModel
 
+from visemeflow.flows.stages import STAGES, Stage
 from visemeflow.storage import Store
 
 DEFAULT_CRON = "0 3 * * *"
@@ -55,22 +56,7 @@ CORS_HEADERS = "Authorization,Content-Type,X-Prefect-UI,Prefect-Csrf-Token,Prefe
 PATH_OR_NAME = frozenset({"wav2vec2_model", "whisper_source"})
 
 # The served deployments' entrypoints: `visemeflow.ops.serve.<name>` (see `__getattr__`), module of each stage's flow.
-SERVED_FLOWS = {
-    "pipeline_flow": "visemeflow.flows.pipeline",
-    "ingest_flow": "visemeflow.flows.ingest",
-    "procedural_flow": "visemeflow.flows.procedural",
-    "landmarks_flow": "visemeflow.flows.landmarks",
-    "track_flow": "visemeflow.flows.track",
-    "train_flow": "visemeflow.flows.train",
-    "sweep_flow": "visemeflow.flows.sweep",
-    "evaluate_flow": "visemeflow.flows.evaluate",
-    "predict_flow": "visemeflow.flows.predict",
-    "import_curves_flow": "visemeflow.flows.import_curves",
-    "animate_flow": "visemeflow.flows.animate",
-    "speak_flow": "visemeflow.flows.animate",
-    "preview_flow": "visemeflow.flows.animate",
-    "rerun_flow": "visemeflow.flows.rerun",
-}
+SERVED_FLOWS = {stage.flow_attr: stage.module for stage in STAGES}
 
 
 class ServerStartError(RuntimeError):
@@ -180,8 +166,8 @@ def __getattr__(name: str) -> Flow:
 def build_deployments(
     store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
 ) -> list[RunnerDeployment]:
-    """Deployments of `pipeline` (on `cron` in `timezone`), of each stage, `predict`, `speak`, `preview` and `rerun`; the store is their
-    default. Each runs the stage confined to the folders `serve` allows (`confined`).
+    """A deployment of every stage of `STAGES` (the pipeline on `cron` in `timezone`); the store is their default.
+    Each runs the stage confined to the folders `serve` allows (`confined`).
 
     Without `corpus`, the pipeline and ingest deployments default to the corpus the store last ingested; with
     neither, they have no default corpus and the pipeline no schedule (a run would have nothing to read).
@@ -193,37 +179,56 @@ def build_deployments(
     on_store = {"params": {"store": str(store)}}
     on_corpus = {"params": {"store": str(store), "corpus": str(corpus)}} if corpus else on_store
 
-    def deployment(name: str, parameters: dict, **kwargs) -> RunnerDeployment:
-        return served_flow(name).to_deployment(
-            DEPLOYMENT, parameters=parameters, tags=TAGS, entrypoint_type=EntrypointType.MODULE_PATH, **kwargs
+    def deployment(stage: Stage) -> RunnerDeployment:
+        scheduled = stage.scheduled and corpus and cron
+        return served_flow(stage.flow_attr).to_deployment(
+            DEPLOYMENT, parameters=on_corpus if stage.on_corpus else on_store, tags=TAGS,
+            entrypoint_type=EntrypointType.MODULE_PATH, description=stage.description or None,
+            schedule=Cron(cron, timezone=timezone) if scheduled else None,
+            concurrency_limit=1 if stage.scheduled else None,
         )
 
-    return [
-        deployment("pipeline_flow", on_corpus, schedule=Cron(cron, timezone=timezone) if corpus and cron else None,
-                   concurrency_limit=1, description="Every stage on the corpus; unchanged utterances are cache hits."),
-        deployment("ingest_flow", on_corpus),
-        deployment("procedural_flow", on_store),
-        deployment("landmarks_flow", on_store,
-                   description="MediaPipe FaceMesh landmarks of every video without a landmark file."),
-        deployment("track_flow", on_store),
-        deployment("train_flow", on_store),
-        deployment("sweep_flow", on_store),
-        deployment("evaluate_flow", on_store,
-                   description="Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
-        deployment("predict_flow", on_store,
-                   description="Curves of new audio files from a trained model (the form asks for model and files)."),
-        deployment("import_curves_flow", on_store,
-                   description="Captured animation (Live Link CSV, channel files) as `captured` curves of real speech."),
-        deployment("animate_flow", on_store,
-                   description="Stored curves on characters: GLB, USD, Live Link CSV, web JSON and the audio."),
-        deployment("speak_flow", on_store,
-                   description="Audio files to talking characters: predict, then animate (the form asks for model, "
-                               "files and characters)."),
-        deployment("preview_flow", on_store,
-                   description="One utterance's preview MP4: the character driven by each source side by side."),
-        deployment("rerun_flow", on_store,
-                   description="One utterance through one stage (ingest, procedural, track, animate), even when cached."),
-    ]
+    return [deployment(stage) for stage in STAGES]
+
+
+PREFECT_YAML_HEAD = """\
+# The deployments `visemeflow serve` serves from one process, for a work pool and its workers instead.
+# Made from visemeflow/flows/stages.py by `visemeflow.ops.serve.render_prefect_yaml` (tests/test_serve.py checks
+# that this file is what it renders). From the repository root, with a server running and PREFECT_API_URL
+# pointing at it:
+#
+#   .venv/bin/prefect work-pool create visemeflow --type process
+#   .venv/bin/prefect --no-prompt deploy --all
+#   .venv/bin/prefect worker start --pool visemeflow
+#
+# With no pull step given, `prefect deploy` records the folder it ran in as the workers' working directory, so the
+# relative paths below are relative to the repository root. Every stage caches on content hashes: the scheduled
+# pipeline run reprocesses only what changed. Deployments are named `pool` (`pipeline/pool`, `rerun/pool`, ...),
+# the served ones `served`, so both can live on one server.
+"""
+
+
+def render_prefect_yaml(store: str = "visemeflow-out/store", corpus: str = "visemeflow-out/demo-corpus") -> str:
+    """prefect.yaml: a `pool` deployment of every stage of `STAGES` on the `visemeflow` work pool, the pipeline on
+    DEFAULT_CRON (UTC), defaults `store` (and `corpus` where the stage reads one)."""
+    import prefect
+    import yaml
+
+    deployments = []
+    for stage in STAGES:
+        params = {"store": store, **({"corpus": corpus} if stage.on_corpus else {})}
+        d: dict = {"name": "pool", "entrypoint": stage.entrypoint}
+        if stage.description:
+            d["description"] = stage.description
+        d.update({"tags": list(TAGS), "parameters": {"params": params}})
+        if stage.scheduled:
+            d["schedules"] = [{"cron": DEFAULT_CRON, "timezone": "UTC"}]
+            d["concurrency_limit"] = 1
+        d["work_pool"] = {"name": "visemeflow", "job_variables": {}}
+        deployments.append(d)
+    body = {"name": "visemeflow", "prefect-version": prefect.__version__, "build": None, "push": None, "pull": None,
+            "deployments": deployments}
+    return PREFECT_YAML_HEAD + yaml.safe_dump(body, sort_keys=False, width=120)
 
 
 def ui_url(api_url: str) -> str:
