@@ -80,6 +80,14 @@ def median_seconds(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
+def time_onnx(path: Path, audio: np.ndarray, repeats: int) -> tuple[float, np.ndarray]:
+    """Median seconds of one ONNX Runtime call on one thread, and its curves (frames, 16)."""
+    sess = _session(path, threads=1)
+    x = audio[None]
+    seconds = median_seconds(lambda: sess.run(["curves"], {"audio": x}), repeats)
+    return seconds, sess.run(["curves"], {"audio": x})[0][0]
+
+
 def mb(n_bytes: int) -> str:
     return f"{n_bytes / 1e6:.2f}"
 
@@ -126,15 +134,11 @@ def main() -> int:
             want = predict_curves(model, audio, 16000, FPS)
         finally:
             torch.set_num_threads(threads)
-        sess = _session(report.path, threads=1)
-        x = audio[None]
-        t_ort = median_seconds(lambda: sess.run(["curves"], {"audio": x}), args.repeats)
-        got = sess.run(["curves"], {"audio": x})[0][0]
+        t_ort, got = time_onnx(report.path, audio, args.repeats)
         diff = float(np.abs(got - want).max()) if got.shape == want.shape else float("nan")
         print(f"{preset + suffix:<22}{params:>11,}{mb(pt.stat().st_size):>9}{mb(report.size_bytes):>10}"
               f"{report.export_seconds:>10.1f}{t_torch / SECONDS:>11.2e}{t_ort / SECONDS:>9.2e}"
               f"{t_ort / t_torch:>11.2f}{diff:>11.1e}", flush=True)
-        del sess
     return 0
 
 

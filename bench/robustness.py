@@ -83,6 +83,9 @@ def main() -> int:
               f"{'no worse' if ok else 'WORSE'}")
     mean = next(r["validation"] for r in table if r["preset"] == "mean-curve")
     useful = [r for r in trained if r["validation"] <= 0.75 * mean]  # a model near the floor is robust by default
+    if not useful:
+        print(f"most robust: none of the trained models is >= 25% below the mean-curve floor ({mean:.2f})")
+        return 0
     most_robust = min(useful, key=lambda r: max(r[f"ratio_{c}"] / PAPER_BEST[c] for c in CONDITIONS))
     print(f"most robust of the models >= 25% below the mean-curve floor: {most_robust['model']} "
           + ", ".join(f"{c} {most_robust[f'ratio_{c}']:.2f}" for c in CONDITIONS))

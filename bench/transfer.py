@@ -10,7 +10,8 @@ Prints, never asserts (exit 0 whatever the figures). Targets, all built from the
 3. remeshed: another identity (modes 0..2 at +0.8, +0.6, -0.7 sigma) cut to the ICT narrow face (vertices
    0..6705), Loop-subdivided once by trimesh (`remesh.subdivide_loop`: every vertex moves, 4 triangles for each, so
    no triangle is the template's), turned 20 degrees about y, scaled 1.15 and moved; its 68 landmarks are the
-   nearest vertices (the markers). This is the target of tests/test_transfer.py.
+   nearest vertices (the markers). The target of tests/test_transfer.py too: one builder, `remeshed_face` in
+   tests/factories.py.
 4. remeshed, automatic markers: the same target with no markers given; FaceMesh on renders of both meshes finds
    the pairs (`visemeflow.animation.automarkers`): how many, how far their target points lie from the true
    correspondence (the same ICT vertex moved with the face), and the transfer with them.
@@ -28,54 +29,24 @@ With --sheet, the 16 transferred visemes on the remeshed face are drawn with the
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-import trimesh
-from scipy.spatial import cKDTree
 
-from visemeflow.animation.character import make_character
-from visemeflow.animation.preview import preview_camera
-from visemeflow.animation.automarkers import automatic_markers
-from visemeflow.animation.transfer import transfer_visemes
-from visemeflow.rig import load_demo_rig, rig_data_path
-from visemeflow.synth.render import render_mesh
-from visemeflow.visemes import VISEMES
+# the remeshed target is built by the tests' builder, so that the figures printed here are of the face they check
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from factories import REMESHED_IDENTITY, ROTATION, identity_face, placed, remeshed_face  # noqa: E402
 
-TURN = np.deg2rad(20.0)
-ROTATION = np.array([[np.cos(TURN), 0, np.sin(TURN)], [0, 1, 0], [-np.sin(TURN), 0, np.cos(TURN)]])
-
-
-def identity_face(demo, modes, values):
-    c = np.zeros(len(modes))
-    c[: len(values)] = values
-    return demo.neutral + np.tensordot(c, modes, axes=1)
-
-
-REMESHED_IDENTITY = (0.8, 0.6, -0.7)
-"""Identity-mode coefficients of the remeshed target's face."""
-
-
-def placed(points: np.ndarray) -> np.ndarray:
-    """Where the remeshed target puts the face: turned 20 degrees about y, scaled 1.15 and moved."""
-    return 1.15 * points @ ROTATION.T + np.array([3.0, -2.0, 5.0])
-
-
-def remeshed_face(demo, modes):
-    """The ICT narrow face (vertices 0..6705) of another identity, Loop-subdivided (every vertex moves, 4 triangles
-    for each), `placed`; its 68 landmarks are the nearest vertices. Also the target of tests/test_transfer.py."""
-    face = identity_face(demo, modes, REMESHED_IDENTITY)
-    keep = np.zeros(len(face), bool)
-    keep[:6706] = True
-    faces = demo.faces[keep[demo.faces].all(axis=1)]
-    used = np.unique(faces)
-    local = np.full(len(face), -1)
-    local[used] = np.arange(len(used))
-    vertices, faces = trimesh.remesh.subdivide_loop(face[used], local[faces], iterations=1)
-    _, landmarks = cKDTree(placed(vertices)).query(placed(face[demo.landmark_ids]))
-    return placed(vertices), faces, landmarks
+from visemeflow.animation.character import make_character  # noqa: E402
+from visemeflow.animation.preview import preview_camera  # noqa: E402
+from visemeflow.animation.automarkers import automatic_markers  # noqa: E402
+from visemeflow.animation.transfer import transfer_visemes  # noqa: E402
+from visemeflow.rig import load_demo_rig, rig_data_path  # noqa: E402
+from visemeflow.synth.render import render_mesh  # noqa: E402
+from visemeflow.visemes import VISEMES  # noqa: E402
 
 
 def landmark_figures(character, landmark_ids, rotation=np.eye(3)) -> str:
@@ -150,11 +121,11 @@ def main() -> None:
     truth = placed(identity_face(demo, modes, REMESHED_IDENTITY))
     error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth[auto.pairs[:, 0]], axis=1)
     result = transfer_visemes(demo, vertices, faces, name="remeshed-auto")
-    placed = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
+    landmark_gap = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
     print(f"\n4. remeshed, automatic markers ({found_s:.1f} s to find them): {len(auto.pairs)} pairs, target points "
           f"{np.median(error):.3f} cm from the true correspondence (median; 90th percentile "
           f"{np.percentile(error, 90):.3f}, largest {error.max():.3f}); the 68 landmarks it places "
-          f"{np.median(placed):.3f} cm from the nearest-point truth (median)")
+          f"{np.median(landmark_gap):.3f} cm from the nearest-point truth (median)")
     print("   " + "\n   ".join(result.report.lines()))
     print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
 

@@ -29,3 +29,13 @@ def prefect_api_url(prefect_harness) -> str:
     from prefect.settings import get_current_settings
 
     return str(get_current_settings().api.url)
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    """Headless chromium (tests/browser.py) for one test module: the GLB tests play our files in three.js."""
+    from browser import Browser, chromium_or_fail
+
+    b = Browser(chromium_or_fail(), tmp_path_factory.mktemp("chromium") / "profile", timeout=120.0)
+    yield b
+    b.close()

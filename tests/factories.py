@@ -1,9 +1,11 @@
-"""Small builders of test inputs: wav files, Praat TextGrid text (long and short format), corpora.
+"""Small builders of test inputs: wav files, Praat TextGrid text (long and short format), corpora, the held-out
+real speech and the remeshed transfer target; and the real glTF clients (Khronos validator) the GLB tests share.
 
 Interval lists for the TextGrid builders are `(start, end, label)` tuples, the order Praat writes and
 `Tier.items` holds; `make_corpus` takes `(label, start, end)` phones per utterance id.
 """
 
+import json
 import os
 import shutil
 import signal
@@ -11,9 +13,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pygltflib as gl
+import pytest
 import soundfile as sf
 
 REPO = Path(__file__).resolve().parents[1]
@@ -192,3 +197,158 @@ def kill_cli_when(args: list[str], prefect_api_url: str, ready: Callable[[], boo
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
+
+
+# ---- real speech with forced alignments ------------------------------------------------------------------------
+SPEECH_FPS = 30.0
+SPEECH_RATE = 16000
+
+
+@dataclass
+class AlignedSpeech:
+    """One aligned utterance as the real-speech metrics take it: 16 kHz audio and its phones."""
+
+    uid: str
+    audio: np.ndarray          # (samples,) float32 at SPEECH_RATE
+    phones: list               # learning.realspeech.Phone
+    n: int                     # curve frames at SPEECH_FPS
+
+
+def read_aligned_speech(root: Path) -> list[AlignedSpeech]:
+    """Every utterance of a corpus folder, read by the product's ingestion (`discover_corpus`, `ingest_utterance`)."""
+    from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance
+    from visemeflow.ingest.audio import read_audio
+    from visemeflow.learning.features import resample_audio
+    from visemeflow.learning.realspeech import phones_of
+    from visemeflow.timebase import frame_count
+
+    out = []
+    for entry in discover_corpus(root).entries:
+        result = ingest_utterance(entry, IngestConfig())
+        rows = sorted(result.phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
+        samples, rate = read_audio(entry.audio_path)
+        out.append(AlignedSpeech(entry.utterance_id, resample_audio(samples, rate, SPEECH_RATE), phones_of(rows),
+                                 frame_count(result.utterance["duration_s"], SPEECH_FPS)))
+    return out
+
+
+def held_out_speech(tmp: Path) -> dict[str, list[AlignedSpeech]]:
+    """Real speakers no shipped model trained on, from ../shared/data: GRID s1's 10 clips (video + word alignment),
+    the charsiu Mandarin utterance and praatio's two examples, copied into corpus folders under `tmp` (the product
+    refuses links to outside a corpus). The sets of examples/train_default_model.py's recorded figures."""
+    grid = tmp / "grid" / "s1"
+    grid.mkdir(parents=True)
+    for align in sorted((SHARED_DATA / "grid_s1" / "align").glob("*.align")):
+        shutil.copyfile(align, grid / align.name)
+        shutil.copyfile(SHARED_DATA / "grid_s1" / "video" / f"{align.stem}.mpg", grid / f"{align.stem}.mpg")
+    zh = tmp / "charsiu" / "SSB1624"
+    zh.mkdir(parents=True)
+    shutil.copyfile(SHARED_DATA / "charsiu_mandarin" / "SSB16240001_16k.wav", zh / "SSB16240001.wav")
+    shutil.copyfile(SHARED_DATA / "charsiu_mandarin" / "SSB16240001.TextGrid", zh / "SSB16240001.TextGrid")
+    praatio = tmp / "praatio" / "praatio"
+    praatio.mkdir(parents=True)
+    for name, grid_name in (("bobby", "bobby_phones.TextGrid"), ("mary", "mary.TextGrid")):
+        shutil.copyfile(SHARED_DATA / "praatio_examples" / f"{name}.wav", praatio / f"{name}.wav")
+        shutil.copyfile(SHARED_DATA / "praatio_examples" / grid_name, praatio / f"{name}.TextGrid")
+    return {"GRID s1": read_aligned_speech(grid.parent), "Mandarin": read_aligned_speech(zh.parent),
+            "praatio": read_aligned_speech(praatio.parent)}
+
+
+# ---- the transfer target of another topology (tests/test_transfer.py, bench/transfer.py) ------------------------
+TURN = np.deg2rad(20.0)
+ROTATION = np.array([[np.cos(TURN), 0, np.sin(TURN)], [0, 1, 0], [-np.sin(TURN), 0, np.cos(TURN)]])
+REMESHED_IDENTITY = (0.8, 0.6, -0.7)
+"""Identity-mode coefficients of the remeshed target's face."""
+
+
+def identity_face(demo, modes: np.ndarray, values) -> np.ndarray:
+    """(V, 3) the demo rig's neutral moved by the first len(values) identity modes (K, V, 3) times `values`."""
+    c = np.zeros(len(modes))
+    c[: len(values)] = values
+    return demo.neutral + np.tensordot(c, modes, axes=1)
+
+
+def placed(points: np.ndarray) -> np.ndarray:
+    """Where the remeshed target puts the face: turned 20 degrees about y, scaled 1.15 and moved."""
+    return 1.15 * points @ ROTATION.T + np.array([3.0, -2.0, 5.0])
+
+
+def remeshed_face(demo, modes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, triangles, 68 landmark ids): the ICT narrow face (vertices 0..6705) of another identity,
+    Loop-subdivided (every vertex moves, 4 triangles for each), `placed`; its landmarks are the nearest vertices."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    face = identity_face(demo, modes, REMESHED_IDENTITY)
+    keep = np.zeros(len(face), bool)
+    keep[:6706] = True
+    faces = demo.faces[keep[demo.faces].all(axis=1)]
+    used = np.unique(faces)
+    local = np.full(len(face), -1)
+    local[used] = np.arange(len(used))
+    vertices, faces = trimesh.remesh.subdivide_loop(face[used], local[faces], iterations=1)
+    _, landmarks = cKDTree(placed(vertices)).query(placed(face[demo.landmark_ids]))
+    return placed(vertices), faces, landmarks
+
+
+# ---- GLB readers and clients independent of the module under test ---------------------------------------------
+JS = REPO / "tools" / "js"
+NODE_MODULES = JS / "node_modules"
+VALIDATE = JS / "validate_gltf.mjs"
+
+
+def glb_arrays(path: Path) -> tuple[gl.GLTF2, Callable[[int], np.ndarray]]:
+    """The document and a reader of tightly packed accessors (dense, or sparse over zeros as we write them),
+    independent of the module under test."""
+    g = gl.GLTF2.load(str(path))
+    blob = g.binary_blob()
+    dtypes = {gl.FLOAT: "<f4", gl.UNSIGNED_BYTE: "<u1", gl.UNSIGNED_SHORT: "<u2", gl.UNSIGNED_INT: "<u4"}
+    widths = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+
+    def packed(view_index: int, byte_offset: int, dtype: str, count: int, width: int) -> np.ndarray:
+        view = g.bufferViews[view_index]
+        assert view.byteStride is None
+        assert np.dtype(dtype).itemsize * width * count <= view.byteLength
+        return np.frombuffer(blob, dtype, count * width, view.byteOffset + byte_offset).reshape(count, width)
+
+    def read(index: int) -> np.ndarray:
+        acc = g.accessors[index]
+        dtype, width = dtypes[acc.componentType], widths[acc.type]
+        if acc.sparse is None:
+            return packed(acc.bufferView, acc.byteOffset, dtype, acc.count, width)
+        assert acc.bufferView is None
+        values = np.zeros((acc.count, width), dtype)
+        ids = packed(acc.sparse.indices.bufferView, acc.sparse.indices.byteOffset,
+                     dtypes[acc.sparse.indices.componentType], acc.sparse.count, 1)[:, 0]
+        values[ids] = packed(acc.sparse.values.bufferView, acc.sparse.values.byteOffset, dtype, acc.sparse.count,
+                             width)
+        return values
+
+    return g, read
+
+
+def node_or_fail() -> str:
+    """The node executable, with the pinned JS packages installed; otherwise the test fails with the command."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.fail("node is not installed: run `sh scripts/system-deps.sh` as root (or `apt-get install -y nodejs "
+                    "npm`); `make test` and .ci/run run it first")
+    for package in ("gltf-validator", "three"):
+        if not (NODE_MODULES / package / "package.json").is_file():
+            pytest.fail(f"{NODE_MODULES / package} is missing: run `make js-deps` (npm ci --prefix tools/js); "
+                        "`make test` runs it first")
+    return node
+
+
+def validate(path: Path) -> dict:
+    """The Khronos validator's report for `path`; its infos and hints are printed."""
+    node = node_or_fail()
+    done = subprocess.run([node, str(VALIDATE), str(path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    issues = report["issues"]
+    print(f"\ngltf-validator {report['validatorVersion']} on {path.name}: {issues['numErrors']} errors, "
+          f"{issues['numWarnings']} warnings, {issues['numInfos']} infos, {issues['numHints']} hints")
+    for m in issues["messages"]:
+        print(f"  severity {m['severity']} {m['code']} at {m.get('pointer', '-')}: {m['message']}")
+    return report

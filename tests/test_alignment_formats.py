@@ -17,7 +17,6 @@ from visemeflow.phonetics.textgrid import (
     TextGridData,
     TextGridError,
     Tier,
-    format_textgrid,
     parse_textgrid,
     parse_textgrid_binary,
     read_textgrid,

@@ -8,7 +8,7 @@ import av
 import numpy as np
 import pytest
 import soundfile as sf
-from factories import make_corpus, make_curve_store
+from factories import make_corpus, make_curve_store, validate
 from test_predict import AUDIO, tiny_model
 
 from visemeflow.articulation import close_lips
@@ -202,8 +202,6 @@ def test_bone_mode_writes_skinned_glb_and_pose_tables_solving_each_character_onc
     written, the blendshape-independent formats are unchanged, and the SSDR solve runs once per character for all
     utterances of the run; pose tables without bone mode are refused."""
     import csv
-
-    from test_gltf import validate
 
     from visemeflow.visemes import VISEMES
 

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from factories import REPO, SHARED_DATA, make_curve_store
-from test_gltf import validate
+from factories import REPO, SHARED_DATA, make_curve_store, validate
 
 from visemeflow.articulation import close_lips
 from visemeflow.animation.apply import resample

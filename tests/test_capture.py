@@ -6,7 +6,6 @@ the shared data is missing."""
 
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -76,11 +75,9 @@ def test_the_shipped_table_is_small_and_complete():
 
 
 def test_round_trip_through_the_shipped_arkit_table_recovers_the_face_and_most_curves():
+    """Its speed is bench/animation.py's (section 6)."""
     curves = procedural_curves()
-    weights = arkit_weights(curves)
-    started = time.perf_counter()
-    fit = fit_visemes(weights)
-    rate = len(curves) / (time.perf_counter() - started)
+    fit = fit_visemes(arkit_weights(curves))
     table = load_arkit_to_visemes()
     diff = (fit.curves - curves).astype(np.float64)
     face_error = np.sqrt(np.einsum("ti,ij,tj->t", diff, table.gram, diff))
@@ -90,8 +87,7 @@ def test_round_trip_through_the_shipped_arkit_table_recovers_the_face_and_most_c
     top = float((fit.curves.argmax(axis=1) == curves.argmax(axis=1))[active].mean())
     print(f"\nround trip of {len(curves)} procedural frames: curves L1 x 100 = {l1:.2f}, top viseme agrees on "
           f"{100 * top:.1f}% of active frames, face error {np.mean(face_error[active] / face[active]):.2e} "
-          f"(relative), residual median {np.median(fit.residual[fit.moving]):.2e}, {fit.bounded} frames bounded; "
-          f"{rate:,.0f} frames/s")
+          f"(relative), residual median {np.median(fit.residual[fit.moving]):.2e}, {fit.bounded} frames bounded")
     assert fit.curves.dtype == np.float32 and fit.curves.shape == curves.shape
     assert fit.curves.min() >= 0 and fit.curves.max() <= 1
     # the deformation is recovered: what the mesh shows matches within 2% (mean 0.4% when measured)
@@ -100,7 +96,6 @@ def test_round_trip_through_the_shipped_arkit_table_recovers_the_face_and_most_c
     # the split among jaw-driven visemes is not unique on the demo rig (7 near-null directions of G): the curves
     # come back close, not exact (L1 x 100 = 3.6, top viseme 78% when measured)
     assert l1 < 6.0 and top > 0.7
-    assert rate > 300
 
 
 def test_single_visemes_come_back_alone_except_the_rigs_equivalent_mixes():

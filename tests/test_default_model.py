@@ -3,11 +3,9 @@ needing the `visemeflow[whisper]` weights) and the previous fbank default by nam
 default when no model is named, stop with one line naming the extra when the weights are missing, and the default's
 recorded real-speech figures reproduce on speakers it never heard, where it closes far more b/p/m than the old one."""
 
-import sys
-
 import numpy as np
 import pytest
-from factories import REPO
+from factories import SPEECH_FPS, SPEECH_RATE, held_out_speech
 from test_predict import AUDIO
 from typer.testing import CliRunner
 
@@ -79,20 +77,16 @@ def test_a_store_from_an_older_release_gets_the_packages_default_not_its_old_cop
 
 
 def test_unheard_speakers_lips_close_and_the_recorded_figures_reproduce(tmp_path):
-    sys.path.insert(0, str(REPO / "bench"))
-    from encoders import held_out_sets
-    from realspeech import FPS, SAMPLE_RATE
-
     from visemeflow.learning.realspeech import pool, score_utterance
 
     new, _, lineage = load_model(default_model_path())
     old = load_model(shipped_model_path("default-fbank"))[0]
-    sets = held_out_sets(tmp_path)
+    sets = held_out_speech(tmp_path)
     utts = [u for us in sets.values() for u in us]
     scores = {}
     for name, model in (("new", new), ("old", old)):
-        scores[name] = pool(score_utterance(predict_curves(model, u.audio, SAMPLE_RATE, FPS, n_frames=u.n), FPS,
-                                            u.phones) for u in utts)
+        scores[name] = pool(score_utterance(predict_curves(model, u.audio, SPEECH_RATE, SPEECH_FPS, n_frames=u.n),
+                                            SPEECH_FPS, u.phones) for u in utts)
     grid_bpm = sum(1 for u in sets["GRID s1"] for p in u.phones if p.viseme == "MBP")
     assert grid_bpm >= 10
     new_mbp, old_mbp = scores["new"].closure["MBP"], scores["old"].closure["MBP"]

@@ -14,26 +14,18 @@ The JS packages are pinned in tools/js/package-lock.json and installed by `make 
 
 import json
 import math
-import shutil
-import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 import pygltflib as gl
 import pytest
-from browser import Browser, chromium_or_fail, serve_folder
-from factories import REPO
+from browser import Browser, serve_folder
+from factories import NODE_MODULES, glb_arrays, node_or_fail, validate
 
 from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
 from visemeflow.animation.load import load_character
 from visemeflow.animation.gltf import read_character_glb, vertex_normals, write_glb
 from visemeflow.rig import load_demo_rig
-
-JS = REPO / "tools" / "js"
-NODE_MODULES = JS / "node_modules"
-VALIDATE = JS / "validate_gltf.mjs"
-
 
 # ---- inputs ---------------------------------------------------------------------------------------------------
 def small_character(n_shapes: int = 3, seed: int = 0, colors: bool = False) -> Character:
@@ -81,36 +73,6 @@ def expected_weights(times: np.ndarray, weights: np.ndarray, t: float) -> np.nda
     k = int(np.searchsorted(times, t, side="right")) - 1
     alpha = (t - times[k]) / (times[k + 1] - times[k])
     return weights[k] * (1.0 - alpha) + weights[k + 1] * alpha
-
-
-def glb_arrays(path: Path) -> tuple[gl.GLTF2, callable]:
-    """The document and a reader of tightly packed accessors (dense, or sparse over zeros as we write them),
-    independent of the module under test."""
-    g = gl.GLTF2.load(str(path))
-    blob = g.binary_blob()
-    dtypes = {gl.FLOAT: "<f4", gl.UNSIGNED_BYTE: "<u1", gl.UNSIGNED_SHORT: "<u2", gl.UNSIGNED_INT: "<u4"}
-    widths = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
-
-    def packed(view_index: int, byte_offset: int, dtype: str, count: int, width: int) -> np.ndarray:
-        view = g.bufferViews[view_index]
-        assert view.byteStride is None
-        assert np.dtype(dtype).itemsize * width * count <= view.byteLength
-        return np.frombuffer(blob, dtype, count * width, view.byteOffset + byte_offset).reshape(count, width)
-
-    def read(index: int) -> np.ndarray:
-        acc = g.accessors[index]
-        dtype, width = dtypes[acc.componentType], widths[acc.type]
-        if acc.sparse is None:
-            return packed(acc.bufferView, acc.byteOffset, dtype, acc.count, width)
-        assert acc.bufferView is None
-        values = np.zeros((acc.count, width), dtype)
-        ids = packed(acc.sparse.indices.bufferView, acc.sparse.indices.byteOffset,
-                     dtypes[acc.sparse.indices.componentType], acc.sparse.count, 1)[:, 0]
-        values[ids] = packed(acc.sparse.values.bufferView, acc.sparse.values.byteOffset, dtype, acc.sparse.count,
-                             width)
-        return values
-
-    return g, read
 
 
 class Doc:
@@ -229,18 +191,13 @@ def test_small_character_round_trips_exactly_with_its_animation(tmp_path):
         assert views[view_index].target is None
 
 
-def test_demo_rig_round_trips_exactly_and_writes_a_minute_fast(tmp_path, demo):
+def test_demo_rig_round_trips_exactly(tmp_path, demo):
+    """A minute of animation on the demo rig; its write time is bench/animation.py's (section 1, glb)."""
     w = random_weights(1800, demo.n_shapes)                      # one minute at 30 fps
-    seconds = []
-    for _ in range(3):
-        start = time.perf_counter()
-        path = write_glb(tmp_path / "demo.glb", demo, w, 30.0, name="minute")
-        seconds.append(time.perf_counter() - start)
+    path = write_glb(tmp_path / "demo.glb", demo, w, 30.0, name="minute")
     size = path.stat().st_size
     dense = write_glb(tmp_path / "dense.glb", demo, w, 30.0, name="minute", sparse=False)
-    print(f"\ndemo rig, 1 min at 30 fps: write {min(seconds) * 1000:.0f} ms (best of 3), {size / 1e6:.3f} MB "
-          f"(targets dense: {dense.stat().st_size / 1e6:.3f} MB)")
-    assert min(seconds) < 0.5
+    print(f"\ndemo rig, 1 min at 30 fps: {size / 1e6:.3f} MB (targets dense: {dense.stat().st_size / 1e6:.3f} MB)")
     back = read_character_glb(path)
     assert_same_character(back, demo)
     assert back.name == demo.name
@@ -481,32 +438,6 @@ def test_bad_files_raise_character_errors_that_name_the_file(tmp_path):
 
 
 # ---- real clients -----------------------------------------------------------------------------------------------
-def node_or_fail() -> str:
-    node = shutil.which("node")
-    if node is None:
-        pytest.fail("node is not installed: run `sh scripts/system-deps.sh` as root (or `apt-get install -y nodejs "
-                    "npm`); `make test` and .ci/run run it first")
-    for package in ("gltf-validator", "three"):
-        if not (NODE_MODULES / package / "package.json").is_file():
-            pytest.fail(f"{NODE_MODULES / package} is missing: run `make js-deps` (npm ci --prefix tools/js); "
-                        "`make test` runs it first")
-    return node
-
-
-def validate(path: Path) -> dict:
-    """The Khronos validator's report for `path`; its infos and hints are printed."""
-    node = node_or_fail()
-    done = subprocess.run([node, str(VALIDATE), str(path)], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    report = json.loads(done.stdout)
-    issues = report["issues"]
-    print(f"\ngltf-validator {report['validatorVersion']} on {path.name}: {issues['numErrors']} errors, "
-          f"{issues['numWarnings']} warnings, {issues['numInfos']} infos, {issues['numHints']} hints")
-    for m in issues["messages"]:
-        print(f"  severity {m['severity']} {m['code']} at {m.get('pointer', '-')}: {m['message']}")
-    return report
-
-
 def test_the_validator_finds_no_error_or_warning_in_what_we_write(tmp_path, demo):
     small = small_character(n_shapes=6, colors=True)
     curves = (0.5 + 0.5 * np.sin(2 * np.pi * (np.arange(120)[:, None] / 30.0) * (0.5 + np.arange(16) / 8)))
@@ -620,13 +551,6 @@ def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("served")
     with serve_folder(root, PAGE, NODE_MODULES) as address:
         yield root, address
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    b = Browser(chromium_or_fail(), tmp_path_factory.mktemp("chromium") / "profile", timeout=120.0)
-    yield b
-    b.close()
 
 
 def play_in_three(browser: Browser, served, path: Path, times: list[float], vertex_ids: list[int],

@@ -6,7 +6,6 @@ and the parts import each other without a cycle.
 
 import ast
 from collections import defaultdict
-from pathlib import Path
 
 from factories import REPO
 

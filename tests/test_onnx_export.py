@@ -14,11 +14,9 @@ import torch
 from factories import DEMO_CORPUS
 
 # installed by `.[dev]` (make test): a missing one fails the tests, never skips them
-import onnx  # noqa: E402, F401
+import onnx  # noqa: E402
 import onnxruntime  # noqa: E402, F401
 import onnxscript  # noqa: E402, F401
-
-import onnx  # noqa: E402
 
 from visemeflow.learning import onnx_export as ox  # noqa: E402
 from visemeflow.learning.features import (  # noqa: E402

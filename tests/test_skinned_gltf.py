@@ -7,14 +7,13 @@ library (UsdSkel queries, `UsdSkel.BakeSkinning` reproducing our skinned points,
 The demo rig's bones are solved once per module (8 bones, 5 iterations)."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pygltflib as gl
 import pytest
-from browser import Browser, chromium_or_fail, serve_folder
+from browser import serve_folder
+from factories import NODE_MODULES, glb_arrays, node_or_fail, validate
 from pxr import Gf, Usd, UsdGeom, UsdSkel, UsdValidation
-from test_gltf import NODE_MODULES, glb_arrays, node_or_fail, validate
 
 from visemeflow.animation.bones import BoneRig, blend_poses, skin_vertices, solve_bones
 from visemeflow.animation.character import character_from_rig
@@ -192,13 +191,6 @@ def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("served")
     with serve_folder(root, PAGE, NODE_MODULES) as address:
         yield root, address
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    b = Browser(chromium_or_fail(), tmp_path_factory.mktemp("chromium") / "profile", timeout=120.0)
-    yield b
-    b.close()
 
 
 def test_three_js_plays_our_skinning(tmp_path, served, browser, bones, demo):

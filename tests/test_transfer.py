@@ -16,13 +16,11 @@ Tests that read ../shared/data fail, never skip, when it is missing.
 """
 
 import gzip
-import sys
 
 import numpy as np
 import pytest
 import trimesh
-from factories import REPO, SHARED_DATA
-from test_gltf import validate
+from factories import REMESHED_IDENTITY, ROTATION, SHARED_DATA, identity_face, placed, remeshed_face, validate
 
 from visemeflow.animation.character import make_character
 from visemeflow.animation.transfer import TransferError, read_markers_csv, transfer_command, transfer_visemes
@@ -30,8 +28,6 @@ from visemeflow.rig import load_demo_rig, load_rig, read_obj, rig_data_path
 from visemeflow.visemes import VISEMES
 
 SHARED_ICT = SHARED_DATA / "ict_facekit"
-sys.path.insert(0, str(REPO / "bench"))
-from transfer import REMESHED_IDENTITY, ROTATION, identity_face, placed, remeshed_face  # noqa: E402  (bench/transfer.py)
 
 
 def viseme_index(name: str) -> int:

@@ -1,0 +1,100 @@
+"""Every bench in bench/ runs to its end on its smallest input and exits 0, so a bench that crashes fails here rather
+than at its next run by hand. The benches print their figures; nothing here reads or asserts a timing.
+
+Each runs as its own process (as a person runs it) with one OpenMP thread. A bench whose smallest input still takes
+well over a minute on the 2-core machine is listed in SLOW with the reason, and is skipped with that reason unless
+VISEMEFLOW_SLOW_BENCHES=1 (then it runs with the arguments given there). Figures and caches go where each bench
+puts them (bench/out, git-ignored, or a temporary folder).
+"""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from factories import REPO
+
+BENCH = REPO / "bench"
+RUN_SLOW = os.environ.get("VISEMEFLOW_SLOW_BENCHES") == "1"
+
+LIBRARIES = {
+    "cpu.py": "pins a bench to one core",
+    "report.py": "the result table",
+    "learning_data.py": "the espeak corpus and cached models of learning.py and robustness.py",
+    "mbrola_data.py": "the MBROLA corpus of domain_gap.py",
+}
+"""Modules of bench/ that only other benches import (they have no `__main__`)."""
+
+QUICK = {
+    "animation.py": ["--minutes", "0.05", "--repeats", "1", "--preview-seconds", "0.5", "--no-pin", "--out", "{tmp}"],
+    "bones.py": ["--bones", "4", "--iterations", "1", "--init-iterations", "1", "--utterances", "1"],
+    "devices.py": ["--presets", "fbank-blstm", "--batch-sizes", "1", "--utterances", "2", "--epochs", "2",
+                   "--d-model", "16", "--threads", "1"],
+    "end_to_end.py": ["--repeats", "1", "--clips", "1", "--no-pin"],
+    "ingest_procedural.py": ["--utterances", "25", "--speakers", "2", "--skip-peer", "--no-install"],
+    "landmarks.py": ["--repeats", "1", "--no-pin"],
+    "learning.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm", "--sizes", "",
+                    "--threads", "1"],
+    "lips.py": ["--quick", "--threads", "1"],
+    "memory.py": ["--minutes", "0.1"],
+    "memory_tracking.py": ["--seconds", "0.2", "--side", "360"],
+    "onnx.py": ["--presets", "fbank-blstm", "--repeats", "1"],
+    "rendering.py": ["--frames", "2", "--reference-frames", "1"],
+    "robustness.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm",
+                      "--augmented", "", "--threads", "1"],
+    "textgrid_readers.py": ["--repeat", "1"],
+    "tracking.py": ["--utterances", "1", "--faithful-frames", "2"],
+    "transfer.py": [],
+    "truth_vs_procedural.py": [],
+    "wav2vec2_cache.py": ["--epochs", "1", "--utterances", "2", "--repeats", "1"],
+    "whisper_encoder.py": ["--repeats", "1", "--quick"],
+}
+"""bench -> its arguments for the smallest run ({tmp}: a temporary folder of the test). 1-37 s each on the 2-core
+machine otherwise idle (lips, transfer, end_to_end, whisper_encoder, landmarks and tracking the longest), two to four
+times that while other jobs ran."""
+
+SLOW = {
+    "domain_gap.py": ("its data always include the 700 + 500 utterance espeak corpus (no size flag): many minutes "
+                      "on a fresh bench/out", ["--steps", "2", "--recipes", "real", "--losses", "l1",
+                                               "--recogniser-bias", "", "--d-model", "16", "--threads", "1"]),
+    "encoders.py": ("Whisper-encodes the LJ, FACEGOOD and held-out speech (minutes of audio) before its first step "
+                    "on a fresh encoder cache", ["--steps", "2", "--recipes", "lj", "--d-model", "16"]),
+    "orchestration.py": ("renders the 25-video demo corpus when missing, starts a Prefect server and a Dask cluster "
+                         "and runs the pipeline on them: minutes", ["--repeat", "1"]),
+    "realspeech.py": ("trains on the fixed 700 + 500 utterance espeak corpus and k-fold LJ models: minutes",
+                      ["--espeak-epochs", "1", "--lj-epochs", "1", "--folds", "2", "--threads", "1"]),
+    "recogniser.py": ("88 s with --models phones (no size flag): pocketsphinx on all 37 utterances under five "
+                      "conditions", ["--models", "phones"]),
+}
+"""bench -> (why it is not run by default, its smallest arguments)."""
+
+
+def run_bench(name: str, args: list[str], tmp_path) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "WARNING"}
+    argv = [sys.executable, str(BENCH / name), *(a.replace("{tmp}", str(tmp_path)) for a in args)]
+    done = subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    out = (done.stdout + done.stderr)[-4000:]
+    assert done.returncode == 0, f"bench/{name} {' '.join(args)} exited {done.returncode}; its last output:\n{out}"
+
+
+def test_every_bench_is_run_or_marked():
+    scripts = {p.name for p in BENCH.glob("*.py")}
+    listed = set(QUICK) | set(SLOW) | set(LIBRARIES)
+    assert scripts - listed == set(), "a new bench: give it its smallest arguments in QUICK (or a reason in SLOW)"
+    assert listed - scripts == set(), "listed here but gone from bench/"
+    assert not set(QUICK) & set(SLOW)
+    for name in LIBRARIES:
+        assert "__main__" not in (BENCH / name).read_text(encoding="utf-8"), f"bench/{name} runs: list it in QUICK"
+
+
+@pytest.mark.parametrize("name", sorted(QUICK))
+def test_bench_runs_on_its_smallest_input(name, tmp_path):
+    run_bench(name, QUICK[name], tmp_path)
+
+
+@pytest.mark.parametrize("name", sorted(SLOW))
+def test_slow_bench_runs_on_its_smallest_input(name, tmp_path):
+    reason, args = SLOW[name]
+    if not RUN_SLOW:
+        pytest.skip(f"bench/{name}: {reason} (VISEMEFLOW_SLOW_BENCHES=1 runs it)")
+    run_bench(name, args, tmp_path)
