@@ -1,6 +1,7 @@
 """A new audio encoder is one module: an extractor registered with `register_feature` and a preset registered with
 `register_preset`, then trained, saved, loaded and used for prediction with nothing else changed. This file is that
-module (the extractor below is defined nowhere else)."""
+module (the extractor below is defined nowhere else). It registers them in a fixture and removes them afterwards, so
+the tests that run over every preset (ONNX export, smoke tests) in the same process see only the shipped ones."""
 
 import numpy as np
 import pytest
@@ -18,7 +19,6 @@ from visemeflow.learning.presets import PRESETS, Preset, register_preset
 from visemeflow.learning.train import Example, TrainConfig, load_model, predict_curves, save_model, train_model
 
 
-@register_feature("test-energy")
 class EnergyExtractor(FeatureExtractor):
     """Log energy and zero-crossing rate of frames of `options["frame_ms"]` milliseconds: a 2-dim feature."""
 
@@ -40,8 +40,17 @@ class EnergyExtractor(FeatureExtractor):
         return torch.stack([energy, zcr], -1), self.output_lengths(lengths)
 
 
-ENERGY_BLSTM = register_preset(Preset(name="test-energy-blstm", feature="test-energy", lr=3e-3, spec_augment=None,
-                                      feature_options={"frame_ms": 20}, note="tests/test_feature_registry.py"))
+ENERGY_BLSTM = Preset(name="test-energy-blstm", feature="test-energy", lr=3e-3, spec_augment=None,
+                      feature_options={"frame_ms": 20}, note="tests/test_feature_registry.py")
+
+
+@pytest.fixture(autouse=True)
+def registered():
+    register_feature("test-energy")(EnergyExtractor)
+    register_preset(ENERGY_BLSTM)
+    yield
+    PRESETS.pop(ENERGY_BLSTM.name)
+    FEATURE_KINDS.pop("test-energy")
 
 
 def examples(n: int = 3) -> list[Example]:

@@ -151,6 +151,22 @@ def test_ci_runs_the_script_and_has_no_apt_of_its_own():
     assert commands.index("sh scripts/system-deps.sh") < commands.index("make test")
 
 
+def test_make_test_stops_when_ruff_finds_something(tmp_path):
+    """ruff's findings fail `make test` before pytest runs."""
+    log = tmp_path / "log"
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    for name, rc in (("python", 0), ("ruff", 1)):
+        tool = venv / "bin" / name
+        tool.write_text(f'#!{SH}\necho "{name} $*" >> "{log}"\nexit {rc}\n')
+        tool.chmod(0o755)
+    (venv / ".installed").touch()
+    os.utime(venv / ".installed", (2**31, 2**31))
+    done = make("test", f"VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
+    assert done.returncode != 0
+    assert [line.split()[0] for line in log.read_text().splitlines()] == ["system-deps", "ruff"]
+
+
 @pytest.mark.parametrize(("pytest_rc", "ok"), [(0, True), (5, True), (1, False), (2, False)])
 def test_make_test_passes_on_no_tests_collected_and_fails_on_any_other_error(tmp_path, pytest_rc, ok):
     """`make test` for real, with a fake venv whose python records its call and exits with `pytest_rc`."""
@@ -160,10 +176,14 @@ def test_make_test_passes_on_no_tests_collected_and_fails_on_any_other_error(tmp
     python = venv / "bin" / "python"
     python.write_text(f'#!{SH}\necho "pytest $*" >> "{log}"\nexit {pytest_rc}\n')
     python.chmod(0o755)
+    ruff = venv / "bin" / "ruff"
+    ruff.write_text(f'#!{SH}\necho "ruff $*" >> "{log}"\n')
+    ruff.chmod(0o755)
     (venv / ".installed").touch()       # newer than pyproject.toml: no venv build
     os.utime(venv / ".installed", (2**31, 2**31))
     done = make("test", f"VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
-    assert log.read_text().splitlines() == ["system-deps", "pytest -m pytest -q -n auto --dist loadfile"]
+    assert log.read_text().splitlines() == ["system-deps", "ruff check visemeflow tests bench examples tools",
+                                            "pytest -m pytest -q -n auto --dist loadfile"]
     assert (done.returncode == 0) is ok, done.stdout + done.stderr
     if pytest_rc == 5:
         assert "pytest: no tests collected" in done.stdout
