@@ -25,7 +25,7 @@ curves: per viseme a sum of raised-cosine bumps (0.7 per second on average, half
    tone) in one call: checks, binding and writes.
 2. File size per minute (MB = 1e6 bytes), and its split: a 1-frame file of the same format is the fixed part
    (for glb and usd: the mesh and its shapes; for the others: header and names), the rest is the animation.
-3. ARKit mapping residual per viseme: the comment lines at the top of `visemeflow/animation/data/arkit_visemes.csv`
+3. ARKit mapping residual per viseme: the comment lines at the top of `visemeflow/shapes/data/arkit_visemes.csv`
    (relative ||A w - d|| / ||d|| and the largest vertex error, written by `examples/build_arkit_table.py`).
    With `--solve` and `../shared/data/ict_facekit` present, `build_arkit_table.solve()` runs again (20-30 s)
    and its residuals are shown beside the shipped ones, with whether the fresh table equals the shipped one.
@@ -71,12 +71,12 @@ if str(REPO) not in sys.path:
 
 from report import met  # noqa: E402  (bench/report.py, beside this script)
 from visemeflow.animation.apply import deform  # noqa: E402
-from visemeflow.animation.capture import fit_visemes  # noqa: E402
-from visemeflow.animation.character import Character, character_from_rig  # noqa: E402
-from visemeflow.animation.conventions import arkit_weights, bind  # noqa: E402
+from visemeflow.shapes.capture import fit_visemes  # noqa: E402
+from visemeflow.rig.character import Character, character_from_rig  # noqa: E402
+from visemeflow.shapes.conventions import arkit_weights, bind  # noqa: E402
 from visemeflow.animation.export import CurveTrack, write_export  # noqa: E402
 from visemeflow.animation.gltf import write_glb  # noqa: E402
-from visemeflow.animation.livelink import write_livelink_csv  # noqa: E402
+from visemeflow.shapes.livelink import write_livelink_csv  # noqa: E402
 from visemeflow.animation.package import EXPORTERS, AnimateConfig, bone_only_formats, export_animation  # noqa: E402
 from visemeflow.animation.preview import render_preview  # noqa: E402
 from visemeflow.animation.usd import write_usd  # noqa: E402
@@ -87,7 +87,7 @@ from visemeflow.visemes import VISEMES  # noqa: E402
 FPS = 30.0
 TARGET_EXPORT_S = 0.5  # per format per minute of 30 fps animation
 TARGET_FIT_FPS = 300.0  # capture.fit_visemes, frames per second on one core
-ARKIT_TABLE = REPO / "visemeflow" / "animation" / "data" / "arkit_visemes.csv"
+ARKIT_TABLE = REPO / "visemeflow" / "shapes" / "data" / "arkit_visemes.csv"
 ICT = REPO.parent / "shared" / "data" / "ict_facekit"
 AUDIO_RATE = 16000
 MB = 1e6
@@ -249,7 +249,7 @@ def parse_residuals(path: Path) -> dict[str, tuple[float, float]]:
 
 def arkit_section(solve: bool) -> None:
     shipped = parse_residuals(ARKIT_TABLE)
-    from visemeflow.animation.conventions import builtin_table
+    from visemeflow.shapes.conventions import builtin_table
 
     table_rows = builtin_table("arkit52")
     fresh, fresh_table, note = None, None, []

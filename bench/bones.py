@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from realspeech import read_corpus  # noqa: E402
 
 from visemeflow.animation.bones import bone_animation, solve_bones, viseme_meshes
-from visemeflow.animation.character import character_from_rig
+from visemeflow.rig.character import character_from_rig
 from visemeflow.rig import load_demo_rig
 from visemeflow.visemes import VISEMES
 

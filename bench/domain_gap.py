@@ -9,7 +9,7 @@ Training data (all shippable):
   voice/rate speakers; targets: synthetic Cohen-Massaro curves from the alignment), its training split;
 - real: the LJSpeech examples of `examples/corpus/LJ` (one female English speaker; targets: the same synthetic
   curves from their MFA alignments) and FACEGOOD takes 02-04 (one female Mandarin speaker, ~5.6 min; targets: the
-  animator's captured curves, converted to our 16 visemes by `visemeflow.animation.capture`), cut into 8 s pieces.
+  animator's captured curves, converted to our 16 visemes by `visemeflow.shapes.capture`), cut into 8 s pieces.
 Recipes: `synthetic`, `real`, `lj+synthetic` (the LJ examples and the espeak corpus: every target in the style of
 our alignment-driven curves), `mixed` (all of it), and each with `+aug` (train-time augmentation, probability 0.5).
 With the MBROLA voices installed (bench/mbrola_data.py, non-free, not installed by make): `mbrola`,
@@ -57,7 +57,7 @@ from mbrola_data import available as mbrola_available  # noqa: E402
 from mbrola_data import ensure_corpus as ensure_mbrola_corpus  # noqa: E402
 from realspeech import FPS, SAMPLE_RATE, SHARED, read_corpus  # noqa: E402
 
-from visemeflow.animation.capture import fit_visemes  # noqa: E402
+from visemeflow.shapes.capture import fit_visemes  # noqa: E402
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
 from visemeflow.learning.features import resample_audio  # noqa: E402

@@ -60,7 +60,7 @@ from domain_gap import (  # noqa: E402
 )
 from realspeech import FPS, SAMPLE_RATE, SHARED, Utterance, read_corpus  # noqa: E402
 
-from visemeflow.animation.conventions import ARKIT_52  # noqa: E402
+from visemeflow.shapes.conventions import ARKIT_52  # noqa: E402
 from visemeflow.animation.lips import LipProbe  # noqa: E402
 from visemeflow.articulation import close_lips  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from visemeflow.rig import evaluate_rig, load_demo_rig  # noqa: E402
 from visemeflow.rig.model import VisemeRig  # noqa: E402
-from visemeflow.synth.render import (  # noqa: E402
+from visemeflow.render.raster import (  # noqa: E402
     Camera,
     frontal_pose,
     rasterize_fragments,

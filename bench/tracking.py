@@ -85,7 +85,7 @@ from visemeflow.rig import VisemeRig, load_demo_rig
 from visemeflow.synth.take import SynthConfig, SyntheticTake, make_take, render_take
 from visemeflow.tracking.utterance import flow_term
 from visemeflow.timebase import frame_count
-from visemeflow.tracking.camera import Intrinsics
+from visemeflow.render.camera import Intrinsics
 from visemeflow.tracking.landmarks import LandmarkTrack
 from visemeflow.tracking.photo import PhotoTerm
 from visemeflow.tracking.solver import (

@@ -40,12 +40,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from factories import REMESHED_IDENTITY, ROTATION, identity_face, placed, remeshed_face  # noqa: E402
 
-from visemeflow.animation.character import make_character  # noqa: E402
+from visemeflow.rig.character import make_character  # noqa: E402
 from visemeflow.animation.preview import preview_camera  # noqa: E402
 from visemeflow.animation.automarkers import automatic_markers  # noqa: E402
 from visemeflow.animation.transfer import transfer_visemes  # noqa: E402
 from visemeflow.rig import load_demo_rig, rig_data_path  # noqa: E402
-from visemeflow.synth.render import render_mesh  # noqa: E402
+from visemeflow.render.raster import render_mesh  # noqa: E402
 from visemeflow.visemes import VISEMES  # noqa: E402
 
 

@@ -25,7 +25,7 @@ sys.path.insert(0, str(REPO / "examples"))
 
 from build_arkit_table import DEFAULT_ICT, arkit_basis  # noqa: E402
 
-from visemeflow.animation.character import Character, make_character  # noqa: E402
+from visemeflow.rig.character import Character, make_character  # noqa: E402
 from visemeflow.animation.gltf import write_glb  # noqa: E402
 from visemeflow.rig import load_demo_rig  # noqa: E402
 

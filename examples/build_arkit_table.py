@@ -1,4 +1,4 @@
-"""Measure our 16 visemes as ARKit blendshape weights and write `visemeflow/animation/data/arkit_visemes.csv`.
+"""Measure our 16 visemes as ARKit blendshape weights and write `visemeflow/shapes/data/arkit_visemes.csv`.
 
 Run from the repository root:  .venv/bin/python examples/build_arkit_table.py [--ict DIR] [--out CSV] [--check]
 
@@ -28,12 +28,12 @@ sys.path.insert(0, str(REPO / "examples"))
 
 from build_demo_rig import PARTS, read_ict  # noqa: E402
 
-from visemeflow.animation.conventions import ARKIT_52, builtin_table, parse_table  # noqa: E402
+from visemeflow.shapes.conventions import ARKIT_52, builtin_table, parse_table  # noqa: E402
 from visemeflow.rig import load_demo_rig  # noqa: E402
 from visemeflow.visemes import VISEMES  # noqa: E402
 
 DEFAULT_ICT = REPO.parent / "shared" / "data" / "ict_facekit"
-DEFAULT_OUT = REPO / "visemeflow" / "animation" / "data" / "arkit_visemes.csv"
+DEFAULT_OUT = REPO / "visemeflow" / "shapes" / "data" / "arkit_visemes.csv"
 ICT_SHAPES_DIR = "shapes_mouth_jaw_cheek_nose"
 MIN_WEIGHT = 1e-3
 

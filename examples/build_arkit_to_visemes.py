@@ -1,10 +1,10 @@
-"""Measure how ARKit blendshape weights become our 16 viseme weights; write `visemeflow/animation/data/arkit_to_visemes.csv`.
+"""Measure how ARKit blendshape weights become our 16 viseme weights; write `visemeflow/shapes/data/arkit_to_visemes.csv`.
 
 Run from the repository root:  .venv/bin/python examples/build_arkit_to_visemes.py [--ict DIR] [--out CSV] [--check]
 
 The ICT Face Model (`../shared/data/ict_facekit`, MIT) carries ARKit-style shapes, and the shipped demo rig
 (`visemeflow/rig/data/ict_visemes.npz`) holds our 16 visemes on the same mesh. Captured ARKit weights a (52) become
-viseme weights x (16) by the non-negative least-squares fit (`visemeflow.animation.capture`):
+viseme weights x (16) by the non-negative least-squares fit (`visemeflow.shapes.capture`):
 
     minimise ||D_vis x - D_arkit a||^2 over x >= 0  (x <= 1 where the plain fit goes past 1)
 
@@ -33,18 +33,18 @@ sys.path.insert(0, str(REPO / "examples"))
 
 from build_arkit_table import DEFAULT_ICT, arkit_basis  # noqa: E402
 
-from visemeflow.animation.capture import (  # noqa: E402
+from visemeflow.shapes.capture import (  # noqa: E402
     CHECK_TOLERANCE,
     ArkitToVisemes,
     fit_visemes,
     gram_table_text,
     load_arkit_to_visemes,
 )
-from visemeflow.animation.conventions import arkit_weights  # noqa: E402
+from visemeflow.shapes.conventions import arkit_weights  # noqa: E402
 from visemeflow.rig import load_demo_rig  # noqa: E402
 from visemeflow.visemes import VISEMES  # noqa: E402
 
-DEFAULT_OUT = REPO / "visemeflow" / "animation" / "data" / "arkit_to_visemes.csv"
+DEFAULT_OUT = REPO / "visemeflow" / "shapes" / "data" / "arkit_to_visemes.csv"
 
 
 def measure(ict: Path) -> ArkitToVisemes:

@@ -184,7 +184,7 @@ def contact_sheet(rig: VisemeRig, path: Path, tile: tuple[int, int] = (256, 192)
     """A 4x4 grid of the 16 visemes at weight 1, framed on the lower face, labelled; written as PNG."""
     import cv2
 
-    from visemeflow.synth.render import Camera, frontal_pose, render_mesh
+    from visemeflow.render.raster import Camera, frontal_pose, render_mesh
 
     camera = Camera.default(*tile, fov_deg=20.0)
     lower_face = rig.neutral[rig.landmark_ids[np.r_[2:15, 29:68]]]

@@ -15,7 +15,7 @@ at learning rate 1e-3, on
 - the LJSpeech examples in `examples/corpus/LJ` (public domain audio, MIT alignments; targets: the procedural
   curves of their alignments, with the closure rule);
 - FACEGOOD takes 1114_2_02..04 (`../shared/data/facegood_audio2face`, MIT; targets: the animator's captured
-  curves converted to our 16 visemes by `visemeflow.animation.capture`), cut into 8 s pieces;
+  curves converted to our 16 visemes by `visemeflow.shapes.capture`), cut into 8 s pieces;
 with the `closure:4` loss (L1 with each frame weighted 1 + 4 x (target MBP + FFF): the brief closures weigh as much
 as the vowels around them) and the auxiliary viseme-classification loss at weight 0.1 on the LJ examples (per-frame
 visemes of the alignment, `TrainConfig.viseme_loss_weight`; the FACEGOOD pieces have no alignment). At weight 0.5

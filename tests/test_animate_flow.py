@@ -12,11 +12,11 @@ from factories import make_corpus, make_curve_store, validate
 from test_predict import AUDIO, tiny_model
 
 from visemeflow.articulation import close_lips
-from visemeflow.animation.character import make_character, save_character_npz
+from visemeflow.rig.character import make_character, save_character_npz
 from visemeflow.animation.load import load_character
-from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind
+from visemeflow.shapes.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind
 from visemeflow.animation.gltf import write_glb
-from visemeflow.animation.livelink import arkit_from_livelink, read_livelink_csv
+from visemeflow.shapes.livelink import arkit_from_livelink, read_livelink_csv
 from visemeflow.animation.apply import resample
 from visemeflow.animation.usd import read_usd_weights
 from visemeflow.animation.webjson import read_web_json

@@ -11,7 +11,7 @@ from factories import REPO, SHARED_DATA, make_curve_store, validate
 
 from visemeflow.articulation import close_lips
 from visemeflow.animation.apply import resample
-from visemeflow.animation.conventions import arkit_weights, bind, detect_convention
+from visemeflow.shapes.conventions import arkit_weights, bind, detect_convention
 from visemeflow.animation.gltf import write_glb
 from visemeflow.animation.load import load_character
 from visemeflow.animation.package import AnimateConfig
@@ -43,7 +43,7 @@ def test_the_ict_arkit_character_is_detected_and_every_viseme_reaches_its_shapes
     curves = np.eye(16, dtype=np.float32)
     table = arkit_weights(curves)
     weights = binding.weights(curves)
-    from visemeflow.animation.conventions import ARKIT_52
+    from visemeflow.shapes.conventions import ARKIT_52
 
     for j, name in enumerate(character.shape_names):
         np.testing.assert_allclose(weights[:, j], table[:, ARKIT_52.index(name)], atol=1e-6)

@@ -4,7 +4,7 @@ mesh (animation/lips.py), per aligned phone (learning/lipscore.py), and in the p
 import numpy as np
 import pytest
 
-from visemeflow.animation.character import character_from_rig
+from visemeflow.rig.character import character_from_rig
 from visemeflow.animation.lips import LipProbe, is_bilabial
 from visemeflow.animation.preview import CLOSED_COLOR, OPEN_AT_CLOSURE_COLOR, PreviewFrames
 from visemeflow.articulation import CLOSED_MM, CONTACT_MM, OPENING, close_lips, opening

@@ -22,7 +22,7 @@ from visemeflow.animation.bones import (
     viseme_meshes,
     write_pose_table,
 )
-from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
+from visemeflow.rig.character import Character, CharacterError, character_from_rig, make_character
 from visemeflow.animation.package import export_bone_animation
 from visemeflow.rig import load_demo_rig
 from visemeflow.visemes import VISEMES

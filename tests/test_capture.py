@@ -1,4 +1,4 @@
-"""ARKit weights -> our 16 viseme curves (`visemeflow.animation.capture`): the shipped Gram table, the per-frame NNLS
+"""ARKit weights -> our 16 viseme curves (`visemeflow.shapes.capture`): the shipped Gram table, the per-frame NNLS
 fit, its optimality, the round trip through the shipped ARKit table, silent frames and bad input.
 
 The table is measured from `../shared/data/ict_facekit`; the test that measures it again fails (not skips) when
@@ -12,7 +12,7 @@ import pytest
 from scipy.optimize import lsq_linear
 
 from factories import DEMO_CORPUS, REPO, SHARED_DATA
-from visemeflow.animation.capture import (
+from visemeflow.shapes.capture import (
     ArkitToVisemes,
     CaptureError,
     arkit_to_visemes,
@@ -22,7 +22,7 @@ from visemeflow.animation.capture import (
     load_arkit_to_visemes,
     parse_gram_table,
 )
-from visemeflow.animation.conventions import ARKIT_52, arkit_weights
+from visemeflow.shapes.conventions import ARKIT_52, arkit_weights
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
 
 ICT = SHARED_DATA / "ict_facekit"
@@ -68,7 +68,7 @@ def test_the_shipped_table_is_small_and_complete():
     assert not {"eyeBlinkLeft", "browInnerUp", "tongueOut"} & set(table.arkit_names)
     assert table.gram.shape == (16, 16) and table.cross.shape == (16, 52) and table.arkit_gram.shape == (52, 52)
     assert table.n_vertices > 20000
-    path = REPO / "visemeflow" / "animation" / "data" / "arkit_to_visemes.csv"
+    path = REPO / "visemeflow" / "shapes" / "data" / "arkit_to_visemes.csv"
     assert path.stat().st_size < 64_000
     again = parse_gram_table(gram_table_text(table), "round trip")
     assert np.array_equal(again.matrix, table.matrix) and again.digest == table.digest  # exact float64 text

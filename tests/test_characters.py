@@ -13,9 +13,9 @@ import pytest
 from factories import REPO, SHARED_DATA
 from visemeflow.animation.apply import CurvesError, check_curves, deform, deform_all, resample, \
     resampled_frame_count
-from visemeflow.animation.character import CharacterError, character_from_rig, make_character, save_character_npz
+from visemeflow.rig.character import CharacterError, character_from_rig, make_character, save_character_npz
 from visemeflow.animation.load import load_character
-from visemeflow.animation.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind, builtin_table, \
+from visemeflow.shapes.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind, builtin_table, \
     detect_convention, normalize_shape_name
 from visemeflow.rig import load_demo_rig, read_obj
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
@@ -73,7 +73,7 @@ def test_the_shipped_arkit_table_matches_a_new_least_squares_solve():
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout + run.stderr
     assert "shipped table matches" in run.stdout
-    residuals = [line for line in (REPO / "visemeflow/animation/data/arkit_visemes.csv").read_text().splitlines()
+    residuals = [line for line in (REPO / "visemeflow/shapes/data/arkit_visemes.csv").read_text().splitlines()
                  if "relative" in line]
     assert len(residuals) == N_VISEMES
 

@@ -8,7 +8,7 @@ import torch
 
 from visemeflow.rig import evaluate_rig, load_demo_rig
 from visemeflow.tracking import diffrender as dr
-from visemeflow.tracking.camera import Intrinsics, project
+from visemeflow.render.camera import Intrinsics, project
 from visemeflow.visemes import viseme_index
 
 AHH = viseme_index("AHH")

@@ -5,8 +5,8 @@ call. This file adds one (`test-npy`: the shape weights as a NumPy array) and an
 import numpy as np
 import pytest
 
-from visemeflow.animation.character import character_from_rig
-from visemeflow.animation.conventions import bind
+from visemeflow.rig.character import character_from_rig
+from visemeflow.shapes.conventions import bind
 from visemeflow.animation.package import (
     EXPORTERS,
     AnimateConfig,

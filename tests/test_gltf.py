@@ -22,7 +22,7 @@ import pytest
 from browser import Browser, serve_folder
 from factories import NODE_MODULES, glb_arrays, node_or_fail, validate
 
-from visemeflow.animation.character import Character, CharacterError, character_from_rig, make_character
+from visemeflow.rig.character import Character, CharacterError, character_from_rig, make_character
 from visemeflow.animation.load import load_character
 from visemeflow.animation.gltf import read_character_glb, vertex_normals, write_glb
 from visemeflow.rig import load_demo_rig

@@ -13,7 +13,7 @@ import torch
 
 from factories import REPO, SHARED_DATA
 from visemeflow.rig import RigError, evaluate_rig, load_demo_rig
-from visemeflow.tracking.camera import Intrinsics, project
+from visemeflow.render.camera import Intrinsics, project
 from visemeflow.tracking.identity import (
     IdentityModes,
     apply_identity,

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from factories import REPO, SHARED_DATA, make_corpus, write_wav
-from visemeflow.animation.capture import curve_shares, fit_visemes
-from visemeflow.animation.conventions import ARKIT_52, arkit_weights
-from visemeflow.animation.livelink import write_livelink_csv
+from visemeflow.shapes.capture import curve_shares, fit_visemes
+from visemeflow.shapes.conventions import ARKIT_52, arkit_weights
+from visemeflow.shapes.livelink import write_livelink_csv
 from visemeflow.ingest.captured import (
     CaptureConfig,
     CaptureReadError,

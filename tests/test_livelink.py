@@ -1,12 +1,12 @@
-"""Live Link Face CSV (visemeflow/animation/livelink.py): the app's header and timecodes, read back by column name."""
+"""Live Link Face CSV (visemeflow/shapes/livelink.py): the app's header and timecodes, read back by column name."""
 
 import csv
 
 import numpy as np
 import pytest
 
-from visemeflow.animation.conventions import ARKIT_52
-from visemeflow.animation.livelink import (
+from visemeflow.shapes.conventions import ARKIT_52
+from visemeflow.shapes.livelink import (
     DECIMALS,
     LIVELINK_COLUMNS,
     arkit_from_livelink,

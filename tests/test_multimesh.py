@@ -20,8 +20,8 @@ import pytest
 from browser import serve_folder
 from factories import NODE_MODULES, make_curve_store, node_or_fail, validate
 
-from visemeflow.animation.character import CharacterError
-from visemeflow.animation.conventions import bind
+from visemeflow.rig.character import CharacterError
+from visemeflow.shapes.conventions import bind
 from visemeflow.animation.gltf_asset import write_character_glb
 from visemeflow.animation.load import load_character
 from visemeflow.animation.package import AnimateConfig

@@ -10,7 +10,7 @@ import av
 import numpy as np
 import pytest
 
-from visemeflow.animation.character import character_from_rig, make_character
+from visemeflow.rig.character import character_from_rig, make_character
 from visemeflow.animation.preview import PreviewFrames, TextPainter, render_preview
 from visemeflow.rig import load_demo_rig
 
@@ -272,7 +272,7 @@ def test_a_bone_panel_shows_the_skinned_bones_beside_the_blendshapes():
     cannot (a cone from 2 rigid bones) it differs, and it is never copied from a blendshape panel with equal rows."""
     from visemeflow.animation.bones import bone_animation, solve_bones
     from visemeflow.animation.preview import BoneSource
-    from visemeflow.synth.render import render_mesh
+    from visemeflow.render.raster import render_mesh
     from visemeflow.visemes import VISEMES
 
     ch = rigid_and_bump_character()

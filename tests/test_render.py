@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from visemeflow.rig import evaluate_rig, load_demo_rig
-from visemeflow.synth.render import (
+from visemeflow.render.raster import (
     DEFAULT_BACKGROUND,
     Camera,
     Pose,
@@ -262,7 +262,7 @@ def test_fragments_hold_one_winner_per_pixel(demo):
 
 
 def test_batched_rasterisation_equals_one_batch(demo, monkeypatch):
-    import visemeflow.synth.render as render
+    import visemeflow.render.raster as render
 
     camera, pose = demo_view(demo, 180, 144)
     mesh = evaluate_rig(demo, np.eye(16, dtype=np.float32)[viseme_index("AHH")]).numpy()

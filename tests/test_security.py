@@ -492,7 +492,7 @@ def test_files_gltf_uri_cannot_read_outside_the_character_folder(tmp_path, how):
     """A buffer or image URI of a .gltf that leads out of the character's folder (`..`, `%2E%2E`, an absolute
     path, a link inside the folder to a file outside) is refused at load, naming the file and the URI; the secret
     beside the folder (valid buffer bytes, so that reading it would load) is never read."""
-    from visemeflow.animation.character import CharacterError
+    from visemeflow.rig.character import CharacterError
     from visemeflow.animation.load import load_character
 
     folder = tmp_path / "characters" / "face"
@@ -516,7 +516,7 @@ def test_files_gltf_uri_cannot_read_outside_the_character_folder(tmp_path, how):
 def test_files_gltf_asset_export_rereads_no_uri_outside_the_folder(tmp_path):
     """The GLB export reads the character's .gltf again (to keep the whole asset): an image URI changed to lead
     out of the folder after the character was loaded is refused there too, and nothing is written."""
-    from visemeflow.animation.character import CharacterError
+    from visemeflow.rig.character import CharacterError
     from visemeflow.animation.gltf_asset import write_character_glb
     from visemeflow.animation.load import load_character
 
@@ -535,7 +535,7 @@ def test_files_gltf_asset_export_rereads_no_uri_outside_the_folder(tmp_path):
 
 def test_files_gltf_declared_sizes_larger_than_the_data_are_refused(tmp_path):
     """A buffer whose byteLength claims more bytes than its data holds is a lie, refused naming the file."""
-    from visemeflow.animation.character import CharacterError
+    from visemeflow.rig.character import CharacterError
     from visemeflow.animation.load import load_character
 
     path, _ = _files_gltf(tmp_path / "long.gltf", change=lambda d: d["buffers"][0].update(byteLength=2**40))
@@ -579,7 +579,7 @@ def test_files_animate_rejects_characters_that_escape_or_lie_and_goes_on(tmp_pat
 
 _FILES_READ_UNDER_A_MEMORY_LIMIT = """
 import resource, sys
-from visemeflow.animation.character import CharacterError
+from visemeflow.rig.character import CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.ingest.captured import CaptureReadError, read_xlsx_rows
 size_kb = int(next(l for l in open("/proc/self/status") if l.startswith("VmSize:")).split()[1])

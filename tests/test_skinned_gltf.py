@@ -16,7 +16,7 @@ from factories import NODE_MODULES, glb_arrays, node_or_fail, validate
 from pxr import Gf, Usd, UsdGeom, UsdSkel, UsdValidation
 
 from visemeflow.animation.bones import BoneRig, blend_poses, skin_vertices, solve_bones
-from visemeflow.animation.character import character_from_rig
+from visemeflow.rig.character import character_from_rig
 from visemeflow.animation.skinned_gltf import write_skinned_glb
 from visemeflow.animation.usd_skel import joint_paths, write_usd_skel
 from visemeflow.rig import load_demo_rig

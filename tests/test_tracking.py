@@ -12,7 +12,7 @@ from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import generate_procedural_curves
 from visemeflow.rig import load_demo_rig
 from visemeflow.synth.take import SynthConfig, make_take
-from visemeflow.tracking.camera import Intrinsics, project
+from visemeflow.render.camera import Intrinsics, project
 from visemeflow.tracking.losses import (
     activation_loss,
     diff_loss,
@@ -145,8 +145,8 @@ def test_frames_without_landmarks_are_masked_not_zeroed(rig):
 
 
 def test_camera_projection_matches_the_synthetic_renderer(rig):
-    from visemeflow.synth.render import Camera, Pose
-    from visemeflow.synth.render import project as project_np
+    from visemeflow.render.raster import Camera, Pose
+    from visemeflow.render.raster import project as project_np
 
     cam = Camera.default(360, 288)
     pose = Pose((0.05, -0.1, 0.02), (0.5, -1.0, -70.0))

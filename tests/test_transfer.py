@@ -22,7 +22,7 @@ import pytest
 import trimesh
 from factories import REMESHED_IDENTITY, ROTATION, SHARED_DATA, identity_face, placed, remeshed_face, validate
 
-from visemeflow.animation.character import make_character
+from visemeflow.rig.character import make_character
 from visemeflow.animation.transfer import TransferError, read_markers_csv, transfer_command, transfer_visemes
 from visemeflow.rig import load_demo_rig, load_rig, read_obj, rig_data_path
 from visemeflow.visemes import VISEMES

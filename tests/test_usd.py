@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, UsdValidation
 
-from visemeflow.animation.character import character_from_rig, make_character
+from visemeflow.rig.character import character_from_rig, make_character
 from visemeflow.animation.usd import prim_name, read_usd_weights, write_usd
 from visemeflow.rig import load_demo_rig
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from visemeflow.animation.character import character_from_rig
+from visemeflow.rig.character import character_from_rig
 from visemeflow.animation.webjson import DECIMALS, read_web_json, write_web_json
 from visemeflow.rig import load_demo_rig
 

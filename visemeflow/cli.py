@@ -123,7 +123,7 @@ def _check_meshes(characters: list[Path] | None, meshes: list[str] | None) -> No
     """With --mesh, each character must be a glTF scene holding those meshes: else exit 2, the meshes listed."""
     if not meshes:
         return
-    from visemeflow.animation.character import CharacterError
+    from visemeflow.rig.character import CharacterError
     from visemeflow.animation.load import load_character
 
     if not characters:

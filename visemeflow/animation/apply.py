@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from visemeflow.animation.character import Character
+from visemeflow.rig.character import Character
 from visemeflow.visemes import VISEMES
 
 RANGE_TOLERANCE = 1e-3

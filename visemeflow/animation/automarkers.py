@@ -2,7 +2,7 @@
 
 Deformation transfer onto a mesh of another topology needs corresponding points to place the template before the
 non-rigid ICP (`visemeflow.animation.transfer`). Instead of a person clicking them, both neutral meshes are rendered
-frontally by the synthetic corpus's rasteriser (grey Lambert shading, `visemeflow.synth.render`), FaceMesh finds
+frontally by the synthetic corpus's rasteriser (grey Lambert shading, `visemeflow.render.raster`), FaceMesh finds
 its 468 face points on each render, and each point is read back onto the mesh through the rasteriser's triangle and
 barycentric buffers: the visible vertex under the point. Two passes per mesh: the first frames the whole mesh, the
 second zooms onto the face it found (the face spans about 60% of the image), which roughly halves the points'
@@ -62,7 +62,7 @@ class AutoMarkers:
 
 
 def _render_camera(size: int):
-    from visemeflow.synth.render import Camera
+    from visemeflow.render.raster import Camera
 
     return Camera.from_fov(size, size, 25.0)
 
@@ -70,7 +70,7 @@ def _render_camera(size: int):
 def mesh_face_points(vertices, faces, *, size: int = 512, min_facing: float = 0.3, name: str = "mesh") -> np.ndarray:
     """(468,) int64: the mesh vertex under each FaceMesh face point on a frontal render (-1 where a point is off
     the mesh, on a surface turned away from the camera, or not found). NoFaceFound when FaceMesh sees no face."""
-    from visemeflow.synth.render import Camera, frontal_pose, rasterize, render_mesh, to_camera, vertex_normals
+    from visemeflow.render.raster import Camera, frontal_pose, rasterize, render_mesh, to_camera, vertex_normals
     from visemeflow.tracking.facemesh import FaceMeshError, detect_frames
 
     vertices = np.asarray(vertices, np.float64)

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
-from visemeflow.animation.character import Character, validate_character
+from visemeflow.rig.character import Character, validate_character
 from visemeflow.visemes import VISEMES
 
 __all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "locked_parts",

@@ -45,9 +45,9 @@ from pathlib import Path
 import numpy as np
 import pygltflib as gl
 
-from visemeflow.animation.character import Character, CharacterError, CharacterPart, make_character, \
+from visemeflow.rig.character import Character, CharacterError, CharacterPart, make_character, \
     validate_character
-from visemeflow.animation.conventions import CONVENTION_NAMES, normalize_shape_name
+from visemeflow.shapes.conventions import CONVENTION_NAMES, normalize_shape_name
 from visemeflow.atomic import atomic_path
 from visemeflow.rig import RigError
 from visemeflow.rig.gltf import MAX_MORPH_VALUES, MAX_VERTICES, GltfMeshInfo, GltfScene, read_gltf_mesh, \

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visemeflow.animation.character import Character, CharacterError
+from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.gltf import _check_animation, write_glb
 from visemeflow.atomic import atomic_path
 from visemeflow.rig.gltf import MAX_FILE_BYTES, read_gltf_uri

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from visemeflow.animation.character import Character, CharacterError, load_character_folder, load_character_npz
+from visemeflow.rig.character import Character, CharacterError, load_character_folder, load_character_npz
 from visemeflow.animation.gltf import read_character_glb
 
 

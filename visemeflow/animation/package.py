@@ -50,8 +50,8 @@ from visemeflow.animation.apply import check_curves, resample
 from visemeflow.articulation import close_lips
 from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, BoneRig, solve_bones, \
     write_pose_table
-from visemeflow.animation.character import Character
-from visemeflow.animation.conventions import CONVENTIONS, Binding, arkit_weights
+from visemeflow.rig.character import Character
+from visemeflow.shapes.conventions import CONVENTIONS, Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.atomic import atomic_path
 
@@ -94,7 +94,7 @@ def _usd(t: ExportTarget) -> None:
 
 
 def _livelink(t: ExportTarget) -> None:
-    from visemeflow.animation.livelink import write_livelink_csv
+    from visemeflow.shapes.livelink import write_livelink_csv
 
     write_livelink_csv(t.path, arkit_weights(t.curves), t.fps)
 

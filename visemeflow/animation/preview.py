@@ -15,7 +15,7 @@ The lip band shows the gap between the inner lips of the mesh as rendered (the t
 68-point layout, in millimetres, `Character.mm_per_unit`): green when closed (below `articulation.CLOSED_MM`), red
 when the phone under way is a bilabial (b, p, m) and the lips are not closed, so a failed closure shows at a glance.
 
-Panels are rendered by the synthetic corpus's numpy rasteriser (`visemeflow.synth.render.render_mesh`, Lambert +
+Panels are rendered by the synthetic corpus's numpy rasteriser (`visemeflow.render.raster.render_mesh`, Lambert +
 ambient shading, grey skin) from one fixed camera and pose per character, so only the blendshape motion changes.
 The default `framing="mouth"` frames the vertices that the shapes move (for a face rig: the lower face, lips, jaw
 and chin); `framing="face"` frames the whole neutral mesh.
@@ -62,11 +62,11 @@ import av
 import cv2
 import numpy as np
 
-from visemeflow.animation.character import Character
+from visemeflow.rig.character import Character
 from visemeflow.animation.lips import inner_lip_pairs, is_bilabial, pair_gap_mm
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
-from visemeflow.synth.render import Camera, Pose, frontal_pose, render_mesh
+from visemeflow.render.raster import Camera, Pose, frontal_pose, render_mesh
 from visemeflow.timebase import frame_count
 
 if TYPE_CHECKING:

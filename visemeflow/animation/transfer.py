@@ -47,7 +47,7 @@ import scipy.sparse.linalg as spla
 
 from visemeflow.animation.automarkers import automatic_markers
 from visemeflow.animation.fit import similarity as _similarity
-from visemeflow.animation.character import Character, CharacterError, make_character
+from visemeflow.rig.character import Character, CharacterError, make_character
 from visemeflow.rig import N_LANDMARKS, RigError, VisemeRig
 from visemeflow.visemes import VISEMES
 

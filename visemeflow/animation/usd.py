@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
-from visemeflow.animation.character import Character
+from visemeflow.rig.character import Character
 from visemeflow.atomic import atomic_path
 
 __all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd"]

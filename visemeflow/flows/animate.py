@@ -18,7 +18,7 @@ from prefect.artifacts import create_markdown_artifact, create_progress_artifact
 from prefect.futures import as_completed
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from visemeflow.animation.character import CharacterError
+from visemeflow.rig.character import CharacterError
 from visemeflow.animation.package import AnimateConfig
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import finished, replace_stage_rejects

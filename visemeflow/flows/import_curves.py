@@ -17,7 +17,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.futures import as_completed
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from visemeflow.animation.capture import load_arkit_to_visemes
+from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.ingest.captured import CaptureConfig, discover_takes
 from visemeflow.schemas import C
@@ -71,7 +71,7 @@ def _markdown(rows: list[dict], summary: dict) -> str:
                      f"{r['residual_mean_moving']:.4f} / {r['residual_median_moving']:.4f} | {r['bounded_frames']} | "
                      f"{', '.join(r['unmapped_channels']) or '-'} | {'yes' if r['cached'] else 'no'} |")
     lines += ["", "Residual: ||D_vis x - D_arkit a|| / ||D_arkit a|| on the demo rig's vertices per frame "
-                  "(visemeflow.animation.capture); bounded: frames refitted with weights <= 1."]
+                  "(visemeflow.shapes.capture); bounded: frames refitted with weights <= 1."]
     return "\n".join(lines) + "\n"
 
 

@@ -2,7 +2,7 @@
 
 A **take** is one utterance's audio plus a file of per-frame captured weights in one of three formats:
 
-- `livelink`: a Live Link Face CSV (Epic's iOS app; `animation.livelink.read_livelink_csv`), the 52 ARKit weights
+- `livelink`: a Live Link Face CSV (Epic's iOS app; `shapes.livelink.read_livelink_csv`), the 52 ARKit weights
   by name. Its frame rate comes from the timecodes (`HH:MM:SS:FF.fff`, frames counted at the timecode rate: the
   rate is the standard one, of those above the largest `FF`, that spaces the rows most evenly; the capture rate is
   1 / the median spacing), or is given. Rows missing from the timecode grid (dropped frames) are filled by linear
@@ -25,7 +25,7 @@ array of the wrong shape are `CaptureReadError`s naming the file (and the line, 
 does not use are ignored; those that vary are listed (`CapturedTake.unmapped`), since their motion is lost.
 
 `import_take` reads a take, checks its frame count against the audio (within `max_drift_frames_per_s` frames per
-second of audio, at least one frame), fits the viseme curves (`animation.capture`) and returns the `utterances` row
+second of audio, at least one frame), fits the viseme curves (`shapes.capture`) and returns the `utterances` row
 (no alignment: `alignment_format` "none", `alignment_path` "") with the curves. Takes are found in a manifest CSV
 (`utterance_id,audio,capture,format,channels,names,fps,language,split`, paths relative to it and inside its folder)
 or a folder `<speaker>/<name>.wav` + `<name>.livelink.csv` | `<name>.capture.csv` | `<name>.capture.npy`.
@@ -49,9 +49,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from visemeflow.animation.capture import ArkitToVisemes, CaptureError, VisemeFit, fit_visemes
-from visemeflow.animation.conventions import ARKIT_52
-from visemeflow.animation.livelink import arkit_from_livelink, is_number, parse_timecode, read_livelink_csv
+from visemeflow.shapes.capture import ArkitToVisemes, CaptureError, VisemeFit, fit_visemes
+from visemeflow.shapes.conventions import ARKIT_52
+from visemeflow.shapes.livelink import arkit_from_livelink, is_number, parse_timecode, read_livelink_csv
 from visemeflow.atomic import atomic_write_text
 from visemeflow.hashing import files_hash, stable_hash
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS, is_video_file

@@ -1,1 +1,1 @@
-"""Synthetic talking-face corpus with ground truth: the rig driven by known curves, rendered by `synth.render`."""
+"""Synthetic talking-face corpus with ground truth: the rig driven by known curves, rendered by `render.raster`."""

@@ -1,7 +1,7 @@
 """One synthetic take: true curves, rendered frames and noisy detected landmarks of one utterance.
 
 The true curves come from `synth.dynamics` (a model of another family than the procedural rules), the
-frames from the rig driven by them through `synth.render` (a numpy rasteriser, not the tracker's
+frames from the rig driven by them through `render.raster` (a numpy rasteriser, not the tracker's
 differentiable renderer), with small head motion and lighting changes from `synth.motion`. Landmarks
 are the rig's landmark vertices projected by the same camera, plus detector-like noise and occasional
 missed frames.
@@ -17,7 +17,7 @@ from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import VisemeRig, evaluate_rig
 from visemeflow.synth.dynamics import GroundTruthConfig, generate_ground_truth
 from visemeflow.synth.motion import SceneConfig, SceneTrack, scene_track
-from visemeflow.synth.render import Camera, Pose, frontal_pose, project, render_mesh
+from visemeflow.render.raster import Camera, Pose, frontal_pose, project, render_mesh
 from visemeflow.tracking.landmarks import LandmarkTrack
 
 RENDER_CHUNK = 64

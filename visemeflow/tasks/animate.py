@@ -21,9 +21,9 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.animation.apply import CurvesError
-from visemeflow.animation.character import Character, CharacterError
+from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.load import load_character
-from visemeflow.animation.conventions import Binding, bind, load_mapping_csv
+from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
 from visemeflow.animation.package import AnimateConfig, ExportWriteError, bone_rig, export_animation, export_paths
 from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report

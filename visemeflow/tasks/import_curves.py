@@ -14,7 +14,7 @@ import numpy as np
 import pyarrow.compute as pc
 from prefect import get_run_logger, task
 
-from visemeflow.animation.capture import load_arkit_to_visemes
+from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.captured import (
     BAD_INPUT_ERRORS,

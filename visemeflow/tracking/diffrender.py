@@ -24,7 +24,7 @@ scaled camera (`Crop.intrinsics`), so its cost does not depend on the video reso
 `size` x `size` grid, and `crop_image` resamples the video frame onto the same grid (pixel centres map as
 in OpenCV's `resize`: u_grid = (u - x0 + 0.5) * out_width / width - 0.5).
 
-Conventions are those of `visemeflow.tracking.camera`: camera looks down -z, pixel v downward, integer pixel
+Conventions are those of `visemeflow.render.camera`: camera looks down -z, pixel v downward, integer pixel
 coordinates are pixel centres, images are (height, width, 3) RGB. A triangle is front-facing when it is
 counter-clockwise seen from the camera (outward normal toward the viewer), i.e. when its signed area in (u, v)
 pixel coordinates, v pointing down, is negative.
@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 import torch
 
-from visemeflow.tracking.camera import Intrinsics, to_camera
+from visemeflow.render.camera import Intrinsics, to_camera
 
 MOUTH_LANDMARKS = slice(48, 68)
 """Multi-PIE landmarks of the outer (48-59) and inner (60-67) lip contours."""

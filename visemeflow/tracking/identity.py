@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from visemeflow.rig import RigError, VisemeRig, rig_data_path
-from visemeflow.tracking.camera import Intrinsics, to_camera
+from visemeflow.render.camera import Intrinsics, to_camera
 from visemeflow.tracking.landmarks import GROUPS, N_POINTS, LandmarkTrack
 
 # Inner-lip pairs facing each other across the mouth (upper, lower) and the mouth corners, Multi-PIE numbering.
@@ -168,7 +168,7 @@ class IdentityFit:
     scale: float
     """Global scale of the face (see the module docstring: held near 1 by its prior)."""
     rotation: np.ndarray
-    """(T_n, 3) axis-angle head rotation per frame (rad), the convention of `tracking.camera`."""
+    """(T_n, 3) axis-angle head rotation per frame (rad), the convention of `render.camera`."""
     translation: np.ndarray
     """(T_n, 3) head translation per frame, in rig units (centimetres for the demo rig)."""
     camera: Intrinsics

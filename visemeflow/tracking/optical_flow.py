@@ -10,7 +10,7 @@ The flow is OpenCV's DIS (Dense Inverse Search, ``cv2.DISOpticalFlow_create``), 
 :func:`estimate_optical_flow` and kept in a :class:`FlowField`, which answers the correspondence queries of both the forward
 pass (flow j-1 -> j) and the backward pass (flow j+1 -> j) of the tracker.
 
-Conventions (those of `visemeflow.tracking.camera`): points are (x, y) pixel coordinates, x to the right and y
+Conventions (those of `visemeflow.render.camera`): points are (x, y) pixel coordinates, x to the right and y
 down, pixel centres at integers, so a W x H image covers x in [0, W-1] and y in [0, H-1] for sampling. A flow is an
 (H, W, 2) float array whose [y, x] entry is the (dx, dy) displacement of the pixel centre (x, y). Frames are RGB
 uint8 (H, W, 3); DIS works on one 8-bit channel, so they are converted to luma first.

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from visemeflow.rig import VisemeRig, evaluate_rig
-from visemeflow.tracking.camera import Intrinsics
+from visemeflow.render.camera import Intrinsics
 from visemeflow.tracking.diffrender import (
     CropRasterizer,
     Light,

@@ -29,7 +29,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.rig import VisemeRig, evaluate_rig
-from visemeflow.tracking.camera import Intrinsics, project
+from visemeflow.render.camera import Intrinsics, project
 from visemeflow.tracking.losses import (
     activation_loss,
     diff_loss,

@@ -26,7 +26,7 @@ import numpy as np
 
 from visemeflow.rig import VisemeRig
 from visemeflow.visemes import N_VISEMES
-from visemeflow.tracking.camera import Intrinsics
+from visemeflow.render.camera import Intrinsics
 from visemeflow.tracking.identity import (
     apply_identity,
     demo_identity_path,

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visemeflow.animation.conventions import ARKIT_52
+from visemeflow.shapes.conventions import ARKIT_52
 from visemeflow.atomic import atomic_write_text
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""Pinhole camera and per-frame head pose in torch, in the convention of `visemeflow.synth.render`.
+"""Pinhole camera and per-frame head pose in torch, in the convention of `visemeflow.render.raster`.
 
 Camera coordinates: p_cam = R(rotation) p_mesh + translation, x right, y up, the camera looking down -z.
 Pixels: u = cx + fx x / (-z) to the right, v = cy - fy y / (-z) downward; pixel centres at integers.

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visemeflow.animation.character import Character, CharacterError
+from visemeflow.rig.character import Character, CharacterError
 from visemeflow.visemes import N_VISEMES, VISEMES
 
 ARKIT_52: tuple[str, ...] = (
@@ -117,8 +117,8 @@ def builtin_table(convention: str) -> Table:
     if convention not in _TABLE_FILES:
         raise CharacterError(f"unknown convention {convention!r}; known: {', '.join(CONVENTIONS)} or a mapping CSV")
     name = _TABLE_FILES[convention]
-    text = resources.files("visemeflow.animation").joinpath("data", name).read_text("utf-8")
-    return parse_table(text, f"visemeflow/animation/data/{name}", every_viseme=True)
+    text = resources.files("visemeflow.shapes").joinpath("data", name).read_text("utf-8")
+    return parse_table(text, f"visemeflow/shapes/data/{name}", every_viseme=True)
 
 
 def table_matrix(table: Table, target_names: tuple[str, ...] | list[str]) -> np.ndarray:
@@ -224,7 +224,7 @@ def bind(character: Character, convention: str | None = None, mapping: str | Pat
             raise CharacterError(f"unknown convention {convention!r}; known: {', '.join(CONVENTIONS)} "
                                  "(or give a mapping CSV)")
         table, source = builtin_table(convention), (
-            "identity" if convention == "visemeflow16" else f"visemeflow/animation/data/{_TABLE_FILES[convention]}")
+            "identity" if convention == "visemeflow16" else f"visemeflow/shapes/data/{_TABLE_FILES[convention]}")
         wanted = sorted({s for row in table.values() for s in row})
         found = _match_names(character.shape_names, wanted, where)
         if not found:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visemeflow.tracking.camera import Intrinsics
+from visemeflow.render.camera import Intrinsics
 
 DEFAULT_LIGHT = (0.35, 0.45, 1.0)
 """Light direction in camera coordinates (toward the light): from the viewer's upper right, mostly frontal."""

@@ -10,7 +10,7 @@ two deformations of that face:
 with D_vis (3V, 16) the viseme offsets and D_arkit (3V, 52) the ARKit offsets on all the demo rig's vertices (ARKit
 shapes ICT lacks, eyes, brows, tongue, are zero columns: they contribute nothing), G = D_vis'D_vis, B = D_vis'D_arkit
 and C = D_arkit'D_arkit. Only these inner products are needed, so the shipped table
-(`animation/data/arkit_to_visemes.csv`, measured by `examples/build_arkit_to_visemes.py`) is their 48 x 48 Gram
+(`shapes/data/arkit_to_visemes.csv`, measured by `examples/build_arkit_to_visemes.py`) is their 48 x 48 Gram
 matrix M (16 visemes + the 32 ARKit shapes ICT has), a few kilobytes.
 
 Solving: with G = LL' (Cholesky), x'Gx - 2x'Ba = ||L'x - L^-1 Ba||^2 - const, so each frame is a 16 x 16 NNLS
@@ -41,7 +41,7 @@ import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 from scipy.optimize import lsq_linear, nnls
 
-from visemeflow.animation.conventions import ARKIT_52
+from visemeflow.shapes.conventions import ARKIT_52
 from visemeflow.hashing import new_hasher
 from visemeflow.visemes import N_VISEMES, VISEMES
 
@@ -147,7 +147,7 @@ def gram_table_text(table: ArkitToVisemes, notes: list[str] | tuple[str, ...] = 
     row per shape with the matrix at full float64 precision (shortest round-trip text)."""
     lines = ["# Inner products of the demo rig's 16 viseme offsets and the ICT Face Model's ARKit-style shape offsets",
              "# (squared centimetres summed over the rig's vertices), measured by examples/build_arkit_to_visemes.py;",
-             "# read by visemeflow.animation.capture (per-frame NNLS: ARKit weights -> viseme weights).",
+             "# read by visemeflow.shapes.capture (per-frame NNLS: ARKit weights -> viseme weights).",
              f"# vertices: {table.n_vertices}"]
     lines += [f"# {note}" for note in notes]
     out = io.StringIO()
@@ -191,8 +191,8 @@ def parse_gram_table(text: str, source: str) -> ArkitToVisemes:
 
 @functools.lru_cache(maxsize=1)
 def _shipped() -> ArkitToVisemes:
-    text = resources.files("visemeflow.animation").joinpath("data", TABLE_FILE).read_text("utf-8")
-    return parse_gram_table(text, f"visemeflow/animation/data/{TABLE_FILE}")
+    text = resources.files("visemeflow.shapes").joinpath("data", TABLE_FILE).read_text("utf-8")
+    return parse_gram_table(text, f"visemeflow/shapes/data/{TABLE_FILE}")
 
 
 def load_arkit_to_visemes(path: str | Path | None = None) -> ArkitToVisemes:
