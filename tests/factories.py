@@ -352,3 +352,76 @@ def validate(path: Path) -> dict:
     for m in issues["messages"]:
         print(f"  severity {m['severity']} {m['code']} at {m.get('pointer', '-')}: {m['message']}")
     return report
+
+
+# ---- shared by the prediction, animation and training tests ----------------------------------------------------
+DEMO_AUDIO = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
+"""A real Mandarin utterance of the demo corpus (AISHELL-3 speaker SSB1624, 16 kHz)."""
+
+
+def tiny_model(store, name: str = "tiny", seed: int = 0) -> None:
+    """An untrained small model saved where training would put it (prediction needs weights, not good ones)."""
+    import torch
+
+    from visemeflow.learning.train import TrainConfig, build_training_model, save_model
+
+    torch.manual_seed(seed)
+    config = TrainConfig(preset="fbank-tcn", d_model=8, seed=seed)
+    save_model(build_training_model(config, curve_fps=25.0), config, store.model_path(name), {"source": "none"})
+
+
+TRAIN_SR = 16000
+TRAIN_FPS = 25.0
+
+
+def _envelope(t: np.ndarray, freq: float, phase: float) -> np.ndarray:
+    return 0.05 + 0.95 * (0.5 + 0.5 * np.sin(2 * np.pi * freq * t + phase))
+
+
+def envelope_examples(n: int, seed: int, learnable: bool = True) -> list:
+    """Training examples at TRAIN_SR / TRAIN_FPS: noise whose loudness follows a slow envelope; targets = a fixed
+    affine map of that envelope (random curves when not `learnable`)."""
+    from visemeflow.learning.train import Example
+
+    rng = np.random.default_rng(seed)
+    w = np.random.default_rng(123).uniform(0.2, 1.0, 16)
+    b = np.random.default_rng(321).uniform(0.0, 0.2, 16)
+    out = []
+    for i in range(n):
+        dur = float(rng.uniform(1.0, 2.0))
+        samples = int(dur * TRAIN_SR)
+        n_frames = round(dur * TRAIN_FPS)
+        freq, phase = float(rng.uniform(0.7, 2.0)), float(rng.uniform(0, 2 * np.pi))
+        t = np.arange(samples) / TRAIN_SR
+        audio = (0.3 * _envelope(t, freq, phase) * rng.standard_normal(samples)).astype(np.float32)
+        if learnable:
+            env = _envelope(np.arange(n_frames) / TRAIN_FPS, freq, phase)
+            curves = np.clip(env[:, None] * w[None] + b[None], 0, 1)
+        else:
+            curves = rng.uniform(0, 1, (n_frames, 16))
+        out.append(Example(f"utt{seed}_{i}", audio, curves.astype(np.float32), TRAIN_FPS))
+    return out
+
+
+def params_of(model) -> dict:
+    """A copy of a model's state dict."""
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def assert_same_params(a: dict, b: dict) -> None:
+    """Two state dicts equal to the bit."""
+    import torch
+
+    assert a.keys() == b.keys()
+    for k, v in a.items():
+        assert torch.equal(v, b[k]), k
+
+
+def usd_validation_errors(stage) -> list[str]:
+    """usd-core's own validators' errors on `stage` (its warnings left out)."""
+    from pxr import UsdValidation
+
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    return [f"{e.GetType()}: {e.GetMessage()}" for e in errors
+            if e.GetType() == UsdValidation.ValidationErrorType.Error]

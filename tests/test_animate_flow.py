@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import soundfile as sf
 from factories import make_corpus, make_curve_store, validate
-from test_predict import AUDIO, tiny_model
+from factories import DEMO_AUDIO as AUDIO
+from factories import tiny_model
 
 from visemeflow.articulation import close_lips
 from visemeflow.rig.character import make_character, save_character_npz

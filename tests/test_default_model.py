@@ -6,7 +6,7 @@ recorded real-speech figures reproduce on speakers it never heard, where it clos
 import numpy as np
 import pytest
 from factories import SPEECH_FPS, SPEECH_RATE, held_out_speech
-from test_predict import AUDIO
+from factories import DEMO_AUDIO as AUDIO
 from typer.testing import CliRunner
 
 from visemeflow.learning import whisper as W

@@ -164,7 +164,7 @@ def test_model_device():
 
 def _examples(n: int, seed: int):
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_train import make_examples
+    from factories import envelope_examples as make_examples
 
     return make_examples(n, seed=seed)
 

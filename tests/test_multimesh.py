@@ -448,7 +448,7 @@ def test_the_cli_refuses_an_unknown_mesh_listing_the_meshes(avatar):
 
 def test_usd_has_one_mesh_per_part_with_its_own_shapes_that_usdskel_deforms(tmp_path, avatar):
     from pxr import Gf, Usd, UsdGeom, UsdSkel
-    from test_usd import validation_errors
+    from factories import usd_validation_errors as validation_errors
 
     from visemeflow.animation.usd import read_usd_weights, write_usd
 

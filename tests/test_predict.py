@@ -10,23 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import soundfile as sf
-from factories import DEMO_CORPUS, REPO
+from factories import DEMO_AUDIO, REPO, tiny_model
 
 from visemeflow.animation.export import FORMATS
-from visemeflow.learning.train import TrainConfig, build_training_model, save_model
 from visemeflow.schemas import curves_array
 from visemeflow.storage import Store
 
-AUDIO = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
-
-
-def tiny_model(store: Store, name: str = "tiny", seed: int = 0) -> None:
-    """An untrained small model saved where training would put it (prediction needs weights, not good ones)."""
-    import torch
-
-    torch.manual_seed(seed)
-    config = TrainConfig(preset="fbank-tcn", d_model=8, seed=seed)
-    save_model(build_training_model(config, curve_fps=25.0), config, store.model_path(name), {"source": "none"})
+AUDIO = DEMO_AUDIO
 
 
 @pytest.fixture

@@ -39,3 +39,18 @@ def test_rerun_knows_every_stage_its_form_offers():
 
     offered = typing.get_args(RerunParams.model_fields["stage"].annotation)
     assert set(offered) == set(RERUNS)
+
+
+def test_no_test_module_imports_another():
+    """Shared builders live in tests/factories.py: importing a test module runs its module-level code and
+    re-collects nothing, but couples the files (a rename breaks the other)."""
+    import ast
+
+    tests = REPO / "tests"
+    found = []
+    for path in sorted(tests.glob("test_*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            found += [f"{path.name} imports {n}" for n in names if n.startswith("test_")]
+    assert not found, found

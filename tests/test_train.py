@@ -7,6 +7,7 @@ import pickle
 import numpy as np
 import pytest
 import torch
+from factories import TRAIN_FPS, TRAIN_SR, assert_same_params, envelope_examples, params_of
 from torch import nn
 
 from visemeflow.learning import train as T
@@ -25,39 +26,13 @@ from visemeflow.learning.train import (
     train_model,
 )
 
-SR = 16000
-FPS = 25.0
-
-
-def _envelope(t: np.ndarray, freq: float, phase: float) -> np.ndarray:
-    return 0.05 + 0.95 * (0.5 + 0.5 * np.sin(2 * np.pi * freq * t + phase))
-
-
-def make_examples(n: int, seed: int, learnable: bool = True) -> list[Example]:
-    """Noise whose loudness follows a slow envelope; targets = fixed affine map of that envelope."""
-    rng = np.random.default_rng(seed)
-    w = np.random.default_rng(123).uniform(0.2, 1.0, 16)
-    b = np.random.default_rng(321).uniform(0.0, 0.2, 16)
-    out = []
-    for i in range(n):
-        dur = float(rng.uniform(1.0, 2.0))
-        samples = int(dur * SR)
-        n_frames = round(dur * FPS)
-        freq, phase = float(rng.uniform(0.7, 2.0)), float(rng.uniform(0, 2 * np.pi))
-        t = np.arange(samples) / SR
-        audio = (0.3 * _envelope(t, freq, phase) * rng.standard_normal(samples)).astype(np.float32)
-        if learnable:
-            env = _envelope(np.arange(n_frames) / FPS, freq, phase)
-            curves = np.clip(env[:, None] * w[None] + b[None], 0, 1)
-        else:
-            curves = rng.uniform(0, 1, (n_frames, 16))
-        out.append(Example(f"utt{seed}_{i}", audio, curves.astype(np.float32), FPS))
-    return out
+SR = TRAIN_SR
+FPS = TRAIN_FPS
 
 
 @pytest.fixture(scope="module")
 def data() -> tuple[list[Example], list[Example]]:
-    return make_examples(4, seed=1), make_examples(2, seed=2)
+    return envelope_examples(4, seed=1), envelope_examples(2, seed=2)
 
 
 def test_training_reduces_l1(data):
@@ -75,22 +50,12 @@ def test_training_reduces_l1(data):
     assert res.checkpoint is None
 
 
-def _params(model: nn.Module) -> dict[str, torch.Tensor]:
-    return {k: v.detach().clone() for k, v in model.state_dict().items()}
-
-
-def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
-    assert a.keys() == b.keys()
-    for k, v in a.items():
-        assert torch.equal(v, b[k]), k
-
-
 def test_a_custom_loss_is_the_objective(data):
     """`train_model(loss=...)` trains on that objective: a loss with zero gradient leaves the initial weights
     (Adam's step is 0 for a zero gradient) where the default L1 moves them; the reported train L1 is that loss."""
     train, _ = data
     cfg = TrainConfig(preset="fbank-blstm", epochs=1, d_model=8, lr=3e-3, seed=0)
-    initial = _params(build_training_model(cfg, FPS))
+    initial = params_of(build_training_model(cfg, FPS))
     calls: list[tuple[int, ...]] = []
 
     def flat(pred, target, mask):
@@ -98,18 +63,18 @@ def test_a_custom_loss_is_the_objective(data):
         return (pred * 0.0).sum() + 0.25
 
     res = train_model(train, [], cfg, loss=flat)
-    _assert_same(initial, _params(res.model))
+    assert_same_params(initial, params_of(res.model))
     assert len(calls) == len(train) and res.history[0].train_l1_x100 == pytest.approx(25.0)
-    moved = _params(train_model(train, [], cfg).model)
+    moved = params_of(train_model(train, [], cfg).model)
     assert any(not torch.equal(initial[k], moved[k]) for k in initial)
 
 
 def test_trainer_steps_driven_by_hand_train_the_same_weights_as_train_model(tmp_path):
     """The Trainer's parts are the training: resume, prepare the features, run the epochs, checkpoint each, as
     fit() does; a subclass may replace one part (here: every step's items seen) and the weights stay bit-equal."""
-    train = make_examples(3, seed=5, learnable=False)
+    train = envelope_examples(3, seed=5, learnable=False)
     cfg = TrainConfig(preset="fbank-blstm", epochs=2, d_model=16, lr=1e-3, seed=7)
-    ref = _params(train_model(train, [], cfg).model)
+    ref = params_of(train_model(train, [], cfg).model)
 
     class Counting(Trainer):
         seen: list[int] = []
@@ -125,7 +90,7 @@ def test_trainer_steps_driven_by_hand_train_the_same_weights_as_train_model(tmp_
     for epoch in range(t.start_epoch, cfg.epochs):
         t.history.append(t.run_epoch(epoch))
         t.checkpoint(epoch)
-    _assert_same(ref, _params(t.model))
+    assert_same_params(ref, params_of(t.model))
     assert sorted(t.seen) == [0, 0, 1, 1, 2, 2] and t.n_steps == 6
     resumed = Trainer(train, [], cfg, checkpoint_dir=tmp_path)
     resumed.resume()
@@ -134,11 +99,11 @@ def test_trainer_steps_driven_by_hand_train_the_same_weights_as_train_model(tmp_
 
 @pytest.mark.parametrize("preset", ["fbank-blstm", "fbank-tcn"])
 def test_exact_resume(preset, tmp_path):
-    train = make_examples(3, seed=5, learnable=False)
-    val = make_examples(1, seed=6, learnable=False)
+    train = envelope_examples(3, seed=5, learnable=False)
+    val = envelope_examples(1, seed=6, learnable=False)
     cfg = TrainConfig(preset=preset, epochs=3, d_model=16, lr=1e-3, seed=7)
     full = train_model(train, val, cfg, checkpoint_dir=tmp_path / "full")
-    ref = _params(full.model)
+    ref = params_of(full.model)
     assert (tmp_path / "full" / "last.pt").exists()
 
     class Interrupt(Exception):
@@ -151,17 +116,17 @@ def test_exact_resume(preset, tmp_path):
     with pytest.raises(Interrupt):
         train_model(train, val, cfg, checkpoint_dir=tmp_path / "int", on_epoch=boom)
     resumed = train_model(train, val, cfg, checkpoint_dir=tmp_path / "int")
-    _assert_same(ref, _params(resumed.model))
+    assert_same_params(ref, params_of(resumed.model))
     assert [h.epoch for h in resumed.history] == [1, 2, 3]
     assert resumed.history[-1].train_l1_x100 == full.history[-1].train_l1_x100
 
     # epochs=2 first, then epochs=3 on the same directory
     train_model(train, val, cfg.model_copy(update={"epochs": 2}), checkpoint_dir=tmp_path / "two")
     again = train_model(train, val, cfg, checkpoint_dir=tmp_path / "two")
-    _assert_same(ref, _params(again.model))
+    assert_same_params(ref, params_of(again.model))
     # a finished run does nothing more
     done = train_model(train, val, cfg, checkpoint_dir=tmp_path / "two")
-    _assert_same(ref, _params(done.model))
+    assert_same_params(ref, params_of(done.model))
 
     # the checkpoint is loadable with weights_only and a different config is refused
     ck = torch.load(tmp_path / "full" / "last.pt", weights_only=True)
@@ -172,11 +137,11 @@ def test_exact_resume(preset, tmp_path):
 
 def test_wav2vec2_preset_trains_and_round_trips(tmp_path):
     w2v_dir = make_tiny_wav2vec2(tmp_path / "w2v")
-    train = make_examples(2, seed=3)
+    train = envelope_examples(2, seed=3)
     cfg = TrainConfig(preset="wav2vec2-blstm", epochs=1, d_model=16, wav2vec2_model=str(w2v_dir))
-    init = _params(build_training_model(cfg, FPS))
+    init = params_of(build_training_model(cfg, FPS))
     res = train_model(train, train[:1], cfg)
-    after = _params(res.model)
+    after = params_of(res.model)
     assert res.history[0].steps == 2 and np.isfinite(res.history[0].train_l1_x100)
     enc = [k for k in after if k.startswith("features.model.feature_extractor.")]
     tf = [k for k in after if k.startswith("features.model.encoder.") and k.endswith("weight")]
@@ -192,7 +157,7 @@ def test_wav2vec2_preset_trains_and_round_trips(tmp_path):
 
 def test_wav2vec2_needs_model_path():
     with pytest.raises(ValueError, match="wav2vec2_model"):
-        train_model(make_examples(1, seed=0), [], TrainConfig(preset="wav2vec2-blstm", epochs=1))
+        train_model(envelope_examples(1, seed=0), [], TrainConfig(preset="wav2vec2-blstm", epochs=1))
 
 
 def test_mean_curve_is_the_mean(data):
@@ -254,7 +219,7 @@ def test_save_load_round_trip_and_weights_only(data, tmp_path, monkeypatch):
         np.testing.assert_array_equal(
             predict_curves(res.model, ex.audio, SR, FPS), predict_curves(model, ex.audio, SR, FPS)
         )
-    _assert_same(_params(res.model), _params(model))
+    assert_same_params(params_of(res.model), params_of(model))
 
     class Evil:
         def __reduce__(self):

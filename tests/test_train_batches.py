@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_train import FPS, make_examples
+from factories import TRAIN_FPS as FPS
+from factories import envelope_examples as make_examples
 
 from visemeflow.learning import train as T
 from visemeflow.learning.train import EpochReport, Example, TrainConfig, length_batches, train_model

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_train import make_examples
+from factories import envelope_examples as make_examples
 from transformers.models.wav2vec2 import modeling_wav2vec2 as hf
 
 from visemeflow.learning.features import EncoderOutputCache, make_tiny_wav2vec2

@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_train import _assert_same, _params, make_examples
+from factories import assert_same_params as _assert_same
+from factories import envelope_examples as make_examples
+from factories import params_of as _params
 
 from visemeflow.learning.realspeech import Phone, frame_visemes
 from visemeflow.learning.train import Example, TrainConfig, load_model, save_model, train_model

@@ -5,7 +5,8 @@ own deformation (BakeSkinning: blend shapes applied by UsdSkel itself) and the U
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, UsdValidation
+from factories import usd_validation_errors as validation_errors
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 
 from visemeflow.rig.character import character_from_rig, make_character
 from visemeflow.animation.usd import prim_name, read_usd_weights, write_usd
@@ -31,13 +32,6 @@ def small_character(names=AWKWARD):
         deltas[s, moving] = rng.normal(size=(len(moving), 3))
     deltas[-1] = rng.normal(size=(12, 3))  # every vertex moves: offsets stored densely
     return make_character("test head", neutral, faces, names, deltas)
-
-
-def validation_errors(stage) -> list[str]:
-    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
-    errors = UsdValidation.ValidationContext(validators).Validate(stage)
-    return [f"{e.GetType()}: {e.GetMessage()}" for e in errors
-            if e.GetType() == UsdValidation.ValidationErrorType.Error]
 
 
 def stored_offsets(shape: UsdSkel.BlendShape, n_vertices: int) -> np.ndarray:
