@@ -479,8 +479,9 @@ def predict(
                    f"(real-time factor {r['real_time_factor']:.4f}{cached})")
         for path in r["exports"]:
             typer.echo(f"wrote {path}")
-    typer.echo(f"predict: {result['files']} files, {result['predicted']} predicted, {result['cached']} cached, "
-               f"{result['rejected']} rejected")
+    files = result["files"]
+    typer.echo(f"predict: {files} file{'' if files == 1 else 's'}, {result['predicted']} predicted, "
+               f"{result['cached']} cached, {result['rejected']} rejected")
     for r in result["rejects"]:   # each reason starts with the file it names
         typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
     if result["rejects"]:
