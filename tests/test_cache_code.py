@@ -191,3 +191,32 @@ def test_changed_training_code_trains_again_rather_than_resuming_the_old_checkpo
     again = train_tiny()
     # resuming the finished checkpoint would hand back the old code's weights without one epoch of the new code
     assert os.stat(checkpoint).st_mtime_ns != mtime and again["epochs"] == 2
+
+
+def test_the_line_scan_of_imports_finds_what_the_parser_finds_in_every_module():
+    """code_version reads import statements from the lines (CPython 3.11's `ast.parse` fails when task threads parse
+    at once: "AST constructor recursion depth mismatch", a failed cache key in CI); on every module of the package
+    it finds exactly the package modules the parser finds."""
+    import ast
+
+    from visemeflow.tasks import code_version as cv
+
+    def parsed(module: str, path) -> set[str]:
+        found: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_bytes())):
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    anchor = module.split(".")
+                    anchor = anchor[:len(anchor) - node.level + (1 if path.name == "__init__.py" else 0)]
+                    base = ".".join(anchor + ([node.module] if node.module else []))
+                found.add(base)
+                found.update(f"{base}.{a.name}" for a in node.names if a.name != "*")
+        return {n for n in found if cv.module_path(n, cv.ROOT)}
+
+    for path in sorted(cv.ROOT.rglob("*.py")):
+        module = ".".join(path.relative_to(cv.ROOT.parent).with_suffix("").parts).removesuffix(".__init__")
+        scanned = {n for n in cv._imported(module, path) if cv.module_path(n, cv.ROOT)}
+        assert scanned == parsed(module, path), module

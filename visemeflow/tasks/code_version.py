@@ -10,9 +10,9 @@ imports them. Every stage reads the rows ingest made (`utterances`, `phones`), w
 scope is in every task's. Non-Python files (rig JSON, lookup tables) and third-party libraries are not part of it.
 """
 
-import ast
 import functools
-import threading
+import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import visemeflow
@@ -22,8 +22,8 @@ PACKAGE = "visemeflow"
 ROOT = Path(visemeflow.__file__).resolve().parent
 # the stages whose outputs reach every other stage without a provenance that records their code
 UPSTREAM = ("visemeflow.tasks.ingest",)
-# tasks start in threads; CPython 3.11's `ast.parse` is not safe to call from several threads at once
-_PARSING = threading.Lock()
+_FROM = re.compile(r"^\s*from\s+(\.*)([\w.]*)\s+import\s+(.+)$")
+_IMPORT = re.compile(r"^\s*import\s+(.+)$")
 
 
 def module_path(module: str, root: Path) -> Path | None:
@@ -41,23 +41,52 @@ def _parents(module: str) -> list[str]:
     return [".".join(parts[:i]) for i in range(1, len(parts))]
 
 
+def _statements(text: str) -> Iterator[str]:
+    """Each import statement of a source text on one line (backslash and parenthesised continuations joined).
+
+    Read from the lines, not with `ast.parse`: tasks run in threads, and CPython 3.11's parser fails ("AST
+    constructor recursion depth mismatch") when two threads parse at once. A line of a docstring that reads like an
+    import only widens the scope (a module that does not exist is skipped)."""
+    lines = text.splitlines()
+    i = 0
+    while i < len(lines):
+        line = lines[i].split("#", 1)[0]
+        while line.rstrip().endswith("\\") and i + 1 < len(lines):
+            i += 1
+            line = line.rstrip()[:-1] + " " + lines[i].split("#", 1)[0]
+        if (_FROM.match(line) or _IMPORT.match(line)) and "(" in line:
+            while ")" not in line and i + 1 < len(lines):
+                i += 1
+                line += " " + lines[i].split("#", 1)[0]
+        if _FROM.match(line) or _IMPORT.match(line):
+            yield line.replace("(", " ").replace(")", " ")
+        i += 1
+
+
+def _names(listed: str) -> list[str]:
+    """`a.b as c, d` -> ["a.b", "d"]."""
+    return [part.split()[0] for part in listed.split(",") if part.split()]
+
+
 def _imported(module: str, path: Path) -> set[str]:
     """Modules of the package named by the import statements of one source file (absolute or relative)."""
     is_package = path.name == "__init__.py"
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_bytes(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                anchor = module.split(".")
-                anchor = anchor[:len(anchor) - node.level + (1 if is_package else 0)]
-                base = ".".join(anchor + ([node.module] if node.module else []))
-            else:
-                base = node.module or ""
-            found.add(base)
-            # `from visemeflow.procedural import jali` names a module; `from ... import Config` a name (skipped below)
-            found.update(f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
+    for statement in _statements(path.read_text(encoding="utf-8")):
+        m = _FROM.match(statement)
+        if m is None:
+            found.update(_names(_IMPORT.match(statement).group(1)))
+            continue
+        dots, name, listed = m.groups()
+        if dots:
+            anchor = module.split(".")
+            anchor = anchor[:len(anchor) - len(dots) + (1 if is_package else 0)]
+            base = ".".join(anchor + ([name] if name else []))
+        else:
+            base = name
+        found.add(base)
+        # `from visemeflow.procedural import jali` names a module; `from ... import Config` a name (skipped below)
+        found.update(f"{base}.{alias}" for alias in _names(listed) if alias != "*")
     return {name for name in found if name == PACKAGE or name.startswith(PACKAGE + ".")}
 
 
@@ -100,5 +129,4 @@ def source_digest(module: str, root: Path = ROOT) -> str:
 def code_digest(module: str) -> str:
     """`source_digest` of the installed package, computed once per module and process: a running process keeps the
     code it imported, so its results are of that code even when the files change under it."""
-    with _PARSING:
-        return source_digest(module, ROOT)
+    return source_digest(module, ROOT)
