@@ -171,6 +171,8 @@ class CachedPredictor:
             enc = self.cache.get_or_encode(feats, feats.encoder_fingerprint(), a, _audio_hash(audio), "cpu-fp32")
             f, fl = feats(a, lengths, encoded=enc)
             pred, _ = model.head(f, fl, torch.tensor([n]), fps=FPS)
+            if model.closure_peaks is not None:   # as the model's own eval-mode forward
+                pred = model.closure_peaks(pred, FPS)
         return np.clip(pred[0, :n].numpy(), 0.0, 1.0).astype(np.float32)
 
 

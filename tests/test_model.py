@@ -346,3 +346,46 @@ def test_fbank_blstm_parameter_count_at_paper_width():
     expected = 80 * 512 + 512 + 2 * (4 * 256 * (512 + 256) + 2 * 4 * 256) + 512 * 16 + 16
     assert n == expected
     assert 1_000_000 < n < 3_000_000
+
+
+def test_closure_peaks_keep_the_peak_and_cut_its_shoulders_at_any_rate():
+    from visemeflow.learning.model import ClosurePeaks
+    from visemeflow.visemes import VISEME_INDEX
+
+    k = VISEME_INDEX["MBP"]
+    y = torch.zeros(1, 12, N_VISEMES)
+    y[0, :, 0] = 0.3                                             # another viseme: untouched
+    y[0, 3:8, k] = torch.tensor([0.25, 0.5, 1.0, 0.5, 0.25])     # a broad closure
+    y[0, 10, k] = 0.6                                            # a second, separate closure 5 frames later
+    out = ClosurePeaks(0.1, 16.0)(y, 30.0)                       # 3 frames either side at 30 fps
+    assert torch.equal(out[..., 0], y[..., 0])
+    assert out[0, 5, k] == 1.0 and out[0, 10, k] == pytest.approx(0.6)   # local maxima kept
+    assert out[0, 4, k] == pytest.approx(0.5 * 0.5 ** 16) and out[0, 3, k] < 1e-9
+    assert ClosurePeaks(0.1, 16.0).half_window(30.0) == 3 and ClosurePeaks(0.1, 16.0).half_window(60.0) == 6
+    with pytest.raises(ValueError):
+        ClosurePeaks(0.0, 16.0)
+
+
+def test_closure_peaks_apply_at_inference_only_and_configs_without_them_serialise_as_before():
+    from visemeflow.learning.train import TrainConfig, build_training_model
+
+    plain = TrainConfig(preset="fbank-blstm", d_model=32)
+    assert "mbp_peaks_half_window_s" not in plain.model_dump() and "mbp_peaks_power" not in plain.model_dump()
+    assert build_training_model(plain, 30.0).closure_peaks is None
+    config = plain.model_copy(update={"mbp_peaks_half_window_s": 0.1})
+    model = build_training_model(config, 30.0)
+    assert model.closure_peaks is not None
+    torch.manual_seed(0)
+    audio, lengths, n = torch.randn(1, 16000), torch.tensor([16000]), torch.tensor([30])
+    model.train()
+    torch.manual_seed(1)
+    trained, _ = model(audio, lengths, n, fps=30.0)
+    torch.manual_seed(1)
+    plain_train, _ = model.head(*model.features(audio, lengths), n, fps=30.0)
+    assert torch.equal(trained, plain_train)           # training sees the head's own output (same dropout draws)
+    model.eval()
+    with torch.no_grad():
+        inferred, _ = model(audio, lengths, n, fps=30.0)
+        raw, _ = model.head(*model.features(audio, lengths), n, fps=30.0)
+    assert torch.allclose(inferred, model.closure_peaks(raw, 30.0))
+    assert not torch.allclose(inferred, raw)          # the MBP channel changed, at inference

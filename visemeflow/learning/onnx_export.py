@@ -634,6 +634,7 @@ class CurveGraph(nn.Module):
                 self.head = _KarrasGraph(head, fps)
             else:
                 raise OnnxExportError(f"no ONNX graph for head {type(head).__name__}")
+        self.closure_peaks = model.closure_peaks   # the same arithmetic as torch's eval-mode forward
         # shortest input: one curve frame and one feature frame after resampling (also for the mean curve, whose
         # graph needs no features: torch's predict_curves computes them and fails below one window)
         n = 1
@@ -665,6 +666,8 @@ class CurveGraph(nn.Module):
         else:
             x = self.resample(audio) if self.resample is not None else audio
             y = self.head(self.features(x), t)
+        if self.closure_peaks is not None:
+            y = self.closure_peaks(y, self.fps)
         return torch.clamp(y, 0.0, 1.0)
 
 

@@ -105,7 +105,7 @@ from visemeflow.learning.features import (
     build_feature_extractor,
     resample_audio,
 )
-from visemeflow.learning.model import AudioCurveModel, CurveModel, MeanCurveBaseline, l1_loss
+from visemeflow.learning.model import AudioCurveModel, ClosurePeaks, CurveModel, MeanCurveBaseline, l1_loss
 from visemeflow.learning.presets import (
     Preset,
     augment,
@@ -211,6 +211,10 @@ class TrainConfig(BaseModel):
     # each frame's viseme (Example.visemes), cross-entropy weighted by this, added to the curve loss; the layer
     # serves training only (model files hold the curve model alone). Curve heads (CurveModel) only.
     viseme_loss_weight: float = Field(0.0, ge=0)
+    # inference only: narrow the MBP channel to its peaks within this half window, s (0: off, the paper's model;
+    # visemeflow.learning.model.ClosurePeaks); a training run never applies it, a loaded model does in eval mode
+    mbp_peaks_half_window_s: float = Field(0.0, ge=0, le=0.5)
+    mbp_peaks_power: float = Field(16.0, gt=0, le=64)
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -228,7 +232,8 @@ class TrainConfig(BaseModel):
 
 
 _ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
-                                   "viseme_loss_weight": 0.0, "whisper_layers": None}
+                                   "viseme_loss_weight": 0.0, "whisper_layers": None,
+                                   "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
 
 
 @dataclass
@@ -268,7 +273,9 @@ def _assemble(config: TrainConfig, feature_module: nn.Module, curve_fps: float) 
     head = build_model(
         preset, feature_module.dim, feature_module.frame_rate_hz, curve_fps, d_model=config.d_model
     )
-    return AudioCurveModel(feature_module, head)
+    peaks = (ClosurePeaks(config.mbp_peaks_half_window_s, config.mbp_peaks_power)
+             if config.mbp_peaks_half_window_s > 0 else None)
+    return AudioCurveModel(feature_module, head, peaks)
 
 
 def build_training_model(config: TrainConfig, curve_fps: float) -> AudioCurveModel:
