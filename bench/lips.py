@@ -31,7 +31,7 @@ any curves drive a character; `raw` = the curves as the source makes them):
 
 Characters: the demo character (ICT face, `load_demo_rig()`), and, without `--quick`, a transferred one: the ICT
 narrow face of another identity, Loop-subdivided, turned, scaled 1.15 and moved (bench/transfer.py's
-`remeshed_face`), with the 16 visemes deformation-transferred onto it (`animation.transfer.transfer_visemes`, ~30 s).
+`remeshed_face`), with the 16 visemes deformation-transferred onto it (`authoring.transfer.transfer_visemes`, ~30 s).
 Its probe: the transfer's 68 landmarks, the carried teeth (the template's `teeth` region, carried rigidly with the
 mouth interior) and, as lips, the target vertices nearest the template's `lips` region placed by the known
 construction (the transfer returns no regions).
@@ -105,7 +105,7 @@ def transferred_probe() -> tuple[LipProbe, str]:
     from scipy.spatial import cKDTree
     from transfer import REMESHED_IDENTITY, identity_face, placed, remeshed_face
 
-    from visemeflow.animation.transfer import CARRIED_REGIONS, transfer_visemes
+    from visemeflow.authoring.transfer import CARRIED_REGIONS, transfer_visemes
 
     demo = load_demo_rig()
     modes = np.load(rig_data_path("ict_identities.npz"))["modes"].astype(np.float64)

@@ -1,4 +1,4 @@
-"""Benchmark: deformation transfer of the demo rig's 16 visemes (visemeflow/animation/transfer.py) onto new faces.
+"""Benchmark: deformation transfer of the demo rig's 16 visemes (visemeflow/authoring/transfer.py) onto new faces.
 
 Run:  .venv/bin/python bench/transfer.py [--sheet docs/transfer_contact_sheet.png] [--size 180]
 
@@ -13,7 +13,7 @@ Prints, never asserts (exit 0 whatever the figures). Targets, all built from the
    nearest vertices (the markers). The target of tests/test_transfer.py too: one builder, `remeshed_face` in
    tests/factories.py.
 4. remeshed, automatic markers: the same target with no markers given; FaceMesh on renders of both meshes finds
-   the pairs (`visemeflow.animation.automarkers`): how many, how far their target points lie from the true
+   the pairs (`visemeflow.authoring.automarkers`): how many, how far their target points lie from the true
    correspondence (the same ICT vertex moved with the face), and the transfer with them.
 
 For each: time per stage (registration, factorisation, solve, total), the gradient residual, and the landmark
@@ -42,8 +42,8 @@ from factories import REMESHED_IDENTITY, ROTATION, identity_face, placed, remesh
 
 from visemeflow.rig.character import make_character  # noqa: E402
 from visemeflow.animation.preview import preview_camera  # noqa: E402
-from visemeflow.animation.automarkers import automatic_markers  # noqa: E402
-from visemeflow.animation.transfer import transfer_visemes  # noqa: E402
+from visemeflow.authoring.automarkers import automatic_markers  # noqa: E402
+from visemeflow.authoring.transfer import transfer_visemes  # noqa: E402
 from visemeflow.rig import load_demo_rig, rig_data_path  # noqa: E402
 from visemeflow.render.raster import render_mesh  # noqa: E402
 from visemeflow.visemes import VISEMES  # noqa: E402

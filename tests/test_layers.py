@@ -11,7 +11,8 @@ from factories import REPO
 
 PACKAGE = REPO / "visemeflow"
 BASE = {"visemes", "articulation", "hashing", "timebase", "atomic"}
-DOMAIN = {"phonetics", "procedural", "render", "rig", "shapes", "tracking", "learning", "animation", "synth", "ingest"}
+DOMAIN = {"phonetics", "procedural", "render", "rig", "shapes", "tracking", "learning", "animation", "authoring", "synth",
+          "ingest"}
 # part -> the parts of ours it may import (besides itself and BASE): DESIGN.md's table, with the exceptions named
 ALLOWED = {
     **{name: set() for name in BASE},
@@ -23,9 +24,9 @@ ALLOWED = {
     "procedural": {"phonetics"},
     "tracking": {"rig", "render"},
     "learning": {"schemas"},  # the utterance-id rules, for augmented ids
-    # tracking: FaceMesh finds the automatic markers of deformation transfer on rendered faces (DESIGN puts
-    # transfer, markers and SSDR in an `authoring/` part of their own: not split yet)
-    "animation": {"rig", "shapes", "render", "tracking"},
+    "animation": {"rig", "shapes", "render"},
+    # deformation transfer and its automatic markers (FaceMesh on rendered faces: tracking), once per character
+    "authoring": {"rig", "shapes", "render", "tracking", "animation"},
     "synth": {"phonetics", "procedural", "rig", "render", "tracking"},  # the landmark track it writes per video
     "ingest": {"phonetics", "schemas", "shapes", "tracking"},  # tracking.video: the audio track of a video
     "storage": {"schemas"},

@@ -1,4 +1,4 @@
-"""Deformation transfer of the 16 visemes onto new faces (visemeflow/animation/transfer.py), checked by meaning:
+"""Deformation transfer of the 16 visemes onto new faces (visemeflow/authoring/transfer.py), checked by meaning:
 
 - onto its own neutral the template comes back (vertex error near 0);
 - without markers, FaceMesh on renders of both meshes finds marker pairs near the true correspondence;
@@ -23,7 +23,7 @@ import trimesh
 from factories import REMESHED_IDENTITY, ROTATION, SHARED_DATA, identity_face, placed, remeshed_face, validate
 
 from visemeflow.rig.character import make_character
-from visemeflow.animation.transfer import TransferError, read_markers_csv, transfer_command, transfer_visemes
+from visemeflow.authoring.transfer import TransferError, read_markers_csv, transfer_command, transfer_visemes
 from visemeflow.rig import load_demo_rig, load_rig, read_obj, rig_data_path
 from visemeflow.visemes import VISEMES
 
@@ -133,7 +133,7 @@ def test_another_topology_gets_the_visemes(demo, remeshed):
 def test_markers_are_found_automatically_on_another_topology(demo, modes):
     """No markers: FaceMesh on renders of both meshes pairs their points (automarkers); the pairs lie near the true
     correspondence, the registration converges as with the 68 true landmarks, and the visemes pass the checks."""
-    from visemeflow.animation.automarkers import automatic_markers
+    from visemeflow.authoring.automarkers import automatic_markers
 
     vertices, faces, landmarks = remeshed_face(demo, modes)
     size = float(np.linalg.norm(np.ptp(vertices, axis=0)))

@@ -549,7 +549,7 @@ def transfer(
     no_parts: Annotated[bool, typer.Option("--no-parts", help="Leave out the template's mouth interior and eyes on a target of another topology.")] = False,
 ) -> None:
     """Deformation transfer (Sumner and Popovic 2004) of the template's visemes onto a new neutral mesh."""
-    from visemeflow.animation.transfer import TransferError, transfer_command
+    from visemeflow.authoring.transfer import TransferError, transfer_command
 
     try:
         report = transfer_command(template, target, markers, out, carry_parts=not no_parts)

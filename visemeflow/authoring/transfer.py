@@ -15,7 +15,7 @@ Method (docs/transfer.md has the reasoning and the limits):
    landmarks), and each target triangle takes the gradient of the registered template triangle its centroid is
    closest to (a closest-triangle map). Gradients are turned into the target's frame: R S R^T.
    Without markers the pairs are found automatically: MediaPipe FaceMesh on frontal renders of both meshes, each
-   point read back onto the vertex under it (`visemeflow.animation.automarkers`).
+   point read back onto the vertex under it (`visemeflow.authoring.automarkers`).
 3. One sparse least-squares system. Unknowns: the target's vertex displacements and one fourth vertex per target
    triangle (Sumner's formulation). Rows: sqrt(area_t) (T_t(x) - S_t) for every target triangle, T_t(x) the target
    triangle's gradient, linear in x; the same matrix A for x, y and z and for every shape. Anchors: the target
@@ -45,7 +45,7 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
-from visemeflow.animation.automarkers import automatic_markers
+from visemeflow.authoring.automarkers import automatic_markers
 from visemeflow.animation.fit import similarity as _similarity
 from visemeflow.rig.character import Character, CharacterError, make_character
 from visemeflow.rig import N_LANDMARKS, RigError, VisemeRig
@@ -464,7 +464,7 @@ def transfer_visemes(template: VisemeRig | Character, target_neutral, target_fac
     Different topology: `markers` (n, 2) pairs (template vertex, target vertex), or `target_landmarks` (68,) target
     vertex ids in Multi-PIE order (-1 = none) paired with the template's landmark ids, place the template before the
     non-rigid ICP; with neither (or `markers="auto"`) the pairs are found by FaceMesh on renders of both meshes
-    (`visemeflow.animation.automarkers`, noted in the report). `static_tol` (a fraction of the template's size) says which vertices count as not moved (anchors);
+    (`visemeflow.authoring.automarkers`, noted in the report). `static_tol` (a fraction of the template's size) says which vertices count as not moved (anchors);
     `max_icp_residual` (a fraction of the target's size) rejects a registration that did not converge.
     """
     start = time.perf_counter()

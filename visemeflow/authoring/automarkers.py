@@ -1,7 +1,7 @@
 """Marker pairs found without a person: MediaPipe FaceMesh on renders of the template and of the target.
 
 Deformation transfer onto a mesh of another topology needs corresponding points to place the template before the
-non-rigid ICP (`visemeflow.animation.transfer`). Instead of a person clicking them, both neutral meshes are rendered
+non-rigid ICP (`visemeflow.authoring.transfer`). Instead of a person clicking them, both neutral meshes are rendered
 frontally by the synthetic corpus's rasteriser (grey Lambert shading, `visemeflow.render.raster`), FaceMesh finds
 its 468 face points on each render, and each point is read back onto the mesh through the rasteriser's triangle and
 barycentric buffers: the visible vertex under the point. Two passes per mesh: the first frames the whole mesh, the
