@@ -1,5 +1,6 @@
 """Table schemas (the only place column names are written) and identifier rules."""
 
+from visemeflow.schemas.curves import Curves, fps_of_table
 from visemeflow.schemas.ids import (
     InvalidIdError,
     encode_path_part,
@@ -32,6 +33,7 @@ __all__ = [
     "C",
     "CURVES",
     "CurveSource",
+    "Curves",
     "LOSS_TERMS",
     "METRICS",
     "PHONES",
@@ -43,6 +45,7 @@ __all__ = [
     "curves_array",
     "curves_table",
     "encode_path_part",
+    "fps_of_table",
     "id_path_parts",
     "make_utterance_id",
     "normalize_utterance_id",

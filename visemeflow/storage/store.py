@@ -55,16 +55,16 @@ from visemeflow.schemas import (
     utterance_id_from_path_parts,
     validate_name,
 )
+from visemeflow.schemas.curves import FPS_KEY, PROVENANCE_KEY, Curves
+from visemeflow.timebase import DEFAULT_FPS
 from visemeflow.visemes import VISEMES
 
-PROVENANCE_KEY = b"visemeflow.provenance"
 # Curve files are small and many: dictionary-encode only the constant id columns and keep statistics only
 # where dataset scans prune files by them (a third less write time, a quarter smaller files).
 CURVE_FILE_OPTIONS = {
     "use_dictionary": [C.UTTERANCE_ID, C.SOURCE, C.VARIANT],
     "write_statistics": [C.UTTERANCE_ID, C.SOURCE, C.VARIANT, C.FRAME],
 }
-FPS_KEY = b"visemeflow.fps"
 
 
 def _pid_alive(pid: int) -> bool:
@@ -581,6 +581,26 @@ class Store:
         if not path.exists():
             raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.root}")
         return _read_whole(path).cast(CURVES)
+
+    def load_curves(self, utterance_id: str, source: str, variant: str | None = None,
+                    default_fps: float = DEFAULT_FPS) -> Curves:
+        """The stored curves of one utterance as a :class:`Curves` value, with the rate and provenance the writer
+        recorded (``default_fps`` only for a one-frame file of a writer that recorded no rate)."""
+        if variant is None:
+            variants = self.curve_variants(source, utterance_id)
+            if len(variants) != 1:
+                raise LookupError(
+                    f"{utterance_id}: {len(variants)} variants of {source} curves ({', '.join(variants) or 'none'}); name one"
+                )
+            variant = variants[0]
+        path = self.curve_path(source, variant, utterance_id)
+        if not path.exists():
+            raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.root}")
+        return Curves.from_table(_read_whole(path), default_fps)
+
+    def save_curves(self, curves: Curves) -> Path:
+        """Write a :class:`Curves` value (its rate and provenance in the file's metadata), replacing what was there."""
+        return self.write_curves(curves.to_table(), provenance=curves.provenance, fps=curves.fps)
 
     def curve_variants(self, source: str, utterance_id: str | None = None) -> list[str]:
         folder = self.root / "curves" / validate_name(source, "curve source")

@@ -29,11 +29,9 @@ from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
-from visemeflow.schemas import C, curves_array
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
-from visemeflow.timebase import DEFAULT_FPS
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
@@ -66,11 +64,9 @@ def bound_character(path: str, character_hash: str, convention: str | None, mapp
 
 
 def curves_and_fps(store: Store, utterance_id: str, source: str, variant: str) -> tuple[np.ndarray, float, str]:
-    """(T, 16) curves, their frame rate (from the frame times) and the file they came from."""
-    table = store.read_curves(utterance_id, source, variant)
-    times = table.column(C.TIME_S).to_numpy()
-    fps = (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else DEFAULT_FPS
-    return curves_array(table), float(round(fps, 6)), str(store.curve_path(source, variant, utterance_id))
+    """(T, 16) curves, their frame rate (as the writer recorded it) and the file they came from."""
+    curves = store.load_curves(utterance_id, source, variant)
+    return curves.values, curves.fps, str(store.curve_path(source, variant, utterance_id))
 
 
 def content_hash(path: str | Path) -> str:

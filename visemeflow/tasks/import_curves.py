@@ -24,7 +24,7 @@ from visemeflow.ingest.captured import (
     Take,
     import_take,
 )
-from visemeflow.schemas import C, UTTERANCES, CurveSource, curves_table, shard_of, table_from_rows
+from visemeflow.schemas import C, UTTERANCES, CurveSource, Curves, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row, result_storage
@@ -92,8 +92,8 @@ def import_take_task(store_root: str, n_shards: int, take: dict, config: Capture
         message = f"{uid}: {exc}" if not str(exc).startswith(f"{uid}: ") else str(exc)
         get_run_logger().warning("rejected %s", message)
         return {**report, "rejected": 1, "reject": reject_row(uid, STAGE, exc.error_type, message, exc.path)}
-    store.write_curves(curves_table(uid, SOURCE, config.variant, imported.curves, imported.fps),
-                       provenance=provenance(obj, config, solver_digest), fps=imported.fps)
+    store.save_curves(Curves(imported.curves, imported.fps, uid, SOURCE, config.variant,
+                             provenance(obj, config, solver_digest)))
     if ingested_audio is None:
         store.replace_utterance_rows("utterances", shard, uid, table_from_rows([imported.utterance], UTTERANCES))
     fit = imported.fit

@@ -12,7 +12,7 @@ from visemeflow.ingest.audio import AudioFile
 from visemeflow.learning.device import resolve_device
 from visemeflow.learning.longform import predict_long
 from visemeflow.learning.train import predict_curves
-from visemeflow.schemas import CurveSource, curves_table
+from visemeflow.schemas import CurveSource, Curves
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
@@ -57,8 +57,8 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     curves = predict_long(lambda a, r, n: predict_curves(model, a, r, fps, n_frames=n), source, fps,
                           on_chunk=progress)
     seconds = time.perf_counter() - started
-    path = store.write_curves(curves_table(utterance_id, SOURCE, model_name, curves, fps),
-                              provenance=prediction_provenance(model_name, model_hash, audio_hash, fps), fps=fps)
+    path = store.save_curves(Curves(curves, fps, utterance_id, SOURCE, model_name,
+                                    prediction_provenance(model_name, model_hash, audio_hash, fps)))
     rtf = seconds / max(duration, 1e-9)
     logger.info("%s: %d frames of %.2f s of audio in %.3f s (real-time factor %.4f)", utterance_id,
                 len(curves), duration, seconds, rtf)

@@ -8,7 +8,7 @@ from prefect import get_run_logger, task
 from visemeflow.hashing import stable_hash
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
-from visemeflow.schemas import C, REJECTS, CurveSource, curves_table, table_from_rows
+from visemeflow.schemas import C, REJECTS, CurveSource, Curves, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -54,10 +54,7 @@ def generate_for_utterance(
         fps, n_frames = config.fps, frame_count(utterance[C.DURATION_S], config.fps)
     curves = generate_procedural_curves(segments_from_phones(phones), n_frames, fps, config)
     # NaN or infinite curves are refused by the store (NonFiniteValueError, a reject of this utterance)
-    store.write_curves(
-        curves_table(uid, SOURCE, variant, curves, fps),
-        provenance=provenance(utterance[C.CONTENT_HASH], config), fps=fps,
-    )
+    store.save_curves(Curves(curves, fps, uid, SOURCE, variant, provenance(utterance[C.CONTENT_HASH], config)))
 
 
 def _read_phones(store: Store, shard: int, ids: list[str]) -> pa.Table:

@@ -13,7 +13,7 @@ from visemeflow.ingest.audio import read_audio
 from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_rig
-from visemeflow.schemas import C, CurveSource, curves_table, split_utterance_id
+from visemeflow.schemas import C, CurveSource, Curves, split_utterance_id
 from visemeflow.storage import Store
 from visemeflow.synth.take import SynthConfig, camera_record, make_take, render_take
 from visemeflow.tasks.code_version import code_digest
@@ -63,11 +63,10 @@ def synth_utterance(
     atomic_write_text(folder / f"{name}.camera.json", json.dumps(camera_record(take), indent=1))
 
     variant = truth_variant(config)
-    Store(store_root).write_curves(
-        curves_table(source.utterance_id, SOURCE, variant, take.curves, config.fps),
-        provenance=f"{SOURCE}:{source.content_hash}:{stable_hash(config)}:{rig_hash}:{code_digest(__name__)}",
-        fps=config.fps,
-    )
+    Store(store_root).save_curves(Curves(
+        take.curves, config.fps, source.utterance_id, SOURCE, variant,
+        f"{SOURCE}:{source.content_hash}:{stable_hash(config)}:{rig_hash}:{code_digest(__name__)}",
+    ))
     get_run_logger().info("%s: %d frames -> %s", source.utterance_id, n_frames, video)
     return {"utterance_id": source.utterance_id, "frames": n_frames, "video": str(video),
             "landmarks": str(landmarks), "variant": variant}

@@ -26,8 +26,7 @@ from visemeflow.schemas import (
     TRACKING_FRAMES,
     C,
     CurveSource,
-    curves_array,
-    curves_table,
+    Curves,
 )
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
@@ -111,7 +110,7 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     procedural = end_s = None
     if has_alignment(utterance):
         try:
-            procedural = curves_array(store.read_curves(uid, CurveSource.PROCEDURAL, procedural_variant))
+            procedural = store.load_curves(uid, CurveSource.PROCEDURAL, procedural_variant).values
         except LookupError as exc:
             raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
         end_s = alignment_end_s(store, uid)
@@ -123,9 +122,8 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     except TrackingInputError as exc:
         raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
     result, variant = tracked.result, config.variant
-    store.write_curves(curves_table(uid, SOURCE, variant, result.curves, utterance[C.FPS]),
-                       provenance=f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}",
-                       fps=utterance[C.FPS])
+    store.save_curves(Curves(result.curves, utterance[C.FPS], uid, SOURCE, variant,
+                             f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"))
     store.write_tracking_frames(diagnostics_table(uid, variant, tracked))
     error = result.mouth_error_px
     return {

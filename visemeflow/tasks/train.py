@@ -26,7 +26,7 @@ from visemeflow.learning.train import (
     save_model,
     train_model,
 )
-from visemeflow.schemas import METRICS, C, curves_array
+from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
@@ -53,9 +53,8 @@ def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> 
     examples = []
     for row in rows:
         uid = row[C.UTTERANCE_ID]
-        table = store.read_curves(uid, source, variant)
-        fps = float(len(table) - 1) / float(table.column(C.TIME_S)[-1].as_py()) if len(table) > 1 else float(row[C.FPS])
-        examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves_array(table), round(fps, 6)))
+        curves = store.load_curves(uid, source, variant, default_fps=float(row[C.FPS]))
+        examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves.values, curves.fps))
     return examples
 
 
