@@ -108,6 +108,21 @@ def test_lip_heavy_starts_earlier_and_releases_later_than_plain_viseme():
     assert np.flatnonzero(uuu)[-1] > np.flatnonzero(ahh)[-1]
 
 
+def test_closure_ramps_of_their_own_shorten_only_the_closures():
+    """`closure_onset_s`/`closure_decay_s` (training targets whose closures stay out of the neighbouring phones):
+    MBP rises and falls within them; other visemes keep theirs; None keeps the general ramps."""
+    start, end = 1.0, 1.1
+    short = RAW.model_copy(update={"closure_onset_s": 0.04, "closure_decay_s": 0.05})
+    mbp = channel([seg("MBP", start, end)], "MBP", config=short)
+    first, last = np.flatnonzero(mbp)[[0, -1]] / FINE_FPS
+    sustain_end = start + RAW.sustain_fraction * (end - start)
+    assert first == pytest.approx(start - 0.04, abs=2e-3) and last == pytest.approx(sustain_end + 0.05, abs=2e-3)
+    default = channel([seg("MBP", start, end)], "MBP")
+    assert np.flatnonzero(default)[0] / FINE_FPS == pytest.approx(start - RAW.onset_s, abs=2e-3)
+    ahh = channel([seg("AHH", start, end)], "AHH", config=short)
+    assert np.array_equal(ahh, channel([seg("AHH", start, end)], "AHH"))
+
+
 # --- rule 4: closures full, short vowels lighter --------------------------------------------------
 
 

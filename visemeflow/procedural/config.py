@@ -42,6 +42,15 @@ class ProceduralConfig(BaseModel):
         0.12, ge=0.0,
         description="Decay ramp length: after the sustain the curve falls to 0 over this long.",
     )
+    closure_onset_s: float | None = Field(
+        None, ge=0.0,
+        description="Onset length for closure visemes (MBP, FFF); None: onset_s. Shorter ramps keep a closure's "
+                    "rise out of the neighbouring phones.",
+    )
+    closure_decay_s: float | None = Field(
+        None, ge=0.0,
+        description="Decay length for closure visemes (MBP, FFF); None: decay_s.",
+    )
     lip_onset_s: float = Field(
         0.15, ge=0.0,
         description="Onset length for lip-heavy visemes (earlier start: lip protrusion takes longer).",

@@ -58,10 +58,17 @@ def _mask(names: frozenset[str]) -> np.ndarray:
 def channel_table(config: ProceduralConfig) -> ChannelTable:
     """Rule constants per viseme column (cached: the config is frozen and hashable)."""
     lip = _mask(config.lip_heavy)
+    closure = _mask(config.closure_visemes)
+    onset = np.where(lip, config.lip_onset_s, config.onset_s)
+    decay = np.where(lip, config.lip_decay_s, config.decay_s)
+    if config.closure_onset_s is not None:
+        onset = np.where(closure, config.closure_onset_s, onset)
+    if config.closure_decay_s is not None:
+        decay = np.where(closure, config.closure_decay_s, decay)
     return ChannelTable(
-        onset_s=np.where(lip, config.lip_onset_s, config.onset_s),
+        onset_s=onset,
         sustain_fraction=np.where(lip, config.lip_sustain_fraction, config.sustain_fraction),
-        decay_s=np.where(lip, config.lip_decay_s, config.decay_s),
+        decay_s=decay,
         is_closure=_mask(config.closure_visemes),
         is_tongue=_mask(config.tongue_only),
         is_lip_heavy=lip,
