@@ -67,6 +67,7 @@ from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E4
 from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
 from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
 from visemeflow.learning.realspeech import compare_curves, frame_visemes, pool, score_utterance  # noqa: E402
+from visemeflow.procedural import ProceduralConfig  # noqa: E402
 from visemeflow.learning.train import Example, TrainConfig, _audio_hash, predict_curves, train_model  # noqa: E402
 from visemeflow.rig import load_demo_rig  # noqa: E402
 
@@ -111,9 +112,12 @@ class Sets:
     floor: np.ndarray
 
 
-def load_sets(espeak: tuple[int, int] | None = None) -> Sets:
-    """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None."""
-    lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus") if u.speaker == "LJ"]
+def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None) -> Sets:
+    """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None;
+    `closure_ramp_s`: the LJ targets' MBP/FFF onset and decay (`ProceduralConfig.closure_onset_s`/`closure_decay_s`;
+    None: the procedural default's ramps)."""
+    targets = ProceduralConfig(closure_onset_s=closure_ramp_s, closure_decay_s=closure_ramp_s)
+    lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus", procedural=targets) if u.speaker == "LJ"]
     lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
     with tempfile.TemporaryDirectory() as tmp:
         held = held_out_sets(Path(tmp))
@@ -265,6 +269,8 @@ def main() -> int:
     parser.add_argument("--seeds", default="0", help="training seeds (comma-separated): one row each")
     parser.add_argument("--recipes", default="lj,lj+cls,lj+fg,lj+fg+cls")
     parser.add_argument("--espeak", default="", help="EN,ZH utterances of the espeak corpus for `es` recipes")
+    parser.add_argument("--closure-ramps", type=float, default=None,
+                        help="onset and decay, s, of the MBP/FFF ramps in the LJ targets (default: procedural's)")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
     parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
@@ -273,7 +279,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
-    sets = load_sets(espeak)
+    sets = load_sets(espeak, args.closure_ramps)
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
           f"espeak {len(sets.espeak)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)

@@ -20,10 +20,12 @@ with the `closure:4` loss (L1 with each frame weighted 1 + 4 x (target MBP + FFF
 as the vowels around them) and the auxiliary viseme-classification loss at weight 0.1 on the LJ examples (per-frame
 visemes of the alignment, `TrainConfig.viseme_loss_weight`; the FACEGOOD pieces have no alignment). At weight 0.5
 (`--recipe lj+fg+cls`) the lips of unheard voices close less often on the mesh: the README's table.
-At inference the model narrows its MBP channel to its peaks (`--mbp-peaks 0.1,32`, `learning.model.ClosurePeaks`):
-the shoulders of a closure no longer make MBP the strongest shape in the neighbouring phones (false closures on
-the held-out speech 24% -> 9%, closures kept). `--from-model default.pt` reuses trained weights and only judges and
-writes them again with other inference settings (how the shipped file got its peaks without retraining).
+The LJ targets' closures rise and fall in 0.05 s (`--closure-ramps 0.05`: `ProceduralConfig.closure_onset_s` and
+`closure_decay_s`; the procedural stage's own default stays 0.12 s), and at inference the model narrows its MBP
+channel to its peaks (`--mbp-peaks 0.067,16`, `learning.model.ClosurePeaks`): a closure's rise no longer makes MBP
+the strongest shape in the neighbouring phones (false closures on the held-out speech 24% -> 7%, closures kept;
+visemeflow/learning/data/README.md). `--from-model F.pt` reuses trained weights and only judges and writes them
+again with other inference settings.
 Held out, and judged after training: GRID s1, the charsiu Mandarin utterance and praatio's two speakers (closure
 recall, false closures, agreement, lips on the demo mesh) and FACEGOOD take 05 (captured L1, jaw correlation).
 
@@ -87,7 +89,7 @@ def fbank(args) -> tuple:
 
 def whisper(args) -> tuple:
     """The whisper-base-blstm default (bench/encoders.py's recipes)."""
-    sets = encoders.load_sets()
+    sets = encoders.load_sets(closure_ramp_s=args.closure_ramps or None)
     train = encoders.recipe_data(sets, args.recipe)
     config = encoders.recipe_config(args.recipe, len(train), args.steps, args.d_model, layers=args.layers)
     if args.lr != LR:
@@ -139,7 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--d-model", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--lr", type=float, default=LR)
-    parser.add_argument("--mbp-peaks", type=_peaks, default=(0.1, 32.0), metavar="SECONDS,POWER",
+    parser.add_argument("--closure-ramps", type=float, default=0.05, metavar="SECONDS",
+                        help="whisper: onset and decay of the MBP/FFF ramps in the LJ targets "
+                             "(ProceduralConfig.closure_onset_s/closure_decay_s; 0: the procedural default's 0.12 s)")
+    parser.add_argument("--mbp-peaks", type=_peaks, default=(0.067, 16.0), metavar="SECONDS,POWER",
                         help="whisper: narrow the MBP channel to its peaks at inference within SECONDS on either "
                              "side (learning.model.ClosurePeaks; 0,0: off)")
     parser.add_argument("--from-model", type=Path, default=None,
@@ -160,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                "loss": args.loss if is_whisper else "l1", **({"layers": args.layers} if is_whisper else {}),
                "steps": args.steps, "lr": args.lr, "commit": commit.strip(), "data": data, "held_out": held_out,
                "figures": figures,
-               **({"mbp_peaks": list(args.mbp_peaks)} if is_whisper else {}),
+               **({"mbp_peaks": list(args.mbp_peaks), "closure_ramps_s": args.closure_ramps} if is_whisper else {}),
                **({"weights_from": _weights_from(args.from_model)} if args.from_model is not None else {})}
     save_model(result.model, config, out, lineage)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB) in {seconds:.0f} s (training and judging)")

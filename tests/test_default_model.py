@@ -23,8 +23,9 @@ def test_the_default_model_ships_small_with_its_recipe_and_figures():
     assert path.stat().st_size < 2e6  # the decoder only: the encoder comes from the weights packages
     model, config, lineage = load_model(path)
     assert config.preset == "whisper-base-blstm" and config.viseme_loss_weight == 0.1
-    assert (config.mbp_peaks_half_window_s, config.mbp_peaks_power) == (0.1, 32.0)
-    assert model.closure_peaks is not None and lineage["mbp_peaks"] == [0.1, 32.0]
+    assert (config.mbp_peaks_half_window_s, config.mbp_peaks_power) == (0.067, 16.0)
+    assert model.closure_peaks is not None and lineage["mbp_peaks"] == [0.067, 16.0]
+    assert lineage["closure_ramps_s"] == 0.05   # the LJ targets' closure ramps
     assert lineage["script"] == "examples/train_default_model.py"
     assert lineage["held_out"]["captured"] == "FACEGOOD 1114_2_05"
     held = ("1114_2_05", "SSB1624", "grid", "bobby", "mary")
@@ -93,7 +94,7 @@ def test_unheard_speakers_lips_close_and_the_recorded_figures_reproduce(tmp_path
     assert grid_bpm >= 10
     new_mbp, old_mbp = scores["new"].closure["MBP"], scores["old"].closure["MBP"]
     assert new_mbp.hits >= old_mbp.hits + 10 and new_mbp.share >= 0.75
-    # the alignment's own procedural curves: 17%; the same weights without ClosurePeaks: 24% (44/181)
+    # the alignment's own procedural curves: 17%; the first whisper default (0.12 s ramps, no peaks): 24% (44/181)
     assert scores["new"].false_closure["MBP"].share <= 0.10
     recorded = lineage["figures"]
     assert [new_mbp.hits, new_mbp.total] == recorded["mbp_closure"]
