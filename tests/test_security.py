@@ -345,7 +345,7 @@ def test_serve_refuses_a_flow_run_whose_store_is_outside_its_roots(_served, _ser
 
     deployment = _serve_client.read_deployment_by_name("procedural/served")
     outside = _served.store.parent / "elsewhere" / "store"
-    run = _serve_client.create_flow_run_from_deployment(deployment.id, parameters={"params": {"store": str(outside)}})
+    run = _serve_client.create_flow_run_from_deployment(deployment.id, parameters={"store": str(outside)})
     deadline = time.monotonic() + 240
     while not (run := _serve_client.read_flow_run(run.id)).state.is_final():
         assert time.monotonic() < deadline, f"flow run still {run.state.name}; serve said:\n{_served.output.read_text()}"

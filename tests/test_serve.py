@@ -49,9 +49,9 @@ def test_deployments_of_every_stage_with_the_pipeline_on_the_cron_schedule(tmp_p
     assert schedule.schedule.cron == "0 3 * * *" and schedule.schedule.timezone == "UTC" and schedule.active
     assert all(not d.schedules for name, d in deployments.items() if name != "pipeline/served")
     for stage in ("pipeline", "ingest"):
-        assert deployments[f"{stage}/served"].parameters == {"params": {"store": str(store), "corpus": str(corpus)}}
+        assert deployments[f"{stage}/served"].parameters == {"store": str(store), "corpus": str(corpus)}
     for stage in STORE_ONLY:
-        assert deployments[f"{stage}/served"].parameters == {"params": {"store": str(store)}}
+        assert deployments[f"{stage}/served"].parameters == {"store": str(store)}
     for name, d in deployments.items():
         assert flow_of(d.entrypoint).name == d.flow_name == name.split("/")[0]
 
@@ -61,10 +61,10 @@ def test_the_pipeline_defaults_to_the_corpus_last_ingested_else_has_no_schedule(
 
     store = tmp_path / "store"
     (pipeline, *_) = build_deployments(store, None)
-    assert not pipeline.schedules and pipeline.parameters == {"params": {"store": str(store)}}
+    assert not pipeline.schedules and pipeline.parameters == {"store": str(store)}
     Store(store).write_run_config("ingest", {"corpus": str(tmp_path / "corpus"), "n_shards": 8, "config": {}})
     (pipeline, *_) = build_deployments(store, None, "*/5 * * * *", timezone="Europe/Paris")
-    assert pipeline.parameters["params"]["corpus"] == str(tmp_path / "corpus")
+    assert pipeline.parameters["corpus"] == str(tmp_path / "corpus")
     assert pipeline.schedules[0].schedule.cron == "*/5 * * * *"
     assert pipeline.schedules[0].schedule.timezone == "Europe/Paris"
     (unscheduled, *_) = build_deployments(store, None, None)
@@ -217,10 +217,11 @@ def test_the_served_entrypoints_check_their_paths_before_the_stage_runs(tmp_path
         served = load_flow_from_entrypoint(deployment.entrypoint)
         stage = getattr(importlib.import_module(serve_module.SERVED_FLOWS[name]), name)
         assert module == "visemeflow.ops.serve" and served.fn is not stage.fn
-        assert served.name == stage.name == deployment.flow_name and served.parameters == stage.parameters
+        assert served.name == stage.name == deployment.flow_name
+        assert list(served.parameters.properties) == list(serve_module.params_model(stage.fn).model_fields)
     procedural = load_flow_from_entrypoint("visemeflow.ops.serve.procedural_flow")
-    with pytest.raises(PathOutsideRootsError, match=str(outside)):
-        procedural.fn(**procedural.validate_parameters({"params": {"store": str(outside)}}))
+    with pytest.raises(PathOutsideRootsError, match=rf"flow parameter store = {re.escape(str(outside))} is outside"):
+        procedural.fn(**procedural.validate_parameters({"store": str(outside)}))
     assert not outside.exists()
 
 
@@ -253,10 +254,11 @@ def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_p
         assert "PREFECT_API_AUTH_STRING" not in os.environ
     assert (home / "prefect.db").is_file()  # the server's own database, not the one in PREFECT_HOME
     assert not (tmp_path / "prefect-home" / "prefect.db").exists()
-    form = rerun.parameter_openapi_schema["definitions"]["RerunParams"]["properties"]
-    assert {"utterance_id", "stage", "force"} <= set(form)
+    form = rerun.parameter_openapi_schema["properties"]  # flat: each field of RerunParams a parameter
+    assert {"utterance_id", "stage", "force", "store"} == set(form) and "params" not in form
+    assert rerun.parameter_openapi_schema["required"] == ["utterance_id"]
     assert [s.schedule.cron for s in pipeline.schedules] == [serve_module.DEFAULT_CRON]
-    assert pipeline.parameters["params"]["corpus"] == str(corpus)
+    assert pipeline.parameters["corpus"] == str(corpus)
 
 
 @pytest.mark.server
@@ -295,3 +297,126 @@ def test_serve_stops_its_server_on_sigterm_as_under_systemd(tmp_path):
         for process in psutil.process_iter(["cmdline"]):  # a server left behind by a failure here
             if "--port" in (cmd := process.info["cmdline"] or []) and str(port) in cmd and "server" in cmd:
                 process.kill()
+
+
+def test_served_forms_are_flat_each_field_a_parameter_with_its_type_default_and_description():
+    """Prefect merges a run's parameters over the deployment's one top-level name at a time: flat, a run naming
+    `utterance_id` only keeps the served `store`; the CLI's `--param utterance_id=...` is accepted."""
+    from prefect.exceptions import ParameterTypeError
+
+    from visemeflow.flows.params import PipelineParams, RerunParams
+
+    from prefect.utilities.callables import parameter_schema
+
+    rerun = serve_module.served_flow("rerun_flow")
+    form = rerun.parameters.model_dump()
+    assert parameter_schema(rerun).model_dump() == form  # what `to_deployment` sends the server as the form
+    assert list(form["properties"]) == list(RerunParams.model_fields) and form["required"] == ["utterance_id"]
+    assert form["properties"]["force"]["default"] is True
+    assert form["properties"]["utterance_id"]["description"] == RerunParams.model_fields["utterance_id"].description
+    assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "landmarks", "track", "animate"}
+    assert rerun.flow_run_name == "rerun[{utterance_id}:{stage}]"  # the stage's template, on flat parameters
+    assert rerun.validate_parameters({"utterance_id": "spk/a", "store": "/s"}) == {
+        "utterance_id": "spk/a", "stage": "procedural", "store": serve_module.Path("/s"), "force": True}
+    pipeline = serve_module.served_flow("pipeline_flow")
+    shards = pipeline.parameters.properties["n_shards"]
+    assert (shards["minimum"], shards["maximum"], shards["default"]) == (1, 4096, 8)  # the field's constraints
+    with pytest.raises(ParameterTypeError, match="n_shards"):
+        pipeline.validate_parameters({"corpus": "/c", "n_shards": 0})
+    with pytest.raises(ParameterTypeError, match="utterance_id"):
+        rerun.validate_parameters({"store": "/s"})
+    assert set(pipeline.parameters.properties) == set(PipelineParams.model_fields)
+
+
+def test_the_served_flow_hands_the_stage_the_model_its_flat_parameters_make(tmp_path, monkeypatch):
+    """The confined copy builds the stage's own params model from the flat parameters and calls the stage with it."""
+    from visemeflow.flows.params import RerunParams
+
+    from prefect import flow
+
+    seen = []
+
+    @flow(name="rerun")
+    def recording(params: RerunParams) -> dict:
+        seen.append(params)
+        return {"ok": 1}
+
+    monkeypatch.setenv(ROOTS_ENV, str(tmp_path))
+    served = serve_module.confined(recording)
+    store = tmp_path / "store"
+    assert served.fn(**served.validate_parameters({"utterance_id": "spk/a", "store": str(store)})) == {"ok": 1}
+    assert seen == [RerunParams(utterance_id="spk/a", store=store)]
+    with pytest.raises(PathOutsideRootsError, match="flow parameter store = "):
+        served.fn(**served.validate_parameters({"utterance_id": "spk/a", "store": str(tmp_path.parent / "x")}))
+    assert len(seen) == 1  # refused before the stage ran
+
+
+@pytest.mark.server
+def test_the_prefect_cli_runs_served_deployments_with_flat_or_partial_parameters_on_the_served_store(tmp_path):
+    """docs/serve.md's commands against a real `visemeflow serve`: `--param utterance_id=...` is accepted, and a
+    run naming some fields only (`--param` or a partial `--params`) runs on the store `serve --store` set."""
+    import json
+    import subprocess
+    import sys
+    import time
+
+    from factories import make_corpus
+    from prefect.client.orchestration import get_client
+
+    from visemeflow.procedural import ProceduralConfig
+    from visemeflow.storage import Store
+    from visemeflow.tasks.procedural import default_variant
+
+    port, api_url = (port := free_port()), f"http://127.0.0.1:{port}/api"
+    store, work = tmp_path / "store", tmp_path / "work"  # work: serve's folder, where the default store would go
+    corpus = make_corpus(tmp_path / "corpus", {"spk/a": [("", 0.0, 0.2), ("AA1", 0.2, 0.5), ("M", 0.5, 0.7)]})
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_API_AUTH_STRING")}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_RUNNER_POLL_FREQUENCY="2")
+    said = tmp_path / "serve.log"
+    with said.open("w") as out:
+        serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", "--store", str(store), "--corpus",
+                                  str(corpus), "--port", str(port), "--cron", ""], env=env, cwd=work, stdout=out,
+                                 stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 240
+        while "deployments are being served" not in said.read_text():
+            assert serve.poll() is None and time.monotonic() < deadline, said.read_text()
+            time.sleep(0.5)
+        auth = (store / SERVE_DIR / AUTH_FILE).read_text()
+        cli_env = {**env, "PREFECT_API_URL": api_url, "PREFECT_API_AUTH_STRING": auth}
+
+        def deployment_run(*args: str) -> subprocess.CompletedProcess:
+            return subprocess.run([sys.executable, "-m", "prefect", "deployment", "run", *args], env=cli_env, cwd=work,
+                                  capture_output=True, text=True, timeout=120)
+
+        with temporary_settings(updates={PREFECT_API_URL: api_url, PREFECT_API_AUTH_STRING: auth}):
+            with get_client(sync_client=True) as client:
+                for args in (["ingest/served"],  # no parameters at all: the served store and corpus
+                             ["rerun/served", "--param", "utterance_id=spk/a"],
+                             ["rerun/served", "--params", json.dumps({"utterance_id": "spk/a", "stage": "ingest"})]):
+                    created = deployment_run(*args)
+                    assert created.returncode == 0, (args, created.stdout, created.stderr)
+                    run_id = re.search(r"UUID: ([0-9a-f-]{36})", created.stdout).group(1)
+                    deadline = time.monotonic() + 240
+                    while not (run := client.read_flow_run(run_id)).state.is_final():
+                        assert time.monotonic() < deadline, (args, run.state, said.read_text())
+                        time.sleep(1)
+                    assert run.state.is_completed(), (args, run.state, said.read_text())
+                nested = deployment_run("rerun/served", "--params", json.dumps({"params": {"utterance_id": "spk/a"}}))
+                assert nested.returncode != 0 and "params" in nested.stdout  # the old nested form is refused
+                rerun = client.read_deployment_by_name("rerun/served")
+                runs = [r for r in client.read_flow_runs() if r.deployment_id == rerun.id]
+    finally:
+        if serve.poll() is None:
+            serve.send_signal(__import__("signal").SIGTERM)
+            try:
+                serve.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                serve.kill()
+    assert sorted(r.name for r in runs) == ["rerun[spk/a:ingest]", "rerun[spk/a:procedural]"]
+    for run in runs:
+        assert run.state.is_completed() and run.parameters["store"] == str(store), (run.name, run.parameters)
+    assert Store(store).has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
+    assert not (work / "visemeflow-out").exists()  # nothing ran on the default store

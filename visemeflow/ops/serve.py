@@ -2,7 +2,9 @@
 
 The `pipeline` deployment runs on a cron schedule; since every stage caches on content hashes, a scheduled run
 reprocesses only what changed. The other stages and `rerun` (one utterance, one stage) are deployments without a
-schedule, run from the UI's forms (flow parameters are pydantic models) or `prefect deployment run`.
+schedule, run from the UI's forms or `prefect deployment run`. A served deployment's parameters are the fields of its
+stage's params model, flat (`--param utterance_id=...`), with the served store as a default that a run naming other
+fields keeps (docs/serve.md).
 
 The server `serve` starts answers only callers holding its auth string, asks every change for a CSRF token, and
 allows cross-origin calls from its own UI only. Its database, log and auth string live in `<store>/.prefect-serve/`
@@ -28,11 +30,13 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
+from typing import Annotated
 
 import httpx
 from prefect import Flow
 from prefect.deployments.runner import EntrypointType, RunnerDeployment
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+from prefect.utilities.callables import parameter_schema
 from pydantic import BaseModel
 
 from visemeflow.flows.stages import STAGES, Stage
@@ -131,21 +135,64 @@ def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Path]) 
             f"({allowed}); restart serve with `--root FOLDER` to allow another folder")
 
 
+def flat_signature(model: type[BaseModel]) -> inspect.Signature:
+    """One keyword parameter per field of `model`, with its type, constraints, description and default.
+
+    Why flat: Prefect merges a run's parameters over its deployment's defaults one top-level name at a time and the
+    CLI accepts only top-level names, so with a single `params` object `prefect deployment run --param
+    utterance_id=...` was refused and a partial `--params '{"params": {...}}'` replaced the whole object, dropping
+    the store `serve --store` had set. Flat, each field is merged on its own and the served store stays unless named.
+    """
+    parameters = []
+    for name, info in model.model_fields.items():
+        annotation = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
+        default = (inspect.Parameter.empty if info.is_required()
+                   else info.get_default(call_default_factory=True, validated_data={}))
+        parameters.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
+                                            default=default))
+    return inspect.Signature(parameters)
+
+
+def documented(doc: str | None, model: type[BaseModel]) -> str:
+    """`doc` with an `Args:` section describing each field of `model`: Prefect's forms take a parameter's
+    description from its flow's docstring."""
+    lines = [f"    {name}: {' '.join(info.description.split())}" for name, info in model.model_fields.items()
+             if info.description]
+    return "\n\n".join(part for part in (inspect.cleandoc(doc or ""), "Args:\n" + "\n".join(lines) if lines else "")
+                       if part)
+
+
+def params_model(fn: Callable) -> type[BaseModel]:
+    """The pydantic model of a stage flow's single parameter `params`."""
+    (parameter,) = inspect.signature(fn, eval_str=True).parameters.values()  # annotations may be strings
+    return parameter.annotation
+
+
+def served_run_name(template: object) -> object:
+    """The stage's run name template on flat parameters: `rerun[{params.utterance_id}]` -> `rerun[{utterance_id}]`."""
+    return template.replace("{params.", "{") if isinstance(template, str) else template
+
+
 def confined(flow: Flow) -> Flow:
-    """A copy of `flow`, importable from this module, that checks its path parameters against ROOTS_ENV before it
-    runs a line of the stage."""
+    """A copy of `flow`, importable from this module, whose parameters are the fields of the stage's `params` model
+    (`flat_signature`) and that checks every path among them against ROOTS_ENV before it runs a line of the stage."""
     fn = flow.fn
-    signature = inspect.signature(fn)
+    model = params_model(fn)
 
     @functools.wraps(fn)
-    def checked(*args, **kwargs):
-        check_paths_within(signature.bind(*args, **kwargs).arguments, roots_from_environment())
-        return fn(*args, **kwargs)
+    def checked(**fields):
+        params = model.model_validate(fields)
+        check_paths_within(dict(params), roots_from_environment())
+        return fn(params)
 
-    # Prefect validates parameters against this signature; some stages' annotations are strings of their module
-    checked.__signature__ = inspect.signature(fn, eval_str=True)
-    copy = flow.with_options()
+    checked.__signature__ = flat_signature(model)  # Prefect's form, validation and CLI read this signature
+    checked.__annotations__ = {}  # not the stage's `params: Model`, which `functools.wraps` copied
+    checked.__doc__ = documented(fn.__doc__, model)
+    del checked.__wrapped__  # else inspect.signature would follow it back to the stage's `params`
+    copy = flow.with_options(flow_run_name=served_run_name(flow.flow_run_name))
     copy.fn = checked
+    copy.__wrapped__, copy.__doc__ = checked, checked.__doc__  # `to_deployment` reads the schema off the flow itself
+    copy.parameters = parameter_schema(checked)
     copy.__module__ = __name__  # the deployment's entrypoint, so a run started from the database is confined too
     return copy
 
@@ -176,8 +223,8 @@ def build_deployments(
 
     store = store.resolve()
     corpus = corpus.resolve() if corpus else last_ingested_corpus(store)
-    on_store = {"params": {"store": str(store)}}
-    on_corpus = {"params": {"store": str(store), "corpus": str(corpus)}} if corpus else on_store
+    on_store = {"store": str(store)}
+    on_corpus = {"store": str(store), "corpus": str(corpus)} if corpus else on_store
 
     def deployment(stage: Stage) -> RunnerDeployment:
         scheduled = stage.scheduled and corpus and cron
@@ -479,7 +526,7 @@ def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CR
                  else "UI login: the auth string in PREFECT_API_AUTH_STRING")
         echo("flow runs may name paths under: " + ", ".join(map(str, allowed)))
         if pipeline.schedules:
-            echo(f"pipeline on {pipeline.parameters['params']['corpus']}: cron '{cron}' ({timezone})")
+            echo(f"pipeline on {pipeline.parameters['corpus']}: cron '{cron}' ({timezone})")
         else:
             echo("pipeline: no schedule (no --corpus and the store has no ingest run); run it from the UI")
         echo("stop with Ctrl-C")
