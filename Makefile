@@ -38,7 +38,8 @@ $(STAMP): pyproject.toml | system-deps
 # + the wav + a preview MP4 from the audio alone (`speak`), then the same as bone animation (32 SSDR bones: a skinned
 # GLB, UsdSkel with joints and the pose table), and an English utterance spoken with no model at all (`--model
 # phones`: phones recognised in the audio), and last the Mandarin utterance spoken by the shipped default model
-# (Whisper-base encoder; a voice it never heard); their paths are printed.
+# (Whisper-base encoder; a voice it never heard); their paths are printed. Then the dashboard, and a list of what to
+# open: its index.html, the preview MP4s, the speak outputs (GLB, USD) and the store.
 demo: system-deps venv
 	$(BIN)/visemeflow synth examples/corpus --out $(OUT)/demo-corpus --store $(OUT)/store
 	$(BIN)/visemeflow pipeline $(OUT)/demo-corpus --store $(OUT)/store
@@ -54,6 +55,15 @@ demo: system-deps venv
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --preview --out $(OUT)/speak-bones
 	$(BIN)/visemeflow speak examples/corpus/LJ/LJ001-0002.wav --model phones --store $(OUT)/store --format glb,json --preview --out $(OUT)/speak-phones
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --store $(OUT)/store --format glb,usd,json --preview --out $(OUT)/speak-default
+	$(BIN)/visemeflow dashboard --store $(OUT)/store --out $(OUT)/dashboard
+	@echo ""
+	@echo "Open these:"
+	@echo "  $(OUT)/dashboard/index.html    the report of the store: curves, tracking, training, robustness, animations"
+	@echo "  preview videos (MP4):"
+	@find $(OUT)/store/animations $(OUT)/speak* -name '*.mp4' 2>/dev/null | sort | sed 's/^/    /'
+	@echo "  the character speaking, for Blender / three.js (GLB) and Omniverse / Maya (USD):"
+	@find $(OUT)/speak* \( -name '*.glb' -o -name '*.usd' -o -name '*.usda' -o -name '*.usdc' \) 2>/dev/null | sort | sed 's/^/    /'
+	@echo "  $(OUT)/store    the store (Parquet tables, curves, models, reports/robustness.md)"
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.
 JS_STAMP := tools/js/node_modules/.installed

@@ -54,6 +54,8 @@ machine otherwise idle (lips, transfer, end_to_end, whisper_encoder, landmarks a
 times that while other jobs ran."""
 
 SLOW = {
+    "cli.py": ("starts visemeflow serve and runs about 12 commands, each paying Prefect's start: minutes",
+               ["--repeat", "1"]),
     "domain_gap.py": ("its data always include the 700 + 500 utterance espeak corpus (no size flag): many minutes "
                       "on a fresh bench/out", ["--steps", "2", "--recipes", "real", "--losses", "l1",
                                                "--recogniser-bias", "", "--d-model", "16", "--threads", "1"]),

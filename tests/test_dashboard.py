@@ -24,6 +24,7 @@ from typer.testing import CliRunner
 from visemeflow.cli import app
 from visemeflow.dashboards.html import (
     build_dashboard,
+    curve_index,
     robustness_html,
     robustness_table,
     select_utterances,
@@ -167,6 +168,7 @@ def dashboard(tmp_path_factory):
 def test_dashboard_holds_every_section_and_chart(dashboard):
     _, out, page, output = dashboard
     assert "3 utterances, 6 charts" in output
+    assert f"  {(out / 'index.html').resolve().as_uri()}\n" in output          # where to open it
     assert [p.name for p in out.iterdir()] == ["index.html"]        # one self-contained file
     tags = _tags(page)
     images = {a["id"]: a for t, a in tags if t == "img"}
@@ -448,3 +450,210 @@ def test_a_short_utterance_is_drawn_whole_without_a_note(tmp_path, monkeypatch):
     [(_, duration, (samples, _), _, phones, [panel])] = drawn
     assert len(phones) == 50 and duration == pytest.approx(4.0) and len(panel.time_s) == 120
     assert len(samples) == 4000 and 'id="drawn-window-0"' not in page
+
+
+# ---- a store shaped like the demo's: curve-only predictions, a Mandarin utterance, --out packages ----------------
+def demo_like_store(root: Path) -> tuple[Store, Path]:
+    """`realistic_store` plus what `make demo` adds: a Mandarin utterance with one source only (fewer than the
+    English ones), a package of spk/u2 in the store (a preview), curve-only predictions (`predict/u0` from the very
+    file of spk/u0, `predict/spoken` through `speak --out`, recorded, and `predict/lost` from a file nothing
+    records), and real-speech and lip metrics that make the robustness table wider than the page. Returns the store
+    and the --out folder of the recorded package."""
+    from visemeflow.dashboards.records import record_packages
+    from visemeflow.hashing import file_hash
+    from visemeflow.learning.robustness_table import TABLE_RUNS
+
+    s = realistic_store(root)
+    media = root.parent / f"{root.name}-media"
+    rng = np.random.default_rng(1)
+    wav = write_wav(media / "SSB16240001.wav", 1.2)
+    row = {**_utterance_row("SSB1624/SSB16240001", wav, None, 1.2, 25.0, "train"), C.LANGUAGE: "zh"}
+    s.write_shard("utterances", 1, table_from_rows([row], UTTERANCES))
+    s.write_shard("phones", 1, table_from_rows(_phone_rows("SSB1624/SSB16240001", 1.2), PHONES))
+    s.write_curves(curves_table("SSB1624/SSB16240001", "procedural", "jali", rng.random((30, 16), np.float32), 25.0),
+                   fps=25.0)
+    folder = s.animation_dir("ict_visemes", "spk/u2")
+    folder.mkdir(parents=True)
+    (folder / "u2.preview.mp4").write_bytes(b"x")
+    u0_wav = Path(s.read_table("utterances", utterance_ids=["spk/u0"]).to_pylist()[0][C.AUDIO_PATH])
+    s.write_curves(curves_table("predict/u0", "predicted", "m1", rng.random((36, 16), np.float32), 30.0), fps=30.0,
+                   provenance=f"predicted:m1:{'0' * 32}:{file_hash(u0_wav)}:30.0:code")
+    s.write_curves(curves_table("predict/lost", "predicted", "m1", rng.random((36, 16), np.float32), 30.0),
+                   fps=30.0, provenance=f"predicted:m1:{'0' * 32}:{'1' * 32}:30.0:code")
+    spoken = write_wav(media / "spoken.wav", 1.1)
+    s.write_curves(curves_table("predict/spoken", "predicted", "m1", rng.random((36, 16), np.float32), 30.0),
+                   fps=30.0, provenance=f"predicted:m1:{'0' * 32}:{file_hash(spoken)}:30.0:code")
+    out = root.parent / "speak out"
+    package = out / "ict_visemes" / "predict" / "spoken"
+    package.mkdir(parents=True)
+    for suffix in (".glb", ".usda", ".mp4"):
+        (package / f"spoken{suffix}").write_bytes(b"x")
+    record_packages(s, [{"utterance_id": "predict/spoken", "character": "ict_visemes", "folder": str(package)}],
+                    {"predict/spoken": str(spoken)})
+    wide = [_metric(run, "m1", c, 40.0 + k) for run in TABLE_RUNS for k, c in enumerate(CONDITIONS)]
+    s.write_metrics("m1", "evaluate-extra", table_from_rows(wide, METRICS))
+    return s, out
+
+
+@pytest.fixture(scope="module")
+def demo_like(tmp_path_factory):
+    """(store, --out folder, report folder, page text) of the dashboard of `demo_like_store`, through the CLI."""
+    root = tmp_path_factory.mktemp("demo-like") / "store"
+    store, speak_out = demo_like_store(root)
+    report = root.parent / "report"
+    result = runner.invoke(app, ["dashboard", "--store", str(root), "--out", str(report)])
+    assert result.exit_code == 0, result.output
+    return store, speak_out, report, (report / "index.html").read_text(encoding="utf-8")
+
+
+def _utterance_captions(page: str) -> dict[str, str]:
+    """utterance id -> the caption of its chart."""
+    captions = re.findall(r'<figcaption><strong class="utterance-id">(.*?)</strong>(.*?)</figcaption>', page, re.S)
+    return {html.unescape(uid): caption for uid, caption in captions}
+
+
+def test_the_utterance_count_agrees_with_the_store_table(demo_like):
+    _, _, _, page = demo_like
+    store_table = dict(re.findall(r"<tr><td>([^<]*)</td><td class=\"num\">(\d+)</td></tr>", page))
+    in_table = int(store_table["utterances"])
+    curve_only = int(store_table["curve-only utterances (predict, speak: no row in the utterances table)"])
+    assert (in_table, curve_only) == (4, 3)
+    note = re.search(r'<p class="note" id="utterance-count">(\d+) of (\d+) utterances \((\d+) in the utterances '
+                     r"table, (\d+) curve-only\)", page)
+    assert note is not None
+    drawn, total, table_part, only_part = map(int, note.groups())
+    assert total == in_table + curve_only == table_part + only_part and table_part == in_table
+    assert drawn == len(_utterance_captions(page)) == 7
+
+
+def test_predicted_clips_are_drawn_over_their_audio_when_the_store_knows_it(demo_like, tmp_path, monkeypatch):
+    store, _, _, page = demo_like
+    captions = _utterance_captions(page)
+    # from the very file of spk/u0 (same bytes): its audio and phones, its ground truth as the reference
+    assert "the same audio file as <code>spk/u0</code>" in captions["predict/u0"]
+    assert "L1 x 100 vs the ground truth of <code>spk/u0</code>: predicted/m1" in captions["predict/u0"]
+    # through speak --out: the audio the record names
+    assert "audio recorded by speak/animate" in captions["predict/spoken"]
+    assert "audio unknown" not in captions["predict/u0"] + captions["predict/spoken"]
+    # a file nothing records: said so, not drawn
+    assert "audio unknown" in captions["predict/lost"]
+    from visemeflow.dashboards import plots
+
+    drawn = {}
+    monkeypatch.setattr(plots, "utterance_figure",
+                        lambda title, *args: drawn.setdefault(title, args) and b"\x89PNG\r\n\x1a\n")
+    build_dashboard(store, tmp_path / "out")
+    (_, waveform, _, phones, _) = drawn["predict/u0"]
+    assert waveform is not None and waveform[1] == 16000 and len(phones) == 8     # spk/u0's audio and phones
+    assert drawn["predict/spoken"][1] is not None and drawn["predict/spoken"][3] == []
+    assert drawn["predict/lost"][1] is None
+
+
+def test_packages_written_outside_the_store_are_listed_with_working_links(demo_like):
+    from urllib.parse import unquote
+
+    _, speak_out, report, page = demo_like
+    assert "2 of 2 packages (character, utterance), 1 of them written outside the store" in page
+    blocks = re.findall(r'<div class="animation" id="animation-\d+">(.*?)</div>', page, re.S)
+    [outside] = [b for b in blocks if "predict/spoken" in b]
+    assert html.escape(str((speak_out / "ict_visemes" / "predict" / "spoken").resolve())) in outside
+    hrefs = re.findall(r'(?:href|src)="([^"]+)"', outside)
+    assert {Path(unquote(h)).name for h in hrefs} == {"spoken.glb", "spoken.usda", "spoken.mp4"}
+    for href in hrefs:
+        assert (report / unquote(href)).resolve().is_file(), href
+
+
+def test_a_package_record_keeps_one_entry_per_folder_and_forgets_deleted_folders(tmp_path):
+    from visemeflow.dashboards.records import MAX_RECORDED, RECORD_NAME, record_packages, recorded_packages
+
+    s = Store(tmp_path / "store")
+    folders = [tmp_path / "out" / f"p{k}" for k in range(3)]
+    for f in folders:
+        f.mkdir(parents=True)
+    reports = [{"utterance_id": f"predict/p{k}", "character": "c", "folder": str(f)} for k, f in enumerate(folders)]
+    assert record_packages(s, reports[:2], {"predict/p0": "a.wav"}) == 2
+    assert record_packages(s, reports[1:], {}) == 3                    # p1 again: replaced, not added
+    got = recorded_packages(s)
+    assert [e["utterance_id"] for e in got] == ["predict/p2", "predict/p1", "predict/p0"]
+    assert got[2]["audio"] == str(Path("a.wav").resolve()) and got[1]["audio"] is None
+    folders[0].rmdir()
+    assert [e["utterance_id"] for e in recorded_packages(s)] == ["predict/p2", "predict/p1"]
+    s.report_path(RECORD_NAME).write_text("{not json")
+    assert recorded_packages(s) == [] and record_packages(s, reports[:1]) == 1
+    many = [{"utterance_id": f"predict/m{k}", "character": "c", "folder": str(tmp_path / f"m{k}")}
+            for k in range(MAX_RECORDED + 5)]
+    assert record_packages(s, many) == MAX_RECORDED
+
+
+def test_every_language_and_the_packaged_utterances_are_drawn_within_the_limit(demo_like, tmp_path):
+    store = demo_like[0]
+    two = build_dashboard(store, tmp_path / "two", max_utterances=2)
+    assert two.utterances == ["spk/u0", "SSB1624/SSB16240001"]       # the one Mandarin utterance, one source only
+    three = build_dashboard(store, tmp_path / "three", max_utterances=3)
+    assert three.utterances == ["spk/u2", "spk/u0", "SSB1624/SSB16240001"]  # spk/u2 has a preview: first
+    page = three.path.read_text(encoding="utf-8")
+    assert "SSB1624/SSB16240001</strong> · speaker SSB1624 · language zh" in page
+    # without the languages, or the packages, the richest utterances win
+    index = curve_index(store)
+    known = store.read_table("utterances").column(C.UTTERANCE_ID).to_pylist()
+    assert select_utterances(known, index, None, 2)[0] == ["spk/u0", "spk/u1"]
+    assert select_utterances(known, index, None, 3, {u: "en" for u in known}, {"spk/u2"})[0] == \
+        ["spk/u2", "spk/u0", "spk/u1"]
+
+
+def test_the_wide_robustness_table_scrolls_in_its_box_and_the_page_does_not(demo_like, browser, tmp_path):
+    _, _, report, page = demo_like
+    measure = """(() => {
+        const box = document.getElementById('robustness-scroll'), table = document.getElementById('robustness-table');
+        const root = document.documentElement;
+        return {page: [root.scrollWidth, root.clientWidth], table: table.getBoundingClientRect().width,
+                box: box ? [box.scrollWidth, box.clientWidth] : null};
+    })()"""
+    state = browser.load(report / "index.html")
+    assert state["errors"] == []
+    sizes = browser.send("Runtime.evaluate", {"expression": measure, "returnByValue": True})["result"]["value"]
+    assert sizes["table"] > sizes["page"][1]                        # the table is wider than the window...
+    assert sizes["box"][0] > sizes["box"][1]                        # ...and scrolls inside its box...
+    assert sizes["page"][0] <= sizes["page"][1]                     # ...so the page does not scroll sideways
+    shot = browser.screenshot(tmp_path / "demo-like.png")
+    assert shot.stat().st_size > 20_000
+    # the measurement sees the overflow: the same page without the scroll box is wider than the window
+    unwrapped = tmp_path / "unwrapped.html"
+    unwrapped.write_text(page.replace('<div class="wide" id="robustness-scroll">', "<div>"), encoding="utf-8")
+    browser.load(unwrapped)
+    sizes = browser.send("Runtime.evaluate", {"expression": measure, "returnByValue": True})["result"]["value"]
+    assert sizes["box"] is None and sizes["page"][0] > sizes["page"][1]
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_speak_with_out_records_its_packages_and_the_dashboard_lists_them(tmp_path):
+    """The real `speak` flow with `--out`: the store records the package (and its audio), and the dashboard lists
+    it and draws the predicted clip over that audio."""
+    from factories import DEMO_AUDIO, tiny_model
+
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.flows.animate import SpeakParams, speak_flow
+    from visemeflow.rig.character import make_character, save_character_npz
+    from visemeflow.shapes.conventions import OCULUS_15
+
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)
+    shapes = np.random.default_rng(0).normal(0, 0.1, size=(len(OCULUS_15), 16, 3))
+    character = save_character_npz(make_character("tiny", np.c_[grid, np.zeros(16)],
+                                                  [[i, i + 1, i + 4] for i in range(11) if i % 4 != 3],
+                                                  list(OCULUS_15), shapes), tmp_path / "tiny.npz")
+    store = Store(tmp_path / "store")
+    tiny_model(store)
+    out = tmp_path / "speak"
+    result = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[DEMO_AUDIO], characters=[character],
+                                    out=out, config=AnimateConfig(formats=("glb",))))
+    [package] = result["packages_written"]
+    report = tmp_path / "report"
+    cli = runner.invoke(app, ["dashboard", "--store", str(store.root), "--out", str(report)])
+    assert cli.exit_code == 0, cli.output
+    page = (report / "index.html").read_text(encoding="utf-8")
+    assert "1 of 1 packages (character, utterance), 1 of them written outside the store" in page
+    assert html.escape(str(Path(package["folder"]).resolve())) in page
+    assert re.search(r'href="[^"]*SSB16240001\.glb"', page)
+    caption = _utterance_captions(page)["predict/SSB16240001"]
+    assert "audio unknown" not in caption and html.escape(str(DEMO_AUDIO.resolve())) in caption

@@ -24,7 +24,9 @@ ALLOWED = {
     "procedural": {"phonetics"},
     "tracking": {"rig", "render"},
     "learning": {"schemas"},  # the utterance-id rules, for augmented ids
-    "animation": {"rig", "shapes", "render"},
+    # tracking: the preview's source-video panel reads the clip and its landmark file with tracking's readers
+    # (tracking.video, tracking.landmarks); nothing of the tracker itself
+    "animation": {"rig", "shapes", "render", "tracking"},
     # deformation transfer and its automatic markers (FaceMesh on rendered faces: tracking), once per character
     "authoring": {"rig", "shapes", "render", "tracking", "animation"},
     "synth": {"phonetics", "procedural", "rig", "render", "tracking"},  # the landmark track it writes per video

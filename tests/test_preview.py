@@ -7,6 +7,7 @@ length, the layout, and that the pixels move where the weights differ (and only 
 from fractions import Fraction
 
 import av
+import cv2
 import numpy as np
 import pytest
 
@@ -310,3 +311,233 @@ def test_a_bone_source_of_another_mesh_or_width_is_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"bone rig of 'sheet' with 144 vertices, not of this character \(64"):
         render_preview(tmp_path / "a.mp4", rigid_and_bump_character(8), {"bones": BoneSource(rig, nan)}, FPS, size=32)
     assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------------------------- the source video panel
+
+VIDEO_FPS = 25
+
+
+def patterned_video(path, n: int = 12, height: int = 120, width: int = 160):
+    """A clip whose frames all differ: smooth noise (so a crop shows where it was cut) and a bright bar moving 5 px a
+    frame inside the face crop of `corner_landmarks`, with a silent audio track (times on the audio's clock, as the utterances' videos)."""
+    from visemeflow.tracking.video import write_video
+
+    rng = np.random.default_rng(3)
+    base = cv2.resize(rng.integers(0, 255, (height // 8, width // 8, 3), dtype=np.uint8), (width, height),
+                      interpolation=cv2.INTER_CUBIC)
+    frames = []
+    for k in range(n):
+        frame = base.copy()
+        frame[:, 36 + 5 * k:42 + 5 * k] = (250, 250, 40)
+        frames.append(frame)
+    write_video(path, frames, VIDEO_FPS, audio=np.zeros(int(n / VIDEO_FPS * 16000), np.float32), audio_rate=16000)
+    return path
+
+
+def corner_landmarks(n: int, mouth_at=None):
+    """A landmark track whose points all sit on the corners of x 40..100, y 30..90 (so the face crop is known: centre
+    (70, 60), side 60 / 0.86 = 70 px), the mouth (48-67) at `mouth_at` when given."""
+    from visemeflow.tracking.landmarks import LandmarkTrack
+
+    corners = np.array([[40, 30], [100, 30], [40, 90], [100, 90]], np.float32)
+    points = np.tile(corners[np.arange(68) % 4], (n, 1, 1))
+    if mouth_at is not None:
+        points[:, 48:68] = mouth_at
+    return LandmarkTrack(points, np.ones((n, 68), bool), VIDEO_FPS, "generic68")
+
+
+def expected_crop(frame: np.ndarray, left: int, top: int, side: int, size: int) -> np.ndarray:
+    """The test's own crop: frame[top:top+side, left:left+side] (black outside the frame), scaled to size."""
+    square = np.zeros((side, side, 3), np.uint8)
+    y0, y1, x0, x1 = max(top, 0), min(top + side, frame.shape[0]), max(left, 0), min(left + side, frame.shape[1])
+    square[y0 - top:y1 - top, x0 - left:x1 - left] = frame[y0:y1, x0:x1]
+    return cv2.resize(square, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
+
+
+def video_panels(layout: PreviewFrames) -> list[np.ndarray]:
+    return [canvas[layout.panel_box(0)].copy() for canvas in layout]
+
+
+def shown_frames(panels, crops) -> list[tuple[int, float]]:
+    """For each panel, the decoded frame whose crop it matches best, and how well (mean abs difference)."""
+    out = []
+    for panel in panels:
+        d = [diff(panel, c) for c in crops]
+        out.append((int(np.argmin(d)), float(min(d))))
+    return out
+
+
+def test_the_video_panel_shows_the_face_crop_of_the_frame_the_tracker_used(tmp_path):
+    """At 30 fps over a 25 fps clip, preview frame k shows the crop of the decoded frame that
+    `FrameTimeline.video_frame` gives grid frame k; where it gives none (no frame within half a step), the nearest
+    frame dimmed."""
+    from visemeflow.animation.preview import VideoSource
+    from visemeflow.tracking.utterance import FrameTimeline
+    from visemeflow.tracking.video import read_timed_frames
+
+    video = patterned_video(tmp_path / "take.mp4")
+    decoded, times = read_timed_frames(video)
+    crops = [expected_crop(f, 35, 25, 70, SIZE) for f in decoded]
+    n = 14
+    layout = PreviewFrames(grid_character(), {"tracked": np.zeros((n, 2), np.float32)}, FPS, size=SIZE,
+                           framing="face", video=VideoSource(video, corner_landmarks(len(decoded)), overlay=False))
+    assert layout.n_panels == 2 and layout.width == 2 * SIZE
+    label = np.asarray(layout.painter.band("video", SIZE, layout.label_height))
+    panels, first = [], None
+    for canvas in layout:
+        panels.append(canvas[layout.panel_box(0)].copy())
+        first = canvas[layout.label_box(0)].copy() if first is None else first
+    assert np.array_equal(first, label)
+    index = FrameTimeline(times, FPS, n).video_frame()
+    assert (index < 0).any() and (index >= 0).sum() >= 8   # both cases are exercised
+    for k, (panel, want) in enumerate(zip(panels, index)):
+        if want >= 0:
+            best, error = shown_frames([panel], crops)[0]
+            assert best == want and error < 3.0, (k, best, want, error)
+            # the crop, not the whole frame or another region: the same frame cut elsewhere is far off
+            assert diff(panel, expected_crop(decoded[want], 5, 5, 70, SIZE)) > 10 * max(error, 1.0)
+        else:
+            t = k / FPS
+            nearest = int(np.argmin(np.abs(times - t)))
+            assert diff(panel, (crops[nearest] * 0.5).astype(np.uint8)) < 3.0, k
+
+
+def test_the_tracked_mouth_landmarks_are_drawn_on_the_video_panel(tmp_path):
+    from visemeflow.animation.preview import LANDMARK_COLOR, VideoSource
+
+    video = patterned_video(tmp_path / "take.mp4", n=4)
+    sources = {"tracked": np.zeros((3, 2), np.float32)}
+    plain = video_panels(PreviewFrames(grid_character(), sources, VIDEO_FPS, size=SIZE, framing="face",
+                                       video=VideoSource(video, corner_landmarks(4, (70, 60)), overlay=False)))
+    marked = video_panels(PreviewFrames(grid_character(), sources, VIDEO_FPS, size=SIZE, framing="face",
+                                        video=VideoSource(video, corner_landmarks(4, (70, 60)))))
+    centre = SIZE // 2  # (70, 60) is the crop's centre
+    for a, b in zip(plain, marked):
+        assert np.abs(b[centre, centre].astype(int) - LANDMARK_COLOR).max() < 40
+        changed = np.argwhere(np.abs(a.astype(int) - b.astype(int)).max(axis=2) > 30)
+        assert len(changed) and np.abs(changed - centre).max() <= 3   # only the dot, nothing else
+
+
+def test_without_a_video_there_is_no_video_panel_and_a_bad_one_says_so(tmp_path):
+    from visemeflow.animation.preview import VideoSource
+
+    ch, sources = grid_character(), {"tracked": np.zeros((3, 2), np.float32)}
+    bare = PreviewFrames(ch, sources, FPS, size=SIZE)
+    assert bare.n_panels == 1 and bare.width == SIZE
+    first = next(iter(bare))
+    assert not np.array_equal(first[bare.label_box(0)], bare.painter.band("video", SIZE, bare.label_height))
+
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"not a video at all" * 100)
+    for path, text in ((tmp_path / "gone.mp4", "video not found"), (broken, "video unreadable"),
+                       (None, "no video file")):
+        out = tmp_path / "p.mp4"
+        report = render_preview(out, ch, sources, FPS, size=SIZE, video=VideoSource(path, corner_landmarks(3)))
+        assert report.width == 2 * SIZE and report.frames == 3
+        frames, _ = decode_video_only(out)
+        layout = PreviewFrames(ch, sources, FPS, size=SIZE, video=VideoSource(path))
+        message = layout.painter.band(text, SIZE, SIZE)
+        assert all(diff(f[layout.panel_box(0)], message) < 2.0 for f in frames), text
+        other = layout.painter.band("video not found" if text != "video not found" else "no video file", SIZE, SIZE)
+        assert diff(frames[0][layout.panel_box(0)], other) > diff(frames[0][layout.panel_box(0)], message)
+
+
+def decode_video_only(path):
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)], stream.codec_context.width
+
+
+def test_a_real_variable_rate_clip_shows_the_speakers_face_at_each_preview_time():
+    """../shared/data/talking_heads/1.mp4 (variable frame rate, MediaPipe landmarks): each panel is the crop of the
+    decoded frame the tracker maps to that time, around the landmarks of the lower face."""
+    from visemeflow.animation.preview import VideoSource, video_source
+    from visemeflow.tracking.utterance import FrameTimeline
+    from visemeflow.tracking.video import iter_timed_frames
+
+    from factories import SHARED_DATA
+
+    clip = SHARED_DATA / "talking_heads" / "1.mp4"
+    landmarks = SHARED_DATA / "talking_heads" / "1.mediapipe478.csv"
+    assert clip.is_file() and landmarks.is_file(), f"{clip}: the shared data is missing"
+    n = 30
+    source = video_source(clip, landmarks, 30.0, overlay=False)
+    assert isinstance(source, VideoSource) and source.landmarks is not None
+    layout = PreviewFrames(grid_character(), {"tracked": np.zeros((n, 2), np.float32)}, 30, size=SIZE,
+                           video=source)
+    panels = video_panels(layout)
+    decoded, times = [], []
+    for frame, t in iter_timed_frames(clip):
+        if t > (n + 1) / 30:
+            break
+        decoded.append(frame)
+        times.append(t)
+    # the crop: the lower face's landmarks over the clip (1st..99th percentile), widened by 1 / 0.86
+    lower = np.r_[2:15, 31:36, 48:68]
+    pts = source.landmarks.points[:, lower][source.landmarks.valid[:, lower]]
+    low, high = np.percentile(pts, (1, 99), axis=0)
+    side = int(round(max(high - low) / 0.86))
+    left, top = (int(round(c - side / 2)) for c in (low + high) / 2)
+    mouth = source.landmarks.points[:, 48:68].reshape(-1, 2)
+    assert (left < mouth[:, 0].min()) and (mouth[:, 0].max() < left + side)
+    assert (top < mouth[:, 1].min()) and (mouth[:, 1].max() < top + side)
+    crops = [expected_crop(f, left, top, side, SIZE) for f in decoded]
+    index = FrameTimeline(np.asarray(times), 30.0, n).video_frame()
+    assert (index < 0).any()  # the clip's gaps
+    for k, want in enumerate(index):
+        if want >= 0:
+            best, error = shown_frames([panels[k]], crops)[0]
+            assert error < 3.0 and diff(crops[best], crops[want]) < 1e-9, (k, best, want, error)
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_the_preview_command_puts_the_tracked_videos_face_first_and_leaves_it_out_without_tracked(tmp_path):
+    """`visemeflow preview` on an utterance with a video and stored landmarks: with `tracked` among the sources the
+    first panel is the video's face crop (labelled "video"); without `tracked`, or for an utterance with no video, it
+    is absent."""
+    from typer.testing import CliRunner
+
+    from factories import make_curve_store
+    from visemeflow.cli import app
+    from visemeflow.schemas import UTTERANCES, C, curves_array, curves_table, table_from_rows
+    from visemeflow.tracking.landmarks import write_landmarks
+    from visemeflow.tracking.video import read_timed_frames
+
+    store = make_curve_store(tmp_path / "store", n=2)
+    video = patterned_video(tmp_path / "u0.mp4", n=12)
+    marks = write_landmarks(corner_landmarks(12), tmp_path / "u0.landmarks.csv")
+    rows = store.read_table("utterances").to_pylist()
+    rows[0][C.VIDEO_PATH], rows[0][C.LANDMARK_PATH] = str(video), str(marks)
+    store.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    for uid in ("spk/u0", "spk/u1"):
+        curves = curves_array(store.read_curves(uid, "ground_truth", "cm"))
+        store.write_curves(curves_table(uid, "tracked", "v1", curves, 25.0))
+    decoded, _ = read_timed_frames(video)
+    # the boxes (the command titles its previews; the panels' place does not depend on the character)
+    layout = PreviewFrames(grid_character(), {"x": np.zeros((1, 2), np.float32)}, 25, size=SIZE, title="t")
+
+    def preview(uid: str, sources: str, name: str):
+        out = tmp_path / name
+        result = CliRunner().invoke(app, ["preview", uid, "--store", str(store.root), "--sources", sources,
+                                          "--size", str(SIZE), "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        frames, width = decode_video_only(out)
+        return result.output, frames, width
+
+    output, frames, width = preview("spk/u0", "tracked,ground_truth", "with.mp4")
+    assert "video, tracked (v1), ground truth (cm)" in output and width == 3 * SIZE
+    label = frames[0][layout.label_box(0)]
+    assert diff(label, layout.painter.band("video", SIZE, layout.label_height)) < 3.0
+    assert diff(label, layout.painter.band("tracked (v1)", SIZE, layout.label_height)) > 6.0
+    for k in (1, 5, 10):   # the curves' 25 fps grid is the clip's: frame k shows decoded frame k
+        panel = frames[k][layout.panel_box(0)]
+        d = [diff(panel, expected_crop(f, 35, 25, 70, SIZE)) for f in decoded]
+        # H.264 at the preview's quality blurs the noise a little, and the mouth dots sit on the crop's corners
+        assert int(np.argmin(d)) == k and d[k] < 10.0 and d[k] < 0.5 * min(d[:k] + d[k + 1:]), (k, d)
+
+    output, frames, width = preview("spk/u0", "ground_truth", "without.mp4")
+    assert "fps; ground truth (cm); rendered" in output and width == SIZE
+    output, frames, width = preview("spk/u1", "tracked,ground_truth", "none.mp4")
+    assert "fps; tracked (v1), ground truth (cm); rendered" in output and width == 2 * SIZE

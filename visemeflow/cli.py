@@ -21,16 +21,88 @@ app.add_typer(curves_app, name="curves")
 
 
 
-def _usable_store(store: Path) -> Path:
-    """Fail before any flow starts when the store cannot be a writable folder (no side effects)."""
+def _fail(message: str) -> None:
+    """A wrong argument: one line on stderr and exit 2, before any flow (and Prefect, with its temporary server) starts."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+# Whether this process is the `visemeflow` command (main()), not `app` called in-process (tests, CliRunner): only
+# the command chooses the Prefect API, through the environment, before it imports Prefect.
+_AS_COMMAND = False
+# Commands that run no flow: they neither need a Prefect API nor look one up. `serve` finds or starts its own.
+_NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export", "export-model", "transfer",
+                      "espeak-corpus"})
+
+
+def _usable_store(ctx: typer.Context, store: Path) -> Path:
+    """Fail before any flow starts when the store cannot be a writable folder (no side effects). Run as the command,
+    for a command that runs a flow, point Prefect at a server already up (PREFECT_API_URL, else a running
+    `visemeflow serve --store STORE`), else start Prefect's temporary server now, while the command imports its
+    libraries, rather than when the flow is called (`visemeflow.ops.connect`)."""
     probe = store
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
-        raise typer.BadParameter(f"cannot use {store} as a store: {probe} is a file, not a folder")
+        _fail(f"cannot use {store} as a store: {probe} is a file, not a folder")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
-        raise typer.BadParameter(f"cannot write the store {store}: no write permission on {probe}")
+        _fail(f"cannot write the store {store}: no write permission on {probe}")
+    if _AS_COMMAND and ctx.info_name not in _NO_FLOW and not ctx.resilient_parsing and "prefect" not in sys.modules:
+        from visemeflow.ops.connect import use_running_api
+
+        use_running_api(store)
     return store
+
+
+def _check_paths(value: Path | list[Path] | None, what: str, kind: str = "any") -> None:
+    """Each path exists and is a folder (kind "dir"), a file ("file") or either ("any"); else one line `error: ...`
+    and exit 2, before any flow starts (the flow would fail the same way, but after Prefect's server is up)."""
+    for path in value if isinstance(value, (list, tuple)) else [] if value is None else [value]:
+        if not path.exists():
+            _fail(f"{what} {path} does not exist")
+        if kind == "file" and not path.is_file():
+            _fail(f"{what} {path} is not a file")
+        if kind == "dir" and not path.is_dir():
+            _fail(f"{what} {path} is not a folder")
+
+
+def _must_exist(what: str, kind: str = "any"):
+    """A callback running `_check_paths` on a Path option/argument (or each of a repeated one) while parsing."""
+    def check(ctx: typer.Context, value):
+        if not ctx.resilient_parsing:
+            _check_paths(value, what, kind)
+        return value
+    return check
+
+
+_corpus_exists = _must_exist("corpus (a folder or a manifest CSV)")
+
+
+def _corpus(ctx: typer.Context, value):
+    """The corpus exists and has a corpus's layout: one line and exit 2 before any flow starts, else (a single
+    video, a flat folder of wavs, a binary manifest)."""
+    value = _corpus_exists(ctx, value)
+    if value is not None and not ctx.resilient_parsing:
+        from visemeflow.ingest.corpus import check_corpus
+
+        problem = check_corpus(value)
+        if problem is not None:
+            _fail(problem)
+    return value
+_character = _must_exist("character")
+_file = _must_exist("file", "file")
+_path = _must_exist("path")
+
+
+def _known_model(store: Path, model: str) -> None:
+    """A named model must be in the store (checked before --device loads torch and before the flow starts)."""
+    if model in ("default", "default-fbank", "phones"):
+        return
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    if not s.has_model(model):
+        _fail(f"no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with `visemeflow train`")
 
 
 StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.", callback=_usable_store)]
@@ -84,7 +156,7 @@ def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: floa
 
 CharactersOpt = Annotated[Optional[list[Path]], typer.Option(
     "--character", help="Character: .glb/.gltf with morph targets, .npz, or a folder of meshes (repeat for several); "
-                        "default: the shipped ICT demo character.")]
+                        "default: the shipped ICT demo character.", callback=_character)]
 FormatsOpt = Annotated[str, typer.Option(
     "--format", help="Comma-separated: glb, usd, livelink, json, curves-csv, curves-json; with --mode bones also "
                      "pose-csv, pose-json.")]
@@ -96,7 +168,8 @@ ClosureOpt = Annotated[bool, typer.Option(
     "--closure-rule/--no-closure-rule", help="Lips close at b/p/m and touch the teeth at f/v whatever else is active, "
                                              "and no blend opens wider than AHH (visemeflow.articulation).")]
 MappingOpt = Annotated[Optional[Path], typer.Option(
-    "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.")]
+    "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.",
+    callback=_file)]
 MeshOpt = Annotated[Optional[list[str]], typer.Option(
     "--mesh", help="A mesh of a .glb/.gltf character to drive (repeat for several: head, teeth, eyes ...); default: "
                    "every mesh whose morph targets match, printed with the run.")]
@@ -137,13 +210,49 @@ def _check_meshes(characters: list[Path] | None, meshes: list[str] | None) -> No
             raise typer.Exit(2) from None
 
 
+# summary keys printed under a clearer label, and the unit their value is in
+_SUMMARY_LABELS: dict[str, tuple[str, str]] = {
+    "mean_mouth_error_px": ("mean_mouth_error", "px"), "val_l1_x100": ("validation L1 x 100", ""),
+    "unguided_why": ("unguided because", ""),
+}
+
+
+def _summary_value(key: str, value: object) -> str | None:
+    """A summary value as a person reads it: floats rounded (to what the measure can tell), the unit named, None
+    and NaN omitted (None is the absence of a figure, not a figure): then None."""
+    import math
+
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return None
+    label, unit = _SUMMARY_LABELS.get(key, (key, ""))
+    if isinstance(value, bool):
+        return f"{label} {'yes' if value else 'no'}"
+    if not unit:
+        for suffix in ("_px", "_mm", "_s"):
+            if key.endswith(suffix) and isinstance(value, (int, float)):
+                label, unit = key[: -len(suffix)], suffix[1:]
+    if isinstance(value, float):
+        text = f"{value:.0f}" if abs(value) >= 100 else f"{value:.2f}" if abs(value) >= 1 else f"{value:.3f}"
+    else:
+        text = str(value)
+    return f"{label} {text}" + (f" {unit}" if unit else "")
+
+
 def _print_summary(title: str, summary: dict) -> None:
-    typer.echo(f"{title}: " + ", ".join(f"{k} {v}" for k, v in summary.items()))
+    """`title: key value, ...`; a stage that ran in several modes (track: guided, unguided) names the ones used in
+    its title, not the one asked for."""
+    summary = dict(summary)
+    used = summary.pop("variants", None)
+    if used:
+        summary.pop("variant", None)
+        title = f"{title} ({used})"
+    parts = (_summary_value(k, v) for k, v in summary.items())
+    typer.echo(f"{title}: " + ", ".join(p for p in parts if p is not None))
 
 
 @app.command()
 def ingest(
-    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav or video + .TextGrid/.xra/.lab/.align or an .mlf entry; a video may have none) or manifest CSV.")],
+    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav or video + .TextGrid/.xra/.lab/.align or an .mlf entry; a video may have none) or manifest CSV.", callback=_corpus)],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
     inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa, xsampa or pinyin.")] = "auto",
@@ -185,7 +294,7 @@ def track(
     guidance: Annotated[bool, typer.Option(help="Phoneme guidance (L_sup, L_act).")] = True,
     rgb: Annotated[bool, typer.Option(help="Include the photo loss L_rgb (slower).")] = False,
     flow: Annotated[bool, typer.Option(help="Include the optical-flow loss L_flow.")] = True,
-    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig; default: the ICT demo rig.")] = None,
+    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig; default: the ICT demo rig.", callback=_path)] = None,
     runner: RunnerOpt = "threads",
     dask_workers: DaskWorkersOpt = 2,
     dask_address: DaskAddressOpt = None,
@@ -208,7 +317,7 @@ def track(
 def landmarks(
     video: Annotated[Optional[Path], typer.Argument(
         help="One video: detect its landmarks into --out. Without it: every utterance of the store with a video "
-             "and no landmark file.")] = None,
+             "and no landmark file.", callback=_file)] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="CSV to write for VIDEO (the .mediapipe478.csv layout).")] = None,
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
@@ -255,7 +364,7 @@ def landmarks(
 
 @app.command()
 def pipeline(
-    corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.")],
+    corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.", callback=_corpus)],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
     runner: Annotated[str, typer.Option("--runner", help="Tracking on threads (Prefect's pool) or dask.")] = "threads",
@@ -263,7 +372,8 @@ def pipeline(
     dask_address: DaskAddressOpt = None,
     threads: ThreadsOpt = None,
     character: Annotated[Optional[list[Path]], typer.Option(
-        "--character", help="Also animate the tracked curves on this character (repeat for several).")] = None,
+        "--character", help="Also animate the tracked curves on this character (repeat for several).",
+        callback=_character)] = None,
     formats: FormatsOpt = "glb,usd,livelink,json",
     mesh: MeshOpt = None,
 ) -> None:
@@ -287,10 +397,10 @@ def pipeline(
 
 @app.command()
 def synth(
-    corpus: Annotated[Path, typer.Argument(help="Source corpus: audio + alignments.")],
+    corpus: Annotated[Path, typer.Argument(help="Source corpus: audio + alignments.", callback=_corpus)],
     out: Annotated[Path, typer.Option(help="Folder of the synthetic corpus.")] = Path("visemeflow-out/synth-corpus"),
     store: StoreOpt = DEFAULT_STORE,
-    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig (folder, GLB, npz); default: the ICT demo rig.")] = None,
+    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig (folder, GLB, npz); default: the ICT demo rig.", callback=_path)] = None,
     width: Annotated[int, typer.Option(help="Frame width.")] = 360,
     height: Annotated[int, typer.Option(help="Frame height.")] = 288,
     fps: Annotated[float, typer.Option(help="Video frame rate.")] = 25.0,
@@ -376,9 +486,14 @@ def train(
     config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2,
                          train_augment=train_augment > 0, train_augment_probability=train_augment or 0.5,
                          batch_size=batch_size)
-    _print_summary("train", train_flow(TrainParams(store=store, config=config, source=source, variant=variant,
-                                                   model_name=name, device=device, precision=precision,
-                                                   encoder_cache_dir=encoder_cache)))
+    report = train_flow(TrainParams(store=store, config=config, source=source, variant=variant, model_name=name,
+                                    device=device, precision=precision, encoder_cache_dir=encoder_cache))
+    # `train`/`val` count utterances; the model file goes last, on its own line, as what to use next
+    names = {"train": "training_utterances", "val": "validation_utterances"}
+    path = report.get("path")
+    _print_summary("train", {names.get(k, k): v for k, v in report.items() if k != "path"})
+    if path:
+        typer.echo(f"model: {path} (use it with --model {report['model']})")
 
 
 @app.command()
@@ -416,6 +531,44 @@ def sweep(
     typer.echo(f"plot: {result['plot']}")
 
 
+def _print_evaluation(result: dict) -> None:
+    """The robustness table as a terminal reads it: one row per model with its kind, baselines labelled as such
+    (a mean curve is a reference to beat, not a result, though its b/p/m top-viseme score can be 100%), L1 x 100
+    rounded, and the b/p/m closure on the mesh where measured; the full table (real-speech and lip columns, 13
+    and more) is the markdown file named last."""
+    import math
+
+    from visemeflow.learning.robustness_table import lip_metrics, table_columns
+
+    table = result["table"]
+    conditions = table_columns(table)[1:]
+    lips = "lip_closed" in lip_metrics(table)
+
+    def num(value: float | None, digits: int = 2) -> str:
+        return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
+
+    rows = [["model", "kind", "validation", *conditions] + (["b/p/m lips closed"] if lips else [])]
+    for r in table:
+        kind = (r["preset"] or "-") + (", baseline" if r["group"].startswith("baselines") else "")
+        cells = [r["model"], kind, num(r["validation"])]
+        cells += [f"{num(r.get(c))} ({num(r.get(f'ratio_{c}'))}x)" for c in conditions]
+        if lips:
+            closed = r.get("lip_closed_validation")
+            cells.append("-" if closed is None or math.isnan(closed) else f"{closed:.0f}%")
+        rows.append(cells)
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    n = result["validation_utterances"]
+    typer.echo(f"Validation L1 x 100 on {n} utterance{'' if n == 1 else 's'} ({result['source']}/"
+               f"{result['variant']}), lower is better; in brackets: ratio to validation")
+    for row in rows:
+        typer.echo("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
+    if any(r["group"].startswith("baselines") for r in table):
+        typer.echo("baseline: a reference a trained model should beat (e.g. the training set's mean curve), not a "
+                   "result")
+    typer.echo(f"full table (every condition, real-speech and lip metrics): {result['markdown']} "
+               f"(CSV: {result['csv']})")
+
+
 @app.command()
 def evaluate(
     models: Annotated[str, typer.Option("--models", help="Comma-separated names of trained models in the store; "
@@ -436,8 +589,7 @@ def evaluate(
                             conditions=[c.strip() for c in conditions.split(",") if c.strip()], seed=seed,
                             source=source, variant=variant, device=device)
     result = evaluate_flow(params)
-    typer.echo(Path(result["markdown"]).read_text(encoding="utf-8"))
-    typer.echo(f"table: {result['markdown']} and {result['csv']}")
+    _print_evaluation(result)
     typer.echo(f"evaluate: {len(result['models'])} of {len(params.models)} models judged, "
                f"{result['rejected']} rejected")
     for r in result["rejects"]:
@@ -463,15 +615,11 @@ def predict(
     Runs the `predict` flow: one cached task per file (keyed on the model's and the audio's content hashes, not
     on the device), a markdown artifact with the outputs and real-time factors.
     """
+    _known_model(store, model)
+    _check_paths(audio, "audio file", "file")
     device = _device(device)
     from visemeflow.flows.predict import PredictParams, predict_flow
-    from visemeflow.storage import Store
 
-    s = Store(store)
-    if model not in ("default", "default-fbank", "phones") and not s.has_model(model):
-        typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with "
-                   "`visemeflow train`", err=True)
-        raise typer.Exit(2)
     result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out, device=device))
     for r in result["predictions"]:
         cached = ", cached" if r["cached"] else ""
@@ -511,12 +659,12 @@ def _print_packages(result: dict, title: str = "animate") -> None:
 @app.command("import-curves")
 def import_curves(
     takes: Annotated[Path, typer.Argument(help="Manifest CSV of takes, a folder with takes.csv, or <speaker>/<name>.wav "
-                                               "+ .livelink.csv | .capture.csv | .capture.npy.")],
+                                               "+ .livelink.csv | .capture.csv | .capture.npy.", callback=_path)],
     store: StoreOpt = DEFAULT_STORE,
     shards: ShardsOpt = 8,
     channel_table: Annotated[Optional[Path], typer.Option(help="Channel -> ARKit table (CSV or .xlsx) for takes that "
-                                                               "give none.")] = None,
-    names: Annotated[Optional[Path], typer.Option(help="Channel names (.npy or text) for NPY takes.")] = None,
+                                                               "give none.", callback=_file)] = None,
+    names: Annotated[Optional[Path], typer.Option(help="Channel names (.npy or text) for NPY takes.", callback=_file)] = None,
     fps: Annotated[Optional[float], typer.Option(help="Capture rate of takes with no clock.")] = None,
     variant: Annotated[str, typer.Option(help="Variant of the captured curves.")] = "arkit-nnls",
     max_drift: Annotated[float, typer.Option(help="Largest capture/audio length difference, frames per second.")] = 1.0,
@@ -542,10 +690,10 @@ def import_curves(
 
 @app.command("transfer")
 def transfer(
-    template: Annotated[Path, typer.Option("--template", help="Viseme rig or character (folder, .glb, .npz) whose shapes are transferred.")],
-    target: Annotated[Path, typer.Option("--target", help="The new character's neutral mesh (.obj, .ply, .glb).")],
+    template: Annotated[Path, typer.Option("--template", help="Viseme rig or character (folder, .glb, .npz) whose shapes are transferred.", callback=_path)],
+    target: Annotated[Path, typer.Option("--target", help="The new character's neutral mesh (.obj, .ply, .glb).", callback=_path)],
     out: Annotated[Path, typer.Option("--out", help="The character GLB to write.")],
-    markers: Annotated[Optional[Path], typer.Option("--markers", help="CSV template_vertex,target_vertex; default: TARGET.landmarks.json beside the target, else (another topology) found by MediaPipe FaceMesh on renders of both meshes.")] = None,
+    markers: Annotated[Optional[Path], typer.Option("--markers", help="CSV template_vertex,target_vertex; default: TARGET.landmarks.json beside the target, else (another topology) found by MediaPipe FaceMesh on renders of both meshes.", callback=_file)] = None,
     no_parts: Annotated[bool, typer.Option("--no-parts", help="Leave out the template's mouth interior and eyes on a target of another topology.")] = False,
 ) -> None:
     """Deformation transfer (Sumner and Popovic 2004) of the template's visemes onto a new neutral mesh."""
@@ -612,14 +760,10 @@ def speak(
     mesh: MeshOpt = None,
 ) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
+    _known_model(store, model)
+    _check_paths(audio, "audio file", "file")
     from visemeflow.flows.animate import SpeakParams, speak_flow
 
-    from visemeflow.storage import Store
-
-    s = Store(store)
-    if model not in ("default", "default-fbank", "phones") and not s.has_model(model):
-        typer.echo(f"error: no model {model!r} in {s.root}; train one with `visemeflow train`", err=True)
-        raise typer.Exit(2)
     params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
                   config=_animate_config(formats, None, convention, preview, mode, bones, closure_rule, mesh))
     _check_meshes(character, mesh)
@@ -638,7 +782,7 @@ def speak(
 @app.command("preview")
 def preview_command(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    character: Annotated[Optional[Path], typer.Option("--character", help="Character file or folder; default: the demo character.")] = None,
+    character: Annotated[Optional[Path], typer.Option("--character", help="Character file or folder; default: the demo character.", callback=_character)] = None,
     sources: Annotated[str, typer.Option(help="Comma-separated curve sources side by side (source or source:variant).")] = "procedural,tracked,predicted,ground_truth",
     store: StoreOpt = DEFAULT_STORE,
     mapping: MappingOpt = None,
@@ -713,6 +857,9 @@ def export_model(
                f"audio {report.sample_rate} Hz mono -> curves at {report.fps:g} fps{checked})")
 
 
+RERUN_STAGES = ("ingest", "procedural", "landmarks", "track", "animate")
+
+
 @app.command()
 def rerun(
     utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
@@ -721,6 +868,8 @@ def rerun(
     force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
 ) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
+    if stage not in RERUN_STAGES:
+        _fail(f"--stage must be one of {', '.join(RERUN_STAGES)}, not {stage!r}")
     from visemeflow.flows.params import RerunParams
     from visemeflow.flows.rerun import rerun_flow
 
@@ -833,11 +982,17 @@ def curves_export(
 
 
 def _print_rejects_hint(store: Path) -> None:
+    """The first rejects, one line each (utterance, file, reason), what to do about the usual ones, and where the
+    rest are: the reason is on the terminal without a second command."""
+    from visemeflow.ingest.hints import reject_advice, reject_lines
     from visemeflow.storage import Store
 
-    n = Store(store).read_table("rejects").num_rows
-    if n:
-        typer.echo(f"{n} rejected: see `visemeflow rejects --store {store}`")
+    rows = Store(store).read_table("rejects").to_pylist()
+    if rows:
+        typer.echo(f"{len(rows)} rejected:")
+        for line in reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]:
+            typer.echo(line)
+        typer.echo(f"all of them: `visemeflow rejects --store {store}`")
 
 
 def _print_outputs(store: Path) -> None:
@@ -876,25 +1031,34 @@ def dashboard(
         typer.echo(f"warning: {uid!r} has no row and no curves in the store", err=True)
     what = "nothing yet in the store, " if result.empty else ""
     typer.echo(f"dashboard: {result.path} ({what}{len(result.utterances)} utterances, {len(result.charts)} charts, "
-               f"{time.perf_counter() - started:.1f} s); open it in any browser, it needs no network")
+               f"{time.perf_counter() - started:.1f} s); open it in any browser, it needs no network:")
+    typer.echo(f"  {result.path.resolve().as_uri()}")
 
 
 def main() -> None:
-    """The `visemeflow` command: errors a user can act on print one line and exit 2, without a traceback."""
-    from visemeflow.flows.errors import StageFailed
-    from visemeflow.schemas import InvalidIdError
-    from visemeflow.storage import StoreError
+    """The `visemeflow` command: errors a user can act on print one line and exit 2, without a traceback.
 
+    The error types are imported only when an error comes: importing them (pyarrow, the flows) would cost seconds
+    before the arguments are even checked.
+    """
+    global _AS_COMMAND
+    _AS_COMMAND = True
     try:
         app()
-    except (StoreError, InvalidIdError, LookupError) as exc:
-        typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
-        raise SystemExit(2) from None
-    except StageFailed as exc:  # the flow ran to its end; its run is Failed in the UI with the same message
-        for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
-            _print_summary(stage, summary)
-        typer.echo(f"failed: {exc}", err=True)
-        raise SystemExit(1) from None
+    except Exception as exc:
+        from visemeflow.flows.errors import StageFailed
+        from visemeflow.schemas import InvalidIdError
+        from visemeflow.storage import StoreError
+
+        if isinstance(exc, (StoreError, InvalidIdError, LookupError)):
+            typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
+            raise SystemExit(2) from None
+        if isinstance(exc, StageFailed):  # the flow ran to its end; its run is Failed in the UI with the same message
+            for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
+                _print_summary(stage, summary)
+            typer.echo(f"failed: {exc}", err=True)
+            raise SystemExit(1) from None
+        raise
 
 
 def _is_per_stage(summary: dict) -> bool:

@@ -39,6 +39,18 @@ Bone panels. A source may instead be a `BoneSource(rig, curves)`: the character'
 the skinned GLB, the UsdSkel animation and an engine's pose blend play. Put it beside the blendshape panel of the
 same curves to see what the bones lose (`visemeflow preview --mode both`).
 
+Source video. With `video=VideoSource(path, landmarks)` (the preview command passes it when `tracked` is among the
+sources and the utterance has a video) the first panel, labelled "video", shows the source video's frame cropped to
+the face, so a user can judge the tracking against the footage. Frame k shows the decoded frame the tracker used for
+grid frame k: the one nearest k / fps on the audio's clock (`tracking.video.iter_timed_frames`), and none when no
+frame lies within half a frame step (a variable-rate clip's gap: the nearest frame, dimmed), the rule of
+`tracking.utterance.FrameTimeline.video_frame`. The crop is one fixed square for the whole clip (a steady view,
+not one that jitters with each detection): the box of the landmarks that `framing` frames (the lower face and mouth,
+or the whole face), over all frames, widened as the rig panels are; without landmarks, the frame's central square.
+The tracked mouth landmarks are drawn on it (`VideoSource.overlay`). The video is decoded one frame at a time as the
+preview is written, never held whole; a missing or unreadable video leaves a panel that says so, and the preview
+renders.
+
 Timing: frame k shows weights row k and the phone under way at time k / fps (`visemeflow.timebase`'s clock).
 """
 
@@ -68,11 +80,14 @@ from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
 from visemeflow.render.raster import Camera, Pose, frontal_pose, render_mesh
 from visemeflow.timebase import frame_count
+from visemeflow.tracking.landmarks import LandmarkError, LandmarkTrack, mouth_keypoint_ids, read_landmarks
+from visemeflow.tracking.video import VideoError, iter_timed_frames
 
 if TYPE_CHECKING:
     from visemeflow.animation.bones import BoneRig
 
-__all__ = ["BoneSource", "PreviewFrames", "PreviewReport", "TextPainter", "preview_camera", "render_preview"]
+__all__ = ["BoneSource", "PreviewFrames", "PreviewReport", "TextPainter", "VideoSource", "preview_camera",
+           "render_preview", "video_source"]
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +103,15 @@ _FILL = 0.86
 _FOV_DEG = 18.0
 _AUDIO_RATES_PREFERRED = (48000, 44100)
 _AUDIO_BIT_RATE = 96_000
+VIDEO_LABEL = "video"
+LANDMARK_COLOR = (80, 220, 255)
+_LOWER_FACE_POINTS = np.r_[2:15, 31:36, 48:68]
+"""68-point ids of the lower face (jaw from cheek to cheek, the nose's base, the lips): what `framing="mouth"` crops."""
+_GAP_DIM = 0.5
+"""Brightness of the video panel where no decoded frame lies within half a frame step (the nearest is shown)."""
+_CROP_PERCENTILES = (1.0, 99.0)
+"""The crop spans these percentiles of the landmarks' x and y over the clip, so a few stray detections do not
+widen it."""
 
 
 @dataclass(frozen=True)
@@ -448,20 +472,149 @@ def _even_band(px: float) -> int:
     return int(2 * math.ceil(px / 2.0))
 
 
+# ---------------------------------------------------------------------------------------------------------- video
+
+@dataclass(frozen=True)
+class VideoSource:
+    """The source video shown as the first panel: its file (None: the utterance has none that can be found) and the
+    tracker's landmarks, one row per decoded frame in decode order (None: crop the frame's central square, no
+    overlay). `overlay`: draw the landmarks of the mouth (48-67) on the crop."""
+
+    path: str | os.PathLike | None
+    landmarks: LandmarkTrack | None = None
+    overlay: bool = True
+
+
+def video_source(video_path: str | os.PathLike | None, landmark_path: str | os.PathLike | None,
+                 fps: float | None = None, overlay: bool = True) -> VideoSource:
+    """A `VideoSource` from an utterance's files; a landmark file that cannot be read is logged and left out (the
+    panel still shows the video, centre-cropped), since the preview must render whatever the tracking left."""
+    landmarks = None
+    if landmark_path:
+        try:
+            landmarks = read_landmarks(landmark_path, fps=fps)
+        except (LandmarkError, OSError) as exc:
+            log.warning("%s: landmarks not read for the preview's video panel: %s", landmark_path, exc)
+    return VideoSource(video_path, landmarks, overlay)
+
+
+def _crop_square(landmarks: LandmarkTrack | None, framing: str) -> tuple[float, float, float] | None:
+    """(centre x, centre y, side) in video pixels of the fixed face crop; None without any usable landmark."""
+    if landmarks is None:
+        return None
+    ids = _LOWER_FACE_POINTS if framing == "mouth" else np.arange(landmarks.points.shape[1])
+    points = landmarks.points[:, ids][landmarks.valid[:, ids]]
+    if len(points) == 0:
+        return None
+    low, high = np.percentile(points, _CROP_PERCENTILES, axis=0)
+    centre = (low + high) / 2.0
+    side = max(float(high[0] - low[0]), float(high[1] - low[1]), 1.0) / _FILL
+    return float(centre[0]), float(centre[1]), side
+
+
+def _nearest_frames(path: Path, rate: Fraction, n: int):
+    """(image, decoded frame index, within) for each grid frame k < n, streamed: the decoded frame nearest k / rate
+    (ties go to the earlier) and whether it lies within half a step, i.e. is the frame the tracker used
+    (`FrameTimeline.video_frame`'s rule; its index is -1 where not). VideoError (or OSError, av's errors) propagate
+    from the decoder."""
+    frames = iter_timed_frames(path)
+    half = 0.5 / float(rate)
+    before = None                        # (image, time, index): the latest frame at or before the grid time
+    after = next(frames, None)           # the first frame after it
+    after = None if after is None else (after[0], after[1], 0)
+    for k in range(n):
+        t = k / float(rate)
+        while after is not None and after[1] <= t:
+            before = after
+            item = next(frames, None)
+            after = None if item is None else (item[0], item[1], before[2] + 1)
+        best = min((c for c in (before, after) if c is not None), key=lambda c: (abs(c[1] - t), c[1]))
+        yield best[0], best[2], abs(best[1] - t) < half
+
+
+class _VideoPanel:
+    """Draws the video panel's frames: the fixed face crop scaled to `size`, the mouth landmarks on it."""
+
+    def __init__(self, source: VideoSource, size: int, framing: str, painter: TextPainter):
+        self.source, self.size, self.painter = source, size, painter
+        self.square = _crop_square(source.landmarks, framing)
+        self.mouth = mouth_keypoint_ids()
+
+    def box(self, height: int, width: int) -> tuple[int, int, int]:
+        """(left, top, side) in whole pixels of the crop in a `height` x `width` frame (may reach past its edges)."""
+        if self.square is None:
+            side = min(height, width)
+            return (width - side) // 2, (height - side) // 2, side
+        cx, cy, side = self.square
+        side = max(2, int(round(side)))
+        return int(round(cx - side / 2.0)), int(round(cy - side / 2.0)), side
+
+    def crop(self, image: np.ndarray) -> np.ndarray:
+        """(size, size, 3) uint8: the crop of one decoded frame (black beyond the frame's edges), scaled."""
+        left, top, side = self.box(*image.shape[:2])
+        square = np.zeros((side, side, 3), np.uint8)
+        y0, y1 = max(top, 0), min(top + side, image.shape[0])
+        x0, x1 = max(left, 0), min(left + side, image.shape[1])
+        if y1 > y0 and x1 > x0:
+            square[y0 - top:y1 - top, x0 - left:x1 - left] = image[y0:y1, x0:x1]
+        shrink = side > self.size
+        return cv2.resize(square, (self.size, self.size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+    def draw(self, image: np.ndarray, index: int) -> np.ndarray:
+        panel = self.crop(image)
+        track = self.source.landmarks
+        if self.source.overlay and track is not None and 0 <= index < track.n_frames:
+            left, top, side = self.box(*image.shape[:2])
+            scale = self.size / side
+            radius = max(1, self.size // 180)
+            for point, ok in zip(track.points[index, self.mouth], track.valid[index, self.mouth]):
+                if ok:
+                    x, y = (point[0] - left + 0.5) * scale - 0.5, (point[1] - top + 0.5) * scale - 0.5
+                    cv2.circle(panel, (int(round(x)), int(round(y))), radius, LANDMARK_COLOR, -1, cv2.LINE_AA)
+        return panel
+
+    def message(self, text: str) -> np.ndarray:
+        """A panel that says why there is no picture."""
+        return self.painter.band(text, self.size, self.size)
+
+    def frames(self, rate: Fraction, n: int):
+        """The panel for each of the n preview frames, streamed; a message panel where there is no picture."""
+        path = self.source.path
+        if not path:
+            yield from (self.message("no video file") for _ in range(n))
+            return
+        path = Path(path)
+        if not path.is_file():
+            log.warning("%s: the preview's video panel has no video (file not found)", path)
+            yield from (self.message("video not found") for _ in range(n))
+            return
+        k = 0
+        try:
+            for image, index, within in _nearest_frames(path, rate, n):
+                # a variable-rate clip's gap (the tracker interpolated the curves there): the nearest frame, dimmed
+                # and without landmarks, rather than a blank panel that would flicker in and out
+                yield self.draw(image, index) if within else (self.crop(image) * _GAP_DIM).astype(np.uint8)
+                k += 1
+        except (VideoError, OSError, av.FFmpegError) as exc:
+            log.warning("%s: the preview's video panel stops at frame %d: %s", path, k, exc)
+            yield from (self.message("video unreadable") for _ in range(n - k))
+
+
 # ----------------------------------------------------------------------------------------------------------- main
 
 class PreviewFrames:
     """The preview's frames, composed one at a time (no encoding): layout, panels, labels, caption.
 
     Arguments as `render_preview` (validated here, errors naming the character and the source); `n_frames`
-    extends the video beyond the longest source (e.g. to the audio's length). Iterating yields the same
-    (height, width, 3) uint8 RGB array every time, overwritten in place: copy a frame to keep it.
+    extends the video beyond the longest source (e.g. to the audio's length); `video` adds the source video's
+    panel first (see the module doc). Iterating yields the same (height, width, 3) uint8 RGB array every time,
+    overwritten in place: copy a frame to keep it.
     """
 
     def __init__(self, character: Character, sources: Mapping[str, np.ndarray | BoneSource], fps, *,
                  phones: Sequence[tuple[float, float, str]] | None = None, title: str | None = None,
                  size: int = 360, chunk_frames: int = 64, framing: str = "mouth", n_frames: int = 0,
-                 painter: TextPainter | None = None):
+                 painter: TextPainter | None = None, video: VideoSource | None = None):
         self.rate = _as_fps(fps)
         self.character = character
         self.sources = _check_sources(character, sources)
@@ -481,7 +634,12 @@ class PreviewFrames:
         px = max(10, round(self.size * 0.05))
         band = _even_band(px * 1.8)
         self.painter = painter or TextPainter(px)
-        self.n_panels = len(self.sources)
+        if video is not None and not isinstance(video, VideoSource):
+            raise ValueError(f"video must be a VideoSource, got {video!r}")
+        self.video = None if video is None else _VideoPanel(video, self.size, framing, self.painter)
+        self.first_rig = 0 if video is None else 1
+        """Panel index of the first source's panel (1 after the video panel)."""
+        self.n_panels = len(self.sources) + self.first_rig
         self.width = self.n_panels * self.size
         self.title_height = band if title else 0
         self.label_height = band
@@ -523,12 +681,18 @@ class PreviewFrames:
         return self.frames
 
     def __iter__(self):
-        character, size, n = self.character, self.size, self.n_panels
+        character, size, n, off = self.character, self.size, len(self.sources), self.first_rig
         canvas = np.empty((self.height, self.width, 3), np.uint8)
         if self.title_height:
             canvas[self.title_box()] = self.painter.band(self.title, self.width, self.title_height)
         for k, panel in enumerate(self.sources):
-            canvas[self.label_box(k)] = self.painter.band(panel.label, size, self.label_height)
+            canvas[self.label_box(k + off)] = self.painter.band(panel.label, size, self.label_height)
+        video = None
+        if self.video is not None:
+            canvas[self.label_box(0)] = self.painter.band(VIDEO_LABEL, size, self.label_height)
+            if self.lip_height:
+                canvas[self.lip_box(0)] = self.painter.band("", size, self.lip_height)
+            video = self.video.frames(self.rate, self.frames)
         deltas = np.ascontiguousarray(character.deltas, np.float32).reshape(character.n_shapes, -1)
         neutral = np.ascontiguousarray(character.neutral, np.float32).reshape(1, -1)
         faces = np.asarray(character.faces, np.int64)
@@ -542,15 +706,17 @@ class PreviewFrames:
             # (chunk, V * 3) per source: the bounded memory
             vertices = [p.vertices(neutral, deltas, r) for p, r in zip(self.sources, rows)]
             for i in range(start, stop):
+                if video is not None:
+                    canvas[self.panel_box(0)] = next(video)
                 for k in range(n):
                     row = rows[k][i - start]
                     if shown[k] is not None and np.array_equal(row, shown[k]):
                         continue  # unchanged: the canvas already shows it
-                    box = self.panel_box(k)
+                    box = self.panel_box(k + off)
                     twin = next((j for j in range(k) if self.sources[j].rig is self.sources[k].rig
                                  and np.array_equal(row, rows[j][i - start])), None)
                     if twin is not None:
-                        canvas[box] = canvas[self.panel_box(twin)]
+                        canvas[box] = canvas[self.panel_box(twin + off)]
                     else:
                         canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces,
                                                   self.character.vertex_colors, self.camera, self.pose)
@@ -563,7 +729,7 @@ class PreviewFrames:
                             OPEN_AT_CLOSURE_COLOR if is_bilabial(phone) else TEXT_COLOR
                         readout = (f"{phone + '  ' if phone else ''}lips {gap:.1f} mm", color)
                         if readout != readouts[k]:
-                            canvas[self.lip_box(k)] = self.painter.band(readout[0], size, self.lip_height, color)
+                            canvas[self.lip_box(k + off)] = self.painter.band(readout[0], size, self.lip_height, color)
                             readouts[k] = readout
                 if self.caption_height:
                     text = self.phone_at(i)
@@ -587,6 +753,7 @@ def render_preview(
     chunk_frames: int = 64,
     framing: str = "mouth",
     crf: int = 23,
+    video: VideoSource | None = None,
 ) -> PreviewReport:
     """Write an H.264 + AAC `.mp4` preview of `character` driven by each source, side by side (see the module doc).
 
@@ -605,6 +772,8 @@ def render_preview(
     chunk_frames: frames deformed at once (memory: chunk_frames x vertices x 12 bytes per source).
     framing: "mouth" (the moving region, default) or "face" (the whole neutral mesh); see `preview_camera`.
     crf: libx264 quality (lower: better and larger).
+    video: optional `VideoSource`: the source video's face crop as the first panel, labelled "video" (see the
+        module doc); a missing or unreadable video gives a panel that says so.
 
     Frames: the longest source's length or round(audio seconds x fps), whichever is larger; a shorter source
     holds its last frame to the end. Written atomically: a failure leaves no file and keeps an older one.
@@ -619,7 +788,7 @@ def render_preview(
     sound = _check_audio(audio)
     audio_frames = frame_count(sound[0].size / sound[1], float(rate)) if sound is not None and sound[0].size else 0
     frames = PreviewFrames(character, sources, rate, phones=phones, title=title, size=size,
-                           chunk_frames=chunk_frames, framing=framing, n_frames=audio_frames)
+                           chunk_frames=chunk_frames, framing=framing, n_frames=audio_frames, video=video)
     n_frames = frames.frames
 
     with atomic_path(path, keep_suffix=True) as tmp:

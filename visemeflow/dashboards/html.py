@@ -1,7 +1,10 @@
 """The static HTML report of a store (`visemeflow dashboard`): one self-contained `index.html`, readable offline.
 
 Sections: what the store holds; per-utterance curves of every source with the phones and the waveform; mouth
-keypoint error of each tracked variant; training results; dataset-size sweep plots; the robustness table; rejects.
+keypoint error of each tracked variant; training results; dataset-size sweep plots; the robustness table (in a box
+that scrolls sideways, so the page keeps its width); the animation packages, the store's and those written with
+`--out` (`dashboards.records`); rejects. Curve-only utterances (`predict`, `speak`) are drawn over their audio when
+the store knows it (`curve_only_audio`).
 
 The page fetches nothing: every chart is a PNG inside a `data:` URI, styles are inline, there is no script, and a
 Content-Security-Policy (`default-src 'none'`) makes the browser refuse any other load. Every value from the store
@@ -12,6 +15,7 @@ was left out, so an utterance of 100k phones does too.
 """
 
 import base64
+import contextlib
 import csv
 import html
 import io
@@ -30,7 +34,9 @@ import pyarrow.compute as pc
 import pyarrow.dataset as ds
 
 from visemeflow.atomic import atomic_write_text
+from visemeflow.hashing import file_hash
 from visemeflow.dashboards import plots
+from visemeflow.dashboards.records import recorded_packages
 # The robustness table is built by the same function as the `evaluate` report, so both show the same cells in the
 # same order (DESIGN lets dashboards import schemas and storage; this module is the exception, pure and torch-free).
 from visemeflow.learning.robustness_table import (
@@ -78,6 +84,9 @@ td.msg { max-width: 640px; white-space: pre-wrap; word-break: break-word; }
 figure { margin: 12px 0 28px; } figcaption { color: #444; font-size: 14px; margin-bottom: 6px; }
 img { max-width: 100%; height: auto; border: 1px solid #eee; }
 code { background: #f4f6f8; padding: 0 3px; }
+.wide { overflow-x: auto; max-width: 100%; }
+.wide table { margin-bottom: 4px; }
+.wide td:first-child, .wide th:first-child { position: sticky; left: 0; background: #f4f6f8; white-space: nowrap; }
 """
 
 
@@ -162,28 +171,40 @@ def curve_index(store: Store) -> dict[str, dict[str, list[str]]]:
 
 
 def select_utterances(
-    known: Sequence[str], index: dict[str, dict[str, list[str]]], requested: Sequence[str] | None, limit: int
+    known: Sequence[str], index: dict[str, dict[str, list[str]]], requested: Sequence[str] | None, limit: int,
+    languages: dict[str, str | None] | None = None, featured: Iterable[str] = (),
 ) -> tuple[list[str], list[str]]:
     """(utterances to draw, requested ids that are stored nowhere).
 
     Requested ids are drawn in the order given. Otherwise up to `limit` utterances: first, for each curve source
-    in turn, the richest utterance holding it (so every source appears at least once), then the utterances with
-    the most sources, ties by id. Utterances of the `utterances` table come before curve-only ones (`predict/...`).
+    in turn, the richest utterance holding it (so every source appears at least once), then the richest of each
+    language of `languages` (id -> language: a corpus's one Mandarin utterance among 24 English ones is shown), then
+    the rest: `featured` ones first (those with an animation package or a preview: what the user made something
+    of), then the richest. Richest: utterances of the `utterances` table before curve-only ones (`predict/...`),
+    then the most sources, ties by id. The page shows them in the order of the rest.
     """
     if requested:
         stored = set(known) | set(index)
         chosen = list(dict.fromkeys(requested))
         return [u for u in chosen if u in stored], [u for u in chosen if u not in stored]
-    in_table = set(known)
-    candidates = sorted(set(known) | set(index),
-                        key=lambda u: (u not in in_table, -len(index.get(u, {})), u))
+    in_table, starred = set(known), set(featured)
+    richest = sorted(set(known) | set(index), key=lambda u: (u not in in_table, -len(index.get(u, {})), u))
+    candidates = sorted(richest, key=lambda u: u not in starred)    # stable: featured first, then as `richest`
     selected: list[str] = []
     for source in CURVE_SOURCES:
         if len(selected) >= limit:
             break
         if any(source in index.get(u, {}) for u in selected):
             continue
-        pick = next((u for u in candidates if source in index.get(u, {}) and u not in selected), None)
+        pick = next((u for u in richest if source in index.get(u, {}) and u not in selected), None)
+        if pick is not None:
+            selected.append(pick)
+    for language in sorted({v for v in (languages or {}).values() if v}):
+        if len(selected) >= limit:
+            break
+        if any((languages or {}).get(u) == language for u in selected):
+            continue
+        pick = next((u for u in richest if (languages or {}).get(u) == language and u not in selected), None)
         if pick is not None:
             selected.append(pick)
     for u in candidates:
@@ -213,11 +234,48 @@ def _read_audio_head(path: str, seconds: float) -> tuple[np.ndarray, int] | None
     return samples.mean(axis=1, dtype=np.float32), int(rate)
 
 
+@dataclass
+class CurveOnlyAudio:
+    """The audio of an utterance that has curves but no row (`predict/<stem>`, `speak`), as found in the store."""
+
+    path: str | None = None     # the audio file the curves were predicted from (or a package's copy of it)
+    same_as: str | None = None  # the utterance of the table whose audio file has the same bytes
+    how: str = ""               # where it was found, for the caption
+
+
+def curve_only_audio(store: Store, uid: str, sources: dict[str, list[str]], rows_by_name: dict[str, list[dict]],
+                     packages: dict[str, list[Path]], recorded: dict[str, str]) -> CurveOnlyAudio:
+    """Where the audio of a curve-only utterance is: predicted curves record only the audio's content hash, not its
+    path, so look in order at (1) the table's utterances of the same name (`predict/LJ001-0002` from
+    `LJ001-0002.wav`; a `-<hash>` suffix dropped) whose audio file has that hash: then its phones apply too;
+    (2) the audio recorded with a package written outside the store (`speak --out`, `records`); (3) the `.wav`
+    the store's animation package of the utterance holds. Hashes at most the few same-named files."""
+    hashes: set[str] = set()
+    for variant in sources.get(CurveSource.PREDICTED, []):
+        hashes.update((store.curves_provenance(CurveSource.PREDICTED, variant, uid) or "").split(":"))
+    name = uid.split("/", 1)[-1]
+    same_named = rows_by_name.get(name, []) + (rows_by_name.get(name.rsplit("-", 1)[0], []) if "-" in name else [])
+    for row in same_named:
+        path = row.get(C.AUDIO_PATH)
+        try:
+            if path and hashes and file_hash(path) in hashes:
+                return CurveOnlyAudio(path, row[C.UTTERANCE_ID], "the same audio file as")
+        except OSError:
+            continue
+    if recorded.get(uid) and Path(recorded[uid]).is_file():
+        return CurveOnlyAudio(recorded[uid], None, "audio recorded by speak/animate")
+    for folder in packages.get(uid, []):
+        wav = folder / f"{folder.name}.wav"
+        if wav.is_file():
+            return CurveOnlyAudio(str(wav), None, "audio of its animation package")
+    return CurveOnlyAudio()
+
+
 def load_waveform(row: dict | None, until_s: float | None = None) -> tuple[tuple[np.ndarray, int] | None, str]:
     """((mono samples, rate), "") of an utterance's audio, up to `until_s` when given, or (None, why not). Videos
     (and what soundfile cannot read) are read whole through `read_audio`, then cut."""
     if row is None:
-        return None, "no row in the utterances table: audio unknown"
+        return None, "audio unknown: curves only, from a file the store does not record"
     from visemeflow.ingest.audio import is_video_file, read_audio  # the one reader of audio files and videos' tracks
 
     errors = []
@@ -261,7 +319,10 @@ def _l1_x100(reference: pa.Table, other: pa.Table) -> float:
 
 
 def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | None,
-                       sources: dict[str, list[str]], phones: pa.Table) -> None:
+                       sources: dict[str, list[str]], phones: pa.Table, audio: CurveOnlyAudio | None = None,
+                       truth_of: pa.Table | None = None) -> None:
+    """One utterance's chart and caption. A curve-only utterance is drawn over `audio` when found (and with the
+    phones of the utterance of the same audio file, and its error against that one's ground truth `truth_of`)."""
     panels, tables = [], []
     for source in CURVE_SOURCES:
         for variant in sources.get(source, []):
@@ -273,7 +334,8 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
             panels.append(plots.CurvePanel(f"{source}\n{variant}", table.column(C.TIME_S).to_numpy(),
                                            curves_array(table)))
     duration = float(row[C.DURATION_S]) if row else 0.0
-    phone_list, n_phones = _phones_of(phones, uid)
+    audio = audio or CurveOnlyAudio()
+    phone_list, n_phones = _phones_of(phones, uid if row or not audio.same_as else audio.same_as)
     until = drawn_until(phone_list, n_phones, panels)
     window = ""
     if until is not None:
@@ -284,7 +346,8 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
         window = (f"drawn: the first {until:.1f} s of {total_s:.1f} s ({len(phone_list)} of {n_phones} phones, "
                   f"{max((len(p.time_s) for p in panels), default=0)} of {frames} curve frames); a chart draws at "
                   f"most {MAX_DRAWN_PHONES} phones and {MAX_DRAWN_FRAMES} frames per panel")
-    waveform, note = load_waveform(row, until)
+    audio_row = row if row is not None or audio.path is None else {C.AUDIO_PATH: audio.path}
+    waveform, note = load_waveform(audio_row, until)
     png = plots.utterance_figure(uid, duration if until is None else until, waveform, note, phone_list, panels)
 
     facts = []
@@ -292,13 +355,22 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
         facts += [f"speaker {esc(row[C.SPEAKER])}", f"language {esc(row[C.LANGUAGE] or '?')}",
                   f"split {esc(row[C.SPLIT])}", f"{row[C.DURATION_S]:.2f} s", f"{row[C.FPS]:g} fps",
                   f"{n_phones} phones"]
+    elif audio.same_as:
+        facts += [f"curves only (not in the utterances table), from {esc(audio.how)} <code>{esc(audio.same_as)}"
+                  f"</code>: its audio and its {n_phones} phones"]
+    elif audio.path:
+        facts += [f"curves only (not in the utterances table); {esc(audio.how)}: <code>{esc(audio.path)}</code>"]
     else:
-        facts.append("not in the utterances table")
+        facts.append("curves only (not in the utterances table)")
     truth = next((t for s, _, t in tables if s == CurveSource.GROUND_TRUTH), None)
     if truth is not None:
         errors = [f"{esc(s)}/{esc(v)} {_l1_x100(truth, t):.2f}" for s, v, t in tables if s != CurveSource.GROUND_TRUTH]
         if errors:
             facts.append("L1 x 100 vs ground truth: " + ", ".join(errors))
+    elif truth_of is not None and audio.same_as:
+        errors = [f"{esc(s)}/{esc(v)} {_l1_x100(truth_of, t):.2f}" for s, v, t in tables]
+        if errors:
+            facts.append(f"L1 x 100 vs the ground truth of <code>{esc(audio.same_as)}</code>: " + ", ".join(errors))
     shown = ", ".join(f"{esc(s)}/{esc(v)}" for s, v, _ in tables) or "none"
     caption = (f'<strong class="utterance-id">{esc(uid)}</strong> · ' + " · ".join(facts)
                + f"<br><span class=\"note\">curves: {shown}</span>")
@@ -519,25 +591,57 @@ def _file_url(path: Path, page_dir: Path) -> str:
     return quote(Path(target).as_posix())
 
 
-def _animations_section(page: "_Page", store: Store, out: Path, limit: int = MAX_ANIMATIONS) -> None:
-    """Each stored animation package: its files as links, its preview MP4s as <video> elements (no script)."""
-    folders = store.animation_dirs()
-    if not folders:
-        page.add('<p class="empty" id="no-animations">No animations yet (<code>visemeflow animate</code>, '
-                 "<code>visemeflow speak</code>, <code>visemeflow preview</code>).</p>")
-        return
-    page.add(f'<p class="note">{min(len(folders), limit)} of {len(folders)} packages (character, utterance): the '
-             "files open in Blender / three.js (GLB), Omniverse / Maya (USD), Unreal (Live Link CSV); previews "
-             "play here.</p>")
-    for folder in folders[:limit]:
+@dataclass
+class Package:
+    """One animation package folder: in the store's `animations/`, or written elsewhere (`--out`) and recorded."""
+
+    folder: Path
+    utterance_id: str
+    character: str
+    outside: bool = False       # written with --out: the folder is named on the page
+
+
+def animation_packages(store: Store) -> list[Package]:
+    """The store's packages (sorted), then the recorded ones written outside it (newest first); a recorded folder
+    that is also one of the store's is listed once."""
+    found = []
+    for folder in store.animation_dirs():
         character, speaker, name = folder.parts[-3:]
         try:
             uid = utterance_id_from_path_parts(speaker, name)
         except ValueError:
             uid = f"{speaker}/{name}"
-        files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+        found.append(Package(folder, uid, character))
+    seen = {p.folder.resolve() for p in found}
+    for entry in recorded_packages(store):
+        folder = entry["folder"].resolve()
+        if folder not in seen:
+            seen.add(folder)
+            found.append(Package(folder, entry["utterance_id"], entry["character"] or "?", outside=True))
+    return found
+
+
+def _animations_section(page: "_Page", packages: Sequence[Package], out: Path, limit: int = MAX_ANIMATIONS) -> None:
+    """Each animation package: its files as links, its preview MP4s as <video> elements (no script)."""
+    if not packages:
+        page.add('<p class="empty" id="no-animations">No animations yet (<code>visemeflow animate</code>, '
+                 "<code>visemeflow speak</code>, <code>visemeflow preview</code>).</p>")
+        return
+    outside = sum(p.outside for p in packages)
+    elsewhere = f", {outside} of them written outside the store (<code>--out</code>)" if outside else ""
+    page.add(f'<p class="note">{min(len(packages), limit)} of {len(packages)} packages (character, utterance)'
+             f"{elsewhere}: the files open in Blender / three.js (GLB), Omniverse / Maya (USD), Unreal (Live Link "
+             "CSV); previews play here.</p>")
+    for n, package in enumerate(packages[:limit]):
+        try:
+            files = sorted(p for p in package.folder.iterdir() if p.is_file() and not p.name.startswith("."))
+        except OSError as exc:
+            page.add(f'<p class="empty">{esc(package.folder)}: {esc(exc.strerror or exc)}</p>')
+            continue
         links = " · ".join(f'<a href="{esc(_file_url(p, out))}">{esc(p.name)}</a>' for p in files)
-        page.add(f'<div class="animation"><h3><code>{esc(uid)}</code> on {esc(character)}</h3><p>{links}</p>')
+        where = f'<p class="note">in <code>{esc(package.folder)}</code></p>' if package.outside else ""
+        page.add(f'<div class="animation" id="animation-{n}"><h3><code>{esc(package.utterance_id)}</code> on '
+                 f"{esc(package.character)}</h3>{where}<p>{links}</p>")
         for video in (p for p in files if p.suffix == ".mp4"):
             page.add(f'<video controls preload="none" width="640" src="{esc(_file_url(video, out))}" '
                      f'title="{esc(video.name)}"></video>')
@@ -562,9 +666,23 @@ def build_dashboard(
     has_tracking = bool(store.tracking_frame_files())
     empty = not (rows_by_id or index or metrics.num_rows or rejects.num_rows or sweeps or has_tracking)
 
-    selected, missing = select_utterances(list(rows_by_id), index, utterance_ids, max(0, max_utterances))
+    packages = animation_packages(store)
+    selected, missing = select_utterances(
+        list(rows_by_id), index, utterance_ids, max(0, max_utterances),
+        languages={u: r[C.LANGUAGE] for u, r in rows_by_id.items()}, featured={p.utterance_id for p in packages})
+    # curve-only utterances (predict, speak): their audio, and the utterance of the same audio file when stored
+    rows_by_name: dict[str, list[dict]] = {}
+    for u, r in rows_by_id.items():
+        rows_by_name.setdefault(u.split("/", 1)[-1], []).append(r)
+    package_dirs: dict[str, list[Path]] = {}
+    for p in packages:
+        package_dirs.setdefault(p.utterance_id, []).append(p.folder)
+    recorded = {e["utterance_id"]: e["audio"] for e in reversed(recorded_packages(store)) if e.get("audio")}
+    audio = {u: curve_only_audio(store, u, index.get(u, {}), rows_by_name, package_dirs, recorded)
+             for u in selected if u not in rows_by_id}
     # Phones of the drawn utterances only: a filtered dataset scan, not the whole table.
-    phones = store.read_table("phones", utterance_ids=[u for u in selected if u in rows_by_id])
+    phone_ids = {u for u in selected if u in rows_by_id} | {a.same_as for a in audio.values() if a.same_as}
+    phones = store.read_table("phones", utterance_ids=sorted(phone_ids))
 
     generated = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(
@@ -583,8 +701,11 @@ def build_dashboard(
                  "or rejects. Run <code>visemeflow pipeline CORPUS --store " + esc(store.root) + "</code> first.</p>")
 
     # -- store summary
+    curve_only = len(set(index) - set(rows_by_id))
     page.add('<section id="store"><h2>Store</h2>')
     summary = [["utterances", len(rows_by_id)]]
+    if curve_only:
+        summary.append(["curve-only utterances (predict, speak: no row in the utterances table)", curve_only])
     summary += [[f"utterances in split {k}", v] for k, v in _count_by(utterances, C.SPLIT)]
     summary += [["speakers", len(set(utterances.column(C.SPEAKER).to_pylist()))]]
     for source in CURVE_SOURCES:
@@ -600,13 +721,20 @@ def build_dashboard(
         page.add('<p class="empty" id="missing-utterances">Not in the store: '
                  + ", ".join(f"<code>{esc(u)}</code>" for u in missing) + "</p>")
     if selected:
-        total = len(set(rows_by_id) | set(index))
-        page.add(f'<p class="note">{len(selected)} of {total} utterances; choose others with '
-                 "<code>visemeflow dashboard --utterance SPEAKER/NAME</code> (repeatable) or "
+        total = len(rows_by_id) + curve_only
+        split = f" ({len(rows_by_id)} in the utterances table, {curve_only} curve-only)" if curve_only else ""
+        page.add(f'<p class="note" id="utterance-count">{len(selected)} of {total} utterances{split}; choose '
+                 "others with <code>visemeflow dashboard --utterance SPEAKER/NAME</code> (repeatable) or "
                  "<code>--max-utterances N</code>. Curves: 16 viseme weights per frame, one panel per source and "
                  "variant; phone labels as written in the alignment (grey: no viseme).</p>")
         for n, uid in enumerate(selected):
-            _utterance_section(page, store, n, uid, rows_by_id.get(uid), index.get(uid, {}), phones)
+            found = audio.get(uid)
+            truth_of = None
+            if found is not None and found.same_as and CurveSource.GROUND_TRUTH in index.get(found.same_as, {}):
+                with contextlib.suppress(LookupError, OSError, pa.ArrowException):
+                    truth_of = store.read_curves(found.same_as, CurveSource.GROUND_TRUTH,
+                                                 index[found.same_as][CurveSource.GROUND_TRUTH][0])
+            _utterance_section(page, store, n, uid, rows_by_id.get(uid), index.get(uid, {}), phones, found, truth_of)
     else:
         page.add('<p class="empty">No utterances yet.</p>')
     page.add("</section>")
@@ -666,8 +794,10 @@ def build_dashboard(
                      "open, the % of vowels whose gap stays below 1.5 mm; raw curves, without the closure rule.")
         page.add('<p class="note">Validation L1 x 100 on clean audio and under each augmentation (run '
                  "<code>evaluate</code>, aggregate rows), and the ratio to clean audio (1.0 = no degradation); "
-                 "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model."
-                 f"{real}</p>", _headline_html(robust.headline), robustness_html(robust))
+                 "the table of <code>reports/robustness.md</code>, in its order, for every evaluated model (a "
+                 "wide table scrolls sideways in its box; the model column stays)."
+                 f"{real}</p>", _headline_html(robust.headline),
+                 f'<div class="wide" id="robustness-scroll">{robustness_html(robust)}</div>')
     else:
         page.add('<p class="empty" id="no-robustness">No robustness evaluation yet (no <code>evaluate</code> '
                  "metrics rows).</p>")
@@ -675,7 +805,7 @@ def build_dashboard(
 
     # -- animations
     page.add('<section id="animations"><h2>Animations</h2>')
-    _animations_section(page, store, out)
+    _animations_section(page, packages, out)
     page.add("</section>")
 
     # -- rejects

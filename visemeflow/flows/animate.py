@@ -21,6 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.rig.character import CharacterError
 from visemeflow.animation.package import AnimateConfig
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+from visemeflow.dashboards.records import record_packages
+from visemeflow.tasks.progress import Progress
 from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
@@ -151,21 +153,26 @@ def animate_flow(params: AnimateParams):
                 mapping_hash, params.config, audio, audio_hash, out, phones.get(uid))
             futures[future] = (uid, path)
     progress = create_progress_artifact(0.0, description=f"{STAGE}: packages done") if futures else None
-    for done, future in enumerate(as_completed(list(futures)), start=1):
-        uid, path = futures[future]
-        try:
-            report = dict(future.result())
-            report["cached"] = future.state.name == "Cached"
-            reports.append(report)
-        except AnimateError as exc:
-            rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
-        except Exception as exc:  # a bug met on one package: the others go on, the flow ends Failed
-            trace = "".join(traceback.format_exception(exc))
-            logger.error("animate[%s, %s]: unexpected %s\n%s", uid, path, type(exc).__name__, trace)
-            rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {path}: {exc}\n{trace}", path))
-            unexpected += 1
-        if progress is not None:
-            update_progress_artifact(progress, 100.0 * done / len(futures))
+    rejected_before = len(rejects)  # characters that could not be loaded: not packages of this loop
+    with Progress(STAGE, len(futures), unit="packages") as line:
+        for done, future in enumerate(as_completed(list(futures)), start=1):
+            uid, path = futures[future]
+            try:
+                report = dict(future.result())
+                report["cached"] = future.state.name == "Cached"
+                reports.append(report)
+            except AnimateError as exc:
+                rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
+            except Exception as exc:  # a bug met on one package: the others go on, the flow ends Failed
+                trace = "".join(traceback.format_exception(exc))
+                logger.error("animate[%s, %s]: unexpected %s\n%s", uid, path, type(exc).__name__, trace)
+                rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {path}: {exc}\n{trace}", path))
+                unexpected += 1
+            line.advance(failed=len(rejects) - rejected_before > line.failed)
+            if progress is not None:
+                update_progress_artifact(progress, 100.0 * done / len(futures))
+    if out:  # packages outside the store: recorded in it, so the dashboard can list them
+        record_packages(store, reports, {uid: audio for uid, (audio, _, _) in per_utterance.items()})
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {"packages": len(futures), "written": sum(not r["cached"] for r in reports),
                "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
@@ -275,9 +282,10 @@ def preview_flow(params: PreviewParams) -> dict:
     from visemeflow.animation.apply import check_curves, resample
     from visemeflow.animation.package import bone_rig
     from visemeflow.articulation import close_lips
-    from visemeflow.animation.preview import BoneSource, render_preview
+    from visemeflow.animation.preview import BoneSource, render_preview, video_source
     from visemeflow.ingest.audio import read_audio
     from visemeflow.tasks.animate import curves_and_fps, package_dir
+    from visemeflow.tasks.track import landmark_file
 
     store = Store(params.store)
     uid = params.utterance_id
@@ -286,7 +294,7 @@ def preview_flow(params: PreviewParams) -> dict:
     mapping = str(params.mapping.resolve()) if params.mapping else None
     character, binding = bound_character(path, character_hash, None, mapping,
                                          file_hash(mapping) if mapping else None, tuple(params.meshes))
-    panels, skipped, rate = {}, [], None
+    panels, skipped, rate, tracked = {}, [], None, False
     for spec in params.sources:
         source, _, variant = spec.partition(":")
         try:
@@ -295,6 +303,7 @@ def preview_flow(params: PreviewParams) -> dict:
         except LookupError as exc:
             skipped.append(f"{spec}: {exc}")
             continue
+        tracked = tracked or source == "tracked"
         rate = rate or fps
         curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
         if params.closure_rule:
@@ -307,15 +316,20 @@ def preview_flow(params: PreviewParams) -> dict:
             panels[f"{source.replace('_', ' ')}, {params.bones} bones"] = BoneSource(rig, curves)
     if not panels:
         raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
-    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
+    rows = store.read_table("utterances", utterance_ids=[uid]).select(
+        [C.UTTERANCE_ID, C.AUDIO_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS]).to_pylist()
     audio = read_audio(rows[0][C.AUDIO_PATH]) if rows and rows[0][C.AUDIO_PATH] else None
+    # tracked curves are judged against the footage they came from: its face crop as the first panel
+    video = video_source(rows[0][C.VIDEO_PATH], landmark_file(store, rows[0]), rows[0][C.FPS]) \
+        if tracked and rows and rows[0][C.VIDEO_PATH] else None
     phones = _phones(store, [uid]).get(uid)
     folder = package_dir(store, None, character_key(path), uid)
     out = params.out or folder / f"{folder.name}.preview.mp4"
     report = render_preview(out, character, panels, rate, audio=audio, phones=phones,
-                            title=f"{uid} - {character.name}", size=params.size)
+                            title=f"{uid} - {character.name}", size=params.size, video=video)
     get_run_logger().info("preview %s: %s (%d frames, %s); left out: %s", uid, out, report.frames,
                           ", ".join(panels), "; ".join(skipped) or "nothing")
-    return {"utterance_id": uid, "path": str(out), "sources": list(panels), "skipped": skipped,
+    return {"utterance_id": uid, "path": str(out), "sources": (["video"] if video is not None else []) + list(panels),
+            "skipped": skipped,
             "character": character.describe(),
             "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}

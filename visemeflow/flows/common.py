@@ -9,6 +9,7 @@ from prefect.futures import PrefectFuture, as_completed
 from prefect.states import Completed, Failed, State
 
 from visemeflow.flows.errors import StageFailed
+from visemeflow.tasks.progress import Progress
 from visemeflow.schemas import shard_of
 
 
@@ -30,27 +31,30 @@ def replace_stage_rejects(store, stage: str, rejects: list[dict], n_shards: int)
 
 def collect(
     futures: list[PrefectFuture], stage: str, kept_when_cached: tuple[str, ...] = ("shard", "utterances"),
-    cached_key: str = "cached_shards",
+    cached_key: str = "cached_shards", unit: str = "tasks",
 ) -> tuple[list[dict], list[str]]:
     """Wait for all futures, updating a progress artifact; (reports of the ones that worked, errors).
 
     A cache hit returns the report of the run that computed it, though this run did no work: only the
-    `kept_when_cached` fields of such a report are kept, and `cached_key` says whether it was one.
+    `kept_when_cached` fields of such a report are kept, and `cached_key` says whether it was one. `unit` names
+    what a task is on the terminal's progress line (shards, utterances).
     """
     progress_id = create_progress_artifact(progress=0.0, description=f"{stage}: tasks done") if futures else None
     reports, errors = [], []
-    for done, future in enumerate(as_completed(futures), start=1):
-        try:
-            report = dict(future.result())
-        except Exception as exc:  # a failed task: count it, let the others finish
-            errors.append(f"{type(exc).__name__}: {exc}")
-        else:
-            if future.state.name == "Cached":
-                reports.append({**{k: report[k] for k in kept_when_cached if k in report}, cached_key: 1})
+    with Progress(stage, len(futures), unit=unit) as line:
+        for done, future in enumerate(as_completed(futures), start=1):
+            try:
+                report = dict(future.result())
+            except Exception as exc:  # a failed task: count it, let the others finish
+                errors.append(f"{type(exc).__name__}: {exc}")
             else:
-                reports.append({**report, cached_key: 0})
-        if progress_id is not None:
-            update_progress_artifact(progress_id, progress=100.0 * done / len(futures))
+                if future.state.name == "Cached":
+                    reports.append({**{k: report[k] for k in kept_when_cached if k in report}, cached_key: 1})
+                else:
+                    reports.append({**report, cached_key: 0})
+            line.advance(failed=len(errors) > line.failed)
+            if progress_id is not None:
+                update_progress_artifact(progress_id, progress=100.0 * done / len(futures))
     return sorted(reports, key=lambda r: r.get("shard", 0)), errors
 
 
@@ -85,28 +89,37 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
     return Completed(message=message, data=summary)
 
 
-def collect_utterance_results(futures: dict, stage: str, expected: type[Exception], logger) -> tuple[list, list, int]:
-    """Wait for per-utterance task futures (future -> utterance id) with a progress artifact: (reports with their
-    `cached` flag, reject rows, count of unexpected errors). `expected` errors (with `error_type` and `path`) are
-    rejects; any other exception is a bug met on one utterance: logged with its trace and rejected too, so the
-    others still go on and the flow can end Failed."""
+def collect_utterance_results(
+    futures: dict, stage: str, expected: type[Exception], logger, work: dict | None = None, work_unit: str = "frames",
+) -> tuple[list, list, int]:
+    """Wait for per-utterance task futures (future -> utterance id) with a progress artifact and a progress line on
+    the terminal: (reports with their `cached` flag, reject rows, count of unexpected errors). `expected` errors
+    (with `error_type` and `path`) are rejects; any other exception is a bug met on one utterance: logged with its
+    trace and rejected too, so the others still go on and the flow can end Failed.
+
+    `work` (future -> e.g. frames of its utterance) makes the line's rate and ETA count `work_unit`s, not
+    utterances: a corpus of short and long videos is then estimated by its length, not by its count.
+    """
     from visemeflow.tasks.common import reject_row
 
     progress = create_progress_artifact(0.0, description=f"{stage}: utterances done") if futures else None
     reports, rejects, unexpected = [], [], 0
-    for done, future in enumerate(as_completed(list(futures)), start=1):
-        uid = futures[future]
-        try:
-            report = dict(future.result())
-            report["cached"] = int(future.state.name == "Cached")
-            reports.append(report)
-        except expected as exc:
-            rejects.append(reject_row(uid, stage, exc.error_type, str(exc), exc.path))
-        except Exception as exc:
-            trace = "".join(traceback.format_exception(exc))
-            logger.error("%s[%s]: unexpected %s\n%s", stage, uid, type(exc).__name__, trace)
-            rejects.append(reject_row(uid, stage, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
-            unexpected += 1
-        if progress is not None:
-            update_progress_artifact(progress, 100.0 * done / len(futures))
+    work = work or {}
+    with Progress(stage, len(futures), work_total=sum(work.values()) or None, work_unit=work_unit) as line:
+        for done, future in enumerate(as_completed(list(futures)), start=1):
+            uid = futures[future]
+            try:
+                report = dict(future.result())
+                report["cached"] = int(future.state.name == "Cached")
+                reports.append(report)
+            except expected as exc:
+                rejects.append(reject_row(uid, stage, exc.error_type, str(exc), exc.path))
+            except Exception as exc:
+                trace = "".join(traceback.format_exception(exc))
+                logger.error("%s[%s]: unexpected %s\n%s", stage, uid, type(exc).__name__, trace)
+                rejects.append(reject_row(uid, stage, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
+                unexpected += 1
+            line.advance(work=work.get(future, 0), failed=len(rejects) > line.failed)
+            if progress is not None:
+                update_progress_artifact(progress, 100.0 * done / len(futures))
     return reports, rejects, unexpected

@@ -32,6 +32,7 @@ from visemeflow.learning.device import resolve_device
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import TABLE_RUNS
 from visemeflow.learning.train import load_model
+from visemeflow.tasks.progress import Progress
 from visemeflow.procedural.recognised import RECOGNISED_MODEL
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -93,6 +94,20 @@ def _realspeech_counts(results: list[dict], n_utterances: int) -> str | None:
     return text
 
 
+
+def _warn_phones_language(store: Store, val: list[dict], logger) -> None:
+    """Warn (terminal and log) when `phones`, whose recogniser knows English only, is judged on utterances whose
+    `language` (from the manifest or the ingest config) is another: its errors there are the recogniser's."""
+    ids = {r[C.UTTERANCE_ID] for r in val}
+    table = store.read_table("utterances").select([C.UTTERANCE_ID, C.LANGUAGE]).to_pylist()
+    other = sorted({str(r[C.LANGUAGE]) for r in table if r[C.UTTERANCE_ID] in ids and r[C.LANGUAGE]
+                    and str(r[C.LANGUAGE]).lower().replace("_", "-").split("-")[0] not in ("en", "eng")})
+    if other:
+        n = sum(1 for r in table if r[C.UTTERANCE_ID] in ids and str(r[C.LANGUAGE]) in other)
+        logger.warning("`%s`: the phone recogniser (pocketsphinx) knows English only, but %d validation utterances "
+                       "are in %s: its scores there measure the wrong language's phones", RECOGNISED_MODEL, n,
+                       ", ".join(other))
+
 @flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
 def evaluate_flow(params: EvaluateParams) -> State:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files.
@@ -123,6 +138,8 @@ def evaluate_flow(params: EvaluateParams) -> State:
     _, val, _ = training_rows(store, source, variant)
     if not val:
         raise LookupError(f"no validation utterance in {store.root} has {source} curves of variant {variant!r}")
+    if RECOGNISED_MODEL in usable:
+        _warn_phones_language(store, val, logger)
 
     aug_futures = {
         cond: augmented_task_for(store, val, cond, params.seed, params.augment).submit(
@@ -138,6 +155,7 @@ def evaluate_flow(params: EvaluateParams) -> State:
         for m in usable
     }
     results, unexpected = [], 0
+    line = Progress(STAGE, len(futures), unit="models")  # each model: every condition, minutes on a large set
     for model, future in futures.items():
         try:
             results.append(future.result())
@@ -148,6 +166,8 @@ def evaluate_flow(params: EvaluateParams) -> State:
             logger.error("evaluate[%s]: unexpected %s\n%s", model, type(exc).__name__, trace)
             rejects[model] = model_reject(store, model, exc, "\n" + trace)
             unexpected += 1
+        line.advance(failed=model in rejects)
+    line.close()
     replace_stage_rejects(store, STAGE, list(rejects.values()), 1)
     judged = [r["model"] for r in results]
     counts = {"models": len(params.models), "judged": len(judged), "rejected": len(rejects)}

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.ingest.captured import CaptureConfig, discover_takes
+from visemeflow.tasks.progress import Progress
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row
@@ -102,20 +103,23 @@ def import_curves_flow(params: ImportCurvesParams):
     }
     rows, rejects, unexpected = [], [], 0
     rejects += [reject_row(r.utterance_id, STAGE, r.error_type, r.message, r.path) for r in found.rejects]
-    for future in as_completed(list(futures)):
-        take = futures[future]
-        try:
-            report = dict(future.result())
-        except Exception as exc:  # a bug or an unexpected failure: the take fails, the others go on
-            unexpected += 1
-            logger.error("%s failed: %s: %s", take["utterance_id"], type(exc).__name__, exc)
-            rejects.append(reject_row(take["utterance_id"], STAGE, type(exc).__name__,
-                                      f"{take['utterance_id']}: {exc}", take["capture_path"]))
-            continue
-        report["cached"] = future.state.name == "Cached"
-        if report.get("rejected"):
-            rejects.append(report["reject"])
-        rows.append(report)
+    with Progress(STAGE, len(futures), unit="takes") as line:
+        for future in as_completed(list(futures)):
+            take = futures[future]
+            try:
+                report = dict(future.result())
+            except Exception as exc:  # a bug or an unexpected failure: the take fails, the others go on
+                unexpected += 1
+                logger.error("%s failed: %s: %s", take["utterance_id"], type(exc).__name__, exc)
+                rejects.append(reject_row(take["utterance_id"], STAGE, type(exc).__name__,
+                                          f"{take['utterance_id']}: {exc}", take["capture_path"]))
+                line.advance(failed=True)
+                continue
+            report["cached"] = future.state.name == "Cached"
+            if report.get("rejected"):
+                rejects.append(report["reject"])
+            rows.append(report)
+            line.advance(failed=bool(report.get("rejected")))
     rows.sort(key=lambda r: r["utterance_id"])
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     done = [r for r in rows if not r.get("rejected")]

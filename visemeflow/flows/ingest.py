@@ -2,10 +2,14 @@
 
 import pyarrow as pa
 from prefect import flow, get_run_logger
+from prefect.states import Failed, State
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import collect, finished, group_by_shard, totals
+from visemeflow.flows.errors import StageFailed
 from visemeflow.flows.params import IngestParams
+from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
+from visemeflow.ingest.hints import reject_advice, reject_lines
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
@@ -23,7 +27,13 @@ DISCOVER_STAGE = "discover"
 
 @flow(name="ingest", flow_run_name="ingest[{params.corpus}]")
 def ingest_flow(params: IngestParams) -> dict[str, int]:
-    """Discover the corpus and ingest it shard by shard; unchanged shards are cache hits."""
+    """Discover the corpus and ingest it shard by shard; unchanged shards are cache hits.
+
+    A path that is no corpus (one audio file, a flat folder of wavs) and a corpus where nothing is found end the
+    flow Failed with one line saying what was found and what a corpus is: zero utterances is never "all done"."""
+    problem = check_corpus(params.corpus)
+    if problem is not None:
+        return _no_corpus(problem)
     store = Store(params.store)
     swept = store.sweep_temporary_files()
     if swept:
@@ -33,6 +43,8 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
         "config": params.config.model_dump(mode="json"),
     })
     found = discover_corpus_task(str(params.corpus.resolve()))
+    if not found["entries"] and not found["rejects"]:
+        return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
     shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)
     futures = [
         ingest_shard.with_options(
@@ -40,7 +52,7 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
         ).submit(str(store.root), shard, entries, params.config)
         for shard, entries in shards.items()
     ]
-    reports, errors = collect(futures, STAGE)
+    reports, errors = collect(futures, STAGE, unit="shards")
     removed = remove_stale_shards(store, set(shards) | captured_shards(store))
     discovery_rejects = [
         reject_row(r["utterance_id"], DISCOVER_STAGE, r["error_type"], r["message"], r["path"]) for r in found["rejects"]
@@ -48,11 +60,21 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     store.write_shard("rejects", 0, table_from_rows(discovery_rejects, REJECTS), stage=DISCOVER_STAGE)
     summary = {**totals(reports), "discovery_rejected": len(discovery_rejects), "stale_shards_removed": removed}
     publish_stage_summary(STAGE, summary)
-    publish_rejects(STAGE, pa.concat_tables([
-        store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE),
-    ]))
+    rejected = pa.concat_tables([store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE)])
+    publish_rejects(STAGE, rejected)
     get_run_logger().info("ingest: %s", summary)
+    if rejected.num_rows:  # on the terminal even when the run ends Failed and the command prints no hint itself
+        rows = rejected.to_pylist()
+        get_run_logger().warning("ingest: %d rejected:\n%s", len(rows),
+                                 "\n".join(reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]))
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
     failed = len(discovery_rejects) + store.read_table("rejects", STAGE).num_rows
     return finished(STAGE, summary, failed, len(found["entries"]) + len(discovery_rejects))
+
+
+def _no_corpus(message: str) -> State:
+    """The Failed end of a run that found no corpus: nothing ingested, the message logged and raised to callers."""
+    get_run_logger().error("ingest: %s", message)
+    summary = {"utterances": 0, "discovery_rejected": 0}
+    return Failed(message=message, data=StageFailed(f"ingest: {message}", summary))

@@ -42,7 +42,7 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
     store.write_run_config(STAGE, {"n_shards": params.n_shards, "config": config.model_dump(mode="json")})
     rows = utterances_needing_landmarks(store)
     rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
-    futures = {}
+    futures, frames = {}, {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
         # a cache hit must not hide a deleted or outdated file: recompute unless this run's file is there
@@ -51,8 +51,9 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
             result_storage=result_storage(store.root), refresh_cache=not present,
         ).submit(str(store.root), row, config)
         futures[future] = uid
+        frames[future] = int(row[C.N_FRAMES] or 0)
     logger = get_run_logger()
-    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, logger)
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, logger, work=frames)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {
         "utterances": len(rows), "detected": sum(1 for r in reports if not r["cached"]),

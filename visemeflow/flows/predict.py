@@ -44,6 +44,10 @@ from visemeflow.tasks.predict import SOURCE, prediction_provenance, prediction_t
 from visemeflow.timebase import DEFAULT_FPS
 
 STAGE = "predict"
+PHONES_ENGLISH_ONLY = ("--model phones: the phone recogniser (pocketsphinx) knows English only: speech in another "
+                       "language gets English phones and wrong mouth shapes; for it use a trained model (--model "
+                       "default or a model trained on that language); predict has no language option")
+"""The warning of every `phones` run: `predict` and `speak` take no language, so the user is told once per run."""
 EXPORT_FORMATS = ("csv", "json")
 # as flows.params.DEFAULT_STORE; not imported from there, which loads every stage's config (a second per `predict`)
 DEFAULT_STORE = Path("visemeflow-out/store")
@@ -213,6 +217,8 @@ def predict_flow(params: PredictParams) -> State:
         known = store.model_names()
         raise LookupError(f"no trained model named {params.model} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
+    if not is_trained(params.model):  # once per run: nothing here says which language the audio is in
+        logger.warning(PHONES_ENGLISH_ONLY)
     digest = model_hash(store, params.model)
     rows, rejects, unexpected = [], [], 0
     for audio, uid in zip(params.audio, prediction_ids(params.audio)):

@@ -50,7 +50,7 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
         ).submit(str(store.root), shard, items, params.config, variant)
         for shard, items in shards.items()
     ]
-    reports, errors = collect(futures, STAGE)
+    reports, errors = collect(futures, STAGE, unit="shards")
     store.delete_shards_except("rejects", set(shards), STAGE)
     summary = {**totals(reports), "skipped_unaligned": len(unaligned)}
     publish_stage_summary(STAGE, summary, {"variant": variant})

@@ -34,7 +34,8 @@ def synth_flow(params: SynthParams) -> dict[str, object]:
             synth_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=not present)
             .submit(entry, str(out), str(rig_path), rig_hash, params.config, str(store.root))
         )
-    reports, errors = collect(futures, STAGE, kept_when_cached=("utterance_id", "frames"), cached_key="cached")
+    reports, errors = collect(futures, STAGE, kept_when_cached=("utterance_id", "frames"), cached_key="cached",
+                              unit="utterances")
     rejects = [reject_row(r["utterance_id"], STAGE, r["error_type"], r["message"], r["path"]) for r in found["rejects"]]
     rejects += [reject_row(None, STAGE, "SynthFailed", e, None) for e in errors]
     store.write_shard("rejects", 0, table_from_rows(rejects, REJECTS), stage=STAGE)

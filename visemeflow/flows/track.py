@@ -69,7 +69,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     # longest videos first: with n workers the run then ends on short utterances, not on one long one
     rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
     rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
-    futures = {}
+    futures, frames = {}, {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
         present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
@@ -80,8 +80,9 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             result_storage=result_storage(store.root), refresh_cache=not present,
         ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
         futures[future] = uid
+        frames[future] = int(row[C.N_FRAMES] or 0)
     logger = get_run_logger()
-    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, logger)
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, logger, work=frames)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     unguided = [r for r in reports if not r.get("guided", True)]
@@ -97,5 +98,5 @@ def track_flow(params: TrackParams) -> dict[str, object]:
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
     publish_stage_summary(STAGE, summary, extra)
     publish_rejects(STAGE, store.read_table("rejects", STAGE))
-    logger.info("track (%s): %s", config.variant, summary)
+    logger.info("track (%s): %s", extra["variants"] or config.variant, summary)  # the modes used, not the one asked
     return finished(STAGE, {**summary, **extra}, len(rejects), len(rows), unexpected)

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
-AUDIO_EXTS = (".wav", ".flac", ".ogg")
+AUDIO_EXTS = (".wav", ".flac", ".ogg", ".mp3", ".m4a", ".opus", ".aac")
+"""Audio files a corpus may hold, best first (lossless before lossy): every format `read_audio` (and so `speak`)
+reads, so that a corpus is not refused a file the other commands take."""
 # Containers read through PyAV. The first four, in this order, are those corpus discovery ranks (GRID's .mpg ...).
 VIDEO_EXTS = (".mp4", ".avi", ".mpg", ".mov", ".m4v", ".mkv", ".mpeg", ".webm")
 # soundfile subtypes whose samples are IEEE floats: the only ones that can be NaN or infinite.

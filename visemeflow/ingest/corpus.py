@@ -14,7 +14,12 @@ in the speaker's folder or in the corpus folder. When an utterance has several, 
 TextGrid, xra, lab, align, an MLF in its speaker folder, an MLF in the corpus folder (MLFs of one folder in name
 order); a file made for one utterance says more about it than a corpus-wide list, and phones beat word spans. A
 `.lab` that does not start with a `start end label` line is a transcript (as MFA's `.lab` files are), not an
-alignment: it is left alone.
+alignment: it is left alone. An `.align` is read by what it holds: an HTK MLF (P2FA's output), a TextGrid, else
+word spans. A label file beside its audio with its stem (`NAME.align` holding an MLF, `NAME.mlf`) belongs to that
+audio whatever its one entry names (P2FA names a temporary file, `"/tmp/tmpab12/myl_26185.rec"`).
+
+`check_corpus` says in one line, cheaply and before any flow, why a path is no corpus: one audio or video file, a
+binary or headerless file given as the manifest, a flat folder of wavs without speaker folders.
 
 An utterance with a video (and no alignment) is kept without one: its `alignment_path` is "" and its
 `alignment_format` is `schemas.tables.NO_ALIGNMENT`; its audio is the video's audio track when no audio file is
@@ -29,7 +34,14 @@ from pathlib import Path
 
 from visemeflow.hashing import files_hash, stable_hash
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS
-from visemeflow.phonetics.htk import LabelFileError, MlfEntry, MlfIndex, load_mlf, looks_like_htk_label
+from visemeflow.phonetics.htk import (
+    MLF_HEADER,
+    LabelFileError,
+    MlfEntry,
+    MlfIndex,
+    load_mlf,
+    looks_like_htk_label,
+)
 from visemeflow.schemas import InvalidIdError, make_utterance_id, normalize_utterance_id
 from visemeflow.schemas.tables import NO_ALIGNMENT
 
@@ -62,6 +74,9 @@ class CorpusEntry:
     content_hash: str = ""
     alignment_key: str | None = None
     """For an alignment file holding several utterances (an HTK MLF): `folder/stem`, what its entry is found by."""
+    alignment_kind: str | None = None
+    """The format found in the file's content where its suffix does not say it: an `.align` holding an HTK MLF
+    (P2FA writes one) or a TextGrid; None: by the suffix."""
 
     @property
     def speaker(self) -> str:
@@ -72,6 +87,8 @@ class CorpusEntry:
         """`textgrid`, `xra`, `htk`, `mlf` or `word_align` by the file's suffix; `NO_ALIGNMENT` without one."""
         if not self.alignment_path:
             return NO_ALIGNMENT
+        if self.alignment_kind is not None:
+            return self.alignment_kind
         return ALIGNMENT_FORMATS.get(Path(self.alignment_path).suffix.lower(), "textgrid")
 
     @property
@@ -93,6 +110,88 @@ class Discovery:
     rejects: tuple[DiscoveryReject, ...] = field(default_factory=tuple)
 
 
+CORPUS_LAYOUT = ("a corpus is a folder of speaker folders, CORPUS/<speaker>/<name>.wav (or .flac, .mp3, ..., or a "
+                 "video) with its alignment beside it (<name>.TextGrid, .lab, .align or .xra), or a manifest CSV "
+                 "with columns utterance_id, audio, alignment")
+"""What a corpus is, in the one line that every wrong-layout message ends with."""
+_SNIFF_BYTES = 8192
+
+
+class CorpusError(ValueError):
+    """A corpus path that is no corpus (a single audio file, a folder of the wrong layout, a binary file given as
+    the manifest): one line saying what was found and what a corpus is."""
+
+
+def check_corpus(path: Path | str) -> str | None:
+    """Why `path` (which exists) cannot be a corpus, in one line, or None when it may be one.
+
+    Cheap (a directory listing, the first bytes of a file), so that a command can call it before any flow starts:
+    a single audio or video file (`pipeline clip.mp4`), a file that is not a CSV, a manifest without an
+    `utterance_id` column, or a folder holding no speaker folder with audio, video or alignment files (a flat folder
+    of wavs). A path that does not exist is left to the caller (None)."""
+    path = Path(path)
+    if path.is_file():
+        return _check_manifest_file(path)
+    if not path.is_dir():
+        return None
+    if (path / "manifest.csv").is_file():
+        return _check_manifest_file(path / "manifest.csv")
+    known = AUDIO_EXTS + VIDEO_EXTS + ALIGNMENT_EXTS + (MLF_EXT,)
+    try:
+        children = [p for p in path.iterdir() if not p.name.startswith(".")]
+    except OSError as exc:
+        return f"cannot read the corpus folder {path}: {exc.strerror}"
+    for child in children:
+        if child.is_dir() and any(f.name.lower().endswith(known) for f in _files(child)):
+            return None  # a speaker folder with input files: discovery says what each file lacks
+    loose = sorted(p.name for p in children if p.is_file() and p.name.lower().endswith(known))
+    folders = sum(p.is_dir() for p in children)
+    if loose:
+        shown = ", ".join(loose[:3]) + (f" and {len(loose) - 3} more" if len(loose) > 3 else "")
+        return (f"no utterances in {path}: {len(loose)} audio/video/alignment file{'s' if len(loose) != 1 else ''} "
+                f"({shown}) lie directly in it, not in a speaker folder; move them into one folder per speaker "
+                f"({path / 'speaker1'}/...); {CORPUS_LAYOUT}")
+    found = f"{folders} folder{'s' if folders != 1 else ''} without audio, video or alignment files" if folders \
+        else "nothing" if not children else f"{len(children)} file{'s' if len(children) != 1 else ''} of other kinds"
+    return f"no utterances in {path}: found {found}; {CORPUS_LAYOUT}"
+
+
+def _files(folder: Path):
+    """The files of a folder, lazily (a speaker folder may hold thousands; the first input file is enough)."""
+    try:
+        yield from (p for p in folder.iterdir() if p.is_file())
+    except OSError:
+        return
+
+
+def _check_manifest_file(path: Path) -> str | None:
+    """Why the file `path` is not a manifest CSV (an audio or video file, binary, no utterance_id column), or None."""
+    lower = path.name.lower()
+    if lower.endswith(AUDIO_EXTS + VIDEO_EXTS):
+        kind = "video" if lower.endswith(VIDEO_EXTS) else "audio file"
+        return (f"{path} is a single {kind}, not a corpus: {CORPUS_LAYOUT}; for one file without an alignment use "
+                f"`visemeflow speak {path}` or `visemeflow predict {path}`")
+    if lower.endswith(ALIGNMENT_EXTS + (MLF_EXT,)):
+        return f"{path} is an alignment file, not a corpus: {CORPUS_LAYOUT}"
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(_SNIFF_BYTES)
+    except OSError as exc:
+        return f"cannot read the manifest {path}: {exc.strerror}"
+    head = head.removeprefix(b"\xef\xbb\xbf")
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:  # text cut inside a character by the read is still text
+        text = head[: exc.start].decode("utf-8") if exc.start > len(head) - 4 else None
+    if text is None or "\x00" in text:
+        return f"{path} is not a manifest CSV (it is not UTF-8 text): {CORPUS_LAYOUT}"
+    header = next(csv.reader([text.splitlines()[0] if text.strip() else ""]), [])
+    if "utterance_id" not in [h.strip() for h in header]:
+        return (f"{path} is not a manifest CSV: its first line has no utterance_id column (columns: "
+                f"{', '.join(MANIFEST_COLUMNS)}); {CORPUS_LAYOUT}")
+    return None
+
+
 def _inside(path: Path, root: Path) -> bool:
     try:
         path.resolve().relative_to(root.resolve())
@@ -112,6 +211,9 @@ def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
     if only is not None:
         only = normalize_utterance_id(only)
     if corpus.is_file():
+        problem = _check_manifest_file(corpus)
+        if problem is not None:
+            raise CorpusError(problem)
         return _discover_manifest(corpus, only)
     manifest = corpus / "manifest.csv"
     if manifest.exists():
@@ -154,6 +256,44 @@ def _find_in_mlfs(indexes: list[tuple[Path, MlfIndex]], folder: str, stem: str) 
         if entry is not None:
             return path, entry
     return None
+
+
+def _content_format(path: Path) -> str | None:
+    """`mlf` or `textgrid` for an `.align` file whose content is an HTK MLF (P2FA writes its alignment so) or a
+    Praat TextGrid; None for word spans (GRID's `start end word` lines) and for other suffixes, which say their
+    format. Only the first bytes are read."""
+    if path.suffix.lower() != ".align":
+        return None
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+    except OSError:
+        return None  # reading the alignment names the file and why it cannot be read
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):  # UTF-16: Praat's text TextGrids, never word spans
+        return "textgrid"
+    head = head.removeprefix(b"\xef\xbb\xbf").lstrip()
+    if head.startswith(MLF_HEADER.encode()):
+        return "mlf"
+    if head.startswith((b"File type", b"ooBinaryFile")):
+        return "textgrid"
+    return None
+
+
+def _own_mlf_entry(path: Path, folder: str, stem: str) -> tuple[MlfEntry, str]:
+    """(entry, `folder/stem` key that finds it) of an MLF beside one audio file with its stem (`NAME.align`,
+    `NAME.mlf`). Such a file belongs to that audio whatever its entry names: P2FA's names the temporary file it
+    aligned (`"/tmp/tmpab12/myl_26185.rec"`). An entry for the audio's own name wins; else a file of one entry
+    gives that entry. LabelFileError when the file is malformed or holds several entries and none for the audio."""
+    index = load_mlf(path)
+    entry = index.find(folder, stem)
+    if entry is not None:
+        return entry, f"{folder}/{stem}"
+    if len(index.entries) != 1:
+        raise LabelFileError(f"{path}: {len(index.entries)} entries and none for {folder}/{stem}; a label file "
+                             "beside one audio file should hold that file's labels alone")
+    only = index.entries[0]
+    parts = re.split(r"[/\\]", only.pattern)
+    return only, f"{parts[-2] if len(parts) > 1 else ''}/{parts[-1].rsplit('.', 1)[0]}"
 
 
 def _priority(filename: str) -> int:
@@ -220,12 +360,28 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                     f"{utterance_id}: {outside} is a link to {outside.resolve()}, outside the corpus folder "
                     f"{real_root}; copy the file into the corpus", str(outside)))
                 continue
-            mlf_entry, key = None, None
-            if "alignment" not in kinds:
+            mlf_entry, key, kind, own_mlf = None, None, None, None
+            if "alignment" in kinds:
+                kind = _content_format(kinds["alignment"])
+                own_mlf = kinds["alignment"] if kind == "mlf" else None
+            else:
                 found_in = _find_in_mlfs(mlfs, speaker_dir.name, stem)
                 if found_in is not None:
                     kinds["alignment"], mlf_entry = found_in
                     key = f"{speaker_dir.name}/{stem}"
+                elif any(path == files.get(stem + MLF_EXT) for path, _ in mlfs):  # NAME.mlf read, no entry named
+                    own_mlf = files[stem + MLF_EXT]
+            if own_mlf is not None:  # NAME.align holding an MLF, or NAME.mlf: this utterance's own label file
+                try:
+                    mlf_entry, key = _own_mlf_entry(own_mlf, speaker_dir.name, stem)
+                except LabelFileError as exc:
+                    rejects.append(DiscoveryReject(utterance_id, "BadAlignmentFile", str(exc), str(own_mlf)))
+                    continue
+                except OSError as exc:
+                    rejects.append(DiscoveryReject(utterance_id, "UnreadableAlignment",
+                                                   f"{own_mlf}: cannot read: {exc.strerror}", str(own_mlf)))
+                    continue
+                kinds["alignment"] = own_mlf
             if "audio" not in kinds and "video" in kinds:
                 kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
             if "alignment" not in kinds and "video" not in kinds:
@@ -246,7 +402,7 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                 str(kinds["alignment"].resolve()) if "alignment" in kinds else "",
                 str(kinds["video"].resolve()) if "video" in kinds else None,
                 str(kinds["landmarks"].resolve()) if "landmarks" in kinds else None,
-                alignment_key=key,
+                alignment_key=key, alignment_kind=kind,
             ), mlf_entry))
     return _without_id_collisions(entries, rejects, spellings)
 
@@ -284,7 +440,16 @@ def _check_split_and_language(where: str, utterance_id: str, split: str | None, 
 
 
 def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
-    """Entries of a manifest CSV; relative paths are relative to its folder, and may not leave it."""
+    """Entries of a manifest CSV; relative paths are relative to its folder, and may not leave it. A manifest that
+    is not UTF-8 is a CorpusError naming the line, never the undecodable bytes."""
+    try:
+        return _read_manifest(manifest, only)
+    except UnicodeDecodeError as exc:
+        raise CorpusError(f"{manifest} is not a manifest CSV: not UTF-8 text at byte {exc.start} "
+                          f"({exc.reason}); {CORPUS_LAYOUT}") from None
+
+
+def _read_manifest(manifest: Path, only: str | None) -> Discovery:
     root = manifest.parent.resolve()
     entries: list[CorpusEntry] = []
     rejects: list[DiscoveryReject] = []
@@ -336,12 +501,18 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
                 bad = DiscoveryReject(utterance_id, "MissingInput",
                                       f"{where}: {utterance_id}: audio and alignment are required (or a video, "
                                       "whose audio track is used and which may have no alignment)", str(manifest))
-            mlf_entry, key = None, None
-            if bad is None and paths["alignment"] is not None and paths["alignment"].lower().endswith(MLF_EXT):
+            mlf_entry, key, kind = None, None, None
+            if bad is None and paths["alignment"] is not None:
+                kind = _content_format(Path(paths["alignment"]))
+            if bad is None and paths["alignment"] is not None and (kind == "mlf"
+                                                                   or paths["alignment"].lower().endswith(MLF_EXT)):
                 named = Path(paths["audio"])
                 key = f"{named.parent.name}/{named.stem}"
                 try:
-                    mlf_entry = load_mlf(paths["alignment"]).find(named.parent.name, named.stem)
+                    if kind == "mlf":  # an .align holding an MLF is this utterance's own, whatever its entry names
+                        mlf_entry, key = _own_mlf_entry(Path(paths["alignment"]), named.parent.name, named.stem)
+                    else:
+                        mlf_entry = load_mlf(paths["alignment"]).find(named.parent.name, named.stem)
                     if mlf_entry is None:
                         bad = DiscoveryReject(utterance_id, "MissingAlignment",
                                               f"{where}: {utterance_id}: {paths['alignment']} has no entry for {key}",
@@ -362,6 +533,6 @@ def _discover_manifest(manifest: Path, only: str | None = None) -> Discovery:
                 continue
             entries.append(_with_hash(CorpusEntry(
                 utterance_id, paths["audio"], paths["alignment"] or "", paths["video"], paths["landmarks"],
-                language, split, alignment_key=key,
+                language, split, alignment_key=key, alignment_kind=kind,
             ), mlf_entry))
     return Discovery(tuple(entries), tuple(rejects))

@@ -199,7 +199,14 @@ def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
     try:
         info = sf.info(entry.audio_path)
     except (RuntimeError, OSError) as exc:
-        raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
+        # a format libsndfile does not read (.m4a, .aac): decoded whole by PyAV, as `read_audio` does for `speak`
+        try:
+            samples, rate = read_audio(entry.audio_path)
+        except AudioError as exc2:
+            raise IngestError(entry.utterance_id, exc2.path, exc2.error_type, exc2.reason) from exc
+        if not len(samples):
+            raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples") from exc
+        return int(rate), len(samples) / rate
     if info.frames <= 0 or info.samplerate <= 0:
         raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples")
     try:

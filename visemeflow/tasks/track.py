@@ -144,6 +144,7 @@ def track_utterance(
     """Track one utterance (cached on its inputs' content hash, the procedural curves, the rig and the config)."""
     rig = load_rig(rig_path)
     report = track_one(Store(store_root), utterance, procedural_variant, rig, config)
-    get_run_logger().info("%s: %d frames (%s) in %.2f s, mouth error %s px", report["utterance_id"], report["frames"],
-                          report["variant"], report["seconds"], report["mouth_error_px"])
+    error = report["mouth_error_px"]  # None where no frame had a mouth to measure
+    get_run_logger().info("%s: %d frames (%s) in %.1f s, mouth error %s", report["utterance_id"], report["frames"],
+                          report["variant"], report["seconds"], "-" if error is None else f"{error:.2f} px")
     return report

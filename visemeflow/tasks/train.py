@@ -27,6 +27,7 @@ from visemeflow.learning.train import (
     train_model,
 )
 from visemeflow.schemas import METRICS, C
+from visemeflow.tasks.progress import Progress
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache, result_storage
@@ -108,9 +109,14 @@ def train_model_task(
     train = load_examples(store, train_rows, source, variant)
     val = load_examples(store, val_rows, source, variant)
     history: list[EpochReport] = []
+    # the terminal's progress line (epochs done, ETA): an epoch of a large corpus takes minutes
+    line = Progress(f"train {model_name}", config.epochs, unit="epochs")
 
     def report(epoch: EpochReport) -> None:
         history.append(epoch)
+        if not line.done and epoch.epoch > 1:  # resumed from a checkpoint: the epochs before it were done then
+            line.resume(epoch.epoch - 1)
+        line.advance()
         val = "-" if epoch.val_l1_x100 is None else f"{epoch.val_l1_x100:.3f}"  # no validation utterances
         logger.info("%s epoch %d: train L1x100 %.3f, val L1x100 %s, %.0f frames/s", model_name, epoch.epoch,
                     epoch.train_l1_x100, val, epoch.frames_per_s)
@@ -118,8 +124,9 @@ def train_model_task(
     if checkpoint_of_this_code(store, model_name):
         logger.info("%s: the checkpoint was written by other code; training starts over", model_name)
     logger.info("%s: training on %s (precision %s)", model_name, where, precision)
-    result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report,
-                         device=where, precision=precision, encoder_cache=encoder_cache_dir or True)
+    with line:
+        result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report,
+                             device=where, precision=precision, encoder_cache=encoder_cache_dir or True)
     model_path = save_model(result.model, config, store.model_path(model_name), lineage)
     # Validation metrics exist only with a validation set: no rows rather than NaN rows (the store refuses NaN).
     rows = []

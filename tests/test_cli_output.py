@@ -1,0 +1,161 @@
+"""What the terminal shows: progress lines of long stages (issue 28, item 2) and summaries a person reads (item 6).
+
+The CLI tests run the real `visemeflow` command in a child process on the session's Prefect server.
+"""
+
+import io
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from factories import make_corpus, make_curve_store, tiny_model
+from visemeflow.tasks.progress import ENV, Progress, duration
+
+REPO = Path(__file__).resolve().parents[1]
+PHONES = [("sil", 0.0, 0.2), ("HH", 0.2, 0.3), ("AH0", 0.3, 0.5), ("L", 0.5, 0.6), ("OW1", 0.6, 0.9),
+          ("sil", 0.9, 1.0)]
+# a float printed with more digits than any of our measures can tell (`9.42157706669109`)
+RAW_FLOAT = re.compile(r"\d+\.\d{4,}")
+
+
+class Clock:
+    """A clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def progress(monkeypatch, interval: str, total: int = 4, **kwargs) -> tuple[Progress, io.StringIO, Clock]:
+    monkeypatch.setenv(ENV, interval)
+    stream, clock = io.StringIO(), Clock()
+    return Progress("track", total, stream=stream, clock=clock, heartbeat=False, **kwargs), stream, clock
+
+
+def test_progress_writes_done_total_rate_and_eta_once_per_interval(monkeypatch):
+    line, out, clock = progress(monkeypatch, "10", work_total=400)
+    clock.now += 4
+    line.advance(work=100)          # before the first interval: nothing yet
+    assert out.getvalue() == ""
+    clock.now += 6
+    line.advance(work=100)          # 10 s: 200 of 400 frames at 20 frames/s, 10 s to go
+    assert out.getvalue() == "track: 2/4 utterances, 200 of 400 frames, 20 frames/s, 10 s elapsed, ETA 10 s\n"
+    clock.now += 1
+    line.advance(work=50, failed=True)   # within the interval: throttled
+    assert out.getvalue().count("\n") == 1
+    clock.now += 1
+    line.advance(work=150)          # the last one: always said once lines were written
+    last = out.getvalue().splitlines()[-1]
+    assert last == "track: 4/4 utterances (1 failed), 400 of 400 frames, 33 frames/s, 12 s elapsed"
+    line.close()
+    assert out.getvalue().count("\n") == 2
+
+
+def test_progress_is_quiet_for_a_fast_stage_says_every_update_at_zero_and_nothing_when_off(monkeypatch):
+    line, out, clock = progress(monkeypatch, "10", total=2, unit="shards")
+    line.advance()
+    line.advance()
+    line.close()
+    assert out.getvalue() == ""     # a cached rerun prints no progress
+    line, out, clock = progress(monkeypatch, "0", total=2, unit="shards")
+    clock.now += 3
+    line.advance()
+    assert out.getvalue() == "track: 1/2 shards, 0.33 shards/s, 3 s elapsed, ETA 3 s\n"
+    line, out, clock = progress(monkeypatch, "off")
+    clock.now += 1000
+    line.advance()
+    line.close()
+    assert out.getvalue() == ""
+
+
+def test_a_resumed_training_counts_earlier_epochs_but_rates_only_this_runs(monkeypatch):
+    line, out, clock = progress(monkeypatch, "0", total=10, unit="epochs")
+    line.resume(6)                  # epochs 1-6 were done by a killed run
+    clock.now += 30
+    line.advance()
+    assert out.getvalue() == "track: 7/10 epochs, 0.03 epochs/s, 30 s elapsed, ETA 1 min 30 s\n"
+
+
+def test_the_heartbeat_says_a_long_task_is_alive_before_anything_finishes(monkeypatch):
+    monkeypatch.setenv(ENV, "0.05")
+    out = io.StringIO()
+    with Progress("track", 1, stream=out, work_total=130) as line:
+        deadline = time.monotonic() + 20
+        while "\n" not in out.getvalue() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        line.advance(work=130)
+    first = out.getvalue().splitlines()[0]
+    assert re.fullmatch(r"track: 0/1 utterances, 0 of 130 frames, \d+ s elapsed, ETA after the first finishes", first)
+    assert out.getvalue().splitlines()[-1].startswith("track: 1/1 utterances, 130 of 130 frames")
+
+
+def test_durations_read_at_a_glance():
+    assert [duration(s) for s in (0.4, 59.6, 61, 3599, 3720)] == ["0 s", "1 min 00 s", "1 min 01 s",
+                                                                 "59 min 59 s", "1 h 02 min"]
+
+
+def test_summaries_round_name_units_omit_none_and_title_the_modes_used(capsys):
+    from visemeflow.cli import _print_summary
+
+    _print_summary("track", {"utterances": 2, "variant": "guided-fast", "variants": "unguided-fast",
+                             "unguided_why": None, "mean_mouth_error_px": 3.5730416798920666, "guided": False})
+    _print_summary("train", {"model": "m", "val_l1_x100": 9.42157706669109, "real_time_factor": 0.001234,
+                             "loss": float("nan")})
+    assert capsys.readouterr().out.splitlines() == [
+        "track (unguided-fast): utterances 2, mean_mouth_error 3.57 px, guided no",
+        "train: model m, validation L1 x 100 9.42, real_time_factor 0.001",
+    ]
+
+
+def visemeflow(args: list[str], api_url: str, interval: str = "0", timeout: float = 600) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PREFECT_API_URL": api_url, "PREFECT_LOGGING_LEVEL": "WARNING", ENV: interval,
+           "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "visemeflow.cli", *args], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done
+
+
+@pytest.mark.flow
+def test_pipeline_shows_each_stages_progress_and_a_rounded_summary(tmp_path, prefect_api_url):
+    corpus = make_corpus(tmp_path / "corpus", {f"spk/u{i}": PHONES for i in range(6)})   # shards 1 1 1 1 0 0
+    done = visemeflow(["pipeline", str(corpus), "--store", str(tmp_path / "store"), "--shards", "2"],
+                      prefect_api_url)
+    for stage in ("ingest", "procedural"):   # one line per finished shard (interval 0), the last without an ETA
+        lines = [line for line in done.stderr.splitlines() if line.startswith(f"{stage}: ")]
+        assert len(lines) == 2, done.stderr
+        assert re.fullmatch(rf"{stage}: 1/2 shards, [\d.]+ shards/s, \d+ s elapsed, ETA \d+ s", lines[0])
+        assert re.fullmatch(rf"{stage}: 2/2 shards, [\d.]+ shards/s, \d+ s elapsed", lines[1])
+    assert "procedural: utterances 6, generated 6" in done.stdout
+    assert "None" not in done.stdout and not RAW_FLOAT.search(done.stdout), done.stdout
+    # quiet by default on a pipe when a stage ends within its first 10 s
+    again = visemeflow(["pipeline", str(corpus), "--store", str(tmp_path / "store"), "--shards", "2"],
+                       prefect_api_url, interval="")
+    assert not re.search(r"(ingest|procedural): \d+/\d+ shards", again.stderr), again.stderr
+
+
+@pytest.mark.flow
+def test_train_and_evaluate_print_rounded_figures_and_label_the_baseline(tmp_path, prefect_api_url):
+    store = make_curve_store(tmp_path / "store")
+    tiny_model(store, "tiny")
+    trained = visemeflow(["train", "--store", str(store.root), "--preset", "mean-curve", "--source", "ground_truth",
+                          "--name", "mean"], prefect_api_url)
+    summary = trained.stdout.splitlines()
+    assert re.fullmatch(r"train: model mean, epochs 1, validation L1 x 100 \d+\.\d\d, training_utterances 4, "
+                        r"validation_utterances 2", summary[0]), trained.stdout
+    assert summary[1] == f"model: {store.model_path('mean')} (use it with --model mean)"
+    done = visemeflow(["evaluate", "--models", "tiny,mean", "--store", str(store.root), "--conditions", "volume",
+                       "--source", "ground_truth", "--variant", "cm"], prefect_api_url)
+    out = done.stdout
+    assert not RAW_FLOAT.search(out) and "None" not in out, out
+    rows = {line.split()[0]: line for line in out.splitlines() if line.startswith(("tiny ", "mean "))}
+    assert "baseline" in rows["mean"] and "baseline" not in rows["tiny"], out
+    assert re.search(r"full table.*robustness\.md", out), out
+    assert "evaluate: 2 of 2 models judged, 0 rejected" in out

@@ -1,0 +1,63 @@
+"""A record, in the store, of the animation packages written outside it (`animate`/`speak --out DIR`).
+
+The store's own packages are found by listing `animations/`; a package written with `--out` lies wherever the user
+asked, so without a record the report cannot list it. `record_packages` (called by the animate flow, which `speak`
+runs) keeps one entry per package folder, the latest run's, with the audio it plays; `recorded_packages` gives back
+the entries whose folders still exist. The record is one small JSON report file (`reports/packages-outside-store.json`,
+through `Store.report_path`), replaced atomically under a store lock, so two `speak` runs at once both land in it.
+It keeps the newest `MAX_RECORDED` packages: an old entry falls off rather than the file growing without bound.
+No Prefect import: the dashboard reads it without loading the orchestrator.
+"""
+
+import json
+from collections.abc import Iterable, Mapping
+from datetime import UTC, datetime
+from pathlib import Path
+
+from visemeflow.storage import Store
+
+RECORD_NAME = "packages-outside-store.json"
+MAX_RECORDED = 1000
+
+
+def _read(store: Store) -> list[dict]:
+    """The stored entries, newest last; an unreadable or foreign file counts as no record (it is rewritten)."""
+    try:
+        data = json.loads(store.report_path(RECORD_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    entries = data.get("packages") if isinstance(data, dict) else None
+    if not isinstance(entries, list):
+        return []
+    return [e for e in entries if isinstance(e, dict) and isinstance(e.get("folder"), str)
+            and isinstance(e.get("utterance_id"), str)]
+
+
+def record_packages(store: Store, reports: Iterable[Mapping], audio: Mapping[str, str | None] | None = None) -> int:
+    """Add the packages of `reports` (the animate task's reports: utterance_id, character, folder) to the record,
+    each with the audio file it plays (`audio`, by utterance id); returns how many entries the record now holds."""
+    now = datetime.now(UTC).isoformat(timespec="seconds")
+    fresh = []
+    for r in reports:
+        uid = str(r["utterance_id"])
+        sound = (audio or {}).get(uid)
+        fresh.append({"folder": str(Path(r["folder"]).resolve()), "utterance_id": uid,
+                      "character": str(r.get("character") or ""),
+                      "audio": str(Path(sound).resolve()) if sound else None, "written": now})
+    if not fresh:
+        return len(_read(store))
+    with store.locked("packages-outside-store"):
+        written = {e["folder"] for e in fresh}
+        entries = [e for e in _read(store) if e["folder"] not in written] + fresh
+        entries = entries[-MAX_RECORDED:]
+        store.write_report_text(RECORD_NAME, json.dumps({"packages": entries}, indent=1, ensure_ascii=False))
+    return len(entries)
+
+
+def recorded_packages(store: Store) -> list[dict]:
+    """Recorded packages whose folders still exist, newest first, `folder` as a Path (a package moved or deleted
+    since is not listed)."""
+    return [{**e, "folder": Path(e["folder"])} for e in reversed(_read(store)) if Path(e["folder"]).is_dir()]
+
+
+__all__ = ["MAX_RECORDED", "RECORD_NAME", "record_packages", "recorded_packages"]
