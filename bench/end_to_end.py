@@ -30,10 +30,12 @@ calls), so the split is of exactly the code the pipeline runs:
   flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
---compare also runs every clip through the path as it was before the one-pass decoding (same code otherwise): the
-landmarks stage decoding the clip twice (`frame_times`, then the frames) and tracking probing the video twice (the
-audio check and the camera fit each call `probe_video`); before and after alternate clip by clip in the same run,
-and their curves are compared bit for bit.
+--compare also runs every clip with the fast solver's earlier method, TrackingConfig(fast_method="adam") (Adam with
+cosine decay: 200 pose + 300 joint autograd steps), as "before", beside the default Levenberg-Marquardt ("after",
+issue 29); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
+side by side: the mean mouth keypoint error (the 20 mouth points of the tracked face to the detected landmarks,
+px) per set, and on GRID the MBP activation: at the midpoint frame of every phone whose viseme is MBP (b, p, m),
+the share where MBP is the tracked top viseme and among the top two; and the largest curve difference per clip.
 Each clip runs R times (default 3); per clip the run with the least total wall time is kept (its steps), the
 spread is (slowest - fastest) / fastest of the R totals. Wall clock on a shared machine also counts other jobs'
 turns on the core: the CPU-time total (all of the process's threads) is printed too.
@@ -66,7 +68,6 @@ torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import visemeflow.tracking.facemesh as facemesh_mod  # noqa: E402
 import visemeflow.tracking.utterance as utterance_mod  # noqa: E402
 import visemeflow.tracking.video as video_mod  # noqa: E402
 import visemeflow.tasks.landmarks as landmarks_task  # noqa: E402
@@ -144,28 +145,6 @@ def _wrap_iter(fn, step: str):
     return timed
 
 
-class _TwoPassFrames:
-    """The landmarks stage's frames as they were decoded before: the times by a first pass (`frame_times`), then
-    the frames by a second (`iter_video_frames`)."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.times = video_mod.frame_times(path)
-
-    def __iter__(self):
-        for n, frame in enumerate(video_mod.iter_video_frames(self.path)):
-            yield frame, float(self.times[n])
-
-
-PATHS: dict[str, dict] = {}
-
-
-def use_path(name: str) -> None:
-    """Switch between the current code ("after") and the code as it was before the one-pass decoding ("before")."""
-    for (owner, attr), value in PATHS[name].items():
-        setattr(owner, attr, value)
-
-
 def install_profile() -> None:
     """Wrap, in the modules that call them, the functions each step consists of."""
     patches = [
@@ -188,15 +167,9 @@ def install_profile() -> None:
         (utterance_mod, "flow_term", _wrap, "flow"),
         (utterance_mod, "solve_fast", _wrap, "solver"),
     ]
-    rig_and_camera = utterance_mod.rig_and_camera
     for owner, name, wrapper, step in patches:
         if hasattr(owner, name):
             setattr(owner, name, wrapper(getattr(owner, name), step))
-    PATHS["after"] = {(facemesh_mod, "_VideoFrames"): facemesh_mod._VideoFrames,
-                      (utterance_mod, "rig_and_camera"): utterance_mod.rig_and_camera}
-    PATHS["before"] = {(facemesh_mod, "_VideoFrames"): _TwoPassFrames,
-                       (utterance_mod, "rig_and_camera"): _wrap(
-                           lambda path, rig, track, info=None: rig_and_camera(path, rig, track), "identity")}
 
 
 # ---- clips --------------------------------------------------------------------------------------------------------
@@ -207,6 +180,7 @@ class Clip:
     utterance: dict
     procedural: np.ndarray | None
     alignment_end_s: float | None
+    mbp_times: list[float] = field(default_factory=list)    # midpoints of the MBP phones, seconds
     runs: dict[str, list[tuple[float, float, dict]]] = field(default_factory=dict)   # path: (wall, cpu, steps)
 
     @property
@@ -242,7 +216,8 @@ def build_corpus(tmp: Path, limit: int | None) -> list[Clip]:
         procedural = generate_procedural_curves(segments, int(u[C.N_FRAMES]), float(u[C.FPS])) if guided else None
         end = max(float(p["end_s"]) for p in ingested.phones) if guided else None
         name = "GRID 360x288 guided" if entry.speaker == "s1" else "talking_heads 700x700 unguided"
-        clips.append(Clip(name, u, procedural, end))
+        mbp = [0.5 * (p["start_s"] + p["end_s"]) for p in ingested.phones if p["viseme"] == "MBP"]
+        clips.append(Clip(name, u, procedural, end, mbp))
     return clips
 
 
@@ -262,6 +237,7 @@ def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMe
     steps = dict(PROFILE.seconds)
     steps.update({f"cpu {k}": v for k, v in PROFILE.cpu.items()})
     steps["_curves"] = tracked.result.curves
+    steps["_mouth"] = tracked.result.mouth_error_px
     return wall, cpu, steps
 
 
@@ -296,6 +272,23 @@ def print_set(name: str, clips: list[Clip], path: str) -> dict[str, float]:
     return {"frames": frames, "wall": wall, "cpu": cpu, **steps}
 
 
+def mbp_shares(clips: list[Clip], path: str) -> tuple[int, int, int]:
+    """(MBP phones, MBP top-1, MBP in top-2) at the phones' midpoint frames of the tracked curves (first run)."""
+    from visemeflow.visemes import viseme_index
+
+    mbp = viseme_index("MBP")
+    total = top1 = top2 = 0
+    for clip in clips:
+        curves = clip.runs[path][0][2]["_curves"]
+        for t in clip.mbp_times:
+            j = min(max(round(t * float(clip.utterance[C.FPS])), 0), len(curves) - 1)
+            order = np.argsort(-curves[j], kind="stable")
+            total += 1
+            top1 += int(order[0] == mbp)
+            top2 += int(mbp in order[:2])
+    return total, top1, top2
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -309,10 +302,12 @@ def main() -> int:
     print("end-to-end bench:", "not pinned" if args.no_pin else pin_one_core(),
           f"| torch {torch.__version__}, {torch.get_num_threads()} thread(s)")
     config, mesh, rig = TrackingConfig(), FaceMeshConfig(), load_demo_rig()
-    print(f"TrackingConfig: solver {config.solver}, {config.fast_iterations} it, flow {config.use_flow}, pose init "
-          f"{config.pose_iterations} it; FaceMeshConfig: refine {mesh.refine_landmarks}, probe every "
+    print(f"TrackingConfig: solver {config.solver}, method {config.fast_method} (at most {config.lm_pose_iterations} "
+          f"pose + {config.lm_flow_rounds} x {config.lm_iterations} it; adam {config.pose_iterations} + "
+          f"{config.fast_iterations} it), flow {config.use_flow}; FaceMeshConfig: refine {mesh.refine_landmarks}, probe every "
           f"{mesh.probe_every}")
     paths = ("before", "after") if args.compare else ("after",)
+    configs = {"before": config.model_copy(update={"fast_method": "adam"}), "after": config}
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
@@ -323,11 +318,9 @@ def main() -> int:
         for r in range(args.repeats):
             for clip in clips:
                 for path in paths:
-                    use_path(path)
-                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, config, mesh))
+                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], mesh))
             print(f"  [{time.perf_counter() - started:6.0f} s] run {r + 1} of {args.repeats}", file=sys.stderr,
                   flush=True)
-        use_path("after")
     print()
     sets: dict[str, list[Clip]] = {}
     for clip in clips:
@@ -338,23 +331,37 @@ def main() -> int:
             totals[(name, path)] = print_set(name, members, path)
             print()
     if args.compare:
-        print("before -> after (best runs; wall | CPU frames/s)")
+        print("before (fast_method=adam) -> after (lm): best runs; wall | CPU frames/s; solver frames/s")
         for name in sets:
             b, a = totals[(name, "before")], totals[(name, "after")]
             print(f"  {name:<32} total {b['frames'] / b['wall']:.1f} -> {a['frames'] / a['wall']:.1f} | "
-                  f"{b['frames'] / b['cpu']:.1f} -> {a['frames'] / a['cpu']:.1f};  decode {b['decode']:.3f} -> "
-                  f"{a['decode']:.3f} s ({a['frames'] / b['decode']:.0f} -> {a['frames'] / a['decode']:.0f} frames/s)")
+                  f"{b['frames'] / b['cpu']:.1f} -> {a['frames'] / a['cpu']:.1f};  solver "
+                  f"{b['frames'] / b['solver']:.0f} -> {a['frames'] / a['solver']:.0f} frames/s")
+        print()
+        print("accuracy, before -> after: mean mouth keypoint error to the detections (px, over frames with one); "
+              "MBP at MBP phone midpoints (top-1, in top-2)")
+        for name, members in sets.items():
+            line = f"  {name:<32}"
+            for path in paths:
+                errors = np.concatenate([c.runs[path][0][2]["_mouth"] for c in members])
+                line += f" {path} {np.nanmean(errors):.3f} px"
+                mbp = mbp_shares(members, path)
+                if mbp[0]:
+                    line += f", MBP {mbp[1]}/{mbp[0]} top-1, {mbp[2]}/{mbp[0]} top-2;"
+            print(line)
         print()
     print("per clip (best run): frames, total wall s, frames/s; decode / detection / flow / solver s; curves")
     for clip in clips:
-        every = [run[2]["_curves"] for path in paths for run in clip.runs[path]]
+        every = [run[2]["_curves"] for run in clip.runs["after"]]
         same = all(np.array_equal(every[0], c) for c in every)
+        gap = (f", max |after - before| {np.abs(clip.runs['after'][0][2]['_curves'] - clip.runs['before'][0][2]['_curves']).max():.3f}"
+               if args.compare else "")
         for path in paths:
             wall, _, steps = min(clip.runs[path], key=lambda r: r[0])
             print(f"  {clip.uid:<22}{path:<7}{clip.frames:>5}{wall:>8.3f}{clip.frames / wall:>8.1f}   "
                   f"{steps.get('decode', 0):.3f} / {steps.get('detection', 0):.3f} / {steps.get('flow', 0):.3f} / "
                   f"{steps.get('solver', 0):.3f}   "
-                  f"{'identical in every run' + (' and path' if args.compare else '') if same else 'DIFFER'}")
+                  f"{'identical in every run' if same else 'DIFFER between runs'}{gap if path == 'after' else ''}")
     return 0
 
 

@@ -23,6 +23,8 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
                      projection after every step (the paper-exact form, which overshoots: see TrackingConfig.box).
   guided fast+flow   `solve_fast`, TrackingConfig(): the default pipeline config (L_flow on, DIS optical flow of
                      the rendered frames built as `visemeflow.tracking.utterance.flow_term` builds it).
+  ... adam           the row above it with fast_method="adam": the fast solver's earlier method (Adam with cosine
+                     decay, 200 pose + 300 joint steps) beside the default Levenberg-Marquardt, same objective.
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames
@@ -117,8 +119,13 @@ METHODS: dict[str, tuple[str, TrackingConfig | None, str | None]] = {
     "guided faithful soft": ("faithful", TrackingConfig(solver="faithful", use_flow=False, box="soft"), None),
     "guided fast+flow": ("fast", TrackingConfig(), "flow"),
     "guided fast+rgb": ("fast", TrackingConfig(use_flow=False, use_rgb=True), "rgb"),
+    # the fast solver's earlier method (Adam, 500 autograd steps), beside the default Levenberg-Marquardt (issue 29)
+    "unguided fast adam": ("fast", TrackingConfig(guidance=False, use_flow=False, fast_method="adam"), None),
+    "guided fast adam": ("fast", TrackingConfig(use_flow=False, fast_method="adam"), None),
+    "guided fast+flow adam": ("fast", TrackingConfig(fast_method="adam"), "flow"),
 }
-FULL_ROWS = ("procedural", "unguided fast", "guided fast", "guided fast+flow")
+FULL_ROWS = ("procedural", "unguided fast", "unguided fast adam", "guided fast", "guided fast adam",
+             "guided fast+flow", "guided fast+flow adam")
 SUBSET_ROWS = tuple(METHODS)
 
 
@@ -367,12 +374,13 @@ def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole
     render_seconds = 0.0
     rgb_rows: list[tuple[str, Tally]] = []
     for k, u in enumerate(utterances):
-        for name in ("procedural", "unguided fast", "guided fast"):
+        for name in ("procedural", "unguided fast", "unguided fast adam", "guided fast", "guided fast adam"):
             run_method(name, rig, u, full[name])
         start = time.perf_counter()
         u.frames = render(rig, u)
         render_seconds += time.perf_counter() - start
         run_method("guided fast+flow", rig, u, full["guided fast+flow"])
+        run_method("guided fast+flow adam", rig, u, full["guided fast+flow adam"])
         if k < FAITHFUL_UTTERANCES:
             subset_source.append(u.cut(faithful_frames))
         if k < rgb_whole:
