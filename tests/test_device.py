@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from factories import DEMO_AUDIO
 
 from visemeflow.learning.device import (
     DEVICE_CHOICES,
@@ -273,7 +274,8 @@ COMMANDS = {
     "train": ["train", "--source", "ground_truth"],
     "sweep": ["sweep", "--source", "ground_truth"],
     "evaluate": ["evaluate", "--models", "m"],
-    "predict": ["predict", "a.wav", "--model", "m"],
+    # an audio file and model that exist: a missing model or file is refused first, before torch loads for --device
+    "predict": ["predict", str(DEMO_AUDIO), "--model", "default"],
 }
 
 
