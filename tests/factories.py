@@ -425,3 +425,16 @@ def usd_validation_errors(stage) -> list[str]:
     errors = UsdValidation.ValidationContext(validators).Validate(stage)
     return [f"{e.GetType()}: {e.GetMessage()}" for e in errors
             if e.GetType() == UsdValidation.ValidationErrorType.Error]
+
+
+def stop_process(proc: "subprocess.Popen") -> None:
+    """SIGTERM a child (a `visemeflow serve`) that is still running, wait up to 60 s, then kill it."""
+    import signal
+    import subprocess
+
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()

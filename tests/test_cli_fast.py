@@ -15,7 +15,7 @@ from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
 
 import pytest
-from factories import REPO
+from factories import REPO, stop_process
 
 from visemeflow.ops import connect
 
@@ -218,12 +218,7 @@ def test_a_command_runs_its_flow_on_the_running_serve_of_its_store(tmp_path):
                 runs = [r for r in client.read_flow_runs() if r.deployment_id is None]
                 flows = {client.read_flow(r.flow_id).name for r in runs}
     finally:
-        if serve.poll() is None:
-            serve.send_signal(__import__("signal").SIGTERM)
-            try:
-                serve.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                serve.kill()
+        stop_process(serve)
     assert "ingest" in flows, (flows, done.stderr[-3000:], log.read_text()[-3000:])
     assert all(r.state.is_completed() for r in runs), [(r.name, r.state) for r in runs]
 

@@ -9,7 +9,7 @@ import stat
 import httpx
 import pytest
 import yaml
-from factories import REPO
+from factories import REPO, stop_process
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
 from visemeflow.ops import serve as serve_module
@@ -409,12 +409,7 @@ def test_the_prefect_cli_runs_served_deployments_with_flat_or_partial_parameters
                 rerun = client.read_deployment_by_name("rerun/served")
                 runs = [r for r in client.read_flow_runs() if r.deployment_id == rerun.id]
     finally:
-        if serve.poll() is None:
-            serve.send_signal(__import__("signal").SIGTERM)
-            try:
-                serve.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                serve.kill()
+        stop_process(serve)
     assert sorted(r.name for r in runs) == ["rerun[spk/a:ingest]", "rerun[spk/a:procedural]"]
     for run in runs:
         assert run.state.is_completed() and run.parameters["store"] == str(store), (run.name, run.parameters)

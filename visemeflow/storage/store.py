@@ -568,8 +568,8 @@ class Store:
         meta = pq.read_schema(path).metadata or {}
         return meta.get(PROVENANCE_KEY, b"").decode()
 
-    def read_curves(self, utterance_id: str, source: str, variant: str | None = None) -> pa.Table:
-        """Curves of one utterance from one source; `variant` may be omitted when only one exists."""
+    def _stored_curve_path(self, utterance_id: str, source: str, variant: str | None) -> Path:
+        """The file of one utterance's curves from one source; `variant` may be omitted when only one exists."""
         if variant is None:
             variants = self.curve_variants(source, utterance_id)
             if len(variants) != 1:
@@ -580,22 +580,17 @@ class Store:
         path = self.curve_path(source, variant, utterance_id)
         if not path.exists():
             raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.root}")
-        return _read_whole(path).cast(CURVES)
+        return path
+
+    def read_curves(self, utterance_id: str, source: str, variant: str | None = None) -> pa.Table:
+        """Curves of one utterance from one source; `variant` may be omitted when only one exists."""
+        return _read_whole(self._stored_curve_path(utterance_id, source, variant)).cast(CURVES)
 
     def load_curves(self, utterance_id: str, source: str, variant: str | None = None,
                     default_fps: float = DEFAULT_FPS) -> Curves:
         """The stored curves of one utterance as a :class:`Curves` value, with the rate and provenance the writer
         recorded (``default_fps`` only for a one-frame file of a writer that recorded no rate)."""
-        if variant is None:
-            variants = self.curve_variants(source, utterance_id)
-            if len(variants) != 1:
-                raise LookupError(
-                    f"{utterance_id}: {len(variants)} variants of {source} curves ({', '.join(variants) or 'none'}); name one"
-                )
-            variant = variants[0]
-        path = self.curve_path(source, variant, utterance_id)
-        if not path.exists():
-            raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.root}")
+        path = self._stored_curve_path(utterance_id, source, variant)
         return Curves.from_table(_read_whole(path), default_fps)
 
     def save_curves(self, curves: Curves) -> Path:
