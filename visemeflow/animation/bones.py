@@ -23,7 +23,8 @@ Blend (per frame, curves c in [0, 1], one weight per viseme pose), what every ex
 docs/bones.md says how this relates to Unreal's Pose Assets and Unity's Direct Blend Trees.
 
 Quaternions here are (w, x, y, z) (kornia's order); the writers convert (glTF: x, y, z, w; USD: real, imaginary).
-Pure numpy / torch / kornia: arrays in, arrays out.
+Pure numpy / torch / kornia: arrays in, arrays out (torch and kornia imported where they run, so a module that
+only names the bone formats loads neither).
 """
 
 from __future__ import annotations
@@ -32,8 +33,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
 from visemeflow.rig.character import Character, validate_character
 from visemeflow.visemes import VISEMES
@@ -150,6 +149,9 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     BoneError for a bone count that is not an integer >= 1 or larger than the vertices can support (`max_bones`),
     a character without triangles, or non-finite vertices (CharacterError, also a ValueError, from validation).
     Dem Bones may leave a bone without any vertex; such bones are dropped, so the rig can have fewer bones."""
+    import torch
+    from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
     from py_dem_bones import DemBones, solve_skinning
 
     validate_character(character)
@@ -334,6 +336,8 @@ def check_curves(rig: BoneRig, curves, where: str = "") -> np.ndarray:
 def blend_poses(rig: BoneRig, curves) -> tuple[np.ndarray, np.ndarray]:
     """Per frame blended joint pose: ((T, B, 4) unit quaternions (w, x, y, z) and (T, B, 3) local translations =
     bind + blended offset), from (T, P) curves (see the module doc for the blend)."""
+    import torch
+
     c = torch.from_numpy(check_curves(rig, curves))
     q = torch.from_numpy(rig.rotations)                            # (P, B, 4), w >= 0
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
@@ -348,6 +352,9 @@ def blend_poses(rig: BoneRig, curves) -> tuple[np.ndarray, np.ndarray]:
 
 def skinning_matrices(rig: BoneRig, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
     """(T, B, 3, 4) skin-space matrices x -> R (x - c_b) + t_b of joint poses (quaternions w, x, y, z)."""
+    import torch
+    from kornia.geometry.conversions import quaternion_to_rotation_matrix
+
     q = torch.from_numpy(np.ascontiguousarray(rotations, np.float64))
     r = quaternion_to_rotation_matrix(q.reshape(-1, 4)).numpy().reshape(q.shape[:-1] + (3, 3))
     offset = np.asarray(translations, np.float64) - np.einsum("tbij,bj->tbi", r, rig.bind_translations)
@@ -356,6 +363,8 @@ def skinning_matrices(rig: BoneRig, rotations: np.ndarray, translations: np.ndar
 
 def skin_vertices(rig: BoneRig, rotations: np.ndarray, translations: np.ndarray, *, chunk: int = 16) -> np.ndarray:
     """(T, V, 3) float64 linear blend skinning of the bind-pose vertices by the joint poses."""
+    import torch
+
     m = torch.from_numpy(skinning_matrices(rig, rotations, translations))       # (T, B, 3, 4)
     u = torch.from_numpy(np.concatenate([rig.neutral.astype(np.float64), np.ones((rig.n_vertices, 1))], axis=1))
     j = torch.from_numpy(rig.joints)

@@ -28,7 +28,7 @@ from visemeflow.flows.params import EvaluateParams
 from visemeflow.flows.predict import ensure_model
 from visemeflow.flows.train import training_rows
 from visemeflow.learning.default_model import is_shipped
-from visemeflow.learning.device import resolve_device
+from visemeflow.learning.device import check_device_here
 from visemeflow.learning.robustness import robustness_table, table_csv, table_markdown
 from visemeflow.learning.robustness_table import TABLE_RUNS
 from visemeflow.learning.train import load_model
@@ -112,7 +112,7 @@ def _warn_phones_language(store: Store, val: list[dict], logger) -> None:
 def evaluate_flow(params: EvaluateParams) -> State:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files.
     A model that cannot be evaluated is a reject and the others are judged."""
-    resolve_device(params.device)
+    check_device_here(params.device)   # torch is asked only for cuda: a cached run never loads it
     store = Store(params.store)
     logger = get_run_logger()
     rejects, usable, lineages = {}, [], {}   # rejects: model -> its reject row

@@ -17,6 +17,8 @@ model) turned into curves by the procedural rules (`visemeflow.procedural.recogn
 settings instead of a model file.
 """
 
+import contextlib
+import json
 import re
 import traceback
 import unicodedata
@@ -28,13 +30,14 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.states import Completed, Failed, State
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from visemeflow.atomic import atomic_write_text
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.flows.common import replace_stage_rejects
 from visemeflow.flows.errors import StageFailed
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError
 from visemeflow.learning.default_model import DEFAULT_MODEL, is_shipped, shipped_model_path
-from visemeflow.learning.device import DeviceWord, resolve_device
+from visemeflow.learning.device import DeviceWord, check_device_here
 from visemeflow.schemas import C, curves_array
 from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
 from visemeflow.storage import Store
@@ -90,27 +93,51 @@ def ensure_model(store: Store, model: str) -> None:
             get_run_logger().info("%s the shipped %s model into %s", "updated" if replaced else "installed", model,
                                   store.model_path(model))
     if is_trained(model) and store.has_model(model):
-        check_whisper_weights(store.model_path(model))
+        check_whisper_weights(store.model_path(model), store.model_dir(model) / FEATURES_MEMO)
 
 
-def check_whisper_weights(path: Path) -> None:
+def check_whisper_weights(path: Path, memo: Path | None = None) -> None:
     """LookupError naming the `visemeflow[whisper]` extra when the model at `path` runs on the packaged Whisper
-    weights and they are not installed; `ModelFileError` naming the file when it is not a model file."""
+    weights and they are not installed; `ModelFileError` naming the file when it is not a model file. `memo`: a file
+    where what the model needs is remembered (`_packaged_whisper`)."""
+    packaged, preset = _packaged_whisper(path, memo)
+    if not packaged:
+        return
+    from visemeflow.learning.whisper_package import PACKAGE_EXTRA_HINT, weights_installed
+
+    if not weights_installed():
+        raise LookupError(f"model {preset} needs the Whisper-base weights, "
+                          f"which are not installed: {PACKAGE_EXTRA_HINT}")
+
+
+FEATURES_MEMO = "features.json"   # beside a store's model.pt (Store.model_dir)
+
+
+def _packaged_whisper(path: Path, memo: Path | None = None) -> tuple[bool, str]:
+    """(whether the model file at `path` runs on the packaged Whisper weights, its preset).
+
+    Read from the file (a torch load) and, with `memo`, remembered there under the file's content hash, so that a
+    run whose predictions are all cached imports no torch; a memo of another file, or one that cannot be read, is
+    read afresh from the model and written again."""
+    digest = file_hash(path) if memo is not None else ""
+    if memo is not None:
+        try:
+            known = json.loads(memo.read_text(encoding="utf-8"))
+            if known["model_hash"] == digest:
+                return bool(known["packaged_whisper"]), str(known["preset"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
     from visemeflow.learning.train import read_model_file
 
     model_file = read_model_file(path)
     fcfg = model_file.feature_config
-    if fcfg.kind != "whisper" or fcfg.whisper_source != "package":
-        return
-    from visemeflow.learning import whisper
-
-    if (whisper.whisper_cache_dir() / whisper.PACKAGE_DIRNAME / "model.bin").is_file():
-        return  # assembled before (loading verifies it)
-    try:
-        whisper._package_part_paths()
-    except whisper.WhisperWeightsMissing:
-        raise LookupError(f"model {model_file.config.preset} needs the Whisper-base weights, "
-                          f"which are not installed: {whisper.PACKAGE_EXTRA_HINT}") from None
+    packaged = fcfg.kind == "whisper" and fcfg.whisper_source == "package"
+    if memo is None:
+        return packaged, model_file.config.preset
+    with contextlib.suppress(OSError):   # only a memo: a read-only store still predicts
+        atomic_write_text(memo, json.dumps({"model_hash": digest, "packaged_whisper": packaged,
+                                            "preset": model_file.config.preset}))
+    return packaged, model_file.config.preset
 
 
 def prediction_id(path: Path | str) -> str:
@@ -209,7 +236,7 @@ def _predict_file(store: Store, params: PredictParams, digest: str, audio: Path,
 def predict_flow(params: PredictParams) -> State:
     """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies; a bad
     file is a reject and the others go on."""
-    resolve_device(params.device)
+    check_device_here(params.device)   # torch is asked only for cuda: a cached run never loads it
     store = Store(params.store)
     logger = get_run_logger()
     ensure_model(store, params.model)

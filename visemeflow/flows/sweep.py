@@ -13,7 +13,7 @@ from visemeflow.flows.params import SweepParams
 from visemeflow.flows.train import resolve_variant, training_rows
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash, stable_hash
-from visemeflow.learning.device import resolve_device, resolve_precision
+from visemeflow.learning.device import check_device_here
 from visemeflow.learning.train import TrainConfig
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -55,7 +55,7 @@ def sweep_flow(params: SweepParams) -> dict:
     The budget counts utterances: with `config.batch_size` B, a size trains ceil(steps / size) epochs of
     ceil(size / B) optimisation steps. `params.device`/`precision`: as in the `train` flow (all sizes share it).
     """
-    resolve_precision(resolve_device(params.device), params.precision)  # one line, before anything runs
+    check_device_here(params.device, params.precision)  # one line, before anything runs
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow
         return run_on_runner(sweep_flow, params)
     store = Store(params.store)

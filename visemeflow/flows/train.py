@@ -9,7 +9,7 @@ from prefect import flow, get_run_logger
 
 from visemeflow.flows.params import TrainParams
 from visemeflow.hashing import stable_hash
-from visemeflow.learning.device import resolve_device, resolve_precision
+from visemeflow.learning.device import check_device_here
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.train import training_task_for
@@ -45,7 +45,7 @@ def resolve_variant(store: Store, source: str, variant: str | None) -> str:
 @flow(name="train", flow_run_name="train[{params.config.preset}]")
 def train_flow(params: TrainParams) -> dict:
     """Train one preset on the store's curves; a killed run resumes from its last epoch checkpoint."""
-    resolve_precision(resolve_device(params.device), params.precision)
+    check_device_here(params.device, params.precision)
     store = Store(params.store)
     variant = resolve_variant(store, params.source, params.variant)
     train, val, lineage = training_rows(store, params.source, variant)

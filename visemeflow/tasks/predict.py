@@ -9,9 +9,6 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
 from visemeflow.ingest.audio import AudioFile
-from visemeflow.learning.device import resolve_device
-from visemeflow.learning.longform import predict_long
-from visemeflow.learning.train import predict_curves
 from visemeflow.schemas import CurveSource, Curves
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -42,6 +39,11 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     retrained model or changed audio recomputes; the real-time factor is that of the run that computed it (on
     `device`: auto, cpu, cuda or cuda:N, resolved here, where the work runs).
     """
+    # torch and the model code load here, where the work runs: a run whose prediction is cached never imports them
+    from visemeflow.learning.device import resolve_device
+    from visemeflow.learning.longform import predict_long
+    from visemeflow.learning.train import predict_curves
+
     store = Store(store_root)
     model = _model(store_root, model_name, model_hash, str(resolve_device(device)))
     logger = get_run_logger()
