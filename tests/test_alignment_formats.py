@@ -303,13 +303,17 @@ def test_label_file_running_past_the_audio_is_a_reject_and_ending_early_is_not(t
         ingest_utterance(only_entry(tmp_path / "c"), CONFIG)
 
 
-def test_transcript_lab_is_not_an_alignment(tmp_path):
+def test_transcript_lab_is_not_an_alignment_but_a_transcript_to_align(tmp_path):
     folder = tmp_path / "c" / "s"
     write_wav(folder / "t.wav", 1.0)
     (folder / "t.lab").write_text("HELLO WORLD\n")  # MFA's input transcript
     found = discover_corpus(tmp_path / "c")
-    (reject,) = found.rejects
-    assert reject.error_type == "MissingAlignment" and "t.lab is a transcript without times" in reject.message
+    (entry,) = found.entries
+    assert found.rejects == () and entry.alignment_format == "transcript"
+    assert entry.alignment_path == str((folder / "t.lab").resolve())
+    with pytest.raises(IngestError, match="transcripts are not aligned") as info:
+        ingest_utterance(entry, CONFIG.model_copy(update={"align_transcripts": False}))
+    assert info.value.error_type == "MissingAlignment"
     # with a TextGrid beside it (MFA's output) the TextGrid is the alignment
     (folder / "t.TextGrid").write_text(textgrid_long(PHONES, 1.0))
     (entry,) = discover_corpus(tmp_path / "c").entries

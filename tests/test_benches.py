@@ -31,6 +31,7 @@ QUICK = {
     "devices.py": ["--presets", "fbank-blstm", "--batch-sizes", "1", "--utterances", "2", "--epochs", "2",
                    "--d-model", "16", "--threads", "1"],
     "end_to_end.py": ["--repeats", "1", "--clips", "1", "--no-pin"],
+    "forcealign.py": ["--utterances", "2"],
     "ingest_procedural.py": ["--utterances", "25", "--speakers", "2", "--skip-peer", "--no-install"],
     "landmarks.py": ["--repeats", "1", "--no-pin"],
     "learning.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm", "--sizes", "",

@@ -191,9 +191,9 @@ def test_ingest_reads_mp3_and_p2fa_and_prints_the_first_rejects_with_what_to_do(
     (corpus / "spk" / "song.TextGrid").write_text(textgrid_long([(s, e, lab) for lab, s, e in PHONES], 0.6), "utf-8")
     write_wav(corpus / "p2fa" / "hello.wav", 0.6)
     (corpus / "p2fa" / "hello.align").write_text(P2FA_MLF, encoding="utf-8")
-    for name in ("t1", "t2"):  # transcripts (MFA's input), no timings
+    for name in ("t1", "t2"):  # transcripts (MFA's input), no timings, in a language the built-in aligner lacks
         write_wav(corpus / "spk" / f"{name}.wav", 0.6)
-        (corpus / "spk" / f"{name}.lab").write_text("HELLO WORLD\n", encoding="utf-8")
+        (corpus / "spk" / f"{name}.lab").write_text("你好世界\n", encoding="utf-8")
     store = tmp_path / "store"
     done = visemeflow(["ingest", str(corpus), "--store", str(store), "--shards", "1"], prefect_api_url)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -204,19 +204,19 @@ def test_ingest_reads_mp3_and_p2fa_and_prints_the_first_rejects_with_what_to_do(
     assert "2 rejected:" in out, out
     for name in ("t1", "t2"):
         line = next(x for x in out.splitlines() if f"spk/{name}:" in x)
-        assert "MissingAlignment" in line and str(corpus / "spk" / f"{name}.wav") in line
-        assert f"{name}.lab is a transcript without times" in line
-    assert "hint: the .lab files found are transcripts without times" in out and "Montreal Forced Aligner" in out
+        assert "TranscriptNotAligned" in line and str(corpus / "spk" / f"{name}.lab") in line
+        assert "no English pronunciation for '你好世界'" in line
+    assert "hint: English transcripts beside their audio" in out and "Montreal Forced Aligner" in out
     assert "`visemeflow speak` / `visemeflow predict`" in out and f"visemeflow rejects --store {store}" in out
 
     # every utterance rejected: the run fails, and the reasons and the hint are still on the terminal
     only = tmp_path / "only"
     for name in ("t1", "t2"):
         write_wav(only / "spk" / f"{name}.wav", 0.6)
-        (only / "spk" / f"{name}.lab").write_text("HELLO WORLD\n", encoding="utf-8")
+        (only / "spk" / f"{name}.lab").write_text("你好世界\n", encoding="utf-8")
     done = visemeflow(["ingest", str(only), "--store", str(tmp_path / "store2")], prefect_api_url)
     assert done.returncode == 1, done.stdout + done.stderr
-    assert "MissingAlignment: spk/t1:" in done.stderr and "Montreal Forced Aligner" in done.stderr, done.stderr
+    assert "TranscriptNotAligned: spk/t1:" in done.stderr and "Montreal Forced Aligner" in done.stderr, done.stderr
 
 
 @pytest.mark.flow

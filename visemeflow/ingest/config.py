@@ -39,6 +39,11 @@ class IngestConfig(BaseModel):
     vowel_weight: float = Field(
         2.0, gt=0, description="Share of a vowel relative to a consonant when word spans are split into phones."
     )
+    align_transcripts: bool = Field(
+        True, description="Forced-align a transcript beside audio that has no alignment (`NAME.lab` without times, "
+                          "`NAME.txt`) with pocketsphinx's English model; off: such utterances are rejects "
+                          "(MissingAlignment). English only: a word its dictionary lacks is a reject naming it.",
+    )
     grid_time_unit_s: float = Field(
         1.0 / 25000.0, gt=0, description="Time unit of word alignment files (`start end word`); GRID uses 1/25000 s."
     )

@@ -14,7 +14,9 @@ in the speaker's folder or in the corpus folder. When an utterance has several, 
 TextGrid, xra, lab, align, an MLF in its speaker folder, an MLF in the corpus folder (MLFs of one folder in name
 order); a file made for one utterance says more about it than a corpus-wide list, and phones beat word spans. A
 `.lab` that does not start with a `start end label` line is a transcript (as MFA's `.lab` files are), not an
-alignment: it is left alone. An `.align` is read by what it holds: an HTK MLF (P2FA's output), a TextGrid, else
+alignment, and so is a `.txt` with the audio's stem: an utterance with a transcript and no alignment gets the
+transcript (`alignment_format` "transcript"), which ingest forced-aligns in English
+(`visemeflow.phonetics.forcealign`; `IngestConfig.align_transcripts`). An `.align` is read by what it holds: an HTK MLF (P2FA's output), a TextGrid, else
 word spans. A label file beside its audio with its stem (`NAME.align` holding an MLF, `NAME.mlf`) belongs to that
 audio whatever its one entry names (P2FA names a temporary file, `"/tmp/tmpab12/myl_26185.rec"`).
 
@@ -49,6 +51,9 @@ ALIGNMENT_EXTS = (".TextGrid", ".textgrid", ".xra", ".lab", ".align")
 """Alignment files of one utterance, highest priority first."""
 MLF_EXT = ".mlf"
 ALIGNMENT_FORMATS = {".align": "word_align", ".xra": "xra", ".lab": "htk", ".mlf": "mlf"}
+TRANSCRIPT_EXT = ".txt"
+"""A transcript beside its audio (as a `.lab` without times): words, no timings."""
+TRANSCRIPT_FORMAT = "transcript"
 """`alignment_format` by file suffix (lower case); any other suffix is a Praat TextGrid ("textgrid")."""
 LANDMARK_SUFFIXES = (".landmarks.csv", ".landmarks.parquet", ".mediapipe478.csv", ".openface.csv")
 MANIFEST_COLUMNS = ("utterance_id", "audio", "alignment", "video", "landmarks", "language", "split")
@@ -84,7 +89,8 @@ class CorpusEntry:
 
     @property
     def alignment_format(self) -> str:
-        """`textgrid`, `xra`, `htk`, `mlf` or `word_align` by the file's suffix; `NO_ALIGNMENT` without one."""
+        """`textgrid`, `xra`, `htk`, `mlf` or `word_align` by the file's suffix, `transcript` for words without
+        times; `NO_ALIGNMENT` without one."""
         if not self.alignment_path:
             return NO_ALIGNMENT
         if self.alignment_kind is not None:
@@ -332,6 +338,8 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         # Sorted by extension priority, highest last, so the choice does not depend on listing order:
         # a TextGrid wins over an .align, a .wav over a .flac, and so on.
         for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
+            if filename.endswith(TRANSCRIPT_EXT):
+                transcripts[filename[: -len(TRANSCRIPT_EXT)]] = path
             for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
                 for ext in exts:
                     if filename.endswith(ext):
@@ -382,6 +390,8 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
                                                    f"{own_mlf}: cannot read: {exc.strerror}", str(own_mlf)))
                     continue
                 kinds["alignment"] = own_mlf
+            if "alignment" not in kinds and stem in transcripts and ("audio" in kinds or "video" in kinds):
+                kinds["alignment"], kind = transcripts[stem], TRANSCRIPT_FORMAT   # ingest aligns it
             if "audio" not in kinds and "video" in kinds:
                 kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
             if "alignment" not in kinds and "video" not in kinds:

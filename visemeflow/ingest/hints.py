@@ -11,6 +11,11 @@ _LINE_CHARS = 300
 ALIGNER_HINT = ("these utterances have no alignment (phone timings): run a forced aligner such as the Montreal Forced "
                 "Aligner (`mfa align CORPUS english_us_arpa english_us_arpa ALIGNED`, then put each <name>.TextGrid "
                 "beside its audio), or use `visemeflow speak` / `visemeflow predict`, which need no alignment")
+TRANSCRIPT_HINT = ("English transcripts beside their audio (<name>.lab or <name>.txt) are aligned by ingest itself; "
+                   "these could not be: other languages need an aligner of their own, such as the Montreal Forced "
+                   "Aligner (`mfa align CORPUS MODEL DICTIONARY ALIGNED`, a TextGrid beside each audio), or "
+                   "`visemeflow speak` / `visemeflow predict`, which need no alignment")
+TRANSCRIPT_ERRORS = ("TranscriptNotEnglish", "TranscriptNotAligned")
 
 
 def reject_lines(rows: Sequence[Mapping[str, object]], shown: int = SHOWN) -> list[str]:
@@ -40,4 +45,6 @@ def reject_advice(rows: Sequence[Mapping[str, object]]) -> list[str]:
     if any(row.get("error_type") == "MissingAlignment" for row in rows):
         transcripts = any("transcript without times" in str(row.get("message")) for row in rows)
         advice.append(("the .lab files found are transcripts without times; " if transcripts else "") + ALIGNER_HINT)
+    if any(row.get("error_type") in TRANSCRIPT_ERRORS for row in rows):
+        advice.append(TRANSCRIPT_HINT)
     return advice

@@ -19,7 +19,7 @@ import soundfile as sf
 
 from visemeflow.ingest.audio import AudioError, check_audio_file_finite, read_audio
 from visemeflow.ingest.config import IngestConfig
-from visemeflow.ingest.corpus import CorpusEntry
+from visemeflow.ingest.corpus import TRANSCRIPT_FORMAT, CorpusEntry
 from visemeflow.phonetics.htk import LabelFileError, load_mlf, parse_htk_label
 from visemeflow.phonetics.inventory import (
     NoInventoryError,
@@ -88,10 +88,50 @@ def _decode_label_text(data: bytes) -> str:
         return data.decode("latin-1")
 
 
+ENGLISH = re.compile(r"^(en|eng)([-_].*)?$", re.IGNORECASE)
+
+
+def align_transcript_file(entry: CorpusEntry, config: IngestConfig) -> Alignment:
+    """The phones of a transcript without times (`NAME.lab`, `NAME.txt`), forced-aligned to the audio in English
+    (`visemeflow.phonetics.forcealign`); IngestError naming the file when that is off, the utterance is in another
+    language, or the aligner cannot place the words."""
+    from visemeflow.phonetics.forcealign import AlignmentError, align_transcript
+
+    path = entry.alignment_path
+    if not config.align_transcripts:
+        raise IngestError(entry.utterance_id, path, "MissingAlignment",
+                          "a transcript without times, not an alignment (transcripts are not aligned: "
+                          "align_transcripts is off)")
+    language = entry.language or config.language
+    if language is not None and ENGLISH.match(language) is None:
+        raise IngestError(entry.utterance_id, path, "TranscriptNotEnglish",
+                          f"a transcript without times in {language!r}; the built-in aligner is English only: align "
+                          "it with the Montreal Forced Aligner (any language) and put the TextGrid beside the audio")
+    try:
+        text = _decode_label_text(Path(path).read_bytes())
+    except OSError as exc:
+        raise IngestError(entry.utterance_id, path, "UnreadableAlignment", f"cannot read: {exc.strerror}") from exc
+    try:
+        samples, rate = read_audio(entry.audio_path)
+    except AudioError as exc:
+        raise IngestError(entry.utterance_id, exc.path, exc.error_type, exc.reason) from exc
+    try:
+        done = align_transcript(samples, rate, text, source=path)
+    except AlignmentError as exc:
+        raise IngestError(entry.utterance_id, path, "TranscriptNotAligned",
+                          str(exc).removeprefix(f"{path}: ")) from exc
+    if not done.phones:
+        raise IngestError(entry.utterance_id, path, "TranscriptNotAligned", "the aligner placed no phone")
+    return Alignment(done.phones, done.words, 0.0, len(samples) / rate, path)
+
+
 def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
-    """The phone alignment of an entry from its TextGrid, XRA, HTK label / MLF or word alignment file."""
+    """The phone alignment of an entry from its TextGrid, XRA, HTK label / MLF or word alignment file, or its
+    transcript forced-aligned (`align_transcript_file`)."""
     path = entry.alignment_path
     fmt = entry.alignment_format
+    if fmt == TRANSCRIPT_FORMAT:
+        return align_transcript_file(entry, config)
     try:
         if fmt == "mlf":
             folder, _, stem = (entry.alignment_key or "").partition("/")
