@@ -2,7 +2,8 @@
 (issue 25, items 3 and 6), each judged on real speech of speakers no recipe trained on. Printed, never asserted.
 
 Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
-     [--espeak 200,100] [--threads 2] [--baseline]
+     [--espeak 200,100] [--threads 2] [--baseline] [--variants pitch:-3,speed:0.8] [--mbp-peaks 0.067,16]
+     [--grid-phones spread|aligned]
 
 Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
 512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
@@ -17,6 +18,9 @@ Training data (all shippable; nothing of the judged speakers):
 - `es`: the espeak-ng corpus of bench/learning_data.py at `--espeak EN,ZH` utterances (synthetic voices made here),
   its training split; targets: procedural curves of its alignment with the closure rule;
 - `ljt`: the LJ examples with the synthetic (Cohen-Massaro) truth of the alignment as targets instead;
+- `ljv`: the LJ examples in other voices (`--variants`, default pitch -3/+3 semitones and speed 0.8/1.25, each a
+  fixed copy made once with `learning.augment.apply_condition`: a pitch shift moves the formants as a shorter or
+  longer vocal tract would; a speed change resamples the targets and the per-frame visemes by the same factor);
 - `+cls` / `+clsW`: the auxiliary viseme-classification loss (`TrainConfig.viseme_loss_weight`, 0.5 or W) on the
   examples with an alignment (LJ, espeak; the FACEGOOD pieces have none and add only the curve loss).
 A part named twice is seen twice as often. `--losses`: the curve loss (bench/domain_gap.py's `l1`, `closure:W`, ...);
@@ -65,6 +69,7 @@ from visemeflow.animation.lips import LipProbe  # noqa: E402
 from visemeflow.articulation import close_lips  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
 from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
+from visemeflow.learning.model import ClosurePeaks  # noqa: E402
 from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
 from visemeflow.learning.realspeech import compare_curves, frame_visemes, pool, score_utterance  # noqa: E402
 from visemeflow.procedural import ProceduralConfig  # noqa: E402
@@ -83,8 +88,38 @@ def labelled(u: Utterance, targets: str = "procedural") -> Example:
     return Example(u.uid, u.audio, curves.astype(np.float32), FPS, frame_visemes(u.phones, u.n, FPS))
 
 
-def held_out_sets(tmp: Path) -> dict[str, list[Utterance]]:
-    sets = {"GRID s1": read_corpus(grid_corpus(tmp))}
+def grid_aligned_corpus(tmp: Path) -> Path:
+    """GRID s1's clips with phone timings measured in the audio: each clip's transcript forced-aligned by
+    pocketsphinx (`visemeflow.phonetics.forcealign`), written as a wav and a TextGrid (words, phones) under `tmp`.
+    GRID's own `.align` holds word timings only, and phones spread evenly over a word give the b of "blue" a third
+    of the word whatever its real length."""
+    import soundfile as sf
+
+    from visemeflow.ingest.audio import read_audio
+    from visemeflow.phonetics.forcealign import align_transcript, alignment_tiers
+    from visemeflow.phonetics.textgrid import format_textgrid
+
+    folder = tmp / "grid-aligned" / "s1"
+    folder.mkdir(parents=True)
+    texts = dict(line.split("\t", 1) for line in (SHARED / "grid_s1" / "transcripts.tsv").read_text().splitlines()
+                 if "\t" in line)
+    for align in sorted((SHARED / "grid_s1" / "align").glob("*.align")):
+        audio, rate = read_audio(SHARED / "grid_s1" / "video" / f"{align.stem}.mpg")
+        done = align_transcript(audio, rate, texts[align.stem].strip(), source=align.stem)
+        duration = len(audio) / rate
+        sf.write(folder / f"{align.stem}.wav", audio, rate)
+        (folder / f"{align.stem}.TextGrid").write_text(format_textgrid(alignment_tiers(done, duration), 0.0, duration))
+    return folder.parent
+
+
+GRID_PHONES = "spread"   # held-out GRID phone timings: "spread" over .align's words (the recorded figures) or
+#                          "aligned" in the audio by pocketsphinx (`--grid-phones aligned`)
+
+
+def held_out_sets(tmp: Path, grid_phones: str = GRID_PHONES) -> dict[str, list[Utterance]]:
+    if grid_phones not in ("aligned", "spread"):
+        raise ValueError(f"grid_phones must be aligned or spread, got {grid_phones!r}")
+    sets = {"GRID s1": read_corpus(grid_aligned_corpus(tmp) if grid_phones == "aligned" else grid_corpus(tmp))}
     zh = tmp / "charsiu" / "SSB1624"
     zh.mkdir(parents=True)
     shutil.copyfile(SHARED / "charsiu_mandarin" / "SSB16240001_16k.wav", zh / "SSB16240001.wav")
@@ -103,6 +138,7 @@ def held_out_sets(tmp: Path) -> dict[str, list[Utterance]]:
 class Sets:
     lj: list[Example]
     lj_truth: list[Example]        # the same utterances with the synthetic (Cohen-Massaro) truth as targets
+    lj_variants: list[Example]     # the same utterances in other voices (`ljv`)
     facegood: list[Example]
     espeak: list[Example]
     held_out: dict[str, list[Utterance]]
@@ -112,15 +148,41 @@ class Sets:
     floor: np.ndarray
 
 
-def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None) -> Sets:
+VARIANTS = "pitch:-3,pitch:3,speed:0.8,speed:1.25"
+
+
+def voice_variants(examples: list[Example], variants: str = VARIANTS) -> list[Example]:
+    """`ljv`: each example under each `condition:value` of `variants` (learning.augment.apply_condition), targets
+    and per-frame visemes resampled by the speed factor."""
+    from visemeflow.learning.augment import apply_condition
+    from visemeflow.learning.train import resample_curves
+
+    out = []
+    for spec in (v for v in variants.split(",") if v):
+        condition, value = spec.split(":")
+        for e in examples:
+            audio, factor = apply_condition(e.audio, SAMPLE_RATE, condition, float(value),
+                                            np.random.default_rng(0))
+            curves = resample_curves(e.curves, factor)
+            visemes = None
+            if e.visemes is not None:   # nearest original frame of each new frame, as resample_curves places it
+                pos = np.minimum(np.round(np.arange(len(curves)) * factor).astype(np.int64), len(e.visemes) - 1)
+                visemes = e.visemes[pos]
+            out.append(Example(f"{e.utterance_id}__{condition}_{value}", audio, curves, e.fps, visemes))
+    return out
+
+
+def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None,
+              variants: str = VARIANTS, grid_phones: str = GRID_PHONES) -> Sets:
     """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None;
     `closure_ramp_s`: the LJ targets' MBP/FFF onset and decay (`ProceduralConfig.closure_onset_s`/`closure_decay_s`;
-    None: the procedural default's ramps)."""
+    None: the procedural default's ramps); `variants`: the voices of `ljv`."""
     targets = ProceduralConfig(closure_onset_s=closure_ramp_s, closure_decay_s=closure_ramp_s)
     lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus", procedural=targets) if u.speaker == "LJ"]
     lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
+    lj_variants = voice_variants(lj, variants)
     with tempfile.TemporaryDirectory() as tmp:
-        held = held_out_sets(Path(tmp))
+        held = held_out_sets(Path(tmp), grid_phones)
     facegood = [e for name in TRAIN_TAKES for e in pieces(f"facegood/{name}", *facegood_take(name))]
     es: list[Example] = []
     if espeak:
@@ -136,12 +198,13 @@ def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | Non
                      names=FACEGOOD / "shirley_1015_bs_name.npy", fps=FPS)
     jaw = np.asarray(take.arkit)[:, ARKIT_52.index("jawOpen")]
     floor = np.concatenate([e.curves for e in facegood]).mean(axis=0)
-    return Sets(lj, lj_truth, facegood, es, held, test_audio, test_curves, jaw, floor)
+    return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor)
 
 
 def recipe_data(sets: Sets, recipe: str) -> list[Example]:
     parts = [p for p in recipe.split("+") if not p.startswith("cls")]
-    data = {"lj": sets.lj, "ljt": sets.lj_truth, "fg": sets.facegood, "es": sets.espeak}
+    data = {"lj": sets.lj, "ljt": sets.lj_truth, "ljv": sets.lj_variants, "fg": sets.facegood,
+            "es": sets.espeak}
     unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)]
     if unknown:
         raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak)")
@@ -271,6 +334,12 @@ def main() -> int:
     parser.add_argument("--espeak", default="", help="EN,ZH utterances of the espeak corpus for `es` recipes")
     parser.add_argument("--closure-ramps", type=float, default=None,
                         help="onset and decay, s, of the MBP/FFF ramps in the LJ targets (default: procedural's)")
+    parser.add_argument("--grid-phones", default=GRID_PHONES, choices=("spread", "aligned"),
+                        help="held-out GRID phone timings: spread over its word timings, or aligned by pocketsphinx")
+    parser.add_argument("--variants", default=VARIANTS,
+                        help="the voices of `ljv`: condition:value pairs (learning.augment conditions)")
+    parser.add_argument("--mbp-peaks", default="0,0", metavar="SECONDS,POWER",
+                        help="narrow each trained model's MBP channel to its peaks (learning.model.ClosurePeaks)")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
     parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
@@ -279,7 +348,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
-    sets = load_sets(espeak, args.closure_ramps)
+    sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones)
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
           f"espeak {len(sets.espeak)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)
@@ -310,6 +379,9 @@ def main() -> int:
         started = time.perf_counter()
         model = train_model(train, [], recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers),
                             encoder_cache=CACHE, loss=make_loss(loss)).model
+        window_s, power = (float(x) for x in args.mbp_peaks.split(","))
+        model.closure_peaks = ClosurePeaks(window_s, power) if window_s > 0 else None
+        model.eval()
         secs = time.perf_counter() - started
         rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
                         f"{args.steps} steps, "
