@@ -256,3 +256,20 @@ def test_evaluating_the_phone_recogniser_on_mandarin_warns_naming_the_language(t
     english = Logger()
     _warn_phones_language(store, [{C.UTTERANCE_ID: "en/c"}, {C.UTTERANCE_ID: "x/d"}], english)
     assert english.warnings == []
+
+
+def test_upper_case_extensions_are_found_as_recorders_and_windows_tools_write_them(tmp_path):
+    corpus = tmp_path / "corpus"
+    write_wav(corpus / "spk" / "TAKE01.WAV", 0.6)
+    (corpus / "spk" / "TAKE01.TEXTGRID").write_text(textgrid_long([(s, e, lab) for lab, s, e in PHONES], 0.6),
+                                                    encoding="utf-8")
+    write_wav(corpus / "spk" / "take02.Wav", 0.6)
+    (corpus / "spk" / "take02.Lab").write_text("0 1000000 sil\n1000000 6000000 AA1\n", encoding="utf-8")
+    assert check_corpus(corpus) is None
+    found = discover_corpus(corpus)
+    assert found.rejects == ()
+    by_id = {e.utterance_id: e for e in found.entries}
+    assert sorted(by_id) == ["spk/TAKE01", "spk/take02"]
+    assert by_id["spk/TAKE01"].alignment_format == "textgrid" and by_id["spk/take02"].alignment_format == "htk"
+    assert [p["label"] for p in ingest_utterance(by_id["spk/TAKE01"], IngestConfig()).phones] == [p[0] for p in PHONES]
+    assert by_id["spk/take02"].audio_path.endswith("take02.Wav")

@@ -306,7 +306,7 @@ def _priority(filename: str) -> int:
     """Rank of a file among those of the same kind: earlier extensions in each list rank higher."""
     for exts in (AUDIO_EXTS, ALIGNMENT_EXTS, VIDEO_EXTS, LANDMARK_SUFFIXES):
         for rank, ext in enumerate(exts):
-            if filename.endswith(ext):
+            if filename.lower().endswith(ext.lower()):
                 return len(exts) - rank
     return 0
 
@@ -338,17 +338,18 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         # Sorted by extension priority, highest last, so the choice does not depend on listing order:
         # a TextGrid wins over an .align, a .wav over a .flac, and so on.
         for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
-            if filename.endswith(TRANSCRIPT_EXT):
+            lower = filename.lower()   # TAKE01.WAV, take01.TEXTGRID: what recorders and Windows tools write
+            if lower.endswith(TRANSCRIPT_EXT):
                 transcripts[filename[: -len(TRANSCRIPT_EXT)]] = path
             for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
                 for ext in exts:
-                    if filename.endswith(ext):
+                    if lower.endswith(ext.lower()):
                         if ext == ".lab" and not looks_like_htk_label(path):
                             transcripts[filename[: -len(ext)]] = path  # a transcript, not an alignment
                             continue
                         stems.setdefault(filename[: -len(ext)], {})[kind] = path
             for suffix in LANDMARK_SUFFIXES:
-                if filename.endswith(suffix):
+                if lower.endswith(suffix):
                     stems.setdefault(filename[: -len(suffix)], {})["landmarks"] = path
         for stem, kinds in sorted(stems.items()):
             any_path = str(next(iter(kinds.values())))
