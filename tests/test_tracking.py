@@ -365,10 +365,10 @@ def test_track_flow_ends_failed_with_the_traceback_when_an_utterance_meets_a_bug
     store = tracked_store("bug")
     real = track_task.track_video
 
-    def buggy(video, procedural, rig, config):
+    def buggy(video, procedural, rig, config, on_step=None):
         if "good" in video.video_path:
             return {}["no such key"]  # a bug, not bad input
-        return real(video, procedural, rig, config)
+        return real(video, procedural, rig, config, on_step)
 
     monkeypatch.setattr(track_task, "track_video", buggy)
     caplog.set_level("ERROR")

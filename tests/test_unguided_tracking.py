@@ -269,3 +269,36 @@ def test_a_clip_is_probed_once_for_its_audio_and_camera(monkeypatch, rig):
                           np.zeros((75, N_VISEMES), np.float32), rig, config)
     assert probes == [str(video)]
     assert tracked.camera_info["identity"] == "fitted"
+
+
+def test_a_long_clip_reports_its_frames_and_solver_steps_as_it_goes(rig):
+    """Tracking one clip said nothing for minutes; `on_step` hears the optical flow frame by frame and every solver
+    step, and the task's StepLog turns that into throttled log lines with a rate and what is left."""
+    from visemeflow.tasks.progress import StepLog
+
+    video, _, landmarks = grid_files()
+    heard = []
+    config = TrackingConfig(fast_iterations=6, pose_iterations=2)
+    track_video(VideoInput(str(video), str(landmarks), 25.0, 75, audio_path=str(video)),
+                np.zeros((75, N_VISEMES), np.float32), rig, config, lambda *a: heard.append(a))
+    flow = [(k, n) for phase, k, n in heard if phase == "optical flow"]
+    solve = [(k, n) for phase, k, n in heard if phase == "solve"]
+    assert flow == [(k, 75) for k in range(75)]
+    assert solve == [(k, 6) for k in range(6)] and heard.index(("solve", 0, 6)) > heard.index(("optical flow", 74, 75))
+
+    now = [0.0]
+    lines = []
+    log = StepLog("track[s1/x]", lines.append, interval=5.0, clock=lambda: now[0])
+    for k in range(75):
+        now[0] = k * 0.1                       # 10 frames a second
+        log("optical flow", k, 75)
+    for k in range(6):
+        now[0] = 7.5 + k
+        log("solve", k, 6)
+    assert lines == ["track[s1/x]: optical flow 50/75 frames, 10/s, about 2 s left",
+                     "track[s1/x]: solve 3/6 steps, 1/s, about 3 s left"]
+    quiet = []
+    off = StepLog("x", quiet.append, interval=float("inf"), clock=lambda: now[0])
+    now[0] = 1e6
+    off("solve", 3, 6)
+    assert quiet == []

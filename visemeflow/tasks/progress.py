@@ -148,3 +148,38 @@ class Progress:
                 now = self.clock()
                 if self.done < self.total and now - self.last >= self.interval:
                     self._write(now)
+
+
+class StepLog:
+    """Progress inside one long task (the phases of tracking one video) as log lines: `track[uid]: optical flow
+    120/250 frames, 35/s, about 4 s left`, at most one every `interval` seconds per task (`VISEMEFLOW_PROGRESS_SECONDS`
+    as for `Progress`, default 10 s: these go through Prefect's logger, to the terminal and the UI, from any worker).
+    A phase's first step is not logged; nothing is written for a task that ends within its first interval."""
+
+    def __init__(self, name: str, log: Callable[[str], None], interval: float | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        self.name, self.log, self.clock = name, log, clock
+        if interval is None:
+            value = os.environ.get(ENV, "").strip().lower()
+            if value in ("off", "no", "false", "none"):
+                interval = math.inf
+            else:
+                try:
+                    interval = max(0.0, float(value)) if value else PIPE_SECONDS
+                except ValueError:
+                    interval = PIPE_SECONDS
+        self.interval = interval
+        self.started = self.last = clock()
+        self.phase, self.phase_started = None, self.started
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        now = self.clock()
+        if phase != self.phase:
+            self.phase, self.phase_started = phase, now
+        if done <= 0 or now - self.last < self.interval or now - self.started < self.interval:
+            return
+        self.last = now
+        rate = done / max(now - self.phase_started, 1e-9)
+        unit = "frames" if phase == "optical flow" else "steps"
+        left = f", about {duration((total - done) / rate)} left" if total > done and rate > 0 else ""
+        self.log(f"{self.name}: {phase} {done}/{total} {unit}, {rate:.0f}/s{left}")

@@ -32,6 +32,7 @@ from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
+from visemeflow.tasks.progress import StepLog
 from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, VideoInput, track_video
 
@@ -100,8 +101,10 @@ def diagnostics_table(uid: str, variant: str, tracked: TrackedVideo) -> pa.Table
     return pa.table(columns, schema=TRACKING_FRAMES)
 
 
-def track_one(store: Store, utterance: dict, procedural_variant: str, rig: VisemeRig, config: TrackingConfig) -> dict:
-    """Track one utterance and store its curves and diagnostics; raises TrackError for bad input."""
+def track_one(store: Store, utterance: dict, procedural_variant: str, rig: VisemeRig, config: TrackingConfig,
+              on_step=None) -> dict:
+    """Track one utterance and store its curves and diagnostics; raises TrackError for bad input. `on_step(phase,
+    done, total)`: progress inside the video (`tracking.utterance.track_video`)."""
     uid = utterance[C.UTTERANCE_ID]
     if not utterance[C.VIDEO_PATH]:
         raise TrackError(uid, None, "NoVideo", "the utterance has no video")
@@ -118,7 +121,7 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
                        int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
                        alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
     try:
-        tracked = track_video(video, procedural, rig, config)
+        tracked = track_video(video, procedural, rig, config, on_step)
     except TrackingInputError as exc:
         raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
     result, variant = tracked.result, config.variant
@@ -143,8 +146,10 @@ def track_utterance(
 ) -> dict:
     """Track one utterance (cached on its inputs' content hash, the procedural curves, the rig and the config)."""
     rig = load_rig(rig_path)
-    report = track_one(Store(store_root), utterance, procedural_variant, rig, config)
+    logger = get_run_logger()
+    steps = StepLog(f"track[{utterance[C.UTTERANCE_ID]}]", logger.info)   # a long clip says where it is
+    report = track_one(Store(store_root), utterance, procedural_variant, rig, config, steps)
     error = report["mouth_error_px"]  # None where no frame had a mouth to measure
-    get_run_logger().info("%s: %d frames (%s) in %.1f s, mouth error %s", report["utterance_id"], report["frames"],
+    logger.info("%s: %d frames (%s) in %.1f s, mouth error %s", report["utterance_id"], report["frames"],
                           report["variant"], report["seconds"], "-" if error is None else f"{error:.2f} px")
     return report

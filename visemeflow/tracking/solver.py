@@ -70,6 +70,11 @@ class TrackingConfig(BaseModel):
     guidance: bool = Field(True, description="Phoneme guidance on; off sets w3 = w4 = 0 (paper Fig. 3-4 ablation).")
     use_rgb: bool = Field(False, description="Include L_rgb (needs the video frames).")
     use_flow: bool = Field(True, description="Include L_flow (needs the video frames).")
+    flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
+        "medium", description="DIS optical-flow preset of L_flow (`tracking.optical_flow.FlowConfig.preset`).")
+    flow_max_roi_px: int | None = Field(
+        480, ge=16, description="L_flow: the face region is shrunk until its longer side is at most this many pixels "
+                                "before DIS runs (`FlowConfig.max_roi_px`; None: native size).")
     solver: Literal["fast", "faithful"] = Field("fast", description="Whole-utterance batch, or the paper's per-frame schedule.")
     iterations: int = Field(250, ge=1, description="Faithful: Adam iterations per frame and pass.")
     lr: float = Field(0.1, gt=0, description="Faithful: Adam learning rate.")
@@ -382,18 +387,24 @@ def _finish(problem, x, rot, trans, terms, started, iterations, extra=None) -> T
     )
 
 
-def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig()) -> TrackingResult:
+OnStep = Callable[[int, int], None]
+"""`on_step(done, total)`: progress of a solve (iterations, or frames of the faithful schedule), for a caller that
+reports it; it must be cheap (it is called at every step)."""
+
+
+def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig(),
+               on_step: OnStep | None = None) -> TrackingResult:
     """All frames as one batch on (T, 16) weights and (T, 6) poses: Levenberg-Marquardt (`fast_method="lm"`, not the
     default), or Adam with cosine decay (`"adam"`, the default; also used for box="soft" and for L_rgb,
     whose renderer has no Jacobian here)."""
     check_problem(problem)
     cfg = config.effective()
     if config.fast_method == "lm" and config.box == "projected" and not (cfg.w_rgb and problem.rgb is not None):
-        return _solve_fast_lm(problem, config)
-    return _solve_fast_adam(problem, config)
+        return _solve_fast_lm(problem, config, on_step)
+    return _solve_fast_adam(problem, config, on_step)
 
 
-def _solve_fast_adam(problem: TrackingProblem, config: TrackingConfig) -> TrackingResult:
+def _solve_fast_adam(problem: TrackingProblem, config: TrackingConfig, on_step: OnStep | None = None) -> TrackingResult:
     """Adam with cosine decay on all frames at once (500 small autograd steps: ~4 ms each whatever T)."""
     check_problem(problem)
     started = time.perf_counter()
@@ -410,6 +421,8 @@ def _solve_fast_adam(problem: TrackingProblem, config: TrackingConfig) -> Tracki
     flow_state = _FastFlow(obj, problem) if obj.config.w_flow and problem.flow is not None and t > 1 else None
     total_iterations = config.fast_iterations + (config.rgb_iterations if obj.config.w_rgb and problem.rgb else 0)
     for it in range(total_iterations):
+        if on_step is not None:
+            on_step(it, total_iterations)
         for g, lr in zip(opt.param_groups, base):
             g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * it / total_iterations))
         opt.zero_grad()
@@ -693,7 +706,7 @@ def _levenberg_marquardt(ls: _LeastSquares, x, rot, trans, iterations: int, free
     return x, rot, trans, steps
 
 
-def _solve_fast_lm(problem: TrackingProblem, config: TrackingConfig) -> TrackingResult:
+def _solve_fast_lm(problem: TrackingProblem, config: TrackingConfig, on_step: OnStep | None = None) -> TrackingResult:
     started = time.perf_counter()
     obj = _Objective(problem, config)
     t = problem.n_frames
@@ -721,7 +734,9 @@ def _solve_fast_lm(problem: TrackingProblem, config: TrackingConfig) -> Tracking
         used += n
     ls = _LeastSquares(obj, problem, obj.beta, guidance=True)
     rounds = config.lm_flow_rounds if ls.flow is not None else 1
-    for _ in range(rounds):
+    for done in range(rounds):
+        if on_step is not None:
+            on_step(done, rounds)
         if ls.flow is not None:
             ls.refresh_flow(x, rot, trans)
         x, rot, trans, n = _levenberg_marquardt(ls, x, rot, trans, config.lm_iterations, True)
@@ -772,7 +787,8 @@ class _FastFlow:
         return torch.cat([pair.new_zeros(1), pair])
 
 
-def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingConfig()) -> TrackingResult:
+def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingConfig(),
+                   on_step: OnStep | None = None) -> TrackingResult:
     """The paper's schedule: per frame, Adam (lr 0.1, x0.9 every 10 iterations), forward then backward pass."""
     check_problem(problem)
     started = time.perf_counter()
@@ -784,10 +800,14 @@ def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingCo
     if obj.config.w_rgb and problem.rgb is not None:
         problem.rgb.prepare(x_all.numpy(), rot_all.numpy(), trans_all.numpy())
     terms_all: dict[str, np.ndarray] = {}
+    solved = 0
     for direction in config.passes:
         order = range(t) if direction == "forward" else range(t - 1, -1, -1)
         prev_j = None
         for j in order:
+            if on_step is not None:
+                on_step(solved, t * len(config.passes))
+            solved += 1
             frame_terms = _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, direction)
             for k, v in frame_terms.items():
                 terms_all.setdefault(k, np.zeros(t, np.float32))[j] = v

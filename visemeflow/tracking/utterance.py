@@ -18,7 +18,7 @@ there, and their diagnostics (landmarks, mouth error, flow, every loss term) are
 
 import itertools
 import json
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -246,7 +246,8 @@ def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack,
     return fitted, fit.camera, {"identity": "fitted", "identity_rms_px": round(float(fit.rms_px), 3)}
 
 
-def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack) -> tuple[FlowTerm, np.ndarray]:
+def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack,
+              config: FlowConfig | None = None) -> tuple[FlowTerm, np.ndarray]:
     """Optical-flow correspondences over the face region of `frames` ((T, H, W, 3), or RGB frames one at a time:
     only their face crops are kept), and the valid fraction per frame ((T,), NaN at frame 0)."""
     it = iter(frames)
@@ -255,9 +256,16 @@ def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack
         raise ValueError("flow_term needs at least one frame")
     height, width = first.shape[:2]
     roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
-    flow = estimate_optical_flow(itertools.chain([first], it), FlowConfig(), roi)
+    flow = estimate_optical_flow(itertools.chain([first], it), config or FlowConfig(), roi)
     valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, flow.n_frames)], np.float32)
     return FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences), valid_fraction
+
+
+def _counted(frames: Iterable[np.ndarray], seen: Callable[[int], None]) -> Iterator[np.ndarray]:
+    """The frames, `seen(k)` called before the k-th (0-based) is handed on."""
+    for k, frame in enumerate(frames):
+        seen(k)
+        yield frame
 
 
 def _audio_is_video(video: VideoInput) -> bool:
@@ -294,11 +302,12 @@ def check_coverage(video: VideoInput, times: np.ndarray) -> None:
 
 
 def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig,
-                config: TrackingConfig) -> TrackedVideo:
+                config: TrackingConfig, on_step: Callable[[str, int, int], None] | None = None) -> TrackedVideo:
     """Fit viseme curves to one video on its curve grid ((n_frames, 16)), guided by its procedural curves on that
     grid, or unguided when `procedural` is None (no alignment: no L_sup/L_act, weights start from the neutral
     face). TrackingInputError for input that cannot be tracked (missing or bad landmarks, unreadable or short
-    video, no audio, an alignment past the video's end, a diverging solve)."""
+    video, no audio, an alignment past the video's end, a diverging solve). `on_step(phase, done, total)` hears
+    the progress of the long parts: "optical flow" (frames) and "solve" (iterations, or frames when faithful)."""
     n_grid = video.n_frames
     guided = procedural is not None
     if not guided and config.guidance:
@@ -330,11 +339,15 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
         if config.use_flow and n_frames > 1:
             decoded = frames if frames is not None else (
                 f for f, _ in itertools.islice(iter_timed_frames(video.video_path), n_frames))
-            flow, flow_valid = flow_term(decoded, rig, track)
+            if on_step is not None:
+                decoded = _counted(decoded, lambda k: on_step("optical flow", k, n_frames))
+            flow, flow_valid = flow_term(decoded, rig, track, FlowConfig(preset=config.flow_preset,
+                                                                      max_roi_px=config.flow_max_roi_px))
         if config.use_rgb:
             photo = PhotoTerm(rig, camera, frames, track.points)
         problem = TrackingProblem(rig, camera, track.points, track.valid, prior, flow=flow, rgb=photo)
-        result = (solve_fast if config.solver == "fast" else solve_faithful)(problem, config)
+        solve = solve_fast if config.solver == "fast" else solve_faithful
+        result = solve(problem, config, None if on_step is None else (lambda k, n: on_step("solve", k, n)))
     except VideoError as exc:
         raise TrackingInputError(video.video_path, "UnreadableVideo",
                                  str(exc).removeprefix(f"{Path(video.video_path)}: ")) from exc
