@@ -2,6 +2,7 @@
 fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare]
+                                            [--compare-flow PRESET:ROI]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -295,7 +296,13 @@ def main() -> int:
     parser.add_argument("--clips", type=int, default=None, help="only the first N GRID clips (default all 10)")
     parser.add_argument("--no-pin", action="store_true")
     parser.add_argument("--compare", action="store_true", help="also run the path as it was before (see the doc)")
+    parser.add_argument("--compare-flow", default=None, metavar="PRESET:ROI",
+                        help="instead of --compare's solvers: the default L_flow (TrackingConfig's flow_preset and "
+                             "flow_max_roi_px) as before, TrackingConfig(flow_preset=PRESET, flow_max_roi_px=ROI) "
+                             "as after (ROI empty: native size)")
     args = parser.parse_args()
+    if args.compare_flow:
+        args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
         return 0
@@ -308,6 +315,13 @@ def main() -> int:
           f"{mesh.probe_every}")
     paths = ("before", "after") if args.compare else ("after",)
     configs = {"before": config.model_copy(update={"fast_method": "adam"}), "after": config}
+    label = "before (fast_method=adam) -> after (lm)"
+    if args.compare_flow:
+        preset, roi = args.compare_flow.split(":")
+        configs = {"before": config, "after": config.model_copy(
+            update={"flow_preset": preset, "flow_max_roi_px": int(roi) if roi else None})}
+        label = (f"before (flow {config.flow_preset}, {config.flow_max_roi_px} px) -> after (flow {preset}, "
+                 f"{roi or 'native'} px)")
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
@@ -331,12 +345,13 @@ def main() -> int:
             totals[(name, path)] = print_set(name, members, path)
             print()
     if args.compare:
-        print("before (fast_method=adam) -> after (lm): best runs; wall | CPU frames/s; solver frames/s")
+        print(f"{label}: best runs; wall | CPU frames/s; solver, flow frames/s")
         for name in sets:
             b, a = totals[(name, "before")], totals[(name, "after")]
             print(f"  {name:<32} total {b['frames'] / b['wall']:.1f} -> {a['frames'] / a['wall']:.1f} | "
                   f"{b['frames'] / b['cpu']:.1f} -> {a['frames'] / a['cpu']:.1f};  solver "
-                  f"{b['frames'] / b['solver']:.0f} -> {a['frames'] / a['solver']:.0f} frames/s")
+                  f"{b['frames'] / b['solver']:.0f} -> {a['frames'] / a['solver']:.0f}, flow "
+                  f"{b['frames'] / max(b['flow'], 1e-9):.0f} -> {a['frames'] / max(a['flow'], 1e-9):.0f} frames/s")
         print()
         print("accuracy, before -> after: mean mouth keypoint error to the detections (px, over frames with one); "
               "MBP at MBP phone midpoints (top-1, in top-2)")

@@ -302,3 +302,25 @@ def test_a_long_clip_reports_its_frames_and_solver_steps_as_it_goes(rig):
     now[0] = 1e6
     off("solve", 3, 6)
     assert quiet == []
+
+
+def test_the_flow_settings_of_the_tracking_config_reach_dis(monkeypatch, rig):
+    """`TrackingConfig.flow_preset` / `flow_max_roi_px` are what L_flow's DIS runs with (default: medium, the face
+    region shrunk to 256 px; bench/end_to_end.py --compare-flow measured it)."""
+    import visemeflow.tracking.utterance as utterance
+
+    seen = []
+    real = utterance.estimate_optical_flow
+
+    def spy(frames, config, roi):
+        seen.append(config)
+        return real(frames, config, roi)
+
+    monkeypatch.setattr(utterance, "estimate_optical_flow", spy)
+    video, _, landmarks = grid_files()
+    for config in (TrackingConfig(fast_iterations=2, pose_iterations=2),
+                   TrackingConfig(fast_iterations=2, pose_iterations=2, flow_preset="fast", flow_max_roi_px=64)):
+        tracked = track_video(VideoInput(str(video), str(landmarks), 25.0, 75), np.zeros((75, N_VISEMES), np.float32),
+                              rig, config)
+        assert np.isfinite(tracked.result.curves).all()
+    assert [(c.preset, c.max_roi_px) for c in seen] == [("medium", 256), ("fast", 64)]
