@@ -68,6 +68,8 @@ SLOW = {
                       ["--espeak-epochs", "1", "--lj-epochs", "1", "--folds", "2", "--threads", "1"]),
     "recogniser.py": ("88 s with --models phones (no size flag): pocketsphinx on all 37 utterances under five "
                       "conditions", ["--models", "phones"]),
+    "thirdlang.py": ("needs the Debian packages fillets-ng-data-nl/-cs (GPL-2 voice recordings) and Whisper-encodes "
+                     "them", ["--utterances", "1"]),
 }
 """bench -> (why it is not run by default, its smallest arguments)."""
 
