@@ -14,7 +14,9 @@ runs; it prints one table and asserts nothing. Rows:
                            the code before used it only when PREFECT_API_URL and PREFECT_API_AUTH_STRING named it.
 With `--before DIR`, a checkout of the code before (e.g. `git worktree add /tmp/wt HEAD` on the commit before the
 change) runs the same commands (PYTHONPATH=DIR) in the same session, interleaved with the current code.
-The store, a Prefect home and serve's database live in a temporary work folder (`--keep` keeps it). The machine may
+Each version has its own store (and its own `serve` of it): their code digests differ, so on one store each would
+recompute what the other stored and no "cached" row after a switch of version would be cached. The stores, a Prefect
+home and serve's databases live in a temporary work folder (`--keep` keeps it). The machine may
 be shared: the load average before and after is printed, and timings of a loaded machine are much longer.
 """
 
@@ -52,10 +54,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_serve(store: Path, env: dict[str, str], work: Path) -> tuple[subprocess.Popen, str, str]:
+def start_serve(store: Path, env: dict[str, str], work: Path, name: str = "") -> tuple[subprocess.Popen, str, str]:
     """`visemeflow serve` on `store`, until it says it serves; its API address and auth string."""
     port = free_port()
-    log = work / "serve.log"
+    log = work / f"serve{'-' + name if name else ''}.log"
     with log.open("w") as out:
         serve = subprocess.Popen(COMMAND + ["serve", "--store", str(store), "--port", str(port), "--cron", ""],
                                  env=env, cwd=work, stdout=out, stderr=subprocess.STDOUT)
@@ -83,7 +85,9 @@ def main() -> None:
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="visemeflow-bench-cli-"))
     work.mkdir(parents=True, exist_ok=True)
-    store = work / "store"
+    # one store per version: the two versions' code digests differ, so on one store each would recompute what the
+    # other just stored, and every "cached" figure after a switch of version would be a full prediction
+    stores = {"now": work / "store-now", "before": work / "store-before"}
     base = {k: v for k, v in os.environ.items()
             if k not in ("PREFECT_API_URL", "PREFECT_API_AUTH_STRING", "VISEMEFLOW_NO_SERVER_LOOKUP",
                          "VISEMEFLOW_EARLY_SERVER", "PYTHONPATH")}
@@ -91,10 +95,10 @@ def main() -> None:
     versions = {"now": base}
     if args.before:
         versions["before"] = {**base, "PYTHONPATH": str(args.before.resolve())}
-    predict = ["predict", str(AUDIO), "--store", str(store), "--device", "cpu"]
+    predicts = {v: ["predict", str(AUDIO), "--store", str(stores[v]), "--device", "cpu"] for v in stores}
     print(f"load average before: {os.getloadavg()}; {os.cpu_count()} CPUs; audio {AUDIO.name}", flush=True)
-    for env in versions.values():  # computes the curves, migrates the Prefect database: not timed
-        timed(predict, env, work)
+    for version, env in versions.items():  # computes the curves, migrates the Prefect database: not timed
+        timed(predicts[version], env, work)
     rows: dict[str, list[float]] = {}
 
     def measure(name: str, command: list[str], env: dict[str, str], expect: int | None = 0) -> None:
@@ -103,17 +107,21 @@ def main() -> None:
 
     for _ in range(args.repeat):
         for version, env in versions.items():
+            predict = predicts[version]
             measure(f"--help ({version})", ["--help"], env)
-            measure(f"bad argument ({version})", ["ingest", str(work / "no-such-corpus"), "--store", str(store)], env,
+            measure(f"bad argument ({version})", ["ingest", str(work / "no-such-corpus"), "--store",
+                                                  str(stores[version])], env,
                     expect=2 if version == "now" else None)
             measure(f"cached predict, cold, Prefect's own server ({version})", predict,
                     {**env, "VISEMEFLOW_NO_SERVER_LOOKUP": "1"})
             if version == "now":
                 measure("cached predict, cold, early server (now)", predict, env)
-    serve, api_url, auth = start_serve(store, base, work)
+    served = {v: start_serve(stores[v], versions[v], work, v) for v in versions}
     try:
         for _ in range(args.repeat):
             for version, env in versions.items():
+                predict = predicts[version]
+                _, api_url, auth = served[version]
                 if version == "now":
                     measure("cached predict, serve running, found (now)", predict, env)
                 measure(f"cached predict, serve running, PREFECT_API_URL set ({version})", predict,
@@ -121,7 +129,8 @@ def main() -> None:
                 if version == "before":
                     measure("cached predict, serve running, not named (before)", predict, env)
     finally:
-        stop(serve)
+        for serve, _, _ in served.values():
+            stop(serve)
     width = max(map(len, rows))
     print(f"{'command':<{width}}  {'best s':>7}  {'runs s':>20}")
     for name, seconds in rows.items():

@@ -2,7 +2,7 @@
 fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare]
-                                            [--compare-flow PRESET:ROI]
+                                            [--compare-flow PRESET:ROI] [--compare-config JSON]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -300,8 +300,11 @@ def main() -> int:
                         help="instead of --compare's solvers: the default L_flow (TrackingConfig's flow_preset and "
                              "flow_max_roi_px) as before, TrackingConfig(flow_preset=PRESET, flow_max_roi_px=ROI) "
                              "as after (ROI empty: native size)")
+    parser.add_argument("--compare-config", default=None, metavar="JSON",
+                        help="instead of --compare's solvers: the default TrackingConfig as before, the default updated "
+                             "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'")
     args = parser.parse_args()
-    if args.compare_flow:
+    if args.compare_flow or args.compare_config:
         args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
@@ -322,6 +325,12 @@ def main() -> int:
             update={"flow_preset": preset, "flow_max_roi_px": int(roi) if roi else None})}
         label = (f"before (flow {config.flow_preset}, {config.flow_max_roi_px} px) -> after (flow {preset}, "
                  f"{roi or 'native'} px)")
+    if args.compare_config:
+        import json
+
+        update = json.loads(args.compare_config)
+        configs = {"before": config, "after": config.model_copy(update=update)}
+        label = f"before (default TrackingConfig) -> after ({update})"
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
