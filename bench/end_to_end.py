@@ -32,7 +32,7 @@ calls), so the split is of exactly the code the pipeline runs:
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
 --compare also runs every clip with the fast solver's earlier method, TrackingConfig(fast_method="adam") (Adam with
-cosine decay: 200 pose + 300 joint autograd steps), as "before", beside the default Levenberg-Marquardt ("after",
+cosine decay: 50 pose + 200 joint autograd steps), as "before", beside the default Levenberg-Marquardt ("after",
 issue 29); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
 side by side: the mean mouth keypoint error (the 20 mouth points of the tracked face to the detected landmarks,
 px) per set, and on GRID the MBP activation: at the midpoint frame of every phone whose viseme is MBP (b, p, m),

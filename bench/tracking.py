@@ -24,7 +24,7 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
   guided fast+flow   `solve_fast`, TrackingConfig(): the default pipeline config (L_flow on, DIS optical flow of
                      the rendered frames built as `visemeflow.tracking.utterance.flow_term` builds it).
   ... adam           the row above it with fast_method="adam": the fast solver's earlier method (Adam with cosine
-                     decay, 200 pose + 300 joint steps) beside the default Levenberg-Marquardt, same objective.
+                     decay, 50 pose + 200 joint steps) beside the default Levenberg-Marquardt, same objective.
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames

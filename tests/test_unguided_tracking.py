@@ -26,7 +26,7 @@ GRID = SHARED_DATA / "grid_s1"
 GRID_CLIP = "bbaf2n"
 TALKING = SHARED_DATA / "talking_heads"
 N_SHARDS = 2
-CONFIG = TrackingConfig(fast_iterations=120)   # fewer than the default 300: test time; the flow default otherwise
+CONFIG = TrackingConfig(fast_iterations=120)   # fewer than the default 200: test time; the flow default otherwise
 
 
 def _need(*paths):
