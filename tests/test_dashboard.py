@@ -490,6 +490,16 @@ def demo_like_store(root: Path) -> tuple[Store, Path]:
         (package / f"spoken{suffix}").write_bytes(b"x")
     record_packages(s, [{"utterance_id": "predict/spoken", "character": "ict_visemes", "folder": str(package)}],
                     {"predict/spoken": str(spoken)})
+    # a plain `predict new.wav` (no --out): the predict flow records the file it read
+    from visemeflow.dashboards.records import record_predicted_audio
+
+    new = write_wav(media / "new.wav", 1.0)
+    s.write_curves(curves_table("predict/new", "predicted", "m1", rng.random((33, 16), np.float32), 30.0),
+                   fps=30.0, provenance=f"predicted:m1:{'0' * 32}:{file_hash(new)}:30.0:code")
+    changed = write_wav(media / "changed.wav", 1.0)
+    s.write_curves(curves_table("predict/changed", "predicted", "m1", rng.random((33, 16), np.float32), 30.0),
+                   fps=30.0, provenance=f"predicted:m1:{'0' * 32}:{'2' * 32}:30.0:code")   # the file changed since
+    record_predicted_audio(s, {"predict/new": str(new), "predict/changed": str(changed)})
     wide = [_metric(run, "m1", c, 40.0 + k) for run in TABLE_RUNS for k, c in enumerate(CONDITIONS)]
     s.write_metrics("m1", "evaluate-extra", table_from_rows(wide, METRICS))
     return s, out
@@ -517,13 +527,13 @@ def test_the_utterance_count_agrees_with_the_store_table(demo_like):
     store_table = dict(re.findall(r"<tr><td>([^<]*)</td><td class=\"num\">(\d+)</td></tr>", page))
     in_table = int(store_table["utterances"])
     curve_only = int(store_table["curve-only utterances (predict, speak: no row in the utterances table)"])
-    assert (in_table, curve_only) == (4, 3)
+    assert (in_table, curve_only) == (4, 5)
     note = re.search(r'<p class="note" id="utterance-count">(\d+) of (\d+) utterances \((\d+) in the utterances '
                      r"table, (\d+) curve-only\)", page)
     assert note is not None
     drawn, total, table_part, only_part = map(int, note.groups())
     assert total == in_table + curve_only == table_part + only_part and table_part == in_table
-    assert drawn == len(_utterance_captions(page)) == 7
+    assert drawn == len(_utterance_captions(page)) == 9
 
 
 def test_predicted_clips_are_drawn_over_their_audio_when_the_store_knows_it(demo_like, tmp_path, monkeypatch):
@@ -535,6 +545,9 @@ def test_predicted_clips_are_drawn_over_their_audio_when_the_store_knows_it(demo
     # through speak --out: the audio the record names
     assert "audio recorded by speak/animate" in captions["predict/spoken"]
     assert "audio unknown" not in captions["predict/u0"] + captions["predict/spoken"]
+    # a plain predict: the file the predict flow recorded, unless it changed since
+    assert "audio recorded by predict" in captions["predict/new"]
+    assert "audio unknown" in captions["predict/changed"]
     # a file nothing records: said so, not drawn
     assert "audio unknown" in captions["predict/lost"]
     from visemeflow.dashboards import plots

@@ -208,6 +208,12 @@ def test_files_of_one_name_in_different_folders_each_keep_their_own_curves_and_c
     curves = [curves_array(store.read_curves(i, "predicted", "tiny")) for i in ids[:2]]
     assert not np.allclose(curves[0], curves[1])
     np.testing.assert_array_equal(curves[1], curves_array(store.read_curves("predict/x", "predicted", "tiny")))
+    # where each predicted utterance's audio was, for the dashboard (the curves record only its hash)
+    from visemeflow.dashboards.records import recorded_predicted_audio
+
+    recorded = recorded_predicted_audio(store)
+    assert {i: recorded[i] for i in ids} == {ids[0]: str(a.resolve()), ids[1]: str(b.resolve()),
+                                              ids[2]: str(AUDIO.resolve())}
 
 
 @pytest.mark.flow

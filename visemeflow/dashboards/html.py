@@ -36,7 +36,7 @@ import pyarrow.dataset as ds
 from visemeflow.atomic import atomic_write_text
 from visemeflow.hashing import file_hash
 from visemeflow.dashboards import plots
-from visemeflow.dashboards.records import recorded_packages
+from visemeflow.dashboards.records import recorded_packages, recorded_predicted_audio
 # The robustness table is built by the same function as the `evaluate` report, so both show the same cells in the
 # same order (DESIGN lets dashboards import schemas and storage; this module is the exception, pure and torch-free).
 from visemeflow.learning.robustness_table import (
@@ -244,7 +244,8 @@ class CurveOnlyAudio:
 
 
 def curve_only_audio(store: Store, uid: str, sources: dict[str, list[str]], rows_by_name: dict[str, list[dict]],
-                     packages: dict[str, list[Path]], recorded: dict[str, str]) -> CurveOnlyAudio:
+                     packages: dict[str, list[Path]], recorded: dict[str, str],
+                     predicted: dict[str, str] | None = None) -> CurveOnlyAudio:
     """Where the audio of a curve-only utterance is: predicted curves record only the audio's content hash, not its
     path, so look in order at (1) the table's utterances of the same name (`predict/LJ001-0002` from
     `LJ001-0002.wav`; a `-<hash>` suffix dropped) whose audio file has that hash: then its phones apply too;
@@ -264,6 +265,12 @@ def curve_only_audio(store: Store, uid: str, sources: dict[str, list[str]], rows
             continue
     if recorded.get(uid) and Path(recorded[uid]).is_file():
         return CurveOnlyAudio(recorded[uid], None, "audio recorded by speak/animate")
+    path = (predicted or {}).get(uid)
+    try:
+        if path and hashes and file_hash(path) in hashes:   # the file predict read, unchanged since
+            return CurveOnlyAudio(path, None, "audio recorded by predict")
+    except OSError:
+        pass
     for folder in packages.get(uid, []):
         wav = folder / f"{folder.name}.wav"
         if wav.is_file():
@@ -678,7 +685,8 @@ def build_dashboard(
     for p in packages:
         package_dirs.setdefault(p.utterance_id, []).append(p.folder)
     recorded = {e["utterance_id"]: e["audio"] for e in reversed(recorded_packages(store)) if e.get("audio")}
-    audio = {u: curve_only_audio(store, u, index.get(u, {}), rows_by_name, package_dirs, recorded)
+    predicted = recorded_predicted_audio(store)
+    audio = {u: curve_only_audio(store, u, index.get(u, {}), rows_by_name, package_dirs, recorded, predicted)
              for u in selected if u not in rows_by_id}
     # Phones of the drawn utterances only: a filtered dataset scan, not the whole table.
     phone_ids = {u for u in selected if u in rows_by_id} | {a.same_as for a in audio.values() if a.same_as}

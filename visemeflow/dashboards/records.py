@@ -1,4 +1,5 @@
-"""A record, in the store, of the animation packages written outside it (`animate`/`speak --out DIR`).
+"""A record, in the store, of the animation packages written outside it (`animate`/`speak --out DIR`), and of the
+audio files `predict` read.
 
 The store's own packages are found by listing `animations/`; a package written with `--out` lies wherever the user
 asked, so without a record the report cannot list it. `record_packages` (called by the animate flow, which `speak`
@@ -7,6 +8,10 @@ the entries whose folders still exist. The record is one small JSON report file 
 through `Store.report_path`), replaced atomically under a store lock, so two `speak` runs at once both land in it.
 It keeps the newest `MAX_RECORDED` packages: an old entry falls off rather than the file growing without bound.
 No Prefect import: the dashboard reads it without loading the orchestrator.
+
+Predicted curves record only their audio's content hash; `record_predicted_audio` (called by the predict flow) keeps
+the path each `predict/<name>` was read from (`reports/predicted-audio.json`, the newest `MAX_RECORDED`), so the
+dashboard can draw the curves over their audio; `recorded_predicted_audio` gives back those whose file still exists.
 """
 
 import json
@@ -17,6 +22,7 @@ from pathlib import Path
 from visemeflow.storage import Store
 
 RECORD_NAME = "packages-outside-store.json"
+PREDICTED_AUDIO_NAME = "predicted-audio.json"
 MAX_RECORDED = 1000
 
 
@@ -60,4 +66,34 @@ def recorded_packages(store: Store) -> list[dict]:
     return [{**e, "folder": Path(e["folder"])} for e in reversed(_read(store)) if Path(e["folder"]).is_dir()]
 
 
-__all__ = ["MAX_RECORDED", "RECORD_NAME", "record_packages", "recorded_packages"]
+def _read_predicted(store: Store) -> dict[str, str]:
+    try:
+        data = json.loads(store.report_path(PREDICTED_AUDIO_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    audio = data.get("audio") if isinstance(data, dict) else None
+    if not isinstance(audio, dict):
+        return {}
+    return {u: a for u, a in audio.items() if isinstance(u, str) and isinstance(a, str)}
+
+
+def record_predicted_audio(store: Store, audio: Mapping[str, str]) -> int:
+    """Remember the audio file of each predicted utterance (`{utterance_id: path}`); returns the entries kept."""
+    fresh = {str(uid): str(Path(path).resolve()) for uid, path in audio.items() if path}
+    if not fresh:
+        return len(_read_predicted(store))
+    with store.locked("predicted-audio"):
+        entries = {u: a for u, a in _read_predicted(store).items() if u not in fresh}
+        entries.update(fresh)
+        entries = dict(list(entries.items())[-MAX_RECORDED:])
+        store.write_report_text(PREDICTED_AUDIO_NAME, json.dumps({"audio": entries}, indent=1, ensure_ascii=False))
+    return len(entries)
+
+
+def recorded_predicted_audio(store: Store) -> dict[str, str]:
+    """`{utterance_id: path}` of the recorded predicted audio whose file still exists."""
+    return {u: a for u, a in _read_predicted(store).items() if Path(a).is_file()}
+
+
+__all__ = ["MAX_RECORDED", "PREDICTED_AUDIO_NAME", "RECORD_NAME", "record_packages", "record_predicted_audio",
+           "recorded_packages", "recorded_predicted_audio"]

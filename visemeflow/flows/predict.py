@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from visemeflow.atomic import atomic_write_text
 from visemeflow.animation.export import CurveTrack, write_export
+from visemeflow.dashboards.records import record_predicted_audio
 from visemeflow.flows.common import replace_stage_rejects
 from visemeflow.flows.errors import StageFailed
 from visemeflow.hashing import file_hash, stable_hash
@@ -260,6 +261,8 @@ def predict_flow(params: PredictParams) -> State:
             rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{audio}: {exc}\n{trace}", str(audio)))
             unexpected += 1
     replace_stage_rejects(store, STAGE, rejects, 1)
+    # predicted curves record their audio's hash only: where the file was, for the dashboard to draw them over it
+    record_predicted_audio(store, {r["utterance_id"]: r["audio"] for r in rows})
     if rows:
         create_markdown_artifact(key="predictions", markdown=_markdown(params.model, rows),
                                  description=f"curves predicted by {params.model}, with real-time factors")
