@@ -43,6 +43,7 @@ QUICK = {
     "rendering.py": ["--frames", "2", "--reference-frames", "1"],
     "robustness.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm",
                       "--augmented", "", "--threads", "1"],
+    "rotation.py": ["--takes", "1", "--repeats", "1", "--calls", "20"],
     "textgrid_readers.py": ["--repeat", "1"],
     "tracking.py": ["--utterances", "1", "--faithful-frames", "2"],
     "transfer.py": [],
