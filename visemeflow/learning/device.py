@@ -112,6 +112,14 @@ def resolve_device(request: str | torch.device) -> torch.device:
     return torch.device("cuda", index)
 
 
+def _precision_word(precision: str | None) -> str:
+    """The --precision word normalised (None is fp32), or :class:`DeviceError` for an unknown one."""
+    word = "fp32" if precision is None else str(precision).strip().lower()
+    if word not in PRECISION_CHOICES:
+        raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
+    return word
+
+
 def check_device_here(request: str, precision: str | None = None) -> str:
     """The device word normalised, refused with :class:`DeviceError` (one line) where this machine cannot give it.
 
@@ -119,9 +127,7 @@ def check_device_here(request: str, precision: str | None = None) -> str:
     and a plain ``auto`` never fail, so they are checked without importing torch: a command whose work is cached
     then never loads it (the device is resolved again where the work runs)."""
     word = check_device_word(request)
-    wanted = "fp32" if precision is None else str(precision).strip().lower()
-    if wanted not in PRECISION_CHOICES:
-        raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
+    wanted = _precision_word(precision)
     if word == "cpu" or (word == "auto" and wanted in ("auto", "fp32")):
         return word
     resolve_precision(resolve_device(word), precision)
@@ -135,12 +141,9 @@ def resolve_precision(device: torch.device | str, precision: str | None) -> Auto
     supports it, else None (fp16 is never chosen for the user: it needs loss scaling and can overflow); ``bf16``
     on a GPU without bfloat16 is :class:`DeviceError`.
     """
-    word = "fp32" if precision is None else str(precision).strip().lower()
-    if word not in PRECISION_CHOICES:
-        raise DeviceError(f"unknown precision {precision!r}; expected one of {', '.join(PRECISION_CHOICES)}")
-    if word == "fp32" or (isinstance(device, str) and not check_device_word(device).startswith("cuda")
-                          and device.strip().lower() != "auto"):
-        return None   # the CPU: no torch needed to say so
+    word = _precision_word(precision)
+    if word == "fp32":
+        return None
     import torch
 
     device = torch.device(device)

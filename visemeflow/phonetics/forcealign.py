@@ -140,8 +140,8 @@ def align_transcript(audio: np.ndarray, sample_rate: int, text: str, source: str
         _decode(decoder, pcm)                     # the words
     except RuntimeError as exc:
         raise AlignmentError(f"{source}: pocketsphinx found no alignment of the transcript ({exc})") from None
-    spans = [(re.sub(r"\(\d+\)$", "", seg.word), seg.start_frame, seg.end_frame + 1) for seg in decoder.seg()
-             if re.sub(r"\(\d+\)$", "", seg.word) not in _SILENCE]
+    spans = [(_word(seg.word), seg.start_frame, seg.end_frame + 1) for seg in decoder.seg()
+             if _word(seg.word) not in _SILENCE]
     if [w for w, _, _ in spans] != words:
         raise AlignmentError(f"{source}: the alignment's words {[w for w, _, _ in spans]} are not the "
                              f"transcript's {words}")
@@ -159,6 +159,11 @@ def align_transcript(audio: np.ndarray, sample_rate: int, text: str, source: str
     out_phones = [PhoneInterval(p.label, min(p.start_s, end), min(p.end_s, end), p.word, p.word_index)
                   for p in out_phones]
     return ForcedAlignment(tuple(out_words), tuple(p for p in out_phones if p.end_s > p.start_s))
+
+
+def _word(name: str) -> str:
+    """A dictionary word without its alternative-pronunciation mark: "the(2)" -> "the"."""
+    return re.sub(r"\(\d+\)$", "", name)
 
 
 def _decode(decoder, pcm: bytes) -> None:

@@ -24,8 +24,9 @@ TTY_SECONDS = 2.0
 PIPE_SECONDS = 10.0
 
 
-def interval_seconds(stream: TextIO) -> float | None:
-    """Seconds between lines: the environment's, else by whether `stream` is a terminal; None when turned off."""
+def interval_seconds(stream: TextIO | None) -> float | None:
+    """Seconds between lines: the environment's, else by whether `stream` is a terminal (None: not one); None when
+    turned off."""
     value = os.environ.get(ENV, "").strip().lower()
     if value in ("off", "no", "false", "none"):
         return None
@@ -34,6 +35,8 @@ def interval_seconds(stream: TextIO) -> float | None:
             return max(0.0, float(value))
         except ValueError:
             pass  # a typo must not stop a run: the default applies
+    if stream is None:
+        return PIPE_SECONDS
     try:
         tty = stream.isatty()
     except (AttributeError, ValueError):
@@ -159,16 +162,9 @@ class StepLog:
     def __init__(self, name: str, log: Callable[[str], None], interval: float | None = None,
                  clock: Callable[[], float] = time.monotonic):
         self.name, self.log, self.clock = name, log, clock
-        if interval is None:
-            value = os.environ.get(ENV, "").strip().lower()
-            if value in ("off", "no", "false", "none"):
-                interval = math.inf
-            else:
-                try:
-                    interval = max(0.0, float(value)) if value else PIPE_SECONDS
-                except ValueError:
-                    interval = PIPE_SECONDS
-        self.interval = interval
+        if interval is None:   # the environment's, else PIPE_SECONDS: log lines have no terminal of their own
+            interval = interval_seconds(None)
+        self.interval = math.inf if interval is None else interval
         self.started = self.last = clock()
         self.phase, self.phase_started = None, self.started
 
