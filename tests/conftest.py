@@ -4,6 +4,9 @@ import os
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+# the file-digest memo (visemeflow.hashmemo) stays out of the tests: never the real ~/.cache, never shared between
+# runs (tests/test_hash_memo.py points it at its own temporary files)
+os.environ["VISEMEFLOW_HASH_MEMO"] = "off"
 
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402

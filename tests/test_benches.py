@@ -28,6 +28,7 @@ LIBRARIES = {
 QUICK = {
     "animation.py": ["--minutes", "0.05", "--repeats", "1", "--preview-seconds", "0.5", "--no-pin", "--out", "{tmp}"],
     "bones.py": ["--bones", "4", "--iterations", "1", "--init-iterations", "1", "--utterances", "1"],
+    "rehash.py": ["--utterances", "20", "--repeats", "1"],
     "devices.py": ["--presets", "fbank-blstm", "--batch-sizes", "1", "--utterances", "2", "--epochs", "2",
                    "--d-model", "16", "--threads", "1"],
     "end_to_end.py": ["--repeats", "1", "--clips", "1", "--no-pin"],

@@ -1,7 +1,12 @@
 """Short stable digests of configs, values and files, for cache keys and provenance.
 
 The one place a digest is computed: blake2b with a 16-byte digest unless told otherwise. Top-level and free of
-imports from the rest of the package, so every layer (the pure domain packages included) can use it.
+imports from the rest of the package (but `hashmemo.py`, itself stdlib only), so every layer (the pure domain
+packages included) can use it.
+
+File digests are memoised across processes on the files' stat results (`hashmemo.py`: path, device, inode, size,
+mtime and ctime; `VISEMEFLOW_HASH_MEMO` names the SQLite file or is `off`), so a cached rerun of a large corpus
+does not read every input again; the digests are exactly those of the bytes, memo or not.
 """
 
 import hashlib
@@ -10,6 +15,8 @@ import os
 from collections.abc import Iterable
 
 from pydantic import BaseModel
+
+from visemeflow import hashmemo
 
 DIGEST_SIZE = 16
 _CHUNK = 1 << 20
@@ -36,16 +43,13 @@ def _update_with_file(h: "hashlib._Hash", path: str | os.PathLike) -> None:
             h.update(chunk)
 
 
-def file_hash(path: str | os.PathLike, size: int = DIGEST_SIZE) -> str:
-    """Hex digest of one file's bytes (read in chunks)."""
+def _read_file_hash(path: str | os.PathLike, size: int) -> str:
     h = new_hasher(size)
     _update_with_file(h, path)
     return h.hexdigest()
 
 
-def files_hash(paths: Iterable[str | os.PathLike | None], size: int = DIGEST_SIZE) -> str:
-    """Hex digest of several files' bytes, in order; a None entry counts as an absent file (distinct from an
-    empty one), so (audio, None) and (None, audio) differ."""
+def _read_files_hash(paths: list[str | os.PathLike | None], size: int) -> str:
     h = new_hasher(size)
     for p in paths:
         h.update(b"\0" if p is None else b"\1")
@@ -53,3 +57,16 @@ def files_hash(paths: Iterable[str | os.PathLike | None], size: int = DIGEST_SIZ
             _update_with_file(h, p)
             h.update(b"\0")
     return h.hexdigest()
+
+
+def file_hash(path: str | os.PathLike, size: int = DIGEST_SIZE) -> str:
+    """Hex digest of one file's bytes (read in chunks; memoised while the file's stat results are unchanged)."""
+    return hashmemo.memoised("file", size, [path], lambda: _read_file_hash(path, size))
+
+
+def files_hash(paths: Iterable[str | os.PathLike | None], size: int = DIGEST_SIZE) -> str:
+    """Hex digest of several files' bytes, in order; a None entry counts as an absent file (distinct from an
+    empty one), so (audio, None) and (None, audio) differ. All bytes feed one hasher (the digest is part of stored
+    cache keys); the memo keeps the whole tuple's digest."""
+    paths = list(paths)
+    return hashmemo.memoised("files", size, paths, lambda: _read_files_hash(paths, size))
