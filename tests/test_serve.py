@@ -5,6 +5,7 @@ import os
 import re
 import socket
 import stat
+import sys
 
 import httpx
 import pytest
@@ -104,17 +105,138 @@ def test_prefect_yaml_names_existing_flows_with_the_same_schedule():
     deployments = config["deployments"]
     names = set()
     for d in deployments:
-        assert d["entrypoint"].startswith("visemeflow/flows/") and (REPO / d["entrypoint"].split(":")[0]).is_file()
+        assert d["entrypoint"].startswith("visemeflow/ops/pool.py:") and (REPO / d["entrypoint"].split(":")[0]).is_file()
         flow = flow_of(d["entrypoint"])
         names.add(flow.name)
-        assert d["work_pool"]["name"] == "visemeflow"
-        params = d["parameters"]["params"]
-        assert params["store"] == "visemeflow-out/store"
+        assert d["work_pool"]["name"] == "visemeflow" and d["name"] == "pool"
+        params = d["parameters"]  # flat: each a parameter of the flow, merged one by one over a run's
+        assert params["store"] == "visemeflow-out/store" and set(params) <= set(flow.parameters.properties)
         if flow.name in ("pipeline", "ingest"):
             assert params["corpus"]
     assert names == set(STAGES)
     (pipeline,) = [d for d in deployments if d["entrypoint"].endswith(":pipeline_flow")]
     assert pipeline["schedules"] == [{"cron": serve_module.DEFAULT_CRON, "timezone": "UTC"}]
+
+
+@pytest.fixture
+def script_loads(monkeypatch):
+    """Prefect loads a `path.py:name` entrypoint as a script module (`pool`) and puts its folder first on sys.path,
+    for good: both are undone after the test."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    yield
+    if getattr(sys.modules.get("pool"), "__file__", "").endswith(os.path.join("ops", "pool.py")):
+        del sys.modules["pool"]
+
+
+def test_every_pool_entrypoint_loads_with_prefects_loader_as_a_flat_flow_named_as_its_stage(script_loads):
+    """What `prefect deploy` and a worker's engine do with prefect.yaml's entrypoints: load the file as a script and
+    read the flow's schema. Each is the stage's flow, flat as the served one, and no other flow is built."""
+    from prefect.flows import load_flow_from_entrypoint
+
+    from visemeflow.flows.stages import STAGES as TABLE
+
+    for stage in TABLE:
+        path, name = serve_module.pool_entrypoint(stage).split(":")
+        pool = load_flow_from_entrypoint(f"{REPO / path}:{name}")
+        own = stage.flow()
+        assert pool.name == own.name == stage.name and pool.fn is not own.fn
+        form = pool.parameters.model_dump()
+        model = serve_module.params_model(own.fn)
+        assert list(form["properties"]) == list(model.model_fields) and "params" not in form["properties"]
+        assert form == serve_module.served_flow(name).parameters.model_dump()  # the served form, the same builder
+        assert pool.flow_run_name == serve_module.served_run_name(own.flow_run_name)
+        assert pool is importlib.import_module("visemeflow.ops.pool").__getattr__(name)  # built once, either way
+    with pytest.raises(AttributeError, match="no attribute 'nothing_flow'"):
+        importlib.import_module("visemeflow.ops.pool").nothing_flow
+
+
+def test_pool_entrypoints_check_paths_only_where_the_workers_environment_names_roots(tmp_path, monkeypatch):
+    """A worker has no `serve --store` to take folders from: unset, the pool entrypoints run the stage as the stage
+    flows did; set (the worker's environment, or the pool's job variables), they refuse paths elsewhere."""
+    from visemeflow.flows.params import RerunParams
+
+    from prefect import flow
+
+    seen = []
+
+    @flow(name="rerun")
+    def recording(params: RerunParams) -> dict:
+        seen.append(params)
+        return {"ok": 1}
+
+    pool = serve_module.flat_flow(recording, "visemeflow.ops.pool", serve_module.roots_if_set)
+    outside = tmp_path.parent / "elsewhere"
+    monkeypatch.delenv(ROOTS_ENV, raising=False)
+    assert pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": str(outside)})) == {"ok": 1}
+    assert seen == [RerunParams(utterance_id="spk/a", store=outside)] and pool.__module__ == "visemeflow.ops.pool"
+    monkeypatch.setenv(ROOTS_ENV, str(tmp_path))
+    with pytest.raises(PathOutsideRootsError, match="flow parameter store = "):
+        pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": str(outside)}))
+    assert len(seen) == 1
+
+
+@pytest.mark.flow
+def test_a_pool_deployment_run_with_param_keeps_the_store_prefect_yaml_names(tmp_path, prefect_harness, monkeypatch,
+                                                                            script_loads):
+    """prefect.yaml's `rerun/pool` on the test server: `prefect deploy` from the folder holding the file and the
+    package, `prefect deployment run 'rerun/pool' --param utterance_id=...`, then the flow run executed as a process
+    worker's engine does (`prefect.engine`: the deployment's pull step, its entrypoint, the run's parameters). The
+    run's parameters are the override merged over the deployment's flat defaults, so the run keeps the store
+    prefect.yaml names (relative to the folder deployed from) and processes the utterance there.
+
+    The CLI runs in this process (Prefect's `invoke_and_assert`) and so does the flow run, rather than a worker's
+    subprocess: each subprocess would import Prefect and the stage's flow again (about 10 s each)."""
+    import shutil
+
+    from factories import make_corpus
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.actions import WorkPoolCreate
+    from prefect.exceptions import ObjectAlreadyExists
+    from prefect.flow_engine import load_flow, run_flow
+    from prefect.testing.cli import invoke_and_assert
+
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, RerunParams
+    from visemeflow.procedural import ProceduralConfig
+    from visemeflow.storage import Store
+    from visemeflow.tasks.procedural import default_variant
+
+    work = tmp_path / "work"  # the folder deployed from: prefect.yaml and the package, as at the repository root
+    work.mkdir()
+    (work / "visemeflow").symlink_to(REPO / "visemeflow")
+    shutil.copyfile(REPO / "prefect.yaml", work / "prefect.yaml")
+    (rerun_defaults,) = [d["parameters"] for d in yaml.safe_load((work / "prefect.yaml").read_text())["deployments"]
+                         if d["entrypoint"].endswith(":rerun_flow")]
+    store = work / rerun_defaults["store"]
+    corpus = make_corpus(tmp_path / "corpus", {"spk/a": [("", 0.0, 0.2), ("AA1", 0.2, 0.5), ("M", 0.5, 0.7)]})
+    assert ingest_flow(IngestParams(corpus=corpus, store=store, n_shards=1), return_state=True).is_completed()
+    monkeypatch.delenv(ROOTS_ENV, raising=False)
+    monkeypatch.chdir(work)
+    with get_client(sync_client=True) as client:
+        try:
+            client.create_work_pool(WorkPoolCreate(name="visemeflow", type="process"))
+        except ObjectAlreadyExists:
+            pass
+        # Prefect picks a prefect.yaml deployment by its entrypoint's attribute: `rerun_flow/pool`
+        invoke_and_assert(["--no-prompt", "deploy", "--name", "rerun_flow/pool"], echo=False)
+        created = invoke_and_assert(["deployment", "run", "rerun/pool", "--param", "utterance_id=spk/a"], echo=False)
+        run_id = re.search(r"UUID: ([0-9a-f-]{36})", created.stdout).group(1)
+        deployment = client.read_deployment_by_name("rerun/pool")
+        run = client.read_flow_run(run_id)
+        assert deployment.entrypoint == "visemeflow/ops/pool.py:rerun_flow"
+        assert deployment.parameters == {"store": rerun_defaults["store"]} == {"store": "visemeflow-out/store"}
+        assert "params" not in deployment.parameter_openapi_schema["properties"]
+        assert run.parameters == {"store": rerun_defaults["store"], "utterance_id": "spk/a"}
+        assert RerunParams.model_validate(run.parameters) == RerunParams(utterance_id="spk/a",
+                                                                         store=rerun_defaults["store"])
+        monkeypatch.chdir(tmp_path)  # the pull step `prefect deploy` recorded goes back to `work`
+        flow = load_flow(run)
+        assert flow.name == "rerun" and flow.fn.__name__ == "rerun_flow" and os.getcwd() == str(work)
+        run_flow(flow, flow_run=run)
+        run = client.read_flow_run(run_id)
+    assert run.state.is_completed(), run.state
+    assert run.name == "rerun[spk/a:procedural]"
+    assert Store(store).has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
 
 
 def test_serve_serves_every_deployment_on_the_configured_api(tmp_path, monkeypatch):

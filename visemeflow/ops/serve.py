@@ -4,7 +4,8 @@ The `pipeline` deployment runs on a cron schedule; since every stage caches on c
 reprocesses only what changed. The other stages and `rerun` (one utterance, one stage) are deployments without a
 schedule, run from the UI's forms or `prefect deployment run`. A served deployment's parameters are the fields of its
 stage's params model, flat (`--param utterance_id=...`), with the served store as a default that a run naming other
-fields keeps (docs/serve.md).
+fields keeps (docs/serve.md). prefect.yaml's work-pool deployments (`render_prefect_yaml`) deploy the same flat flows
+from visemeflow/ops/pool.py (`pool_flow`).
 
 The server `serve` starts answers only callers holding its auth string, asks every change for a CSRF token, and
 allows cross-origin calls from its own UI only. Its database, log and auth string live in `<store>/.prefect-serve/`
@@ -61,6 +62,9 @@ PATH_OR_NAME = frozenset({"wav2vec2_model", "whisper_source"})
 
 # The served deployments' entrypoints: `visemeflow.ops.serve.<name>` (see `__getattr__`), module of each stage's flow.
 SERVED_FLOWS = {stage.flow_attr: stage.module for stage in STAGES}
+# The work-pool deployments' entrypoints (prefect.yaml): `visemeflow/ops/pool.py:<name>`, the same flat flows.
+POOL_MODULE = "visemeflow.ops.pool"
+POOL_NAME = "pool"
 
 
 class ServerStartError(RuntimeError):
@@ -173,16 +177,22 @@ def served_run_name(template: object) -> object:
     return template.replace("{params.", "{") if isinstance(template, str) else template
 
 
-def confined(flow: Flow) -> Flow:
-    """A copy of `flow`, importable from this module, whose parameters are the fields of the stage's `params` model
-    (`flat_signature`) and that checks every path among them against ROOTS_ENV before it runs a line of the stage."""
+def flat_flow(flow: Flow, module: str, roots: Callable[[], Sequence[Path] | None]) -> Flow:
+    """A copy of a stage's `flow` whose parameters are the fields of its `params` model (`flat_signature`), named
+    as the stage and importable as `module.<attribute>`: it builds the model from the flat fields, checks every path
+    in it against `roots()` (None: no check) before it runs a line of the stage, and calls the stage with it.
+
+    Serve's confined copies (`confined`) and the work-pool entrypoints of prefect.yaml (`pool_flow`) are both this.
+    """
     fn = flow.fn
     model = params_model(fn)
 
     @functools.wraps(fn)
     def checked(**fields):
         params = model.model_validate(fields)
-        check_paths_within(dict(params), roots_from_environment())
+        allowed = roots()
+        if allowed is not None:
+            check_paths_within(dict(params), allowed)
         return fn(params)
 
     checked.__signature__ = flat_signature(model)  # Prefect's form, validation and CLI read this signature
@@ -193,14 +203,37 @@ def confined(flow: Flow) -> Flow:
     copy.fn = checked
     copy.__wrapped__, copy.__doc__ = checked, checked.__doc__  # `to_deployment` reads the schema off the flow itself
     copy.parameters = parameter_schema(checked)
-    copy.__module__ = __name__  # the deployment's entrypoint, so a run started from the database is confined too
+    copy.__module__ = module  # the deployment's entrypoint: a run started from the database gets this copy too
     return copy
+
+
+def confined(flow: Flow) -> Flow:
+    """The served copy of `flow` (`flat_flow`), importable from this module, that checks every path among its
+    parameters against ROOTS_ENV (unset: none is allowed) before it runs a line of the stage."""
+    return flat_flow(flow, __name__, roots_from_environment)
+
+
+def roots_if_set() -> list[Path] | None:
+    """The pool entrypoints' roots: ROOTS_ENV's folders where the worker's environment sets it, else no check."""
+    return roots_from_environment() if os.environ.get(ROOTS_ENV) else None
+
+
+def stage_flow(name: str) -> Flow:
+    """A stage's own flow, by the name of the flow object (`procedural_flow`); imports its module."""
+    return getattr(importlib.import_module(SERVED_FLOWS[name]), name)
 
 
 @functools.cache
 def served_flow(name: str) -> Flow:
     """The confined copy of a stage's flow, by the name of the flow object (`procedural_flow`)."""
-    return confined(getattr(importlib.import_module(SERVED_FLOWS[name]), name))
+    return confined(stage_flow(name))
+
+
+@functools.cache
+def pool_flow(name: str) -> Flow:
+    """The flat copy of a stage's flow that prefect.yaml deploys (`visemeflow/ops/pool.py:procedural_flow`); it
+    checks paths only where the worker's environment sets ROOTS_ENV (`roots_if_set`)."""
+    return flat_flow(stage_flow(name), POOL_MODULE, roots_if_set)
 
 
 def __getattr__(name: str) -> Flow:
@@ -248,26 +281,39 @@ PREFECT_YAML_HEAD = """\
 #   .venv/bin/prefect --no-prompt deploy --all
 #   .venv/bin/prefect worker start --pool visemeflow
 #
+# As with `serve`, each deployment's parameters are the fields of its stage's params model, flat, and a run that
+# names some of them keeps the others' defaults below (the store among them):
+#
+#   .venv/bin/prefect deployment run 'rerun/pool' --param utterance_id=spk1/utt001 --param stage=track
+#   .venv/bin/prefect deployment run 'pipeline/pool' --param n_shards=16
+#
 # With no pull step given, `prefect deploy` records the folder it ran in as the workers' working directory, so the
 # relative paths below are relative to the repository root. Every stage caches on content hashes: the scheduled
 # pipeline run reprocesses only what changed. Deployments are named `pool` (`pipeline/pool`, `rerun/pool`, ...),
-# the served ones `served`, so both can live on one server.
+# the served ones `served`, so both can live on one server. The entrypoints (visemeflow/ops/pool.py) check the
+# paths a run names only where the worker's environment sets VISEMEFLOW_SERVE_ROOTS (folders, `:`-separated).
 """
+
+
+def pool_entrypoint(stage: Stage) -> str:
+    """`visemeflow/ops/pool.py:rerun_flow`: the stage's flat flow, as prefect.yaml names it."""
+    return f"{POOL_MODULE.replace('.', '/')}.py:{stage.flow_attr}"
 
 
 def render_prefect_yaml(store: str = "visemeflow-out/store", corpus: str = "visemeflow-out/demo-corpus") -> str:
     """prefect.yaml: a `pool` deployment of every stage of `STAGES` on the `visemeflow` work pool, the pipeline on
-    DEFAULT_CRON (UTC), defaults `store` (and `corpus` where the stage reads one)."""
+    DEFAULT_CRON (UTC). Its entrypoint is the stage's flat flow in visemeflow/ops/pool.py (`pool_flow`), its default
+    parameters `store` (and `corpus` where the stage reads one), flat as the served deployments'."""
     import prefect
     import yaml
 
     deployments = []
     for stage in STAGES:
         params = {"store": store, **({"corpus": corpus} if stage.on_corpus else {})}
-        d: dict = {"name": "pool", "entrypoint": stage.entrypoint}
+        d: dict = {"name": POOL_NAME, "entrypoint": pool_entrypoint(stage)}
         if stage.description:
             d["description"] = stage.description
-        d.update({"tags": list(TAGS), "parameters": {"params": params}})
+        d.update({"tags": list(TAGS), "parameters": params})
         if stage.scheduled:
             d["schedules"] = [{"cron": DEFAULT_CRON, "timezone": "UTC"}]
             d["concurrency_limit"] = 1
