@@ -1,9 +1,11 @@
 """Common mistakes with a corpus (issue 28, item 3): each was a crash or a silent success, each is now one clear
-line. A single video or audio file given as the corpus, a flat folder of wavs, an mp3 in a corpus, transcripts
-without timings, `--model phones` on audio of any language, and P2FA's `.align` (an HTK MLF whose one entry names a
-temporary file). The command-line cases run the real `visemeflow` command in a child process."""
+line. A flat folder of wavs or a binary file given as the corpus, an mp3 in a corpus, transcripts without timings,
+`--model phones` on audio of any language, and P2FA's `.align` (an HTK MLF whose one entry names a temporary file).
+A single audio or video file given as the corpus is a corpus of one utterance. The command-line cases run the real
+`visemeflow` command in a child process."""
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,8 +15,9 @@ import pyarrow.parquet as pq
 import pytest
 import soundfile as sf
 
-from factories import make_corpus, textgrid_long, write_wav
+from factories import SHARED_DATA, make_corpus, textgrid_long, write_wav
 from visemeflow.ingest import CorpusError, IngestConfig, check_corpus, discover_corpus, ingest_utterance
+from visemeflow.ingest.corpus import SINGLE_FILE_SPEAKER, single_file_speaker
 from visemeflow.ingest.hints import reject_advice, reject_lines
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,12 +50,17 @@ def write_mp3(path: Path, seconds: float, rate: int = 16000) -> Path:
 
 # --- the cheap check the command runs before any flow -----------------------------------------------------------
 
-def test_check_corpus_names_a_single_file_a_flat_folder_and_what_a_corpus_is(tmp_path):
-    clip = binary_video(tmp_path / "clip.mp4")
-    message = check_corpus(clip)
-    assert message.startswith(f"{clip} is a single video, not a corpus") and "<speaker>/<name>.wav" in message
-    assert f"visemeflow speak {clip}" in message and "\n" not in message
-    assert "single audio file" in check_corpus(write_wav(tmp_path / "take.wav", 0.2))
+def test_check_corpus_takes_one_media_file_and_names_a_flat_folder_and_what_a_corpus_is(tmp_path):
+    assert check_corpus(binary_video(tmp_path / "clip.mp4")) is None  # by its extension: ingest reads it
+    assert check_corpus(write_wav(tmp_path / "take.WAV", 0.2)) is None
+    blob = tmp_path / "weights.bin"
+    blob.write_bytes(b"\x00\x01\xff\xfe" * 100)
+    message = check_corpus(blob)
+    assert message.startswith(f"{blob} is neither an audio or video file (.wav, ") and "<speaker>/<name>.wav" in message
+    assert "\n" not in message
+    grid = tmp_path / "take.TextGrid"
+    grid.write_text(textgrid_long([(s, e, lab) for lab, s, e in PHONES], 0.6), "utf-8")
+    assert check_corpus(grid).startswith(f"{grid} is an alignment file, not a corpus: give its audio or video")
 
     flat = tmp_path / "flat"
     for name in ("a", "b", "c", "d", "e"):
@@ -88,6 +96,35 @@ def test_binary_and_headerless_manifests_are_one_line_errors_not_decode_dumps(tm
     assert check_corpus(late.parent) is None  # the first 8 KB are a manifest
     with pytest.raises(CorpusError, match=r"not UTF-8 text at byte \d+"):
         discover_corpus(late.parent)
+
+
+def test_one_audio_or_video_file_is_a_corpus_of_one_utterance_with_what_lies_beside_it(tmp_path):
+    corpus = make_corpus(tmp_path / "corpus", {"Speaker One/hello": PHONES, "Speaker One/other": PHONES})
+    found = discover_corpus(corpus / "Speaker One" / "hello.wav")
+    assert not found.rejects and [e.utterance_id for e in found.entries] == ["Speaker One/hello"]
+    assert found.entries[0].alignment_path == str((corpus / "Speaker One" / "hello.TextGrid").resolve())
+    assert discover_corpus(corpus / "Speaker One" / "hello.wav", only="Speaker One/hello").entries == found.entries
+    assert discover_corpus(corpus / "Speaker One" / "hello.wav", only="Speaker One/other").entries == ()
+
+    folder = tmp_path / "takes"
+    write_mp3(write_wav(folder / "a.wav", 0.3).with_suffix(".mp3"), 0.3)  # the named file wins over a.wav
+    (folder / "a.txt").write_text("hello\n", encoding="utf-8")                 # a transcript: ingest aligns it
+    (folder / "a.landmarks.csv").write_text("frame\n", encoding="utf-8")
+    (entry,) = discover_corpus(folder / "a.mp3").entries
+    assert entry.utterance_id == "takes/a" and entry.audio_path.endswith("a.mp3")
+    assert entry.alignment_format == "transcript" and entry.landmark_path.endswith("a.landmarks.csv")
+    binary_video(folder / "v.MP4")
+    write_wav(folder / "v.wav", 0.3)  # the audio beside a video, which has no alignment: tracked unguided
+    (entry,) = discover_corpus(folder / "v.MP4").entries
+    assert (entry.audio_path.endswith("v.wav"), entry.video_path.endswith("v.MP4"), entry.alignment_format) == (
+        True, True, "none")
+    (reject,) = discover_corpus(write_wav(folder / "lone.wav", 0.3)).rejects
+    assert reject.error_type == "MissingAlignment" and str((folder / "lone.wav").resolve()) in reject.message
+    assert (reject.utterance_id, reject.path) == ("takes/lone", str((folder / "lone.wav").resolve()))
+    assert [single_file_speaker(n) for n in ("", ".cache", "a\nb", "Speaker One")] == [SINGLE_FILE_SPEAKER] * 3 + [
+        "Speaker One"]
+    (reject,) = discover_corpus(write_wav(folder / ".hidden.wav", 0.3)).rejects
+    assert reject.error_type == "InvalidId" and ".hidden.wav" in reject.message
 
 
 # --- every format `speak` reads --------------------------------------------------------------------------------
@@ -167,13 +204,14 @@ def test_reject_lines_name_utterance_file_and_reason_and_advise_an_aligner():
 # --- the real command ---------------------------------------------------------------------------------------------
 
 @pytest.mark.flow
-def test_pipeline_on_one_video_or_a_flat_folder_says_what_a_corpus_is(tmp_path, prefect_api_url):
-    clip = binary_video(tmp_path / "clip.mp4")
-    done = visemeflow(["pipeline", str(clip), "--store", str(tmp_path / "store")], prefect_api_url)
+def test_pipeline_on_a_binary_file_or_a_flat_folder_says_what_a_corpus_is(tmp_path, prefect_api_url):
+    blob = binary_video(tmp_path / "clip.mp4").rename(tmp_path / "clip.bin")  # neither media nor a manifest
+    done = visemeflow(["pipeline", str(blob), "--store", str(tmp_path / "store")], prefect_api_url)
     output = done.stdout + done.stderr
-    assert done.returncode != 0, output
-    assert f"{clip} is a single video, not a corpus" in done.stderr and f"visemeflow speak {clip}" in done.stderr
-    assert "UnicodeDecodeError" not in output and "Traceback" not in output and len(output) < 10_000, output
+    assert done.returncode == 2 and done.stdout == "", output
+    (line,) = done.stderr.splitlines()  # one line, before Prefect starts: no store either
+    assert line.startswith(f"error: {blob} is neither an audio or video file") and "<speaker>/<name>.wav" in line
+    assert not (tmp_path / "store").exists()
 
     flat = tmp_path / "flat"
     for name in ("a", "b", "c"):
@@ -182,6 +220,36 @@ def test_pipeline_on_one_video_or_a_flat_folder_says_what_a_corpus_is(tmp_path, 
     assert done.returncode != 0, done.stdout + done.stderr
     assert f"no utterances in {flat}: 3 audio/video/alignment files (a.wav, b.wav, c.wav)" in done.stderr
     assert "all 0 utterances done" not in done.stdout + done.stderr
+
+
+@pytest.mark.flow
+def test_pipeline_and_ingest_take_one_audio_or_video_file_as_a_corpus_of_one(tmp_path, prefect_api_url):
+    corpus = make_corpus(tmp_path / "corpus", {"alice/hello": PHONES, "alice/other": PHONES})
+    store = tmp_path / "store"
+    done = visemeflow(["pipeline", str(corpus / "alice" / "hello.wav"), "--store", str(store)], prefect_api_url)
+    assert done.returncode == 0, done.stdout + done.stderr
+    (row,) = pq.read_table(store / "tables" / "utterances").to_pylist()  # hello alone, not the folder
+    assert row["utterance_id"] == "alice/hello" and row["alignment_format"] == "textgrid"
+    phones = pq.read_table(store / "tables" / "phones").to_pylist()
+    assert [p["label"] for p in phones] == [p[0] for p in PHONES]
+
+    clip = tmp_path / "s1" / "bbaf2n.MPG"  # a real GRID clip alone: no alignment, tracked unguided
+    clip.parent.mkdir()
+    shutil.copyfile(SHARED_DATA / "grid_s1" / "video" / "bbaf2n.mpg", clip)
+    done = visemeflow(["ingest", str(clip), "--store", str(tmp_path / "videos")], prefect_api_url)
+    assert done.returncode == 0, done.stdout + done.stderr
+    (row,) = pq.read_table(tmp_path / "videos" / "tables" / "utterances").to_pylist()
+    assert (row["utterance_id"], row["video_path"], row["alignment_format"]) == ("s1/bbaf2n", str(clip.resolve()), "none")
+    assert row["n_frames"] == 75
+
+    lone = write_wav(tmp_path / "loose" / "take.wav", 0.4).resolve()  # nothing to align it: a reject naming it, not a crash
+    done = visemeflow(["ingest", str(lone), "--store", str(tmp_path / "lone")], prefect_api_url)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "all 1 utterances failed" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert f"MissingAlignment: loose/take: no alignment for {lone}" in done.stderr and "Montreal" in done.stderr
+    (reject,) = pq.read_table(tmp_path / "lone" / "tables" / "rejects").to_pylist()
+    assert (reject["utterance_id"], reject["error_type"], reject["path"]) == ("loose/take", "MissingAlignment",
+                                                                              str(lone))
 
 
 @pytest.mark.flow

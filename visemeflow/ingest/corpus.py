@@ -20,8 +20,13 @@ transcript (`alignment_format` "transcript"), which ingest forced-aligns in Engl
 word spans. A label file beside its audio with its stem (`NAME.align` holding an MLF, `NAME.mlf`) belongs to that
 audio whatever its one entry names (P2FA names a temporary file, `"/tmp/tmpab12/myl_26185.rec"`).
 
-`check_corpus` says in one line, cheaply and before any flow, why a path is no corpus: one audio or video file, a
+`check_corpus` says in one line, cheaply and before any flow, why a path is no corpus: an alignment file, a
 binary or headerless file given as the manifest, a flat folder of wavs without speaker folders.
+
+One audio or video file (`pipeline clip.mp4`, `ingest take.wav`) is a corpus of one utterance: the file with what a
+corpus folder pairs with it beside it (its alignment or transcript, landmarks, the audio beside a video), id
+`<its folder's name>/<its stem>` (`SINGLE_FILE_SPEAKER` where the folder's name is no valid speaker). The named file
+is that utterance's audio (or video) even where another of its kind with its stem lies beside it.
 
 An utterance with a video (and no alignment) is kept without one: its `alignment_path` is "" and its
 `alignment_format` is `schemas.tables.NO_ALIGNMENT`; its audio is the video's audio track when no audio file is
@@ -117,9 +122,11 @@ class Discovery:
 
 
 CORPUS_LAYOUT = ("a corpus is a folder of speaker folders, CORPUS/<speaker>/<name>.wav (or .flac, .mp3, ..., or a "
-                 "video) with its alignment beside it (<name>.TextGrid, .lab, .align or .xra), or a manifest CSV "
-                 "with columns utterance_id, audio, alignment")
+                 "video) with its alignment beside it (<name>.TextGrid, .lab, .align or .xra), one such audio or "
+                 "video file, or a manifest CSV with columns utterance_id, audio, alignment")
 """What a corpus is, in the one line that every wrong-layout message ends with."""
+SINGLE_FILE_SPEAKER = "speaker"
+"""The speaker of a one-file corpus whose folder's name is no valid speaker (`/clip.mp4`, `.cache/take.wav`)."""
 _SNIFF_BYTES = 8192
 
 
@@ -132,10 +139,13 @@ def check_corpus(path: Path | str) -> str | None:
     """Why `path` (which exists) cannot be a corpus, in one line, or None when it may be one.
 
     Cheap (a directory listing, the first bytes of a file), so that a command can call it before any flow starts:
-    a single audio or video file (`pipeline clip.mp4`), a file that is not a CSV, a manifest without an
-    `utterance_id` column, or a folder holding no speaker folder with audio, video or alignment files (a flat folder
-    of wavs). A path that does not exist is left to the caller (None)."""
+    an alignment file, a file that is not a CSV, a manifest without an `utterance_id` column, or a folder holding no
+    speaker folder with audio, video or alignment files (a flat folder of wavs). One audio or video file (by its
+    extension, any case) is a corpus of one utterance (None), and so is a path that does not exist, left to the
+    caller."""
     path = Path(path)
+    if path.is_file() and _media_ext(path.name) is not None:
+        return None  # one audio or video file: a corpus of one utterance, read by discovery
     if path.is_file():
         return _check_manifest_file(path)
     if not path.is_dir():
@@ -171,14 +181,10 @@ def _files(folder: Path):
 
 
 def _check_manifest_file(path: Path) -> str | None:
-    """Why the file `path` is not a manifest CSV (an audio or video file, binary, no utterance_id column), or None."""
+    """Why the file `path` is not a manifest CSV (an alignment file, binary, no utterance_id column), or None."""
     lower = path.name.lower()
-    if lower.endswith(AUDIO_EXTS + VIDEO_EXTS):
-        kind = "video" if lower.endswith(VIDEO_EXTS) else "audio file"
-        return (f"{path} is a single {kind}, not a corpus: {CORPUS_LAYOUT}; for one file without an alignment use "
-                f"`visemeflow speak {path}` or `visemeflow predict {path}`")
     if lower.endswith(ALIGNMENT_EXTS + (MLF_EXT,)):
-        return f"{path} is an alignment file, not a corpus: {CORPUS_LAYOUT}"
+        return f"{path} is an alignment file, not a corpus: give its audio or video file instead; {CORPUS_LAYOUT}"
     try:
         with open(path, "rb") as fh:
             head = fh.read(_SNIFF_BYTES)
@@ -190,7 +196,9 @@ def _check_manifest_file(path: Path) -> str | None:
     except UnicodeDecodeError as exc:  # text cut inside a character by the read is still text
         text = head[: exc.start].decode("utf-8") if exc.start > len(head) - 4 else None
     if text is None or "\x00" in text:
-        return f"{path} is not a manifest CSV (it is not UTF-8 text): {CORPUS_LAYOUT}"
+        what = "not a manifest CSV" if lower.endswith(".csv") else \
+            f"neither an audio or video file ({', '.join(AUDIO_EXTS + VIDEO_EXTS)}) nor a manifest CSV"
+        return f"{path} is {what} (it is not UTF-8 text): {CORPUS_LAYOUT}"
     header = next(csv.reader([text.splitlines()[0] if text.strip() else ""]), [])
     if "utterance_id" not in [h.strip() for h in header]:
         return (f"{path} is not a manifest CSV: its first line has no utterance_id column (columns: "
@@ -216,6 +224,8 @@ def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
         raise FileNotFoundError(f"corpus {corpus} does not exist")
     if only is not None:
         only = normalize_utterance_id(only)
+    if corpus.is_file() and _media_ext(corpus.name) is not None:
+        return _discover_file(corpus, only)
     if corpus.is_file():
         problem = _check_manifest_file(corpus)
         if problem is not None:
@@ -333,89 +343,154 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
             + root_mlfs
         if only is not None:
             files = {n: p for n, p in files.items() if _nfc(n).startswith(name + ".")}
-        stems: dict[str, dict[str, Path]] = {}
-        transcripts: dict[str, Path] = {}
-        # Sorted by extension priority, highest last, so the choice does not depend on listing order:
-        # a TextGrid wins over an .align, a .wav over a .flac, and so on.
-        for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
-            lower = filename.lower()   # TAKE01.WAV, take01.TEXTGRID: what recorders and Windows tools write
-            if lower.endswith(TRANSCRIPT_EXT):
-                transcripts[filename[: -len(TRANSCRIPT_EXT)]] = path
-            for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
-                for ext in exts:
-                    if lower.endswith(ext.lower()):
-                        if ext == ".lab" and not looks_like_htk_label(path):
-                            transcripts[filename[: -len(ext)]] = path  # a transcript, not an alignment
-                            continue
-                        stems.setdefault(filename[: -len(ext)], {})[kind] = path
-            for suffix in LANDMARK_SUFFIXES:
-                if lower.endswith(suffix):
-                    stems.setdefault(filename[: -len(suffix)], {})["landmarks"] = path
-        for stem, kinds in sorted(stems.items()):
-            any_path = str(next(iter(kinds.values())))
-            try:
-                utterance_id = make_utterance_id(speaker_dir.name, stem)
-            except InvalidIdError as exc:
-                if only is None:
-                    rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}", any_path))
-                continue
-            if only is not None and utterance_id != only:
-                continue
-            spellings.setdefault(utterance_id, []).append(sorted(kinds.values()))
-            outside = next((p for p in kinds.values() if not _inside(p, real_root)), None)
-            if outside is not None:
-                rejects.append(DiscoveryReject(
-                    utterance_id, "PathOutsideCorpus",
-                    f"{utterance_id}: {outside} is a link to {outside.resolve()}, outside the corpus folder "
-                    f"{real_root}; copy the file into the corpus", str(outside)))
-                continue
-            mlf_entry, key, kind, own_mlf = None, None, None, None
-            if "alignment" in kinds:
-                kind = _content_format(kinds["alignment"])
-                own_mlf = kinds["alignment"] if kind == "mlf" else None
-            else:
-                found_in = _find_in_mlfs(mlfs, speaker_dir.name, stem)
-                if found_in is not None:
-                    kinds["alignment"], mlf_entry = found_in
-                    key = f"{speaker_dir.name}/{stem}"
-                elif any(path == files.get(stem + MLF_EXT) for path, _ in mlfs):  # NAME.mlf read, no entry named
-                    own_mlf = files[stem + MLF_EXT]
-            if own_mlf is not None:  # NAME.align holding an MLF, or NAME.mlf: this utterance's own label file
-                try:
-                    mlf_entry, key = _own_mlf_entry(own_mlf, speaker_dir.name, stem)
-                except LabelFileError as exc:
-                    rejects.append(DiscoveryReject(utterance_id, "BadAlignmentFile", str(exc), str(own_mlf)))
-                    continue
-                except OSError as exc:
-                    rejects.append(DiscoveryReject(utterance_id, "UnreadableAlignment",
-                                                   f"{own_mlf}: cannot read: {exc.strerror}", str(own_mlf)))
-                    continue
-                kinds["alignment"] = own_mlf
-            if "alignment" not in kinds and stem in transcripts and ("audio" in kinds or "video" in kinds):
-                kinds["alignment"], kind = transcripts[stem], TRANSCRIPT_FORMAT   # ingest aligns it
-            if "audio" not in kinds and "video" in kinds:
-                kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
-            if "alignment" not in kinds and "video" not in kinds:
-                note = (f" ({transcripts[stem].name} is a transcript without times, not an alignment)"
-                        if stem in transcripts else "")
-                rejects.append(DiscoveryReject(
-                    utterance_id, "MissingAlignment",
-                    f"{utterance_id}: no alignment for {any_path}: no {', '.join(ALIGNMENT_EXTS)} file beside it and "
-                    f"no entry for it in an .mlf file{note}", any_path))
-                continue
-            if "audio" not in kinds:
-                rejects.append(DiscoveryReject(utterance_id, "MissingAudio",
-                                               f"{utterance_id}: no {'/'.join(AUDIO_EXTS)} file next to {kinds['alignment']}",
-                                               str(kinds["alignment"])))
-                continue
-            entries.append(_with_hash(CorpusEntry(
-                utterance_id, str(kinds["audio"].resolve()),
-                str(kinds["alignment"].resolve()) if "alignment" in kinds else "",
-                str(kinds["video"].resolve()) if "video" in kinds else None,
-                str(kinds["landmarks"].resolve()) if "landmarks" in kinds else None,
-                alignment_key=key, alignment_kind=kind,
-            ), mlf_entry))
+        _discover_speaker(speaker_dir.name, speaker_dir.name, files, mlfs, real_root, only,
+                          entries, rejects, spellings)
     return _without_id_collisions(entries, rejects, spellings)
+
+
+def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: list[tuple[Path, MlfIndex]],
+                      real_root: Path, only: str | None, entries: list[CorpusEntry], rejects: list[DiscoveryReject],
+                      spellings: dict[str, list[list[Path]]], pinned: tuple[str, str, Path] | None = None) -> None:
+    """The entries and rejects of the files of one speaker folder (`files`: name -> path), added to `entries`,
+    `rejects` and `spellings`. `speaker` is the id's first part, `folder` the folder's own name (what an MLF entry
+    is found by). `pinned` (stem, kind, path): the file a user named, which is that utterance's audio or video
+    whatever else of its kind lies beside it; then only that stem is read."""
+    stems: dict[str, dict[str, Path]] = {}
+    transcripts: dict[str, Path] = {}
+    # Sorted by extension priority, highest last, so the choice does not depend on listing order:
+    # a TextGrid wins over an .align, a .wav over a .flac, and so on.
+    for filename, path in sorted(files.items(), key=lambda item: _priority(item[0])):
+        lower = filename.lower()   # TAKE01.WAV, take01.TEXTGRID: what recorders and Windows tools write
+        if lower.endswith(TRANSCRIPT_EXT):
+            transcripts[filename[: -len(TRANSCRIPT_EXT)]] = path
+        for kind, exts in (("audio", AUDIO_EXTS), ("alignment", ALIGNMENT_EXTS), ("video", VIDEO_EXTS)):
+            for ext in exts:
+                if lower.endswith(ext.lower()):
+                    if ext == ".lab" and not looks_like_htk_label(path):
+                        transcripts[filename[: -len(ext)]] = path  # a transcript, not an alignment
+                        continue
+                    stems.setdefault(filename[: -len(ext)], {})[kind] = path
+        for suffix in LANDMARK_SUFFIXES:
+            if lower.endswith(suffix):
+                stems.setdefault(filename[: -len(suffix)], {})["landmarks"] = path
+    if pinned is not None:  # the named file, whatever else of its kind (a .wav beside an .mp3) lies beside it
+        pinned_stem, pinned_kind, pinned_path = pinned
+        stems = {pinned_stem: {**stems.get(pinned_stem, {}), pinned_kind: pinned_path}}
+    for stem, kinds in sorted(stems.items()):
+        any_path = str(pinned[2] if pinned is not None else next(iter(kinds.values())))
+        try:
+            utterance_id = make_utterance_id(speaker, stem)
+        except InvalidIdError as exc:
+            if only is None:
+                rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}", any_path))
+            continue
+        if only is not None and utterance_id != only:
+            continue
+        spellings.setdefault(utterance_id, []).append(sorted(kinds.values()))
+        outside = next((p for p in kinds.values() if not _inside(p, real_root)), None)
+        if outside is not None:
+            rejects.append(DiscoveryReject(
+                utterance_id, "PathOutsideCorpus",
+                f"{utterance_id}: {outside} is a link to {outside.resolve()}, outside the corpus folder "
+                f"{real_root}; copy the file into the corpus", str(outside)))
+            continue
+        mlf_entry, key, kind, own_mlf = None, None, None, None
+        if "alignment" in kinds:
+            kind = _content_format(kinds["alignment"])
+            own_mlf = kinds["alignment"] if kind == "mlf" else None
+        else:
+            found_in = _find_in_mlfs(mlfs, folder, stem)
+            if found_in is not None:
+                kinds["alignment"], mlf_entry = found_in
+                key = f"{folder}/{stem}"
+            elif any(path == files.get(stem + MLF_EXT) for path, _ in mlfs):  # NAME.mlf read, no entry named
+                own_mlf = files[stem + MLF_EXT]
+        if own_mlf is not None:  # NAME.align holding an MLF, or NAME.mlf: this utterance's own label file
+            try:
+                mlf_entry, key = _own_mlf_entry(own_mlf, folder, stem)
+            except LabelFileError as exc:
+                rejects.append(DiscoveryReject(utterance_id, "BadAlignmentFile", str(exc), str(own_mlf)))
+                continue
+            except OSError as exc:
+                rejects.append(DiscoveryReject(utterance_id, "UnreadableAlignment",
+                                               f"{own_mlf}: cannot read: {exc.strerror}", str(own_mlf)))
+                continue
+            kinds["alignment"] = own_mlf
+        if "alignment" not in kinds and stem in transcripts and ("audio" in kinds or "video" in kinds):
+            kinds["alignment"], kind = transcripts[stem], TRANSCRIPT_FORMAT   # ingest aligns it
+        if "audio" not in kinds and "video" in kinds:
+            kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
+        if "alignment" not in kinds and "video" not in kinds:
+            note = (f" ({transcripts[stem].name} is a transcript without times, not an alignment)"
+                    if stem in transcripts else "")
+            rejects.append(DiscoveryReject(
+                utterance_id, "MissingAlignment",
+                f"{utterance_id}: no alignment for {any_path}: no {', '.join(ALIGNMENT_EXTS)} file beside it and "
+                f"no entry for it in an .mlf file{note}", any_path))
+            continue
+        if "audio" not in kinds:
+            rejects.append(DiscoveryReject(utterance_id, "MissingAudio",
+                                           f"{utterance_id}: no {'/'.join(AUDIO_EXTS)} file next to {kinds['alignment']}",
+                                           str(kinds["alignment"])))
+            continue
+        entries.append(_with_hash(CorpusEntry(
+            utterance_id, str(kinds["audio"].resolve()),
+            str(kinds["alignment"].resolve()) if "alignment" in kinds else "",
+            str(kinds["video"].resolve()) if "video" in kinds else None,
+            str(kinds["landmarks"].resolve()) if "landmarks" in kinds else None,
+            alignment_key=key, alignment_kind=kind,
+        ), mlf_entry))
+
+
+def _media_ext(filename: str) -> str | None:
+    """The audio or video extension `filename` ends with (any case), as the corpus reader knows them; else None."""
+    lower = filename.lower()
+    return next((ext for ext in AUDIO_EXTS + VIDEO_EXTS if lower.endswith(ext)), None)
+
+
+def single_file_speaker(folder: str) -> str:
+    """The speaker of a one-file corpus in `folder` (the name of the file's folder): that name, NFC-normalised, when
+    it is a valid speaker (the rules of speaker folders, `schemas.ids`), else SINGLE_FILE_SPEAKER (a file in `/`, in
+    a hidden folder, or in a folder whose name holds a control character)."""
+    try:
+        return make_utterance_id(folder, "x").split("/")[0]
+    except InvalidIdError:
+        return SINGLE_FILE_SPEAKER
+
+
+def _discover_file(path: Path, only: str | None = None) -> Discovery:
+    """One audio or video file as a corpus of one utterance: `<its folder's name>/<its stem>`, with what a corpus
+    folder pairs with it beside it (alignment, transcript, landmarks, the audio beside a video, an entry of an MLF in
+    its folder). The folder is the corpus folder: a file beside it that links outside it is a reject. The path is
+    resolved first, as the flows do, so that a link gives the same id whichever way it is read."""
+    path = path.resolve()
+    folder = path.parent
+    ext = _media_ext(path.name)
+    stem = path.name[: -len(ext)]
+    speaker = single_file_speaker(folder.name)
+    try:
+        utterance_id = make_utterance_id(speaker, stem)
+    except InvalidIdError as exc:
+        return Discovery((), () if only is not None else (
+            DiscoveryReject(None, "InvalidId", f"{path}: {exc}", str(path)),))
+    if only is not None and only != utterance_id:
+        return Discovery(())
+    try:
+        beside = [p for p in folder.iterdir() if p.name.startswith(stem + ".") and p.is_file()]
+        mlf_paths = [p for p in folder.iterdir() if p.name.lower().endswith(MLF_EXT) and p.is_file()]
+    except OSError:  # a folder that may not be listed: the file alone
+        beside, mlf_paths = [path], []
+    files = {p.name: p for p in beside}
+    files[path.name] = path
+    entries: list[CorpusEntry] = []
+    rejects: list[DiscoveryReject] = []
+    mlf_rejects: list[DiscoveryReject] = []
+    mlfs = _mlf_indexes(mlf_paths, folder, mlf_rejects)
+    kind = "video" if ext in VIDEO_EXTS else "audio"
+    _discover_speaker(speaker, folder.name, files, mlfs, folder, utterance_id, entries, rejects, {},
+                      pinned=(stem, kind, path))
+    # a broken MLF beside the file is named only where it may be why the file has no alignment
+    return Discovery(tuple(entries), tuple(rejects + (mlf_rejects if not entries else [])))
 
 
 def _without_id_collisions(entries: list[CorpusEntry], rejects: list[DiscoveryReject],
