@@ -156,7 +156,7 @@ def test_animate_and_preview_commands_print_every_file_and_refuse_bad_options(tm
     nothing = runner.invoke(app, ["speak", str(tmp_path / "x.wav"), "--model", "nope", "--store", str(store.root)])
     assert nothing.exit_code == 2 and "no model 'nope'" in nothing.output
     bad = runner.invoke(app, ["preview", "spk/u0", "--store", str(store.root), "--mode", "skeleton"])
-    assert bad.exit_code == 2 and "--mode: Input should be 'blendshape', 'bones' or 'both'" in bad.output
+    assert bad.exit_code == 2 and "--mode must be one of blendshape, bones, both, not 'skeleton'" in bad.output
     bad = runner.invoke(app, ["preview", "spk/u0", "--store", str(store.root), "--mode", "both", "--bones", "0"])
     assert bad.exit_code == 2 and "--bones: Input should be greater than or equal to 1" in bad.output
 

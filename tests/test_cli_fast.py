@@ -52,7 +52,7 @@ def test_a_wrong_corpus_path_is_one_line_and_exit_2_before_prefect(tmp_path, com
     missing = tmp_path / "no-such-corpus"
     done = run_cli(command, str(missing), "--store", str(tmp_path / "store"))
     assert done.returncode == 2, done.stdout + done.stderr
-    assert said(done) == [f"error: corpus (a folder or a manifest CSV) {missing} does not exist"]
+    assert said(done) == [f"error: corpus (a folder, a manifest CSV or one audio or video file) {missing} does not exist"]
     assert done.stdout == ""
     modules = imported(done)
     assert "visemeflow.cli" in modules  # the importtime listing is real

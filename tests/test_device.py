@@ -293,11 +293,11 @@ def test_commands_refuse_cuda_without_cuda_in_one_line(command, no_cuda, tmp_pat
     assert not store.exists()
     typo = CliRunner().invoke(app, [*COMMANDS[command], "--store", str(store), "--device", "gpu"])
     assert typo.exit_code == 2 and typo.output.splitlines() == [
-        "error: unknown device 'gpu'; expected one of auto, cpu, cuda (or cuda:N)"]
+        "error: --device: unknown device 'gpu'; expected one of auto, cpu, cuda (or cuda:N)"]
     if command in ("train", "sweep"):
         bad = CliRunner().invoke(app, [*COMMANDS[command], "--store", str(store), "--precision", "half"])
         assert bad.exit_code == 2 and bad.output.splitlines() == [
-            "error: unknown precision 'half'; expected one of auto, fp32, bf16, fp16"]
+            "error: --precision must be one of auto, fp32, bf16, fp16, not 'half'"]
 
 
 def test_the_installed_command_prints_one_line_and_no_traceback(tmp_path):

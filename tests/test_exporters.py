@@ -60,3 +60,11 @@ def test_the_table_refuses_what_it_cannot_write():
     with pytest.raises(ValueError, match="bone-mode formats"):
         AnimateConfig(formats="pose-csv")
     assert set(bone_only_formats()) == {"pose-csv", "pose-json"}
+
+
+def test_the_formats_help_names_every_built_in_format():
+    """`AnimateConfig.formats`' help (the CLI's and the UI's) is written beside the config, apart from the table."""
+    from visemeflow.animation.config import FORMATS_HELP
+
+    names = {name for name in EXPORTERS if name != NPY.name}
+    assert names and all(f" {name}" in FORMATS_HELP for name in names), (names, FORMATS_HELP)

@@ -16,13 +16,16 @@ Pure: arrays in, files out; imports `visemes`, `rig`, `shapes`, `render`, `track
 `atomic`, never Prefect or the store.
 """
 
-from visemeflow.rig.character import Character, CharacterError, character_from_rig
-from visemeflow.animation.load import load_character
-from visemeflow.shapes.conventions import ARKIT_52, OCULUS_15, Binding, arkit_weights, bind, detect_convention
-from visemeflow.animation.export import FORMATS, CurveTrack, curves_csv, curves_json, export_text, write_export
+from visemeflow.lazy import lazy_exports
 
-__all__ = [
-    "ARKIT_52", "FORMATS", "OCULUS_15", "Binding", "Character", "CharacterError", "CurveTrack", "arkit_weights",
-    "bind", "character_from_rig", "curves_csv", "curves_json", "detect_convention", "export_text", "load_character",
-    "write_export",
-]
+# imported from their modules on first use, so `animation.config` (read by the CLI and the flows' parameters)
+# imports without the character readers
+_EXPORTS = {
+    **dict.fromkeys(("Character", "CharacterError", "character_from_rig"), "visemeflow.rig.character"),
+    "load_character": ".load",
+    **dict.fromkeys(("ARKIT_52", "OCULUS_15", "Binding", "arkit_weights", "bind", "detect_convention"),
+                    "visemeflow.shapes.conventions"),
+    **dict.fromkeys(("FORMATS", "CurveTrack", "curves_csv", "curves_json", "export_text", "write_export"), ".export"),
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

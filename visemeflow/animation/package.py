@@ -40,18 +40,17 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import soundfile as sf
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from visemeflow.animation.apply import check_curves, resample
+from visemeflow.animation.config import AnimateConfig  # re-exported here
 from visemeflow.articulation import close_lips
 from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, BoneRig, solve_bones, \
     write_pose_table
 from visemeflow.rig.character import Character
-from visemeflow.shapes.conventions import CONVENTIONS, Binding, arkit_weights
+from visemeflow.shapes.conventions import Binding, arkit_weights
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.atomic import atomic_path
 
@@ -136,7 +135,6 @@ for _e in (Exporter("glb", ".glb", _glb, ".bones.glb"), Exporter("usd", ".usd", 
            Exporter("pose-csv", None, None, ".poses.csv"), Exporter("pose-json", None, None, ".poses.json")):
     register_exporter(_e)
 
-DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
 
 
 def export_formats() -> tuple[str, ...]:
@@ -169,56 +167,6 @@ def _writing(path: Path, fmt: str) -> Iterator[None]:
     except OSError as exc:
         reason = exc.strerror or str(exc)
         raise ExportWriteError(str(path), fmt, reason.removeprefix(f"{path}: ")) from exc
-
-
-class AnimateConfig(BaseModel):
-    """What to export for each (utterance, character)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    formats: tuple[str, ...] = Field(DEFAULT_FORMATS, min_length=1,
-                                     description=f"Export formats, any of {', '.join(EXPORTERS)}.")
-    fps: float | None = Field(None, gt=0, le=1000, description="Frame rate of the exports; none: the curves' own "
-                                                                 "(other rates are resampled, never stretched).")
-    convention: str | None = Field(None, description="arkit52, oculus15 or visemeflow16; none: detected from the "
-                                                      "character's shape names.")
-    audio: bool = Field(True, description="Write the utterance's audio beside the exports as <stem>.wav.")
-    preview: bool = Field(False, description="Also render <stem>.mp4: the character driven by these curves, with "
-                                             "the audio and the current phone (H.264 + AAC).")
-    mode: Literal["blendshape", "bones"] = Field(
-        "blendshape", description="blendshape: the character's shapes are animated; bones: its visemes become SSDR "
-                                  "bones and glb/usd are skinned bone animation (pose-csv/pose-json: the poses).")
-    bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve in bone mode.")
-    closure_rule: bool = Field(
-        True, description="Apply the lip rules of visemeflow.articulation before the curves drive the character: "
-                          "lips close at b/p/m and touch the teeth at f/v whatever else is active, and no blend opens "
-                          "wider than the widest viseme (AHH).")
-    meshes: tuple[str, ...] = Field((), description="Meshes of a .glb/.gltf character to drive (mesh names); none: "
-                                                    "every mesh whose morph targets match (see gltf.read_character_glb).")
-
-    @model_validator(mode="after")
-    def _pose_tables_need_bones(self):
-        poses = [f for f in self.formats if EXPORTERS[f].write is None]
-        if poses and self.mode != "bones":
-            raise ValueError(f"{', '.join(poses)} are bone-mode formats: add --mode bones")
-        return self
-
-    @field_validator("formats", mode="before")
-    @classmethod
-    def _known_formats(cls, value):
-        if isinstance(value, str):
-            value = [f.strip() for f in value.split(",") if f.strip()]
-        unknown = [f for f in value if f not in EXPORTERS]
-        if unknown:
-            raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORTERS)}")
-        return tuple(dict.fromkeys(value))
-
-    @field_validator("convention")
-    @classmethod
-    def _known_convention(cls, value: str | None) -> str | None:
-        if value is not None and value not in CONVENTIONS:
-            raise ValueError(f"unknown convention {value!r}; known: {', '.join(CONVENTIONS)} (or give a mapping CSV)")
-        return value
 
 
 @dataclass

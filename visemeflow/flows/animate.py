@@ -11,60 +11,27 @@ from __future__ import annotations
 
 import traceback
 from pathlib import Path
-from typing import Literal
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
 from prefect.futures import as_completed
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
 from visemeflow.rig.character import CharacterError
-from visemeflow.animation.package import AnimateConfig
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.dashboards.records import record_packages
 from visemeflow.tasks.progress import Progress
 from visemeflow.flows.common import finished, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
-from visemeflow.rig import demo_rig_path
-from visemeflow.schemas import C, CurveSource, normalize_utterance_id, validate_name
+from visemeflow.schemas import C, CurveSource, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
     character_keys, content_hash, outputs_present, package_inputs
 from visemeflow.tasks.common import reject_row, result_storage
-from visemeflow.timebase import DEFAULT_FPS
-
-DEFAULT_STORE = Path("visemeflow-out/store")
-SOURCES = (CurveSource.TRACKED, CurveSource.PROCEDURAL, CurveSource.GROUND_TRUTH, CurveSource.PREDICTED)
 
 
-class AnimateParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
-                                   description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
-                                               "folders; default: the shipped ICT demo character.")
-    source: str = Field("tracked", description=f"Curves to animate: {', '.join(SOURCES)}.")
-    variant: str | None = Field(None, description="Variant of those curves (a model's name for predicted); may be "
-                                                  "omitted when only one exists.")
-    utterances: list[str] | None = Field(None, description="Utterance ids; none: every utterance with such curves.")
-    audio: dict[str, Path] = Field(default_factory=dict, description="Audio per utterance id where the utterances "
-                                                                     "table has none (predictions).")
-    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
-    config: AnimateConfig = Field(default_factory=AnimateConfig)
-    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
-    n_shards: int = Field(8, ge=1, le=4096, description="Shards of the rejects table.")
-
-    @field_validator("source")
-    @classmethod
-    def _safe_source(cls, source: str) -> str:
-        return validate_name(source, "curve source")
-
-    @field_validator("utterances")
-    @classmethod
-    def _valid_ids(cls, ids: list[str] | None) -> list[str] | None:
-        return None if ids is None else [normalize_utterance_id(u) for u in ids]
 
 
 def resolve_variant(store: Store, source: str, variant: str | None) -> str:
@@ -192,27 +159,6 @@ def animate_flow(params: AnimateParams):
                     failed, len(futures) + lost, unexpected)
 
 
-class SpeakParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    model: str = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
-                                              "with the package; `phones`: no model, phones recognised in the audio "
-                                              "(English).")
-    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
-    characters: list[Path] = Field(default_factory=lambda: [demo_rig_path()], min_length=1,
-                                   description="Character files or folders; default: the shipped ICT demo character.")
-    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
-    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
-    config: AnimateConfig = Field(default_factory=AnimateConfig)
-    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
-
-    @field_validator("model")
-    @classmethod
-    def _safe_model(cls, name: str) -> str:
-        return validate_name(name, "model name")
-
-
 @flow(name="speak", flow_run_name="speak[{params.model}]")
 def speak_flow(params: SpeakParams):
     """Audio to talking characters: the `predict` flow, then the `animate` flow on its curves (both cached). An
@@ -228,34 +174,6 @@ def speak_flow(params: SpeakParams):
         mapping=params.mapping, config=params.config, out=params.out))
     return {**animated, "audio_files": predicted["files"], "audio_rejected": predicted["rejected"],
             "rejects": predicted["rejects"]}
-
-
-class PreviewParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    utterance_id: str = Field(..., description="The utterance, '<speaker>/<name>'.")
-    character: Path = Field(default_factory=demo_rig_path, description="Character file or folder.")
-    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
-    sources: list[str] = Field(["procedural", "tracked", "predicted", "ground_truth"],
-                               description="Curve sources side by side, each `source` or `source:variant`; sources "
-                                           "the utterance lacks are left out (at least one must exist).")
-    size: int = Field(360, ge=64, le=2048, description="Panel size in pixels.")
-    out: Path | None = Field(None, description="MP4 file; none: <store>/animations/<character>/.../<name>.preview.mp4")
-    mode: Literal["blendshape", "bones", "both"] = Field(
-        "blendshape", description="blendshape: the character's shapes; bones: its SSDR bones blended by the curves "
-                                  "(what the bone exports play); both: each source's blendshape and bone panels side "
-                                  "by side.")
-    bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve (modes bones and both).")
-    meshes: list[str] = Field([], description="Meshes of a .glb/.gltf character to drive (mesh names); none: every "
-                                              "mesh whose morph targets match.")
-    closure_rule: bool = Field(True, description="Apply the lip rules (visemeflow.articulation) as the exports do: "
-                                                 "lips close at b/p/m and touch the teeth at f/v, bounded opening.")
-
-    @field_validator("utterance_id")
-    @classmethod
-    def _valid_id(cls, utterance_id: str) -> str:
-        return normalize_utterance_id(utterance_id)
 
 
 def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: str) -> str:

@@ -10,54 +10,21 @@ reject of stage `import_curves` (discovery rejects too) naming the take and the 
 from __future__ import annotations
 
 from dataclasses import asdict
-from pathlib import Path
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 from prefect.futures import as_completed
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from visemeflow.flows.params import DEFAULT_STORE, ImportCurvesParams  # noqa: F401 (re-exported)
 from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.flows.common import finished, replace_stage_rejects
-from visemeflow.ingest.captured import CaptureConfig, discover_takes
+from visemeflow.ingest.captured import discover_takes
 from visemeflow.tasks.progress import Progress
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.import_curves import SOURCE, STAGE, ingested_rows, take_task_for
 
-# as flows.params.DEFAULT_STORE; not imported from there, which loads every stage's config
-DEFAULT_STORE = Path("visemeflow-out/store")
-
-
-class ImportCurvesParams(BaseModel):
-    """Where the takes are, where the store is, and how captured channels become curves."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    takes: Path = Field(..., description="Manifest CSV of takes (utterance_id,audio,capture,format,channels,names,"
-                                         "fps,language,split), a folder holding takes.csv, or a folder "
-                                         "<speaker>/<name>.wav + <name>.livelink.csv|.capture.csv|.capture.npy.")
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    n_shards: int = Field(8, ge=1, le=4096, description="Shards of the utterances table the rows go to (as ingest).")
-    channel_table: Path | None = Field(None, description="Channel -> ARKit table (CSV arkit,expression[,status] or "
-                                                         "channel,arkit,weight, or .xlsx) for takes that give none.")
-    names: Path | None = Field(None, description="Channel names (.npy of strings or text) for NPY takes that give none.")
-    config: CaptureConfig = Field(default_factory=CaptureConfig)
-
-    @field_validator("takes")
-    @classmethod
-    def _exists(cls, path: Path) -> Path:
-        if not path.exists():
-            raise ValueError(f"takes {path} do not exist")
-        return path
-
-    @field_validator("channel_table", "names")
-    @classmethod
-    def _file(cls, path: Path | None) -> Path | None:
-        if path is not None and not path.is_file():
-            raise ValueError(f"{path} is not a file")
-        return path
 
 
 def _markdown(rows: list[dict], summary: dict) -> str:

@@ -2,24 +2,17 @@
 
 
 from prefect import flow, get_run_logger
-from pydantic import Field
 
+from visemeflow.flows.params import LandmarksParams  # noqa: F401 (re-exported)
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import collect_utterance_results, finished, replace_stage_rejects
-from visemeflow.flows.params import RunnerField, RunnerConfig, StoreParams
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.landmarks import STAGE, LandmarksError, landmarks_utterance, provenance
-from visemeflow.tracking.facemesh import FaceMeshConfig
 
 LANDMARK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]
-
-
-class LandmarksParams(StoreParams):
-    config: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
-    runner: RunnerConfig = RunnerField
 
 
 def utterances_needing_landmarks(store: Store) -> list[dict]:

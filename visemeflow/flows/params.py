@@ -3,21 +3,34 @@
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from visemeflow.animation.package import AnimateConfig
-from visemeflow.ingest import IngestConfig
+from visemeflow.animation.config import AnimateConfig
+from visemeflow.learning.default_model import DEFAULT_MODEL
+from visemeflow.timebase import DEFAULT_FPS
+from visemeflow.ingest.config import CaptureConfig, IngestConfig
 from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.device import DeviceWord, Precision
-from visemeflow.learning.train import TrainConfig
-from visemeflow.procedural import ProceduralConfig
-from visemeflow.procedural.recognised import RECOGNISED_MODEL
-from visemeflow.schemas import normalize_utterance_id, validate_name
-from visemeflow.synth.take import SynthConfig
-from visemeflow.tracking.facemesh import FaceMeshConfig
-from visemeflow.tracking.solver import TrackingConfig
+from visemeflow.learning.config import TrainConfig
+from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
+from visemeflow.schemas.ids import normalize_utterance_id, validate_name
+from visemeflow.schemas.sources import CurveSource
+from visemeflow.synth.config import SynthConfig
+from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
+# the curve sources `animate` puts on characters
+SOURCES = (CurveSource.TRACKED, CurveSource.PROCEDURAL, CurveSource.GROUND_TRUTH, CurveSource.PREDICTED)
+
+
+def _demo_character() -> Path:
+    from visemeflow.rig import demo_rig_path   # on first use: the rig package reads glTF (pygltflib)
+
+    return demo_rig_path()
+
+
+def _demo_characters() -> list[Path]:
+    return [_demo_character()]
 
 
 def _existing(corpus: Path) -> Path:
@@ -48,6 +61,14 @@ class RunnerConfig(BaseModel):
         None, description="Scheduler of an existing Dask cluster (tcp://host:8786); default: a local cluster.",
     )
 
+
+    @model_validator(mode="before")
+    @classmethod
+    def _address_means_dask(cls, data):
+        # a scheduler's address names a Dask cluster: `--dask-address` alone is enough
+        if isinstance(data, dict) and data.get("dask_address"):
+            data = {**data, "kind": "dask"}
+        return data
 
 RunnerField = Field(default_factory=RunnerConfig, description="Where the per-utterance or per-model tasks run.")
 
@@ -192,3 +213,135 @@ class EvaluateParams(BaseModel):
     @classmethod
     def _safe_models(cls, models: list[str]) -> list[str]:
         return [validate_name(m, "model name") for m in models]
+
+
+class AnimateParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    characters: list[Path] = Field(default_factory=_demo_characters, min_length=1,
+                                   description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
+                                               "folders; default: the shipped ICT demo character.")
+    source: str = Field("tracked", description=f"Curves to animate: {', '.join(SOURCES)}.")
+    variant: str | None = Field(None, description="Variant of those curves (a model's name for predicted); may be "
+                                                  "omitted when only one exists.")
+    utterances: list[str] | None = Field(None, description="Utterance ids; none: every utterance with such curves.")
+    audio: dict[str, Path] = Field(default_factory=dict, description="Audio per utterance id where the utterances "
+                                                                     "table has none (predictions).")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    config: AnimateConfig = Field(default_factory=AnimateConfig)
+    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
+    n_shards: int = Field(8, ge=1, le=4096, description="Shards of the rejects table.")
+
+    @field_validator("source")
+    @classmethod
+    def _safe_source(cls, source: str) -> str:
+        return validate_name(source, "curve source")
+
+    @field_validator("utterances")
+    @classmethod
+    def _valid_ids(cls, ids: list[str] | None) -> list[str] | None:
+        return None if ids is None else [normalize_utterance_id(u) for u in ids]
+
+
+class SpeakParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    model: str = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
+                                              "with the package; `phones`: no model, phones recognised in the audio "
+                                              "(English).")
+    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
+    characters: list[Path] = Field(default_factory=_demo_characters, min_length=1,
+                                   description="Character files or folders; default: the shipped ICT demo character.")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
+    config: AnimateConfig = Field(default_factory=AnimateConfig)
+    out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
+
+    @field_validator("model")
+    @classmethod
+    def _safe_model(cls, name: str) -> str:
+        return validate_name(name, "model name")
+
+
+class PreviewParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    utterance_id: str = Field(..., description="The utterance, '<speaker>/<name>'.")
+    character: Path = Field(default_factory=_demo_character, description="Character file or folder.")
+    mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
+    sources: list[str] = Field(["procedural", "tracked", "predicted", "ground_truth"],
+                               description="Curve sources side by side, each `source` or `source:variant`; sources "
+                                           "the utterance lacks are left out (at least one must exist).")
+    size: int = Field(360, ge=64, le=2048, description="Panel size in pixels.")
+    out: Path | None = Field(None, description="MP4 file; none: <store>/animations/<character>/.../<name>.preview.mp4")
+    mode: Literal["blendshape", "bones", "both"] = Field(
+        "blendshape", description="blendshape: the character's shapes; bones: its SSDR bones blended by the curves "
+                                  "(what the bone exports play); both: each source's blendshape and bone panels side "
+                                  "by side.")
+    bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve (modes bones and both).")
+    meshes: list[str] = Field([], description="Meshes of a .glb/.gltf character to drive (mesh names); none: every "
+                                              "mesh whose morph targets match.")
+    closure_rule: bool = Field(True, description="Apply the lip rules (visemeflow.articulation) as the exports do: "
+                                                 "lips close at b/p/m and touch the teeth at f/v, bounded opening.")
+
+    @field_validator("utterance_id")
+    @classmethod
+    def _valid_id(cls, utterance_id: str) -> str:
+        return normalize_utterance_id(utterance_id)
+
+
+class PredictParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    model: str = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
+                                                   "with the package (installed into the store on first use); "
+                                                   "`phones`: no model, phones recognised in the audio (English).")
+    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
+    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the curves.")
+    out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
+    device: DeviceWord = Field("auto", description="Where the model runs: auto (a CUDA GPU when there is one), cpu, "
+                                                   "cuda or cuda:N (float32; not part of the cache key).")
+
+    @field_validator("model")
+    @classmethod
+    def _safe_model(cls, name: str) -> str:
+        return validate_name(name, "model name")
+
+
+class ImportCurvesParams(BaseModel):
+    """Where the takes are, where the store is, and how captured channels become curves."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    takes: Path = Field(..., description="Manifest CSV of takes (utterance_id,audio,capture,format,channels,names,"
+                                         "fps,language,split), a folder holding takes.csv, or a folder "
+                                         "<speaker>/<name>.wav + <name>.livelink.csv|.capture.csv|.capture.npy.")
+    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    n_shards: int = Field(8, ge=1, le=4096, description="Shards of the utterances table the rows go to (as ingest).")
+    channel_table: Path | None = Field(None, description="Channel -> ARKit table (CSV arkit,expression[,status] or "
+                                                         "channel,arkit,weight, or .xlsx) for takes that give none.")
+    names: Path | None = Field(None, description="Channel names (.npy of strings or text) for NPY takes that give none.")
+    config: CaptureConfig = Field(default_factory=CaptureConfig)
+
+    @field_validator("takes")
+    @classmethod
+    def _exists(cls, path: Path) -> Path:
+        if not path.exists():
+            raise ValueError(f"takes {path} do not exist")
+        return path
+
+    @field_validator("channel_table", "names")
+    @classmethod
+    def _file(cls, path: Path | None) -> Path | None:
+        if path is not None and not path.is_file():
+            raise ValueError(f"{path} is not a file")
+        return path
+
+
+class LandmarksParams(StoreParams):
+    config: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
+    runner: RunnerConfig = RunnerField

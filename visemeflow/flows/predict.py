@@ -28,8 +28,8 @@ from pathlib import Path
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 from prefect.states import Completed, Failed, State
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from visemeflow.flows.params import DEFAULT_STORE, PredictParams  # noqa: F401 (re-exported)
 from visemeflow.atomic import atomic_write_text
 from visemeflow.animation.export import CurveTrack, write_export
 from visemeflow.dashboards.records import record_predicted_audio
@@ -37,15 +37,14 @@ from visemeflow.flows.common import replace_stage_rejects
 from visemeflow.flows.errors import StageFailed
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError
-from visemeflow.learning.default_model import DEFAULT_MODEL, is_shipped, shipped_model_path
-from visemeflow.learning.device import DeviceWord, check_device_here
+from visemeflow.learning.default_model import is_shipped, shipped_model_path
+from visemeflow.learning.device import check_device_here
 from visemeflow.schemas import C, curves_array
-from visemeflow.schemas.ids import InvalidIdError, make_utterance_id, validate_name
+from visemeflow.schemas.ids import InvalidIdError, make_utterance_id
 from visemeflow.storage import Store
 from visemeflow.tasks.models import is_trained, model_hash
 from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.predict import SOURCE, prediction_provenance, prediction_task_for
-from visemeflow.timebase import DEFAULT_FPS
 
 STAGE = "predict"
 PHONES_ENGLISH_ONLY = ("--model phones: the phone recogniser (pocketsphinx) knows English only: speech in another "
@@ -53,27 +52,6 @@ PHONES_ENGLISH_ONLY = ("--model phones: the phone recogniser (pocketsphinx) know
                        "default or a model trained on that language); predict has no language option")
 """The warning of every `phones` run: `predict` and `speak` take no language, so the user is told once per run."""
 EXPORT_FORMATS = ("csv", "json")
-# as flows.params.DEFAULT_STORE; not imported from there, which loads every stage's config (a second per `predict`)
-DEFAULT_STORE = Path("visemeflow-out/store")
-
-
-class PredictParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    model: str = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
-                                                   "with the package (installed into the store on first use); "
-                                                   "`phones`: no model, phones recognised in the audio (English).")
-    audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
-    fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the curves.")
-    out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
-    device: DeviceWord = Field("auto", description="Where the model runs: auto (a CUDA GPU when there is one), cpu, "
-                                                   "cuda or cuda:N (float32; not part of the cache key).")
-
-    @field_validator("model")
-    @classmethod
-    def _safe_model(cls, name: str) -> str:
-        return validate_name(name, "model name")
 
 
 def ensure_model(store: Store, model: str) -> None:

@@ -1,17 +1,15 @@
-"""Corpus discovery and per-utterance ingestion: alignment + audio to `utterances` and `phones` rows."""
+"""Corpus discovery and per-utterance ingestion: alignment + audio to `utterances` and `phones` rows.
 
-from visemeflow.ingest.config import IngestConfig
-from visemeflow.ingest.corpus import CorpusEntry, CorpusError, DiscoveryReject, check_corpus, discover_corpus
-from visemeflow.ingest.utterance import IngestedUtterance, IngestError, ingest_utterance
+The names below are imported from their modules on first use, so `visemeflow.ingest.config` (read by the CLI and
+the flows' parameters) imports without the corpus reader and its pandas."""
 
-__all__ = [
-    "CorpusEntry",
-    "CorpusError",
-    "DiscoveryReject",
-    "IngestConfig",
-    "IngestError",
-    "IngestedUtterance",
-    "check_corpus",
-    "discover_corpus",
-    "ingest_utterance",
-]
+from visemeflow.lazy import lazy_exports
+
+_EXPORTS = {
+    "IngestConfig": ".config",
+    "CorpusEntry": ".corpus", "CorpusError": ".corpus", "DiscoveryReject": ".corpus", "check_corpus": ".corpus",
+    "discover_corpus": ".corpus",
+    "IngestedUtterance": ".utterance", "IngestError": ".utterance", "ingest_utterance": ".utterance",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -44,12 +44,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.shapes.capture import ArkitToVisemes, CaptureError, VisemeFit, fit_visemes
 from visemeflow.shapes.conventions import ARKIT_52
 from visemeflow.shapes.livelink import arkit_from_livelink, is_number, parse_timecode, read_livelink_csv
 from visemeflow.hashing import files_hash
+from visemeflow.ingest.config import CaptureConfig
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS, is_video_file
 from visemeflow.ingest.channels import (  # the readers of a take's table, re-exported (__all__)
     _canonical_arkit,
@@ -102,23 +102,6 @@ INDEX_COLUMNS = frozenset({"frame", "time", "time_s", "timestamp", "timecode"})
 TIMECODE_RATES = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 72.0, 90.0, 100.0, 120.0, 240.0)
 VARYING = 1e-3
 """A channel whose values span more than this varies (unused varying channels are reported)."""
-class CaptureConfig(BaseModel):
-    """How captured takes become curves."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    variant: str = Field("arkit-nnls", pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$",
-                         description="Variant name of the `captured` curves written.")
-    fps: float | None = Field(None, gt=0, le=1000, description="Capture frame rate of takes whose file has no clock "
-                                                               "(NPY, CSV without a time column), unless the manifest "
-                                                               "gives one; Live Link takes read theirs from timecodes.")
-    max_drift_frames_per_s: float = Field(
-        1.0, ge=0, description="Largest allowed difference between the capture's frame count and the audio's "
-                               "duration x fps, in frames per second of audio (at least one frame).")
-    val_fraction: float = Field(0.1, ge=0, le=1, description="Share of takes (by a stable hash of the id) put in "
-                                                             "the 'val' split when the manifest gives none.")
-
-
 # ---- take readers ----------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CapturedTake:

@@ -47,3 +47,20 @@ class IngestConfig(BaseModel):
     grid_time_unit_s: float = Field(
         1.0 / 25000.0, gt=0, description="Time unit of word alignment files (`start end word`); GRID uses 1/25000 s."
     )
+
+
+class CaptureConfig(BaseModel):
+    """How captured takes become curves."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    variant: str = Field("arkit-nnls", pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$",
+                         description="Variant name of the `captured` curves written.")
+    fps: float | None = Field(None, gt=0, le=1000, description="Capture frame rate of takes whose file has no clock "
+                                                               "(NPY, CSV without a time column), unless the manifest "
+                                                               "gives one; Live Link takes read theirs from timecodes.")
+    max_drift_frames_per_s: float = Field(
+        1.0, ge=0, description="Largest allowed difference between the capture's frame count and the audio's "
+                               "duration x fps, in frames per second of audio (at least one frame).")
+    val_fraction: float = Field(0.1, ge=0, le=1, description="Share of takes (by a stable hash of the id) put in "
+                                                             "the 'val' split when the manifest gives none.")

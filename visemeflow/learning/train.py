@@ -81,11 +81,11 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, ValidationError, model_serializer
+from pydantic import ValidationError
 from torch import Tensor, nn
 
 from visemeflow.atomic import atomic_write
@@ -105,13 +105,13 @@ from visemeflow.learning.features import (
     build_feature_extractor,
     resample_audio,
 )
+from visemeflow.learning.config import TrainConfig
 from visemeflow.learning.model import AudioCurveModel, ClosurePeaks, CurveModel, MeanCurveBaseline, l1_loss
 from visemeflow.learning.presets import (
     Preset,
     augment,
     build_model,
     build_optimizer,
-    get_preset,
 )
 from visemeflow.visemes import N_VISEMES
 
@@ -182,58 +182,6 @@ class Example:
     # (T,) int: the viseme index (visemeflow.visemes.VISEME_INDEX) of the phone at each curve frame, -1 where there
     # is none (silence, no alignment); only read by the auxiliary viseme loss (TrainConfig.viseme_loss_weight)
     visemes: np.ndarray | None = None
-
-
-class TrainConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    preset: str = "fbank-blstm"
-    epochs: int = Field(10, ge=0)
-    seed: int = 0
-    d_model: int | None = Field(None, ge=2)  # override the preset's width (small models)
-    lr: float | None = Field(None, gt=0)  # override the preset's learning rate
-    max_steps_per_epoch: int | None = Field(None, ge=1)
-    wav2vec2_model: str | None = None  # local path or hub id, wav2vec2 presets only
-    # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
-    whisper_source: str | None = None
-    # whisper presets: which encoder outputs feed the decoder, "last" (the preset's) or "weighted" (a learned
-    # softmax-weighted sum of every layer); None: the preset's own
-    whisper_layers: Literal["last", "weighted"] | None = None
-    # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
-    # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
-    train_augment: bool = False
-    train_augment_probability: float = Field(0.5, ge=0, le=1)
-    # utterances per optimisation step: 1 is the paper's recipe; more pads length-bucketed batches (module docstring)
-    batch_size: int = Field(1, ge=1)
-    # batch_size > 1: a length bucket holds this many batches (1: batches as drawn, sorted only inside)
-    bucket_batches: int = Field(8, ge=1)
-    # auxiliary viseme classification (0: off, the paper's recipe): a linear layer on the decoder's features predicts
-    # each frame's viseme (Example.visemes), cross-entropy weighted by this, added to the curve loss; the layer
-    # serves training only (model files hold the curve model alone). Curve heads (CurveModel) only.
-    viseme_loss_weight: float = Field(0.0, ge=0)
-    # inference only: narrow the MBP channel to its peaks within this half window, s (0: off, the paper's model;
-    # visemeflow.learning.model.ClosurePeaks); a training run never applies it, a loaded model does in eval mode
-    mbp_peaks_half_window_s: float = Field(0.0, ge=0, le=0.5)
-    mbp_peaks_power: float = Field(16.0, gt=0, le=64)
-
-    @model_serializer(mode="wrap")
-    def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        # Fields added after models were trained are left out at their defaults, so a config means the same JSON
-        # (checkpoint resume keys, model names hashed from it, Prefect cache keys) as before they existed.
-        data = handler(self)
-        for name, default in _ADDED_DEFAULTS.items():
-            if name in data and data[name] == default:
-                del data[name]
-        return data
-
-    def resolved_preset(self) -> Preset:
-        p = get_preset(self.preset)
-        return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
-
-
-_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
-                                   "viseme_loss_weight": 0.0, "whisper_layers": None,
-                                   "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
 
 
 @dataclass

@@ -14,6 +14,10 @@ from pydantic import (
 from visemeflow.visemes import VISEMES
 
 
+# The model name of curves from phones recognised in the audio (`procedural.recognised`): reserved, no trained
+# model may take it.
+RECOGNISED_MODEL = "phones"
+
 class ProceduralConfig(BaseModel):
     """Every timing, amplitude and viseme class the procedural rules use; times in seconds."""
 

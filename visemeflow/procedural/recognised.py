@@ -13,11 +13,10 @@ import numpy as np
 
 from visemeflow.hashing import stable_hash
 from visemeflow.phonetics.recognise import PhoneRecogniser, shared_recogniser, viseme_segments
-from visemeflow.procedural.config import ProceduralConfig
+from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
 from visemeflow.procedural.jali import DEFAULT_CONFIG, generate_procedural_curves
 from visemeflow.visemes import N_VISEMES
 
-RECOGNISED_MODEL = "phones"
 
 
 def recognised_curves(audio: np.ndarray, sample_rate: int, fps: float, n_frames: int | None = None, *,

@@ -1,58 +1,36 @@
-"""Table schemas (the only place column names are written) and identifier rules."""
+"""Table schemas (the only place column names are written) and identifier rules.
 
-from visemeflow.schemas.curves import Curves, fps_of_table
-from visemeflow.schemas.ids import (
-    InvalidIdError,
-    encode_path_part,
-    id_path_parts,
-    make_utterance_id,
-    normalize_utterance_id,
-    shard_of,
-    split_utterance_id,
-    utterance_id_from_path_parts,
-    validate_name,
-    validate_utterance_id,
-)
-from visemeflow.schemas.tables import (
-    CURVES,
-    LOSS_TERMS,
-    METRICS,
-    PHONES,
-    REJECTS,
-    TABLE_SCHEMAS,
-    TRACKING_FRAMES,
-    UTTERANCES,
-    C,
-    CurveSource,
-    curves_array,
-    curves_table,
-    table_from_rows,
-)
+The names below are imported from their modules on first use, so the identifier rules (`schemas.ids`) and the curve
+sources (`schemas.sources`) import without pyarrow."""
 
-__all__ = [
-    "C",
-    "CURVES",
-    "CurveSource",
-    "Curves",
-    "LOSS_TERMS",
-    "METRICS",
-    "PHONES",
-    "REJECTS",
-    "TABLE_SCHEMAS",
-    "TRACKING_FRAMES",
-    "UTTERANCES",
-    "InvalidIdError",
-    "curves_array",
-    "curves_table",
-    "encode_path_part",
-    "fps_of_table",
-    "id_path_parts",
-    "make_utterance_id",
-    "normalize_utterance_id",
-    "shard_of",
-    "split_utterance_id",
-    "table_from_rows",
-    "utterance_id_from_path_parts",
-    "validate_name",
-    "validate_utterance_id",
-]
+from visemeflow.lazy import lazy_exports
+
+_EXPORTS = {
+    "Curves": ".curves",
+    "fps_of_table": ".curves",
+    "InvalidIdError": ".ids",
+    "encode_path_part": ".ids",
+    "id_path_parts": ".ids",
+    "make_utterance_id": ".ids",
+    "normalize_utterance_id": ".ids",
+    "shard_of": ".ids",
+    "split_utterance_id": ".ids",
+    "utterance_id_from_path_parts": ".ids",
+    "validate_name": ".ids",
+    "validate_utterance_id": ".ids",
+    "CURVES": ".tables",
+    "LOSS_TERMS": ".tables",
+    "METRICS": ".tables",
+    "PHONES": ".tables",
+    "REJECTS": ".tables",
+    "TABLE_SCHEMAS": ".tables",
+    "TRACKING_FRAMES": ".tables",
+    "UTTERANCES": ".tables",
+    "C": ".tables",
+    "CurveSource": ".sources",
+    "curves_array": ".tables",
+    "curves_table": ".tables",
+    "table_from_rows": ".tables",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -1,11 +1,11 @@
 """pyarrow schemas of every table; the single source of column names and dtypes."""
 
 from collections.abc import Iterable, Mapping
-from enum import StrEnum
 
 import numpy as np
 import pyarrow as pa
 
+from visemeflow.schemas.sources import CURVE_SOURCES, CurveSource  # noqa: F401 (re-exported)
 from visemeflow.visemes import N_VISEMES, VISEMES
 
 
@@ -78,18 +78,6 @@ def has_alignment(row: Mapping[str, object]) -> bool:
         return row[C.ALIGNMENT_FORMAT] != NO_ALIGNMENT
     return bool(row.get(C.ALIGNMENT_PATH))
 
-
-class CurveSource(StrEnum):
-    """Where a stored curve came from (the `source` column and the store's folder): the one spelling of each."""
-
-    PROCEDURAL = "procedural"
-    TRACKED = "tracked"
-    PREDICTED = "predicted"
-    GROUND_TRUTH = "ground_truth"
-    CAPTURED = "captured"
-
-
-CURVE_SOURCES = tuple(s.value for s in CurveSource)
 
 UTTERANCES = pa.schema([
     pa.field(C.UTTERANCE_ID, pa.string(), nullable=False),

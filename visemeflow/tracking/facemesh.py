@@ -38,9 +38,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.atomic import atomic_path
+from visemeflow.tracking.config import FaceMeshConfig
 from visemeflow.tracking.landmarks import LandmarkError, LandmarkTrack, track_from_mediapipe478
 
 N_MESH = 478              # 468 face mesh + 2 x 5 iris points (refine_landmarks=True)
@@ -62,21 +62,6 @@ LIP_IDS: tuple[int, ...] = (
 )
 
 _MIN_IOU = 0.2   # boxes of one face on consecutive frames overlap at least this much
-
-
-class FaceMeshConfig(BaseModel):
-    """Settings of a FaceMesh run over one clip (part of the landmarks stage's cache key)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    refine_landmarks: bool = Field(True, description="478 points with the iris refinement; False: 468 (faster).")
-    max_faces: int = Field(4, ge=2, le=16, description="Faces followed at once when a clip shows more than one.")
-    min_detection_confidence: float = Field(0.5, ge=0, le=1)
-    min_tracking_confidence: float = Field(0.5, ge=0, le=1)
-    min_detected_share: float = Field(
-        0.5, ge=0, le=1, description="A clip whose face is found on fewer frames than this share is rejected.")
-    probe_every: int = Field(
-        10, ge=0, description="Frames between face-detector probes for a second face; 0: always run multi-face.")
 
 
 class FaceMeshError(LandmarkError):

@@ -30,14 +30,14 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.rig import VisemeRig, evaluate_rig
 from visemeflow.render.camera import Intrinsics, project
+from visemeflow.tracking.config import TrackingConfig
 from visemeflow.tracking.losses import (
     activation_loss,
     diff_loss,
@@ -50,92 +50,6 @@ from visemeflow.tracking.losses import (
 from visemeflow.visemes import N_VISEMES
 
 MOUTH = slice(48, 68)
-
-
-class TrackingConfig(BaseModel):
-    """Weights of Eq. 1 (paper defaults), guidance sets, solver schedule; ablation switches."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    w_lmk: float = Field(0.8, ge=0, description="w1, landmark loss (Eq. 2).")
-    w_rgb: float = Field(1.0, ge=0, description="w2, RGB photo loss (Eq. 3).")
-    w_sup: float = Field(800.0, ge=0, description="w3, phoneme-guided suppression (Eq. 4).")
-    w_act: float = Field(150.0, ge=0, description="w4, phoneme-guided activation (Eq. 5).")
-    w_flow: float = Field(1.0, ge=0, description="w5, optical-flow loss (Eq. 6).")
-    w_diff: float = Field(300.0, ge=0, description="w6, temporal consistency (Eq. 7).")
-    w_range: float = Field(100.0, ge=0, description="w7, value range (Eq. 8).")
-    m: int = Field(3, ge=1, le=N_VISEMES, description="A viseme outside the top m of every neighbouring frame is suppressed.")
-    n: int = Field(2, ge=1, le=N_VISEMES, description="The top n visemes of a frame are activated.")
-    guidance_radius: int = Field(1, ge=0, description="Neighbouring frames for I_sup: j-radius..j+radius.")
-    guidance: bool = Field(True, description="Phoneme guidance on; off sets w3 = w4 = 0 (paper Fig. 3-4 ablation).")
-    use_rgb: bool = Field(False, description="Include L_rgb (needs the video frames).")
-    use_flow: bool = Field(True, description="Include L_flow (needs the video frames).")
-    flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
-        "medium", description="DIS optical-flow preset of L_flow (`tracking.optical_flow.FlowConfig.preset`).")
-    flow_max_roi_px: int | None = Field(
-        256, ge=16, description="L_flow: the face region is shrunk until its longer side is at most this many pixels "
-                                "before DIS runs (`FlowConfig.max_roi_px`; None: native size). 256 instead of 480: "
-                                "1.7x the flow's frames/s on 700x700 talking heads, mouth keypoint error 2.730 -> "
-                                "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow).")
-    solver: Literal["fast", "faithful"] = Field("fast", description="Whole-utterance batch, or the paper's per-frame schedule.")
-    iterations: int = Field(250, ge=1, description="Faithful: Adam iterations per frame and pass.")
-    lr: float = Field(0.1, gt=0, description="Faithful: Adam learning rate.")
-    lr_decay: float = Field(0.9, gt=0, le=1, description="Faithful: learning-rate factor applied every 10 iterations.")
-    passes: tuple[str, ...] = Field(("forward", "backward"), description="Faithful: passes through the frames.")
-    fast_iterations: int = Field(
-        200, ge=1, description="Fast: Adam iterations over the whole utterance. 200 rather than 300 (with 50 pose "
-                               "iterations rather than 200): solver 1.9x faster, closer to the synthetic truth "
-                               "(L1 x 100 5.99 -> 5.58), GRID mouth error 1.387 -> 1.379 px, talking heads 2.733 -> "
-                               "2.741 px (bench/end_to_end.py --compare-config).")
-    fast_lr: float = Field(0.05, gt=0, description="Fast: peak Adam learning rate (cosine decay).")
-    fast_method: Literal["lm", "adam"] = Field(
-        "adam", description="Fast: Adam (the default), or Levenberg-Marquardt on the block-tridiagonal least squares "
-                            "(faster, lower objective, further from the synthetic truth: module docstring)."
-    )
-    lm_iterations: int = Field(40, ge=1, description="Fast, LM: most iterations per round (it stops on convergence).")
-    lm_pose_iterations: int = Field(20, ge=0, description="Fast, LM: most rigid-pose iterations (0 = PnP only).")
-    lm_flow_rounds: int = Field(2, ge=1, description="Fast, LM with L_flow: rounds, the correspondences refreshed at each.")
-    rgb_iterations: int = Field(20, ge=0, description="Fast with L_rgb: refinement iterations including the photo term.")
-    mouth_weight: float = Field(1.0, ge=0, description="beta_k of the 20 mouth landmarks (48-67).")
-    face_weight: float = Field(0.3, ge=0, description="beta_k of brows, eyes and nose (17-47).")
-    jaw_weight: float = Field(0.0, ge=0, description="beta_k of the jaw contour (0-16): 2D silhouette points.")
-    pose_iterations: int = Field(50, ge=0, description="Rigid pose initialisation iterations (Adam; 200 before).")
-    box: Literal["projected", "soft"] = Field(
-        "projected",
-        description=(
-            "How weights are kept in [0, 1]: 'projected' clamps after every optimiser step (L_range is then zero); "
-            "'soft' is the paper's L_range penalty and a truncation at the end. With the paper's weights the soft "
-            "form is unbounded below once two activated visemes exceed 1 (L_act gives each -150/2 x^2, L_range only "
-            "+100/2 (x-1)^2), so only the landmarks hold the weights back."
-        ),
-    )
-    pose_lr_factor: float = Field(
-        0.1, gt=0, description="Learning rate of the head pose (rad, cm) relative to the viseme weights' rate."
-    )
-    reference_face_px: float = Field(
-        1000.0, gt=0, description="Face height (brow to chin) at which pixel residuals are measured (see module doc)."
-    )
-
-    def effective(self) -> "TrackingConfig":
-        """The config with the ablation switches applied to the weights."""
-        updates = {}
-        if not self.guidance:
-            updates.update(w_sup=0.0, w_act=0.0)
-        if not self.use_rgb:
-            updates["w_rgb"] = 0.0
-        if not self.use_flow:
-            updates["w_flow"] = 0.0
-        return self.model_copy(update=updates)
-
-    @property
-    def variant(self) -> str:
-        """Name of the curves this configuration produces, e.g. `guided-fast`, `unguided-faithful-rgb`."""
-        parts = ["guided" if self.guidance else "unguided", self.solver]
-        if self.use_rgb:
-            parts.append("rgb")
-        if not self.use_flow:
-            parts.append("noflow")
-        return "-".join(parts)
 
 
 @dataclass

@@ -13,7 +13,25 @@ os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 import typer  # noqa: E402
 
-from visemeflow.timebase import DEFAULT_FPS  # noqa: E402
+from visemeflow.cli.options import Opt, stage_command  # noqa: E402
+from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong argument still fails in under a second)
+    DEFAULT_STORE,
+    AnimateParams,
+    EvaluateParams,
+    ImportCurvesParams,
+    IngestParams,
+    LandmarksParams,
+    PipelineParams,
+    PredictParams,
+    PreviewParams,
+    ProceduralParams,
+    RerunParams,
+    SpeakParams,
+    SweepParams,
+    SynthParams,
+    TrackParams,
+    TrainParams,
+)
 
 app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True)
 curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True)
@@ -75,7 +93,7 @@ def _must_exist(what: str, kind: str = "any"):
     return check
 
 
-_corpus_exists = _must_exist("corpus (a folder or a manifest CSV)")
+_corpus_exists = _must_exist("corpus (a folder, a manifest CSV or one audio or video file)")
 
 
 def _corpus(ctx: typer.Context, value):
@@ -105,22 +123,8 @@ def _known_model(store: Path, model: str) -> None:
         _fail(f"no model {model!r} in {s.root} ({s.model_path(model)} missing); train one with `visemeflow train`")
 
 
+
 StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.", callback=_usable_store)]
-ShardsOpt = Annotated[int, typer.Option("--shards", help="Tasks per cheap stage (utterances are hashed into shards).")]
-DEFAULT_STORE = Path("visemeflow-out/store")
-RunnerOpt = Annotated[str, typer.Option("--runner", help="threads (Prefect's thread pool) or dask (prefect-dask).")]
-DaskWorkersOpt = Annotated[int, typer.Option("--dask-workers", min=1, help="Local Dask cluster: worker processes, one thread each.")]
-DaskAddressOpt = Annotated[str | None, typer.Option("--dask-address", help="Existing Dask scheduler (tcp://host:8786); implies --runner dask.")]
-ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", min=1, help="--runner threads: tasks at once (default: the CPUs).")]
-DeviceOpt = Annotated[str, typer.Option("--device", help="Where models run: auto (a CUDA GPU when there is one, else the "
-                                                         "CPU), cpu, cuda or cuda:N.")]
-PrecisionOpt = Annotated[str, typer.Option("--precision", help="Training precision on CUDA: auto (bf16 where the GPU has "
-                                                               "it), fp32, bf16 or fp16; the CPU trains in float32.")]
-BatchSizeOpt = Annotated[int, typer.Option("--batch-size", min=1, help="Utterances per optimisation step: 1 is the "
-                                                                        "paper's recipe; more pads length-bucketed batches.")]
-EncoderCacheOpt = Annotated[Optional[Path], typer.Option(
-    "--encoder-cache", help="wav2vec2 presets: folder keeping the frozen CNN encoder's outputs between runs "
-                            "(default: kept in memory for the run).")]
 
 
 def _device(device: str, precision: str | None = None) -> str:
@@ -131,65 +135,31 @@ def _device(device: str, precision: str | None = None) -> str:
     try:
         check_device_here(device, precision)
     except DeviceError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+        _fail(str(exc))
     return device.strip().lower()
 
 
-def _runner(runner: str, dask_workers: int, dask_address: str | None, threads: int | None = None):
-    from visemeflow.flows.params import RunnerConfig
-
-    if runner not in ("threads", "dask"):
-        raise typer.BadParameter(f"--runner must be threads or dask, not {runner!r}")
-    return RunnerConfig(kind="dask" if dask_address else runner, threads=threads, dask_workers=dask_workers,
-                        dask_address=dask_address)
-
-
-def _ingest_config(inventory: str, phone_tier: list[str] | None, tolerance: float, fps: float):
-    from visemeflow.ingest import IngestConfig
-
-    kwargs = {"inventory": inventory, "alignment_tolerance_s": tolerance, "fps": fps}
-    if phone_tier:
-        kwargs["phone_tiers"] = tuple(phone_tier)
-    return IngestConfig(**kwargs)
+def _print_stage_rejects(rejects: list[dict], store: Path, stage: str) -> None:
+    """A stage's rejects of this run, one line each on stderr, and exit 1: the command did not do all it was asked."""
+    for r in rejects:   # each reason starts with the file it names
+        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
+    if rejects:
+        typer.echo(f"see `visemeflow rejects --store {store} --stage {stage}`", err=True)
+        raise typer.Exit(1)
 
 
-CharactersOpt = Annotated[Optional[list[Path]], typer.Option(
-    "--character", help="Character: .glb/.gltf with morph targets, .npz, or a folder of meshes (repeat for several); "
-                        "default: the shipped ICT demo character.", callback=_character)]
-FormatsOpt = Annotated[str, typer.Option(
-    "--format", help="Comma-separated: glb, usd, livelink, json, curves-csv, curves-json; with --mode bones also "
-                     "pose-csv, pose-json.")]
-ModeOpt = Annotated[str, typer.Option(
-    "--mode", help="blendshape (the character's shapes) or bones (SSDR bones from its visemes: glb and usd become "
-                   "skinned bone animation).")]
-BonesOpt = Annotated[int, typer.Option("--bones", min=1, help="Bone count of the SSDR solve (--mode bones).")]
-ClosureOpt = Annotated[bool, typer.Option(
-    "--closure-rule/--no-closure-rule", help="Lips close at b/p/m and touch the teeth at f/v whatever else is active, "
-                                             "and no blend opens wider than AHH (visemeflow.articulation).")]
-MappingOpt = Annotated[Optional[Path], typer.Option(
-    "--mapping", help="CSV viseme,shape,weight for a character whose shape names follow no known convention.",
-    callback=_file)]
-MeshOpt = Annotated[Optional[list[str]], typer.Option(
-    "--mesh", help="A mesh of a .glb/.gltf character to drive (repeat for several: head, teeth, eyes ...); default: "
-                   "every mesh whose morph targets match, printed with the run.")]
-ConventionOpt = Annotated[Optional[str], typer.Option(
-    "--convention", help="arkit52, oculus15 or visemeflow16; default: detected from the shape names.")]
-
-
-def _animate_config(formats: str, fps: float | None, convention: str | None, preview: bool,
-                    mode: str = "blendshape", bones: int = 32, closure_rule: bool = True,
-                    meshes: list[str] | None = None):
-    import pydantic
-
-    from visemeflow.animation.package import AnimateConfig
-
-    try:
-        return AnimateConfig(formats=formats, fps=fps, convention=convention, preview=preview, mode=mode, bones=bones,
-                             closure_rule=closure_rule, meshes=tuple(meshes or ()))
-    except pydantic.ValidationError as exc:
-        typer.echo(f"error: {exc.errors()[0]['msg']}", err=True)
-        raise typer.Exit(2) from None
+# Options several stage commands share (visemeflow.cli.options: type, default and help from the params models)
+STORE = Opt("store", callback=_usable_store)
+SHARDS = Opt("n_shards", "--shards")
+RUNNER = (Opt("runner.kind", "--runner"), Opt("runner.dask_workers", extra={"min": 1}), Opt("runner.dask_address"),
+          Opt("runner.threads", extra={"min": 1}))
+CHARACTERS = Opt("characters", "--character", repeat=True, callback=_character)
+ANIMATE_OPTIONS = (Opt("config.formats", "--format"), Opt("config.mode"), Opt("config.bones"),
+                   Opt("config.closure_rule"), Opt("config.meshes", "--mesh", repeat=True))
+TRAIN_AUGMENT = Opt(None, "--train-augment", type=float, default=0.0, extra={"min": 0.0, "max": 1.0},
+                    help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = off).",
+                    into=lambda share: {"config.train_augment": share > 0,
+                                        "config.train_augment_probability": share or 0.5})
 
 
 def _check_meshes(characters: list[Path] | None, meshes: list[str] | None) -> None:
@@ -250,170 +220,104 @@ def _print_summary(title: str, summary: dict) -> None:
     typer.echo(f"{title}: " + ", ".join(p for p in parts if p is not None))
 
 
-@app.command()
-def ingest(
-    corpus: Annotated[Path, typer.Argument(help="Corpus folder (<speaker>/<name>.wav or video + .TextGrid/.xra/.lab/.align or an .mlf entry; a video may have none) or manifest CSV.", callback=_corpus)],
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    inventory: Annotated[str, typer.Option(help="auto, arpabet, ipa, xsampa or pinyin.")] = "auto",
-    phone_tier: Annotated[Optional[list[str]], typer.Option(help="Phone tier name (repeatable; default phones, phone, phons, phonemes, MAU, PhonAlign).")] = None,
-    tolerance: Annotated[float, typer.Option(help="Allowed alignment/audio length difference, s.")] = 0.1,
-    fps: Annotated[float, typer.Option(help="Curve frame rate for audio-only utterances.")] = DEFAULT_FPS,
-) -> None:
+@stage_command(app, IngestParams, [
+    Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("config.inventory"),
+    Opt("config.phone_tiers", "--phone-tier", repeat=True), Opt("config.alignment_tolerance_s", "--tolerance"),
+    Opt("config.fps"),
+])
+def ingest(params: IngestParams) -> None:
     """Read alignments and audio into the `utterances` and `phones` tables."""
     from visemeflow.flows.ingest import ingest_flow
-    from visemeflow.flows.params import IngestParams
 
-    params = IngestParams(corpus=corpus, store=store, n_shards=shards,
-                          config=_ingest_config(inventory, phone_tier, tolerance, fps))
     _print_summary("ingest", ingest_flow(params))
-    _print_rejects_hint(store)
+    _print_rejects_hint(params.store)
 
 
-@app.command()
-def procedural(
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    fps: Annotated[Optional[float], typer.Option(help="Curve frame rate; default: each utterance's own.")] = None,
-    variant: Annotated[Optional[str], typer.Option(help="Name of this curve variant.")] = None,
-) -> None:
+
+@stage_command(app, ProceduralParams, [STORE, SHARDS, Opt("config.fps"), Opt("variant")])
+def procedural(params: ProceduralParams) -> None:
     """Generate JALI-like procedural viseme curves for every ingested utterance."""
-    from visemeflow.flows.params import ProceduralParams
     from visemeflow.flows.procedural import procedural_flow
-    from visemeflow.procedural import ProceduralConfig
 
-    params = ProceduralParams(store=store, n_shards=shards, config=ProceduralConfig(fps=fps), variant=variant)
     _print_summary("procedural", procedural_flow(params))
 
 
-@app.command()
-def track(
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    solver: Annotated[str, typer.Option(help="fast (whole utterance at once) or faithful (the paper's per-frame schedule).")] = "fast",
-    guidance: Annotated[bool, typer.Option(help="Phoneme guidance (L_sup, L_act).")] = True,
-    rgb: Annotated[bool, typer.Option(help="Include the photo loss L_rgb (slower).")] = False,
-    flow: Annotated[bool, typer.Option(help="Include the optical-flow loss L_flow.")] = True,
-    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig; default: the ICT demo rig.", callback=_path)] = None,
-    runner: RunnerOpt = "threads",
-    dask_workers: DaskWorkersOpt = 2,
-    dask_address: DaskAddressOpt = None,
-    threads: ThreadsOpt = None,
-) -> None:
+
+@stage_command(app, TrackParams, [
+    STORE, SHARDS, Opt("config.solver"), Opt("config.guidance"), Opt("config.use_rgb", "--rgb"),
+    Opt("config.use_flow", "--flow"), Opt("rig", callback=_path), *RUNNER,
+])
+def track(params: TrackParams) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
-    from visemeflow.flows.params import TrackParams
-    from visemeflow.flows.track import track_flow
     from visemeflow.flows.runners import run_on_runner
-    from visemeflow.tracking.solver import TrackingConfig
+    from visemeflow.flows.track import track_flow
 
-    config = TrackingConfig(solver=solver, guidance=guidance, use_rgb=rgb, use_flow=flow)
-    params = TrackParams(store=store, n_shards=shards, config=config, rig=rig,
-                         runner=_runner(runner, dask_workers, dask_address, threads))
     _print_summary("track", run_on_runner(track_flow, params))
-    _print_rejects_hint(store)
+    _print_rejects_hint(params.store)
 
 
-@app.command()
-def landmarks(
-    video: Annotated[Optional[Path], typer.Argument(
-        help="One video: detect its landmarks into --out. Without it: every utterance of the store with a video "
-             "and no landmark file.", callback=_file)] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", help="CSV to write for VIDEO (the .mediapipe478.csv layout).")] = None,
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    refine: Annotated[bool, typer.Option(help="478 points with the iris refinement (off: 468, faster).")] = True,
-    max_faces: Annotated[int, typer.Option(help="Faces followed at once when a clip shows several.")] = 4,
-    min_face_share: Annotated[float, typer.Option(help="Reject a clip whose face is on fewer frames than this share.")] = 0.5,
-    runner: RunnerOpt = "threads",
-    dask_workers: DaskWorkersOpt = 2,
-    dask_address: DaskAddressOpt = None,
-    threads: ThreadsOpt = None,
-) -> None:
+
+@stage_command(app, LandmarksParams, [
+    Opt(None, name="video", argument=True, type=Optional[Path], default=None, callback=_file,
+        help="One video: detect its landmarks into --out. Without it: every utterance of the store with a video and "
+             "no landmark file."),
+    Opt(None, "--out", type=Optional[Path], default=None, help="CSV to write for VIDEO (the .mediapipe478.csv layout)."),
+    STORE, SHARDS, Opt("config.refine_landmarks", "--refine"), Opt("config.max_faces"),
+    Opt("config.min_detected_share", "--min-face-share"), *RUNNER,
+])
+def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> None:
     """Detect face landmarks (MediaPipe FaceMesh, 478 points per frame) on one video or on the store's videos."""
-    from visemeflow.tracking.facemesh import FaceMeshConfig, FaceMeshError
-
-    try:
-        config = FaceMeshConfig(refine_landmarks=refine, max_faces=max_faces, min_detected_share=min_face_share)
-    except ValueError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
     if video is None:
-        from visemeflow.flows.landmarks import LandmarksParams, landmarks_flow
+        from visemeflow.flows.landmarks import landmarks_flow
         from visemeflow.flows.runners import run_on_runner
 
-        params = LandmarksParams(store=store, n_shards=shards, config=config,
-                                 runner=_runner(runner, dask_workers, dask_address, threads))
         _print_summary("landmarks", run_on_runner(landmarks_flow, params))
-        _print_rejects_hint(store)
+        _print_rejects_hint(params.store)
         return
     if out is None:
-        typer.echo("error: --out FILE.csv is needed with a VIDEO", err=True)
-        raise typer.Exit(2)
-    from visemeflow.tracking.facemesh import detect_clip
+        _fail("--out FILE.csv is needed with a VIDEO")
+    from visemeflow.tracking.facemesh import FaceMeshError, detect_clip
 
     try:
-        result = detect_clip(video, out, config)
+        result = detect_clip(video, out, params.config)
     except FaceMeshError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+        _fail(str(exc))
     found = int(result.detected.sum())
     typer.echo(f"wrote {out}: {result.n_frames} frames ({result.times[0]:.3f}-{result.times[-1]:.3f} s), a face on "
                f"{found} ({100 * result.detected_share:.1f}%)"
                + (f"; {result.faces} faces seen, the largest and most central followed" if result.multi_face else ""))
 
 
-@app.command()
-def pipeline(
-    corpus: Annotated[Path, typer.Argument(help="Corpus folder or manifest CSV.", callback=_corpus)],
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    runner: Annotated[str, typer.Option("--runner", help="Tracking on threads (Prefect's pool) or dask.")] = "threads",
-    dask_workers: DaskWorkersOpt = 2,
-    dask_address: DaskAddressOpt = None,
-    threads: ThreadsOpt = None,
-    character: Annotated[Optional[list[Path]], typer.Option(
-        "--character", help="Also animate the tracked curves on this character (repeat for several).",
-        callback=_character)] = None,
-    formats: FormatsOpt = "glb,usd,livelink,json",
-    mesh: MeshOpt = None,
-) -> None:
+
+@stage_command(app, PipelineParams, [
+    Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, *RUNNER,
+    Opt("characters", "--character", repeat=True, callback=_character), Opt("animate.formats", "--format"),
+    Opt("animate.meshes", "--mesh", repeat=True),
+])
+def pipeline(params: PipelineParams) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
-    from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
 
-    _check_meshes(character, mesh)
-
-    result = pipeline_flow(PipelineParams(corpus=corpus, store=store, n_shards=shards,
-                                          runner=_runner(runner, dask_workers, dask_address, threads),
-                                          characters=character or [],
-                                          animate=_animate_config(formats, None, None, False, meshes=mesh)))
-    for stage, summary in result.items():
+    _check_meshes(params.characters, list(params.animate.meshes))
+    for stage, summary in pipeline_flow(params).items():
         if stage == "animate":
             _print_packages(dict(summary))
         else:
             _print_summary(stage, summary)
-    _print_outputs(store)
+    _print_outputs(params.store)
 
 
-@app.command()
-def synth(
-    corpus: Annotated[Path, typer.Argument(help="Source corpus: audio + alignments.", callback=_corpus)],
-    out: Annotated[Path, typer.Option(help="Folder of the synthetic corpus.")] = Path("visemeflow-out/synth-corpus"),
-    store: StoreOpt = DEFAULT_STORE,
-    rig: Annotated[Optional[Path], typer.Option(help="Viseme rig (folder, GLB, npz); default: the ICT demo rig.", callback=_path)] = None,
-    width: Annotated[int, typer.Option(help="Frame width.")] = 360,
-    height: Annotated[int, typer.Option(help="Frame height.")] = 288,
-    fps: Annotated[float, typer.Option(help="Video frame rate.")] = 25.0,
-    seed: Annotated[int, typer.Option(help="Seed of the true dynamics, motion and landmark noise.")] = 0,
-) -> None:
+
+@stage_command(app, SynthParams, [
+    Opt("corpus", argument=True, callback=_corpus), Opt("out"), STORE, Opt("rig", callback=_path),
+    Opt("config.width"), Opt("config.height"), Opt("config.fps"), Opt("config.truth.seed"),
+])
+def synth(params: SynthParams) -> None:
     """Render talking-face videos with known true viseme curves from a corpus of audio + alignments."""
-    from visemeflow.flows.params import SynthParams
     from visemeflow.flows.synth import synth_flow
-    from visemeflow.synth.dynamics import GroundTruthConfig
-    from visemeflow.synth.take import SynthConfig
 
-    config = SynthConfig(width=width, height=height, fps=fps, truth=GroundTruthConfig(seed=seed))
-    _print_summary("synth", synth_flow(SynthParams(corpus=corpus, out=out, store=store, rig=rig, config=config)))
+    _print_summary("synth", synth_flow(params))
+
 
 
 @app.command("espeak-corpus")
@@ -458,36 +362,17 @@ def serve(
         raise typer.Exit(2) from None
 
 
-@app.command()
-def train(
-    store: StoreOpt = DEFAULT_STORE,
-    preset: Annotated[str, typer.Option(help="Model preset, e.g. fbank-blstm, wav2vec2-blstm, mean-curve.")] = "fbank-blstm",
-    epochs: Annotated[int, typer.Option(help="Passes over the training utterances (one utterance per step).")] = 10,
-    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth, procedural or captured.")] = "tracked",
-    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (when several exist).")] = None,
-    name: Annotated[Optional[str], typer.Option(help="Model name in the store.")] = None,
-    d_model: Annotated[Optional[int], typer.Option(help="Model width (default: the preset's, 512).")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of initialisation, order and augmentation.")] = 0,
-    wav2vec2: Annotated[Optional[str], typer.Option(help="wav2vec2 model path or hub id (wav2vec2 presets).")] = None,
-    train_augment: Annotated[float, typer.Option(
-        help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = off).",
-        min=0.0, max=1.0)] = 0.0,
-    batch_size: BatchSizeOpt = 1,
-    device: DeviceOpt = "auto",
-    precision: PrecisionOpt = "auto",
-    encoder_cache: EncoderCacheOpt = None,
-) -> None:
+@stage_command(app, TrainParams, [
+    STORE, Opt("config.preset"), Opt("config.epochs"), Opt("source"), Opt("variant"), Opt("model_name", "--name"),
+    Opt("config.d_model"), Opt("config.seed"), Opt("config.wav2vec2_model", "--wav2vec2"), TRAIN_AUGMENT,
+    Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
+])
+def train(params: TrainParams) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
-    device = _device(device, precision)
-    from visemeflow.flows.params import TrainParams
+    _device(params.device, params.precision)
     from visemeflow.flows.train import train_flow
-    from visemeflow.learning.train import TrainConfig
 
-    config = TrainConfig(preset=preset, epochs=epochs, d_model=d_model, seed=seed, wav2vec2_model=wav2vec2,
-                         train_augment=train_augment > 0, train_augment_probability=train_augment or 0.5,
-                         batch_size=batch_size)
-    report = train_flow(TrainParams(store=store, config=config, source=source, variant=variant, model_name=name,
-                                    device=device, precision=precision, encoder_cache_dir=encoder_cache))
+    report = train_flow(params)
     # `train`/`val` count utterances; the model file goes last, on its own line, as what to use next
     names = {"train": "training_utterances", "val": "validation_utterances"}
     path = report.get("path")
@@ -496,39 +381,22 @@ def train(
         typer.echo(f"model: {path} (use it with --model {report['model']})")
 
 
-@app.command()
-def sweep(
-    store: StoreOpt = DEFAULT_STORE,
-    preset: Annotated[str, typer.Option(help="Model preset.")] = "fbank-blstm",
-    sizes: Annotated[str, typer.Option(help="Comma-separated training-set sizes.")] = "100,300,1000,3000",
-    steps: Annotated[int, typer.Option(help="Training steps per size (equal budget).")] = 10000,
-    source: Annotated[str, typer.Option(help="Curves to learn: tracked, ground_truth, procedural or captured.")] = "tracked",
-    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves.")] = None,
-    d_model: Annotated[Optional[int], typer.Option(help="Model width.")] = None,
-    runner: Annotated[str, typer.Option("--runner", help="One training task per size on threads or dask.")] = "threads",
-    dask_workers: DaskWorkersOpt = 2,
-    dask_address: DaskAddressOpt = None,
-    threads: ThreadsOpt = None,
-    batch_size: BatchSizeOpt = 1,
-    device: DeviceOpt = "auto",
-    precision: PrecisionOpt = "auto",
-    encoder_cache: EncoderCacheOpt = None,
-) -> None:
-    """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
-    device = _device(device, precision)
-    from visemeflow.flows.params import SweepParams
-    from visemeflow.flows.sweep import sweep_flow
-    from visemeflow.learning.train import TrainConfig
-    from visemeflow.flows.runners import run_on_runner
 
-    params = SweepParams(store=store, config=TrainConfig(preset=preset, d_model=d_model, batch_size=batch_size),
-                         sizes=[int(x) for x in sizes.split(",") if x.strip()], steps=steps, source=source,
-                         variant=variant, runner=_runner(runner, dask_workers, dask_address, threads),
-                         device=device, precision=precision, encoder_cache_dir=encoder_cache)
+@stage_command(app, SweepParams, [
+    STORE, Opt("config.preset"), Opt("sizes"), Opt("steps"), Opt("source"), Opt("variant"), Opt("config.d_model"),
+    *RUNNER, Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
+])
+def sweep(params: SweepParams) -> None:
+    """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
+    _device(params.device, params.precision)
+    from visemeflow.flows.runners import run_on_runner
+    from visemeflow.flows.sweep import sweep_flow
+
     result = run_on_runner(sweep_flow, params)
     for size, value in result["points"]:
         typer.echo(f"{size:>6} training utterances: validation L1 x 100 = {value:.3f}")
     typer.echo(f"plot: {result['plot']}")
+
 
 
 def _print_evaluation(result: dict) -> None:
@@ -569,58 +437,38 @@ def _print_evaluation(result: dict) -> None:
                f"(CSV: {result['csv']})")
 
 
-@app.command()
-def evaluate(
-    models: Annotated[str, typer.Option("--models", help="Comma-separated names of trained models in the store; "
-                                                         "phones: recognised phones, the no-training baseline.")],
-    store: StoreOpt = DEFAULT_STORE,
-    conditions: Annotated[str, typer.Option(help="Augmented conditions to judge on.")] = "volume,pitch,speed,noise",
-    seed: Annotated[int, typer.Option(help="Seed of the augmentations (same seed, same augmented audio).")] = 0,
-    source: Annotated[Optional[str], typer.Option(help="Target curves (default: the first model's).")] = None,
-    variant: Annotated[Optional[str], typer.Option(help="Variant of those curves (default: the first model's).")] = None,
-    device: DeviceOpt = "auto",
-) -> None:
+@stage_command(app, EvaluateParams, [
+    Opt("models"), STORE, Opt("conditions"), Opt("seed"), Opt("source"), Opt("variant"), Opt("device"),
+])
+def evaluate(params: EvaluateParams) -> None:
     """Judge models on the validation set and on copies augmented in volume, pitch, speed and noise (paper 5.2)."""
-    device = _device(device)
+    _device(params.device)
     from visemeflow.flows.evaluate import evaluate_flow
-    from visemeflow.flows.params import EvaluateParams
 
-    params = EvaluateParams(store=store, models=[m.strip() for m in models.split(",") if m.strip()],
-                            conditions=[c.strip() for c in conditions.split(",") if c.strip()], seed=seed,
-                            source=source, variant=variant, device=device)
     result = evaluate_flow(params)
     _print_evaluation(result)
     typer.echo(f"evaluate: {len(result['models'])} of {len(params.models)} models judged, "
                f"{result['rejected']} rejected")
-    for r in result["rejects"]:
-        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
-    if result["rejects"]:
-        typer.echo(f"see `visemeflow rejects --store {store} --stage evaluate`", err=True)
-        raise typer.Exit(1)
+    _print_stage_rejects(result["rejects"], params.store, "evaluate")
 
 
-@app.command()
-def predict(
-    audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
-    model: Annotated[str, typer.Option("--model", help="Model name in the store (see visemeflow-out/store/models); "
-                                                       "default: the model shipped with the package; phones: no "
-                                                       "model, phones recognised in the audio (English).")] = "default",
-    store: StoreOpt = DEFAULT_STORE,
-    fps: Annotated[float, typer.Option(help="Curve frame rate.")] = DEFAULT_FPS,
-    out: Annotated[Optional[Path], typer.Option(help="Folder for CSV and JSON copies of the curves.")] = None,
-    device: DeviceOpt = "auto",
-) -> None:
+
+@stage_command(app, PredictParams, [
+    Opt("audio", argument=True, repeat=True), Opt("model"), STORE, Opt("fps"), Opt("out"),
+    Opt("device"),
+])
+def predict(params: PredictParams) -> None:
     """Predict viseme curves from audio with a trained model; curves go to the store (source predicted).
 
     Runs the `predict` flow: one cached task per file (keyed on the model's and the audio's content hashes, not
     on the device), a markdown artifact with the outputs and real-time factors.
     """
-    _known_model(store, model)
-    _check_paths(audio, "audio file", "file")
-    device = _device(device)
-    from visemeflow.flows.predict import PredictParams, predict_flow
+    _known_model(params.store, params.model)
+    _check_paths(params.audio, "audio file", "file")
+    _device(params.device)
+    from visemeflow.flows.predict import predict_flow
 
-    result = predict_flow(PredictParams(store=store, model=model, audio=audio, fps=fps, out=out, device=device))
+    result = predict_flow(params)
     for r in result["predictions"]:
         cached = ", cached" if r["cached"] else ""
         typer.echo(f"{r['audio']}: {r['frames']} frames -> {r['utterance_id']} "
@@ -630,11 +478,8 @@ def predict(
     files = result["files"]
     typer.echo(f"predict: {files} file{'' if files == 1 else 's'}, {result['predicted']} predicted, "
                f"{result['cached']} cached, {result['rejected']} rejected")
-    for r in result["rejects"]:   # each reason starts with the file it names
-        typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
-    if result["rejects"]:
-        typer.echo(f"see `visemeflow rejects --store {store} --stage predict`", err=True)
-        raise typer.Exit(1)
+    _print_stage_rejects(result["rejects"], params.store, "predict")
+
 
 
 def _print_packages(result: dict, title: str = "animate") -> None:
@@ -656,36 +501,26 @@ def _print_packages(result: dict, title: str = "animate") -> None:
             typer.echo(f"  warning: {lips['warning']}", err=True)
 
 
-@app.command("import-curves")
-def import_curves(
-    takes: Annotated[Path, typer.Argument(help="Manifest CSV of takes, a folder with takes.csv, or <speaker>/<name>.wav "
-                                               "+ .livelink.csv | .capture.csv | .capture.npy.", callback=_path)],
-    store: StoreOpt = DEFAULT_STORE,
-    shards: ShardsOpt = 8,
-    channel_table: Annotated[Optional[Path], typer.Option(help="Channel -> ARKit table (CSV or .xlsx) for takes that "
-                                                               "give none.", callback=_file)] = None,
-    names: Annotated[Optional[Path], typer.Option(help="Channel names (.npy or text) for NPY takes.", callback=_file)] = None,
-    fps: Annotated[Optional[float], typer.Option(help="Capture rate of takes with no clock.")] = None,
-    variant: Annotated[str, typer.Option(help="Variant of the captured curves.")] = "arkit-nnls",
-    max_drift: Annotated[float, typer.Option(help="Largest capture/audio length difference, frames per second.")] = 1.0,
-    val_fraction: Annotated[float, typer.Option(help="Share of takes in 'val' when the manifest gives none.")] = 0.1,
-) -> None:
+@stage_command(app, ImportCurvesParams, [
+    Opt("takes", argument=True, callback=_path), STORE, SHARDS, Opt("channel_table", callback=_file),
+    Opt("names", callback=_file), Opt("config.fps"), Opt("config.variant"),
+    Opt("config.max_drift_frames_per_s", "--max-drift"), Opt("config.val_fraction"),
+], name="import-curves")
+def import_curves(params: ImportCurvesParams) -> None:
     """Import captured animation (Live Link Face CSV, channel CSV/NPY) as `captured` viseme curves of real speech.
 
     ARKit weights become the 16 visemes by a per-frame non-negative least-squares fit through the ICT face; each take
     is an utterance (no alignment) with its audio, ready for `visemeflow train --source captured`.
     """
-    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
-    from visemeflow.ingest.captured import CaptureConfig
+    from visemeflow.flows.import_curves import import_curves_flow
 
-    result = dict(import_curves_flow(ImportCurvesParams(
-        takes=takes, store=store, n_shards=shards, channel_table=channel_table, names=names,
-        config=CaptureConfig(variant=variant, fps=fps, max_drift_frames_per_s=max_drift, val_fraction=val_fraction))))
+    result = dict(import_curves_flow(params))
     reports = result.pop("takes_report", [])
     _print_summary("import-curves", result)
     for r in reports[:20]:
         typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(f"{k} {v}" for k, v in r.items() if k != "utterance_id"))
-    _print_rejects_hint(store)
+    _print_rejects_hint(params.store)
+
 
 
 @app.command("transfer")
@@ -708,115 +543,63 @@ def transfer(
     typer.echo(f"wrote {out}")
 
 
-@app.command()
-def animate(
-    utterances: Annotated[Optional[list[str]], typer.Argument(help="Utterance ids; default: all with such curves.")] = None,
-    character: CharactersOpt = None,
-    store: StoreOpt = DEFAULT_STORE,
-    source: Annotated[str, typer.Option(help="tracked, procedural, ground_truth, captured or predicted.")] = "tracked",
-    variant: Annotated[Optional[str], typer.Option(help="Variant of the curves (a model's name for predicted).")] = None,
-    formats: FormatsOpt = "glb,usd,livelink,json",
-    fps: Annotated[Optional[float], typer.Option(help="Export frame rate (resampled); default: the curves' own.")] = None,
-    convention: ConventionOpt = None,
-    mapping: MappingOpt = None,
-    preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 of each package.")] = False,
-    out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
-    mode: ModeOpt = "blendshape",
-    bones: BonesOpt = 32,
-    closure_rule: ClosureOpt = True,
-    mesh: MeshOpt = None,
-) -> None:
+@stage_command(app, AnimateParams, [
+    Opt("utterances", argument=True, repeat=True), CHARACTERS, STORE, Opt("source"), Opt("variant"), *ANIMATE_OPTIONS,
+    Opt("config.fps"), Opt("config.convention"), Opt("mapping", callback=_file), Opt("config.preview"), Opt("out"),
+])
+def animate(params: AnimateParams) -> None:
     """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
-    from visemeflow.flows.animate import AnimateParams, animate_flow
+    from visemeflow.flows.animate import animate_flow
 
-    params = dict(store=store, source=source, variant=variant, utterances=utterances or None, mapping=mapping,
-                  config=_animate_config(formats, fps, convention, preview, mode, bones, closure_rule, mesh), out=out)
-    _check_meshes(character, mesh)
-    if character:
-        params["characters"] = character
-    _print_packages(dict(animate_flow(AnimateParams(**params))))
-    _print_rejects_hint(store)
+    _check_meshes(params.characters, list(params.config.meshes))
+    _print_packages(dict(animate_flow(params)))
+    _print_rejects_hint(params.store)
 
 
-@app.command()
-def speak(
-    audio: Annotated[list[Path], typer.Argument(help="Audio files (any rate, any channel count) or videos.")],
-    model: Annotated[str, typer.Option("--model", help="Model name in the store; default: the shipped model; phones: "
-                                                       "no model, phones recognised in the audio (English).")] = "default",
-    character: CharactersOpt = None,
-    store: StoreOpt = DEFAULT_STORE,
-    formats: FormatsOpt = "glb,usd,livelink,json",
-    fps: Annotated[float, typer.Option(help="Frame rate of the curves and the exports.")] = DEFAULT_FPS,
-    convention: ConventionOpt = None,
-    mapping: MappingOpt = None,
-    preview: Annotated[bool, typer.Option(help="Also render <name>.mp4 (the character speaking, with the audio).")] = False,
-    out: Annotated[Optional[Path], typer.Option(help="Folder for the files; default: the store's animations folder.")] = None,
-    mode: ModeOpt = "blendshape",
-    bones: BonesOpt = 32,
-    closure_rule: ClosureOpt = True,
-    mesh: MeshOpt = None,
-) -> None:
+
+@stage_command(app, SpeakParams, [
+    Opt("audio", argument=True, repeat=True), Opt("model"), CHARACTERS, STORE, *ANIMATE_OPTIONS,
+    Opt("fps"), Opt("config.convention"), Opt("mapping", callback=_file),
+    Opt("config.preview", help="Also render <name>.mp4 (the character speaking, with the audio)."), Opt("out"),
+])
+def speak(params: SpeakParams) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
-    _known_model(store, model)
-    _check_paths(audio, "audio file", "file")
-    from visemeflow.flows.animate import SpeakParams, speak_flow
+    _known_model(params.store, params.model)
+    _check_paths(params.audio, "audio file", "file")
+    from visemeflow.flows.animate import speak_flow
 
-    params = dict(store=store, model=model, audio=audio, mapping=mapping, fps=fps, out=out,
-                  config=_animate_config(formats, None, convention, preview, mode, bones, closure_rule, mesh))
-    _check_meshes(character, mesh)
-    if character:
-        params["characters"] = character
-    result = dict(speak_flow(SpeakParams(**params)))
+    _check_meshes(params.characters, list(params.config.meshes))
+    result = dict(speak_flow(params))
     audio_rejects = result.pop("rejects")
     _print_packages(result, "speak")
     for r in audio_rejects:
         typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
-    _print_rejects_hint(store)
+    _print_rejects_hint(params.store)
     if audio_rejects or result["rejected"]:   # an audio file or a package left out: the command did not do it all
         raise typer.Exit(1)
 
 
-@app.command("preview")
-def preview_command(
-    utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    character: Annotated[Optional[Path], typer.Option("--character", help="Character file or folder; default: the demo character.", callback=_character)] = None,
-    sources: Annotated[str, typer.Option(help="Comma-separated curve sources side by side (source or source:variant).")] = "procedural,tracked,predicted,ground_truth",
-    store: StoreOpt = DEFAULT_STORE,
-    mapping: MappingOpt = None,
-    size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 360,
-    out: Annotated[Optional[Path], typer.Option(help="MP4 file; default: in the store's animations folder.")] = None,
-    mode: Annotated[str, typer.Option(help="blendshape, bones (the SSDR bone animation the bone exports play) or "
-                                           "both (blendshape and bone panels of each source side by side).")] = "blendshape",
-    bones: Annotated[int, typer.Option(help="Bone count in modes bones and both.")] = 32,
-    closure_rule: ClosureOpt = True,
-    mesh: MeshOpt = None,
-) -> None:
+
+@stage_command(app, PreviewParams, [
+    Opt("utterance_id", argument=True), Opt("character", callback=_character), Opt("sources"), STORE,
+    Opt("mapping", callback=_file), Opt("size"), Opt("out"), Opt("mode"), Opt("bones"), Opt("closure_rule"),
+    Opt("meshes", "--mesh", repeat=True),
+], name="preview")
+def preview_command(params: PreviewParams) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
-    import pydantic
+    from visemeflow.flows.animate import preview_flow
 
-    from visemeflow.flows.animate import PreviewParams, preview_flow
-
-    params = dict(store=store, utterance_id=utterance_id, sources=[x.strip() for x in sources.split(",") if x.strip()],
-                  mapping=mapping, size=size, out=out, mode=mode, bones=bones, closure_rule=closure_rule)
-    if character:
-        params["character"] = character
-    _check_meshes([character] if character else None, mesh)
-    params["meshes"] = mesh or []
-    try:
-        params = PreviewParams(**params)
-    except pydantic.ValidationError as exc:
-        error = exc.errors()[0]
-        typer.echo(f"error: --{'-'.join(str(x) for x in error['loc'])}: {error['msg']}", err=True)
-        raise typer.Exit(2) from None
+    _check_meshes([params.character], params.meshes)
     result = preview_flow(params)
     typer.echo(result["character"])
     for skipped in result["skipped"]:
         typer.echo(f"left out {skipped}")
     typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "
                f"{', '.join(result['sources'])}; rendered at {result['frames_per_second']:.1f} frames/s)")
+
 
 
 @app.command("export-model")
@@ -857,24 +640,15 @@ def export_model(
                f"audio {report.sample_rate} Hz mono -> curves at {report.fps:g} fps{checked})")
 
 
-RERUN_STAGES = ("ingest", "procedural", "landmarks", "track", "animate")
-
-
-@app.command()
-def rerun(
-    utterance_id: Annotated[str, typer.Argument(help="'<speaker>/<name>'.")],
-    stage: Annotated[str, typer.Option(help="ingest, procedural, landmarks, track or animate.")] = "procedural",
-    store: StoreOpt = DEFAULT_STORE,
-    force: Annotated[bool, typer.Option(help="Recompute even when the cache is valid.")] = True,
-) -> None:
+@stage_command(app, RerunParams, [
+    Opt("utterance_id", argument=True), Opt("stage"), STORE, Opt("force"),
+])
+def rerun(params: RerunParams) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
-    if stage not in RERUN_STAGES:
-        _fail(f"--stage must be one of {', '.join(RERUN_STAGES)}, not {stage!r}")
-    from visemeflow.flows.params import RerunParams
     from visemeflow.flows.rerun import rerun_flow
 
-    _print_summary(f"rerun {stage} {utterance_id}", rerun_flow(RerunParams(
-        utterance_id=utterance_id, stage=stage, store=store, force=force)))
+    _print_summary(f"rerun {params.stage} {params.utterance_id}", rerun_flow(params))
+
 
 
 @app.command()
@@ -1065,6 +839,3 @@ def _is_per_stage(summary: dict) -> bool:
     """Whether a flow's summary is the pipeline's, one summary per stage."""
     return bool(summary) and all(isinstance(v, dict) for v in summary.values())
 
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,134 @@
+"""The stage commands are made from the flows' params models (visemeflow.cli.options): each option's help and default
+are its field's, the values become the params model the flow takes, a refused value is one line naming the option,
+and a new stage's command is one decorated function."""
+
+import typing
+from pathlib import Path
+
+import pytest
+import typer
+from pydantic import BaseModel, Field
+from typer.testing import CliRunner
+
+import visemeflow.cli as cli
+from visemeflow.cli import app
+from visemeflow.cli.options import FROM_FIELD, Opt, field_at, stage_command
+from visemeflow.flows.params import DEFAULT_STORE, TrackParams, TrainParams
+
+runner = CliRunner()
+
+
+def stage_commands() -> list:
+    return [c.callback for c in app.registered_commands if hasattr(c.callback, "params_model")]
+
+
+def test_every_flow_command_but_the_few_with_their_own_modes_is_made_from_its_params_model():
+    made = {c.name or c.callback.__name__ for c in app.registered_commands if hasattr(c.callback, "params_model")}
+    assert made >= {"ingest", "procedural", "track", "landmarks", "pipeline", "synth", "train", "sweep", "evaluate",
+                    "predict", "import-curves", "animate", "speak", "preview", "rerun"}
+
+
+@pytest.mark.parametrize("command", stage_commands(), ids=lambda c: c.__name__)
+def test_an_option_of_a_field_has_the_fields_help_and_default(command):
+    """The help a user reads on the terminal is the description the Prefect UI shows beside the field: one text."""
+    signature = command.__signature__
+    for opt in command.options:
+        if opt.path is None or opt.into is not None:
+            continue
+        info = field_at(command.params_model, opt.path)
+        param = signature.parameters[opt.param_name]
+        option = typing.get_args(param.annotation)[1]
+        if opt.help is None:
+            assert info.description and option.help.startswith(info.description), (opt.path, option.help)
+        if opt.default is FROM_FIELD and info.default_factory is None and not opt.repeat:
+            shown = param.default if param.default is not param.empty else ...
+            expected = info.default if info.default is not None or shown is None else None
+            if isinstance(expected, (list, tuple)):
+                expected = ",".join(map(str, expected))
+            assert shown == expected or (shown is ... and info.is_required()), (opt.path, shown, info.default)
+
+
+def test_the_store_default_is_written_once():
+    assert cli.DEFAULT_STORE is DEFAULT_STORE
+
+
+def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
+    seen = {}
+
+    def fake_run(flow, params):
+        seen["params"] = params
+        return {"utterances": 0}
+
+    monkeypatch.setattr("visemeflow.flows.runners.run_on_runner", fake_run)
+    result = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--shards", "3", "--solver", "faithful",
+                                 "--no-guidance", "--rgb", "--no-flow", "--dask-address", "tcp://127.0.0.1:1",
+                                 "--threads", "2"])
+    assert result.exit_code == 0, result.output
+    params = seen["params"]
+    assert isinstance(params, TrackParams)
+    assert params == TrackParams(
+        store=tmp_path / "s", n_shards=3,
+        config={"solver": "faithful", "guidance": False, "use_rgb": True, "use_flow": False},
+        runner={"kind": "dask", "dask_address": "tcp://127.0.0.1:1", "threads": 2})  # an address means dask
+
+
+def test_an_option_filling_two_fields_and_a_list_option(monkeypatch, tmp_path):
+    seen = {}
+    monkeypatch.setattr("visemeflow.flows.train.train_flow", lambda params: seen.setdefault("params", params) and {})
+    monkeypatch.setattr("visemeflow.flows.runners.run_on_runner",
+                        lambda flow, params: seen.setdefault("params", params) and {"points": [], "plot": "p"})
+    result = runner.invoke(app, ["train", "--store", str(tmp_path / "s"), "--train-augment", "0.25", "--name", "m1",
+                                 "--preset", "mean-curve", "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    params = seen.pop("params")
+    assert isinstance(params, TrainParams) and params.model_name == "m1"
+    assert params.config.train_augment and params.config.train_augment_probability == 0.25
+    result = runner.invoke(app, ["sweep", "--store", str(tmp_path / "s"), "--sizes", "10, 30", "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert seen["params"].sizes == [10, 30]
+
+
+def test_a_refused_value_is_one_line_naming_its_option(tmp_path):
+    bad = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--solver", "quick"])
+    assert bad.exit_code == 2
+    assert bad.output.strip() == "error: --solver must be one of fast, faithful, not 'quick'"
+    bad = runner.invoke(app, ["sweep", "--store", str(tmp_path / "s"), "--sizes", "10,x"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: --sizes: ") and "\n" == bad.output[-1]
+    bad = runner.invoke(app, ["landmarks", "--store", str(tmp_path / "s"), "--max-faces", "1"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: --max-faces: Input should be greater than or equal to 2")
+    bad = runner.invoke(app, ["speak", str(tmp_path), "--store", str(tmp_path / "s"), "--format", "pose-csv"])
+    assert bad.exit_code == 2
+
+
+class ToyConfig(BaseModel):
+    level: int = Field(3, ge=0, description="How loud.")
+
+
+class ToyParams(BaseModel):
+    store: Path = Field(Path("out"), description="Where.")
+    names: list[str] = Field(["a", "b"], description="Which.")
+    config: ToyConfig = Field(default_factory=ToyConfig)
+
+
+def test_a_new_stage_command_is_one_decorated_function():
+    """What a new stage writes in the CLI: its options by field path; help, defaults and checks come from its model."""
+    toy = typer.Typer()
+    got = []
+
+    @stage_command(toy, ToyParams, [Opt("store"), Opt("names"), Opt("config.level", "--loudness"),
+                                    Opt(None, "--dry", type=bool, default=False, help="Only say it.")])
+    def toy_stage(params: ToyParams, dry: bool) -> None:
+        """A toy stage."""
+        got.append((params, dry))
+
+    @toy.callback()
+    def main() -> None:   # a group, so the command is named as a subcommand
+        pass
+
+    done = runner.invoke(toy, ["toy-stage", "--names", "x,y", "--loudness", "5", "--dry"])
+    assert done.exit_code == 0, done.output
+    assert got == [(ToyParams(names=["x", "y"], config=ToyConfig(level=5)), True)]
+    helped = runner.invoke(toy, ["toy-stage", "--help"], env={"COLUMNS": "200"}).output
+    assert "How loud." in helped and "Which." in helped and "a,b" in helped
+    refused = runner.invoke(toy, ["toy-stage", "--loudness", "-1"])
+    assert refused.exit_code == 2 and refused.output.startswith("error: --loudness: ")

@@ -1,0 +1,5 @@
+"""`python -m visemeflow.cli`: the `visemeflow` command."""
+
+from visemeflow.cli import main
+
+main()

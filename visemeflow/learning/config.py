@@ -1,0 +1,67 @@
+"""What a training run is asked for (`TrainConfig`), apart from the code that trains, so that reading a config (the
+CLI's options, a flow's parameters, a model file's lineage) imports no torch. `visemeflow.learning.train` runs it."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
+
+if TYPE_CHECKING:
+    from visemeflow.learning.presets import Preset
+
+
+class TrainConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    preset: str = Field("fbank-blstm", description="Model preset, e.g. fbank-blstm, whisper-base-blstm, wav2vec2-blstm, "
+                                                  "mean-curve (visemeflow.learning.presets).")
+    epochs: int = Field(10, ge=0, description="Passes over the training utterances.")
+    seed: int = Field(0, description="Seed of initialisation, order and augmentation.")
+    d_model: int | None = Field(None, ge=2, description="Model width; default: the preset's.")
+    lr: float | None = Field(None, gt=0, description="Learning rate; default: the preset's.")
+    max_steps_per_epoch: int | None = Field(None, ge=1)
+    wav2vec2_model: str | None = Field(None, description="wav2vec2 model path or hub id (wav2vec2 presets).")
+    # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
+    whisper_source: str | None = None
+    # whisper presets: which encoder outputs feed the decoder, "last" (the preset's) or "weighted" (a learned
+    # softmax-weighted sum of every layer); None: the preset's own
+    whisper_layers: Literal["last", "weighted"] | None = None
+    # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
+    # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
+    train_augment: bool = False
+    train_augment_probability: float = Field(0.5, ge=0, le=1)
+    # utterances per optimisation step: 1 is the paper's recipe; more pads length-bucketed batches (module docstring)
+    batch_size: int = Field(1, ge=1, description="Utterances per optimisation step: 1 is the paper's recipe; more pads "
+                                                 "length-bucketed batches.")
+    # batch_size > 1: a length bucket holds this many batches (1: batches as drawn, sorted only inside)
+    bucket_batches: int = Field(8, ge=1)
+    # auxiliary viseme classification (0: off, the paper's recipe): a linear layer on the decoder's features predicts
+    # each frame's viseme (Example.visemes), cross-entropy weighted by this, added to the curve loss; the layer
+    # serves training only (model files hold the curve model alone). Curve heads (CurveModel) only.
+    viseme_loss_weight: float = Field(0.0, ge=0)
+    # inference only: narrow the MBP channel to its peaks within this half window, s (0: off, the paper's model;
+    # visemeflow.learning.model.ClosurePeaks); a training run never applies it, a loaded model does in eval mode
+    mbp_peaks_half_window_s: float = Field(0.0, ge=0, le=0.5)
+    mbp_peaks_power: float = Field(16.0, gt=0, le=64)
+
+    @model_serializer(mode="wrap")
+    def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # Fields added after models were trained are left out at their defaults, so a config means the same JSON
+        # (checkpoint resume keys, model names hashed from it, Prefect cache keys) as before they existed.
+        data = handler(self)
+        for name, default in _ADDED_DEFAULTS.items():
+            if name in data and data[name] == default:
+                del data[name]
+        return data
+
+    def resolved_preset(self) -> Preset:
+        from visemeflow.learning.presets import get_preset
+
+        p = get_preset(self.preset)
+        return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
+
+
+_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
+                                   "viseme_loss_weight": 0.0, "whisper_layers": None,
+                                   "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
