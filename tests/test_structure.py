@@ -31,14 +31,25 @@ def test_stages_name_their_curve_source_by_the_enum():
     assert CURVE_SOURCES == tuple(s.value for s in CurveSource) and CurveSource("tracked") is CurveSource.TRACKED
 
 
-def test_rerun_knows_every_stage_its_form_offers():
+def test_rerun_offers_every_stage_of_the_table_that_can_rerun_one_utterance():
+    import inspect
     import typing
 
-    from visemeflow.flows.params import RerunParams
-    from visemeflow.flows.rerun import RERUNS
+    from visemeflow.flows.params import SETTINGS, RerunParams
+    from visemeflow.flows.stages import RERUNNABLE, STAGES, stage_named
 
     offered = typing.get_args(RerunParams.model_fields["stage"].annotation)
-    assert set(offered) == set(RERUNS)
+    assert offered == RERUNNABLE == ("ingest", "procedural", "landmarks", "track", "animate")
+    for name in offered:   # each has its rerun_one and typed settings to repeat
+        assert list(inspect.signature(stage_named(name).rerun_one()).parameters) == ["store", "uid", "last", "force"]
+        assert name in SETTINGS
+    unable = next(s for s in STAGES if not s.rerun)
+    try:
+        unable.rerun_one()
+    except ValueError as exc:
+        assert "cannot be rerun" in str(exc)
+    else:
+        raise AssertionError(f"{unable.name} has no rerun_one")
 
 
 def test_no_test_module_imports_another():

@@ -9,19 +9,16 @@ and the rest of the batch goes on.
 
 from __future__ import annotations
 
-import traceback
 from pathlib import Path
 
 from prefect import flow, get_run_logger
-from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
-from prefect.futures import as_completed
+from prefect.artifacts import create_markdown_artifact
 
-from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
+from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
 from visemeflow.rig.character import CharacterError
-from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.dashboards.records import record_packages
-from visemeflow.tasks.progress import Progress
-from visemeflow.flows.common import finished, replace_stage_rejects
+from visemeflow.flows.errors import RerunError
+from visemeflow.flows.common import StageRun, collect_utterance_results, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
 from visemeflow.schemas import C, CurveSource, validate_name
@@ -73,20 +70,17 @@ def _markdown(rows: list[dict]) -> str:
 @flow(name="animate", flow_run_name="animate[{params.source}]", task_runner=cpu_thread_pool())
 def animate_flow(params: AnimateParams):
     """Export every (utterance, character) of the chosen curves; bad input becomes rejects, the rest goes on."""
-    store = Store(params.store)
-    logger = get_run_logger()
-    variant = resolve_variant(store, params.source, params.variant)
+    variant = resolve_variant(Store(params.store), params.source, params.variant)
+    mapping = str(params.mapping.resolve()) if params.mapping else None
+    mapping_hash = file_hash(params.mapping) if params.mapping and params.mapping.is_file() else None
+    run = StageRun(STAGE, params.store, AnimateSettings(
+        characters=[str(p.resolve()) for p in params.characters], source=params.source, variant=variant,
+        mapping=mapping, out=str(params.out) if params.out else None, n_shards=params.n_shards, config=params.config))
+    store, logger = run.store, run.logger
     ids = params.utterances if params.utterances is not None else store.curve_ids(params.source, variant)
     utterances = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances", utterance_ids=ids)
                   .select([C.UTTERANCE_ID, C.AUDIO_PATH]).to_pylist()} if ids else {}
     phones = _phones(store, ids) if params.config.preview else {}
-    mapping = str(params.mapping.resolve()) if params.mapping else None
-    mapping_hash = file_hash(params.mapping) if params.mapping and params.mapping.is_file() else None
-    store.write_run_config(STAGE, {
-        "characters": [str(p.resolve()) for p in params.characters], "source": params.source, "variant": variant,
-        "mapping": mapping, "out": str(params.out) if params.out else None, "n_shards": params.n_shards,
-        "config": params.config.model_dump(mode="json"),
-    })
     per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
     for uid in ids:
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
@@ -94,7 +88,7 @@ def animate_flow(params: AnimateParams):
         per_utterance[uid] = (audio, file_hash(audio) if audio else None,
                               store.curves_provenance(params.source, variant, uid) or "")
     out = str(params.out) if params.out else None
-    rejects, reports, futures, unexpected, choices = [], [], {}, 0, []
+    rejects, futures, choices = [], {}, []
     paths = [str(Path(character).resolve()) for character in params.characters]
     for path, key in zip(paths, character_keys(paths)):
         try:
@@ -119,44 +113,25 @@ def animate_flow(params: AnimateParams):
                 str(store.root), uid, params.source, variant, provenance, path, character_hash, key, mapping,
                 mapping_hash, params.config, audio, audio_hash, out, phones.get(uid))
             futures[future] = (uid, path)
-    progress = create_progress_artifact(0.0, description=f"{STAGE}: packages done") if futures else None
-    rejected_before = len(rejects)  # characters that could not be loaded: not packages of this loop
-    with Progress(STAGE, len(futures), unit="packages") as line:
-        for done, future in enumerate(as_completed(list(futures)), start=1):
-            uid, path = futures[future]
-            try:
-                report = dict(future.result())
-                report["cached"] = future.state.name == "Cached"
-                reports.append(report)
-            except AnimateError as exc:
-                rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), exc.path))
-            except Exception as exc:  # a bug met on one package: the others go on, the flow ends Failed
-                trace = "".join(traceback.format_exception(exc))
-                logger.error("animate[%s, %s]: unexpected %s\n%s", uid, path, type(exc).__name__, trace)
-                rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {path}: {exc}\n{trace}", path))
-                unexpected += 1
-            line.advance(failed=len(rejects) - rejected_before > line.failed)
-            if progress is not None:
-                update_progress_artifact(progress, 100.0 * done / len(futures))
+    reports, package_rejects, unexpected = collect_utterance_results(futures, STAGE, AnimateError, logger,
+                                                                     unit="packages")
+    rejects += package_rejects
     if out:  # packages outside the store: recorded in it, so the dashboard can list them
         record_packages(store, reports, {uid: audio for uid, (audio, _, _) in per_utterance.items()})
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {"packages": len(futures), "written": sum(not r["cached"] for r in reports),
                "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
                "frames": sum(r["frames"] for r in reports)}
-    publish_stage_summary(STAGE, summary, {"source": params.source, "variant": variant,
-                                           "characters": len(params.characters)})
-    publish_rejects(STAGE, store.read_table("rejects", STAGE))
     if reports:
         create_markdown_artifact(key="animations", markdown=_markdown(reports),
                                  description="animation packages: files per utterance and character")
-    logger.info("animate (%s/%s): %s", params.source, variant, summary)
     # a character that could not be loaded fails every utterance it was asked for
     lost = sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
     failed = sum(1 for r in rejects if r[C.UTTERANCE_ID] is not None) + lost
-    return finished(STAGE, {**summary, "source": params.source, "variant": variant, "packages_written": reports,
-                            "character_choices": choices},
-                    failed, len(futures) + lost, unexpected)
+    return run.finish(summary, failed, len(futures) + lost, unexpected=unexpected,
+                      title=f"animate ({params.source}/{variant})", extra={"source": params.source, "variant": variant, "characters": len(params.characters)},
+                      result={**summary, "source": params.source, "variant": variant, "packages_written": reports,
+                              "character_choices": choices})
 
 
 @flow(name="speak", flow_run_name="speak[{params.model}]")
@@ -251,3 +226,23 @@ def preview_flow(params: PreviewParams) -> dict:
             "skipped": skipped,
             "character": character.describe(),
             "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}
+
+
+def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:
+    """Every character of the last animate run, for one utterance; AnimateError for bad input."""
+    from visemeflow.tasks.animate import character_keys
+
+    if last is None:
+        raise RerunError(f"{store.root} has no animate run to repeat; run `visemeflow animate` first")
+    if not store.has_curves(last.source, last.variant, uid):
+        raise RerunError(f"{uid} has no {last.source} curves of variant {last.variant!r} in {store.root}")
+    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
+    audio = rows[0][C.AUDIO_PATH] if rows and rows[0][C.AUDIO_PATH] and Path(rows[0][C.AUDIO_PATH]).is_file() else None
+    mapping = last.mapping
+    task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    packages = [task(str(store.root), uid, last.source, last.variant,
+                     store.curves_provenance(last.source, last.variant, uid) or "", path, content_hash(path),
+                     key, mapping, file_hash(mapping) if mapping else None, last.config, audio,
+                     file_hash(audio) if audio else None, last.out)
+                for path, key in zip(last.characters, character_keys(last.characters)) if Path(path).exists()]
+    return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}

@@ -4,11 +4,13 @@ import traceback
 from collections import defaultdict
 from collections.abc import Iterable
 
+from prefect import get_run_logger
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import PrefectFuture, as_completed
 from prefect.states import Completed, Failed, State
 
 from visemeflow.flows.errors import StageFailed
+from visemeflow.flows.params import SETTINGS, StageSettings
 from visemeflow.tasks.progress import Progress
 from visemeflow.schemas import shard_of
 
@@ -91,23 +93,26 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
 
 def collect_utterance_results(
     futures: dict, stage: str, expected: type[Exception], logger, work: dict | None = None, work_unit: str = "frames",
+    unit: str = "utterances",
 ) -> tuple[list, list, int]:
-    """Wait for per-utterance task futures (future -> utterance id) with a progress artifact and a progress line on
-    the terminal: (reports with their `cached` flag, reject rows, count of unexpected errors). `expected` errors
-    (with `error_type` and `path`) are rejects; any other exception is a bug met on one utterance: logged with its
-    trace and rejected too, so the others still go on and the flow can end Failed.
+    """Wait for per-utterance task futures (future -> utterance id, or (utterance id, input path) where one
+    utterance has several tasks, e.g. a package per character) with a progress artifact and a progress line on the
+    terminal: (reports with their `cached` flag, reject rows, count of unexpected errors). `expected` errors (with
+    `error_type` and `path`) are rejects; any other exception is a bug met on one task: logged with its trace and
+    rejected too, so the others still go on and the flow can end Failed.
 
     `work` (future -> e.g. frames of its utterance) makes the line's rate and ETA count `work_unit`s, not
-    utterances: a corpus of short and long videos is then estimated by its length, not by its count.
+    `unit`s: a corpus of short and long videos is then estimated by its length, not by its count.
     """
     from visemeflow.tasks.common import reject_row
 
-    progress = create_progress_artifact(0.0, description=f"{stage}: utterances done") if futures else None
+    progress = create_progress_artifact(0.0, description=f"{stage}: {unit} done") if futures else None
     reports, rejects, unexpected = [], [], 0
     work = work or {}
-    with Progress(stage, len(futures), work_total=sum(work.values()) or None, work_unit=work_unit) as line:
+    with Progress(stage, len(futures), unit=unit, work_total=sum(work.values()) or None, work_unit=work_unit) as line:
         for done, future in enumerate(as_completed(list(futures)), start=1):
-            uid = futures[future]
+            uid, path = futures[future] if isinstance(futures[future], tuple) else (futures[future], None)
+            where = f"{uid}, {path}" if path else uid
             try:
                 report = dict(future.result())
                 report["cached"] = int(future.state.name == "Cached")
@@ -116,10 +121,53 @@ def collect_utterance_results(
                 rejects.append(reject_row(uid, stage, exc.error_type, str(exc), exc.path))
             except Exception as exc:
                 trace = "".join(traceback.format_exception(exc))
-                logger.error("%s[%s]: unexpected %s\n%s", stage, uid, type(exc).__name__, trace)
-                rejects.append(reject_row(uid, stage, type(exc).__name__, f"{uid}: {exc}\n{trace}", None))
+                logger.error("%s[%s]: unexpected %s\n%s", stage, where, type(exc).__name__, trace)
+                message = f"{uid}: {path}: {exc}\n{trace}" if path else f"{uid}: {exc}\n{trace}"
+                rejects.append(reject_row(uid, stage, type(exc).__name__, message, path))
                 unexpected += 1
             line.advance(work=work.get(future, 0), failed=len(rejects) > line.failed)
             if progress is not None:
                 update_progress_artifact(progress, 100.0 * done / len(futures))
     return reports, rejects, unexpected
+
+
+def last_settings(store, stage: str) -> StageSettings | None:
+    """What `stage` last ran with in `store` (typed: `flows.params.SETTINGS`), None when it never ran there."""
+    data = store.read_run_config(stage)
+    return None if data is None else SETTINGS[stage].model_validate(data)
+
+
+class StageRun:
+    """What every stage flow does around its tasks, written once: the store opened and cleared of the temporary
+    files killed runs left, the settings recorded (what `rerun` repeats), and at the end the summary and the
+    stage's rejects published as artifacts and logged, and the run's final state (`finished`)."""
+
+    def __init__(self, stage: str, store_root, settings: StageSettings | None = None) -> None:
+        from visemeflow.storage import Store
+
+        self.stage = stage
+        self.store = Store(store_root)
+        self.logger = get_run_logger()
+        swept = self.store.sweep_temporary_files()
+        if swept:
+            self.logger.info("removed %d temporary files left by killed runs", swept)
+        if settings is not None:
+            self.store.write_run_config(stage, settings.model_dump(mode="json"))
+
+    def rejected_before(self) -> set[str]:
+        """Utterances the stage's rejects table names now (their missing outputs are no reason to recompute)."""
+        from visemeflow.schemas import C
+
+        return set(self.store.read_table("rejects", self.stage).column(C.UTTERANCE_ID).to_pylist())
+
+    def finish(self, summary: dict, failed: int, total: int, *, extra: dict | None = None, unexpected: int = 0,
+               rejects=None, result: dict | None = None, title: str | None = None) -> State:
+        """Publish `summary` (with `extra`, figures that are not counts) and the rejects (the stage's table unless
+        given), log them, and end the run: `finished` over `result` (default: summary and extra)."""
+        from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
+
+        publish_stage_summary(self.stage, summary, extra)
+        publish_rejects(self.stage, rejects if rejects is not None else self.store.read_table("rejects", self.stage))
+        self.logger.info("%s: %s", title or self.stage, summary)
+        return finished(self.stage, result if result is not None else {**summary, **(extra or {})}, failed, total,
+                        unexpected)

@@ -13,3 +13,7 @@ class StageFailed(RuntimeError):
 
     def __reduce__(self):
         return (type(self), (str(self), self.summary))
+
+
+class RerunError(LookupError):
+    """`rerun` cannot find the utterance or the stage's earlier run; the message says what to run first."""

@@ -11,17 +11,15 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
-from prefect import flow, get_run_logger
+from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 from prefect.futures import as_completed
 
-from visemeflow.flows.params import DEFAULT_STORE, ImportCurvesParams  # noqa: F401 (re-exported)
+from visemeflow.flows.params import DEFAULT_STORE, ImportCurvesParams, ImportCurvesSettings  # noqa: F401 (re-exported)
 from visemeflow.shapes.capture import load_arkit_to_visemes
-from visemeflow.flows.common import finished, replace_stage_rejects
+from visemeflow.flows.common import StageRun, finished, replace_stage_rejects
 from visemeflow.ingest.captured import discover_takes
 from visemeflow.tasks.progress import Progress
-from visemeflow.schemas import C
-from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.import_curves import SOURCE, STAGE, ingested_rows, take_task_for
 
@@ -46,22 +44,17 @@ def _markdown(rows: list[dict], summary: dict) -> str:
 @flow(name="import_curves", flow_run_name="import_curves[{params.takes}]")
 def import_curves_flow(params: ImportCurvesParams):
     """Import every take as an utterance with `captured` curves; unchanged takes are cache hits."""
-    store = Store(params.store)
-    logger = get_run_logger()
-    swept = store.sweep_temporary_files()
-    if swept:
-        logger.info("removed %d temporary files left by killed runs", swept)
     config = params.config
-    store.write_run_config(STAGE, {
-        "takes": str(params.takes.resolve()), "n_shards": params.n_shards,
-        "channel_table": str(params.channel_table.resolve()) if params.channel_table else None,
-        "names": str(params.names.resolve()) if params.names else None, "config": config.model_dump(mode="json"),
-    })
+    run = StageRun(STAGE, params.store, ImportCurvesSettings(
+        takes=str(params.takes.resolve()), n_shards=params.n_shards,
+        channel_table=str(params.channel_table.resolve()) if params.channel_table else None,
+        names=str(params.names.resolve()) if params.names else None, config=config))
+    store, logger = run.store, run.logger
     found = discover_takes(params.takes, channel_table=params.channel_table, names=params.names, fps=config.fps)
     solver = load_arkit_to_visemes()
     takes = [asdict(t) for t in found.takes]
     ingested = ingested_rows(store, [t["utterance_id"] for t in takes]) if takes else {}
-    rejected = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    rejected = run.rejected_before()
     futures = {
         take_task_for(store, take, config.variant, rejected).submit(
             str(store.root), params.n_shards, take, config, solver.digest,

@@ -4,19 +4,19 @@ import pyarrow as pa
 from prefect import flow, get_run_logger
 from prefect.states import Failed, State
 
-from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect, finished, group_by_shard, totals
-from visemeflow.flows.errors import StageFailed
-from visemeflow.flows.params import IngestParams
+from visemeflow.flows.common import StageRun, collect, group_by_shard, totals
+from visemeflow.flows.errors import RerunError, StageFailed
+from visemeflow.flows.params import IngestParams, IngestSettings
 from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
 from visemeflow.ingest.hints import reject_advice, reject_lines
-from visemeflow.schemas import REJECTS, table_from_rows
+from visemeflow.schemas import REJECTS, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.ingest import (
     STAGE,
     captured_shards,
     discover_corpus_task,
+    ingest_one,
     ingest_shard,
     remove_stale_shards,
     shard_files_present,
@@ -34,14 +34,9 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     problem = check_corpus(params.corpus)
     if problem is not None:
         return _no_corpus(problem)
-    store = Store(params.store)
-    swept = store.sweep_temporary_files()
-    if swept:
-        get_run_logger().info("removed %d temporary files left by killed runs", swept)
-    store.write_run_config(STAGE, {
-        "corpus": str(params.corpus.resolve()), "n_shards": params.n_shards,
-        "config": params.config.model_dump(mode="json"),
-    })
+    run = StageRun(STAGE, params.store, IngestSettings(corpus=str(params.corpus.resolve()), n_shards=params.n_shards,
+                                                       config=params.config))
+    store = run.store
     found = discover_corpus_task(str(params.corpus.resolve()))
     if not found["entries"] and not found["rejects"]:
         return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
@@ -59,18 +54,14 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     ]
     store.write_shard("rejects", 0, table_from_rows(discovery_rejects, REJECTS), stage=DISCOVER_STAGE)
     summary = {**totals(reports), "discovery_rejected": len(discovery_rejects), "stale_shards_removed": removed}
-    publish_stage_summary(STAGE, summary)
     rejected = pa.concat_tables([store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE)])
-    publish_rejects(STAGE, rejected)
-    get_run_logger().info("ingest: %s", summary)
     if rejected.num_rows:  # on the terminal even when the run ends Failed and the command prints no hint itself
         rows = rejected.to_pylist()
-        get_run_logger().warning("ingest: %d rejected:\n%s", len(rows),
-                                 "\n".join(reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]))
+        run.logger.warning("ingest: %d rejected:\n%s", len(rows),
+                           "\n".join(reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]))
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
-    failed = len(discovery_rejects) + store.read_table("rejects", STAGE).num_rows
-    return finished(STAGE, summary, failed, len(found["entries"]) + len(discovery_rejects))
+    return run.finish(summary, rejected.num_rows, len(found["entries"]) + len(discovery_rejects), rejects=rejected)
 
 
 def _no_corpus(message: str) -> State:
@@ -78,3 +69,15 @@ def _no_corpus(message: str) -> State:
     get_run_logger().error("ingest: %s", message)
     summary = {"utterances": 0, "discovery_rejected": 0}
     return Failed(message=message, data=StageFailed(f"ingest: {message}", summary))
+
+
+def rerun_one(store: Store, uid: str, last: IngestSettings | None, force: bool) -> dict:
+    """Ingest one utterance of the last ingest run's corpus again, with its settings (`visemeflow rerun`)."""
+    if last is None:
+        raise RerunError(f"{store.root} has no ingest run to repeat; run `visemeflow ingest CORPUS` first")
+    found = discover_corpus_task(last.corpus, only=uid)
+    if not found["entries"]:
+        reasons = "; ".join(r["message"] for r in found["rejects"]) or "no files for it"
+        raise RerunError(f"{uid} is not in the corpus {last.corpus}: {reasons}")
+    task = ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), shard_of(uid, last.n_shards), found["entries"][0], last.config)

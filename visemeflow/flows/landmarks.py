@@ -1,15 +1,15 @@
 """The `landmarks` flow: MediaPipe FaceMesh on every utterance with a video but no landmark file (one task each)."""
 
 
-from prefect import flow, get_run_logger
+from prefect import flow
 
-from visemeflow.flows.params import LandmarksParams  # noqa: F401 (re-exported)
-from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect_utterance_results, finished, replace_stage_rejects
+from visemeflow.flows.errors import RerunError
+from visemeflow.flows.params import LandmarksParams, LandmarksSettings
+from visemeflow.flows.common import StageRun, collect_utterance_results, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.landmarks import STAGE, LandmarksError, landmarks_utterance, provenance
 
 LANDMARK_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS, C.N_FRAMES]
@@ -30,11 +30,11 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
     (none, or found on too few frames) or a detector failure becomes a reject and the rest goes on."""
     if not on_requested_runner(params):
         return run_on_runner(landmarks_flow, params)
-    store = Store(params.store)
     config = params.config
-    store.write_run_config(STAGE, {"n_shards": params.n_shards, "config": config.model_dump(mode="json")})
+    run = StageRun(STAGE, params.store, LandmarksSettings(n_shards=params.n_shards, config=config))
+    store = run.store
     rows = utterances_needing_landmarks(store)
-    rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    rejected_before = run.rejected_before()
     futures, frames = {}, {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
@@ -45,8 +45,7 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
         ).submit(str(store.root), row, config)
         futures[future] = uid
         frames[future] = int(row[C.N_FRAMES] or 0)
-    logger = get_run_logger()
-    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, logger, work=frames)
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, run.logger, work=frames)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {
         "utterances": len(rows), "detected": sum(1 for r in reports if not r["cached"]),
@@ -55,7 +54,26 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
         "frames_without_face": sum(r["frames"] - r["detected_frames"] for r in reports),
         "multi_face": sum(r["multi_face"] for r in reports),
     }
-    publish_stage_summary(STAGE, summary)
-    publish_rejects(STAGE, store.read_table("rejects", STAGE))
-    logger.info("landmarks: %s", summary)
-    return finished(STAGE, summary, len(rejects), len(rows), unexpected)
+    return run.finish(summary, len(rejects), len(rows), unexpected=unexpected)
+
+
+def rerun_one(store: Store, uid: str, last: LandmarksSettings | None, force: bool) -> dict:
+    """Detect one utterance's landmarks again (the last landmarks run's settings, else the defaults). The stage's
+    rejects keep every other utterance's rows; this one's are replaced by the outcome, so a fixed video leaves no
+    stale reject and a still-broken one is listed once."""
+    rows = store.read_table("utterances", utterance_ids=[uid]).select(LANDMARK_FIELDS).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    if not rows[0][C.VIDEO_PATH]:
+        raise RerunError(f"{uid} has no video in {store.root}: there are no landmarks to detect")
+    last = last or LandmarksSettings()
+    others = [r for r in store.read_table("rejects", STAGE).to_pylist() if r[C.UTTERANCE_ID] != uid]
+    task = landmarks_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    try:
+        report = task(str(store.root), rows[0], last.config)
+    except LandmarksError as exc:
+        replace_stage_rejects(store, STAGE, others + [reject_row(uid, STAGE, exc.error_type, str(exc), exc.path)],
+                              last.n_shards)
+        raise
+    replace_stage_rejects(store, STAGE, others, last.n_shards)
+    return report

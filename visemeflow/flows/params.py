@@ -11,6 +11,7 @@ from visemeflow.timebase import DEFAULT_FPS
 from visemeflow.ingest.config import CaptureConfig, IngestConfig
 from visemeflow.learning.augment import AugmentConfig
 from visemeflow.learning.device import DeviceWord, Precision
+from visemeflow.flows.stages import RERUNNABLE
 from visemeflow.learning.config import TrainConfig
 from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
 from visemeflow.schemas.ids import normalize_utterance_id, validate_name
@@ -181,7 +182,7 @@ class RerunParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
-    stage: Literal["ingest", "procedural", "landmarks", "track", "animate"] = Field(
+    stage: Literal[RERUNNABLE] = Field(  # type: ignore[valid-type] (the stages table's rerunnable rows)
         "procedural", description="The stage to rerun.")
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     force: bool = Field(True, description="Recompute even when a cached result is valid.")
@@ -345,3 +346,58 @@ class ImportCurvesParams(BaseModel):
 class LandmarksParams(StoreParams):
     config: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
     runner: RunnerConfig = RunnerField
+
+
+# ---- what a stage last ran with ---------------------------------------------------------------------------------
+
+
+class StageSettings(BaseModel):
+    """What a stage last ran with, kept in the store (`configs/<stage>.json`): `rerun` repeats it for one utterance.
+    Keys another version wrote and this one lacks are ignored; a stage that never ran has none (`last_settings`)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    n_shards: int = Field(8, ge=1, le=4096)
+
+
+class IngestSettings(StageSettings):
+    corpus: str
+    config: IngestConfig = Field(default_factory=IngestConfig)
+
+
+class ProceduralSettings(StageSettings):
+    variant: str | None = None
+    config: ProceduralConfig = Field(default_factory=ProceduralConfig)
+
+
+class LandmarksSettings(StageSettings):
+    config: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
+
+
+class TrackSettings(StageSettings):
+    rig: str | None = None
+    procedural_variant: str | None = None
+    config: TrackingConfig = Field(default_factory=TrackingConfig)
+
+
+class AnimateSettings(StageSettings):
+    characters: list[str]
+    source: str
+    variant: str
+    mapping: str | None = None
+    out: str | None = None
+    config: AnimateConfig = Field(default_factory=AnimateConfig)
+
+
+class ImportCurvesSettings(StageSettings):
+    takes: str
+    channel_table: str | None = None
+    names: str | None = None
+    config: CaptureConfig = Field(default_factory=CaptureConfig)
+
+
+SETTINGS: dict[str, type[StageSettings]] = {
+    "ingest": IngestSettings, "procedural": ProceduralSettings, "landmarks": LandmarksSettings,
+    "track": TrackSettings, "animate": AnimateSettings, "import_curves": ImportCurvesSettings,
+}
+"""Each stage that records its settings, and their type."""

@@ -1,15 +1,15 @@
 """The `procedural` flow: JALI-like viseme curves for every ingested utterance."""
 
-from prefect import flow, get_run_logger
+from prefect import flow
 
-from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect, finished, group_by_shard, totals
-from visemeflow.flows.params import ProceduralParams
-from visemeflow.schemas import C
+from visemeflow.flows.common import StageRun, collect, group_by_shard, totals
+from visemeflow.flows.errors import RerunError
+from visemeflow.flows.params import ProceduralParams, ProceduralSettings
+from visemeflow.schemas import C, shard_of
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
-from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_shard
+from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_one, procedural_shard
 
 UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.N_FRAMES, C.ALIGNMENT_PATH]
 
@@ -24,24 +24,20 @@ def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, 
 @flow(name="procedural", flow_run_name="procedural[{params.store}]")
 def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     """Generate procedural curves shard by shard; utterances whose inputs and config are unchanged are skipped."""
-    store = Store(params.store)
     variant = params.variant or default_variant(params.config)
-    swept = store.sweep_temporary_files()
-    if swept:
-        get_run_logger().info("removed %d temporary files left by killed runs", swept)
-    store.write_run_config(STAGE, {
-        "variant": variant, "n_shards": params.n_shards, "config": params.config.model_dump(mode="json"),
-    })
+    run = StageRun(STAGE, params.store, ProceduralSettings(variant=variant, n_shards=params.n_shards,
+                                                          config=params.config))
+    store = run.store
     # utterances with no alignment (videos without one, captured takes) have no phones to make curves from
     rows = store.read_table("utterances").select(UTTERANCE_FIELDS + [C.ALIGNMENT_FORMAT]).to_pylist()
     unaligned = sorted(r[C.UTTERANCE_ID] for r in rows if not has_alignment(r))
     utterances = [{k: r[k] for k in UTTERANCE_FIELDS} for r in rows if has_alignment(r)]
     if unaligned:
-        get_run_logger().info(
+        run.logger.info(
             "skipped %d utterance(s) without an alignment (no phones to make procedural curves from; a video "
             "without one is tracked unguided): %s%s", len(unaligned), ", ".join(unaligned[:10]),
             " ..." if len(unaligned) > 10 else "")
-    rejected = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    rejected = run.rejected_before()
     shards = group_by_shard(utterances, C.UTTERANCE_ID, params.n_shards)
     futures = [
         procedural_shard.with_options(
@@ -53,10 +49,20 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     reports, errors = collect(futures, STAGE, unit="shards")
     store.delete_shards_except("rejects", set(shards), STAGE)
     summary = {**totals(reports), "skipped_unaligned": len(unaligned)}
-    publish_stage_summary(STAGE, summary, {"variant": variant})
-    publish_rejects(STAGE, store.read_table("rejects", STAGE))
-    get_run_logger().info("procedural (%s): %s", variant, summary)
     if errors:
         raise RuntimeError(f"procedural: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
-    failed = store.read_table("rejects", STAGE).num_rows
-    return finished(STAGE, {**summary, "variant": variant}, failed, sum(len(items) for items in shards.values()))
+    rejected = store.read_table("rejects", STAGE)
+    return run.finish(summary, rejected.num_rows, sum(len(items) for items in shards.values()),
+                      extra={"variant": variant}, rejects=rejected, title=f"procedural ({variant})")
+
+
+def rerun_one(store: Store, uid: str, last: ProceduralSettings | None, force: bool) -> dict:
+    """One utterance's procedural curves again, with the last procedural run's settings (else the defaults)."""
+    last = last or ProceduralSettings()
+    variant = last.variant or default_variant(last.config)
+    rows = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    utterance = {k: rows[0][k] for k in UTTERANCE_FIELDS}
+    task = procedural_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), shard_of(uid, last.n_shards), utterance, last.config, variant)

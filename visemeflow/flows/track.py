@@ -5,11 +5,11 @@ counts them (`unguided`) and says why (`unguided_why`)."""
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger
+from prefect import flow
 
-from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
-from visemeflow.flows.common import collect_utterance_results, finished, replace_stage_rejects
-from visemeflow.flows.params import TrackParams
+from visemeflow.flows.common import StageRun, collect_utterance_results, last_settings, replace_stage_rejects
+from visemeflow.flows.errors import RerunError
+from visemeflow.flows.params import TrackParams, TrackSettings
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
@@ -35,9 +35,9 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
     """The procedural curves that guide tracking: as given, else those the procedural stage last wrote."""
     if given:
         return given
-    run = store.read_run_config("procedural")
-    if run and run.get("variant"):
-        return run["variant"]
+    last = last_settings(store, "procedural")
+    if last is not None and last.variant:
+        return last.variant
     from visemeflow.procedural import ProceduralConfig
 
     return default_variant(ProceduralConfig())
@@ -57,18 +57,16 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     """Track every utterance that has a video; failures become rejects and the rest goes on."""
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow
         return run_on_runner(track_flow, params)
-    store = Store(params.store)
     rig_path, rig_hash = rig_and_hash(params.rig)
-    procedural_variant = procedural_variant_of(store, params.procedural_variant)
+    procedural_variant = procedural_variant_of(Store(params.store), params.procedural_variant)
     config = params.config
-    store.write_run_config(STAGE, {
-        "rig": str(rig_path), "procedural_variant": procedural_variant, "n_shards": params.n_shards,
-        "config": config.model_dump(mode="json"),
-    })
+    run = StageRun(STAGE, params.store, TrackSettings(rig=str(rig_path), procedural_variant=procedural_variant,
+                                                      n_shards=params.n_shards, config=config))
+    store = run.store
     rows = [r for r in store.read_table("utterances").select(TRACK_FIELDS).to_pylist() if r[C.VIDEO_PATH]]
     # longest videos first: with n workers the run then ends on short utterances, not on one long one
     rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
-    rejected_before = set(store.read_table("rejects", STAGE).column(C.UTTERANCE_ID).to_pylist())
+    rejected_before = run.rejected_before()
     futures, frames = {}, {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
@@ -81,8 +79,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
         futures[future] = uid
         frames[future] = int(row[C.N_FRAMES] or 0)
-    logger = get_run_logger()
-    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, logger, work=frames)
+    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, run.logger, work=frames)
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     unguided = [r for r in reports if not r.get("guided", True)]
@@ -96,7 +93,18 @@ def track_flow(params: TrackParams) -> dict[str, object]:
              "variants": ", ".join(sorted({r["variant"] for r in reports})) or None,
              "unguided_why": unguided_why(unguided),
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
-    publish_stage_summary(STAGE, summary, extra)
-    publish_rejects(STAGE, store.read_table("rejects", STAGE))
-    logger.info("track (%s): %s", extra["variants"] or config.variant, summary)  # the modes used, not the one asked
-    return finished(STAGE, {**summary, **extra}, len(rejects), len(rows), unexpected)
+    return run.finish(summary, len(rejects), len(rows), extra=extra, unexpected=unexpected,
+                      title=f"track ({extra['variants'] or config.variant})")  # the modes used, not the one asked
+
+
+def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -> dict:
+    """Track one utterance again, with the last track run's settings (else the defaults)."""
+    rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
+    if not rows:
+        raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    last = last or TrackSettings()
+    rig_path, rig_hash = rig_and_hash(Path(last.rig) if last.rig else None)
+    variant = procedural_variant_of(store, last.procedural_variant)
+    provenance = store.curves_provenance(PROCEDURAL, variant, uid) or ""
+    task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=force)
+    return task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash, last.config)
