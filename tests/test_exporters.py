@@ -1,4 +1,4 @@
-"""Export formats are records of one table (`visemeflow.animation.package.EXPORTERS`): the config's format check,
+"""Export formats are records of one table (`visemeflow.animation.formats.EXPORTERS`): the config's format check,
 the package's file names and the writers all read it, so a new format is its writer and one `register_exporter`
 call. This file adds one (`test-npy`: the shape weights as a NumPy array) and animates with it."""
 
@@ -61,10 +61,3 @@ def test_the_table_refuses_what_it_cannot_write():
         AnimateConfig(formats="pose-csv")
     assert set(bone_only_formats()) == {"pose-csv", "pose-json"}
 
-
-def test_the_formats_help_names_every_built_in_format():
-    """`AnimateConfig.formats`' help (the CLI's and the UI's) is written beside the config, apart from the table."""
-    from visemeflow.animation.config import FORMATS_HELP
-
-    names = {name for name in EXPORTERS if name != NPY.name}
-    assert names and all(f" {name}" in FORMATS_HELP for name in names), (names, FORMATS_HELP)

@@ -541,3 +541,69 @@ def test_the_preview_command_puts_the_tracked_videos_face_first_and_leaves_it_ou
     assert "fps; ground truth (cm); rendered" in output and width == SIZE
     output, frames, width = preview("spk/u1", "tracked,ground_truth", "none.mp4")
     assert "fps; tracked (v1), ground truth (cm); rendered" in output and width == 2 * SIZE
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_animate_preview_shows_the_utterances_video_beside_the_character_and_the_character_alone_otherwise(
+        tmp_path):
+    """`animate --preview`: the package MP4 of an utterance with a video has the video's face crop as its first
+    panel (the `preview` command's panel, in sync: the curves' 25 fps grid is the clip's), two panels wide; one
+    without a video has the character alone, as before; one whose video cannot be read too, with a warning. The
+    utterance's content hash is in the task's cache key: a re-ingested video renders the package again."""
+    from factories import make_curve_store
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.flows.animate import AnimateParams, animate_flow
+    from visemeflow.rig.character import save_character_npz
+    from visemeflow.schemas import UTTERANCES, C, curves_array, curves_table, table_from_rows
+    from visemeflow.shapes.conventions import OCULUS_15
+    from visemeflow.tracking.landmarks import write_landmarks
+    from visemeflow.tracking.video import read_timed_frames
+
+    store = make_curve_store(tmp_path / "store", n=3)
+    video = patterned_video(tmp_path / "u0.mp4", n=12)
+    marks = write_landmarks(corner_landmarks(12), tmp_path / "u0.landmarks.csv")
+    broken = tmp_path / "u2.mp4"
+    broken.write_bytes(b"not a video at all" * 100)
+    rows = store.read_table("utterances").to_pylist()
+    rows[0][C.VIDEO_PATH], rows[0][C.LANDMARK_PATH] = str(video), str(marks)
+    rows[2][C.VIDEO_PATH] = str(broken)
+    store.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    for uid in ("spk/u0", "spk/u1", "spk/u2"):
+        curves = curves_array(store.read_curves(uid, "ground_truth", "cm"))[:12]   # as long as the clip
+        store.write_curves(curves_table(uid, "tracked", "v1", curves, 25.0))
+    grid = grid_character(8)
+    deltas = np.random.default_rng(0).normal(0.0, 0.05, (len(OCULUS_15), grid.n_vertices, 3))
+    character = save_character_npz(make_character("grid", grid.neutral, grid.faces, list(OCULUS_15), deltas),
+                                   tmp_path / "grid.npz")
+    params = AnimateParams(store=store.root, characters=[character], source="tracked", variant="v1",
+                           config=AnimateConfig(formats=("curves-csv",), preview=True))
+    result = animate_flow(params)
+    assert result["written"] == 3 and result["rejected"] == 0
+    reports = {r["utterance_id"]: r for r in result["packages_written"]}
+    size = 360   # the package preview's panel side
+    layout = PreviewFrames(grid_character(), {"x": np.zeros((1, 2), np.float32)}, 25, size=size, title="t")
+
+    frames, width = decode_video_only(reports["spk/u0"]["files"]["preview"])
+    assert width == 2 * size and len(frames) == 25 and reports["spk/u0"]["warnings"] == []
+    label = frames[0][layout.label_box(0)]
+    assert diff(label, layout.painter.band("video", size, layout.label_height)) < 3.0
+    decoded, _ = read_timed_frames(video)
+    for k in (1, 6, 11):   # frame k shows decoded frame k's face crop, the mouth dots on its corners
+        panel = frames[k][layout.panel_box(0)]
+        d = [diff(panel, expected_crop(f, 35, 25, 70, size)) for f in decoded]
+        assert int(np.argmin(d)) == k and d[k] < 10.0 and d[k] < 0.5 * min(d[:k] + d[k + 1:]), (k, d)
+    # the character's panel is the right one: nothing of the clip there
+    assert min(diff(frames[6][layout.panel_box(1)], expected_crop(f, 35, 25, 70, size)) for f in decoded) > 20.0
+
+    frames, width = decode_video_only(reports["spk/u1"]["files"]["preview"])
+    assert width == size and reports["spk/u1"]["warnings"] == []
+    frames, width = decode_video_only(reports["spk/u2"]["files"]["preview"])
+    (warning,) = reports["spk/u2"]["warnings"]
+    assert width == size and "character alone" in warning and str(broken) in warning and "unreadable" in warning
+
+    rows[0][C.CONTENT_HASH] = "re-ingested"   # the others' packages are cache hits, u0's is rendered again
+    store.write_shard("utterances", 0, table_from_rows(rows, UTTERANCES))
+    again = animate_flow(params)
+    assert again["written"] == 1 and [r["utterance_id"] for r in again["packages_written"] if not r["cached"]] == \
+        ["spk/u0"]

@@ -3,7 +3,7 @@
 - `load`: a character from a file (GLB/glTF, npz, mesh folder); the `Character` type is `rig.character`'s and the
   naming conventions are `shapes.conventions` (both re-exported here).
 - `apply`: curve checks, resampling to another rate, chunked deformation to vertices; `lips`: the lip gap on the mesh.
-- exporters, one table of them in `package` (`EXPORTERS`): `gltf_asset` (GLB), `usd` (UsdSkel), Live Link CSV
+- exporters, one table of them in `formats` (`EXPORTERS`, written through by `package`): `gltf_asset` (GLB), `usd` (UsdSkel), Live Link CSV
   (`shapes.livelink`), `webjson` (TalkingHead), `export` (the 16 curves as CSV/JSON); `package` writes one
   utterance's set of them with the audio beside.
 - `preview`: side-by-side MP4 previews (H.264 + AAC) drawn with the rasteriser of `render.raster`.

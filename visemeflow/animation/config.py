@@ -1,15 +1,16 @@
 """What to export for each (utterance, character) (`AnimateConfig`), apart from the exporters, so that reading it
-(the CLI's options, the animate flow's parameters) imports no exporter; its checks look the formats up in
-`animation.package.EXPORTERS` when a config is made."""
+(the CLI's options, the animate flow's parameters) imports no exporter; its checks read the table of formats
+(`animation.formats.EXPORTERS`), which imports no writer."""
 
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from visemeflow.animation.formats import EXPORTERS, bone_only_formats
+
 DEFAULT_FORMATS: tuple[str, ...] = ("glb", "usd", "livelink", "json")
-# every name of animation.package.EXPORTERS (tests/test_exporters.py holds them equal)
-FORMATS_HELP = ("Export formats, any of glb, usd, livelink, json, curves-csv, curves-json; in bone mode also pose-csv, "
-                "pose-json.")
+FORMATS_HELP = (f"Export formats, any of {', '.join(n for n in EXPORTERS if n not in bone_only_formats())}; in bone "
+                f"mode also {', '.join(bone_only_formats())}.")
 
 
 class AnimateConfig(BaseModel):
@@ -38,8 +39,6 @@ class AnimateConfig(BaseModel):
 
     @model_validator(mode="after")
     def _pose_tables_need_bones(self):
-        from visemeflow.animation.package import EXPORTERS
-
         poses = [f for f in self.formats if EXPORTERS[f].write is None]
         if poses and self.mode != "bones":
             raise ValueError(f"{', '.join(poses)} are bone-mode formats: add --mode bones")
@@ -48,8 +47,6 @@ class AnimateConfig(BaseModel):
     @field_validator("formats", mode="before")
     @classmethod
     def _known_formats(cls, value):
-        from visemeflow.animation.package import EXPORTERS
-
         if isinstance(value, str):
             value = [f.strip() for f in value.split(",") if f.strip()]
         unknown = [f for f in value if f not in EXPORTERS]

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,107 +45,21 @@ import numpy as np
 import soundfile as sf
 
 from visemeflow.animation.apply import check_curves, resample
-from visemeflow.animation.config import AnimateConfig  # re-exported here
+from visemeflow.animation.config import DEFAULT_FORMATS, AnimateConfig  # noqa: F401 (re-exported here)
+from visemeflow.animation.formats import (  # noqa: F401 (re-exported here: the table of formats)
+    EXPORTERS,
+    Exporter,
+    ExportTarget,
+    bone_only_formats,
+    export_formats,
+    register_exporter,
+)
 from visemeflow.articulation import close_lips
 from visemeflow.animation.bones import BONE_FORMATS, BONE_SUFFIXES, DEFAULT_BONES, BoneRig, solve_bones, \
     write_pose_table
 from visemeflow.rig.character import Character
-from visemeflow.shapes.conventions import Binding, arkit_weights
-from visemeflow.animation.export import CurveTrack, write_export
+from visemeflow.shapes.conventions import Binding
 from visemeflow.atomic import atomic_path
-
-@dataclass(frozen=True)
-class ExportTarget:
-    """What a blendshape-mode writer gets: the file to write and one package's played curves (T, 16) and shape
-    weights (T, shapes) at `fps` on `character`."""
-
-    path: Path
-    character: Character
-    curves: np.ndarray
-    weights: np.ndarray
-    fps: float
-    stem: str
-    utterance_id: str
-
-
-@dataclass(frozen=True)
-class Exporter:
-    """One export format: its name (`--format`), the suffix of its file in blendshape mode and the writer of it
-    (None: a bone-mode-only format), and the suffix bone mode writes it under (None: not written in bone mode;
-    bone-mode files come from the solved bone rig, `export_bone_animation`)."""
-
-    name: str
-    suffix: str | None
-    write: Callable[[ExportTarget], None] | None
-    bone_suffix: str | None = None
-
-
-def _glb(t: ExportTarget) -> None:
-    from visemeflow.animation.gltf_asset import write_character_glb
-
-    write_character_glb(t.path, t.character, t.weights, t.fps, name=t.stem)
-
-
-def _usd(t: ExportTarget) -> None:
-    from visemeflow.animation.usd import write_usd
-
-    write_usd(t.path, t.character, t.weights, t.fps, name=t.stem)
-
-
-def _livelink(t: ExportTarget) -> None:
-    from visemeflow.shapes.livelink import write_livelink_csv
-
-    write_livelink_csv(t.path, arkit_weights(t.curves), t.fps)
-
-
-def _web_json(t: ExportTarget) -> None:
-    from visemeflow.animation.webjson import write_web_json
-
-    write_web_json(t.path, t.character.shape_names, t.weights, t.fps, name=t.stem)
-
-
-def _curve_table(kind: str) -> Callable[[ExportTarget], None]:
-    def write(t: ExportTarget) -> None:
-        n = len(t.curves)
-        write_export(CurveTrack(t.utterance_id, "", "", t.curves, np.arange(n) / t.fps, np.arange(n)), t.path, kind)
-    return write
-
-
-EXPORTERS: dict[str, Exporter] = {}
-"""Every export format, by name: `AnimateConfig.formats`, the package paths and the writers all read this table."""
-
-
-def register_exporter(exporter: Exporter) -> Exporter:
-    """Add an export format (a new one is its writer and this one call); another format under a taken name is
-    refused."""
-    if EXPORTERS.get(exporter.name, exporter) != exporter:
-        raise ValueError(f"export format {exporter.name!r} is already registered")
-    if exporter.suffix is None and exporter.bone_suffix is None:
-        raise ValueError(f"export format {exporter.name!r} has no suffix in either mode")
-    if (exporter.suffix is None) != (exporter.write is None):
-        raise ValueError(f"export format {exporter.name!r}: a blendshape-mode suffix needs a writer and vice versa")
-    EXPORTERS[exporter.name] = exporter
-    return exporter
-
-
-for _e in (Exporter("glb", ".glb", _glb, ".bones.glb"), Exporter("usd", ".usd", _usd, ".bones.usd"),
-           Exporter("livelink", ".livelink.csv", _livelink), Exporter("json", ".web.json", _web_json),
-           Exporter("curves-csv", ".curves.csv", _curve_table("csv")),
-           Exporter("curves-json", ".curves.json", _curve_table("json")),
-           Exporter("pose-csv", None, None, ".poses.csv"), Exporter("pose-json", None, None, ".poses.json")):
-    register_exporter(_e)
-
-
-
-def export_formats() -> tuple[str, ...]:
-    """The names of every registered export format."""
-    return tuple(EXPORTERS)
-
-
-def bone_only_formats() -> tuple[str, ...]:
-    """Formats written only in bone mode (the pose tables)."""
-    return tuple(name for name, e in EXPORTERS.items() if e.write is None)
-
 
 class ExportWriteError(Exception):
     """An export file that could not be written (disk full, no permission, ...): names that file, not the inputs."""

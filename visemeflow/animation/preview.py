@@ -49,7 +49,8 @@ not one that jitters with each detection): the box of the landmarks that `framin
 or the whole face), over all frames, widened as the rig panels are; without landmarks, the frame's central square.
 The tracked mouth landmarks are drawn on it (`VideoSource.overlay`). The video is decoded one frame at a time as the
 preview is written, never held whole; a missing or unreadable video leaves a panel that says so, and the preview
-renders.
+renders (`PreviewReport.video_problem` says why). A caller that would rather leave the panel out than show such a
+message (the animate task's package preview) asks `video_problem(path)` first.
 
 Timing: frame k shows weights row k and the phone under way at time k / fps (`visemeflow.timebase`'s clock).
 """
@@ -87,7 +88,7 @@ if TYPE_CHECKING:
     from visemeflow.animation.bones import BoneRig
 
 __all__ = ["BoneSource", "PreviewFrames", "PreviewReport", "TextPainter", "VideoSource", "preview_camera",
-           "render_preview", "video_source"]
+           "render_preview", "video_problem", "video_source"]
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +130,9 @@ class PreviewReport:
     """frames / seconds_render."""
     replaced_characters: str = ""
     """Characters of the title, labels or phones that no available font could draw (shown as "�" or "?")."""
+    video_problem: str = ""
+    """Why the video panel shows a message instead of (some of) the source video's frames; "" when it shows them
+    all, or there is no video panel."""
 
 
 # ----------------------------------------------------------------------------------------------------------- text
@@ -498,6 +502,29 @@ def video_source(video_path: str | os.PathLike | None, landmark_path: str | os.P
     return VideoSource(video_path, landmarks, overlay)
 
 
+def video_problem(path: str | os.PathLike | None) -> str | None:
+    """Why the video at `path` cannot be shown ("no video file", "video not found: <path>", "video unreadable:
+    <path>: <reason>"); None when its first frame decodes (only that frame is decoded)."""
+    if not path:
+        return "no video file"
+    path = Path(path)
+    if not path.is_file():
+        return f"video not found: {path}"
+    frames = iter_timed_frames(path)
+    try:
+        next(frames)
+    except (VideoError, OSError, av.FFmpegError) as exc:
+        return f"video unreadable: {_naming(path, exc)}"
+    finally:
+        frames.close()
+    return None
+
+
+def _naming(path: Path, exc: BaseException) -> str:
+    """The error's message, starting with the file's name unless it names it already."""
+    return str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+
+
 def _crop_square(landmarks: LandmarkTrack | None, framing: str) -> tuple[float, float, float] | None:
     """(centre x, centre y, side) in video pixels of the fixed face crop; None without any usable landmark."""
     if landmarks is None:
@@ -539,6 +566,8 @@ class _VideoPanel:
         self.source, self.size, self.painter = source, size, painter
         self.square = _crop_square(source.landmarks, framing)
         self.mouth = mouth_keypoint_ids()
+        self.problem = ""
+        """Why the panel shows a message instead of (some) frames; "" while it shows them."""
 
     def box(self, height: int, width: int) -> tuple[int, int, int]:
         """(left, top, side) in whole pixels of the crop in a `height` x `width` frame (may reach past its edges)."""
@@ -581,11 +610,13 @@ class _VideoPanel:
         """The panel for each of the n preview frames, streamed; a message panel where there is no picture."""
         path = self.source.path
         if not path:
+            self.problem = "no video file"
             yield from (self.message("no video file") for _ in range(n))
             return
         path = Path(path)
         if not path.is_file():
             log.warning("%s: the preview's video panel has no video (file not found)", path)
+            self.problem = f"video not found: {path}"
             yield from (self.message("video not found") for _ in range(n))
             return
         k = 0
@@ -597,6 +628,7 @@ class _VideoPanel:
                 k += 1
         except (VideoError, OSError, av.FFmpegError) as exc:
             log.warning("%s: the preview's video panel stops at frame %d: %s", path, k, exc)
+            self.problem = f"video unreadable from preview frame {k} on: {_naming(path, exc)}"
             yield from (self.message("video unreadable") for _ in range(n - k))
 
 
@@ -839,4 +871,5 @@ def render_preview(
     if replaced:
         log.info("%s: no font for %r in the preview's text; drawn as replacement marks", path, replaced)
     return PreviewReport(path, n_frames, rate, frames.width, frames.height, seconds,
-                         n_frames / seconds if seconds > 0 else 0.0, replaced)
+                         n_frames / seconds if seconds > 0 else 0.0, replaced,
+                         frames.video.problem if frames.video is not None else "")

@@ -5,6 +5,12 @@ Cached on what decides the files: the curves' provenance, the character file's a
 the audio's content hash, the export config and the output folder. Each package records those inputs in
 `.inputs.json` beside its files, written last: a cache hit is used only while every file is there and that record
 matches (a package another character of the same name wrote since, or one a kill left half written, recomputes).
+
+The preview of an utterance with a video (tracked curves of a video utterance, or any other source of one) shows
+the source video's face crop beside the character, as `visemeflow preview` does (`preview_video`); its cache key
+then also holds the utterance's content hash (which covers the video and a landmark file beside it) and the
+provenance of the landmarks the `landmarks` stage stored, when the crop comes from those (`PreviewVideoKey`). A video
+that cannot be read leaves the preview to the character alone, with a warning in the report (`warnings`).
 """
 
 from __future__ import annotations
@@ -14,11 +20,14 @@ import json
 import re
 from collections import defaultdict
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from prefect import get_run_logger, task
-from prefect.cache_policies import TASK_SOURCE, Inputs
+from prefect.cache_policies import TASK_SOURCE, CachePolicy, Inputs
+from prefect.context import TaskRunContext
 
 from visemeflow.animation.apply import CurvesError
 from visemeflow.rig.character import Character, CharacterError
@@ -29,14 +38,51 @@ from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
+from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
+NO_VIDEO_KEY = "no video"
+
+
+def _video_row(store: Store, utterance_id: str) -> dict | None:
+    """The utterance's row (id, content hash, video, landmark file, fps) when it has a video; None otherwise (no
+    row: an audio file `speak` predicted from)."""
+    rows = store.read_table("utterances", utterance_ids=[utterance_id]).select(
+        [C.UTTERANCE_ID, C.CONTENT_HASH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS]).to_pylist()
+    return rows[0] if rows and rows[0][C.VIDEO_PATH] else None
+
+
+def preview_video_key(store: Store, utterance_id: str) -> str:
+    """What the preview's video panel is made from: the utterance's content hash (its video, and a landmark file
+    beside it) and the provenance of the stored landmarks when the crop comes from those; `NO_VIDEO_KEY` without
+    a video."""
+    row = _video_row(store, utterance_id)
+    if row is None:
+        return NO_VIDEO_KEY
+    stored = None if row[C.LANDMARK_PATH] else store.landmarks_provenance(utterance_id)
+    return stable_hash(row[C.CONTENT_HASH], stored)
+
+
+@dataclass
+class PreviewVideoKey(CachePolicy):
+    """The animate task's key part for the preview's video panel (`preview_video_key`); a constant without a
+    preview, so only packages that render one read the utterances table for it."""
+
+    def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any],
+                    **kwargs: Any) -> str:
+        config = inputs.get("config")
+        if not getattr(config, "preview", False):
+            return "no preview"
+        return preview_video_key(Store(inputs["store_root"]), inputs["utterance_id"])
+
+
 # keyed on content hashes, not on where the character, mapping and audio files lie
-ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE + CODE
+ANIMATE_CACHE_POLICY = Inputs(exclude=["character_path", "mapping_path", "audio_path"]) + TASK_SOURCE + CODE \
+    + PreviewVideoKey()
 
 
 class AnimateError(ValueError):
@@ -110,6 +156,25 @@ def package_inputs(utterance_id: str, source: str, variant: str, provenance: str
             "code": code_digest(__name__)}
 
 
+def preview_video(store: Store, utterance_id: str):
+    """(the `VideoSource` of the package preview's video panel, or None; why there is none, or None): the
+    utterance's video cropped to the face by its landmarks, the panel `visemeflow preview` shows (`video_source`).
+    (None, None) for an utterance without a video; (None, reason) for one whose video cannot be read, so the preview
+    shows the character alone rather than a panel that says so."""
+    row = _video_row(store, utterance_id)
+    if row is None:
+        return None, None
+    from visemeflow.animation.preview import video_problem, video_source
+
+    problem = video_problem(row[C.VIDEO_PATH])
+    if problem:
+        return None, f"the preview shows the character alone: {problem}"
+    # the tracker's landmarks (`tasks.track.landmark_file`'s rule; not imported: its module would put the solver's
+    # code in this task's digest): the file beside the video, else the `landmarks` stage's
+    stored = store.landmark_path(utterance_id) if store.has_landmarks(utterance_id) else None
+    return video_source(row[C.VIDEO_PATH], row[C.LANDMARK_PATH] or stored, row[C.FPS]), None
+
+
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
     """The folder of one (utterance, character) package: under `out` if given, else in the store."""
     folder = store.animation_dir(character, utterance_id)
@@ -151,6 +216,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     files = dict(package.files)
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
+    warnings = []
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 
@@ -158,16 +224,19 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
             panels = {"blendshapes": panels[f"{source} ({variant})"],
                       f"{config.bones} bones": BoneSource(bone_rig(character, binding, config.bones), played)}
+        video, why = preview_video(store, utterance_id)   # the footage beside the character, when there is one
+        warnings += [why] if why else []
         path = folder / f"{stem}.mp4"
-        render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
-                       title=f"{utterance_id} - {character.name}")
+        shown = render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
+                               title=f"{utterance_id} - {character.name}", video=video)
+        warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
     seconds = time.perf_counter() - started
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
             "meshes": [part.name for part in character.parts],
             "folder": str(folder), "files": files, "frames": package.frames, "fps": package.fps,
             "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4),
-            "lips": lips}
+            "lips": lips, "warnings": warnings}
 
 
 @task(cache_policy=DataOnlyCache(policy=ANIMATE_CACHE_POLICY), persist_result=True, result_serializer=RESULT_SERIALIZER,
@@ -184,8 +253,11 @@ def animate_one(store_root: str, utterance_id: str, source: str, variant: str, p
                             audio_hash, phones)
     with atomic_path(Path(report["folder"]) / INPUTS_FILE) as tmp:
         tmp.write_text(json.dumps(inputs, sort_keys=True), encoding="utf-8")
-    get_run_logger().info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"],
-                          report["fps"], ", ".join(report["files"]))
+    logger = get_run_logger()
+    logger.info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"], report["fps"],
+                ", ".join(report["files"]))
+    for warning in report["warnings"]:
+        logger.warning("%s -> %s: %s", utterance_id, character_name, warning)
     return report
 
 
