@@ -65,3 +65,67 @@ def test_no_test_module_imports_another():
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             found += [f"{path.name} imports {n}" for n in names if n.startswith("test_")]
     assert not found, found
+
+
+def test_a_new_stage_is_its_flow_its_params_its_row_and_its_command(tmp_path, monkeypatch):
+    """The four places a new stage is written (docs/reference.md, "Extending it"): serve's deployments,
+    prefect.yaml, rerun and the command follow from them, nothing else is edited."""
+    import inspect
+    import textwrap
+
+    import typer
+    from typer.testing import CliRunner
+
+    from visemeflow.cli.options import Opt, stage_command
+    from visemeflow.flows.stages import STAGES, Stage
+    from visemeflow.ops import serve
+
+    # 1 and 2: the flow module and its params model (flows/params.py in the package)
+    (tmp_path / "toy_stage.py").write_text(textwrap.dedent('''
+        from pathlib import Path
+
+        from prefect import flow
+        from pydantic import BaseModel, Field
+
+
+        class ToyParams(BaseModel):
+            store: Path = Field(Path("visemeflow-out/store"), description="Folder of the Parquet store.")
+            level: int = Field(3, ge=0, description="How loud.")
+
+
+        @flow(name="toy")
+        def toy_flow(params: ToyParams) -> dict:
+            return {"level": params.level}
+
+
+        def rerun_one(store, uid, last, force):
+            return {"uid": uid, "force": force}
+    '''))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import toy_stage
+
+    # 3: its row in the stage table
+    row = Stage("toy", "toy_stage", "toy_flow", "A toy stage.", rerun=True)
+    monkeypatch.setattr(serve, "STAGES", (*STAGES, row))
+    monkeypatch.setitem(serve.SERVED_FLOWS, "toy_flow", "toy_stage")
+    yaml_text = serve.render_prefect_yaml()
+    assert "entrypoint: visemeflow/ops/pool.py:toy_flow" in yaml_text and "description: A toy stage." in yaml_text
+    assert list(inspect.signature(serve.pool_flow("toy_flow")).parameters) == ["store", "level"]   # flat
+    deployments = serve.build_deployments(tmp_path / "store", None)
+    assert [d.name for d in deployments].count("served") == len(STAGES) + 1
+    assert row.rerun_one()(None, "spk/a", None, True) == {"uid": "spk/a", "force": True}
+
+    # 4: its command
+    app = typer.Typer()
+    ran = []
+
+    @app.callback()
+    def main() -> None:
+        pass
+
+    @stage_command(app, toy_stage.ToyParams, [Opt("store"), Opt("level")])
+    def toy(params) -> None:
+        """A toy stage."""
+        ran.append(params.level)
+
+    assert CliRunner().invoke(app, ["toy", "--level", "5"]).exit_code == 0 and ran == [5]
