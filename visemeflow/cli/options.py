@@ -178,12 +178,12 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
     return _Resolved(opt, annotation, default, text, is_list, choices)
 
 
-def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None) -> Callable[..., Any]:
-    """A callback refusing a value (or a comma-separated item) outside a Literal's choices in one line, exit 2,
-    before any flow starts; then the option's own callback."""
+def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None, listed: bool) -> Callable[..., Any]:
+    """A callback refusing a value (or, for a list, a comma-separated item) outside a Literal's choices in one line,
+    exit 2, before any flow starts; then the option's own callback."""
     def check(ctx: typer.Context, value: Any) -> Any:
         if not ctx.resilient_parsing and value is not None:
-            items = value.split(",") if isinstance(value, str) else value if isinstance(value, list) else [value]
+            items = value if isinstance(value, list) else value.split(",") if listed else [value]
             wrong = [str(v).strip() for v in items if str(v).strip() not in choices]
             if wrong:
                 typer.echo(f"error: {flag} must be one of {', '.join(choices)}, not {wrong[0]!r}", err=True)
@@ -194,7 +194,7 @@ def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None
 
 def _typer_param(r: _Resolved) -> inspect.Parameter:
     opt = r.opt
-    callback = _one_of(opt.flag_name, r.choices, opt.callback) if r.choices else opt.callback
+    callback = _one_of(opt.flag_name, r.choices, opt.callback, r.is_list) if r.choices else opt.callback
     if opt.argument:
         info = typer.Argument(help=r.help, callback=callback, **opt.extra)
     else:
