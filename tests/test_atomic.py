@@ -1,6 +1,7 @@
 """Atomic writes (`visemeflow.atomic`): concurrent writers of one file, killed writers, failing writers."""
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -18,7 +19,9 @@ from visemeflow.atomic import (
     atomic_write_text,
     is_temporary_name,
     temporary_path,
+    temporary_writer,
     temporary_writer_pid,
+    this_machine,
 )
 from visemeflow.ops.clean import clean, reclaimable
 from visemeflow.storage import Store
@@ -35,6 +38,7 @@ def test_temporary_names_are_unique_and_recognised(tmp_path):
     name = temporary_path(target, keep_suffix=True).name
     assert name.startswith(".sweep-a.png.") and name.endswith(".tmp.png")
     assert temporary_writer_pid(name) == os.getpid() and is_temporary_name(name)
+    assert temporary_writer(name) == (os.getpid(), this_machine())
     assert temporary_writer_pid(temporary_path(tmp_path / "x.parquet").name) == os.getpid()
     for legacy in (".robustness.md.tmp", ".last.pt.k2j4_x9a.tmp", ".u1.4242.tmp.mp4"):
         assert is_temporary_name(legacy) and temporary_writer_pid(legacy) is None
@@ -216,12 +220,18 @@ def test_clean_temporary_finds_suffixed_and_legacy_leftovers_but_not_live_ones(t
         "reports/.robustness.csv.%d.0a1b2c3d.tmp" % os.getpid(): False,          # a live writer (this one)
         "reports/.fresh.md.tmp": False,                                         # no pid and young: maybe live
         "reports/robustness.md": False,                                         # data
+        # a store on a folder several machines share: the pids of this machine's writers are judged here, another
+        # machine's writer (its pid dead or alive here, it means nothing) only by the file's age
+        f"tables/.shard-0001.parquet.{dead.pid}-{this_machine()}.0a1b2c3d.tmp": True,   # dead writer of this one
+        f"tables/.shard-0002.parquet.{os.getpid()}-{this_machine()}.0a1b2c3d.tmp": False,   # live writer here
+        f"tables/.shard-0003.parquet.{dead.pid}-0badf00d.0a1b2c3d.tmp": False,   # another machine's, young
+        f"tables/.shard-0004.parquet.{dead.pid}-0badf00d.0a1b2c3d.tmp.png": True,   # another machine's, old
     }
     old = time.time() - 2 * 3600
     for rel in files:
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_bytes(b"x")
-        if rel.endswith(("robustness.md.tmp", "k2j4_x9a.tmp")):
+        if rel.endswith(("robustness.md.tmp", "k2j4_x9a.tmp", "0badf00d.0a1b2c3d.tmp.png")):
             os.utime(tmp_path / rel, (old, old))
     found = {str(p.relative_to(tmp_path.resolve())) for p in store.stale_temporary_files()}
     assert found == {rel for rel, stale in files.items() if stale}
@@ -240,3 +250,21 @@ def test_fsync_of_file_and_folder_by_default_and_off_by_environment(tmp_path, mo
     monkeypatch.setenv("VISEMEFLOW_FSYNC", "0")
     atomic_write_text(path, "y")
     assert synced == [] and path.read_text() == "y"
+
+
+def test_the_machine_of_a_pid_differs_between_pid_namespaces():
+    """Two containers on one host share the kernel's boot id but not their pids: the machine token tells them
+    apart (a child in a new pid namespace, where unshare is allowed; else the token is at least stable)."""
+    import shutil
+
+    here = this_machine()
+    assert re.fullmatch(r"[0-9a-f]{8}", here) and this_machine() == here
+    unshare = shutil.which("unshare")
+    if unshare is None or os.geteuid() != 0:
+        pytest.skip("needs unshare as root to make a pid namespace")
+    code = "from visemeflow.atomic import this_machine; print(this_machine())"
+    done = subprocess.run([unshare, "--pid", "--fork", "--mount-proc", sys.executable, "-c", code],
+                          capture_output=True, text=True, timeout=60)
+    if done.returncode != 0:
+        pytest.skip(f"unshare refused here (a restricted container): {done.stderr.strip()[:200]}")
+    assert done.stdout.strip() != here

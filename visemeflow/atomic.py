@@ -7,12 +7,15 @@ most its temporary file, which `Store.stale_temporary_files` (`visemeflow clean 
 
 Temporary names follow one pattern, so they can be recognised and never collide:
 
-    .<target name>.<pid>.<token>.tmp              .shard-0003.parquet.4242.1f3a9c0b.tmp
-    .<target name>.<pid>.<token>.tmp<suffix>      .sweep-x.png.4242.1f3a9c0b.tmp.png (`keep_suffix=True`,
-                                                  for writers that pick the format by the file's suffix)
+    .<target name>.<pid>-<machine>.<token>.tmp            .shard-0003.parquet.4242-9c1e04aa.1f3a9c0b.tmp
+    .<target name>.<pid>-<machine>.<token>.tmp<suffix>    .sweep-x.png.4242-9c1e04aa.1f3a9c0b.tmp.png
+                                                          (`keep_suffix=True`, for writers that pick the format
+                                                          by the file's suffix)
 
-The pid tells a dead writer's leftover from a live one's; the random token keeps two writers of one
-target apart (two threads share a pid). Names start with a dot, so readers that skip hidden files never
+The pid tells a dead writer's leftover from a live one's, on the machine that took it: `<machine>` names the
+process space the pid belongs to (the kernel's boot id and the pid namespace, `this_machine`), so where several
+machines or containers share a store's folder, none takes another's live writer for a dead one of its own. The
+random token keeps two writers of one target apart (two threads share a pid). Names start with a dot, so readers that skip hidden files never
 see a half-written file.
 
 Durability costs time: the fsync of file and folder took 6-8 ms per file on this machine's disk (a 150-frame
@@ -26,9 +29,12 @@ that the pure domain packages (`tracking/`, `learning/`), which may not import `
 their own files (videos, landmark files, checkpoints) through the same helper as the store.
 """
 
+import functools
+import hashlib
 import os
 import re
 import secrets
+import socket
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -41,26 +47,52 @@ __all__ = [
     "fsync_enabled",
     "is_temporary_name",
     "temporary_path",
+    "temporary_writer",
     "temporary_writer_pid",
+    "this_machine",
 ]
 
-_TEMPORARY = re.compile(r"^\.(?P<target>.+)\.(?P<pid>[0-9]+)\.(?P<token>[0-9A-Za-z_]+)\.tmp(?P<suffix>\.[0-9A-Za-z]+)?$")
+_TEMPORARY = re.compile(r"^\.(?P<target>.+)\.(?P<pid>[0-9]+)(?:-(?P<machine>[0-9a-f]{8}))?\.(?P<token>[0-9A-Za-z_]+)"
+                        r"\.tmp(?P<suffix>\.[0-9A-Za-z]+)?$")
 # Names older versions of this package used (a fixed `.name.tmp`, tempfile's `.name.XXXXXXXX.tmp`, videos'
 # `.stem.pid.tmp.mp4`): recognised so that their leftovers can be cleaned, but they carry no usable pid.
 _LEGACY_TEMPORARY = re.compile(r"^\..+\.tmp(\.[0-9A-Za-z]+)?$")
+
+
+@functools.cache
+def this_machine() -> str:
+    """8 hex digits naming the space this process's pid lives in: the kernel's boot id (else the host name) and the
+    pid namespace, so two machines, or two containers on one, sharing a folder never read each other's pids as
+    their own."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        boot = socket.gethostname()
+    try:
+        namespace = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        namespace = 0
+    return hashlib.blake2b(f"{boot}/{namespace}".encode(), digest_size=4).hexdigest()
 
 
 def temporary_path(path: str | os.PathLike, keep_suffix: bool = False) -> Path:
     """A fresh temporary path in `path`'s folder, named by the pattern above (nothing is created)."""
     path = Path(path)
     suffix = path.suffix if keep_suffix else ""
-    return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{suffix}")
+    return path.with_name(f".{path.name}.{os.getpid()}-{this_machine()}.{secrets.token_hex(4)}.tmp{suffix}")
+
+
+def temporary_writer(name: str) -> tuple[int, str | None] | None:
+    """(pid, machine) of the process that wrote the temporary file `name`, the machine None in names of versions
+    before it was written (taken as this machine's); None when `name` carries no pid."""
+    match = _TEMPORARY.match(name)
+    return (int(match["pid"]), match["machine"]) if match else None
 
 
 def temporary_writer_pid(name: str) -> int | None:
     """The pid of the process that wrote the temporary file `name`, or None when `name` carries none."""
-    match = _TEMPORARY.match(name)
-    return int(match["pid"]) if match else None
+    writer = temporary_writer(name)
+    return writer[0] if writer else None
 
 
 def is_temporary_name(name: str) -> bool:

@@ -44,7 +44,7 @@ import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer_pid
+from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer, this_machine
 from visemeflow.schemas import (
     CURVES,
     METRICS,
@@ -440,9 +440,10 @@ class Store:
     def stale_temporary_files(self, min_age_s: float = 3600.0) -> list[Path]:
         """Temporary files left by killed writers (names of `visemeflow.atomic`), sorted.
 
-        A temporary file is stale when the process that wrote it (its pid is in the name) no longer runs
-        on this machine, or when it is older than `min_age_s` (a pid may have been reused). Temporary files
-        of older versions, whose names carry no pid, are stale when older than `min_age_s`.
+        A temporary file is stale when the process that wrote it (its pid and machine are in the name) no longer
+        runs on this machine, or when it is older than `min_age_s` (a pid may have been reused). A file another
+        machine is writing (a store on a shared folder) is judged by its age alone: its pid means nothing here.
+        Temporary files of older versions, whose names carry no pid, are stale when older than `min_age_s`.
         """
         if not self.root.exists():
             return []
@@ -454,9 +455,10 @@ class Store:
                 if not name.startswith(".") or not is_temporary_name(name):
                     continue
                 tmp = Path(folder) / name
-                pid = temporary_writer_pid(name)
+                writer = temporary_writer(name)
+                mine = writer is not None and writer[1] in (None, this_machine())
                 try:
-                    if (pid is not None and not _pid_alive(pid)) or now - tmp.stat().st_mtime > min_age_s:
+                    if (mine and not _pid_alive(writer[0])) or now - tmp.stat().st_mtime > min_age_s:
                         stale.append(tmp)
                 except FileNotFoundError:
                     continue
