@@ -9,10 +9,10 @@ from visemeflow.animation.config import AnimateConfig
 from visemeflow.learning.default_model import DEFAULT_MODEL
 from visemeflow.timebase import DEFAULT_FPS
 from visemeflow.ingest.config import CaptureConfig, IngestConfig
-from visemeflow.learning.augment import AugmentConfig
+
 from visemeflow.learning.device import DeviceWord, Precision
 from visemeflow.flows.stages import RERUNNABLE
-from visemeflow.learning.config import TrainConfig
+from visemeflow.learning.config import AugmentConfig, TrainConfig
 from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
 from visemeflow.schemas.ids import normalize_utterance_id, validate_name
 from visemeflow.schemas.sources import CurveSource

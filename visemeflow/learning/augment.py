@@ -52,8 +52,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
+from visemeflow.learning.config import CONDITIONS, AugmentConfig, _check_condition  # noqa: F401 (re-exported)
 from visemeflow.schemas.ids import validate_utterance_id
 
 __all__ = [
@@ -71,7 +71,6 @@ __all__ = [
     "train_augment_hook",
 ]
 
-CONDITIONS: tuple[str, ...] = ("volume", "pitch", "speed", "noise")
 
 # id suffix: decimals per condition and whether the sign is written (p / m)
 _DECIMALS = {"volume": 2, "pitch": 2, "speed": 3, "noise": 5}
@@ -81,48 +80,8 @@ _SUFFIX = re.compile(
 )
 
 
-def _check_condition(condition: str) -> str:
-    if condition not in CONDITIONS:
-        raise ValueError(f"unknown augmentation condition {condition!r}; allowed: {', '.join(CONDITIONS)}")
-    return condition
-
-
 # --------------------------------------------------------------------------------------------------
 # configuration
-
-
-class AugmentConfig(BaseModel):
-    """Ranges ``(low, high)`` the values are drawn from (uniformly); defaults: paper Section 5.2."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    volume_db: tuple[float, float] = (-10.0, 10.0)  # gain in dB
-    pitch_semitones: tuple[float, float] = (-3.0, 3.0)  # pitch shift in semitones
-    speed: tuple[float, float] = (0.7, 1.3)  # speed factor (> 1 faster / shorter)
-    noise_std: tuple[float, float] = (0.0, 0.005)  # std of the added Gaussian noise
-
-    @field_validator("volume_db", "pitch_semitones", "speed", "noise_std")
-    @classmethod
-    def _ordered_finite(cls, v: tuple[float, float]) -> tuple[float, float]:
-        low, high = v
-        if not (math.isfinite(low) and math.isfinite(high)):
-            raise ValueError(f"range bounds must be finite, got {v}")
-        if low > high:
-            raise ValueError(f"range low must be <= high, got {v}")
-        return v
-
-    @model_validator(mode="after")
-    def _positive(self) -> AugmentConfig:
-        if self.speed[0] <= 0:
-            raise ValueError(f"speed factors must be > 0, got {self.speed}")
-        if self.noise_std[0] < 0:
-            raise ValueError(f"noise std must be >= 0, got {self.noise_std}")
-        return self
-
-    def range_of(self, condition: str) -> tuple[float, float]:
-        """The ``(low, high)`` range of ``condition``."""
-        field = {"volume": "volume_db", "pitch": "pitch_semitones", "speed": "speed", "noise": "noise_std"}
-        return getattr(self, field[_check_condition(condition)])
 
 
 DEFAULT_CONFIG = AugmentConfig()  # the paper's ranges (frozen, so safe as a shared default)

@@ -1,11 +1,21 @@
-"""What a training run is asked for (`TrainConfig`), apart from the code that trains, so that reading a config (the
+"""What a training run is asked for (`TrainConfig`) and the ranges of the audio augmentations (`AugmentConfig`),
+apart from the code that trains and augments, so that reading a config (the
 CLI's options, a flow's parameters, a model file's lineage) imports no torch. `visemeflow.learning.train` runs it."""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 if TYPE_CHECKING:
     from visemeflow.learning.presets import Preset
@@ -65,3 +75,46 @@ class TrainConfig(BaseModel):
 _ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
                                    "viseme_loss_weight": 0.0, "whisper_layers": None,
                                    "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
+
+
+CONDITIONS: tuple[str, ...] = ("volume", "pitch", "speed", "noise")
+
+
+def _check_condition(condition: str) -> str:
+    if condition not in CONDITIONS:
+        raise ValueError(f"unknown augmentation condition {condition!r}; allowed: {', '.join(CONDITIONS)}")
+    return condition
+
+
+class AugmentConfig(BaseModel):
+    """Ranges ``(low, high)`` the values are drawn from (uniformly); defaults: paper Section 5.2."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    volume_db: tuple[float, float] = (-10.0, 10.0)  # gain in dB
+    pitch_semitones: tuple[float, float] = (-3.0, 3.0)  # pitch shift in semitones
+    speed: tuple[float, float] = (0.7, 1.3)  # speed factor (> 1 faster / shorter)
+    noise_std: tuple[float, float] = (0.0, 0.005)  # std of the added Gaussian noise
+
+    @field_validator("volume_db", "pitch_semitones", "speed", "noise_std")
+    @classmethod
+    def _ordered_finite(cls, v: tuple[float, float]) -> tuple[float, float]:
+        low, high = v
+        if not (math.isfinite(low) and math.isfinite(high)):
+            raise ValueError(f"range bounds must be finite, got {v}")
+        if low > high:
+            raise ValueError(f"range low must be <= high, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _positive(self) -> AugmentConfig:
+        if self.speed[0] <= 0:
+            raise ValueError(f"speed factors must be > 0, got {self.speed}")
+        if self.noise_std[0] < 0:
+            raise ValueError(f"noise std must be >= 0, got {self.noise_std}")
+        return self
+
+    def range_of(self, condition: str) -> tuple[float, float]:
+        """The ``(low, high)`` range of ``condition``."""
+        field = {"volume": "volume_db", "pitch": "pitch_semitones", "speed": "speed", "noise": "noise_std"}
+        return getattr(self, field[_check_condition(condition)])

@@ -16,47 +16,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.visemes import N_VISEMES, VISEME_INDEX
+from visemeflow.synth.config import GroundTruthConfig  # noqa: F401 (re-exported)
 
 CLOSURES = frozenset({"MBP", "FFF"})
 TONGUE_ONLY = frozenset({"LNTD", "GK", "TTH"})
 
-
-class GroundTruthConfig(BaseModel):
-    """Constants of the ground-truth dynamics; times in seconds."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    seed: int = Field(0, description="Base seed; each utterance's randomness is derived from it and the utterance id.")
-    rest_dominance: float = Field(0.25, gt=0, description="Dominance of the neutral face, which wins in pauses.")
-    anticipation_s: tuple[float, float] = Field(
-        (0.07, 0.11), description="Range of the speaker's anticipatory time constant (dominance rise before a phone)."
-    )
-    carryover_s: tuple[float, float] = Field(
-        (0.05, 0.09), description="Range of the speaker's carry-over time constant (dominance decay after a phone)."
-    )
-    strength: tuple[float, float] = Field(
-        (0.75, 1.0), description="Range of the speaker's articulation strength (peak weight of a full vowel)."
-    )
-    timing_shift_s: float = Field(0.015, ge=0, description="Std. dev. of the speaker's lead (+) or lag of articulation.")
-    stiffness_hz: tuple[float, float] = Field(
-        (6.0, 9.0), description="Range of the natural frequency of the articulators' second-order response."
-    )
-    damping: float = Field(0.9, gt=0, description="Damping ratio of the second-order response (1 = critical).")
-    flank_power: float = Field(
-        1.5, gt=0, description="Shape c of the dominance flanks exp(-(tau / tau0) ** c); 1 is Cohen-Massaro's exponential."
-    )
-    closure_dominance: float = Field(8.0, gt=0, description="Dominance multiplier of lip closures, so they close.")
-    closure_sharpness: float = Field(
-        0.4, gt=0, description="Factor on the flank time constants of lip closures (smaller = sharper)."
-    )
-    tongue_weight: float = Field(0.5, ge=0, le=1, description="Target weight of tongue-only visemes.")
-    jitter: float = Field(0.02, ge=0, description="Std. dev. of the band-limited jitter on active visemes.")
-    jitter_hz: float = Field(3.0, gt=0, description="Bandwidth of the jitter.")
-    internal_rate_hz: float = Field(400.0, gt=0, description="Simulation rate of the second-order response.")
 
 
 @dataclass(frozen=True)

@@ -3,21 +3,10 @@
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from visemeflow.synth.dynamics import band_limited_noise
+from visemeflow.synth.config import SceneConfig  # noqa: F401 (re-exported)
 
-
-class SceneConfig(BaseModel):
-    """How much the head moves and the light changes over an utterance."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    rotation_deg: float = Field(2.5, ge=0, description="Std. dev. of head rotation about each axis, degrees.")
-    translation_cm: float = Field(0.4, ge=0, description="Std. dev. of head translation along each axis, cm.")
-    motion_hz: float = Field(0.4, gt=0, description="Bandwidth of the head motion.")
-    light_deg: float = Field(12.0, ge=0, description="Std. dev. of the light direction's wander, degrees.")
-    brightness: tuple[float, float] = Field((0.85, 1.1), description="Range of the overall light intensity.")
 
 
 @dataclass(frozen=True)
