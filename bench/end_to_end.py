@@ -27,7 +27,10 @@ calls), so the split is of exactly the code the pipeline runs:
                    tracking), `probe_video` (frame count: GRID's .mpg stores none, so probing decodes the clip)
   detection        MediaPipe FaceMesh (graph start, face-detector probes, the mesh per frame) and the face choice
   landmark I/O     writing the 478-point table to the store (Parquet) and reading it back (`load_track`)
-  identity         `rig_and_camera` without its probe: the identity + focal fit on neutral frames
+  identity         `rig_and_camera` without its probe: the identity + focal fit on neutral frames; with
+                   TrackingConfig(speaker_identity=True) applying the speaker's identity, plus the clip's share
+                   (by frames) of its (speaker, image size) group's one fit (`tasks.track.speaker_identity`, timed
+                   apart, best of R: --compare-config '{"speaker_identity": true}')
   flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
@@ -81,7 +84,8 @@ from visemeflow.schemas import C  # noqa: E402
 from visemeflow.storage import Store  # noqa: E402
 from visemeflow.tracking.facemesh import FaceMeshConfig  # noqa: E402
 from visemeflow.tracking.solver import TrackingConfig  # noqa: E402
-from visemeflow.tracking.utterance import VideoInput, track_video  # noqa: E402
+from visemeflow.tracking.utterance import VideoInput, track_video, video_size  # noqa: E402
+from visemeflow.tasks.track import identity_clips, speaker_identity  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 GRID = DATA / "grid_s1"
@@ -222,8 +226,45 @@ def build_corpus(tmp: Path, limit: int | None) -> list[Clip]:
     return clips
 
 
-def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMeshConfig) -> tuple[float, float, dict]:
-    """One clip through the landmarks stage and the track stage, as the pipeline runs them."""
+def fit_identities(clips: list[Clip], store: Store, rig, config: TrackingConfig, mesh: FaceMeshConfig,
+                   repeats: int) -> tuple[dict, dict]:
+    """With `config.speaker_identity`: each (speaker, image size) group's identity, fitted as the track flow's
+    identity task fits it (`tasks.track.speaker_identity` on the landmarks stage's files of the first
+    `identity_clips` clips by id), best of `repeats` timed; and per clip its share of that time (wall, CPU; in
+    proportion to its frames), which run_clip adds to its identity step. ({}, {}) without the option."""
+    if not config.speaker_identity:
+        return {}, {}
+    groups: dict[tuple, list[Clip]] = {}
+    for clip in clips:
+        landmarks_task.landmarks_one(store, clip.utterance, mesh)
+        key = (clip.utterance[C.SPEAKER], *video_size(clip.utterance[C.VIDEO_PATH]))
+        groups.setdefault(key, []).append(clip)
+    identities, shares = {}, {}
+    for key, members in sorted(groups.items()):
+        rows = identity_clips([{C.UTTERANCE_ID: c.uid, C.LANDMARK_PATH: str(store.landmark_path(c.uid)),
+                                C.FPS: c.utterance[C.FPS]} for c in members], config.identity_clips)
+        best = None
+        for _ in range(repeats):
+            wall, cpu = time.perf_counter(), time.process_time()
+            identity = speaker_identity(rows, key[1:], rig, config.identity_frames)
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            best = (wall, cpu) if best is None or wall < best[0] else best
+        frames = sum(c.frames for c in members)
+        print(f"speaker identity {key[0]} {key[1]}x{key[2]}: {len(members)} clips, "
+              + ("none (no neutral frame)" if identity is None else
+                 f"{identity.frames} frames of {len(identity.clips)} clips, rms {identity.rms_px:.2f} px, focal "
+                 f"{identity.focal:.0f} px")
+              + f"; fit {best[0]:.3f} s wall, {best[1]:.3f} s CPU (best of {repeats})")
+        for c in members:
+            identities[c.uid] = identity
+            shares[c.uid] = (best[0] * c.frames / frames, best[1] * c.frames / frames)
+    return identities, shares
+
+
+def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMeshConfig,
+             identity=None, share: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float, dict]:
+    """One clip through the landmarks stage and the track stage, as the pipeline runs them (with the speaker's
+    `identity` when given, `share` of its fit's wall and CPU seconds counted to the identity step)."""
     u = clip.utterance
     PROFILE.reset()
     wall, cpu = time.perf_counter(), time.process_time()
@@ -232,9 +273,11 @@ def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMe
     video = VideoInput(u[C.VIDEO_PATH], str(store.landmark_path(clip.uid)), u[C.FPS], int(u[C.N_FRAMES]),
                        audio_path=u.get(C.AUDIO_PATH), alignment_path=u.get(C.ALIGNMENT_PATH) or None,
                        alignment_end_s=clip.alignment_end_s)
-    tracked = track_video(video, clip.procedural, rig, config)
+    tracked = track_video(video, clip.procedural, rig, config, identity=identity)
     PROFILE.leave("other")
-    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    wall, cpu = time.perf_counter() - wall + share[0], time.process_time() - cpu + share[1]
+    PROFILE.seconds["identity"] += share[0]
+    PROFILE.cpu["identity"] += share[1]
     steps = dict(PROFILE.seconds)
     steps.update({f"cpu {k}": v for k, v in PROFILE.cpu.items()})
     steps["_curves"] = tracked.result.curves
@@ -302,7 +345,9 @@ def main() -> int:
                              "as after (ROI empty: native size)")
     parser.add_argument("--compare-config", default=None, metavar="JSON",
                         help="instead of --compare's solvers: the default TrackingConfig as before, the default updated "
-                             "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'")
+                             "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'; "
+                             "'{\"speaker_identity\": true}': one identity per speaker and image size, fitted once "
+                             "(timed, its time shared over the group's clips by frames, in their identity step)")
     args = parser.parse_args()
     if args.compare_flow or args.compare_config:
         args.compare = True
@@ -337,11 +382,14 @@ def main() -> int:
         install_profile()
         store = Store(tmp / "store")
         run_clip(clips[0], store, rig, config, mesh)            # warm-up: MediaPipe's and torch's first-use costs
+        fitted = {path: fit_identities(clips, store, rig, configs[path], mesh, args.repeats) for path in paths}
         started = time.perf_counter()
         for r in range(args.repeats):
             for clip in clips:
                 for path in paths:
-                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], mesh))
+                    identity, share = fitted[path][0].get(clip.uid), fitted[path][1].get(clip.uid, (0.0, 0.0))
+                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], mesh, identity,
+                                                                   share))
             print(f"  [{time.perf_counter() - started:6.0f} s] run {r + 1} of {args.repeats}", file=sys.stderr,
                   flush=True)
     print()

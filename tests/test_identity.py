@@ -16,9 +16,11 @@ from visemeflow.rig import RigError, evaluate_rig, load_demo_rig
 from visemeflow.render.camera import Intrinsics, project
 from visemeflow.tracking.identity import (
     IdentityModes,
+    SpeakerIdentity,
     apply_identity,
     demo_identity_path,
     fit_identity,
+    fit_speaker_identity,
     load_identity_modes,
     mouth_opening,
     neutral_frames,
@@ -257,3 +259,45 @@ def test_fit_identity_on_a_grid_clip(rig, modes):
     assert 10.0 < fov < 60.0  # measured 42 degrees, focal 369 px
     depth = -fit.translation[:, 2]
     assert np.all((30.0 < depth) & (depth < 200.0))  # centimetres to the head origin
+
+
+# ------------------------------------------------------------------------------------------ one identity per speaker
+
+
+def speaker_clips(synthetic) -> list[tuple[str, LandmarkTrack]]:
+    """The synthetic face's 10 poses as three clips of one speaker (frames 0-2, 3-5, 6-9)."""
+    track = synthetic[2]
+    return [(f"spk/{name}", track_of(track.points[part], track.valid[part]))
+            for name, part in (("a", slice(0, 3)), ("b", slice(3, 6)), ("c", slice(6, 10)))]
+
+
+def test_speaker_identity_is_the_same_whatever_order_its_clips_come_in(rig, modes, synthetic):
+    clips = speaker_clips(synthetic)
+    first = fit_speaker_identity(rig, modes, clips, (360, 288), total_frames=6)
+    again = fit_speaker_identity(rig, modes, clips[::-1], (360, 288), total_frames=6)
+    assert first == again and first.digest == again.digest
+    assert first.clips == ("spk/a", "spk/b", "spk/c") and first.frames == 6 and first.rms_px < 1.0
+    assert SpeakerIdentity.from_dict(first.to_dict()) == first   # as a cached task result and back
+    assert 0.7 * CAMERA.fx < first.focal < 1.3 * CAMERA.fx and first.camera().cx == CAMERA.cx
+    # one changed clip: another identity, another digest (the per-clip tasks' cache keys change with it)
+    a, b, c = clips
+    moved = (a[0], track_of(a[1].points + np.float32(2.0), a[1].valid))
+    changed = fit_speaker_identity(rig, modes, [moved, b, c], (360, 288), total_frames=6)
+    assert changed.digest != first.digest
+
+
+def test_speaker_identity_of_one_clip_is_the_per_clip_fit(rig, modes, synthetic):
+    track = synthetic[2]
+    one = fit_speaker_identity(rig, modes, [("spk/a", track)], (360, 288), total_frames=10)
+    fit = fit_identity(rig, modes, track, neutral_frames(track, n=10), image_size=(360, 288))
+    np.testing.assert_array_equal(np.asarray(one.coefficients, np.float32), fit.coefficients)
+    assert (one.scale, one.focal, one.rms_px) == (fit.scale, fit.camera.fx, fit.rms_px)
+
+
+def test_speaker_without_a_neutral_frame_has_no_speaker_identity(rig, modes, synthetic):
+    clips = speaker_clips(synthetic)
+    blind = [(uid, track_of(t.points, np.zeros_like(t.valid))) for uid, t in clips]   # no usable frame
+    assert fit_speaker_identity(rig, modes, blind, (360, 288)) is None
+    # a clip without one is left out, the others still give the identity
+    mixed = fit_speaker_identity(rig, modes, [blind[0], *clips[1:]], (360, 288), total_frames=6)
+    assert mixed is not None and mixed.clips == ("spk/b", "spk/c")

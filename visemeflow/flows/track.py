@@ -1,8 +1,14 @@
 """The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each).
 
 Utterances without an alignment are tracked unguided (variant `unguided-...`, see tasks/track.py); the summary
-counts them (`unguided`) and says why (`unguided_why`)."""
+counts them (`unguided`) and says why (`unguided_why`).
 
+With `TrackingConfig.speaker_identity` the face and camera of real video (no `<name>.camera.json`) are fitted once
+per (speaker, image size) before the utterances' tasks, by a cached task on the neutral frames of the first
+`identity_clips` clips by utterance id (`speaker_identities`), and handed to each utterance's task (part of its cache
+key: a changed chosen clip re-tracks the speaker). Without it each clip is fitted on its own, as before."""
+
+import logging
 from pathlib import Path
 
 from prefect import flow
@@ -18,7 +24,18 @@ from visemeflow.storage import Store
 from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
-from visemeflow.tasks.track import SOURCE, STAGE, TrackError, track_utterance, utterance_config
+from visemeflow.tasks.track import (
+    SOURCE,
+    STAGE,
+    TrackError,
+    fit_speaker_identity_task,
+    identity_clips,
+    landmark_file,
+    track_utterance,
+    utterance_config,
+)
+from visemeflow.tracking.solver import TrackingConfig
+from visemeflow.tracking.utterance import needs_identity, video_size
 
 LANDMARKS_KEY = "stored_landmarks"
 """Key of the stored landmarks' provenance in a task's utterance row (part of the task's cache key)."""
@@ -41,6 +58,62 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
     from visemeflow.procedural import ProceduralConfig
 
     return default_variant(ProceduralConfig())
+
+
+def identity_groups(store: Store, rows: list[dict]) -> dict[tuple[str, int, int], list[dict]]:
+    """The real-video utterances among `rows` (no `<name>.camera.json`) by (speaker, width, height): one speaker
+    identity each. A video whose size cannot be read is in no group (tracked as without a speaker identity)."""
+    ids = [r[C.UTTERANCE_ID] for r in rows]
+    speakers = dict(zip(*store.read_table("utterances", utterance_ids=ids).select([C.UTTERANCE_ID, C.SPEAKER])
+                        .to_pydict().values()))
+    groups: dict[tuple[str, int, int], list[dict]] = {}
+    for row in rows:
+        if not needs_identity(row[C.VIDEO_PATH]):
+            continue
+        size = video_size(row[C.VIDEO_PATH])
+        if size is not None:
+            groups.setdefault((speakers[row[C.UTTERANCE_ID]], *size), []).append(row)
+    return groups
+
+
+def identity_inputs(store: Store, members: list[dict], config: TrackingConfig) -> list[dict]:
+    """The rows of the clips a group's identity is fitted on, with their landmark file (and the stored landmarks'
+    provenance, part of the identity task's cache key)."""
+    with_files = []
+    for row in members:
+        path = landmark_file(store, row)
+        if path:
+            extra = {} if row[C.LANDMARK_PATH] else {LANDMARKS_KEY: store.landmarks_provenance(row[C.UTTERANCE_ID])}
+            with_files.append({C.UTTERANCE_ID: row[C.UTTERANCE_ID], C.CONTENT_HASH: row[C.CONTENT_HASH],
+                               C.LANDMARK_PATH: path, C.FPS: row[C.FPS], **extra})
+    return identity_clips(with_files, config.identity_clips)
+
+
+def speaker_identities(store: Store, rows: list[dict], config: TrackingConfig, rig_path: Path, rig_hash: str,
+                       logger, submit: bool = True) -> dict[str, dict | None]:
+    """Utterance id -> its speaker's identity (`SpeakerIdentity.to_dict`; None: fitted per clip) of the real-video
+    utterances in `rows`, one cached `fit_speaker_identity_task` per (speaker, image size); {} when
+    `config.speaker_identity` is off. A group whose fit fails is tracked per clip (with a warning)."""
+    if not config.speaker_identity:
+        return {}
+    groups = identity_groups(store, rows)
+    task = fit_speaker_identity_task.with_options(result_storage=result_storage(store.root))
+    runs = {}
+    for key in sorted(groups):
+        speaker, width, height = key
+        args = (speaker, [width, height], identity_inputs(store, groups[key], config), str(rig_path), rig_hash,
+                config.identity_frames)
+        runs[key] = task.submit(*args) if submit else task(*args)
+    out: dict[str, dict | None] = {}
+    for key, run in runs.items():
+        try:
+            identity = run.result() if submit else run
+        except Exception as exc:  # noqa: BLE001 - the clips are then fitted on their own, as without the option
+            logger.warning("identity[%s %dx%d] failed, its clips are fitted one by one: %s: %s", *key,
+                           type(exc).__name__, exc)
+            identity = None
+        out.update({row[C.UTTERANCE_ID]: identity for row in groups[key]})
+    return out
 
 
 def unguided_why(unguided: list[dict]) -> str | None:
@@ -67,6 +140,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     # longest videos first: with n workers the run then ends on short utterances, not on one long one
     rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
     rejected_before = run.rejected_before()
+    identities = speaker_identities(store, rows, config, rig_path, rig_hash, run.logger)
     futures, frames = {}, {}
     for row in rows:
         uid = row[C.UTTERANCE_ID]
@@ -76,7 +150,8 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             row = {**row, LANDMARKS_KEY: store.landmarks_provenance(uid)}
         future = track_utterance.with_options(
             result_storage=result_storage(store.root), refresh_cache=not present,
-        ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config)
+        ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config,
+                  identities.get(uid))
         futures[future] = uid
         frames[future] = int(row[C.N_FRAMES] or 0)
     reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, run.logger, work=frames)
@@ -106,5 +181,15 @@ def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -
     rig_path, rig_hash = rig_and_hash(Path(last.rig) if last.rig else None)
     variant = procedural_variant_of(store, last.procedural_variant)
     provenance = store.curves_provenance(PROCEDURAL, variant, uid) or ""
+    row, config = rows[0], last.config
+    identity = None
+    if config.speaker_identity and needs_identity(row[C.VIDEO_PATH]):
+        # the speaker identity the track run used (cached), from the same clips of the same speaker and image size
+        speaker = store.read_table("utterances", utterance_ids=[uid]).column(C.SPEAKER)[0].as_py()
+        same = [r for r in store.read_table("utterances").select(TRACK_FIELDS + [C.SPEAKER]).to_pylist()
+                if r[C.SPEAKER] == speaker and r[C.VIDEO_PATH]]
+        peers = [{k: r[k] for k in TRACK_FIELDS} for r in same]
+        identity = speaker_identities(store, peers, config, rig_path, rig_hash, logging.getLogger(__name__),
+                                      submit=False).get(uid)
     task = track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=force)
-    return task(str(store.root), rows[0], variant, provenance, str(rig_path), rig_hash, last.config)
+    return task(str(store.root), row, variant, provenance, str(rig_path), rig_hash, config, identity)

@@ -34,7 +34,15 @@ from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
 from visemeflow.tasks.progress import StepLog
 from visemeflow.tracking.solver import TrackingConfig
-from visemeflow.tracking.utterance import TrackedVideo, TrackingInputError, VideoInput, track_video
+from visemeflow.tracking.identity import SpeakerIdentity, fit_speaker_identity
+from visemeflow.tracking.landmarks import LandmarkError, read_landmarks
+from visemeflow.tracking.utterance import (
+    TrackedVideo,
+    TrackingInputError,
+    VideoInput,
+    identity_modes_for,
+    track_video,
+)
 
 STAGE = "track"
 SOURCE = CurveSource.TRACKED
@@ -102,9 +110,10 @@ def diagnostics_table(uid: str, variant: str, tracked: TrackedVideo) -> pa.Table
 
 
 def track_one(store: Store, utterance: dict, procedural_variant: str, rig: VisemeRig, config: TrackingConfig,
-              on_step=None) -> dict:
+              on_step=None, identity: SpeakerIdentity | None = None) -> dict:
     """Track one utterance and store its curves and diagnostics; raises TrackError for bad input. `on_step(phase,
-    done, total)`: progress inside the video (`tracking.utterance.track_video`)."""
+    done, total)`: progress inside the video (`tracking.utterance.track_video`). `identity`: the speaker's face
+    and camera (`speaker_identity`); None fits them to this clip."""
     uid = utterance[C.UTTERANCE_ID]
     if not utterance[C.VIDEO_PATH]:
         raise TrackError(uid, None, "NoVideo", "the utterance has no video")
@@ -121,12 +130,14 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
                        int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
                        alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
     try:
-        tracked = track_video(video, procedural, rig, config, on_step)
+        extra = {} if identity is None else {"identity": identity}
+        tracked = track_video(video, procedural, rig, config, on_step, **extra)
     except TrackingInputError as exc:
         raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
     result, variant = tracked.result, config.variant
     store.save_curves(Curves(result.curves, utterance[C.FPS], uid, SOURCE, variant,
-                             f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"))
+                             f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"
+                             + ("" if identity is None else f":identity={identity.digest}")))
     store.write_tracking_frames(diagnostics_table(uid, variant, tracked))
     error = result.mouth_error_px
     return {
@@ -142,14 +153,58 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
       task_run_name="track[{utterance[utterance_id]}]")
 def track_utterance(
     store_root: str, utterance: dict, procedural_variant: str, procedural_provenance: str, rig_path: str,
-    rig_hash: str, config: TrackingConfig,
+    rig_hash: str, config: TrackingConfig, identity: dict | None = None,
 ) -> dict:
-    """Track one utterance (cached on its inputs' content hash, the procedural curves, the rig and the config)."""
+    """Track one utterance (cached on its inputs' content hash, the procedural curves, the rig, the config and
+    the speaker's identity: `SpeakerIdentity.to_dict`, None to fit one to this clip)."""
     rig = load_rig(rig_path)
     logger = get_run_logger()
     steps = StepLog(f"track[{utterance[C.UTTERANCE_ID]}]", logger.info)   # a long clip says where it is
-    report = track_one(Store(store_root), utterance, procedural_variant, rig, config, steps)
+    report = track_one(Store(store_root), utterance, procedural_variant, rig, config, steps,
+                       None if identity is None else SpeakerIdentity.from_dict(identity))
     error = report["mouth_error_px"]  # None where no frame had a mouth to measure
     logger.info("%s: %d frames (%s) in %.1f s, mouth error %s", report["utterance_id"], report["frames"],
                           report["variant"], report["seconds"], "-" if error is None else f"{error:.2f} px")
     return report
+
+
+def speaker_identity(clips: list[dict], image_size: tuple[int, int], rig: VisemeRig,
+                     total_frames: int) -> SpeakerIdentity | None:
+    """The identity of one speaker at one image size, fitted on the neutral frames of `clips` (`utterances` rows
+    with `landmark_path` filled in, the clips chosen by `identity_clips`); None when the rig has no identity modes
+    or no clip has a readable landmark file with a neutral frame (each clip is then fitted on its own)."""
+    modes = identity_modes_for(rig)
+    if modes is None:
+        return None
+    tracks = []
+    for row in clips:
+        try:
+            tracks.append((row[C.UTTERANCE_ID], read_landmarks(row[C.LANDMARK_PATH], fps=row[C.FPS])))
+        except (LandmarkError, OSError, ValueError):
+            continue        # the clip's own track task rejects it
+    return fit_speaker_identity(rig, modes, tracks, image_size, total_frames)
+
+
+def identity_clips(rows: list[dict], k: int) -> list[dict]:
+    """The clips a speaker's identity is fitted on: the first `k` by utterance id of those with a landmark file
+    (whatever order `rows` come in)."""
+    return sorted((r for r in rows if r.get(C.LANDMARK_PATH)), key=lambda r: r[C.UTTERANCE_ID])[:k]
+
+
+@task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
+      task_run_name="identity[{speaker}:{image_size[0]}x{image_size[1]}]")
+def fit_speaker_identity_task(
+    speaker: str, image_size: list[int], clips: list[dict], rig_path: str, rig_hash: str,
+    total_frames: int,
+) -> dict | None:
+    """A speaker's identity (`SpeakerIdentity.to_dict`, None: fit each clip on its own), cached on the chosen
+    clips' rows (content hashes, stored landmarks' provenance), the rig and the number of frames."""
+    identity = speaker_identity(clips, (int(image_size[0]), int(image_size[1])),
+                                load_rig(rig_path), total_frames)
+    logger = get_run_logger()
+    if identity is None:
+        logger.info("identity[%s]: no neutral frame in %d clip(s); each clip is fitted on its own", speaker, len(clips))
+        return None
+    logger.info("identity[%s %dx%d]: %d frames of %d clip(s), %.2f px", speaker, *identity.image_size,
+                identity.frames, len(identity.clips), identity.rms_px)
+    return identity.to_dict()

@@ -34,6 +34,20 @@ class TrackingConfig(BaseModel):
                                 "before DIS runs (`FlowConfig.max_roi_px`; None: native size). 256 instead of 480: "
                                 "1.7x the flow's frames/s on 700x700 talking heads, mouth keypoint error 2.730 -> "
                                 "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow).")
+    speaker_identity: bool = Field(
+        False, description="Fit the face (ICT identity modes) and camera focal length of real video once per speaker "
+                           "and image size, on neutral frames pooled from `identity_clips` of the speaker's clips, "
+                           "rather than to each clip's own neutral frames (paper 4.2). Measured (bench/end_to_end.py "
+                           "--compare-config '{\"speaker_identity\": true}', CPU time): GRID identity share 12.9% -> "
+                           "3.6% (10 clips; the fit is shared by all of a speaker's clips), mouth error 1.410 -> "
+                           "1.411 px, MBP 14/14 both; talking heads 2.741 -> 2.692 px. Off until confirmed: GRID's "
+                           "error is not lower and a corpus folder of several people would share one face.")
+    identity_clips: int = Field(
+        5, ge=1, description="Speaker identity: the first this many of a speaker's clips (by utterance id, with "
+                             "landmarks) give neutral frames.")
+    identity_frames: int = Field(
+        10, ge=1, description="Speaker identity: neutral frames in all, ceil(this / clips) from each chosen clip (10 "
+                              "from one clip is the per-clip fit's choice).")
     solver: Literal["fast", "faithful"] = Field("fast", description="Whole-utterance batch, or the paper's per-frame schedule.")
     iterations: int = Field(250, ge=1, description="Faithful: Adam iterations per frame and pass.")
     lr: float = Field(0.1, gt=0, description="Faithful: Adam learning rate.")

@@ -404,3 +404,93 @@ def _initial_translation(
         y = -(centre_2d[1] - camera.cy) * depth / camera.fy
         out[t] = (x - centre_3d[0], y - centre_3d[1], -depth - centre_3d[2])
     return out
+
+
+# ---- one identity per speaker (and image size), fitted once on neutral frames pooled from a few of its clips -------
+
+@dataclass(frozen=True)
+class SpeakerIdentity:
+    """A speaker's face and camera fitted once on neutral frames pooled from a few of their clips (`clips`), used
+    for every clip of that speaker with frames of `image_size` (a camera of another size gets its own fit).
+
+    Plain values only (JSON-able: it is a task's cached result and part of the per-clip tracking tasks' cache keys,
+    by `digest`). The camera is one per speaker and image size: square pixels, principal point at the image
+    centre, focal length `focal` (px)."""
+
+    coefficients: tuple[float, ...]
+    scale: float
+    focal: float
+    image_size: tuple[int, int]
+    clips: tuple[str, ...]
+    """The clips (utterance ids, sorted) whose neutral frames were fitted: those of the chosen clips that had one."""
+    frames: int
+    """Neutral frames fitted, over all those clips."""
+    rms_px: float
+
+    def to_dict(self) -> dict:
+        return {"coefficients": [float(c) for c in self.coefficients], "scale": float(self.scale),
+                "focal": float(self.focal), "image_size": [int(v) for v in self.image_size],
+                "clips": list(self.clips), "frames": int(self.frames), "rms_px": float(self.rms_px)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "SpeakerIdentity":
+        return cls(tuple(float(c) for c in data["coefficients"]), float(data["scale"]), float(data["focal"]),
+                   (int(data["image_size"][0]), int(data["image_size"][1])), tuple(str(c) for c in data["clips"]),
+                   int(data["frames"]), float(data["rms_px"]))
+
+    @property
+    def digest(self) -> str:
+        from visemeflow.hashing import stable_hash
+
+        return stable_hash(self.to_dict())
+
+    def camera(self, fov_deg: float = 25.0) -> Intrinsics:
+        camera = Intrinsics.from_fov(self.image_size[0], self.image_size[1], fov_deg)
+        return replace(camera, fx=self.focal, fy=self.focal)
+
+    def apply(self, rig: VisemeRig, modes: IdentityModes) -> VisemeRig:
+        return apply_identity(rig, modes, np.asarray(self.coefficients), self.scale)
+
+
+def pooled_neutral_track(clips, total_frames: int = 10) -> tuple[LandmarkTrack, tuple[str, ...]] | None:
+    """The neutral frames of several clips as one track, and the clips they come from; None when no clip has one.
+
+    `clips`: (clip id, LandmarkTrack) pairs, taken in sorted id order whatever order they come in. Each clip gives
+    its ceil(`total_frames` / number of clips) best neutral frames (`neutral_frames`); a clip with no usable frame
+    gives none. With one clip this is that clip's `neutral_frames(track, total_frames)`: the per-clip fit."""
+    clips = sorted(clips, key=lambda c: c[0])
+    if not clips:
+        return None
+    per_clip = max(1, math.ceil(total_frames / len(clips)))
+    points, valid, used = [], [], []
+    for clip_id, track in clips:
+        try:
+            frames = neutral_frames(track, n=per_clip)
+        except ValueError:      # no frame with every non-jaw landmark
+            continue
+        points.append(np.asarray(track.points)[frames])
+        valid.append(np.asarray(track.valid)[frames])
+        used.append(clip_id)
+    if not used:
+        return None
+    return (LandmarkTrack(np.concatenate(points), np.concatenate(valid), clips[0][1].fps, clips[0][1].source),
+            tuple(used))
+
+
+def fit_speaker_identity(rig: VisemeRig, modes: IdentityModes, clips, image_size: tuple[int, int],
+                         total_frames: int = 10, **fit_options) -> SpeakerIdentity | None:
+    """`fit_identity` (unknown camera) on the neutral frames pooled from `clips` ((clip id, LandmarkTrack) pairs of
+    one speaker, frames of `image_size` = (width, height)) by `pooled_neutral_track`; None when no clip has a
+    neutral frame (the caller then fits each clip on its own, as without a speaker identity). The same clips give
+    the same identity in whatever order they come."""
+    pooled = pooled_neutral_track(clips, total_frames)
+    if pooled is None:
+        return None
+    track, used = pooled
+    try:
+        fit = fit_identity(rig, modes, track, np.arange(track.n_frames), camera=None,
+                           image_size=(int(image_size[0]), int(image_size[1])), **fit_options)
+    except ValueError:          # no pooled frame with 6 valid landmarks
+        return None
+    return SpeakerIdentity(tuple(float(c) for c in fit.coefficients), float(fit.scale), float(fit.camera.fx),
+                           (int(image_size[0]), int(image_size[1])), used, int(len(fit.frames)), float(fit.rms_px))

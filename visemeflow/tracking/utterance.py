@@ -28,6 +28,7 @@ from visemeflow.rig import VisemeRig
 from visemeflow.visemes import N_VISEMES
 from visemeflow.render.camera import Intrinsics
 from visemeflow.tracking.identity import (
+    SpeakerIdentity,
     apply_identity,
     demo_identity_path,
     fit_identity,
@@ -46,6 +47,8 @@ from visemeflow.tracking.solver import (
     solve_faithful,
     solve_fast,
 )
+from visemeflow.tracking.video import _open as _open_video
+from visemeflow.tracking.video import _video_stream
 from visemeflow.tracking.video import (
     VideoError,
     VideoInfo,
@@ -220,24 +223,51 @@ def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path:
     return LandmarkTrack(points, valid, track.fps, track.source)
 
 
-def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack,
-                   info: VideoInfo | None = None) -> tuple[VisemeRig, Intrinsics, dict]:
+def identity_modes_for(rig: VisemeRig):
+    """The shipped identity modes when they fit `rig`'s mesh, else None (no identity fit for this rig)."""
+    modes_path = demo_identity_path()
+    modes = load_identity_modes(modes_path) if modes_path.exists() else None
+    return modes if modes is not None and modes.modes.shape[1] == rig.n_vertices else None
+
+
+def needs_identity(video_path: str) -> bool:
+    """Whether tracking this video fits a face and camera to it: real video, without `<name>.camera.json`."""
+    return not camera_record_path(video_path).exists()
+
+
+def video_size(video_path: str) -> tuple[int, int] | None:
+    """(width, height) of the video's frames from its stream header (no decoding); None when it cannot be read."""
+    try:
+        with _open_video(Path(video_path)) as container:
+            stream = _video_stream(container, Path(video_path))
+            width, height = int(stream.codec_context.width), int(stream.codec_context.height)
+    except VideoError:
+        return None
+    return (width, height) if width and height else None
+
+
+def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack, info: VideoInfo | None = None,
+                   identity: SpeakerIdentity | None = None) -> tuple[VisemeRig, Intrinsics, dict]:
     """The rig and intrinsics to track with.
 
     With `<name>.camera.json` beside the video (synthetic takes), its intrinsics and the rig as given. Otherwise
-    (real video) the rig's identity is fitted to the speaker from the landmarks of neutral frames (paper 4.2, ICT
-    identity modes) together with the focal length, and the fitted rig and camera are used. `info`: the video's
-    `probe_video`, when the caller has it (probed here otherwise).
+    (real video) the speaker's face and camera: `identity` (fitted once per speaker and image size on neutral
+    frames of a few of their clips, `identity.fit_speaker_identity`) when given and of this video's size; else the
+    rig's identity is fitted to this clip's neutral frames (paper 4.2, ICT identity modes) together with the focal
+    length. `info`: the video's `probe_video`, when the caller has it (probed here otherwise).
     """
     record = camera_record_path(video_path)
     if record.exists():
         return rig, Intrinsics.from_record(json.loads(record.read_text())), {"identity": "given camera"}
     info = info or probe_video(video_path)
     fallback = Intrinsics.from_fov(info.width, info.height, FALLBACK_FOV_DEG)
-    modes_path = demo_identity_path()
-    modes = load_identity_modes(modes_path) if modes_path.exists() else None
-    if modes is None or modes.modes.shape[1] != rig.n_vertices:
+    modes = identity_modes_for(rig)
+    if modes is None:
         return rig, fallback, {"identity": "none (no modes for this rig)"}
+    if identity is not None and tuple(identity.image_size) == (info.width, info.height):
+        return identity.apply(rig, modes), identity.camera(FALLBACK_FOV_DEG), {
+            "identity": "speaker", "identity_rms_px": round(float(identity.rms_px), 3),
+            "identity_clips": len(identity.clips), "identity_digest": identity.digest}
     frames = neutral_frames(track, n=10)
     if len(frames) == 0:
         return rig, fallback, {"identity": "none (no neutral frame)"}
@@ -302,12 +332,14 @@ def check_coverage(video: VideoInput, times: np.ndarray) -> None:
 
 
 def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig,
-                config: TrackingConfig, on_step: Callable[[str, int, int], None] | None = None) -> TrackedVideo:
+                config: TrackingConfig, on_step: Callable[[str, int, int], None] | None = None,
+                identity: SpeakerIdentity | None = None) -> TrackedVideo:
     """Fit viseme curves to one video on its curve grid ((n_frames, 16)), guided by its procedural curves on that
     grid, or unguided when `procedural` is None (no alignment: no L_sup/L_act, weights start from the neutral
     face). TrackingInputError for input that cannot be tracked (missing or bad landmarks, unreadable or short
     video, no audio, an alignment past the video's end, a diverging solve). `on_step(phase, done, total)` hears
-    the progress of the long parts: "optical flow" (frames) and "solve" (iterations, or frames when faithful)."""
+    the progress of the long parts: "optical flow" (frames) and "solve" (iterations, or frames when faithful).
+    `identity`: the speaker's face and camera (`rig_and_camera`); None fits them to this clip."""
     n_grid = video.n_frames
     guided = procedural is not None
     if not guided and config.guidance:
@@ -334,7 +366,7 @@ def track_video(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig
             prior = (timeline.to_frames(procedural).astype(np.float32) if guided
                      else np.zeros((n_frames, N_VISEMES), np.float32))
         track = load_track(video.landmark_path, video.fps, n_frames, video.video_path)
-        rig, camera, camera_info = rig_and_camera(video.video_path, rig, track, info)
+        rig, camera, camera_info = rig_and_camera(video.video_path, rig, track, info, identity)
         flow = flow_valid = photo = None
         if config.use_flow and n_frames > 1:
             decoded = frames if frames is not None else (
