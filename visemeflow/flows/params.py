@@ -41,6 +41,8 @@ def _existing(corpus: Path) -> Path:
 
 
 CorpusPath = Annotated[Path, AfterValidator(_existing)]
+# a model's name as a file name in the store (no path, no dot-dot)
+ModelName = Annotated[str, AfterValidator(lambda name: validate_name(name, "model name"))]
 
 
 class RunnerConfig(BaseModel):
@@ -249,7 +251,7 @@ class SpeakParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    model: str = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
+    model: ModelName = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
                                               "with the package; `phones`: no model, phones recognised in the audio "
                                               "(English).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
@@ -259,11 +261,6 @@ class SpeakParams(BaseModel):
     fps: float = Field(DEFAULT_FPS, gt=0, le=1000, description="Frame rate of the predicted curves and the exports.")
     config: AnimateConfig = Field(default_factory=AnimateConfig)
     out: Path | None = Field(None, description="Folder for the files; none: the store's animations folder.")
-
-    @field_validator("model")
-    @classmethod
-    def _safe_model(cls, name: str) -> str:
-        return validate_name(name, "model name")
 
 
 class PreviewParams(BaseModel):
@@ -298,7 +295,7 @@ class PredictParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
-    model: str = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
+    model: ModelName = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
                                                    "with the package (installed into the store on first use); "
                                                    "`phones`: no model, phones recognised in the audio (English).")
     audio: list[Path] = Field(..., min_length=1, description="Audio files (any rate, any channel count) or videos.")
@@ -306,11 +303,6 @@ class PredictParams(BaseModel):
     out: Path | None = Field(None, description="Folder for CSV and JSON copies of the curves (none: store only).")
     device: DeviceWord = Field("auto", description="Where the model runs: auto (a CUDA GPU when there is one), cpu, "
                                                    "cuda or cuda:N (float32; not part of the cache key).")
-
-    @field_validator("model")
-    @classmethod
-    def _safe_model(cls, name: str) -> str:
-        return validate_name(name, "model name")
 
 
 class ImportCurvesParams(BaseModel):

@@ -21,6 +21,13 @@ if TYPE_CHECKING:
     from visemeflow.learning.presets import Preset
 
 
+def without_added_defaults(data: dict[str, Any], added: dict[str, Any]) -> dict[str, Any]:
+    """A config's JSON without the fields added after configs were first stored (`added`: name -> default) where
+    they hold their default, so an older config means the same JSON (checkpoint resume keys, model names hashed
+    from it, Prefect cache keys) as before they existed."""
+    return {name: value for name, value in data.items() if name not in added or value != added[name]}
+
+
 class TrainConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -57,13 +64,7 @@ class TrainConfig(BaseModel):
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        # Fields added after models were trained are left out at their defaults, so a config means the same JSON
-        # (checkpoint resume keys, model names hashed from it, Prefect cache keys) as before they existed.
-        data = handler(self)
-        for name, default in _ADDED_DEFAULTS.items():
-            if name in data and data[name] == default:
-                del data[name]
-        return data
+        return without_added_defaults(handler(self), _ADDED_DEFAULTS)
 
     def resolved_preset(self) -> Preset:
         from visemeflow.learning.presets import get_preset

@@ -81,6 +81,7 @@ from pydantic import (
 )
 from torch import nn
 
+from visemeflow.learning.config import without_added_defaults
 from visemeflow.learning.whisper import (
     FRAME_RATE_HZ as WHISPER_FRAME_RATE_HZ,
 )
@@ -140,12 +141,7 @@ class FeatureConfig(BaseModel):
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        # fields added later are left out at their defaults: older configs keep their JSON (hashes, model files)
-        data = handler(self)
-        for name, default in _ADDED_FEATURE_DEFAULTS.items():
-            if name in data and data[name] == default:
-                del data[name]
-        return data
+        return without_added_defaults(handler(self), _ADDED_FEATURE_DEFAULTS)
 
     @field_validator("kind")
     @classmethod
