@@ -6,14 +6,15 @@ Each figure is the wall time of the real command in a new process (what a user w
 runs; it prints one table and asserts nothing. Rows:
   --help                   `visemeflow --help`;
   bad argument             `visemeflow ingest /no/such/corpus`: refused, exit 2;
+  wrong path               `visemeflow predict /no/such.wav`: refused, exit 2, before Prefect is imported;
   cached predict, cold     `visemeflow predict SHORT.wav` a second time (its task cached), no server running:
                            "Prefect's own" lets Prefect start its temporary server when the flow is called
-                           (VISEMEFLOW_NO_SERVER_LOOKUP=1, the behaviour before); "early" is the default now, the
-                           same server started while the command imports its libraries;
-  cached predict, served   the same with `visemeflow serve --store STORE` running: found by the command itself now;
-                           the code before used it only when PREFECT_API_URL and PREFECT_API_AUTH_STRING named it.
-With `--before DIR`, a checkout of the code before (e.g. `git worktree add /tmp/wt HEAD` on the commit before the
-change) runs the same commands (PYTHONPATH=DIR) in the same session, interleaved with the current code.
+                           (VISEMEFLOW_NO_SERVER_LOOKUP=1, the behaviour before issue 28); "early" is the default,
+                           the same server started while the command imports its libraries;
+  cached predict, served   the same with `visemeflow serve --store STORE` running: "found" by the command itself
+                           (the default), or named by PREFECT_API_URL and PREFECT_API_AUTH_STRING.
+With `--before DIR`, a checkout of the code before (e.g. `git worktree add /tmp/wt HEAD` before a change) runs the
+same commands (PYTHONPATH=DIR) in the same session, interleaved with the current code, row by row.
 Each version has its own store (and its own `serve` of it): their code digests differ, so on one store each would
 recompute what the other stored and no "cached" row after a switch of version would be cached. The stores, a Prefect
 home and serve's databases live in a temporary work folder (`--keep` keeps it). The machine may
@@ -112,28 +113,27 @@ def main() -> None:
             measure(f"bad argument ({version})", ["ingest", str(work / "no-such-corpus"), "--store",
                                                   str(stores[version])], env,
                     expect=2 if version == "now" else None)
+            measure(f"wrong path ({version})", ["predict", str(work / "no-such.wav"), "--store", str(stores[version])],
+                    env, expect=2 if version == "now" else None)
             measure(f"cached predict, cold, Prefect's own server ({version})", predict,
                     {**env, "VISEMEFLOW_NO_SERVER_LOOKUP": "1"})
-            if version == "now":
-                measure("cached predict, cold, early server (now)", predict, env)
+            measure(f"cached predict, cold, early server ({version})", predict, env)
     served = {v: start_serve(stores[v], versions[v], work, v) for v in versions}
     try:
         for _ in range(args.repeat):
             for version, env in versions.items():
                 predict = predicts[version]
                 _, api_url, auth = served[version]
-                if version == "now":
-                    measure("cached predict, serve running, found (now)", predict, env)
+                measure(f"cached predict, serve running, found ({version})", predict, env)
                 measure(f"cached predict, serve running, PREFECT_API_URL set ({version})", predict,
                         {**env, "PREFECT_API_URL": api_url, "PREFECT_API_AUTH_STRING": auth})
-                if version == "before":
-                    measure("cached predict, serve running, not named (before)", predict, env)
     finally:
         for serve, _, _ in served.values():
             stop(serve)
     width = max(map(len, rows))
     print(f"{'command':<{width}}  {'best s':>7}  {'runs s':>20}")
-    for name, seconds in rows.items():
+    kinds = list(dict.fromkeys(name.rsplit(" (", 1)[0] for name in rows))  # each row of both versions together
+    for name, seconds in sorted(rows.items(), key=lambda row: kinds.index(row[0].rsplit(" (", 1)[0])):
         print(f"{name:<{width}}  {min(seconds):7.2f}  {', '.join(f'{s:.2f}' for s in seconds):>20}")
     print(f"load average after: {os.getloadavg()}")
     if not args.keep:

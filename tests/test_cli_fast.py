@@ -319,3 +319,49 @@ def test_what_a_store_model_needs_is_remembered_by_content_hash(tmp_path, monkey
     assert P._packaged_whisper(model, memo) == (False, "fbank-blstm")
     assert json.loads(memo.read_text())["preset"] == "fbank-blstm"
     assert P._packaged_whisper(model) == (False, "fbank-blstm")   # without a memo: read, nothing written
+
+
+def test_the_command_ends_its_flow_run_without_waiting_for_the_heartbeat_thread(monkeypatch):
+    """Prefect's synchronous engine joins its heartbeat thread, which sleeps in 1 s steps, at the end of every flow
+    run (0.7-0.9 s of a cached `predict`); the command asks for what the asynchronous engine does, no join. The
+    heartbeats themselves still go (tests/test_predict.py finds the cached command's in the API)."""
+    import inspect
+
+    from prefect import flow_engine
+
+    # the Prefect installed has the parameter: an upgrade that drops it (the speed-up silently gone) shows here
+    assert "join_on_exit" in inspect.signature(flow_engine._send_heartbeats).parameters
+    calls = []
+
+    def send(engine, join_on_exit: bool = True):
+        calls.append((engine, join_on_exit))
+        return "context"
+
+    monkeypatch.setattr(flow_engine, "_send_heartbeats", send)
+    assert connect.unjoined_heartbeats() and connect.unjoined_heartbeats()   # once is enough, twice wraps once
+    assert flow_engine._send_heartbeats("engine") == "context" and calls == [("engine", False)]
+
+    def older(engine):   # a Prefect without the parameter is left as it is
+        return "older"
+
+    monkeypatch.setattr(flow_engine, "_send_heartbeats", older)
+    assert not connect.unjoined_heartbeats() and flow_engine._send_heartbeats is older
+
+
+def test_the_command_ends_its_process_after_the_exit_handlers_with_its_output_and_status(tmp_path):
+    """`main`, as the program, ends the process with `os._exit` once the exit handlers ran and the output is
+    flushed (Python's teardown of Prefect, pydantic and pyarrow took 0.4-0.5 s after a cached `predict` had
+    printed): what was printed, the handlers' work and the exit status are those of a normal exit."""
+    script = ("import atexit, runpy, sys\n"
+              "atexit.register(lambda: print('exit handler ran'))\n"
+              "sys.argv = ['visemeflow', *sys.argv[1:]]\n"
+              "runpy.run_module('visemeflow.cli', run_name='__main__', alter_sys=True)\n")
+    store = tmp_path / "store"
+    for args, status, out, err in (
+        (["rejects", "--store", str(store)], 0, ["no rejects", "exit handler ran"], []),
+        (["predict", str(tmp_path / "missing.wav"), "--store", str(store)], 2, ["exit handler ran"],
+         [f"error: audio file {tmp_path / 'missing.wav'} does not exist"]),
+    ):
+        done = subprocess.run([sys.executable, "-c", script, *args], cwd=REPO, env=CHILD_ENV, capture_output=True,
+                              text=True, timeout=120, check=False)
+        assert (done.returncode, done.stdout.splitlines(), done.stderr.splitlines()) == (status, out, err)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import typer
 from pydantic import BaseModel, Field
+from factories import make_curve_store
 from typer.testing import CliRunner
 
 import visemeflow.cli as cli
@@ -60,14 +61,15 @@ def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
         return {"utterances": 0}
 
     monkeypatch.setattr("visemeflow.flows.runners.run_on_runner", fake_run)
-    result = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--shards", "3", "--solver", "faithful",
+    store = make_curve_store(tmp_path / "s", n=1)   # the command checks the store has utterances first
+    result = runner.invoke(app, ["track", "--store", str(store.root), "--shards", "3", "--solver", "faithful",
                                  "--no-guidance", "--rgb", "--no-flow", "--dask-address", "tcp://127.0.0.1:1",
                                  "--threads", "2"])
     assert result.exit_code == 0, result.output
     params = seen["params"]
     assert isinstance(params, TrackParams)
     assert params == TrackParams(
-        store=tmp_path / "s", n_shards=3,
+        store=store.root, n_shards=3,
         config={"solver": "faithful", "guidance": False, "use_rgb": True, "use_flow": False},
         runner={"kind": "dask", "dask_address": "tcp://127.0.0.1:1", "threads": 2})  # an address means dask
 
@@ -77,13 +79,15 @@ def test_an_option_filling_two_fields_and_a_list_option(monkeypatch, tmp_path):
     monkeypatch.setattr("visemeflow.flows.train.train_flow", lambda params: seen.setdefault("params", params) and {})
     monkeypatch.setattr("visemeflow.flows.runners.run_on_runner",
                         lambda flow, params: seen.setdefault("params", params) and {"points": [], "plot": "p"})
-    result = runner.invoke(app, ["train", "--store", str(tmp_path / "s"), "--train-augment", "0.25", "--name", "m1",
-                                 "--preset", "mean-curve", "--device", "cpu"])
+    store = make_curve_store(tmp_path / "s", n=1)   # the commands check the store has curves to learn first
+    result = runner.invoke(app, ["train", "--store", str(store.root), "--train-augment", "0.25", "--name", "m1",
+                                 "--preset", "mean-curve", "--device", "cpu", "--source", "ground_truth"])
     assert result.exit_code == 0, result.output
     params = seen.pop("params")
     assert isinstance(params, TrainParams) and params.model_name == "m1"
     assert params.config.train_augment and params.config.train_augment_probability == 0.25
-    result = runner.invoke(app, ["sweep", "--store", str(tmp_path / "s"), "--sizes", "10, 30", "--device", "cpu"])
+    result = runner.invoke(app, ["sweep", "--store", str(store.root), "--sizes", "10, 30", "--device", "cpu",
+                                 "--source", "ground_truth"])
     assert result.exit_code == 0, result.output
     assert seen["params"].sizes == [10, 30]
 
@@ -132,3 +136,32 @@ def test_a_new_stage_command_is_one_decorated_function():
     assert "How loud." in helped and "Which." in helped and "a,b" in helped
     refused = runner.invoke(toy, ["toy-stage", "--loudness", "-1"])
     assert refused.exit_code == 2 and refused.output.startswith("error: --loudness: ")
+
+
+def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp_path):
+    empty = tmp_path / "empty"
+    done = runner.invoke(app, ["track", "--store", str(empty)])
+    assert done.exit_code == 2 and "no ingested utterances" in done.output and "visemeflow ingest" in done.output
+    store = make_curve_store(tmp_path / "s", n=1)   # ground-truth curves only
+    done = runner.invoke(app, ["train", "--store", str(store.root)])
+    assert done.exit_code == 2 and "no tracked curves" in done.output and "--source ground_truth" in done.output
+    done = runner.invoke(app, ["train", "--store", str(store.root), "--source", "ground_truth", "--preset", "bogus"])
+    assert done.exit_code == 2 and done.output.startswith("error: --preset: unknown preset 'bogus'")
+    done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
+    assert done.exit_code == 2 and "no utterance spk/nope" in done.output
+    done = runner.invoke(app, ["evaluate", "--models", "nope", "--store", str(store.root)])
+    assert done.exit_code == 2 and "no model 'nope'" in done.output
+    done = runner.invoke(app, ["speak", str(tmp_path / "x.wav")])
+    assert done.exit_code == 2   # a file that is not there: before anything else
+    done = runner.invoke(app, ["sweep", "--store", str(store.root), "--source", "ground_truth", "--sizes", "0,5"])
+    assert done.exit_code == 2 and done.output.startswith("error: --sizes: ")
+
+
+def test_a_character_that_does_not_load_is_one_line_before_any_flow(tmp_path):
+    empty = tmp_path / "empty.gltf"
+    empty.write_text('{"asset": {"version": "2.0"}}')
+    audio = tmp_path / "a.wav"
+    audio.write_bytes(b"RIFF")   # never read: the character is checked first
+    done = runner.invoke(app, ["speak", str(audio), "--character", str(empty), "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and done.output.startswith(f"error: character {empty}: "), done.output
+    assert not (tmp_path / "s").exists()

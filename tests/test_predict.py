@@ -280,3 +280,76 @@ def test_predict_command_exits_1_and_says_so_when_a_file_was_rejected(store, tmp
     assert "predict: 2 files, 1 predicted, 0 cached, 1 rejected" in done.stdout
     assert f"rejected {text}: " in done.stderr
     assert store.has_curves("predicted", "tiny", "predict/SSB16240001")
+
+
+@pytest.mark.flow
+def test_a_cached_predict_command_is_still_tracked_and_prints_and_stores_the_same(store, tmp_path, prefect_api_url):
+    """The command ends its flow run without waiting for the heartbeat thread (`ops.connect.unjoined_heartbeats`),
+    records its parameters without importing FastAPI (`flows.predict.serialize_parameters`) and ends its process
+    without Python's teardown (`cli.main`), which took about 1.5 s of a cached 3.5 s `predict` (bench/cli.py). The
+    cached run is still in the API as before: Completed, with its parameters as Prefect records them, its cached task
+    run, its artifact and its heartbeat; it prints what the first run printed, cached, and changes nothing stored."""
+    from prefect import Flow
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId, FlowRunFilter
+    from prefect.client.schemas.filters import FlowRunFilterId, FlowRunFilterName
+    from prefect.client.schemas.sorting import FlowRunSort
+    from prefect.events.filters import EventAnyResourceFilter, EventFilter, EventNameFilter
+
+    from visemeflow.flows.predict import PredictParams, predict_flow
+
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url}
+    command = [str(Path(sys.executable).parent / "visemeflow"), "predict", str(AUDIO), "--model", "tiny", "--store",
+               str(store.root), "--device", "cpu"]
+    first = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    curves = store.curve_path("predicted", "tiny", "predict/SSB16240001")
+    stored = (curves.read_bytes(), curves.stat().st_mtime_ns, sorted(p.name for p in store.root.rglob("*")))
+    second = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert second.returncode == 0, second.stderr
+    line, summary = first.stdout.splitlines()
+    assert line.endswith(")") and summary == "predict: 1 file, 1 predicted, 0 cached, 0 rejected"
+    assert second.stdout.splitlines() == [line[:-1] + ", cached)", "predict: 1 file, 0 predicted, 1 cached, 0 rejected"]
+    assert (curves.read_bytes(), curves.stat().st_mtime_ns, sorted(p.name for p in store.root.rglob("*"))) == stored
+
+    params = PredictParams(store=store.root, model="tiny", audio=[AUDIO], device="cpu")
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["predict[tiny]"])),
+                                     sort=FlowRunSort.START_TIME_DESC)
+        runs = [r for r in runs if r.parameters["params"]["store"] == str(store.root)]
+        assert len(runs) == 2
+        run = runs[0]   # the cached one
+        assert run.state.is_completed() and run.state.message == "1 of 1 audio files predicted"
+        # the parameters as Prefect's own serializer (FastAPI's jsonable_encoder) records them
+        assert run.parameters == Flow.serialize_parameters(predict_flow, {"params": params})
+        artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            flow_run_id=ArtifactFilterFlowRunId(any_=[run.id])))
+        assert [a.key for a in artifacts] == ["predictions"] and "| yes |" in artifacts[0].data
+        # task runs and heartbeats reach the API as events, recorded by the server shortly after
+        deadline = time.monotonic() + 60
+        while True:
+            tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[run.id])))
+            beats = client.read_events(EventFilter(
+                any_resource=EventAnyResourceFilter(id=[f"prefect.flow-run.{run.id}"]),
+                event=EventNameFilter(name=["prefect.flow-run.heartbeat"])), limit=10)
+            if (tasks and tasks[0].state and tasks[0].state.is_final() and beats.events) or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+    assert [(t.name, t.state.name if t.state else None) for t in tasks] == [("predict[predict/SSB16240001]", "Cached")]
+    assert beats.events, "no heartbeat of the cached run reached the API"
+
+
+def test_the_flow_parameters_are_recorded_as_prefect_records_them(tmp_path):
+    """`serialize_parameters` (no FastAPI import) gives what Prefect's `Flow.serialize_parameters` gives."""
+    from prefect import Flow
+
+    from visemeflow.flows.predict import PredictParams, predict_flow, serialize_parameters
+
+    for params in (PredictParams(audio=[AUDIO]),
+                   PredictParams(store=tmp_path / "s", model="m", audio=[AUDIO, tmp_path / "ä b.wav"], fps=25.5,
+                                 out=tmp_path / "out", device="cuda:1")):
+        assert serialize_parameters({"params": params}) == Flow.serialize_parameters(predict_flow, {"params": params})
+    assert predict_flow.serialize_parameters is serialize_parameters
+    other = {"x": 1, "when": tmp_path}   # not a model: Prefect's own
+    expected = {"x": 1, "when": str(tmp_path)}
+    assert serialize_parameters(other) == Flow.serialize_parameters(predict_flow, other) == expected

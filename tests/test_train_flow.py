@@ -1,10 +1,11 @@
 """The `train` flow on a small synthetic store: model, metrics, cache, and `predict` through the CLI."""
 
+import os
 import shutil
 
 import numpy as np
 import pytest
-from factories import DEMO_CORPUS, kill_cli_when, make_curve_store
+from factories import DEMO_CORPUS, REPO, kill_cli_when, make_curve_store
 from typer.testing import CliRunner
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
@@ -197,3 +198,42 @@ def test_training_without_validation_utterances_finishes_and_reports_no_validati
     result = train_without_validation()
     assert result["epochs"] == 2 and result["val"] == 0 and Store(s.root).has_model("noval")
     assert not [m for m in s.read_metrics().to_pylist() if m[C.MODEL] == "noval" and m[C.RUN] == "train"]
+
+
+@pytest.mark.flow
+def test_sigterm_ends_a_training_command_at_once_and_marks_its_run(tmp_path, prefect_api_url):
+    """`kill`, `timeout` or a scheduler's stop ends the command within seconds, though its training task still runs
+    in a worker thread (Prefect's pool would wait for it: hours), and the run is marked Crashed, not left running."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+
+    store = make_curve_store(tmp_path / "store")
+    checkpoint = store.model_dir("long") / "checkpoints" / "last.pt"
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    proc = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "train", "--store", str(store.root), "--source",
+                             "ground_truth", "--preset", "fbank-blstm", "--d-model", "16", "--epochs", "100000",
+                             "--name", "long"], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None and not checkpoint.exists():
+            time.sleep(0.05)
+        assert proc.poll() is None and checkpoint.exists(), "training never started"
+        proc.send_signal(signal.SIGTERM)
+        stopped = time.monotonic()
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143 and err.splitlines()[-1] == "terminated", err[-2000:]
+    assert time.monotonic() - stopped < 60   # a bound, not a timing: without the fix it runs 100000 epochs
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["train[fbank-blstm]"])))
+    ours = [r for r in runs if r.parameters.get("params", {}).get("store") == str(store.root)]
+    assert len(ours) == 1 and ours[0].state.name == "Crashed", [(r.parameters, r.state) for r in runs]

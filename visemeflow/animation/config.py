@@ -31,11 +31,10 @@ class AnimateConfig(BaseModel):
                                   "bones and glb/usd are skinned bone animation (pose-csv/pose-json: the poses).")
     bones: int = Field(32, ge=1, le=512, description="Bone count of the SSDR solve in bone mode.")
     closure_rule: bool = Field(
-        True, description="Apply the lip rules of visemeflow.articulation before the curves drive the character: "
-                          "lips close at b/p/m and touch the teeth at f/v whatever else is active, and no blend opens "
-                          "wider than the widest viseme (AHH).")
-    meshes: tuple[str, ...] = Field((), description="Meshes of a .glb/.gltf character to drive (mesh names); none: "
-                                                    "every mesh whose morph targets match (see gltf.read_character_glb).")
+        True, description="Lip rules before the curves drive the character: lips close at b/p/m and touch the teeth "
+                          "at f/v whatever else is active, and no blend opens wider than the widest viseme (AHH).")
+    meshes: tuple[str, ...] = Field((), description="Meshes of a .glb/.gltf character to drive (mesh names); default: "
+                                                    "every mesh whose morph targets match.")
 
     @model_validator(mode="after")
     def _pose_tables_need_bones(self):
@@ -48,7 +47,8 @@ class AnimateConfig(BaseModel):
     @classmethod
     def _known_formats(cls, value):
         if isinstance(value, str):
-            value = [f.strip() for f in value.split(",") if f.strip()]
+            value = value.split(",")
+        value = [f.strip().lower() for f in value if f.strip()]   # GLB as glb
         unknown = [f for f in value if f not in EXPORTERS]
         if unknown:
             raise ValueError(f"unknown export format(s) {', '.join(unknown)}; known: {', '.join(EXPORTERS)}")

@@ -1,5 +1,6 @@
 """The `visemeflow` command."""
 
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -33,8 +34,11 @@ from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong
     TrainParams,
 )
 
-app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True)
-curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True)
+# plain help (click's): typer's boxed style labels every flag `<bool>` as if it took a value
+app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True,
+                  rich_markup_mode=None, pretty_exceptions_enable=False)
+curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True, rich_markup_mode=None,
+                         pretty_exceptions_enable=False)
 app.add_typer(curves_app, name="curves")
 
 
@@ -139,6 +143,15 @@ def _device(device: str, precision: str | None = None) -> str:
     return device.strip().lower()
 
 
+def _unjoined_heartbeats() -> None:
+    """Run as the command, whose process ends with its flow: no waiting for Prefect's heartbeat thread (up to 1 s)
+    when the run ends (`visemeflow.ops.connect.unjoined_heartbeats`)."""
+    if _AS_COMMAND:
+        from visemeflow.ops.connect import unjoined_heartbeats
+
+        unjoined_heartbeats()
+
+
 def _print_stage_rejects(rejects: list[dict], store: Path, stage: str) -> None:
     """A stage's rejects of this run, one line each on stderr, and exit 1: the command did not do all it was asked."""
     for r in rejects:   # each reason starts with the file it names
@@ -151,33 +164,76 @@ def _print_stage_rejects(rejects: list[dict], store: Path, stage: str) -> None:
 # Options several stage commands share (visemeflow.cli.options: type, default and help from the params models)
 STORE = Opt("store", callback=_usable_store)
 SHARDS = Opt("n_shards", "--shards")
-RUNNER = (Opt("runner.kind", "--runner"), Opt("runner.dask_workers", extra={"min": 1}), Opt("runner.dask_address"),
-          Opt("runner.threads", extra={"min": 1}))
+RUNNER = (Opt("runner.kind", "--runner"), Opt("runner.dask_workers"), Opt("runner.dask_address"),
+          Opt("runner.threads"))
 CHARACTERS = Opt("characters", "--character", repeat=True, callback=_character)
 ANIMATE_OPTIONS = (Opt("config.formats", "--format"), Opt("config.mode"), Opt("config.bones"),
                    Opt("config.closure_rule"), Opt("config.meshes", "--mesh", repeat=True))
-TRAIN_AUGMENT = Opt(None, "--train-augment", type=float, default=0.0, extra={"min": 0.0, "max": 1.0},
-                    help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = off).",
+TRAIN_AUGMENT = Opt(None, "--train-augment", type=float, default=0.0,
+                    help="Share of training steps whose audio gets one random volume/pitch/speed/noise change (0 = "
+                         "off; at most 1).",
                     into=lambda share: {"config.train_augment": share > 0,
                                         "config.train_augment_probability": share or 0.5})
 
 
-def _check_meshes(characters: list[Path] | None, meshes: list[str] | None) -> None:
-    """With --mesh, each character must be a glTF scene holding those meshes: else exit 2, the meshes listed."""
-    if not meshes:
-        return
-    from visemeflow.rig.character import CharacterError
-    from visemeflow.animation.load import load_character
+def _check_characters(characters: list[Path] | None, meshes: list[str] | None) -> None:
+    """Each character the user named loads (and, with --mesh, holds those meshes): else one line naming the file and
+    why, exit 2, before any flow starts (an empty glTF would otherwise fail every package a minute later)."""
+    from visemeflow.rig import demo_rig_path
 
-    if not characters:
-        typer.echo("error: --mesh chooses meshes of a .glb/.gltf --character", err=True)
-        raise typer.Exit(2)
-    for path in characters:
+    demo = demo_rig_path().resolve()
+    named = [path for path in characters or [] if Path(path).resolve() != demo]
+    if meshes and not named:
+        _fail("--mesh chooses meshes of a .glb/.gltf --character")
+    if not named:
+        return
+    from visemeflow.animation.load import load_character
+    from visemeflow.rig.character import CharacterError
+
+    for path in named:
         try:
-            load_character(path, meshes=meshes)
-        except CharacterError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
+            load_character(path, meshes=meshes or None)
+        except (CharacterError, OSError) as exc:
+            _fail(f"character {path}: {exc}")
+
+
+def _check_store_has(store: Path, what: str, hint: str) -> None:
+    """A stage that reads the store's utterances needs some: else one line with what to run first, exit 2."""
+    from visemeflow.storage import Store
+
+    if Store(store).read_table("utterances").num_rows == 0:
+        _fail(f"no {what} in the store {store}; {hint}")
+
+
+INGEST_FIRST = "run `visemeflow ingest CORPUS` or `visemeflow pipeline CORPUS` first"
+
+
+def _check_preset(preset: str) -> None:
+    from visemeflow.learning.presets import get_preset
+
+    try:
+        get_preset(preset)
+    except ValueError as exc:
+        _fail(f"--preset: {exc}")
+
+
+def _check_curves(store: Path, source: str, variant: str | None) -> None:
+    """The store has curves of `source` (of `variant`, or of one variant when none is named): else one line saying
+    which curves it has and what to do, exit 2."""
+    from visemeflow.flows.train import resolve_variant
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    if not s.curve_variants(source):
+        others = [c for c in ("tracked", "procedural", "captured", "ground_truth", "predicted")
+                  if c != source and s.curve_variants(c)]
+        then = ", then `visemeflow track` for tracked curves" if source == "tracked" else ""
+        _fail(f"no {source} curves in the store {store}; "
+              + (f"it has {', '.join(others)} curves: add --source {others[0]}" if others else INGEST_FIRST + then))
+    try:
+        resolve_variant(s, source, variant)
+    except LookupError as exc:
+        _fail(str(exc))
 
 
 # summary keys printed under a clearer label, and the unit their value is in
@@ -192,8 +248,8 @@ def _summary_value(key: str, value: object) -> str | None:
     and NaN omitted (None is the absence of a figure, not a figure): then None."""
     import math
 
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return None
+    if value is None or (isinstance(value, float) and math.isnan(value)) or isinstance(value, (list, tuple, dict)):
+        return None   # lists (packages written, character choices) are printed by their command, not as a figure
     label, unit = _SUMMARY_LABELS.get(key, (key, ""))
     if isinstance(value, bool):
         return f"{label} {'yes' if value else 'no'}"
@@ -237,6 +293,7 @@ def ingest(params: IngestParams) -> None:
 @stage_command(app, ProceduralParams, [STORE, SHARDS, Opt("config.fps"), Opt("variant")])
 def procedural(params: ProceduralParams) -> None:
     """Generate JALI-like procedural viseme curves for every ingested utterance."""
+    _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
     from visemeflow.flows.procedural import procedural_flow
 
     _print_summary("procedural", procedural_flow(params))
@@ -245,10 +302,11 @@ def procedural(params: ProceduralParams) -> None:
 
 @stage_command(app, TrackParams, [
     STORE, SHARDS, Opt("config.solver"), Opt("config.guidance"), Opt("config.use_rgb", "--rgb"),
-    Opt("config.use_flow", "--flow"), Opt("rig", callback=_path), *RUNNER,
+    Opt("config.use_flow", "--flow"), Opt("config.speaker_identity"), Opt("rig", callback=_path), *RUNNER,
 ])
 def track(params: TrackParams) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
+    _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
     from visemeflow.flows.runners import run_on_runner
     from visemeflow.flows.track import track_flow
 
@@ -268,6 +326,7 @@ def track(params: TrackParams) -> None:
 def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> None:
     """Detect face landmarks (MediaPipe FaceMesh, 478 points per frame) on one video or on the store's videos."""
     if video is None:
+        _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
         from visemeflow.flows.landmarks import landmarks_flow
         from visemeflow.flows.runners import run_on_runner
 
@@ -298,7 +357,7 @@ def pipeline(params: PipelineParams) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.pipeline import pipeline_flow
 
-    _check_meshes(params.characters, list(params.animate.meshes))
+    _check_characters(params.characters, list(params.animate.meshes))
     for stage, summary in pipeline_flow(params).items():
         if stage == "animate":
             _print_packages(dict(summary))
@@ -370,6 +429,8 @@ def serve(
 def train(params: TrainParams) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
     _device(params.device, params.precision)
+    _check_preset(params.config.preset)
+    _check_curves(params.store, params.source, params.variant)
     from visemeflow.flows.train import train_flow
 
     report = train_flow(params)
@@ -389,6 +450,8 @@ def train(params: TrainParams) -> None:
 def sweep(params: SweepParams) -> None:
     """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
     _device(params.device, params.precision)
+    _check_preset(params.config.preset)
+    _check_curves(params.store, params.source, params.variant)
     from visemeflow.flows.runners import run_on_runner
     from visemeflow.flows.sweep import sweep_flow
 
@@ -443,6 +506,8 @@ def _print_evaluation(result: dict) -> None:
 def evaluate(params: EvaluateParams) -> None:
     """Judge models on the validation set and on copies augmented in volume, pitch, speed and noise (paper 5.2)."""
     _device(params.device)
+    for model in params.models:
+        _known_model(params.store, model)
     from visemeflow.flows.evaluate import evaluate_flow
 
     result = evaluate_flow(params)
@@ -468,6 +533,7 @@ def predict(params: PredictParams) -> None:
     _device(params.device)
     from visemeflow.flows.predict import predict_flow
 
+    _unjoined_heartbeats()
     result = predict_flow(params)
     for r in result["predictions"]:
         cached = ", cached" if r["cached"] else ""
@@ -499,6 +565,8 @@ def _print_packages(result: dict, title: str = "animate") -> None:
                        f"(median gap {lips['median_gap_mm']:.1f} mm)")
         if lips.get("warning"):
             typer.echo(f"  warning: {lips['warning']}", err=True)
+        for warning in report.get("warnings") or ():   # e.g. a preview without its unreadable source video
+            typer.echo(f"  warning: {warning}", err=True)
 
 
 @stage_command(app, ImportCurvesParams, [
@@ -552,9 +620,10 @@ def animate(params: AnimateParams) -> None:
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
+    _check_curves(params.store, params.source, params.variant)
     from visemeflow.flows.animate import animate_flow
 
-    _check_meshes(params.characters, list(params.config.meshes))
+    _check_characters(params.characters, list(params.config.meshes))
     _print_packages(dict(animate_flow(params)))
     _print_rejects_hint(params.store)
 
@@ -571,7 +640,9 @@ def speak(params: SpeakParams) -> None:
     _check_paths(params.audio, "audio file", "file")
     from visemeflow.flows.animate import speak_flow
 
-    _check_meshes(params.characters, list(params.config.meshes))
+    _unjoined_heartbeats()
+
+    _check_characters(params.characters, list(params.config.meshes))
     result = dict(speak_flow(params))
     audio_rejects = result.pop("rejects")
     _print_packages(result, "speak")
@@ -592,7 +663,7 @@ def preview_command(params: PreviewParams) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
     from visemeflow.flows.animate import preview_flow
 
-    _check_meshes([params.character], params.meshes)
+    _check_characters([params.character], params.meshes)
     result = preview_flow(params)
     typer.echo(result["character"])
     for skipped in result["skipped"]:
@@ -645,14 +716,24 @@ def export_model(
 ])
 def rerun(params: RerunParams) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
+    if params.stage != "ingest":   # an utterance ingest rejected can be ingested again, once its files are fixed
+        from visemeflow.storage import Store
+
+        if Store(params.store).read_table("utterances", utterance_ids=[params.utterance_id]).num_rows == 0:
+            _fail(f"no utterance {params.utterance_id} in the store {params.store} (`visemeflow rejects` says why an "
+                  f"utterance was left out; `rerun {params.utterance_id} --stage ingest` reads it again)")
     from visemeflow.flows.rerun import rerun_flow
+
+    _unjoined_heartbeats()
 
     _print_summary(f"rerun {params.stage} {params.utterance_id}", rerun_flow(params))
 
 
 
 @app.command()
-def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typer.Option()] = None) -> None:
+def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typer.Option(
+        help="Only this stage's rejects (discover, ingest, procedural, landmarks, track, animate, predict, "
+             "evaluate, import_curves); default: every stage's.")] = None) -> None:
     """List rejected inputs with their reasons."""
     from visemeflow.storage import Store
 
@@ -709,7 +790,8 @@ def _load_curves(utterance_id: str, store: Path, source: str, variant: str | Non
 def curves_show(
     utterance_id: str, store: StoreOpt = DEFAULT_STORE,
     source: Annotated[str, typer.Option(help="procedural, tracked, predicted or ground_truth.")] = "procedural",
-    variant: Annotated[Optional[str], typer.Option()] = None,
+    variant: Annotated[Optional[str], typer.Option(
+        help="Variant of those curves (a model's name for predicted); may be omitted when only one exists.")] = None,
 ) -> None:
     """Print a short summary of one utterance's curves."""
     import numpy as np
@@ -733,8 +815,10 @@ def curves_show(
 @curves_app.command("export")
 def curves_export(
     utterance_id: str, store: StoreOpt = DEFAULT_STORE,
-    source: Annotated[str, typer.Option()] = "procedural",
-    variant: Annotated[Optional[str], typer.Option()] = None,
+    source: Annotated[str, typer.Option(
+        help="tracked, procedural, ground_truth, captured or predicted.")] = "procedural",
+    variant: Annotated[Optional[str], typer.Option(
+        help="Variant of those curves (a model's name for predicted); may be omitted when only one exists.")] = None,
     format: Annotated[str, typer.Option("--format", help="csv or json.")] = "csv",
     out: Annotated[Optional[Path], typer.Option(help="Output file; default: standard output.")] = None,
 ) -> None:
@@ -809,30 +893,96 @@ def dashboard(
     typer.echo(f"  {result.path.resolve().as_uri()}")
 
 
+_STOPPED: list[str] = []   # the signal that stopped the command, if one did
+
+
+def _stopped_by(signum: int, frame: object) -> None:
+    import signal
+
+    _STOPPED.append(signal.Signals(signum).name)
+    raise KeyboardInterrupt
+
+
 def main() -> None:
     """The `visemeflow` command: errors a user can act on print one line and exit 2, without a traceback.
 
     The error types are imported only when an error comes: importing them (pyarrow, the flows) would cost seconds
     before the arguments are even checked.
+
+    A command that ends (its result printed, or an error of one line) ends its process at once: the exit handlers
+    run (Prefect's send the run's last logs and events, ours stop an early temporary server), the output is
+    flushed, and `os._exit` skips Python's teardown of every module a flow command imported (Prefect, pydantic,
+    pyarrow, pandas), which took 0.4-0.5 s after the last line with nothing left to do: files are closed and store
+    writes atomic before that point. Only where this function is the program (the `visemeflow` script, `python -m
+    visemeflow.cli`): called in-process (tests) it raises SystemExit as before. An error that ends in a traceback,
+    and a process where a thread that Python would wait for is still running, exit as Python does.
     """
     global _AS_COMMAND
     _AS_COMMAND = True
-    try:
-        app()
-    except Exception as exc:
-        from visemeflow.flows.errors import StageFailed
-        from visemeflow.schemas import InvalidIdError
-        from visemeflow.storage import StoreError
+    import signal
 
-        if isinstance(exc, (StoreError, InvalidIdError, LookupError)):
-            typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
-            raise SystemExit(2) from None
-        if isinstance(exc, StageFailed):  # the flow ran to its end; its run is Failed in the UI with the same message
-            for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
-                _print_summary(stage, summary)
-            typer.echo(f"failed: {exc}", err=True)
-            raise SystemExit(1) from None
-        raise
+    # Ctrl-C, and SIGTERM (`kill`, `timeout`, a scheduler's stop) as Ctrl-C: remembered, so that the command ends
+    # below without waiting for tasks still running in worker threads (while a flow runs, Prefect's engine puts its
+    # own SIGTERM handler in place; either way the run is marked Crashed first)
+    program = sys.modules.get("__main__")
+    the_program = (getattr(getattr(program, "__spec__", None), "name", None) == "visemeflow.cli.__main__"
+                   or Path(getattr(program, "__file__", None) or "").stem == "visemeflow")
+    if the_program:
+        signal.signal(signal.SIGINT, _stopped_by)
+        signal.signal(signal.SIGTERM, _stopped_by)
+    code: object = 0
+    try:
+        try:
+            app()
+        except Exception as exc:
+            from visemeflow.flows.errors import StageFailed
+            from visemeflow.schemas import InvalidIdError
+            from visemeflow.storage import StoreError
+
+            if isinstance(exc, (StoreError, InvalidIdError, LookupError)):
+                typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
+                raise SystemExit(2) from None
+            if isinstance(exc, StageFailed):  # the flow ran to its end; its run is Failed in the UI, same message
+                for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
+                    _print_summary(stage, summary)
+                typer.echo(f"failed: {exc}", err=True)
+                raise SystemExit(1) from None
+            raise
+    except SystemExit as done:
+        if not the_program:
+            raise
+        code = done.code
+    except BaseException as stop:
+        # Prefect's TerminationSignal (SIGTERM while a flow runs; KeyboardInterrupt comes back from typer as exit 130)
+        if not the_program or type(stop).__name__ != "TerminationSignal":
+            raise
+        _STOPPED.append("SIGTERM")
+    if the_program and _STOPPED:
+        # tasks still running in worker threads (a training run, a tracked clip) are abandoned, not waited for:
+        # every store write is atomic and the next run resumes
+        typer.echo("interrupted" if _STOPPED[0] == "SIGINT" else "terminated", err=True)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):
+                stream.flush()
+        os._exit(130 if _STOPPED[0] == "SIGINT" else 143)
+    if not the_program:
+        return
+    import atexit
+    import threading
+
+    if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
+        raise SystemExit(code)  # Python waits for such a thread before its exit handlers: let it
+    if code is not None and not isinstance(code, int):  # a message: printed, status 1, as Python does
+        print(code, file=sys.stderr)
+        code = 1
+    atexit._run_exitfuncs()
+    status = code or 0
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            status = 120  # Python's status when the output cannot be flushed at exit (e.g. a closed pipe)
+    os._exit(status)
 
 
 def _is_per_stage(summary: dict) -> bool:

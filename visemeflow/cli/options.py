@@ -172,10 +172,41 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
     text = opt.help if opt.help is not None else (info.description or "")
     choices = _choices(field_type) if info is not None else ()
     if choices and opt.help is None and "one of" not in text.lower():
-        text = f"{text} One of: {', '.join(choices)}.".strip()
+        text = f"{text} {'Any' if is_list else 'One'} of: {', '.join(choices)}.".strip()
+    limits = _limits(info) if info is not None and not is_list else ""
+    if limits:
+        text = f"{text} ({limits})"
     if opt.repeat and not opt.argument and "repeat" not in text.lower():
         text = f"{text} Repeat for several.".strip()
     return _Resolved(opt, annotation, default, text, is_list, choices)
+
+
+_LIMIT_WORDS = (("ge", "at least"), ("gt", "above"), ("le", "at most"), ("lt", "below"))
+
+
+def _limits(info: FieldInfo) -> str:
+    """A field's numeric bounds in words ("at least 1, at most 4096"), as its model checks them."""
+    found = []
+    for constraint in info.metadata:
+        for attr, words in _LIMIT_WORDS:
+            value = getattr(constraint, attr, None)
+            if value is not None:
+                found.append(f"{words} {value:g}" if isinstance(value, (int, float)) else f"{words} {value}")
+    return ", ".join(found)
+
+
+def _metavar(annotation: Any, is_list: bool, repeat: bool) -> str | None:
+    """The word that stands for an option's value in the help: FILE-like paths, N, X, TEXT, A,B for a list."""
+    if is_list and not repeat:
+        return "A,B"
+    inner, _ = _strip(annotation)
+    if typing.get_origin(inner) is list:
+        inner = typing.get_args(inner)[0]
+    if inner is bool:
+        return None
+    if isinstance(inner, type) and issubclass(inner, PurePath):
+        return "PATH"
+    return {int: "N", float: "X"}.get(inner, "TEXT")
 
 
 def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None, listed: bool) -> Callable[..., Any]:
@@ -195,8 +226,11 @@ def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None
 def _typer_param(r: _Resolved) -> inspect.Parameter:
     opt = r.opt
     callback = _one_of(opt.flag_name, r.choices, opt.callback, r.is_list) if r.choices else opt.callback
+    metavar = _metavar(r.annotation, r.is_list, opt.repeat)
     if opt.argument:
-        info = typer.Argument(help=r.help, callback=callback, **opt.extra)
+        info = typer.Argument(help=r.help, callback=callback, metavar=opt.param_name.upper(), **opt.extra)
+    elif metavar is not None:
+        info = typer.Option(opt.flag_name, help=r.help, callback=callback, metavar=metavar, **opt.extra)
     else:
         flag = opt.flag_name
         if _strip(r.annotation)[0] is bool and "/" not in flag:
@@ -236,12 +270,12 @@ def build_params(model: type[BaseModel], options: Sequence[Opt], values: dict[st
             continue
         if opt.path is None:
             continue
+        flags[opt.path] = opt.param_name.upper() if opt.argument else opt.flag_name
         info = field_at(model, opt.path)
         if value is None and _field_default(info) is not None:
             continue
         r = _resolve(model, opt)
         _set(tree, opt.path, _value(r, value))
-        flags[opt.path] = opt.flag_name
     try:
         return model.model_validate(tree)
     except ValidationError as exc:
@@ -249,6 +283,9 @@ def build_params(model: type[BaseModel], options: Sequence[Opt], values: dict[st
         loc = ".".join(str(p) for p in error["loc"] if not isinstance(p, int))
         # the option of the refused field (or of a field inside it); none for a rule over several fields
         where = flags.get(loc) or next((f for p, f in flags.items() if loc.startswith(p + ".")), None)
+        if error["type"] == "missing":
+            typer.echo(f"error: {where or loc} is required", err=True)
+            raise typer.Exit(2) from None
         message = error["msg"].removeprefix("Value error, ")
         typer.echo(f"error: {where}: {message}" if where else f"error: {message}", err=True)
         raise typer.Exit(2) from None

@@ -170,7 +170,8 @@ class SweepParams(BaseModel):
 
     store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     config: TrainConfig = Field(default_factory=TrainConfig)
-    sizes: list[int] = Field([100, 300, 1000, 3000], description="Training-set sizes (nested subsets).")
+    sizes: list[Annotated[int, Field(ge=1)]] = Field([100, 300, 1000, 3000], min_length=1,
+                                                     description="Training-set sizes (nested subsets), each at least 1.")
     steps: int = Field(10000, ge=1, description="Training steps (utterances) per size: the equal budget.")
     source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")

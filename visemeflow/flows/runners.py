@@ -59,9 +59,28 @@ def thread_workers(requested: int | None = None) -> int:
     return requested or get_current_settings().tasks.runner.thread_pool_max_workers or available_cpus()
 
 
+class StoppableThreadPool(ThreadPoolTaskRunner):
+    """Prefect's thread pool, except that a run stopped by Ctrl-C or SIGTERM (Prefect's TerminationSignal) does not
+    wait for the tasks still running (a training run of hours, a long clip): their cancel events are set and the
+    pool is shut down without joining them, so the command ends now (`visemeflow.cli.main` exits the process; every
+    store write is atomic and the next run resumes). Any other ending waits for them as Prefect's pool does."""
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        from prefect.exceptions import TerminationSignal
+
+        if exc_type is None or not issubclass(exc_type, (KeyboardInterrupt, TerminationSignal)):
+            return super().__exit__(exc_type, exc_value, traceback)
+        for event in self._cancel_events.values():
+            event.set()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+        return TaskRunner.__exit__(self, exc_type, exc_value, traceback)
+
+
 def cpu_thread_pool(max_workers: int | None = None) -> ThreadPoolTaskRunner:
     """A thread pool task runner with `thread_workers(max_workers)` threads: the default of the CPU-bound flows."""
-    return ThreadPoolTaskRunner(max_workers=thread_workers(max_workers))
+    return StoppableThreadPool(max_workers=thread_workers(max_workers))
 
 
 def task_runner_for(params: HasRunner) -> TaskRunner:

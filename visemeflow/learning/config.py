@@ -32,7 +32,7 @@ class TrainConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     preset: str = Field("fbank-blstm", description="Model preset, e.g. fbank-blstm, whisper-base-blstm, wav2vec2-blstm, "
-                                                  "mean-curve (visemeflow.learning.presets).")
+                                                  "mean-curve.")
     epochs: int = Field(10, ge=0, description="Passes over the training utterances.")
     seed: int = Field(0, description="Seed of initialisation, order and augmentation.")
     d_model: int | None = Field(None, ge=2, description="Model width; default: the preset's.")

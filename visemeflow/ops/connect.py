@@ -8,6 +8,7 @@ answers in milliseconds, and its UI shows the command's runs beside the served o
 This module is imported by the CLI's argument callbacks, before Prefect is: it uses the standard library only (no
 Prefect, no httpx) and only reads what `visemeflow serve` leaves in `<store>/.prefect-serve/` (see
 `visemeflow.ops.serve`: the auth string, the lock file holding serve's pid, the server log naming its address).
+`unjoined_heartbeats`, for the command once its flow module is imported, imports Prefect when it is called.
 """
 
 from __future__ import annotations
@@ -156,6 +157,9 @@ class EarlyServer:
             [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app",
              "--fd", str(listener.fileno()), "--log-level", "error", "--lifespan", "on"],
             env=env, pass_fds=(listener.fileno(),), stdin=subprocess.DEVNULL, preexec_fn=_dies_with_parent(),
+            # a session of its own: Ctrl-C in the terminal and `timeout`'s SIGTERM reach the command's process group,
+            # not the server, which stays up while the command marks its run stopped, then dies with it
+            start_new_session=True,
         )
         listener.close()  # the server holds its copy
         atexit.register(self.stop)
@@ -203,3 +207,36 @@ def use_running_api(store: Path | None, start_early: bool = True) -> Api | None:
         os.environ["PREFECT_API_URL"] = api.url
         os.environ["PREFECT_API_AUTH_STRING"] = api.auth_string or ""
     return api
+
+
+def unjoined_heartbeats() -> bool:
+    """Let this process's synchronous flow runs end without waiting for their heartbeat thread; whether it was done.
+
+    A flow run sends heartbeats (events saying the run is alive, every PREFECT_FLOWS_HEARTBEAT_FREQUENCY, 180 s by
+    default) from a thread that sleeps in steps of one second; Prefect's synchronous engine joins that thread when
+    the run ends, so every flow run of a command ends up to 1 s late (0.7-0.9 s of a cached 3.5 s `predict`: the
+    thread's first heartbeat is sent as the run starts, and the join then waits out the rest of its first second).
+    Prefect's asynchronous engine does not join it (`join_on_exit=False`); this makes the synchronous engine do the
+    same. The heartbeats are still sent: the first as the run starts, the next ones while it runs; the thread stops
+    at its next one-second check after the run ends, and dies with the process, which a command ends right after
+    its flow. Meant for the `visemeflow` command only (tests and callers of `app` keep Prefect's behaviour); a
+    Prefect whose engine has no such function or parameter is left alone (False)."""
+    import inspect
+
+    from prefect import flow_engine
+
+    send = getattr(flow_engine, "_send_heartbeats", None)
+    if getattr(send, "visemeflow_unjoined", False):
+        return True
+    try:
+        if send is None or "join_on_exit" not in inspect.signature(send).parameters:
+            return False
+    except (TypeError, ValueError):
+        return False
+
+    def send_unjoined(engine, join_on_exit: bool = True):
+        return send(engine, join_on_exit=False)
+
+    send_unjoined.visemeflow_unjoined = True
+    flow_engine._send_heartbeats = send_unjoined
+    return True

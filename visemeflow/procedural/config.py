@@ -26,8 +26,7 @@ class ProceduralConfig(BaseModel):
     fps: float | None = Field(
         None, gt=0.0,
         description=(
-            "Frame rate of the stored curves; None uses each utterance's own rate (its video's, or the "
-            "ingest default of 30). generate_procedural_curves takes fps explicitly."
+            "Frame rate of the curves; default: each utterance's own (its video's, else ingest's --fps)."
         ),
     )
     merge_max_gap_s: float = Field(

@@ -41,7 +41,6 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer, this_machine
@@ -66,6 +65,14 @@ CURVE_FILE_OPTIONS = {
     "write_statistics": [C.UTTERANCE_ID, C.SOURCE, C.VARIANT, C.FRAME],
 }
 
+
+
+def _dataset(*args, **kwargs):
+    """`pyarrow.dataset.dataset`, imported on first use: the module pulls in pandas (0.3 s), which a command that
+    reads no table (a cached `predict`) does not need."""
+    import pyarrow.dataset as ds
+
+    return ds.dataset(*args, **kwargs)
 
 def _pid_alive(pid: int) -> bool:
     if pid == os.getpid():
@@ -371,7 +378,7 @@ class Store:
         files = self.tracking_frame_files(variant)
         if not files or utterance_ids == []:
             return TRACKING_FRAMES.empty_table()
-        dataset = ds.dataset(files, schema=TRACKING_FRAMES, format="parquet")
+        dataset = _dataset(files, schema=TRACKING_FRAMES, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(utterance_ids) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
 
@@ -403,7 +410,7 @@ class Store:
         if model:
             folder = folder / validate_name(model, "model name")
         files = self._files(folder)
-        return ds.dataset(files, schema=METRICS, format="parquet").to_table() if files else METRICS.empty_table()
+        return _dataset(files, schema=METRICS, format="parquet").to_table() if files else METRICS.empty_table()
 
     @contextmanager
     def locked(self, name: str) -> Iterator[None]:
@@ -540,7 +547,7 @@ class Store:
         files = self._files(self.table_dir(table_name, stage))
         if not files:
             return schema.empty_table()
-        dataset = ds.dataset(files, schema=schema, format="parquet")
+        dataset = _dataset(files, schema=schema, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(pa.array(utterance_ids, pa.string())) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
 
@@ -648,7 +655,7 @@ class Store:
         files = self.curve_files(source, variant)
         if not files:
             return CURVES.empty_table() if columns is None else CURVES.empty_table().select(columns)
-        dataset = ds.dataset(files, schema=CURVES, format="parquet")
+        dataset = _dataset(files, schema=CURVES, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(pa.array(utterance_ids, pa.string())) if utterance_ids is not None else None
         return dataset.to_table(columns=columns, filter=flt)
 

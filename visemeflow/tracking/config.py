@@ -114,7 +114,7 @@ class FaceMeshConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    refine_landmarks: bool = Field(True, description="478 points with the iris refinement; False: 468 (faster).")
+    refine_landmarks: bool = Field(True, description="478 points with the iris refinement; off: 468 (faster).")
     max_faces: int = Field(4, ge=2, le=16, description="Faces followed at once when a clip shows more than one.")
     min_detection_confidence: float = Field(0.5, ge=0, le=1)
     min_tracking_confidence: float = Field(0.5, ge=0, le=1)
