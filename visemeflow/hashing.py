@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 from collections.abc import Iterable
+from typing import Any
 
 from pydantic import BaseModel
 
@@ -70,3 +71,10 @@ def files_hash(paths: Iterable[str | os.PathLike | None], size: int = DIGEST_SIZ
     cache keys); the memo keeps the whole tuple's digest."""
     paths = list(paths)
     return hashmemo.memoised("files", size, paths, lambda: _read_files_hash(paths, size))
+
+
+def without_added_defaults(data: dict[str, Any], added: dict[str, Any]) -> dict[str, Any]:
+    """A config's JSON without the fields added after configs were first stored (`added`: name -> default) where
+    they hold their default, so an older config means the same JSON (checkpoint resume keys, model names hashed
+    from it, Prefect cache keys) as before they existed."""
+    return {name: value for name, value in data.items() if name not in added or value != added[name]}

@@ -17,15 +17,10 @@ from pydantic import (
     model_validator,
 )
 
+from visemeflow.hashing import without_added_defaults
+
 if TYPE_CHECKING:
     from visemeflow.learning.presets import Preset
-
-
-def without_added_defaults(data: dict[str, Any], added: dict[str, Any]) -> dict[str, Any]:
-    """A config's JSON without the fields added after configs were first stored (`added`: name -> default) where
-    they hold their default, so an older config means the same JSON (checkpoint resume keys, model names hashed
-    from it, Prefect cache keys) as before they existed."""
-    return {name: value for name, value in data.items() if name not in added or value != added[name]}
 
 
 class TrainConfig(BaseModel):

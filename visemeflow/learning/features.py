@@ -81,7 +81,7 @@ from pydantic import (
 )
 from torch import nn
 
-from visemeflow.learning.config import without_added_defaults
+from visemeflow.hashing import without_added_defaults
 from visemeflow.learning.whisper import (
     FRAME_RATE_HZ as WHISPER_FRAME_RATE_HZ,
 )
