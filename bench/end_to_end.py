@@ -34,9 +34,9 @@ calls), so the split is of exactly the code the pipeline runs:
   flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
---compare also runs every clip with the fast solver's earlier method, TrackingConfig(fast_method="adam") (Adam with
-cosine decay: 50 pose + 200 joint autograd steps), as "before", beside the default Levenberg-Marquardt ("after",
-issue 29); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
+--compare also runs every clip with the fast solver's other method, TrackingConfig(fast_method="lm")
+(Levenberg-Marquardt, issue 29), as "after", beside the default Adam with cosine decay (50 pose + 200 joint
+autograd steps, "before"); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
 side by side: the mean mouth keypoint error (the 20 mouth points of the tracked face to the detected landmarks,
 px) per set, and on GRID the MBP activation: at the midpoint frame of every phone whose viseme is MBP (b, p, m),
 the share where MBP is the tracked top viseme and among the top two; and the largest curve difference per clip.
@@ -362,8 +362,8 @@ def main() -> int:
           f"{config.fast_iterations} it), flow {config.use_flow}; FaceMeshConfig: refine {mesh.refine_landmarks}, probe every "
           f"{mesh.probe_every}")
     paths = ("before", "after") if args.compare else ("after",)
-    configs = {"before": config.model_copy(update={"fast_method": "adam"}), "after": config}
-    label = "before (fast_method=adam) -> after (lm)"
+    configs = {"before": config, "after": config.model_copy(update={"fast_method": "lm"})}
+    label = "before (default, fast_method=adam) -> after (lm)"
     if args.compare_flow:
         preset, roi = args.compare_flow.split(":")
         configs = {"before": config, "after": config.model_copy(
