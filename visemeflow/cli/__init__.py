@@ -620,13 +620,12 @@ def animate(params: AnimateParams) -> None:
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
+    _check_characters(params.characters, list(params.config.meshes))
     _check_curves(params.store, params.source, params.variant)
     from visemeflow.flows.animate import animate_flow
 
-    _check_characters(params.characters, list(params.config.meshes))
     _print_packages(dict(animate_flow(params)))
     _print_rejects_hint(params.store)
-
 
 
 @stage_command(app, SpeakParams, [

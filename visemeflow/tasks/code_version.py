@@ -4,7 +4,8 @@ A task's own source (Prefect's `TASK_SOURCE`) is a thin wrapper; what decides it
 modules it calls (`procedural/jali.py`, `tracking/solver.py`, a feature extractor). The scope of a task is its
 module and every module of the package that module imports, directly or through others, read from the import
 statements (those inside functions included), plus the `__init__.py` of each package on the way, since Python runs
-them. So an edit to `procedural/jali.py` changes the procedural task's digest (and, through the curves' provenance,
+them, and the modules a package's `__init__.py` exports names of on first use (`visemeflow.lazy`: its table names
+them in quotes). So an edit to `procedural/jali.py` changes the procedural task's digest (and, through the curves' provenance,
 those of the stages that read its curves), while an edit to the dashboards changes no task's digest: no task module
 imports them. Every stage reads the rows ingest made (`utterances`, `phones`), which record no code, so ingest's
 scope is in every task's. Non-Python files (rig JSON, lookup tables) and third-party libraries are not part of it.
@@ -23,6 +24,8 @@ ROOT = Path(visemeflow.__file__).resolve().parent
 # the stages whose outputs reach every other stage without a provenance that records their code
 UPSTREAM = ("visemeflow.tasks.ingest",)
 _FROM = re.compile(r"^\s*from\s+(\.*)([\w.]*)\s+import\s+(.+)$")
+# a package whose __init__ imports its names on first use (visemeflow.lazy): the modules its table names, quoted
+_LAZY_MODULE = re.compile(r"""["'](\.[\w.]+|visemeflow(?:\.\w+)+)["']""")
 _IMPORT = re.compile(r"^\s*import\s+(.+)$")
 
 
@@ -72,7 +75,11 @@ def _imported(module: str, path: Path) -> set[str]:
     """Modules of the package named by the import statements of one source file (absolute or relative)."""
     is_package = path.name == "__init__.py"
     found: set[str] = set()
-    for statement in _statements(path.read_text(encoding="utf-8")):
+    text = path.read_text(encoding="utf-8")
+    if is_package and "lazy_exports(" in text:
+        # names exported on first use import their modules then: as an eager __init__ would, they are in scope
+        found.update(module + name if name.startswith(".") else name for name in _LAZY_MODULE.findall(text))
+    for statement in _statements(text):
         m = _FROM.match(statement)
         if m is None:
             found.update(_names(_IMPORT.match(statement).group(1)))
