@@ -252,13 +252,34 @@ def test_fsync_of_file_and_folder_by_default_and_off_by_environment(tmp_path, mo
     assert synced == [] and path.read_text() == "y"
 
 
-def test_the_machine_of_a_pid_differs_between_pid_namespaces():
-    """Two containers on one host share the kernel's boot id but not their pids: the machine token tells them
-    apart (a child in a new pid namespace, where unshare is allowed; else the token is at least stable)."""
+def test_the_machine_token_is_stable_and_differs_by_boot_and_by_pid_namespace(monkeypatch):
+    """Two machines differ by boot id, two containers on one host by pid namespace: either gives another token,
+    the same pair the same token (read through fakes of /proc, so it holds wherever the suite runs)."""
+    import types
+
+    import visemeflow.atomic as atomic
+
+    assert re.fullmatch(r"[0-9a-f]{8}", this_machine()) and this_machine() == this_machine()
+    boot, namespace = ["boot-a"], [4026531836]
+    real_stat, real_read = atomic.os.stat, atomic.Path.read_text
+    monkeypatch.setattr(atomic.os, "stat", lambda path, *a, **k: types.SimpleNamespace(st_ino=namespace[0])
+                        if str(path) == "/proc/self/ns/pid" else real_stat(path, *a, **k))
+    monkeypatch.setattr(atomic.Path, "read_text", lambda self, *a, **k: boot[0] + "\n"
+                        if str(self) == "/proc/sys/kernel/random/boot_id" else real_read(self, *a, **k))
+    first = atomic.this_machine.__wrapped__()
+    assert atomic.this_machine.__wrapped__() == first
+    namespace[0] = 4026532001
+    other_container = atomic.this_machine.__wrapped__()
+    boot[0], namespace[0] = "boot-b", 4026531836
+    other_machine = atomic.this_machine.__wrapped__()
+    assert len({first, other_container, other_machine}) == 3
+
+
+def test_a_child_in_a_new_pid_namespace_has_another_machine_token():
+    """The same on a real pid namespace, where this machine lets root make one (`unshare`); the fakes above hold the
+    rule everywhere, this the kernel's side of it."""
     import shutil
 
-    here = this_machine()
-    assert re.fullmatch(r"[0-9a-f]{8}", here) and this_machine() == here
     unshare = shutil.which("unshare")
     if unshare is None or os.geteuid() != 0:
         pytest.skip("needs unshare as root to make a pid namespace")
@@ -267,4 +288,4 @@ def test_the_machine_of_a_pid_differs_between_pid_namespaces():
                           capture_output=True, text=True, timeout=60)
     if done.returncode != 0:
         pytest.skip(f"unshare refused here (a restricted container): {done.stderr.strip()[:200]}")
-    assert done.stdout.strip() != here
+    assert re.fullmatch(r"[0-9a-f]{8}", done.stdout.strip()) and done.stdout.strip() != this_machine()
