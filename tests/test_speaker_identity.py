@@ -56,8 +56,14 @@ def counted(monkeypatch):
         return {"utterance_id": uid, "frames": int(utterance[C.N_FRAMES]), "seconds": 0.0, "mouth_error_px": 1.0,
                 "variant": config.variant, "guided": True, "unguided_reason": None, "interpolated_frames": 0}
 
+    def track_many(store, utterances, procedural_variant, rig, config, identities=None, on_step=None):
+        # the joint path (TrackParams.joint_frames): each utterance with its own identity
+        identities = identities or [None] * len(utterances)
+        return [track_one(store, u, procedural_variant, rig, config, identity=i) for u, i in zip(utterances, identities)]
+
     monkeypatch.setattr(track_task, "fit_speaker_identity", fit)
     monkeypatch.setattr(track_task, "track_one", track_one)
+    monkeypatch.setattr(track_task, "track_many", track_many)
     return calls
 
 

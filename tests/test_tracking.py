@@ -274,6 +274,44 @@ def test_soft_box_and_rgb_keep_the_adam_path(rig):
     assert "method" not in soft.extra and soft.iterations == 20
 
 
+def test_several_utterances_solved_together_equal_each_solved_alone(rig):
+    """solve_fast_many: one optimiser over the frames of several clips (different lengths, cameras, rigs, flow
+    vertex lists, one without flow) gives each clip the curves and pose of its own solve; a clip whose objective
+    diverges gets its error in its place and costs the others nothing."""
+    from visemeflow.tracking.solver import FlowTerm, solve_fast_many
+
+    _, a = _noisy_problem(rig, frames=24, flow=True)
+    _, b = _noisy_problem(rig, frames=17, flow=False)
+    _, c = _noisy_problem(rig, frames=9, flow=True)
+    wider = dataclasses.replace(rig, neutral=rig.neutral * np.float32(1.03))       # another speaker's face
+    c = dataclasses.replace(c, rig=wider, camera=dataclasses.replace(c.camera, fx=c.camera.fx * 1.2,
+                                                                      fy=c.camera.fy * 1.2),
+                            flow=FlowTerm(c.flow.vertex_ids[:30], c.flow.correspond_back, c.flow.correspond))
+    c = dataclasses.replace(c, flow=FlowTerm(c.flow.vertex_ids, lambda j, p: (np.zeros((30, 2)), np.ones(30, bool)),
+                                             c.flow.correspond_back))
+    config = TrackingConfig(pose_iterations=10, fast_iterations=60)
+    together = solve_fast_many([a, b, c], config)
+    for problem, joint in zip((a, b, c), together):
+        alone = solve_fast(problem, config)
+        assert joint.extra["joined"] == 3 and "joined" not in alone.extra
+        assert np.abs(joint.curves - alone.curves).max() < 1e-4
+        assert np.abs(joint.rotation - alone.rotation).max() < 1e-5
+        assert np.abs(joint.translation - alone.translation).max() < 1e-3
+        assert set(joint.terms) == set(alone.terms)
+        for name in alone.terms:
+            np.testing.assert_allclose(joint.terms[name], alone.terms[name], rtol=1e-3, atol=1e-5)
+    # the join is not a neighbour: clip b starts as it would alone (no L_diff pair with a's last frame)
+    assert together[1].terms["diff"][0] == 0.0
+    # a diverging clip: its error in its place, the others solved as before
+    bad_landmarks = b.landmarks.copy()
+    bad_landmarks[3, 30] = np.inf
+    bad = dataclasses.replace(b, landmarks=bad_landmarks)
+    out = solve_fast_many([a, bad, c], config)
+    assert isinstance(out[1], FloatingPointError)
+    assert np.abs(out[0].curves - together[0].curves).max() < 1e-4
+    assert np.abs(out[2].curves - together[2].curves).max() < 1e-4
+
+
 # ---- the flow -----------------------------------------------------------------------------------------------------
 @pytest.mark.flow
 def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
@@ -299,6 +337,8 @@ def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
     first = pipeline_flow(params)
     assert first["landmarks"]["detected"] == 1 and first["landmarks"]["utterances"] == 1
     assert first["track"]["tracked"] == 2 and first["track"]["rejected"] == 0
+    # both solved in one joint task, whose results their own cached calls then found (TrackParams.joint_frames)
+    assert first["track"]["jointly"] == 2
     s = Store(store)
     assert s.read_table("rejects", "track").num_rows == 0 and s.has_landmarks("zh/nolandmarks")
     tracked = s.read_curves("zh/SSB16240001", "tracked", "guided-fast")
@@ -312,7 +352,7 @@ def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
     path = s.curve_path("tracked", "guided-fast", "zh/SSB16240001")
     before = path.stat().st_mtime_ns
     second = pipeline_flow(params)
-    assert second["track"]["cached"] == 2 and second["track"]["tracked"] == 0
+    assert second["track"]["cached"] == 2 and second["track"]["tracked"] == 0 and second["track"]["jointly"] == 0
     assert path.stat().st_mtime_ns == before
 
     report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="track", store=store))
@@ -354,7 +394,10 @@ def tracked_store(tmp_path_factory, prefect_harness):
 
 
 @pytest.mark.flow
-def test_track_flow_ends_failed_with_the_traceback_when_an_utterance_meets_a_bug(tracked_store, monkeypatch, caplog):
+@pytest.mark.parametrize("joint_frames", [0, 400])
+def test_track_flow_ends_failed_with_the_traceback_when_an_utterance_meets_a_bug(tracked_store, monkeypatch, caplog,
+                                                                                  joint_frames):
+    """One task per utterance, or a joint task first (whose bug sends its utterances to their own tasks)."""
     from visemeflow.flows.errors import StageFailed
     from visemeflow.flows.params import TrackParams
     from visemeflow.flows.track import track_flow
@@ -362,18 +405,20 @@ def test_track_flow_ends_failed_with_the_traceback_when_an_utterance_meets_a_bug
     from visemeflow.storage import Store
     from visemeflow.tasks import track as track_task
 
-    store = tracked_store("bug")
-    real = track_task.track_video
+    store = tracked_store(f"bug{joint_frames}")
+    real = track_task._video_input
 
-    def buggy(video, procedural, rig, config, on_step=None):
-        if "good" in video.video_path:
+    def buggy(store, utterance, procedural_variant, config):
+        if "good" in utterance[C.UTTERANCE_ID]:
             return {}["no such key"]  # a bug, not bad input
-        return real(video, procedural, rig, config, on_step)
+        return real(store, utterance, procedural_variant, config)
 
-    monkeypatch.setattr(track_task, "track_video", buggy)
-    caplog.set_level("ERROR")
+    monkeypatch.setattr(track_task, "_video_input", buggy)
+    caplog.set_level("WARNING")
     with pytest.raises(StageFailed, match="1 of 2 utterances failed with an unexpected error") as failed:
-        track_flow(TrackParams(store=store, n_shards=2))
+        track_flow(TrackParams(store=store, n_shards=2, joint_frames=joint_frames))
+    joint_failed = [r for r in caplog.records if "a joint solve failed (KeyError" in r.getMessage()]
+    assert len(joint_failed) == (1 if joint_frames else 0)
     assert failed.value.summary["rejected"] == 2 and failed.value.summary["tracked"] == 0
     rejects = {r[C.UTTERANCE_ID]: r for r in Store(store).read_table("rejects", "track").to_pylist()}
     assert rejects["lj/bare"][C.ERROR_TYPE] == "NoLandmarks"

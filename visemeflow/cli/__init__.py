@@ -302,7 +302,8 @@ def procedural(params: ProceduralParams) -> None:
 
 @stage_command(app, TrackParams, [
     STORE, SHARDS, Opt("config.solver"), Opt("config.guidance"), Opt("config.use_rgb", "--rgb"),
-    Opt("config.use_flow", "--flow"), Opt("config.speaker_identity"), Opt("rig", callback=_path), *RUNNER,
+    Opt("config.use_flow", "--flow"), Opt("config.speaker_identity"), Opt("joint_frames"), Opt("rig", callback=_path),
+    *RUNNER,
 ])
 def track(params: TrackParams) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""

@@ -141,6 +141,10 @@ class TrackParams(StoreParams):
     procedural_variant: str | None = Field(
         None, description="Procedural curves that guide tracking; default: those the procedural stage last wrote."
     )
+    joint_frames: int = Field(
+        400, ge=0, le=100_000,
+        description="Utterances to track are solved together in groups of about this many frames (the same curves "
+                    "as one by one, less solver time; memory grows with it); 0: one utterance per task.")
     runner: RunnerConfig = RunnerField
 
 

@@ -1,5 +1,11 @@
 """The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each).
 
+Utterances whose task would not be a cache hit are first tracked in groups of about `TrackParams.joint_frames`
+frames, one joint solve per group (`track_jointly`, `tracking.solver.solve_fast_many`: each clip gets the curves of
+its own solve, to float rounding, for a fraction of the solver's time); each result is written as its utterance's
+task's cached result, so every utterance still has its own `track[...]` task, cache entry and `rerun`. An utterance
+that fails in a group is tracked by its own task alone and rejected there with its whole message.
+
 Utterances without an alignment are tracked unguided (variant `unguided-...`, see tasks/track.py); the summary
 counts them (`unguided`) and says why (`unguided_why`).
 
@@ -21,7 +27,7 @@ from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
+from visemeflow.tasks.common import cache_key_of, result_storage, results_of
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
 from visemeflow.tasks.track import (
@@ -31,6 +37,7 @@ from visemeflow.tasks.track import (
     fit_speaker_identity_task,
     identity_clips,
     landmark_file,
+    track_jointly,
     track_utterance,
     utterance_config,
 )
@@ -125,6 +132,55 @@ def unguided_why(unguided: list[dict]) -> str | None:
     return "; ".join(f"{n}: {reason}" for reason, n in sorted(counts.items())) or None
 
 
+def joint_groups(calls: list, frames_each: int) -> list[list]:
+    """`calls` (longest first) in groups of about `frames_each` frames: each group's frames reach it or it holds
+    one call; a group's clips are then of like length."""
+    groups, group, total = [], [], 0
+    for call in calls:
+        group.append(call)
+        total += int(call[1][C.N_FRAMES] or 0)
+        if total >= frames_each:
+            groups.append(group)
+            group, total = [], 0
+    return groups + ([group] if group else [])
+
+
+def track_jointly_first(store: Store, calls: list, config: TrackingConfig, frames_each: int,
+                        rejected_before: set[str], logger) -> set[str]:
+    """Track the utterances whose `track_utterance` call would miss its cache (or whose curves are gone) in groups
+    of about `frames_each` frames, one joint solve each (`track_jointly`); each one tracked leaves its call's
+    result, so the flow's per-utterance call is a hit. The utterances so tracked; none with `frames_each` 0,
+    with the faithful solver, or with one utterance to track (its own task is as fast)."""
+    if frames_each <= 0 or config.solver != "fast":
+        return set()
+    todo = []
+    for uid, row, args in calls:
+        key = cache_key_of(track_utterance, store.root, *args)
+        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
+        if key is None or not present or not results_of(store.root).exists(key):
+            todo.append((uid, row, args, key))
+    if len(todo) < 2:
+        return set()
+    groups = joint_groups(todo, frames_each)
+    logger.info("track: %d utterances to track, in %d joint solve(s) of about %d frames", len(todo), len(groups),
+                frames_each)
+    runs = []
+    for group in groups:
+        label = group[0][0] if len(group) == 1 else f"{group[0][0]} +{len(group) - 1}"
+        _, _, args, _ = group[0]
+        runs.append(track_jointly.submit(
+            args[0], label, [row for _, row, _, _ in group], args[2], args[4], args[6],
+            [a[7] for _, _, a, _ in group], [key for *_, key in group]))
+    tracked = set()
+    for run in runs:
+        try:
+            tracked |= {uid for uid, outcome in run.result().items() if outcome == "tracked"}
+        except Exception as exc:        # a bug met in one group: its utterances' own tasks run them alone
+            logger.warning("track: a joint solve failed (%s: %s); its utterances are tracked one by one",
+                           type(exc).__name__, exc)
+    return tracked
+
+
 @flow(name="track", flow_run_name="track[{params.store}]", task_runner=cpu_thread_pool())
 def track_flow(params: TrackParams) -> dict[str, object]:
     """Track every utterance that has a video; failures become rejects and the rest goes on."""
@@ -141,20 +197,32 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     rows.sort(key=lambda r: (-(r[C.N_FRAMES] or 0), r[C.UTTERANCE_ID]))
     rejected_before = run.rejected_before()
     identities = speaker_identities(store, rows, config, rig_path, rig_hash, run.logger)
-    futures, frames = {}, {}
+    calls = []          # each utterance's track_utterance call: (uid, row, its arguments)
     for row in rows:
         uid = row[C.UTTERANCE_ID]
-        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
         provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
         if not row[C.LANDMARK_PATH]:    # landmarks from the `landmarks` stage: new ones invalidate the cache
             row = {**row, LANDMARKS_KEY: store.landmarks_provenance(uid)}
+        calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
+                                 config, identities.get(uid))))
+    jointly = track_jointly_first(store, calls, config, params.joint_frames, rejected_before, run.logger)
+    futures, frames = {}, {}
+    for uid, row, args in calls:
+        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
         future = track_utterance.with_options(
             result_storage=result_storage(store.root), refresh_cache=not present,
-        ).submit(str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash, config,
-                  identities.get(uid))
+        ).submit(*args)
         futures[future] = uid
         frames[future] = int(row[C.N_FRAMES] or 0)
     reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, run.logger, work=frames)
+    joint_hits = 0
+    for report in reports:              # tracked by a joint task: its own task's hit is this run's work
+        if report["utterance_id"] in jointly:
+            joint_hits += report["cached"]
+            report["cached"] = 0
+    if joint_hits < len(jointly):       # the call's key did not match the one written: tracked twice, not wrong
+        run.logger.warning("track: %d of %d utterances tracked jointly were tracked again by their own task",
+                           len(jointly) - joint_hits, len(jointly))
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     unguided = [r for r in reports if not r.get("guided", True)]
@@ -164,7 +232,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         "frames": sum(r["frames"] for r in reports), "unguided": len(unguided),
         "interpolated_frames": sum(r.get("interpolated_frames", 0) for r in reports),
     }
-    extra = {"variant": config.variant,
+    extra = {"variant": config.variant, "jointly": joint_hits,
              "variants": ", ".join(sorted({r["variant"] for r in reports})) or None,
              "unguided_why": unguided_why(unguided),
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}

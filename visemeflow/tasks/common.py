@@ -98,6 +98,29 @@ def result_storage(store_root: str | Path) -> Path:
     return Store(store_root).results_dir()
 
 
+def results_of(store_root: str | Path) -> Any:
+    """Prefect's result store (`prefect.results.ResultStore`) of a visemeflow store (`result_storage`), with our
+    JSON serializer: what a persisted task of this package reads its cached records from and writes them to."""
+    from prefect.results import ResultStore
+
+    return ResultStore(result_storage=LocalFileSystem(basepath=str(result_storage(store_root))),
+                       serializer=RESULT_SERIALIZER)
+
+
+def cache_key_of(task: Any, store_root: str | Path, *args: Any) -> str | None:
+    """The cache key `task`'s cache policy gives the call `task(*args)`, as Prefect computes it when the task runs
+    (the policies read the task, its inputs and its result storage; none of them the flow's parameters). A flow that
+    does the work of several such calls in one task writes each result under its call's key (`results_of(...).
+    write`), so that the call itself is then a cache hit, and reruns and `rerun` of one utterance stay as they were."""
+    from types import SimpleNamespace
+
+    from prefect.utilities.callables import get_call_parameters
+
+    context = SimpleNamespace(task=task, result_store=results_of(store_root))
+    return task.cache_policy.compute_key(task_ctx=context, inputs=get_call_parameters(task.fn, args, {}),
+                                         flow_parameters={})
+
+
 def reject_row(utterance_id: str | None, stage: str, error_type: str, message: str, path: str | None) -> dict[str, object]:
     """One row of the rejects table; the message capped as the store caps it, so the logs that quote the row stay
     bounded too (an entity-expanding XML file made a 30 MB message)."""

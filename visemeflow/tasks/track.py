@@ -18,6 +18,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 from prefect import get_run_logger, task
+from prefect.cache_policies import NO_CACHE
 
 from visemeflow.hashing import stable_hash
 from visemeflow.rig import VisemeRig, load_rig
@@ -31,7 +32,7 @@ from visemeflow.schemas import (
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
-from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER
+from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, results_of
 from visemeflow.tasks.progress import StepLog
 from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.identity import SpeakerIdentity, fit_speaker_identity
@@ -42,6 +43,7 @@ from visemeflow.tracking.utterance import (
     VideoInput,
     identity_modes_for,
     track_video,
+    track_videos,
 )
 
 STAGE = "track"
@@ -109,15 +111,13 @@ def diagnostics_table(uid: str, variant: str, tracked: TrackedVideo) -> pa.Table
     return pa.table(columns, schema=TRACKING_FRAMES)
 
 
-def track_one(store: Store, utterance: dict, procedural_variant: str, rig: VisemeRig, config: TrackingConfig,
-              on_step=None, identity: SpeakerIdentity | None = None) -> dict:
-    """Track one utterance and store its curves and diagnostics; raises TrackError for bad input. `on_step(phase,
-    done, total)`: progress inside the video (`tracking.utterance.track_video`). `identity`: the speaker's face
-    and camera (`speaker_identity`); None fits them to this clip."""
+def _video_input(store: Store, utterance: dict, procedural_variant: str,
+                 config: TrackingConfig) -> tuple[VideoInput, np.ndarray | None, TrackingConfig]:
+    """What `track_video` takes for one utterance: its video, its procedural curves (None: unguided) and its
+    config (`utterance_config`); TrackError for an utterance without video or procedural curves."""
     uid = utterance[C.UTTERANCE_ID]
     if not utterance[C.VIDEO_PATH]:
         raise TrackError(uid, None, "NoVideo", "the utterance has no video")
-    why = unguided_reason(utterance, config)
     config = utterance_config(utterance, config)
     procedural = end_s = None
     if has_alignment(utterance):
@@ -129,24 +129,74 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
     video = VideoInput(utterance[C.VIDEO_PATH], landmark_file(store, utterance), utterance[C.FPS],
                        int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
                        alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
-    try:
-        extra = {} if identity is None else {"identity": identity}
-        tracked = track_video(video, procedural, rig, config, on_step, **extra)
-    except TrackingInputError as exc:
-        raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
+    return video, procedural, config
+
+
+def _stored(store: Store, utterance: dict, config: TrackingConfig, tracked: TrackedVideo, why: str | None,
+            identity: SpeakerIdentity | None) -> dict:
+    """Store one tracked utterance's curves and diagnostics; its report."""
+    uid = utterance[C.UTTERANCE_ID]
     result, variant = tracked.result, config.variant
     store.save_curves(Curves(result.curves, utterance[C.FPS], uid, SOURCE, variant,
                              f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"
                              + ("" if identity is None else f":identity={identity.digest}")))
     store.write_tracking_frames(diagnostics_table(uid, variant, tracked))
     error = result.mouth_error_px
+    n_frames = int(utterance[C.N_FRAMES])
     return {
-        "utterance_id": uid, "frames": video.n_frames, "seconds": round(result.seconds, 3),
+        "utterance_id": uid, "frames": n_frames, "seconds": round(result.seconds, 3),
         "mouth_error_px": float(np.nanmean(error)) if np.isfinite(error).any() else None,
         "variant": variant, "guided": why is None, "unguided_reason": why,
-        "video_frames": int(len(tracked.frame_times)) if tracked.frame_times is not None else video.n_frames,
+        "video_frames": int(len(tracked.frame_times)) if tracked.frame_times is not None else n_frames,
         "interpolated_frames": int(tracked.interpolated.sum()), **tracked.camera_info,
     }
+
+
+def track_one(store: Store, utterance: dict, procedural_variant: str, rig: VisemeRig, config: TrackingConfig,
+              on_step=None, identity: SpeakerIdentity | None = None) -> dict:
+    """Track one utterance and store its curves and diagnostics; raises TrackError for bad input. `on_step(phase,
+    done, total)`: progress inside the video (`tracking.utterance.track_video`). `identity`: the speaker's face
+    and camera (`speaker_identity`); None fits them to this clip."""
+    uid = utterance[C.UTTERANCE_ID]
+    why = unguided_reason(utterance, config)
+    video, procedural, config = _video_input(store, utterance, procedural_variant, config)
+    try:
+        extra = {} if identity is None else {"identity": identity}
+        tracked = track_video(video, procedural, rig, config, on_step, **extra)
+    except TrackingInputError as exc:
+        raise TrackError(uid, exc.path, exc.error_type, exc.reason) from exc
+    return _stored(store, utterance, config, tracked, why, identity)
+
+
+def track_many(store: Store, utterances: list[dict], procedural_variant: str, rig: VisemeRig,
+               config: TrackingConfig, identities: list[SpeakerIdentity | None] | None = None,
+               on_step=None) -> list[dict | TrackError]:
+    """`track_one` of several utterances with one joint solve per tracking config (`tracking.utterance.
+    track_videos`: the same curves as one by one, less solver time). A report or a TrackError per utterance, in
+    order; a bad utterance never stops the others. `on_step(index, phase, done, total)` as `track_videos`."""
+    identities = list(identities) if identities is not None else [None] * len(utterances)
+    out: list[dict | TrackError | None] = [None] * len(utterances)
+    groups: dict[str, list[tuple[int, VideoInput, np.ndarray | None, TrackingConfig]]] = {}
+    for i, utterance in enumerate(utterances):
+        try:
+            video, procedural, cfg = _video_input(store, utterance, procedural_variant, config)
+        except TrackError as exc:
+            out[i] = exc
+            continue
+        groups.setdefault(cfg.model_dump_json(), []).append((i, video, procedural, cfg))
+    for members in groups.values():
+        cfg = members[0][3]
+        tracked = track_videos([(video, procedural) for _, video, procedural, _ in members], rig, cfg,
+                               [identities[i] for i, *_ in members],
+                               None if on_step is None else (lambda k, *rest: on_step(
+                                   k if k < 0 else members[k][0], *rest)))
+        for (i, *_), done in zip(members, tracked):
+            utterance = utterances[i]
+            if isinstance(done, TrackingInputError):
+                out[i] = TrackError(utterance[C.UTTERANCE_ID], done.path, done.error_type, done.reason)
+            else:
+                out[i] = _stored(store, utterance, cfg, done, unguided_reason(utterance, config), identities[i])
+    return out  # type: ignore[return-value]
 
 
 @task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
@@ -166,6 +216,35 @@ def track_utterance(
     logger.info("%s: %d frames (%s) in %.1f s, mouth error %s", report["utterance_id"], report["frames"],
                           report["variant"], report["seconds"], "-" if error is None else f"{error:.2f} px")
     return report
+
+
+@task(cache_policy=NO_CACHE, task_run_name="track-joint[{label}]")
+def track_jointly(store_root: str, label: str, utterances: list[dict], procedural_variant: str, rig_path: str,
+                  config: TrackingConfig, identities: list[dict | None], keys: list[str | None]) -> dict[str, str]:
+    """Several utterances tracked with one joint solve (`track_many`). Each one tracked is stored, and its report
+    written as the cached result of its own `track_utterance` call (its key in `keys`, `common.cache_key_of`), which
+    the flow then makes: a cache hit. Not cached itself: its work is kept per utterance. Returns each utterance's
+    outcome: "tracked", or the error type of one that failed (its own task then runs it alone and rejects it with
+    the whole message)."""
+    logger = get_run_logger()
+    steps = StepLog(f"track-joint[{label}]", logger.info)
+    done = track_many(Store(store_root), utterances, procedural_variant, load_rig(rig_path), config,
+                      [None if i is None else SpeakerIdentity.from_dict(i) for i in identities],
+                      lambda index, phase, k, n: steps(phase, k, n))
+    results = results_of(store_root)
+    outcome = {}
+    for utterance, key, report in zip(utterances, keys, done):
+        uid = utterance[C.UTTERANCE_ID]
+        if isinstance(report, TrackError):
+            outcome[uid] = report.error_type
+            continue
+        if key is not None:
+            results.write(obj=report, key=key)
+        outcome[uid] = "tracked"
+    tracked = [r for r in done if not isinstance(r, TrackError)]
+    logger.info("track-joint[%s]: %d of %d utterances, %d frames in %.1f s", label, len(tracked), len(utterances),
+                sum(r["frames"] for r in tracked), sum(r["seconds"] for r in tracked))
+    return outcome
 
 
 def speaker_identity(clips: list[dict], image_size: tuple[int, int], rig: VisemeRig,
