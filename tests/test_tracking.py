@@ -354,6 +354,13 @@ def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):
     second = pipeline_flow(params)
     assert second["track"]["cached"] == 2 and second["track"]["tracked"] == 0 and second["track"]["jointly"] == 0
     assert path.stat().st_mtime_ns == before
+    # one task per utterance: each task finds the record the joint task left under its own cache key (the key as
+    # Prefect computes it, not only as the flow does)
+    from visemeflow.flows.params import TrackParams
+    from visemeflow.flows.track import track_flow
+
+    per_task = track_flow(TrackParams(store=store, n_shards=2, joint_frames=0))
+    assert per_task["cached"] == 2 and per_task["tracked"] == 0 and path.stat().st_mtime_ns == before
 
     report = rerun_flow(RerunParams(utterance_id="zh/SSB16240001", stage="track", store=store))
     assert report["frames"] == 43

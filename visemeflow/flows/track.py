@@ -1,10 +1,13 @@
-"""The `track` flow: phoneme-guided viseme tracking of every utterance with a video (one task each).
+"""The `track` flow: phoneme-guided viseme tracking of every utterance with a video.
 
-Utterances whose task would not be a cache hit are first tracked in groups of about `TrackParams.joint_frames`
-frames, one joint solve per group (`track_jointly`, `tracking.solver.solve_fast_many`: each clip gets the curves of
-its own solve, to float rounding, for a fraction of the solver's time); each result is written as its utterance's
-task's cached result, so every utterance still has its own `track[...]` task, cache entry and `rerun`. An utterance
-that fails in a group is tracked by its own task alone and rejected there with its whole message.
+With `TrackParams.joint_frames` (400, the default) the stage runs few tasks: an utterance whose own task would be a
+cache hit is read from that cached record, without a task run (24,000 cached task runs would cost minutes of
+Prefect at the paper's scale); the others are tracked in groups of about that many frames, one `track-joint[...]`
+task and one joint solve per group (`tracking.solver.solve_fast_many`: each clip gets the curves of its own solve,
+to float rounding, for a fraction of the solver's time), and each result is written as its utterance's task's
+cached record, so `rerun`, a later run and a run with `joint_frames` 0 (one `track[...]` task per utterance, as
+before) find it. An utterance that fails in a group is tracked by its own task, alone, and rejected there with its
+whole message.
 
 Utterances without an alignment are tracked unguided (variant `unguided-...`, see tasks/track.py); the summary
 counts them (`unguided`) and says why (`unguided_why`).
@@ -18,6 +21,7 @@ import logging
 from pathlib import Path
 
 from prefect import flow
+from prefect.futures import as_completed
 
 from visemeflow.flows.common import StageRun, collect_utterance_results, last_settings, replace_stage_rejects
 from visemeflow.flows.errors import RerunError
@@ -27,6 +31,7 @@ from visemeflow.hashing import file_hash
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
+from visemeflow.tasks.progress import Progress
 from visemeflow.tasks.common import cache_key_of, result_storage, results_of
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
@@ -145,40 +150,60 @@ def joint_groups(calls: list, frames_each: int) -> list[list]:
     return groups + ([group] if group else [])
 
 
-def track_jointly_first(store: Store, calls: list, config: TrackingConfig, frames_each: int,
-                        rejected_before: set[str], logger) -> set[str]:
-    """Track the utterances whose `track_utterance` call would miss its cache (or whose curves are gone) in groups
-    of about `frames_each` frames, one joint solve each (`track_jointly`); each one tracked leaves its call's
-    result, so the flow's per-utterance call is a hit. The utterances so tracked; none with `frames_each` 0,
-    with the faithful solver, or with one utterance to track (its own task is as fast)."""
-    if frames_each <= 0 or config.solver != "fast":
-        return set()
-    todo = []
+def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_each: int, rejected_before: set[str],
+                    logger) -> tuple[list[dict], list[dict], int, int]:
+    """The track stage's work with joint solves: each utterance whose `track_utterance` call would be a cache hit
+    (its record there and its curves stored) is read from that record, without a task run; the others are tracked
+    in groups of about `frames_each` frames, one `track_jointly` task and one joint solve each, which leave each
+    result as its call's cached record. An utterance that fails in a group (or whose group meets a bug) then runs
+    in its own `track_utterance` task, alone, and is rejected there with its whole message.
+    (reports, reject rows, unexpected errors, utterances tracked jointly), as `collect_utterance_results`."""
+    results = results_of(store.root)
+    reports, misses = [], []
     for uid, row, args in calls:
         key = cache_key_of(track_utterance, store.root, *args)
         present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
-        if key is None or not present or not results_of(store.root).exists(key):
-            todo.append((uid, row, args, key))
-    if len(todo) < 2:
-        return set()
-    groups = joint_groups(todo, frames_each)
-    logger.info("track: %d utterances to track, in %d joint solve(s) of about %d frames", len(todo), len(groups),
-                frames_each)
-    runs = []
+        if key is not None and present and results.exists(key):
+            try:
+                reports.append({**results.read(key).result, "cached": 1})
+                continue
+            except Exception as exc:    # an unreadable record: tracked again, and written anew
+                logger.warning("track[%s]: its cached result could not be read (%s); tracking it again", uid, exc)
+        misses.append((uid, row, args, key))
+    if reports:
+        logger.info("track: %d utterances cached", len(reports))
+    groups = joint_groups(misses, frames_each)
+    if groups:
+        logger.info("track: %d utterances to track, in %d joint solve(s) of about %d frames", len(misses),
+                    len(groups), frames_each)
+    futures = {}
     for group in groups:
         label = group[0][0] if len(group) == 1 else f"{group[0][0]} +{len(group) - 1}"
-        _, _, args, _ = group[0]
-        runs.append(track_jointly.submit(
-            args[0], label, [row for _, row, _, _ in group], args[2], args[4], args[6],
-            [a[7] for _, _, a, _ in group], [key for *_, key in group]))
-    tracked = set()
-    for run in runs:
-        try:
-            tracked |= {uid for uid, outcome in run.result().items() if outcome == "tracked"}
-        except Exception as exc:        # a bug met in one group: its utterances' own tasks run them alone
-            logger.warning("track: a joint solve failed (%s: %s); its utterances are tracked one by one",
-                           type(exc).__name__, exc)
-    return tracked
+        args = group[0][2]
+        futures[track_jointly.submit(args[0], label, [row for _, row, _, _ in group], args[2], args[4], args[6],
+                                     [a[7] for _, _, a, _ in group], [key for *_, key in group])] = group
+    alone, jointly = [], 0
+    work = sum(int(row[C.N_FRAMES] or 0) for _, row, _, _ in misses)
+    with Progress(STAGE, len(misses), work_total=work or None, work_unit="frames") as line:
+        for future in as_completed(list(futures)):
+            group = futures[future]
+            try:
+                done = future.result()
+            except Exception as exc:    # a bug met in one group: its utterances' own tasks run them alone
+                logger.warning("track: a joint solve failed (%s: %s); its %d utterances are tracked one by one",
+                               type(exc).__name__, exc, len(group))
+                done = {}
+            failed = [call for call in group if not isinstance(done.get(call[0]), dict)]
+            alone += failed
+            tracked = [done[uid] for uid, *_ in group if isinstance(done.get(uid), dict)]
+            reports += [{**report, "cached": 0} for report in tracked]
+            jointly += len(tracked)
+            line.advance(len(tracked), work=sum(r["frames"] for r in tracked))
+    own = {track_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=True)
+           .submit(*args): uid for uid, _, args, _ in alone}
+    more, rejects, unexpected = collect_utterance_results(
+        own, STAGE, TrackError, logger, work={f: int(row[C.N_FRAMES] or 0) for f, (_, row, _, _) in zip(own, alone)})
+    return reports + more, rejects, unexpected, jointly
 
 
 @flow(name="track", flow_run_name="track[{params.store}]", task_runner=cpu_thread_pool())
@@ -205,24 +230,20 @@ def track_flow(params: TrackParams) -> dict[str, object]:
             row = {**row, LANDMARKS_KEY: store.landmarks_provenance(uid)}
         calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
                                  config, identities.get(uid))))
-    jointly = track_jointly_first(store, calls, config, params.joint_frames, rejected_before, run.logger)
-    futures, frames = {}, {}
-    for uid, row, args in calls:
-        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
-        future = track_utterance.with_options(
-            result_storage=result_storage(store.root), refresh_cache=not present,
-        ).submit(*args)
-        futures[future] = uid
-        frames[future] = int(row[C.N_FRAMES] or 0)
-    reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, run.logger, work=frames)
-    joint_hits = 0
-    for report in reports:              # tracked by a joint task: its own task's hit is this run's work
-        if report["utterance_id"] in jointly:
-            joint_hits += report["cached"]
-            report["cached"] = 0
-    if joint_hits < len(jointly):       # the call's key did not match the one written: tracked twice, not wrong
-        run.logger.warning("track: %d of %d utterances tracked jointly were tracked again by their own task",
-                           len(jointly) - joint_hits, len(jointly))
+    if params.joint_frames > 0 and config.solver == "fast":
+        reports, rejects, unexpected, jointly = track_in_groups(store, calls, config, params.joint_frames,
+                                                                rejected_before, run.logger)
+    else:               # one task per utterance, each a cache hit or a solve of its own
+        futures, frames = {}, {}
+        for uid, row, args in calls:
+            present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
+            future = track_utterance.with_options(
+                result_storage=result_storage(store.root), refresh_cache=not present,
+            ).submit(*args)
+            futures[future] = uid
+            frames[future] = int(row[C.N_FRAMES] or 0)
+        reports, rejects, unexpected = collect_utterance_results(futures, STAGE, TrackError, run.logger, work=frames)
+        jointly = 0
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     errors = [r["mouth_error_px"] for r in reports if r.get("mouth_error_px") is not None]
     unguided = [r for r in reports if not r.get("guided", True)]
@@ -232,7 +253,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         "frames": sum(r["frames"] for r in reports), "unguided": len(unguided),
         "interpolated_frames": sum(r.get("interpolated_frames", 0) for r in reports),
     }
-    extra = {"variant": config.variant, "jointly": joint_hits,
+    extra = {"variant": config.variant, "jointly": jointly,
              "variants": ", ".join(sorted({r["variant"] for r in reports})) or None,
              "unguided_why": unguided_why(unguided),
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}

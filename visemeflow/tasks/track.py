@@ -220,19 +220,19 @@ def track_utterance(
 
 @task(cache_policy=NO_CACHE, task_run_name="track-joint[{label}]")
 def track_jointly(store_root: str, label: str, utterances: list[dict], procedural_variant: str, rig_path: str,
-                  config: TrackingConfig, identities: list[dict | None], keys: list[str | None]) -> dict[str, str]:
+                  config: TrackingConfig, identities: list[dict | None], keys: list[str | None]) -> dict[str, object]:
     """Several utterances tracked with one joint solve (`track_many`). Each one tracked is stored, and its report
-    written as the cached result of its own `track_utterance` call (its key in `keys`, `common.cache_key_of`), which
-    the flow then makes: a cache hit. Not cached itself: its work is kept per utterance. Returns each utterance's
-    outcome: "tracked", or the error type of one that failed (its own task then runs it alone and rejects it with
-    the whole message)."""
+    written as the cached result of its own `track_utterance` call (its key in `keys`, `common.cache_key_of`): a
+    later run, `rerun` or a run with one task per utterance finds it. Not cached itself: its work is kept per
+    utterance. Returns each utterance's report, or the error type of one that failed (the flow then runs it alone
+    in its own task, which rejects it with the whole message)."""
     logger = get_run_logger()
     steps = StepLog(f"track-joint[{label}]", logger.info)
     done = track_many(Store(store_root), utterances, procedural_variant, load_rig(rig_path), config,
                       [None if i is None else SpeakerIdentity.from_dict(i) for i in identities],
                       lambda index, phase, k, n: steps(phase, k, n))
     results = results_of(store_root)
-    outcome = {}
+    outcome: dict[str, object] = {}
     for utterance, key, report in zip(utterances, keys, done):
         uid = utterance[C.UTTERANCE_ID]
         if isinstance(report, TrackError):
@@ -240,10 +240,10 @@ def track_jointly(store_root: str, label: str, utterances: list[dict], procedura
             continue
         if key is not None:
             results.write(obj=report, key=key)
-        outcome[uid] = "tracked"
+        outcome[uid] = report
     tracked = [r for r in done if not isinstance(r, TrackError)]
-    logger.info("track-joint[%s]: %d of %d utterances, %d frames in %.1f s", label, len(tracked), len(utterances),
-                sum(r["frames"] for r in tracked), sum(r["seconds"] for r in tracked))
+    logger.info("track-joint[%s]: %d of %d utterances, %d frames, solve %.1f s", label, len(tracked),
+                len(utterances), sum(r["frames"] for r in tracked), sum(r["seconds"] for r in tracked))
     return outcome
 
 
