@@ -131,6 +131,31 @@ def collect_utterance_results(
     return reports, rejects, unexpected
 
 
+def read_cached(task, store_root, calls: list[tuple[str, tuple, bool]], logger) -> tuple[list[dict], list]:
+    """Split per-utterance calls `(uid, args, present)` of a persisted `task` into the reports of those that would
+    be cache hits (their record under the key Prefect computes, `tasks.common.cache_key_of`, and `present`: their
+    output still in the store), read from the records without a task run, each with `cached` 1; and the calls
+    left to run, `(uid, args, key)`. A task run costs Prefect 15-60 ms even as a cache hit: 24,000 of them, one per
+    utterance at the paper's scale, were most of a rerun's time (bench/track_tasks.py)."""
+    from visemeflow.tasks.common import cache_key_of, results_of
+
+    results = results_of(store_root)
+    reports, left = [], []
+    for uid, args, present in calls:
+        key = cache_key_of(task, store_root, *args)
+        if key is not None and present and results.exists(key):
+            try:
+                reports.append({**results.read(key).result, "cached": 1})
+                continue
+            except Exception as exc:    # an unreadable record: the task runs again and writes it anew
+                logger.warning("%s[%s]: its cached result could not be read (%s); running it again",
+                               task.name, uid, exc)
+        left.append((uid, args, key))
+    if reports:
+        logger.info("%s: %d utterances cached", task.name, len(reports))
+    return reports, left
+
+
 def last_settings(store, stage: str) -> StageSettings | None:
     """What `stage` last ran with in `store` (typed: `flows.params.SETTINGS`), None when it never ran there."""
     data = store.read_run_config(stage)

@@ -1,11 +1,12 @@
-"""The `landmarks` flow: MediaPipe FaceMesh on every utterance with a video but no landmark file (one task each)."""
+"""The `landmarks` flow: MediaPipe FaceMesh on every utterance with a video but no landmark file (one task each;
+an utterance whose task would be a cache hit is read from its cached record without a task run: `read_cached`)."""
 
 
 from prefect import flow
 
 from visemeflow.flows.errors import RerunError
 from visemeflow.flows.params import LandmarksParams, LandmarksSettings
-from visemeflow.flows.common import StageRun, collect_utterance_results, replace_stage_rejects
+from visemeflow.flows.common import StageRun, collect_utterance_results, read_cached, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -35,17 +36,21 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
     store = run.store
     rows = utterances_needing_landmarks(store)
     rejected_before = run.rejected_before()
+    # a cache hit must not hide a deleted or outdated file: recompute unless this run's file is there
+    present = {r[C.UTTERANCE_ID]: store.landmarks_provenance(r[C.UTTERANCE_ID]) == provenance(r, config)
+               or r[C.UTTERANCE_ID] in rejected_before for r in rows}
+    cached, left = read_cached(landmarks_utterance, store.root,
+                               [(r[C.UTTERANCE_ID], (str(store.root), r, config), present[r[C.UTTERANCE_ID]])
+                                for r in rows], run.logger)
     futures, frames = {}, {}
-    for row in rows:
-        uid = row[C.UTTERANCE_ID]
-        # a cache hit must not hide a deleted or outdated file: recompute unless this run's file is there
-        present = store.landmarks_provenance(uid) == provenance(row, config) or uid in rejected_before
+    for uid, args, _ in left:
         future = landmarks_utterance.with_options(
-            result_storage=result_storage(store.root), refresh_cache=not present,
-        ).submit(str(store.root), row, config)
+            result_storage=result_storage(store.root), refresh_cache=not present[uid],
+        ).submit(*args)
         futures[future] = uid
-        frames[future] = int(row[C.N_FRAMES] or 0)
+        frames[future] = int(args[1][C.N_FRAMES] or 0)
     reports, rejects, unexpected = collect_utterance_results(futures, STAGE, LandmarksError, run.logger, work=frames)
+    reports += cached
     replace_stage_rejects(store, STAGE, rejects, params.n_shards)
     summary = {
         "utterances": len(rows), "detected": sum(1 for r in reports if not r["cached"]),

@@ -23,7 +23,13 @@ from pathlib import Path
 from prefect import flow
 from prefect.futures import as_completed
 
-from visemeflow.flows.common import StageRun, collect_utterance_results, last_settings, replace_stage_rejects
+from visemeflow.flows.common import (
+    StageRun,
+    collect_utterance_results,
+    last_settings,
+    read_cached,
+    replace_stage_rejects,
+)
 from visemeflow.flows.errors import RerunError
 from visemeflow.flows.params import TrackParams, TrackSettings
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
@@ -32,7 +38,7 @@ from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.progress import Progress
-from visemeflow.tasks.common import cache_key_of, result_storage, results_of
+from visemeflow.tasks.common import result_storage
 from visemeflow.tasks.procedural import SOURCE as PROCEDURAL
 from visemeflow.tasks.procedural import default_variant
 from visemeflow.tasks.track import (
@@ -158,20 +164,11 @@ def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_ea
     result as its call's cached record. An utterance that fails in a group (or whose group meets a bug) then runs
     in its own `track_utterance` task, alone, and is rejected there with its whole message.
     (reports, reject rows, unexpected errors, utterances tracked jointly), as `collect_utterance_results`."""
-    results = results_of(store.root)
-    reports, misses = [], []
-    for uid, row, args in calls:
-        key = cache_key_of(track_utterance, store.root, *args)
-        present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
-        if key is not None and present and results.exists(key):
-            try:
-                reports.append({**results.read(key).result, "cached": 1})
-                continue
-            except Exception as exc:    # an unreadable record: tracked again, and written anew
-                logger.warning("track[%s]: its cached result could not be read (%s); tracking it again", uid, exc)
-        misses.append((uid, row, args, key))
-    if reports:
-        logger.info("track: %d utterances cached", len(reports))
+    present = {uid: store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
+               for uid, row, _ in calls}
+    reports, left = read_cached(track_utterance, store.root, [(uid, args, present[uid]) for uid, _, args in calls],
+                                logger)
+    misses = [(uid, args[1], args, key) for uid, args, key in left]
     groups = joint_groups(misses, frames_each)
     if groups:
         logger.info("track: %d utterances to track, in %d joint solve(s) of about %d frames", len(misses),
