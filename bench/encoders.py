@@ -3,7 +3,7 @@
 
 Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
      [--espeak 200,100] [--threads 2] [--baseline] [--variants pitch:-3,speed:0.8] [--mbp-peaks 0.067,16]
-     [--grid-phones spread|aligned]
+     [--grid-phones spread|aligned] [--rooms 4] [--save DIR]
 
 Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
 512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
@@ -21,6 +21,12 @@ Training data (all shippable; nothing of the judged speakers):
 - `ljv`: the LJ examples in other voices (`--variants`, default pitch -3/+3 semitones and speed 0.8/1.25, each a
   fixed copy made once with `learning.augment.apply_condition`: a pitch shift moves the formants as a shorter or
   longer vocal tract would; a speed change resamples the targets and the per-frame visemes by the same factor);
+- `ljr`: the LJ examples as heard in rooms (`--rooms` K copies of each, fixed, made once with
+  `learning.rooms.apply_room`, seeded per utterance and copy: a synthetic impulse response of exponentially decaying
+  noise, RT60 0.2-0.8 s, direct-to-reverberant ratio -3..+10 dB, behind a direct path at sample 0, so nothing moves
+  in time and the targets and per-frame visemes stay as they are; level kept);
+- `ljrc`: the same rooms (the same draws) followed by a channel: a zero-phase band-pass (low edge 80-400 Hz, high
+  edge 3-7.5 kHz: telephone to wide band), a spectral tilt of -3..+3 dB per octave and white noise 20-40 dB below;
 - `+cls` / `+clsW`: the auxiliary viseme-classification loss (`TrainConfig.viseme_loss_weight`, 0.5 or W) on the
   examples with an alignment (LJ, espeak; the FACEGOOD pieces have none and add only the curve loss).
 A part named twice is seen twice as often. `--losses`: the curve loss (bench/domain_gap.py's `l1`, `closure:W`, ...);
@@ -34,17 +40,21 @@ after the closure rule (`articulation.close_lips`, as the animation stage applie
 that never open; FACEGOOD take 1114_2_05 (a held-out take of the captured speaker): L1 x 100 against the captured
 curves with the training takes' mean curve as floor, and the Pearson correlation of the predicted mouth opening (the
 inner-lip gap on the demo mesh) with the animator's jawOpen channel. RTF: seconds per second of audio of `predict`
-on a 30-s file on one CPU thread (encoder included).
+on a 30-s file on one CPU thread (encoder included). `--save DIR` writes each trained model (with its `--mbp-peaks`
+in the config) to `DIR/<recipe>_<loss>_s<seed>_<layers>.pt`, a file bench/thirdlang.py's `--models` reads (Dutch and
+Czech).
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +83,15 @@ from visemeflow.learning.model import ClosurePeaks  # noqa: E402
 from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
 from visemeflow.learning.realspeech import compare_curves, frame_visemes, pool, score_utterance  # noqa: E402
 from visemeflow.procedural import ProceduralConfig  # noqa: E402
-from visemeflow.learning.train import Example, TrainConfig, _audio_hash, predict_curves, train_model  # noqa: E402
+from visemeflow.learning.rooms import apply_room  # noqa: E402
+from visemeflow.learning.train import (  # noqa: E402
+    Example,
+    TrainConfig,
+    _audio_hash,
+    predict_curves,
+    save_model,
+    train_model,
+)
 from visemeflow.rig import load_demo_rig  # noqa: E402
 
 CACHE = Path(__file__).resolve().parent / "out" / "encoders" / "cache"
@@ -146,6 +164,9 @@ class Sets:
     test_curves: np.ndarray
     test_jaw: np.ndarray           # (T,) the animator's jawOpen of the held-out take
     floor: np.ndarray
+    rooms: int = 0                                             # copies of each LJ utterance in `ljr` / `ljrc`
+    lj_rooms: list[Example] = field(default_factory=list)      # the LJ utterances heard in rooms (`ljr`), made
+    lj_channels: list[Example] = field(default_factory=list)   # ... and through a channel (`ljrc`): on first use
 
 
 VARIANTS = "pitch:-3,pitch:3,speed:0.8,speed:1.25"
@@ -172,11 +193,28 @@ def voice_variants(examples: list[Example], variants: str = VARIANTS) -> list[Ex
     return out
 
 
+ROOMS = 4   # copies of each LJ utterance in `ljr` / `ljrc`
+
+
+def room_copies(examples: list[Example], copies: int = ROOMS, channel: bool = False) -> list[Example]:
+    """`ljr` (`channel=False`) / `ljrc`: `copies` fixed copies of each example through a synthetic room
+    (`learning.rooms.apply_room`), the k-th copy of an utterance drawn from a generator seeded by (k, its id), so
+    `ljr` and `ljrc` share their rooms; targets and per-frame visemes unchanged (the room moves nothing in time)."""
+    out = []
+    for e in examples:
+        for k in range(copies):
+            rng = np.random.default_rng([k, zlib.crc32(e.utterance_id.encode("utf-8"))])
+            audio = apply_room(e.audio, SAMPLE_RATE, rng, channel=channel)
+            out.append(Example(f"{e.utterance_id}__room{'ch' * channel}_{k}", audio, e.curves, e.fps, e.visemes))
+    return out
+
+
 def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None,
-              variants: str = VARIANTS, grid_phones: str = GRID_PHONES) -> Sets:
+              variants: str = VARIANTS, grid_phones: str = GRID_PHONES, rooms: int = ROOMS) -> Sets:
     """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None;
     `closure_ramp_s`: the LJ targets' MBP/FFF onset and decay (`ProceduralConfig.closure_onset_s`/`closure_decay_s`;
-    None: the procedural default's ramps); `variants`: the voices of `ljv`."""
+    None: the procedural default's ramps); `variants`: the voices of `ljv`; `rooms`: the copies of each LJ
+    utterance in `ljr` and `ljrc`."""
     targets = ProceduralConfig(closure_onset_s=closure_ramp_s, closure_decay_s=closure_ramp_s)
     lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus", procedural=targets) if u.speaker == "LJ"]
     lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
@@ -198,13 +236,17 @@ def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | Non
                      names=FACEGOOD / "shirley_1015_bs_name.npy", fps=FPS)
     jaw = np.asarray(take.arkit)[:, ARKIT_52.index("jawOpen")]
     floor = np.concatenate([e.curves for e in facegood]).mean(axis=0)
-    return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor)
+    return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor, rooms)
 
 
 def recipe_data(sets: Sets, recipe: str) -> list[Example]:
     parts = [p for p in recipe.split("+") if not p.startswith("cls")]
+    if "ljr" in parts and not sets.lj_rooms:      # made once, on first use (~3 s for 4 copies)
+        sets.lj_rooms = room_copies(sets.lj, sets.rooms)
+    if "ljrc" in parts and not sets.lj_channels:
+        sets.lj_channels = room_copies(sets.lj, sets.rooms, channel=True)
     data = {"lj": sets.lj, "ljt": sets.lj_truth, "ljv": sets.lj_variants, "fg": sets.facegood,
-            "es": sets.espeak}
+            "es": sets.espeak, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels}
     unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)]
     if unknown:
         raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak)")
@@ -338,6 +380,10 @@ def main() -> int:
                         help="held-out GRID phone timings: spread over its word timings, or aligned by pocketsphinx")
     parser.add_argument("--variants", default=VARIANTS,
                         help="the voices of `ljv`: condition:value pairs (learning.augment conditions)")
+    parser.add_argument("--rooms", type=int, default=ROOMS,
+                        help="copies of each LJ utterance in `ljr` (rooms) and `ljrc` (rooms + channel)")
+    parser.add_argument("--save", type=Path, default=None, metavar="DIR",
+                        help="write each trained model to DIR (for bench/thirdlang.py --models DIR/NAME.pt)")
     parser.add_argument("--mbp-peaks", default="0,0", metavar="SECONDS,POWER",
                         help="narrow each trained model's MBP channel to its peaks (learning.model.ClosurePeaks)")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
@@ -348,7 +394,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
-    sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones)
+    sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones, args.rooms)
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
           f"espeak {len(sets.espeak)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)
@@ -377,12 +423,22 @@ def main() -> int:
     for recipe, loss, seed, layers in runs:
         train = recipe_data(sets, recipe)
         started = time.perf_counter()
-        model = train_model(train, [], recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers),
-                            encoder_cache=CACHE, loss=make_loss(loss)).model
+        config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers)
+        model = train_model(train, [], config, encoder_cache=CACHE, loss=make_loss(loss)).model
         window_s, power = (float(x) for x in args.mbp_peaks.split(","))
         model.closure_peaks = ClosurePeaks(window_s, power) if window_s > 0 else None
         model.eval()
         secs = time.perf_counter() - started
+        if args.save is not None:
+            args.save.mkdir(parents=True, exist_ok=True)
+            peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power} if window_s > 0 else {}
+            saved = save_model(model, config.model_copy(update=peaks),
+                               args.save / re.sub(r"[^\w.+-]", "_", f"{recipe}_{loss}_s{seed}_{layers}.pt"),
+                               {"script": "bench/encoders.py", "recipe": recipe, "loss": loss, "seed": seed,
+                                "layers": layers, "steps": args.steps, "d_model": args.d_model,
+                                "closure_ramps_s": args.closure_ramps, "rooms": args.rooms,
+                                "mbp_peaks": [window_s, power]})
+            print(f"saved {saved}", flush=True)
         rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
                         f"{args.steps} steps, "
                         f"d {args.d_model})", judge(sets, lambda a, n, m=model: predict(m, a, n)), secs))
