@@ -131,7 +131,8 @@ def collect_utterance_results(
     return reports, rejects, unexpected
 
 
-def read_cached(task, store_root, calls: list[tuple[str, tuple, bool]], logger) -> tuple[list[dict], list]:
+def read_cached(stage: str, task, store_root, calls: list[tuple[str, tuple, bool]],
+                logger) -> tuple[list[dict], list]:
     """Split per-utterance calls `(uid, args, present)` of a persisted `task` into the reports of those that would
     be cache hits (their record under the key Prefect computes, `tasks.common.cache_key_of`, and `present`: their
     output still in the store), read from the records without a task run, each with `cached` 1; and the calls
@@ -149,10 +150,10 @@ def read_cached(task, store_root, calls: list[tuple[str, tuple, bool]], logger) 
                 continue
             except Exception as exc:    # an unreadable record: the task runs again and writes it anew
                 logger.warning("%s[%s]: its cached result could not be read (%s); running it again",
-                               task.name, uid, exc)
+                               stage, uid, exc)
         left.append((uid, args, key))
     if reports:
-        logger.info("%s: %d utterances cached", task.name, len(reports))
+        logger.info("%s: %d utterances cached (read from their cached results, no task run)", stage, len(reports))
     return reports, left
 
 

@@ -39,7 +39,7 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
     # a cache hit must not hide a deleted or outdated file: recompute unless this run's file is there
     present = {r[C.UTTERANCE_ID]: store.landmarks_provenance(r[C.UTTERANCE_ID]) == provenance(r, config)
                or r[C.UTTERANCE_ID] in rejected_before for r in rows}
-    cached, left = read_cached(landmarks_utterance, store.root,
+    cached, left = read_cached(STAGE, landmarks_utterance, store.root,
                                [(r[C.UTTERANCE_ID], (str(store.root), r, config), present[r[C.UTTERANCE_ID]])
                                 for r in rows], run.logger)
     futures, frames = {}, {}

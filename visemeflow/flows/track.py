@@ -166,8 +166,8 @@ def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_ea
     (reports, reject rows, unexpected errors, utterances tracked jointly), as `collect_utterance_results`."""
     present = {uid: store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
                for uid, row, _ in calls}
-    reports, left = read_cached(track_utterance, store.root, [(uid, args, present[uid]) for uid, _, args in calls],
-                                logger)
+    reports, left = read_cached(STAGE, track_utterance, store.root,
+                                [(uid, args, present[uid]) for uid, _, args in calls], logger)
     misses = [(uid, args[1], args, key) for uid, args, key in left]
     groups = joint_groups(misses, frames_each)
     if groups:
