@@ -302,6 +302,20 @@ def test_several_utterances_solved_together_equal_each_solved_alone(rig):
             np.testing.assert_allclose(joint.terms[name], alone.terms[name], rtol=1e-3, atol=1e-5)
     # the join is not a neighbour: clip b starts as it would alone (no L_diff pair with a's last frame)
     assert together[1].terms["diff"][0] == 0.0
+    # unguided (guidance off): no L_sup / L_act terms recorded, as alone
+    unguided = config.model_copy(update={"guidance": False})
+    assert all({"sup", "act"}.isdisjoint(r.terms) for r in solve_fast_many([a, b], unguided))
+    # a rig whose landmarks are other vertices cannot share the joint landmark set: each solved alone
+    moved = dataclasses.replace(b, rig=dataclasses.replace(rig, landmark_ids=np.roll(rig.landmark_ids, 1)))
+    apart = solve_fast_many([a, moved], config)
+    assert all("joined" not in r.extra for r in apart)
+    np.testing.assert_allclose(apart[1].curves, solve_fast(moved, config).curves, atol=1e-6)
+    # L_rgb and Levenberg-Marquardt solve clip by clip: the track flow then runs one task per utterance
+    from visemeflow.tracking.solver import joins
+
+    assert joins(config) and not joins(config.model_copy(update={"use_rgb": True}))
+    assert not joins(config.model_copy(update={"fast_method": "lm"}))
+    assert not joins(config.model_copy(update={"solver": "faithful"}))
     # a diverging clip: its error in its place, the others solved as before
     bad_landmarks = b.landmarks.copy()
     bad_landmarks[3, 30] = np.inf

@@ -302,11 +302,13 @@ def procedural(params: ProceduralParams) -> None:
 
 @stage_command(app, TrackParams, [
     STORE, SHARDS, Opt("config.solver"), Opt("config.guidance"), Opt("config.use_rgb", "--rgb"),
-    Opt("config.use_flow", "--flow"), Opt("config.speaker_identity"), Opt("joint_frames"), Opt("rig", callback=_path),
+    Opt("config.use_flow", "--flow"), Opt("config.speaker_identity"), Opt("joint_frames"), Opt("device"),
+    Opt("rig", callback=_path),
     *RUNNER,
 ])
 def track(params: TrackParams) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
+    _device(params.device)
     _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
     from visemeflow.flows.runners import run_on_runner
     from visemeflow.flows.track import track_flow

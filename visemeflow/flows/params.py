@@ -145,6 +145,9 @@ class TrackParams(StoreParams):
         400, ge=0, le=100_000,
         description="Utterances to track are solved together in groups of about this many frames (the same curves "
                     "as one by one, less solver time; memory grows with it); 0: one utterance per task.")
+    device: DeviceWord = Field(
+        "cpu", description="Where the joint solves run: cpu, cuda, cuda:N or auto (a CUDA GPU when there is one); "
+                           "larger --joint-frames pay on a GPU. One utterance in its own task runs on the CPU.")
     runner: RunnerConfig = RunnerField
 
 

@@ -5,7 +5,7 @@ cache hit is read from that cached record, without a task run (24,000 cached tas
 Prefect at the paper's scale); the others are tracked in groups of about that many frames, one `track-joint[...]`
 task and one joint solve per group (`tracking.solver.solve_fast_many`: each clip gets the curves of its own solve,
 to float rounding, for a fraction of the solver's time), and each result is written as its utterance's task's
-cached record, so `rerun`, a later run and a run with `joint_frames` 0 (one `track[...]` task per utterance, as
+cached record, so a later run and a run with `joint_frames` 0 (one `track[...]` task per utterance, as
 before) find it. An utterance that fails in a group is tracked by its own task, alone, and rejected there with its
 whole message.
 
@@ -52,7 +52,7 @@ from visemeflow.tasks.track import (
     track_utterance,
     utterance_config,
 )
-from visemeflow.tracking.solver import TrackingConfig
+from visemeflow.tracking.solver import TrackingConfig, joins
 from visemeflow.tracking.utterance import needs_identity, video_size
 
 LANDMARKS_KEY = "stored_landmarks"
@@ -134,6 +134,14 @@ def speaker_identities(store: Store, rows: list[dict], config: TrackingConfig, r
     return out
 
 
+def keyed_row(store: Store, row: dict) -> dict:
+    """The utterance row a track task is given: with the provenance of the landmarks the `landmarks` stage stored
+    for it, where it has no landmark file of its own (new landmarks then invalidate its cache)."""
+    if row[C.LANDMARK_PATH]:
+        return row
+    return {**row, LANDMARKS_KEY: store.landmarks_provenance(row[C.UTTERANCE_ID])}
+
+
 def unguided_why(unguided: list[dict]) -> str | None:
     """'N: reason; M: reason' over the reports of utterances tracked without phoneme guidance; None if none."""
     counts: dict[str, int] = {}
@@ -157,7 +165,7 @@ def joint_groups(calls: list, frames_each: int) -> list[list]:
 
 
 def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_each: int, rejected_before: set[str],
-                    logger) -> tuple[list[dict], list[dict], int, int]:
+                    logger, device: str = "cpu") -> tuple[list[dict], list[dict], int, int]:
     """The track stage's work with joint solves: each utterance whose `track_utterance` call would be a cache hit
     (its record there and its curves stored) is read from that record, without a task run; the others are tracked
     in groups of about `frames_each` frames, one `track_jointly` task and one joint solve each, which leave each
@@ -178,7 +186,7 @@ def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_ea
         label = group[0][0] if len(group) == 1 else f"{group[0][0]} +{len(group) - 1}"
         args = group[0][2]
         futures[track_jointly.submit(args[0], label, [row for _, row, _, _ in group], args[2], args[4], args[6],
-                                     [a[7] for _, _, a, _ in group], [key for *_, key in group])] = group
+                                     [a[7] for _, _, a, _ in group], [key for *_, key in group], device)] = group
     alone, jointly = [], 0
     work = sum(int(row[C.N_FRAMES] or 0) for _, row, _, _ in misses)
     with Progress(STAGE, len(misses), work_total=work or None, work_unit="frames") as line:
@@ -223,13 +231,12 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     for row in rows:
         uid = row[C.UTTERANCE_ID]
         provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
-        if not row[C.LANDMARK_PATH]:    # landmarks from the `landmarks` stage: new ones invalidate the cache
-            row = {**row, LANDMARKS_KEY: store.landmarks_provenance(uid)}
+        row = keyed_row(store, row)
         calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
                                  config, identities.get(uid))))
-    if params.joint_frames > 0 and config.solver == "fast":
+    if params.joint_frames > 0 and joins(config):    # L_rgb or LM: one clip at a time, so one task each
         reports, rejects, unexpected, jointly = track_in_groups(store, calls, config, params.joint_frames,
-                                                                rejected_before, run.logger)
+                                                                rejected_before, run.logger, params.device)
     else:               # one task per utterance, each a cache hit or a solve of its own
         futures, frames = {}, {}
         for uid, row, args in calls:
@@ -267,7 +274,7 @@ def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -
     rig_path, rig_hash = rig_and_hash(Path(last.rig) if last.rig else None)
     variant = procedural_variant_of(store, last.procedural_variant)
     provenance = store.curves_provenance(PROCEDURAL, variant, uid) or ""
-    row, config = rows[0], last.config
+    row, config = keyed_row(store, rows[0]), last.config      # the flow's row: the same cache key
     identity = None
     if config.speaker_identity and needs_identity(row[C.VIDEO_PATH]):
         # the speaker identity the track run used (cached), from the same clips of the same speaker and image size

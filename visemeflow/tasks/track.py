@@ -21,6 +21,7 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from visemeflow.hashing import stable_hash
+from visemeflow.learning.device import resolve_device
 from visemeflow.rig import VisemeRig, load_rig
 from visemeflow.schemas import (
     LOSS_TERMS,
@@ -170,7 +171,7 @@ def track_one(store: Store, utterance: dict, procedural_variant: str, rig: Visem
 
 def track_many(store: Store, utterances: list[dict], procedural_variant: str, rig: VisemeRig,
                config: TrackingConfig, identities: list[SpeakerIdentity | None] | None = None,
-               on_step=None) -> list[dict | TrackError]:
+               on_step=None, device: str = "cpu") -> list[dict | TrackError]:
     """`track_one` of several utterances with one joint solve per tracking config (`tracking.utterance.
     track_videos`: the same curves as one by one, less solver time). A report or a TrackError per utterance, in
     order; a bad utterance never stops the others. `on_step(index, phase, done, total)` as `track_videos`."""
@@ -189,7 +190,7 @@ def track_many(store: Store, utterances: list[dict], procedural_variant: str, ri
         tracked = track_videos([(video, procedural) for _, video, procedural, _ in members], rig, cfg,
                                [identities[i] for i, *_ in members],
                                None if on_step is None else (lambda k, *rest: on_step(
-                                   k if k < 0 else members[k][0], *rest)))
+                                   k if k < 0 else members[k][0], *rest)), device)
         for (i, *_), done in zip(members, tracked):
             utterance = utterances[i]
             if isinstance(done, TrackingInputError):
@@ -220,17 +221,19 @@ def track_utterance(
 
 @task(cache_policy=NO_CACHE, task_run_name="track-joint[{label}]")
 def track_jointly(store_root: str, label: str, utterances: list[dict], procedural_variant: str, rig_path: str,
-                  config: TrackingConfig, identities: list[dict | None], keys: list[str | None]) -> dict[str, object]:
+                  config: TrackingConfig, identities: list[dict | None], keys: list[str | None],
+                  device: str = "cpu") -> dict[str, object]:
     """Several utterances tracked with one joint solve (`track_many`). Each one tracked is stored, and its report
     written as the cached result of its own `track_utterance` call (its key in `keys`, `common.cache_key_of`): a
     later run, `rerun` or a run with one task per utterance finds it. Not cached itself: its work is kept per
     utterance. Returns each utterance's report, or the error type of one that failed (the flow then runs it alone
-    in its own task, which rejects it with the whole message)."""
+    in its own task, which rejects it with the whole message). `device`: where the joint solve runs (the results do
+    not depend on it beyond float rounding, so it is not part of any cache key)."""
     logger = get_run_logger()
     steps = StepLog(f"track-joint[{label}]", logger.info)
     done = track_many(Store(store_root), utterances, procedural_variant, load_rig(rig_path), config,
                       [None if i is None else SpeakerIdentity.from_dict(i) for i in identities],
-                      lambda index, phase, k, n: steps(phase, k, n))
+                      lambda index, phase, k, n: steps(phase, k, n), resolve_device(device))
     results = results_of(store_root)
     outcome: dict[str, object] = {}
     for utterance, key, report in zip(utterances, keys, done):

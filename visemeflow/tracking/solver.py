@@ -273,8 +273,8 @@ def mouth_errors(problem: TrackingProblem, curves: np.ndarray, rotation: np.ndar
 
 
 def _finish(problem, x, rot, trans, terms, started, iterations, extra=None) -> TrackingResult:
-    curves = np.clip(x.detach().numpy(), 0.0, 1.0).astype(np.float32)
-    rotation, translation = rot.detach().numpy(), trans.detach().numpy()
+    curves = np.clip(x.detach().cpu().numpy(), 0.0, 1.0).astype(np.float32)
+    rotation, translation = rot.detach().cpu().numpy(), trans.detach().cpu().numpy()
     if not (np.isfinite(curves).all() and np.isfinite(rotation).all() and np.isfinite(translation).all()):
         raise FloatingPointError("the tracking objective diverged (non-finite weights or pose)")
     return TrackingResult(
@@ -308,7 +308,8 @@ def _solve_fast_adam(problem: TrackingProblem, config: TrackingConfig, on_step: 
 
 
 def solve_fast_many(problems: Sequence[TrackingProblem], config: TrackingConfig = TrackingConfig(),
-                    on_step: OnStep | None = None) -> list[TrackingResult | FloatingPointError]:
+                    on_step: OnStep | None = None,
+                    device: str | torch.device = "cpu") -> list[TrackingResult | FloatingPointError]:
     """`solve_fast` of several utterances in one run of the optimiser: their frames one after the other, no term
     linking two utterances.
 
@@ -321,17 +322,20 @@ def solve_fast_many(problems: Sequence[TrackingProblem], config: TrackingConfig 
     (the others are then solved one by one, so one bad clip never costs the rest). Problems the joint path does not
     cover (Levenberg-Marquardt, L_rgb, rigs with different landmark sets) are solved one by one.
     `on_step(done, total)` hears the joint iterations (or each problem's in turn when solved one by one).
+    `device`: where the joint Adam path runs (e.g. "cuda": a GPU runs the same few hundred steps on thousands of
+    frames at once; the pose's PnP start and the flow's correspondences stay on the CPU). Problems solved one by
+    one run on the CPU.
     """
     problems = list(problems)
     for problem in problems:
         check_problem(problem)
     cfg = config.effective()
-    joint = (len(problems) > 1 and not (config.fast_method == "lm" and config.box == "projected")
+    joint = (len(problems) > 1 and joins(config)
              and not any(cfg.w_rgb and p.rgb is not None for p in problems)
-             and len({_landmark_ids(p.rig)[1].tobytes() for p in problems}) == 1)
+             and len({np.asarray(p.rig.landmark_ids).tobytes() for p in problems}) == 1)
     if joint:
         try:
-            return list(_adam_joined(problems, config, on_step))
+            return list(_adam_joined(problems, config, on_step, torch.device(device)))
         except FloatingPointError:
             pass                        # find the clip: each on its own
     out: list[TrackingResult | FloatingPointError] = []
@@ -343,12 +347,20 @@ def solve_fast_many(problems: Sequence[TrackingProblem], config: TrackingConfig 
     return out
 
 
+def joins(config: TrackingConfig) -> bool:
+    """Whether `solve_fast_many` solves problems under `config` together: the fast Adam path without L_rgb (the
+    photo term renders each clip's frames; Levenberg-Marquardt solves each clip's banded system)."""
+    return (config.solver == "fast" and not (config.use_rgb and config.w_rgb)
+            and not (config.fast_method == "lm" and config.box == "projected"))
+
+
 class _JoinedCamera:
     """The intrinsics of each frame of joined problems as (T, 1) tensors, for `project` (which reads only these)."""
 
-    def __init__(self, cameras: list[Intrinsics], lengths: list[int]):
+    def __init__(self, cameras: list[Intrinsics], lengths: list[int], device: torch.device):
         def column(name: str) -> torch.Tensor:
-            return torch.cat([torch.full((n, 1), float(getattr(c, name))) for c, n in zip(cameras, lengths)])
+            return torch.cat([torch.full((n, 1), float(getattr(c, name))) for c, n in zip(cameras, lengths)]
+                             ).to(device)
 
         self.fx, self.fy, self.cx, self.cy = column("fx"), column("fy"), column("cx"), column("cy")
 
@@ -357,26 +369,28 @@ class _Joined:
     """Eq. 1 over the frames of several problems laid one after the other (frame k of the whole is frame k - start
     of its problem); each problem keeps its rig, camera, pixel scale and guidance, and nothing links two."""
 
-    def __init__(self, problems: list[TrackingProblem], config: TrackingConfig):
-        self.problems, self.config = problems, config
+    def __init__(self, problems: list[TrackingProblem], config: TrackingConfig,
+                 device: torch.device = torch.device("cpu")):
+        self.problems, self.device = problems, device
         self.objs = [_Objective(p, config) for p in problems]
+        self.config = self.objs[0].config       # effective: guidance off zeroes w_sup and w_act
         self.lengths = [p.n_frames for p in problems]
         self.starts = np.concatenate([[0], np.cumsum(self.lengths)]).astype(int)
         self.n_frames = int(self.starts[-1])
         self.camera = problems[0].camera if len(problems) == 1 else _JoinedCamera(
-            [p.camera for p in problems], self.lengths)
+            [p.camera for p in problems], self.lengths, device)
         self.scale = (self.objs[0].scale if len(problems) == 1 else
-                      torch.cat([torch.full((n, 1, 1), o.scale) for o, n in zip(self.objs, self.lengths)]))
+                      torch.cat([torch.full((n, 1, 1), o.scale) for o, n in zip(self.objs, self.lengths)]).to(device))
         self.ids = self.objs[0].ids
-        self.target = self._cat(o.target for o in self.objs)
-        self.valid = self._cat(o.valid for o in self.objs)
-        self.beta = self.objs[0].beta
-        self.suppress = self._cat(o.suppress for o in self.objs)
-        self.activate = self._cat(o.activate for o in self.objs)
+        self.target = self._cat(o.target for o in self.objs).to(device)
+        self.valid = self._cat(o.valid for o in self.objs).to(device)
+        self.beta = self.objs[0].beta.to(device)
+        self.suppress = self._cat(o.suppress for o in self.objs).to(device)
+        self.activate = self._cat(o.activate for o in self.objs).to(device)
         # L_diff and L_flow pairs (k, k+1) inside one problem: 1; across a join: 0
         pairs = np.ones(max(self.n_frames - 1, 0), np.float32)
         pairs[self.starts[1:-1] - 1] = 0.0
-        self.inside = None if pairs.all() else torch.as_tensor(pairs)
+        self.inside = None if pairs.all() else torch.as_tensor(pairs, device=device)
         self.one_rig = all(p.rig is problems[0].rig for p in problems)
 
     def _cat(self, parts) -> torch.Tensor:
@@ -413,19 +427,21 @@ class _Joined:
         beta = landmark_beta(config)[torch.as_tensor(has)]
         beta = torch.where(beta > 0, torch.ones_like(beta), beta)
         beta[torch.as_tensor(np.flatnonzero(has) >= 48)] = 0.2  # the mouth moves: lean on the rigid points
+        beta = beta.to(self.device)
         with torch.no_grad():
             points = self.points(torch.as_tensor(np.concatenate([p.procedural for p in self.problems]),
-                                                 dtype=torch.float32), self.ids)
+                                                 dtype=torch.float32, device=self.device), self.ids)
+            points_cpu = points.cpu()
         rotations, translations = [], []
         for problem, obj, sl in zip(self.problems, self.objs, self.slices()):
             if problem.initial_rotation is not None and problem.initial_translation is not None:
                 rotations.append(torch.as_tensor(problem.initial_rotation, dtype=torch.float32).clone())
                 translations.append(torch.as_tensor(problem.initial_translation, dtype=torch.float32).clone())
             else:
-                r, t = _pose_guess(points[sl], obj.target, obj.valid, problem.camera, np.flatnonzero(has))
+                r, t = _pose_guess(points_cpu[sl], obj.target, obj.valid, problem.camera, np.flatnonzero(has))
                 rotations.append(r)
                 translations.append(t)
-        rotation, translation = self._cat(rotations), self._cat(translations)
+        rotation, translation = self._cat(rotations).to(self.device), self._cat(translations).to(self.device)
         rotation.requires_grad_(True)
         translation.requires_grad_(True)
         if config.pose_iterations:
@@ -440,14 +456,15 @@ class _Joined:
         return rotation.detach(), translation.detach()
 
 
-def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig,
-                 on_step: OnStep | None = None) -> list[TrackingResult]:
+def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_step: OnStep | None = None,
+                 device: torch.device = torch.device("cpu")) -> list[TrackingResult]:
     """Adam with cosine decay on all frames of `problems` at once (see `solve_fast_many`)."""
     started = time.perf_counter()
-    joined = _Joined(problems, config)
+    joined = _Joined(problems, config, device)
     cfg = joined.objs[0].config
     rot, trans = joined.initial_pose()
-    x = torch.tensor(np.concatenate([p.procedural for p in problems]), dtype=torch.float32, requires_grad=True)
+    x = torch.tensor(np.concatenate([p.procedural for p in problems]), dtype=torch.float32, device=device,
+                     requires_grad=True)
     rot.requires_grad_(True)
     trans.requires_grad_(True)
     t = joined.n_frames
@@ -474,7 +491,7 @@ def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig,
             terms["flow"] = flow_state.loss(x, rot, trans)
         if it >= config.fast_iterations and rgb is not None:
             if it == config.fast_iterations:
-                rgb.prepare(x.detach().numpy(), rot.detach().numpy(), trans.detach().numpy())
+                rgb.prepare(x.detach().cpu().numpy(), rot.detach().cpu().numpy(), trans.detach().cpu().numpy())
             terms["rgb"] = _rgb_all(problems[0], joined.objs[0], x, rot, trans)
         loss = joined.objs[0].weighted(terms).sum()
         if not torch.isfinite(loss):
@@ -491,7 +508,8 @@ def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig,
     seconds = time.perf_counter() - started
     results = []
     for problem, sl in zip(problems, joined.slices()):
-        terms_np = {k: v[sl].detach().numpy() for k, v in final.items() if k != "diff" or problem.n_frames > 1}
+        terms_np = {k: v[sl].detach().cpu().numpy() for k, v in final.items()
+                    if k != "diff" or problem.n_frames > 1}
         result = _finish(problem, x[sl], rot[sl], trans[sl], terms_np, started, total_iterations,
                          {"joined": len(problems)} if len(problems) > 1 else None)
         result.seconds = seconds * problem.n_frames / max(t, 1)   # its share of the joint solve
@@ -825,7 +843,7 @@ class _FastFlow:
 
     def refresh(self, x, rot, trans) -> None:
         with torch.no_grad():
-            proj = self._project(x, rot, trans).numpy()
+            proj = self._project(x, rot, trans).cpu().numpy()
         t, width = self.joined.n_frames, proj.shape[1]
         disp = np.zeros((t - 1, width, 2), np.float32)
         valid = np.zeros((t - 1, width), bool)
@@ -835,7 +853,8 @@ class _FastFlow:
             for j in range(1, problem.n_frames):
                 k = sl.start + j - 1            # the pair (k, k + 1) of the whole
                 disp[k, :n], valid[k, :n] = problem.flow.correspond(j, proj[k, :n])
-        self.disp, self.valid = torch.as_tensor(disp), torch.as_tensor(valid)
+        self.disp = torch.as_tensor(disp, device=self.joined.device)
+        self.valid = torch.as_tensor(valid, device=self.joined.device)
 
     def loss(self, x, rot, trans) -> torch.Tensor:
         scale = self.joined.scale

@@ -427,12 +427,13 @@ def _prepare(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, c
 
 def track_videos(videos: Sequence[tuple[VideoInput, np.ndarray | None]], rig: VisemeRig, config: TrackingConfig,
                  identities: Sequence[SpeakerIdentity | None] | None = None,
-                 on_step: Callable[[int, str, int, int], None] | None = None,
+                 on_step: Callable[[int, str, int, int], None] | None = None, device: str = "cpu",
                  ) -> list[TrackedVideo | TrackingInputError]:
     """`track_video` of several (video, procedural curves or None) with one joint solve (`solve_fast_many`: the
     same curves as one by one, at a fraction of the solver's cost). One TrackedVideo or TrackingInputError per
     video, in order: a bad video never stops the others. `on_step(index, phase, done, total)`: progress, `index`
-    the video's place, -1 for the joint solve. The faithful solver runs one video at a time."""
+    the video's place, -1 for the joint solve. `device`: where the joint solve runs (`solve_fast_many`). The
+    faithful solver runs one video at a time."""
     identities = list(identities) if identities is not None else [None] * len(videos)
     out: list[TrackedVideo | TrackingInputError | None] = [None] * len(videos)
     ready: list[tuple[int, _Prepared]] = []
@@ -451,7 +452,7 @@ def track_videos(videos: Sequence[tuple[VideoInput, np.ndarray | None]], rig: Vi
         groups.setdefault(item[1].config.model_dump_json(), []).append(item)
     for members in groups.values():
         solved = solve_fast_many([p.problem for _, p in members], members[0][1].config,
-                                 None if on_step is None else (lambda k, n: on_step(-1, "solve", k, n)))
+                                 None if on_step is None else (lambda k, n: on_step(-1, "solve", k, n)), device)
         for (i, prepared), result in zip(members, solved):
             if isinstance(result, FloatingPointError):
                 out[i] = TrackingInputError(prepared.video.video_path, "NonFiniteLoss", str(result))
