@@ -322,6 +322,9 @@ def test_several_utterances_solved_together_equal_each_solved_alone(rig):
     bad = dataclasses.replace(b, landmarks=bad_landmarks)
     out = solve_fast_many([a, bad, c], config)
     assert isinstance(out[1], FloatingPointError)
+    empty = dataclasses.replace(b, landmarks=b.landmarks[:0], valid=b.valid[:0], procedural=b.procedural[:0])
+    with pytest.raises(ValueError, match="no frames to track"):
+        solve_fast_many([a, empty], config)
     assert np.abs(out[0].curves - together[0].curves).max() < 1e-4
     assert np.abs(out[2].curves - together[2].curves).max() < 1e-4
 

@@ -161,6 +161,8 @@ def residual_scale(problem: TrackingProblem, config: TrackingConfig) -> float:
 
 def check_problem(problem: TrackingProblem) -> None:
     t = problem.n_frames
+    if t == 0:
+        raise ValueError("no frames to track")
     if problem.landmarks.shape != (t, 68, 2) or problem.valid.shape != (t, 68):
         raise ValueError(
             f"landmarks must be ({t}, 68, 2) with a ({t}, 68) mask to match {t} frames of procedural curves, "
