@@ -3,7 +3,7 @@
 
 Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
      [--espeak 200,100] [--threads 2] [--baseline] [--variants pitch:-3,speed:0.8] [--mbp-peaks 0.067,16]
-     [--grid-phones spread|aligned] [--rooms 4] [--save DIR]
+     [--grid-phones spread|aligned] [--rooms 4] [--esx nl,cs:200] [--save DIR]
 
 Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
 512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
@@ -17,6 +17,10 @@ Training data (all shippable; nothing of the judged speakers):
   (bench/domain_gap.py);
 - `es`: the espeak-ng corpus of bench/learning_data.py at `--espeak EN,ZH` utterances (synthetic voices made here),
   its training split; targets: procedural curves of its alignment with the closure rule;
+- `esx`: espeak-ng voices speaking Dutch and Czech (`--esx LANGS:N`, default nl,cs:200: N utterances per language,
+  bench/espeak_langs.py: random sequences of common words, half of them with two b/p/m words, the language's voice
+  and 5 variants at 130/160/200 wpm), all of them; targets: procedural curves of espeak's own phone timings with the
+  closure rule and the `--closure-ramps` of the LJ targets; the alignment feeds `+cls`;
 - `ljt`: the LJ examples with the synthetic (Cohen-Massaro) truth of the alignment as targets instead;
 - `ljv`: the LJ examples in other voices (`--variants`, default pitch -3/+3 semitones and speed 0.8/1.25, each a
   fixed copy made once with `learning.augment.apply_condition`: a pitch shift moves the formants as a shorter or
@@ -164,6 +168,7 @@ class Sets:
     test_curves: np.ndarray
     test_jaw: np.ndarray           # (T,) the animator's jawOpen of the held-out take
     floor: np.ndarray
+    espeak_langs: list[Example] = field(default_factory=list)  # `esx`: espeak-ng in Dutch/Czech/...
     rooms: int = 0                                             # copies of each LJ utterance in `ljr` / `ljrc`
     lj_rooms: list[Example] = field(default_factory=list)      # the LJ utterances heard in rooms (`ljr`), made
     lj_channels: list[Example] = field(default_factory=list)   # ... and through a channel (`ljrc`): on first use
@@ -210,11 +215,12 @@ def room_copies(examples: list[Example], copies: int = ROOMS, channel: bool = Fa
 
 
 def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None,
-              variants: str = VARIANTS, grid_phones: str = GRID_PHONES, rooms: int = ROOMS) -> Sets:
+              variants: str = VARIANTS, grid_phones: str = GRID_PHONES, rooms: int = ROOMS,
+              esx: str = "") -> Sets:
     """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None;
     `closure_ramp_s`: the LJ targets' MBP/FFF onset and decay (`ProceduralConfig.closure_onset_s`/`closure_decay_s`;
     None: the procedural default's ramps); `variants`: the voices of `ljv`; `rooms`: the copies of each LJ
-    utterance in `ljr` and `ljrc`."""
+    utterance in `ljr` and `ljrc`; `esx`: `LANGS:N` of the `esx` corpus (bench/espeak_langs.py), "" for none."""
     targets = ProceduralConfig(closure_onset_s=closure_ramp_s, closure_decay_s=closure_ramp_s)
     lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus", procedural=targets) if u.speaker == "LJ"]
     lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
@@ -230,13 +236,21 @@ def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | Non
 
         root = ensure_corpus(*espeak)
         es = [labelled(u) for u in read_corpus(root) if assign_split(u.uid, 0.1) == "train"]
+    esx_examples: list[Example] = []
+    if esx:
+        from espeak_langs import ensure_corpus as ensure_esx
+
+        langs, _, count = esx.partition(":")
+        root = ensure_esx(tuple(langs.split(",")), int(count or 200))
+        esx_examples = [labelled(u) for u in read_corpus(root, procedural=targets)]
     test_audio, test_curves = facegood_take(HELD_OUT_TAKE)
     table = read_channel_table(ROOT / "examples" / "facegood" / "voice2face_arkit.csv")
     take = read_take(FACEGOOD / f"bs_value_{HELD_OUT_TAKE}.npy", "npy", table=table,
                      names=FACEGOOD / "shirley_1015_bs_name.npy", fps=FPS)
     jaw = np.asarray(take.arkit)[:, ARKIT_52.index("jawOpen")]
     floor = np.concatenate([e.curves for e in facegood]).mean(axis=0)
-    return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor, rooms)
+    return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor, esx_examples,
+                rooms)
 
 
 def recipe_data(sets: Sets, recipe: str) -> list[Example]:
@@ -246,10 +260,11 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
     if "ljrc" in parts and not sets.lj_channels:
         sets.lj_channels = room_copies(sets.lj, sets.rooms, channel=True)
     data = {"lj": sets.lj, "ljt": sets.lj_truth, "ljv": sets.lj_variants, "fg": sets.facegood,
-            "es": sets.espeak, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels}
-    unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)]
+            "es": sets.espeak, "esx": sets.espeak_langs, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels}
+    unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)
+               or (p == "esx" and not sets.espeak_langs)]
     if unknown:
-        raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak)")
+        raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak, esx --esx)")
     return [e for p in parts for e in data[p]]
 
 
@@ -374,6 +389,9 @@ def main() -> int:
     parser.add_argument("--seeds", default="0", help="training seeds (comma-separated): one row each")
     parser.add_argument("--recipes", default="lj,lj+cls,lj+fg,lj+fg+cls")
     parser.add_argument("--espeak", default="", help="EN,ZH utterances of the espeak corpus for `es` recipes")
+    parser.add_argument("--esx", default="nl,cs:200",
+                        help="LANGS:N of the `esx` corpus (espeak-ng in nl, cs, de, pl; N per language), made only "
+                             "when a recipe has `esx`")
     parser.add_argument("--closure-ramps", type=float, default=None,
                         help="onset and decay, s, of the MBP/FFF ramps in the LJ targets (default: procedural's)")
     parser.add_argument("--grid-phones", default=GRID_PHONES, choices=("spread", "aligned"),
@@ -394,9 +412,11 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
-    sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones, args.rooms)
+    uses_esx = any("esx" in r.split("+") for r in args.recipes.split(","))
+    sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones, args.rooms,
+                     args.esx if uses_esx else "")
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
-          f"espeak {len(sets.espeak)}; held out: "
+          f"espeak {len(sets.espeak)}, esx {len(sets.espeak_langs)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)
     predict = CachedPredictor()
     rows = []
@@ -436,7 +456,7 @@ def main() -> int:
                                args.save / re.sub(r"[^\w.+-]", "_", f"{recipe}_{loss}_s{seed}_{layers}.pt"),
                                {"script": "bench/encoders.py", "recipe": recipe, "loss": loss, "seed": seed,
                                 "layers": layers, "steps": args.steps, "d_model": args.d_model,
-                                "closure_ramps_s": args.closure_ramps, "rooms": args.rooms,
+                                "closure_ramps_s": args.closure_ramps, "rooms": args.rooms, "esx": args.esx,
                                 "mbp_peaks": [window_s, power]})
             print(f"saved {saved}", flush=True)
         rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "

@@ -22,6 +22,7 @@ LIBRARIES = {
     "report.py": "the result table",
     "learning_data.py": "the espeak corpus and cached models of learning.py and robustness.py",
     "mbrola_data.py": "the MBROLA corpus of domain_gap.py",
+    "espeak_langs.py": "the Dutch and Czech espeak-ng corpus of encoders.py's `esx` part",
 }
 """Modules of bench/ that only other benches import (they have no `__main__`)."""
 
@@ -33,6 +34,8 @@ QUICK = {
                    "--d-model", "16", "--threads", "1"],
     "end_to_end.py": ["--repeats", "1", "--clips", "1", "--no-pin"],
     "forcealign.py": ["--utterances", "2"],
+    "joint_solver_device.py": ["--clips", "1,2", "--cpu-clips", "1,2", "--frames", "10"],
+    "joint_track.py": ["--repeats", "1", "--joint", "2", "--clips", "2", "--no-pin"],
     "ingest_procedural.py": ["--utterances", "25", "--speakers", "2", "--skip-peer", "--no-install"],
     "landmarks.py": ["--repeats", "1", "--no-pin"],
     "learning.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm", "--sizes", "",
@@ -47,6 +50,7 @@ QUICK = {
     "rotation.py": ["--takes", "1", "--repeats", "1", "--calls", "20"],
     "textgrid_readers.py": ["--repeat", "1"],
     "tracking.py": ["--utterances", "1", "--faithful-frames", "2"],
+    "track_tasks.py": ["--utterances", "3", "--repeats", "1"],
     "transfer.py": [],
     "truth_vs_procedural.py": [],
     "wav2vec2_cache.py": ["--epochs", "1", "--utterances", "2", "--repeats", "1"],
