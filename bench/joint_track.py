@@ -1,6 +1,6 @@
 """Benchmark: the track stage one clip at a time against several clips in one joint solve (issue 29, item 1).
 
-Run:  .venv/bin/python bench/joint_track.py [--repeats R] [--joint 5,10] [--no-pin] [--config JSON] [--clips N]
+Run:  .venv/bin/python bench/joint_track.py [--repeats R] [--joint 5,10] [--no-pin] [--config JSON] [--clips N] [--grid-only]
 
 Clips and set-up as bench/end_to_end.py (GRID s1's 10 guided clips, talking_heads 1 and 4 unguided; landmarks made
 once by the landmarks stage's own function, not timed here). Timed, on one pinned core, side by side in one run:
@@ -86,6 +86,7 @@ def main() -> int:
     parser.add_argument("--joint", default="5,10", help="group sizes to time against one clip at a time")
     parser.add_argument("--no-pin", action="store_true")
     parser.add_argument("--clips", type=int, default=None, help="only the first N GRID clips (default all 10)")
+    parser.add_argument("--grid-only", action="store_true", help="leave out the talking heads")
     parser.add_argument("--config", default=None, metavar="JSON", help="TrackingConfig fields for every path")
     args = parser.parse_args()
     if not (e2e.GRID / "video").is_dir():
@@ -104,6 +105,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="visemeflow-joint-") as tmp_name:
         tmp = Path(tmp_name)
         clips = e2e.build_corpus(tmp, args.clips)
+        if args.grid_only:
+            clips = [c for c in clips if c.set_name.startswith("GRID")]
         store = Store(tmp / "store")
         for clip in clips:
             e2e.landmarks_task.landmarks_one(store, clip.utterance, mesh)

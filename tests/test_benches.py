@@ -35,7 +35,7 @@ QUICK = {
     "end_to_end.py": ["--repeats", "1", "--clips", "1", "--no-pin"],
     "forcealign.py": ["--utterances", "2"],
     "joint_solver_device.py": ["--clips", "1,2", "--cpu-clips", "1,2", "--frames", "10"],
-    "joint_track.py": ["--repeats", "1", "--joint", "2", "--clips", "2", "--no-pin"],
+    "joint_track.py": ["--repeats", "1", "--joint", "2", "--clips", "2", "--grid-only", "--no-pin"],
     "ingest_procedural.py": ["--utterances", "25", "--speakers", "2", "--skip-peer", "--no-install"],
     "landmarks.py": ["--repeats", "1", "--no-pin"],
     "learning.py": ["--english", "20", "--mandarin", "10", "--epochs", "1", "--presets", "fbank-blstm", "--sizes", "",
