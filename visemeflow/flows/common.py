@@ -143,7 +143,7 @@ def read_cached(stage: str, task, store_root, calls: list[tuple[str, tuple, bool
     results = results_of(store_root)
     reports, left = [], []
     for uid, args, present in calls:
-        key = cache_key_of(task, store_root, *args)
+        key = cache_key_of(task, results, *args)
         if key is not None and present and results.exists(key):
             try:
                 reports.append({**results.read(key).result, "cached": 1})

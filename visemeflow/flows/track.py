@@ -164,16 +164,15 @@ def joint_groups(calls: list, frames_each: int) -> list[list]:
     return groups + ([group] if group else [])
 
 
-def track_in_groups(store: Store, calls: list, config: TrackingConfig, frames_each: int, rejected_before: set[str],
-                    logger, device: str = "cpu") -> tuple[list[dict], list[dict], int, int]:
+def track_in_groups(store: Store, calls: list, present: dict[str, bool], frames_each: int, logger,
+                    device: str = "cpu") -> tuple[list[dict], list[dict], int, int]:
     """The track stage's work with joint solves: each utterance whose `track_utterance` call would be a cache hit
-    (its record there and its curves stored) is read from that record, without a task run; the others are tracked
+    (its record there and `present`: its curves stored, or it was rejected) is read from that record, without a
+    task run; the others are tracked
     in groups of about `frames_each` frames, one `track_jointly` task and one joint solve each, which leave each
     result as its call's cached record. An utterance that fails in a group (or whose group meets a bug) then runs
     in its own `track_utterance` task, alone, and is rejected there with its whole message.
     (reports, reject rows, unexpected errors, utterances tracked jointly), as `collect_utterance_results`."""
-    present = {uid: store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
-               for uid, row, _ in calls}
     reports, left = read_cached(STAGE, track_utterance, store.root,
                                 [(uid, args, present[uid]) for uid, _, args in calls], logger)
     misses = [(uid, args[1], args, key) for uid, args, key in left]
@@ -234,15 +233,17 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         row = keyed_row(store, row)
         calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
                                  config, identities.get(uid))))
+    # a cache hit must not hide deleted curves: recompute unless they are there (or the utterance was rejected)
+    present = {uid: store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
+               for uid, row, _ in calls}
     if params.joint_frames > 0 and joins(config):    # L_rgb or LM: one clip at a time, so one task each
-        reports, rejects, unexpected, jointly = track_in_groups(store, calls, config, params.joint_frames,
-                                                                rejected_before, run.logger, params.device)
+        reports, rejects, unexpected, jointly = track_in_groups(store, calls, present, params.joint_frames,
+                                                                run.logger, params.device)
     else:               # one task per utterance, each a cache hit or a solve of its own
         futures, frames = {}, {}
         for uid, row, args in calls:
-            present = store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
             future = track_utterance.with_options(
-                result_storage=result_storage(store.root), refresh_cache=not present,
+                result_storage=result_storage(store.root), refresh_cache=not present[uid],
             ).submit(*args)
             futures[future] = uid
             frames[future] = int(row[C.N_FRAMES] or 0)

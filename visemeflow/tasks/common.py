@@ -107,16 +107,17 @@ def results_of(store_root: str | Path) -> Any:
                        serializer=RESULT_SERIALIZER)
 
 
-def cache_key_of(task: Any, store_root: str | Path, *args: Any) -> str | None:
+def cache_key_of(task: Any, results: Any, *args: Any) -> str | None:
     """The cache key `task`'s cache policy gives the call `task(*args)`, as Prefect computes it when the task runs
     (the policies read the task, its inputs and its result storage; none of them the flow's parameters). A flow that
     does the work of several such calls in one task writes each result under its call's key (`results_of(...).
-    write`), so that the call itself is then a cache hit, and reruns and `rerun` of one utterance stay as they were."""
+    write`), so that the call itself is then a cache hit, and reruns and `rerun` of one utterance stay as they were.
+    `results`: the store's `results_of`, made once by a caller that keys many calls."""
     from types import SimpleNamespace
 
     from prefect.utilities.callables import get_call_parameters
 
-    context = SimpleNamespace(task=task, result_store=results_of(store_root))
+    context = SimpleNamespace(task=task, result_store=results)
     return task.cache_policy.compute_key(task_ctx=context, inputs=get_call_parameters(task.fn, args, {}),
                                          flow_parameters={})
 

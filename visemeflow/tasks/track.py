@@ -177,26 +177,24 @@ def track_many(store: Store, utterances: list[dict], procedural_variant: str, ri
     order; a bad utterance never stops the others. `on_step(index, phase, done, total)` as `track_videos`."""
     identities = list(identities) if identities is not None else [None] * len(utterances)
     out: list[dict | TrackError | None] = [None] * len(utterances)
-    groups: dict[str, list[tuple[int, VideoInput, np.ndarray | None, TrackingConfig]]] = {}
+    ready = []          # (index, video, procedural curves or None: unguided, the utterance's config)
     for i, utterance in enumerate(utterances):
         try:
-            video, procedural, cfg = _video_input(store, utterance, procedural_variant, config)
+            ready.append((i, *_video_input(store, utterance, procedural_variant, config)))
         except TrackError as exc:
             out[i] = exc
-            continue
-        groups.setdefault(cfg.model_dump_json(), []).append((i, video, procedural, cfg))
-    for members in groups.values():
-        cfg = members[0][3]
-        tracked = track_videos([(video, procedural) for _, video, procedural, _ in members], rig, cfg,
-                               [identities[i] for i, *_ in members],
-                               None if on_step is None else (lambda k, *rest: on_step(
-                                   k if k < 0 else members[k][0], *rest)), device)
-        for (i, *_), done in zip(members, tracked):
-            utterance = utterances[i]
-            if isinstance(done, TrackingInputError):
-                out[i] = TrackError(utterance[C.UTTERANCE_ID], done.path, done.error_type, done.reason)
-            else:
-                out[i] = _stored(store, utterance, cfg, done, unguided_reason(utterance, config), identities[i])
+    # track_videos solves guided and unguided videos apart (no procedural curves: guidance off, as
+    # utterance_config says for an utterance without an alignment)
+    tracked = track_videos([(video, procedural) for _, video, procedural, _ in ready], rig, config,
+                           [identities[i] for i, *_ in ready],
+                           None if on_step is None else (lambda k, *rest: on_step(k if k < 0 else ready[k][0], *rest)),
+                           device)
+    for (i, _, _, cfg), done in zip(ready, tracked):
+        utterance = utterances[i]
+        if isinstance(done, TrackingInputError):
+            out[i] = TrackError(utterance[C.UTTERANCE_ID], done.path, done.error_type, done.reason)
+        else:
+            out[i] = _stored(store, utterance, cfg, done, unguided_reason(utterance, config), identities[i])
     return out  # type: ignore[return-value]
 
 
