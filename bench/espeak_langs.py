@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import random
-import time
 from pathlib import Path
 
 import soundfile as sf
@@ -151,12 +150,7 @@ def write_corpus(root: Path, langs: tuple[str, ...], n: int, seed: int = 0) -> l
 
 
 def ensure_corpus(langs: tuple[str, ...] = ("nl", "cs"), n: int = 200, seed: int = 0) -> Path:
-    root = OUT / f"corpus-esx-{'-'.join(langs)}-{n}-s{seed}"
-    done = root / ".complete"
-    if not done.exists():
-        t0 = time.perf_counter()
-        ids = write_corpus(root, langs, n, seed)
-        done.write_text(str(len(ids)))
-        print(f"espeak {'/'.join(langs)} corpus: {len(ids)} utterances in {time.perf_counter() - t0:.1f} s -> {root}",
-              flush=True)
-    return root
+    from learning_data import written_once
+
+    return written_once(OUT / f"corpus-esx-{'-'.join(langs)}-{n}-s{seed}", f"espeak {'/'.join(langs)} corpus",
+                        lambda root: write_corpus(root, langs, n, seed))

@@ -51,17 +51,22 @@ class Data:
         self.train, self.val, self.procedural = train, val, procedural
 
 
-def ensure_corpus(n_english: int, n_mandarin: int, seed: int = 0) -> Path:
-    from visemeflow.synth.sentences import write_espeak_corpus
-
-    root = OUT / f"corpus-en{n_english}-zh{n_mandarin}-s{seed}"
+def written_once(root: Path, what: str, write) -> Path:
+    """`root`, written by `write(root)` (which returns the utterance ids) unless a finished copy is there."""
     done = root / ".complete"
     if not done.exists():
         t0 = time.perf_counter()
-        ids = write_espeak_corpus(root, n_english, n_mandarin, seed)
+        ids = write(root)
         done.write_text(str(len(ids)))
-        print(f"espeak corpus: {len(ids)} utterances in {time.perf_counter() - t0:.1f} s -> {root}", flush=True)
+        print(f"{what}: {len(ids)} utterances in {time.perf_counter() - t0:.1f} s -> {root}", flush=True)
     return root
+
+
+def ensure_corpus(n_english: int, n_mandarin: int, seed: int = 0) -> Path:
+    from visemeflow.synth.sentences import write_espeak_corpus
+
+    return written_once(OUT / f"corpus-en{n_english}-zh{n_mandarin}-s{seed}", "espeak corpus",
+                        lambda root: write_espeak_corpus(root, n_english, n_mandarin, seed))
 
 
 def load_data(n_english: int, n_mandarin: int, seed: int = 0, val_fraction: float = 0.1) -> Data:
