@@ -147,6 +147,8 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and "no tracked curves" in done.output and "--source ground_truth" in done.output
     done = runner.invoke(app, ["train", "--store", str(store.root), "--source", "ground_truth", "--preset", "bogus"])
     assert done.exit_code == 2 and done.output.startswith("error: --preset: unknown preset 'bogus'")
+    done = runner.invoke(app, ["train", "--store", str(store.root), "--source", "ground_truth", "--tune-layers", "2"])
+    assert done.exit_code == 2 and done.output.startswith("error: --tune-layers: preset 'fbank-blstm' has no Whisper")
     done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no utterance spk/nope" in done.output
     done = runner.invoke(app, ["evaluate", "--models", "nope", "--store", str(store.root)])

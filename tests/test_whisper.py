@@ -354,3 +354,99 @@ def test_whisper_small_preset_on_a_local_folder_trains_saves_and_loads(tiny_dir,
     got = ox.onnx_curves(report.path, train[1].audio)
     want = predict_curves(model, train[1].audio, 16000, 30.0)
     assert got.shape == want.shape and np.abs(got - want).max() <= ox.WHISPER_TOLERANCE
+
+
+def test_tuned_top_blocks_train_cache_save_and_load(tiny_dir, tmp_path):
+    """whisper_tune_layers (issue 25 item 7): the top block and ln_post train at their own rate, the frozen part
+    comes from the encoder cache, the file keeps only the tuned encoder weights, and loading it predicts the same."""
+    from visemeflow.learning.train import (
+        Example,
+        ModelFileError,
+        TrainConfig,
+        load_model,
+        predict_curves,
+        save_model,
+        train_model,
+    )
+
+    rng = np.random.default_rng(2)
+    train = [Example(f"u{i}", (rng.standard_normal(16000 + 4000 * i) * 0.1).astype(np.float32),
+                     rng.random((30 + 7 * i, 16)).astype(np.float32), 30.0) for i in range(2)]
+    config = TrainConfig(preset="whisper-small-blstm", whisper_source=str(tiny_dir), d_model=16, epochs=2,
+                         whisper_layers="weighted", whisper_tune_layers=1, whisper_tune_lr=1e-3)
+    assert '"whisper_tune_layers":1' in config.model_dump_json()
+    assert "whisper_tune" not in TrainConfig(preset="whisper-small-blstm").model_dump_json()
+    pretrained = W.load_whisper_encoder(str(tiny_dir)).state_dict()
+    cache = EncoderOutputCache()
+    result = train_model(train, [], config, encoder_cache=cache)
+    assert (cache.misses, cache.hits) == (2, 2)  # the frozen part encoded once per utterance
+    ext = result.model.features
+    assert isinstance(ext, WhisperExtractor) and (ext.tune, ext.cut) == (1, 1)
+    tuned = ext.encoder.state_dict()
+    moved = {k for k in pretrained if not torch.equal(pretrained[k], tuned[k])}
+    assert moved and all(k.startswith(("blocks.1.", "ln_post.")) for k in moved)
+    assert any(k.startswith("blocks.1.") for k in moved) and any(k.startswith("ln_post.") for k in moved)
+    # cached frozen part + tuned blocks == the whole encoder over its window (eval) == training-mode forward
+    ext.eval()
+    a = torch.from_numpy(train[1].audio)[None]
+    frozen = ext.encode(a)
+    assert frozen.shape == (1, 2, 1500, 32)  # block 0's layer state and block 1's input, the whole window
+    with torch.no_grad():
+        whole, n = ext(a)
+        from_cache, _ = ext(a, encoded=frozen)
+        ext.train()
+        in_training, _ = ext(a)
+        ext.eval()
+    torch.testing.assert_close(from_cache, whole, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(in_training, whole, atol=1e-5, rtol=1e-5)
+    # the file: the head, the layer weights and the tuned encoder weights only
+    path = save_model(result.model, config, tmp_path / "tuned.pt", {})
+    blob = torch.load(path, weights_only=True)
+    enc_keys = {k for k in blob["state_dict"] if ".encoder." in k}
+    assert enc_keys and all(k.startswith(("features.encoder.blocks.1.", "features.encoder.ln_post.")) for k in enc_keys)
+    model, cfg, _ = load_model(path)
+    assert cfg.whisper_tune_layers == 1
+    torch.testing.assert_close(predict_curves(model, train[0].audio, 16000, 30.0),
+                               predict_curves(result.model, train[0].audio, 16000, 30.0))
+    # a tuned weight missing from the file is refused, not silently taken from the pretrained encoder
+    del blob["state_dict"]["features.encoder.blocks.1.fc1.weight"]
+    torch.save(blob, tmp_path / "cut.pt")
+    with pytest.raises(ModelFileError, match="missing weights features.encoder.blocks.1.fc1.weight"):
+        load_model(tmp_path / "cut.pt")
+    # long audio at inference: windows, as for a frozen encoder
+    long = (rng.standard_normal(16000 * 40) * 0.1).astype(np.float32)
+    assert predict_curves(model, long, 16000, 30.0).shape == (1200, 16)
+    # a training utterance longer than one window: one error naming it, before any step
+    with pytest.raises(ValueError, match=r"at most 30 s; 1 are longer \(long-one\)"):
+        train_model([*train, Example("long-one", long, rng.random((1200, 16)).astype(np.float32), 30.0)], [], config)
+    # more blocks than the encoder has
+    with pytest.raises(ValueError, match="this encoder has 2 blocks"):
+        train_model(train, [], config.model_copy(update={"whisper_tune_layers": 3}))
+
+
+def test_tuned_blocks_have_their_own_learning_rate(tiny_dir):
+    from visemeflow.learning.train import TrainConfig, Trainer
+
+    rng = np.random.default_rng(3)
+    from visemeflow.learning.train import Example
+
+    train = [Example("u0", (rng.standard_normal(16000) * 0.1).astype(np.float32),
+                     rng.random((30, 16)).astype(np.float32), 30.0)]
+    trainer = Trainer(train, [], TrainConfig(preset="whisper-small-blstm", whisper_source=str(tiny_dir), d_model=16,
+                                             whisper_tune_layers=2, whisper_tune_lr=3e-5))
+    groups = trainer.optimizer.param_groups
+    ext = trainer.model.features
+    slow = {id(q) for q in ext.tuned_parameters()}
+    assert len(slow) == 2 * 12 + 2  # two blocks of 12 tensors and ln_post's two
+    assert [g["lr"] for g in groups[:2]] == [PRESETS["whisper-small-blstm"].lr, 3e-5]
+    assert {id(q) for q in groups[1]["params"]} == slow
+    assert not slow & {id(q) for q in groups[0]["params"]}
+    assert not any(q.requires_grad for q in [*ext.encoder.conv1.parameters(), *ext.encoder.conv2.parameters()])
+
+
+def test_tuning_a_preset_without_whisper_is_refused():
+    from visemeflow.learning.train import Example, TrainConfig, train_model
+
+    ex = Example("u0", np.zeros(16000, np.float32), np.zeros((30, 16), np.float32), 30.0)
+    with pytest.raises(ValueError, match="preset 'fbank-blstm' has no Whisper encoder"):
+        train_model([ex], [], TrainConfig(preset="fbank-blstm", whisper_tune_layers=1))

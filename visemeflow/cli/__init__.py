@@ -208,13 +208,15 @@ def _check_store_has(store: Path, what: str, hint: str) -> None:
 INGEST_FIRST = "run `visemeflow ingest CORPUS` or `visemeflow pipeline CORPUS` first"
 
 
-def _check_preset(preset: str) -> None:
+def _check_preset(preset: str, tune_layers: int = 0) -> None:
     from visemeflow.learning.presets import get_preset
 
     try:
-        get_preset(preset)
+        feature = get_preset(preset).feature
     except ValueError as exc:
         _fail(f"--preset: {exc}")
+    if tune_layers and feature != "whisper":
+        _fail(f"--tune-layers: preset {preset!r} has no Whisper encoder to tune (its feature is {feature})")
 
 
 def _check_curves(store: Path, source: str, variant: str | None) -> None:
@@ -428,11 +430,12 @@ def serve(
     STORE, Opt("config.preset"), Opt("config.epochs"), Opt("source"), Opt("variant"), Opt("model_name", "--name"),
     Opt("config.d_model"), Opt("config.seed"), Opt("config.wav2vec2_model", "--wav2vec2"), TRAIN_AUGMENT,
     Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
+    Opt("config.whisper_tune_layers", "--tune-layers"), Opt("config.whisper_tune_lr", "--tune-lr"),
 ])
 def train(params: TrainParams) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
     _device(params.device, params.precision)
-    _check_preset(params.config.preset)
+    _check_preset(params.config.preset, params.config.whisper_tune_layers)
     _check_curves(params.store, params.source, params.variant)
     from visemeflow.flows.train import train_flow
 

@@ -39,6 +39,11 @@ class TrainConfig(BaseModel):
     # whisper presets: which encoder outputs feed the decoder, "last" (the preset's) or "weighted" (a learned
     # softmax-weighted sum of every layer); None: the preset's own
     whisper_layers: Literal["last", "weighted"] | None = None
+    whisper_tune_layers: int = Field(0, ge=0, le=64, description=(
+        "Whisper presets: train the encoder's top N blocks (and its final LayerNorm) with the head; 0 keeps the "
+        "encoder frozen. Each tuned whisper-base block adds about 12 MB to the model file; training utterances "
+        "must then be at most 30 s."))
+    whisper_tune_lr: float = Field(1e-5, gt=0, description="Learning rate of the tuned Whisper blocks.")
     # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
     # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
     train_augment: bool = False
@@ -70,6 +75,7 @@ class TrainConfig(BaseModel):
 
 _ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
                                    "viseme_loss_weight": 0.0, "whisper_layers": None,
+                                   "whisper_tune_layers": 0, "whisper_tune_lr": 1e-5,
                                    "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
 
 

@@ -80,6 +80,7 @@ from pydantic import (
     model_validator,
 )
 from torch import nn
+from torch.nn import functional as F
 
 from visemeflow.hashing import without_added_defaults
 from visemeflow.learning.whisper import (
@@ -133,6 +134,8 @@ class FeatureConfig(BaseModel):
     # "last": the final encoder layer; "weighted": a learned softmax-weighted sum of every layer (trained with the
     # head; the encoder stays frozen)
     whisper_layers: Literal["last", "weighted"] = "last"
+    # the encoder's top N blocks (and its final LayerNorm) trained with the head; 0: the whole encoder frozen
+    whisper_tune_layers: int = Field(0, ge=0)
     whisper_window_s: float = 30.0  # Whisper's context; long audio in windows of this, crossfaded over the overlap
     whisper_overlap_s: float = 5.0
     whisper_pad_short: bool = True  # audio shorter than a window padded to it, as Whisper was trained (whisper.py)
@@ -178,7 +181,7 @@ class FeatureConfig(BaseModel):
 
 _ADDED_FEATURE_DEFAULTS: dict[str, Any] = {
     "whisper_source": "package", "whisper_layers": "last", "whisper_window_s": 30.0, "whisper_overlap_s": 5.0,
-    "whisper_pad_short": True, "options": {},
+    "whisper_pad_short": True, "whisper_tune_layers": 0, "options": {},
 }
 
 
@@ -675,8 +678,8 @@ def _answering(module: nn.Module, output: torch.Tensor) -> Iterator[None]:
 
 @register_feature("whisper")
 class WhisperExtractor(FeatureExtractor):
-    """OpenAI Whisper's audio encoder, frozen (:mod:`visemeflow.learning.whisper`): D = d_model (512 for base),
-    50 Hz, any length of audio (30-s windows crossfaded), the last layer or a learned weighted sum of all layers.
+    """OpenAI Whisper's audio encoder (:mod:`visemeflow.learning.whisper`): D = d_model (512 for base), 50 Hz, any
+    length of audio (30-s windows crossfaded), the last layer or a learned weighted sum of all layers.
 
     The encoder is frozen and is *not* part of this module's ``state_dict``: a saved model keeps the head (and the
     layer weights) and the ``encoder_digest`` buffer; loading rebuilds the encoder from ``config.whisper_source``
@@ -684,6 +687,14 @@ class WhisperExtractor(FeatureExtractor):
     for one utterance, ``(B, L, T, D)`` (``L`` = 1 for ``whisper_layers="last"``, layers + 1 for "weighted"),
     which :class:`EncoderOutputCache` keeps; ``forward(..., encoded=...)`` uses it instead of running the encoder.
     Rows of a batch are encoded one by one (each its own length), so padding never changes a row's features.
+
+    ``whisper_tune_layers = N > 0`` trains the encoder's top N blocks and its final LayerNorm with the head. Those
+    weights are then part of the ``state_dict`` (about 12 MB per whisper-base block in float32); the digest still
+    names the pretrained weights underneath, which the rest comes from. :meth:`encode` then gives the frozen part,
+    the input of the first tuned block over the whole window (and, for "weighted", the layer states below it),
+    ``(B, S, W, D)``, ``W`` the window's encoder frames; ``forward(encoded=...)`` runs the tuned blocks on it. A
+    training utterance must then fit one window (30 s); inference in eval mode runs the whole encoder over windows
+    as for a frozen one, so audio of any length works there.
     """
 
     encoder_frozen = True
@@ -693,9 +704,15 @@ class WhisperExtractor(FeatureExtractor):
         if config.kind != "whisper":
             raise ValueError(f"WhisperExtractor does not compute {config.kind!r}")
         enc = encoder if encoder is not None else load_whisper_encoder(config.whisper_source)
+        self.tune = int(config.whisper_tune_layers)
+        if self.tune > enc.dims.n_layers:
+            raise ValueError(f"whisper_tune_layers={self.tune}: this encoder has {enc.dims.n_layers} blocks")
+        self.cut = enc.dims.n_layers - self.tune  # the first tuned block
         for q in enc.parameters():
             q.requires_grad_(False)
         self.encoder = enc.eval()
+        for q in self.tuned_parameters():
+            q.requires_grad_(True)
         self.windows = WhisperFeatures(enc, config.whisper_window_s, config.whisper_overlap_s, config.whisper_pad_short)
         self.dim = enc.dims.d_model
         self.frame_rate_hz = WHISPER_FRAME_RATE_HZ
@@ -712,8 +729,21 @@ class WhisperExtractor(FeatureExtractor):
 
     def train(self, mode: bool = True) -> WhisperExtractor:
         super().train(mode)
-        self.encoder.eval()  # frozen: always inference
+        self.encoder.eval()  # no dropout in Whisper's encoder: the same in training and inference
         return self
+
+    def tuned_parameters(self) -> list[nn.Parameter]:
+        """The encoder's weights that train (the top ``whisper_tune_layers`` blocks and ``ln_post``); [] if frozen."""
+        if not self.tune:
+            return []
+        return [*self.encoder.blocks[self.cut:].parameters(), *self.encoder.ln_post.parameters()]
+
+    def tuned_prefixes(self, prefix: str = "") -> tuple[str, ...]:
+        """State-dict key prefixes of the tuned encoder weights."""
+        if not self.tune:
+            return ()
+        return (*(f"{prefix}encoder.blocks.{i}." for i in range(self.cut, self.encoder.dims.n_layers)),
+                f"{prefix}encoder.ln_post.")
 
     def output_lengths(self, lengths: torch.Tensor) -> torch.Tensor:
         return encoder_frames(torch.as_tensor(lengths).to(torch.long))
@@ -723,15 +753,22 @@ class WhisperExtractor(FeatureExtractor):
         from visemeflow.hashing import stable_hash
 
         c = self.config
+        tune = {"frozen_blocks": self.cut} if self.tune else {}  # what encode() returns then is the frozen part
         return stable_hash({"whisper": self._encoder_digest_hex, "window_s": c.whisper_window_s,
                             "overlap_s": c.whisper_overlap_s, "pad_short": c.whisper_pad_short,
-                            "all_layers": self.weighted, "mel": "whisper-log-mel-1"})
+                            "all_layers": self.weighted, "mel": "whisper-log-mel-1", **tune})
 
     def encode(
         self, audio: torch.Tensor, lengths: torch.Tensor | None = None, progress: Any = None,
     ) -> torch.Tensor:
-        """(B, L, T, D) frozen-encoder outputs, T = the longest row's frames, zero past each row's own."""
+        """(B, L, T, D) frozen-encoder outputs, T = the longest row's frames, zero past each row's own (with tuned
+        blocks: the frozen part, (B, S, W, D), see the class)."""
         audio, lengths = self._prepare(audio, lengths)
+        if self.tune:
+            return self._encode_frozen_part(audio, lengths)
+        return self._encode_rows(audio, lengths, progress)
+
+    def _encode_rows(self, audio: torch.Tensor, lengths: torch.Tensor, progress: Any = None) -> torch.Tensor:
         rows = [self.windows(audio[b, : int(lengths[b])], all_layers=self.weighted, progress=progress)
                 for b in range(audio.shape[0])]
         rows = [r if r.ndim == 3 else r[None] for r in rows]
@@ -741,12 +778,50 @@ class WhisperExtractor(FeatureExtractor):
             out[b, :, : r.shape[1]] = r
         return out.to(audio.device)
 
+    @torch.no_grad()
+    def _encode_frozen_part(self, audio: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """(B, S, W, D): per row, the frozen blocks' layer states (``weighted``) and the first tuned block's input,
+        over the row's one window (padded to 30 s as the windows are)."""
+        rows = []
+        dev = next(self.encoder.parameters()).device
+        for b in range(audio.shape[0]):
+            mel = self.windows.single_window_mel(audio[b, : int(lengths[b])])
+            states, x = self.encoder.run(self.encoder.embed(mel[None].to(dev)), 0, self.weighted, last=self.cut)
+            rows.append(torch.stack([*states, x], dim=1)[0].float())
+        w = max(r.shape[1] for r in rows)
+        out = rows[0].new_zeros(len(rows), rows[0].shape[0], w, self.dim)
+        for b, r in enumerate(rows):
+            out[b, :, : r.shape[1]] = r
+        return out.to(audio.device)
+
+    def _run_tuned(self, encoded: torch.Tensor, feat_lengths: torch.Tensor) -> torch.Tensor:
+        """(B, L, T, D) of the frozen part ``encoded`` (B, S, W, D): the tuned blocks over each row's window."""
+        expected = self.cut + 1 if self.weighted else 1
+        if encoded.ndim != 4 or encoded.shape[1] != expected or encoded.shape[3] != self.dim:
+            raise ValueError(f"encoded must be the frozen part (B, {expected}, W, {self.dim}) of "
+                             f"whisper_tune_layers={self.tune}, got {tuple(encoded.shape)}")
+        t = int(feat_lengths.max()) if feat_lengths.numel() else 0
+        outs = []
+        for b in range(encoded.shape[0]):  # each row over its own window (the padding of another row never seen)
+            w = encoded.shape[2] if self.config.whisper_pad_short else int(feat_lengths[b])
+            states, y = self.encoder.run(encoded[b : b + 1, -1, :w], self.cut, self.weighted)
+            layers = [encoded[b : b + 1, :-1, :w], torch.stack([*states, y], dim=1)] if self.weighted else [y[:, None]]
+            row = torch.cat(layers, dim=1)[:, :, :t]
+            outs.append(F.pad(row, (0, 0, 0, t - row.shape[2])))
+        return torch.cat(outs)
+
     def forward(
         self, audio: torch.Tensor, lengths: torch.Tensor | None = None, encoded: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         audio, lengths = self._prepare(audio, lengths)
         feat_lengths = self.output_lengths(lengths)
-        if encoded is None:
+        if self.tune:
+            if encoded is not None or (self.training and torch.is_grad_enabled()):
+                frozen = encoded if encoded is not None else self._encode_frozen_part(audio, lengths)
+                encoded = self._run_tuned(frozen.to(audio.device), feat_lengths)
+            else:  # inference: the whole (tuned) encoder over windows, any length
+                encoded = self._encode_rows(audio, lengths)
+        elif encoded is None:
             encoded = self.encode(audio, lengths)
         n_layers = self.encoder.dims.n_layers + 1 if self.weighted else 1
         t = int(feat_lengths.max()) if feat_lengths.numel() else 0
@@ -763,8 +838,9 @@ class WhisperExtractor(FeatureExtractor):
         return self._finish(feats, feat_lengths)
 
 
-def _drop_encoder_state(module: nn.Module, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
-    for key in [k for k in state_dict if k.startswith(prefix + "encoder.")]:
+def _drop_encoder_state(module: WhisperExtractor, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
+    tuned = module.tuned_prefixes(prefix)
+    for key in [k for k in state_dict if k.startswith(prefix + "encoder.") and not k.startswith(tuned)]:
         del state_dict[key]
 
 
@@ -783,7 +859,9 @@ def _check_encoder_digest(
 
 def _forgive_encoder_keys(module: WhisperExtractor, incompatible: Any) -> None:
     prefix = module._load_prefix + "encoder."
-    incompatible.missing_keys[:] = [k for k in incompatible.missing_keys if not k.startswith(prefix)]
+    tuned = module.tuned_prefixes(module._load_prefix)  # tuned weights missing from a file are an error
+    incompatible.missing_keys[:] = [k for k in incompatible.missing_keys
+                                    if not k.startswith(prefix) or k.startswith(tuned)]
 
 
 class EncoderOutputCache:

@@ -23,6 +23,7 @@ on unseen voices used none). ``whisper_source`` names the weights: ``package`` (
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal
 
 import torch
@@ -176,13 +177,21 @@ def build_model(
     raise ValueError(f"unknown architecture {p.architecture!r}")
 
 
-def build_optimizer(preset: Preset | str, model: nn.Module) -> torch.optim.Optimizer | None:
-    """Adam at the preset's fixed learning rate; None for models with nothing to train (mean-curve)."""
+def build_optimizer(
+    preset: Preset | str, model: nn.Module, slow: Sequence[nn.Parameter] = (), slow_lr: float | None = None,
+) -> torch.optim.Optimizer | None:
+    """Adam at the preset's fixed learning rate (``slow`` parameters, e.g. tuned pretrained blocks, in a group of
+    their own at ``slow_lr``); None for models with nothing to train (mean-curve)."""
     p = get_preset(preset) if isinstance(preset, str) else preset
-    params = [q for q in model.parameters() if q.requires_grad]
-    if not p.trainable or not params:
+    slow_ids = {id(q) for q in slow}
+    params = [q for q in model.parameters() if q.requires_grad and id(q) not in slow_ids]
+    slow_params = [q for q in model.parameters() if q.requires_grad and id(q) in slow_ids]
+    if not p.trainable or not (params or slow_params):
         return None
-    return torch.optim.Adam(params, lr=p.lr)
+    groups: list[dict] = [{"params": params}] if params else []
+    if slow_params:
+        groups.append({"params": slow_params, "lr": slow_lr if slow_lr is not None else p.lr})
+    return torch.optim.Adam(groups, lr=p.lr)
 
 
 def augment(

@@ -206,13 +206,17 @@ class TrainResult:
 
 
 def _feature_config(config: TrainConfig, preset: Preset) -> FeatureConfig:
+    if config.whisper_tune_layers and preset.feature != "whisper":
+        raise ValueError(f"whisper_tune_layers: preset {preset.name!r} has no Whisper encoder (its feature is "
+                         f"{preset.feature})")
     if preset.feature == "wav2vec2":
         if not config.wav2vec2_model:
             raise ValueError(f"preset {preset.name!r} needs TrainConfig.wav2vec2_model (path or hub id)")
         return FeatureConfig(kind="wav2vec2", wav2vec2_model=config.wav2vec2_model)
     if preset.feature == "whisper":
         return FeatureConfig(kind="whisper", whisper_source=config.whisper_source or preset.whisper_source or "package",
-                             whisper_layers=config.whisper_layers or "last")
+                             whisper_layers=config.whisper_layers or "last",
+                             whisper_tune_layers=config.whisper_tune_layers)
     return FeatureConfig(kind=preset.feature, normalize=True, options=dict(preset.feature_options))
 
 
@@ -546,7 +550,15 @@ class Trainer:
         self._encoder_cache_arg = encoder_cache
         if not self.preset.trainable:
             return
-        optimizer = build_optimizer(self.preset, self.model)
+        tuned = self.model.features.tuned_parameters() if isinstance(self.model.features, WhisperExtractor) else []
+        if tuned:
+            windows = self.model.features.windows
+            long = [ex.utterance_id for ex in train if not windows.fits_one_window(len(ex.audio))]
+            if long:
+                raise ValueError(f"whisper_tune_layers={config.whisper_tune_layers}: tuned Whisper blocks train on "
+                                 f"utterances of at most {windows.window // 100} s; {len(long)} are longer "
+                                 f"({', '.join(long[:3])}{', ...' if len(long) > 3 else ''}): cut them or tune none")
+        optimizer = build_optimizer(self.preset, self.model, slow=tuned, slow_lr=config.whisper_tune_lr)
         if optimizer is None:
             raise ValueError(f"preset {self.preset.name!r} has no trainable parameters")
         self.optimizer = optimizer

@@ -261,22 +261,31 @@ class WhisperEncoder(nn.Module):
     def forward(self, mel: Tensor, all_layers: bool = False) -> Tensor:
         """(B, T', D) final features, or with ``all_layers`` (B, n_layers + 1, T', D): the block input (after the
         positions) and each block's output through a LayerNorm without parameters, the last through ``ln_post``."""
+        states, x = self.run(self.embed(mel), 0, all_layers)
+        if not all_layers:
+            return x
+        return torch.stack([*states, x], dim=1)
+
+    def embed(self, mel: Tensor) -> Tensor:
+        """(B, T', D): the convolutions and the positions, the first block's input."""
         if mel.ndim != 3 or mel.shape[1] != self.dims.n_mels:
             raise ValueError(f"mel must be (B, {self.dims.n_mels}, T), got {tuple(mel.shape)}")
         x = F.gelu(self.conv1(mel))
         x = F.gelu(self.conv2(x)).transpose(1, 2)
         if x.shape[1] > self.dims.n_ctx:
             raise ValueError(f"at most {2 * self.dims.n_ctx} mel frames per window, got {mel.shape[2]}")
-        x = x + self.positions[: x.shape[1]].to(x.dtype)
-        states = []
-        for block in self.blocks:
-            if all_layers:
-                states.append(F.layer_norm(x, x.shape[-1:]))
+        return x + self.positions[: x.shape[1]].to(x.dtype)
+
+    def run(self, x: Tensor, first: int, states: bool = False, last: int | None = None) -> tuple[list[Tensor], Tensor]:
+        """Blocks ``first`` .. ``last - 1`` (``last`` None: to the end, then ``ln_post``) on ``x``, the input of
+        block ``first``: (each block's input through a LayerNorm without parameters when ``states``, the output)."""
+        out = []
+        end = self.dims.n_layers if last is None else last
+        for block in self.blocks[first:end]:
+            if states:
+                out.append(F.layer_norm(x, x.shape[-1:]))
             x = block(x)
-        x = self.ln_post(x)
-        if not all_layers:
-            return x
-        return torch.stack([*states, x], dim=1)
+        return out, (self.ln_post(x) if last is None else x)
 
     def fingerprint(self) -> str:
         """Digest of the architecture and every weight (blake2b, as the rest of visemeflow's cache keys)."""
@@ -328,6 +337,28 @@ class WhisperFeatures:
             starts.append(last)
         return starts
 
+    def _mel(self, x: Tensor, n_mel: int, starts: list[int]) -> Tensor:
+        """Log-mel of the whole audio, one global floor over it (frames past it are zeros, as Whisper's padding),
+        as long as the windows that ``starts`` begin need."""
+        span = starts[-1] + self.window
+        pad = self.pad_short or len(starts) > 1
+        return log_mel(x, self.encoder.dims.n_mels, n_frames=max(span, n_mel) if pad else n_mel)
+
+    def fits_one_window(self, n_samples: int) -> bool:
+        return mel_frame_count(n_samples) <= self.window
+
+    def single_window_mel(self, audio: np.ndarray | Tensor) -> Tensor:
+        """(n_mels, frames): the one window that audio of at most one window is encoded in (padded to the window
+        when ``pad_short``); ValueError for longer audio."""
+        x = torch.as_tensor(np.asarray(audio, dtype=np.float32) if not isinstance(audio, Tensor) else audio)
+        x = x.detach().reshape(-1).to(torch.float32).cpu()
+        n_mel = mel_frame_count(x.shape[0])
+        if not self.fits_one_window(x.shape[0]):
+            raise ValueError(f"{x.shape[0] / SAMPLE_RATE:.1f} s of audio is longer than one {self.window * HOP / SAMPLE_RATE:.0f}-s "
+                             "window: tuned Whisper blocks train on utterances of at most one window (cut it)")
+        mel = self._mel(x, n_mel, [0])
+        return mel[:, : self.window] if self.pad_short else mel[:, :n_mel]
+
     @torch.no_grad()
     def __call__(
         self, audio: np.ndarray | Tensor, all_layers: bool = False,
@@ -344,9 +375,7 @@ class WhisperFeatures:
         if t_enc == 0:
             return torch.zeros(layers, 0, dims.d_model) if all_layers else torch.zeros(0, dims.d_model)
         starts = self.window_starts(n_mel)
-        span = starts[-1] + self.window
-        # one global floor over the audio (frames past it are zeros, as Whisper's padding)
-        mel = log_mel(x, dims.n_mels, n_frames=max(span, n_mel) if self.pad_short or len(starts) > 1 else n_mel)
+        mel = self._mel(x, n_mel, starts)
         out = torch.zeros(layers, t_enc, dims.d_model)
         weight = torch.zeros(t_enc)
         hw = self.window // 2
