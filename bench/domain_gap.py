@@ -56,6 +56,7 @@ from learning_data import corpus_data, load_data  # noqa: E402
 from mbrola_data import available as mbrola_available  # noqa: E402
 from mbrola_data import ensure_corpus as ensure_mbrola_corpus  # noqa: E402
 from realspeech import FPS, SAMPLE_RATE, SHARED, read_corpus  # noqa: E402
+from judging import make_loss  # noqa: E402
 
 from visemeflow.shapes.capture import fit_visemes  # noqa: E402
 from visemeflow.ingest.audio import read_audio  # noqa: E402
@@ -65,7 +66,6 @@ from visemeflow.learning.realspeech import compare_curves, pool, score_utterance
 from visemeflow.learning.train import Example, TrainConfig, predict_curves, train_model  # noqa: E402
 from visemeflow.phonetics.recognise import shared_recogniser  # noqa: E402
 from visemeflow.procedural.recognised import recognised_curves  # noqa: E402
-from visemeflow.visemes import VISEME_INDEX  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 FACEGOOD = SHARED / "facegood_audio2face"
@@ -145,27 +145,6 @@ def judge(sets: Sets, predict) -> dict:
     return {"mbp": scores.closure["MBP"], "fff": scores.closure["FFF"], "false_mbp": scores.false_closure["MBP"],
             "agreement": scores.agreement.overall,
             "captured_l1_x100": comparison.l1_x100, "captured_mean_pearson": comparison.mean_pearson}
-
-
-def make_loss(spec: str):
-    """The training objective of a `--losses` word (see the module docstring); None is the paper's L1."""
-    kind, _, weight = spec.partition(":")
-    if kind == "l1":
-        return None
-    w = float(weight or 4)
-    closure = [VISEME_INDEX["MBP"], VISEME_INDEX["FFF"]]
-
-    def weighted(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        m = mask.to(pred.dtype)[..., None]
-        if kind == "closure":
-            weights = 1 + w * target[..., closure].sum(-1, keepdim=True)
-        elif kind == "activation":
-            weights = 1 + w * target
-        else:
-            raise SystemExit(f"unknown loss {spec!r}: l1, closure:W or activation:W")
-        return ((pred - target).abs() * weights * m).sum() / (m.sum() * pred.shape[-1]).clamp(min=1)
-
-    return weighted
 
 
 def row(name: str, j: dict) -> str:

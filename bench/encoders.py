@@ -73,19 +73,16 @@ from domain_gap import (  # noqa: E402
     TRAIN_TAKES,
     facegood_take,
     grid_corpus,
-    make_loss,
     pieces,
 )
 from realspeech import FPS, SAMPLE_RATE, SHARED, Utterance, read_corpus  # noqa: E402
+from judging import HEADER, judge, make_loss, row  # noqa: E402
 
 from visemeflow.shapes.conventions import ARKIT_52  # noqa: E402
-from visemeflow.animation.lips import LipProbe  # noqa: E402
-from visemeflow.articulation import close_lips  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
 from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
 from visemeflow.learning.model import ClosurePeaks  # noqa: E402
-from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
-from visemeflow.learning.realspeech import compare_curves, frame_visemes, pool, score_utterance  # noqa: E402
+from visemeflow.learning.realspeech import frame_visemes  # noqa: E402
 from visemeflow.procedural import ProceduralConfig  # noqa: E402
 from visemeflow.learning.rooms import apply_room  # noqa: E402
 from visemeflow.learning.train import (  # noqa: E402
@@ -96,7 +93,6 @@ from visemeflow.learning.train import (  # noqa: E402
     save_model,
     train_model,
 )
-from visemeflow.rig import load_demo_rig  # noqa: E402
 
 CACHE = Path(__file__).resolve().parent / "out" / "encoders" / "cache"
 AUX_WEIGHT = 0.5
@@ -298,67 +294,6 @@ class CachedPredictor:
             if model.closure_peaks is not None:   # as the model's own eval-mode forward
                 pred = model.closure_peaks(pred, FPS)
         return np.clip(pred[0, :n].numpy(), 0.0, 1.0).astype(np.float32)
-
-
-_PROBE: LipProbe | None = None
-
-
-def probe() -> LipProbe:
-    global _PROBE
-    if _PROBE is None:
-        _PROBE = LipProbe.from_rig(load_demo_rig())
-    return _PROBE
-
-
-def judge(sets: Sets, predict) -> dict:
-    """All figures of `predict(audio, n_frames) -> (n, 16)` (module docstring)."""
-    p = probe()
-    widest = p.single_shape_gap("AHH")
-    utts = [u for us in sets.held_out.values() for u in us]
-    curves = {u.uid: predict(u.audio, u.n) for u in utts}
-    scores = pool(score_utterance(curves[u.uid], FPS, u.phones) for u in utts)
-    per_set = {name: pool(score_utterance(curves[u.uid], FPS, u.phones) for u in us).closure["MBP"]
-               for name, us in sets.held_out.items()}
-    lips = []
-    for u in utts:
-        m = p.measure(close_lips(curves[u.uid]))
-        lips.append(score_lips(m.gap_mm, m.teeth_mm, FPS, u.phones, widest))
-    lip = pool_lips(lips).summary()
-    test = predict(sets.test_audio, len(sets.test_curves))
-    comparison = compare_curves(test, sets.test_curves, FPS)
-    floor = compare_curves(np.tile(sets.floor, (len(sets.test_curves), 1)), sets.test_curves, FPS)
-    gap = p.measure(close_lips(test)).gap_mm
-    n = min(len(gap), len(sets.test_jaw))
-    jaw = float(np.corrcoef(gap[:n], sets.test_jaw[:n])[0, 1]) if np.std(gap[:n]) > 0 else float("nan")
-    return {"mbp": scores.closure["MBP"], "fff": scores.closure["FFF"], "false_mbp": scores.false_closure["MBP"],
-            "agreement": scores.agreement.overall, "mbp_per_set": per_set, "lips": lip,
-            "captured_l1_x100": comparison.l1_x100, "floor_l1_x100": floor.l1_x100, "jaw_r": jaw}
-
-
-def share(r) -> str:
-    return f"{r.hits}/{r.total} ({100 * (r.share or 0):.0f}%)"
-
-
-HEADER = ("| recipe | MBP closure | false MBP | FFF closure | top-2 agreement | MBP GRID / zh / praatio | "
-          "mesh b/p/m closed | median b/p/m gap mm | vowel opening (x AHH) | vowels never open | "
-          "FACEGOOD 05 L1 x100 (vs floor) | jaw r | train s |\n" + "|---" * 13 + "|")
-
-
-def row(name: str, j: dict, seconds: float | None = None) -> str:
-    lip = j["lips"]
-    per = " / ".join(f"{r.hits}/{r.total}" for r in j["mbp_per_set"].values())
-    below = 100 * (1 - j["captured_l1_x100"] / j["floor_l1_x100"])
-
-    def pct(x):
-        return "-" if x is None else f"{100 * x:.0f}%"
-
-    def num(x, d=2):
-        return "-" if x is None else f"{x:.{d}f}"
-
-    return (f"| {name} | {share(j['mbp'])} | {share(j['false_mbp'])} | {share(j['fff'])} | {share(j['agreement'])} | "
-            f"{per} | {pct(lip['closed'])} | {num(lip['median_gap_mm'])} | {num(lip['vowel_opening'])} | "
-            f"{pct(lip['false_closed'])} | {j['captured_l1_x100']:.2f} ({below:+.0f}% below) | {j['jaw_r']:.2f} | "
-            f"{'-' if seconds is None else f'{seconds:.0f}'} |")
 
 
 def rtf(model, seconds: float = 30.0) -> float:

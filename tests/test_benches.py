@@ -23,6 +23,7 @@ LIBRARIES = {
     "learning_data.py": "the espeak corpus and cached models of learning.py and robustness.py",
     "mbrola_data.py": "the MBROLA corpus of domain_gap.py",
     "espeak_langs.py": "the Dutch and Czech espeak-ng corpus of encoders.py's `esx` part",
+    "judging.py": "the learning benches' loss words and their judge on held-out speech (torch and visemeflow only)",
 }
 """Modules of bench/ that only other benches import (they have no `__main__`)."""
 
@@ -74,6 +75,10 @@ SLOW = {
                       ["--espeak-epochs", "1", "--lj-epochs", "1", "--folds", "2", "--threads", "1"]),
     "recogniser.py": ("88 s with --models phones (no size flag): pocketsphinx on all 37 utterances under five "
                       "conditions", ["--models", "phones"]),
+    "whisper_tuning.py": ("packs 46 MB of speech and encoder weights, then Whisper-encodes minutes of audio before "
+                          "its first step", ["run", "{tmp}/tuning.pt.gz", "--device", "cpu", "--tune", "1",
+                                             "--seeds", "0", "--steps", "2", "--cost", "--cost-encoders", "base",
+                                             "--cost-steps", "1"]),
     "thirdlang.py": ("needs the Debian packages fillets-ng-data-nl/-cs (GPL-2 voice recordings) and Whisper-encodes "
                      "them", ["--utterances", "1"]),
 }
