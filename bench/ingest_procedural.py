@@ -22,7 +22,10 @@ the figures are. What it measures:
      segments    phone rows (`IngestedUtterance.phones` dicts) -> `VisemeSegment`s, visemeless rows skipped;
      generation  `generate_procedural_curves(segments, n_frames, fps, ProceduralConfig())`;
      writes      `Store.write_curves(curves_table(uid, "procedural", "jali", curves, fps))` (one zstd
-                 Parquet file per utterance, written atomically).
+                 Parquet file per utterance, written atomically; each shard's files flushed once at its end,
+                 `atomic.group_sync`, as the procedural task does: that flush is counted with the writes).
+   Then the curve writes alone side by side: as many 200-frame files written with an fsync each (the faithful
+   path) and in 8 groups of one flush each, interleaved group by group.
    Their sum is the "pure compute" the flow is compared with. The Parquet writes of the `utterances` and
    `phones` shard tables are timed too but shown apart (the flow does them; the targets do not count them).
 
@@ -57,6 +60,7 @@ Memory stays bounded: the phone rows of one shard at a time are held, never the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import io
 import os
@@ -78,7 +82,10 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from report import met, print_table  # bench/report.py
+import numpy as np  # noqa: E402
+from report import met, print_table  # noqa: E402  (bench/report.py)
+
+from visemeflow.atomic import group_sync  # noqa: E402
 
 DEMO_CORPUS = REPO / "examples" / "corpus"
 N_SHARDS = 8
@@ -130,10 +137,36 @@ class Pure:
     fps: list[float] = field(default_factory=list)
     audio_s: float = 0.0
     tables_s: float = 0.0
+    flush_s: float = 0.0   # each shard's one flush of its curve files (atomic.group_sync), counted with the writes
+    writes_each_s: float = 0.0    # curve_writes_side_by_side: n files fsynced one by one ...
+    writes_group_s: float = 0.0   # ... and one flush per shard
 
     @property
     def compute_s(self) -> float:
-        return self.discovery_s + sum(self.ingest_s) + sum(self.segments_s) + sum(self.generate_s) + sum(self.write_s)
+        return (self.discovery_s + sum(self.ingest_s) + sum(self.segments_s) + sum(self.generate_s)
+                + sum(self.write_s) + self.flush_s)
+
+
+def curve_writes_side_by_side(work: Path, n: int, shards: int = N_SHARDS, frames: int = 200) -> tuple[float, float]:
+    """Seconds to write `n` one-utterance curve files (`frames` frames, 30 fps) into a fresh store, each file
+    fsynced on its own (the faithful path) and in `shards` groups of one flush each (`atomic.group_sync`, what the
+    procedural task does), interleaved group by group so both see the same disk."""
+    from visemeflow.schemas import curves_table
+    from visemeflow.storage import Store
+
+    rng = np.random.default_rng(0)
+    tables = [curves_table(f"s{i % 40:02d}/u{i:06d}", "procedural", VARIANT,
+                           rng.random((frames, 16)).astype(np.float32), 30.0) for i in range(n)]
+    stores = {"each": Store(work / "writes-each"), "group": Store(work / "writes-group")}
+    seconds = {"each": 0.0, "group": 0.0}
+    for part in np.array_split(np.arange(n), shards):
+        for how, store in stores.items():
+            t = time.perf_counter()
+            with group_sync() if how == "group" else contextlib.nullcontext():
+                for i in part:
+                    store.write_curves(tables[i], provenance="bench", fps=30.0)
+            seconds[how] += time.perf_counter() - t
+    return seconds["each"], seconds["group"]
 
 
 def run_pure(root: Path, store_root: Path) -> Pure:
@@ -158,6 +191,8 @@ def run_pure(root: Path, store_root: Path) -> Pure:
 
     for shard in sorted(shards):
         utterance_rows, phone_rows = [], []
+        block = group_sync()   # as the procedural task: the shard's curve files flushed once, at its end
+        block.__enter__()
         for entry in shards[shard]:
             t0 = clock()
             try:
@@ -191,6 +226,9 @@ def run_pure(root: Path, store_root: Path) -> Pure:
             out.entries.append(entry)
             utterance_rows.append(u)
             phone_rows.extend(result.phones)
+        t = clock()
+        block.__exit__(None, None, None)
+        out.flush_s += clock() - t
         t = clock()
         store.write_shard("phones", shard, table_from_rows(phone_rows, PHONES))
         store.write_shard("utterances", shard, table_from_rows(utterance_rows, UTTERANCES))
@@ -335,6 +373,7 @@ def fmt_rate(value: float, unit: str) -> str:
 def report(args, link: str, pure: Pure, peer: Peer | None, flow: FlowRuns | None, wall_s: float) -> None:
     frames = sum(pure.frames)
     ingest_s, seg_s, gen_s, write_s = (sum(x) for x in (pure.ingest_s, pure.segments_s, pure.generate_s, pure.write_s))
+    write_s += pure.flush_s
     n_speakers = min(args.speakers, args.utterances)
     n_english = sum(pure.english)
     scaled = f" (linear proj. to {TARGET_PURE_N:,}: {pure.compute_s * TARGET_PURE_N / max(pure.n, 1):.1f} s)" \
@@ -351,7 +390,11 @@ def report(args, link: str, pure: Pure, peer: Peer | None, flow: FlowRuns | None
         ("ingestion (ingest_utterance)", f"{ingest_s:.2f} s = {fmt_rate(rate(pure.n, ingest_s), 'utt/s')}", "", ""),
         ("phone rows -> VisemeSegments", f"{seg_s:.2f} s", "", ""),
         ("procedural generation", f"{gen_s:.2f} s = {fmt_rate(rate(frames, gen_s), 'frames/s')}", "", ""),
-        ("curves_table + write_curves (Parquet)", f"{write_s:.2f} s = {fmt_rate(rate(pure.n, write_s), 'utt/s')}", "", ""),
+        ("curves_table + write_curves (Parquet)", f"{write_s:.2f} s = {fmt_rate(rate(pure.n, write_s), 'utt/s')}"
+         f" (of it {pure.flush_s:.2f} s: one flush per shard)", "", ""),
+        ("  curve files alone: fsync each / one flush per shard",
+         f"{pure.writes_each_s:.2f} s / {pure.writes_group_s:.2f} s = "
+         f"{pure.writes_each_s / max(pure.writes_group_s, 1e-9):.2f}x", "", ""),
         ("procedural incl. segments + writes", f"{seg_s + gen_s + write_s:.2f} s = "
          f"{fmt_rate(rate(frames, seg_s + gen_s + write_s), 'frames/s')}", "", ""),
         ("pure compute total (sum of the 5 above)", f"{pure.compute_s:.2f} s{scaled}",
@@ -473,6 +516,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             pure = run_pure(corpus, work / "store-pure")
         print(f"  {pure.compute_s:.1f} s", flush=True)
+        print("curve writes side by side (fsync each file / one flush per shard) ...", flush=True)
+        pure.writes_each_s, pure.writes_group_s = curve_writes_side_by_side(work, pure.n)
 
         peer = None
         if off is not None:

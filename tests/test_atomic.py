@@ -289,3 +289,65 @@ def test_a_child_in_a_new_pid_namespace_has_another_machine_token():
     if done.returncode != 0:
         pytest.skip(f"unshare refused here (a restricted container): {done.stderr.strip()[:200]}")
     assert re.fullmatch(r"[0-9a-f]{8}", done.stdout.strip()) and done.stdout.strip() != this_machine()
+
+
+def test_group_sync_flushes_a_block_of_writes_once(tmp_path, monkeypatch):
+    """Inside `group_sync` no write fsyncs; leaving it syncs the file system once (syncfs), or, where syncfs fails,
+    every file and folder written; outside it each write fsyncs as before; nested blocks flush with the outer one."""
+    import visemeflow.atomic as atomic
+
+    synced, syncfs_calls = [], []
+    real = os.fsync
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: synced.append(os.readlink(f"/proc/self/fd/{fd}")) or real(fd))
+    libc = atomic._libc_syncfs()
+    assert libc is not None, "glibc's syncfs is there on Linux"
+    monkeypatch.setattr(atomic, "_libc_syncfs", lambda: lambda fd: syncfs_calls.append(os.readlink(f"/proc/self/fd/{fd}")) or libc(fd))
+    paths = [tmp_path / "a" / f"{i}.txt" for i in range(3)] + [tmp_path / "b" / "3.txt"]
+    with atomic.group_sync():
+        for i, p in enumerate(paths[:2]):
+            atomic_write_text(p, str(i))
+        with atomic.group_sync():            # nested: flushed with the outer block
+            for i, p in enumerate(paths[2:], 2):
+                atomic_write_text(p, str(i))
+        assert synced == [] and syncfs_calls == []
+        assert [p.read_text() for p in paths] == ["0", "1", "2", "3"]   # renamed at once, whole
+    assert synced == [] and len(syncfs_calls) == 1    # one file system: one syncfs
+    # syncfs failing: each file, then each folder
+    syncfs_calls.clear()
+    monkeypatch.setattr(atomic, "_libc_syncfs", lambda: lambda fd: -1)
+    with atomic.group_sync():
+        for p in paths:
+            atomic_write_text(p, "again")
+    assert sorted(synced) == sorted([*map(str, paths), str(tmp_path / "a"), str(tmp_path / "b")])
+    # an exception inside the block: what was written is still flushed, the exception goes on
+    synced.clear()
+    with pytest.raises(RuntimeError, match="boom"), atomic.group_sync():
+        atomic_write_text(paths[0], "last")
+        raise RuntimeError("boom")
+    assert str(paths[0]) in synced and paths[0].read_text() == "last"
+    # outside a block: file and folder each write, as before
+    synced.clear()
+    atomic_write_text(paths[1], "alone")
+    assert len(synced) == 2 and synced[1] == str(tmp_path / "a")
+    # fsync off by the environment: nothing is flushed, in a block or not
+    synced.clear()
+    monkeypatch.setenv("VISEMEFLOW_FSYNC", "0")
+    with atomic.group_sync():
+        atomic_write_text(paths[2], "off")
+    assert synced == []
+
+
+def test_a_curve_file_cut_short_by_a_crash_reads_as_missing_and_is_written_again(tmp_path):
+    """After a power loss inside `group_sync`, a renamed curve file may come back empty: its provenance reads as
+    None (not an error), so the procedural stage writes it again."""
+    from visemeflow.schemas import curves_table
+
+    store = Store(tmp_path / "s")
+    table = curves_table("spk/u1", "procedural", "jali", np.zeros((5, 16), np.float32), 30.0)
+    store.write_curves(table, provenance="made", fps=30.0)
+    assert store.curves_provenance("procedural", "jali", "spk/u1") == "made"
+    path = store.curve_path("procedural", "jali", "spk/u1")
+    path.write_bytes(b"")
+    assert store.curves_provenance("procedural", "jali", "spk/u1") is None
+    path.write_bytes(b"PAR1\0\0")
+    assert store.curves_provenance("procedural", "jali", "spk/u1") is None

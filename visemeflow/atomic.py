@@ -24,11 +24,22 @@ a power loss or kernel crash (a rename reaching the disk before the data: an emp
 process, which the rename alone covers. `VISEMEFLOW_FSYNC=0` in the environment turns it off (e.g. for a bulk
 rebuild that can simply be run again); the default is on.
 
+Many small files (a shard's curve files) can share one flush: inside `group_sync()`, atomic writes skip their own
+fsyncs and the block's end flushes every file system they touched at once (`syncfs`; where that is missing, each
+file and folder in turn). Each file still appears whole or not at all; what the grouping gives up is only that,
+after a power loss or kernel crash inside the block, a file renamed in it may come back empty or short. Whoever
+writes a record that points at such files (a task's result, a shard table) writes it after the block ends, so a
+crash leaves the block's work undone, not recorded as done; and readers of a curve file treat one that cannot be
+read as missing (`Store.curves_provenance`), so a rerun writes it again.
+
 This module uses the standard library only. It lives at the top of the package, beside `hashing.py`, so
 that the pure domain packages (`tracking/`, `learning/`), which may not import `storage/` (DESIGN), write
 their own files (videos, landmark files, checkpoints) through the same helper as the store.
 """
 
+import contextvars
+import ctypes
+import ctypes.util
 import functools
 import hashlib
 import os
@@ -45,6 +56,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "fsync_enabled",
+    "group_sync",
     "is_temporary_name",
     "temporary_path",
     "temporary_writer",
@@ -135,6 +147,68 @@ def _remove_quietly(path: Path) -> None:
         pass  # the folder itself is unusable, so there is no temporary file to remove
 
 
+# the files written inside the innermost `group_sync` block of this context (thread, task), or None outside one
+_GROUP: contextvars.ContextVar[list[Path] | None] = contextvars.ContextVar("visemeflow_group_sync", default=None)
+
+
+@functools.cache
+def _libc_syncfs() -> Callable[[int], int] | None:
+    """glibc's syncfs(2) (Linux), or None where it cannot be had."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        return libc.syncfs
+    except (OSError, AttributeError):
+        return None
+
+
+def _sync_files(paths: list[Path]) -> None:
+    """Make the writes of `paths` (renamed into place) durable: one syncfs per file system, else fsync each file
+    and each folder."""
+    syncfs = _libc_syncfs()
+    folders = {p.parent for p in paths}
+    if syncfs is not None:
+        devices: dict[int, Path] = {}
+        for folder in folders:
+            try:
+                devices.setdefault(os.stat(folder).st_dev, folder)
+            except OSError:
+                pass
+        failed = False
+        for folder in devices.values():
+            fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+            try:
+                failed |= syncfs(fd) != 0
+            finally:
+                os.close(fd)
+        if not failed:
+            return
+    for path in paths:
+        try:
+            _fsync_path(path)
+        except FileNotFoundError:
+            pass  # replaced or removed since: nothing of this block's left to flush
+    for folder in folders:
+        _fsync_folder(folder)
+
+
+@contextmanager
+def group_sync() -> Iterator[None]:
+    """Inside the block, atomic writes that would fsync (`fsync_enabled()`) skip it; leaving the block (also by an
+    exception) flushes every file they wrote at once. Nested blocks flush with the outermost. See the module
+    docstring for what a crash inside the block can cost."""
+    if _GROUP.get() is not None:
+        yield
+        return
+    written: list[Path] = []
+    token = _GROUP.set(written)
+    try:
+        yield
+    finally:
+        _GROUP.reset(token)
+        if written:
+            _sync_files(written)
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, *, keep_suffix: bool = False, fsync: bool | None = None) -> Iterator[Path]:
     """Yield a temporary path to write; on leaving the block, it replaces `path` atomically.
@@ -149,17 +223,20 @@ def atomic_path(path: str | os.PathLike, *, keep_suffix: bool = False, fsync: bo
     """
     path = Path(path)
     fsync = fsync_enabled() if fsync is None else fsync
+    group = _GROUP.get() if fsync else None
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_path(path, keep_suffix)
     try:
         yield tmp
-        if fsync:
+        if fsync and group is None:
             _fsync_path(tmp)
         os.replace(tmp, path)
     except BaseException:
         _remove_quietly(tmp)
         raise
-    if fsync:
+    if group is not None:
+        group.append(path)
+    elif fsync:
         _fsync_folder(path.parent)
 
 

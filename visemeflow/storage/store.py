@@ -570,11 +570,16 @@ class Store:
         return self.curve_path(source, variant, utterance_id).exists()
 
     def curves_provenance(self, source: str, variant: str, utterance_id: str) -> str | None:
-        """What made the stored curves (as given to `write_curves`), or None when there are none."""
+        """What made the stored curves (as given to `write_curves`), or None when there are none, or when the file
+        cannot be read as Parquet (empty or cut short by a crash inside `atomic.group_sync`): a stage that compares
+        provenances then writes it again."""
         path = self.curve_path(source, variant, utterance_id)
         if not path.exists():
             return None
-        meta = pq.read_schema(path).metadata or {}
+        try:
+            meta = pq.read_schema(path).metadata or {}
+        except pa.ArrowInvalid:
+            return None
         return meta.get(PROVENANCE_KEY, b"").decode()
 
     def _stored_curve_path(self, utterance_id: str, source: str, variant: str | None) -> Path:

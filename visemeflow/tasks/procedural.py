@@ -5,6 +5,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from prefect import get_run_logger, task
 
+from visemeflow.atomic import group_sync
 from visemeflow.hashing import stable_hash
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import ProceduralConfig, generate_procedural_curves
@@ -82,21 +83,22 @@ def _generate_many(
         ends = np.concatenate([change, [len(id_col)]])
         bounds = {id_col[s]: (s, e) for s, e in zip(starts, ends)}
     generated, reused, rejects = 0, 0, []
-    for u in utterances:
-        uid = u[C.UTTERANCE_ID]
-        if not has_alignment(u):  # no phones (a video without an alignment, a captured take): nothing to make
-            get_run_logger().info("%s has no alignment: no procedural curves (it has no phones)", uid)
-            continue
-        if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u[C.CONTENT_HASH], config):
-            reused += 1
-            continue
-        s, e = bounds.get(uid, (0, 0))
-        try:
-            generate_for_utterance(store, u, phones.slice(s, e - s), config, variant)
-        except (ValueError, FloatingPointError) as exc:
-            rejects.append(reject_row(uid, STAGE, type(exc).__name__, str(exc), u[C.ALIGNMENT_PATH]))
-            continue
-        generated += 1
+    with group_sync():   # one flush for the shard's curve files, before the caller records anything (atomic.py)
+        for u in utterances:
+            uid = u[C.UTTERANCE_ID]
+            if not has_alignment(u):  # no phones (a video without an alignment, a captured take): nothing to make
+                get_run_logger().info("%s has no alignment: no procedural curves (it has no phones)", uid)
+                continue
+            if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u[C.CONTENT_HASH], config):
+                reused += 1
+                continue
+            s, e = bounds.get(uid, (0, 0))
+            try:
+                generate_for_utterance(store, u, phones.slice(s, e - s), config, variant)
+            except (ValueError, FloatingPointError) as exc:
+                rejects.append(reject_row(uid, STAGE, type(exc).__name__, str(exc), u[C.ALIGNMENT_PATH]))
+                continue
+            generated += 1
     return generated, reused, rejects
 
 

@@ -20,6 +20,7 @@ import pyarrow.compute as pc
 from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
+from visemeflow.atomic import group_sync
 from visemeflow.hashing import stable_hash
 from visemeflow.learning.device import resolve_device
 from visemeflow.rig import VisemeRig, load_rig
@@ -189,12 +190,13 @@ def track_many(store: Store, utterances: list[dict], procedural_variant: str, ri
                            [identities[i] for i, *_ in ready],
                            None if on_step is None else (lambda k, *rest: on_step(k if k < 0 else ready[k][0], *rest)),
                            device)
-    for (i, _, _, cfg), done in zip(ready, tracked):
-        utterance = utterances[i]
-        if isinstance(done, TrackingInputError):
-            out[i] = TrackError(utterance[C.UTTERANCE_ID], done.path, done.error_type, done.reason)
-        else:
-            out[i] = _stored(store, utterance, cfg, done, unguided_reason(utterance, config), identities[i])
+    with group_sync():   # the group's files flushed once, before track_jointly records any of them as done
+        for (i, _, _, cfg), done in zip(ready, tracked):
+            utterance = utterances[i]
+            if isinstance(done, TrackingInputError):
+                out[i] = TrackError(utterance[C.UTTERANCE_ID], done.path, done.error_type, done.reason)
+            else:
+                out[i] = _stored(store, utterance, cfg, done, unguided_reason(utterance, config), identities[i])
     return out  # type: ignore[return-value]
 
 
