@@ -408,6 +408,11 @@ def test_tuned_top_blocks_train_cache_save_and_load(tiny_dir, tmp_path):
     assert cfg.whisper_tune_layers == 1
     torch.testing.assert_close(predict_curves(model, train[0].audio, 16000, 30.0),
                                predict_curves(result.model, train[0].audio, 16000, 30.0))
+    # ONNX: the graph carries the tuned encoder weights
+    from visemeflow.learning import onnx_export as ox
+
+    report = ox.export_onnx(path, tmp_path / "tuned.onnx")
+    assert report.max_abs_diff is not None and report.max_abs_diff <= ox.WHISPER_TOLERANCE
     # a tuned weight missing from the file is refused, not silently taken from the pretrained encoder
     del blob["state_dict"]["features.encoder.blocks.1.fc1.weight"]
     torch.save(blob, tmp_path / "cut.pt")
