@@ -191,44 +191,44 @@ def run_pure(root: Path, store_root: Path) -> Pure:
 
     for shard in sorted(shards):
         utterance_rows, phone_rows = [], []
-        block = group_sync()   # as the procedural task: the shard's curve files flushed once, at its end
-        block.__enter__()
-        for entry in shards[shard]:
-            t0 = clock()
-            try:
-                result = ingest_utterance(entry, config)
-            except IngestError:
-                out.rejected += 1
-                continue
-            t1 = clock()
-            u = result.utterance
-            segments = [
-                VisemeSegment(p[C.VISEME], p[C.START_S], p[C.END_S], p[C.WORD_INDEX], p[C.PHONEME] or "")
-                for p in result.phones if p[C.VISEME] is not None
-            ]
-            segments.sort(key=lambda s: s.start_s)
-            t2 = clock()
-            fps, n_frames = float(u[C.FPS]), int(u[C.N_FRAMES])
-            curves = generate_procedural_curves(segments, n_frames, fps, pconfig)
-            t3 = clock()
-            store.write_curves(curves_table(entry.utterance_id, "procedural", VARIANT, curves, fps),
-                               provenance=f"bench:{entry.content_hash}", fps=fps)
-            t4 = clock()
-            out.ingest_s.append(t1 - t0)
-            out.segments_s.append(t2 - t1)
-            out.generate_s.append(t3 - t2)
-            out.write_s.append(t4 - t3)
-            out.frames.append(n_frames)
-            out.fps.append(fps)
-            out.audio_s += float(u[C.DURATION_S])
-            is_english = u[C.INVENTORY] == "arpabet"
-            out.english.append(is_english)
-            out.entries.append(entry)
-            utterance_rows.append(u)
-            phone_rows.extend(result.phones)
-        t = clock()
-        block.__exit__(None, None, None)
-        out.flush_s += clock() - t
+        with contextlib.ExitStack() as block:   # as the procedural task: the shard's curve files flushed once
+            block.enter_context(group_sync())
+            for entry in shards[shard]:
+                t0 = clock()
+                try:
+                    result = ingest_utterance(entry, config)
+                except IngestError:
+                    out.rejected += 1
+                    continue
+                t1 = clock()
+                u = result.utterance
+                segments = [
+                    VisemeSegment(p[C.VISEME], p[C.START_S], p[C.END_S], p[C.WORD_INDEX], p[C.PHONEME] or "")
+                    for p in result.phones if p[C.VISEME] is not None
+                ]
+                segments.sort(key=lambda s: s.start_s)
+                t2 = clock()
+                fps, n_frames = float(u[C.FPS]), int(u[C.N_FRAMES])
+                curves = generate_procedural_curves(segments, n_frames, fps, pconfig)
+                t3 = clock()
+                store.write_curves(curves_table(entry.utterance_id, "procedural", VARIANT, curves, fps),
+                                   provenance=f"bench:{entry.content_hash}", fps=fps)
+                t4 = clock()
+                out.ingest_s.append(t1 - t0)
+                out.segments_s.append(t2 - t1)
+                out.generate_s.append(t3 - t2)
+                out.write_s.append(t4 - t3)
+                out.frames.append(n_frames)
+                out.fps.append(fps)
+                out.audio_s += float(u[C.DURATION_S])
+                is_english = u[C.INVENTORY] == "arpabet"
+                out.english.append(is_english)
+                out.entries.append(entry)
+                utterance_rows.append(u)
+                phone_rows.extend(result.phones)
+            t = clock()
+            block.close()
+            out.flush_s += clock() - t
         t = clock()
         store.write_shard("phones", shard, table_from_rows(phone_rows, PHONES))
         store.write_shard("utterances", shard, table_from_rows(utterance_rows, UTTERANCES))

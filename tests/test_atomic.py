@@ -349,5 +349,14 @@ def test_a_curve_file_cut_short_by_a_crash_reads_as_missing_and_is_written_again
     path = store.curve_path("procedural", "jali", "spk/u1")
     path.write_bytes(b"")
     assert store.curves_provenance("procedural", "jali", "spk/u1") is None
+    assert not store.has_curves("procedural", "jali", "spk/u1")   # an empty file counts as missing
     path.write_bytes(b"PAR1\0\0")
+    assert store.curves_provenance("procedural", "jali", "spk/u1") is None
+    # a whole-length file whose footer was zeroed (its end marker intact): pyarrow raises OSError, not ArrowInvalid
+    store.write_curves(table, provenance="made", fps=30.0)
+    raw = bytearray(path.read_bytes())
+    footer = int.from_bytes(raw[-8:-4], "little")
+    raw[-8 - footer:-8] = bytes(footer)
+    path.write_bytes(bytes(raw))
+    assert store.has_curves("procedural", "jali", "spk/u1")
     assert store.curves_provenance("procedural", "jali", "spk/u1") is None

@@ -753,15 +753,18 @@ def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
     assert str(corpus / "s" / "loud.wav") in loud[C.MESSAGE]
     assert rejects["s/link"][C.ERROR_TYPE] == "PathOutsideCorpus"
     assert str(corpus / "s" / "link.wav") in rejects["s/link"][C.MESSAGE]
-    # a power loss inside a shard's group flush (atomic.group_sync): a curve file back empty, no task result
-    # recorded (results are written after the flush); the rerun writes that file again and reuses the others
+    # a power loss inside a shard's group flush (atomic.group_sync): a curve file back empty. With the shard's
+    # earlier result still recorded (a rewrite of a deleted file) and with none (a first run: results are written
+    # after the flush), the rerun writes that file again and reuses the others untouched
     import shutil
 
     uid = sorted(UNICODE_SPEAKERS)[0]
-    store.curve_path("procedural", "jali", uid).write_bytes(b"")
     kept = {u: store.curve_path("procedural", "jali", u).stat().st_mtime_ns for u in UNICODE_SPEAKERS if u != uid}
-    shutil.rmtree(store.results_dir())
-    report = procedural_flow(ProceduralParams(store=store_root, n_shards=2))
-    assert store.read_curves(uid, "procedural", "jali").num_rows == 30
-    assert report["generated"] == 1 and report["reused"] == len(UNICODE_SPEAKERS) - 1
-    assert kept == {u: store.curve_path("procedural", "jali", u).stat().st_mtime_ns for u in kept}
+    for drop_results in (False, True):
+        store.curve_path("procedural", "jali", uid).write_bytes(b"")
+        if drop_results:
+            shutil.rmtree(store.results_dir())
+        report = procedural_flow(ProceduralParams(store=store_root, n_shards=2))
+        assert store.read_curves(uid, "procedural", "jali").num_rows == 30
+        assert report["generated"] == 1 and report["reused"] == len(UNICODE_SPEAKERS) - 1
+        assert kept == {u: store.curve_path("procedural", "jali", u).stat().st_mtime_ns for u in kept}

@@ -394,11 +394,12 @@ def test_tuned_top_blocks_train_cache_save_and_load(tiny_dir, tmp_path):
     with torch.no_grad():
         whole, n = ext(a)
         from_cache, _ = ext(a, encoded=frozen)
-        ext.train()
-        in_training, _ = ext(a)
-        ext.eval()
+    ext.train()
+    in_training, _ = ext(a)      # with gradients: the frozen part, then the tuned blocks
+    assert in_training.requires_grad
+    ext.eval()
     torch.testing.assert_close(from_cache, whole, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(in_training, whole, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(in_training.detach(), whole, atol=1e-5, rtol=1e-5)
     # the file: the head, the layer weights and the tuned encoder weights only
     path = save_model(result.model, config, tmp_path / "tuned.pt", {})
     blob = torch.load(path, weights_only=True)
@@ -424,6 +425,15 @@ def test_tuned_top_blocks_train_cache_save_and_load(tiny_dir, tmp_path):
     # a training utterance longer than one window: one error naming it, before any step
     with pytest.raises(ValueError, match=r"at most 30 s; 1 are longer \(long-one\)"):
         train_model([*train, Example("long-one", long, rng.random((1200, 16)).astype(np.float32), 30.0)], [], config)
+    # with train_augment, speed changes may slow an utterance down to 1/0.7 of its length: 22 s is then too long
+    twenty_two = Example("slow-one", (rng.standard_normal(16000 * 22) * 0.1).astype(np.float32),
+                         rng.random((660, 16)).astype(np.float32), 30.0)
+    with pytest.raises(ValueError, match=r"at most 21 s \(30 s at the slowest train_augment speed\); 1 are longer "
+                                         r"\(slow-one\)"):
+        train_model([*train, twenty_two], [], config.model_copy(update={"train_augment": True}))
+    # a learning rate for tuned blocks without any: refused, not silently part of the config
+    with pytest.raises(ValueError, match="set whisper_tune_layers"):
+        TrainConfig(preset="whisper-small-blstm", whisper_tune_lr=1e-4)
     # more blocks than the encoder has
     with pytest.raises(ValueError, match="this encoder has 2 blocks"):
         train_model(train, [], config.model_copy(update={"whisper_tune_layers": 3}))
@@ -455,3 +465,20 @@ def test_tuning_a_preset_without_whisper_is_refused():
     ex = Example("u0", np.zeros(16000, np.float32), np.zeros((30, 16), np.float32), 30.0)
     with pytest.raises(ValueError, match="preset 'fbank-blstm' has no Whisper encoder"):
         train_model([ex], [], TrainConfig(preset="fbank-blstm", whisper_tune_layers=1))
+
+
+def test_encoder_cache_keeps_at_most_its_memory_budget(tmp_path):
+    """EncoderOutputCache drops its least recently used entries beyond max_memory_bytes; with a directory they
+    come back from their files, without one they are encoded again (a miss)."""
+    ext = type("E", (), {"encode": lambda self, audio: torch.full((1, 1, 4, 8), float(audio.sum()))})()
+    cache = EncoderOutputCache(tmp_path / "cache", max_memory_bytes=3 * 4 * 32)   # three entries of 128 bytes
+    for i in range(4):
+        cache.get_or_encode(ext, "fp", torch.full((1, 3), float(i)), f"a{i}")
+    assert len(cache) == 3 and cache._bytes == 3 * 128 and (cache.misses, cache.hits) == (4, 0)
+    cache.get_or_encode(ext, "fp", torch.full((1, 3), 1.0), "a1")     # in memory: now the most recently used
+    value = cache.get_or_encode(ext, "fp", torch.full((1, 3), 0.0), "a0")   # dropped, read back from its file
+    assert (cache.misses, cache.hits) == (4, 2) and float(value.max()) == 0.0 and len(cache) == 3
+    memory_only = EncoderOutputCache(max_memory_bytes=128)
+    for i in (0, 1, 0):
+        memory_only.get_or_encode(ext, "fp", torch.full((1, 3), float(i)), f"a{i}")
+    assert (memory_only.misses, memory_only.hits, len(memory_only)) == (3, 0, 1)

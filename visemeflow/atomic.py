@@ -29,8 +29,10 @@ fsyncs and the block's end flushes every file system they touched at once (`sync
 file and folder in turn). Each file still appears whole or not at all; what the grouping gives up is only that,
 after a power loss or kernel crash inside the block, a file renamed in it may come back empty or short. Whoever
 writes a record that points at such files (a task's result, a shard table) writes it after the block ends, so a
-crash leaves the block's work undone, not recorded as done; and readers of a curve file treat one that cannot be
-read as missing (`Store.curves_provenance`), so a rerun writes it again.
+crash leaves the block's work undone, not recorded as done; and a curve file that comes back empty counts as missing
+(`Store.has_curves`, `Store.curves_provenance`: also one whose footer does not parse), so a rerun writes it again,
+even where an older record of the same task is still there. (Linux before 5.8 reports no writeback error from
+syncfs; per-file fsync did.)
 
 This module uses the standard library only. It lives at the top of the package, beside `hashing.py`, so
 that the pure domain packages (`tracking/`, `learning/`), which may not import `storage/` (DESIGN), write
@@ -175,7 +177,11 @@ def _sync_files(paths: list[Path]) -> None:
                 pass
         failed = False
         for folder in devices.values():
-            fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+            try:
+                fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+            except OSError:
+                failed = True
+                continue
             try:
                 failed |= syncfs(fd) != 0
             finally:

@@ -42,7 +42,7 @@ class TrainConfig(BaseModel):
     whisper_tune_layers: int = Field(0, ge=0, le=64, description=(
         "Whisper presets: train the encoder's top N blocks (and its final LayerNorm) with the head; 0 keeps the "
         "encoder frozen. Each tuned whisper-base block adds about 12 MB to the model file; training utterances "
-        "must then be at most 30 s."))
+        "must then be at most 30 s (21 s with --train-augment, whose speed changes lengthen them)."))
     whisper_tune_lr: float = Field(1e-5, gt=0, description="Learning rate of the tuned Whisper blocks.")
     # train-time audio augmentation (volume, pitch, speed, noise at the paper's ranges): with this
     # probability each training step sees one randomly drawn condition (visemeflow.learning.augment)
@@ -65,6 +65,13 @@ class TrainConfig(BaseModel):
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
         return without_added_defaults(handler(self), _ADDED_DEFAULTS)
+
+    @model_validator(mode="after")
+    def _tune_lr_needs_tuned_layers(self) -> TrainConfig:
+        if self.whisper_tune_layers == 0 and self.whisper_tune_lr != _ADDED_DEFAULTS["whisper_tune_lr"]:
+            raise ValueError("whisper_tune_lr is the learning rate of tuned Whisper blocks: set whisper_tune_layers "
+                             "(--tune-layers) too")
+        return self
 
     def resolved_preset(self) -> Preset:
         from visemeflow.learning.presets import get_preset

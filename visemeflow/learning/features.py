@@ -63,6 +63,7 @@ import abc
 import contextlib
 import json
 import math
+from collections import OrderedDict
 from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
@@ -132,7 +133,7 @@ class FeatureConfig(BaseModel):
     # CTranslate2 or Hugging Face folder, or a hub id such as openai/whisper-small
     whisper_source: str = "package"
     # "last": the final encoder layer; "weighted": a learned softmax-weighted sum of every layer (trained with the
-    # head; the encoder stays frozen)
+    # head)
     whisper_layers: Literal["last", "weighted"] = "last"
     # the encoder's top N blocks (and its final LayerNorm) trained with the head; 0: the whole encoder frozen
     whisper_tune_layers: int = Field(0, ge=0)
@@ -681,9 +682,9 @@ class WhisperExtractor(FeatureExtractor):
     """OpenAI Whisper's audio encoder (:mod:`visemeflow.learning.whisper`): D = d_model (512 for base), 50 Hz, any
     length of audio (30-s windows crossfaded), the last layer or a learned weighted sum of all layers.
 
-    The encoder is frozen and is *not* part of this module's ``state_dict``: a saved model keeps the head (and the
-    layer weights) and the ``encoder_digest`` buffer; loading rebuilds the encoder from ``config.whisper_source``
-    and refuses other weights than those it was trained on. :meth:`encode` gives what the frozen encoder computes
+    By default the encoder is frozen and is *not* part of this module's ``state_dict``: a saved model keeps the head
+    (and the layer weights) and the ``encoder_digest`` buffer; loading rebuilds the encoder from
+    ``config.whisper_source`` and refuses other weights than those it was trained on. :meth:`encode` gives what the frozen encoder computes
     for one utterance, ``(B, L, T, D)`` (``L`` = 1 for ``whisper_layers="last"``, layers + 1 for "weighted"),
     which :class:`EncoderOutputCache` keeps; ``forward(..., encoded=...)`` uses it instead of running the encoder.
     Rows of a batch are encoded one by one (each its own length), so padding never changes a row's features.
@@ -697,7 +698,7 @@ class WhisperExtractor(FeatureExtractor):
     as for a frozen one, so audio of any length works there.
     """
 
-    encoder_frozen = True
+    encoder_frozen = True  # what encode() returns is frozen (the whole encoder, or the blocks below the tuned ones)
 
     def __init__(self, config: FeatureConfig, encoder: WhisperEncoder | None = None) -> None:
         super().__init__(config)
@@ -771,28 +772,20 @@ class WhisperExtractor(FeatureExtractor):
     def _encode_rows(self, audio: torch.Tensor, lengths: torch.Tensor, progress: Any = None) -> torch.Tensor:
         rows = [self.windows(audio[b, : int(lengths[b])], all_layers=self.weighted, progress=progress)
                 for b in range(audio.shape[0])]
-        rows = [r if r.ndim == 3 else r[None] for r in rows]
-        t = max(r.shape[1] for r in rows)
-        out = rows[0].new_zeros(len(rows), rows[0].shape[0], t, self.dim)
-        for b, r in enumerate(rows):
-            out[b, :, : r.shape[1]] = r
-        return out.to(audio.device)
+        return _stack_rows([r if r.ndim == 3 else r[None] for r in rows], self.dim).to(audio.device)
 
     @torch.no_grad()
     def _encode_frozen_part(self, audio: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """(B, S, W, D): per row, the frozen blocks' layer states (``weighted``) and the first tuned block's input,
         over the row's one window (padded to 30 s as the windows are)."""
         rows = []
-        dev = next(self.encoder.parameters()).device
+        first = next(self.encoder.parameters())
         for b in range(audio.shape[0]):
             mel = self.windows.single_window_mel(audio[b, : int(lengths[b])])
-            states, x = self.encoder.run(self.encoder.embed(mel[None].to(dev)), 0, self.weighted, last=self.cut)
+            x = self.encoder.embed(mel[None].to(first.device, first.dtype))
+            states, x = self.encoder.run(x, 0, self.weighted, last=self.cut)
             rows.append(torch.stack([*states, x], dim=1)[0].float())
-        w = max(r.shape[1] for r in rows)
-        out = rows[0].new_zeros(len(rows), rows[0].shape[0], w, self.dim)
-        for b, r in enumerate(rows):
-            out[b, :, : r.shape[1]] = r
-        return out.to(audio.device)
+        return _stack_rows(rows, self.dim).to(audio.device)
 
     def _run_tuned(self, encoded: torch.Tensor, feat_lengths: torch.Tensor) -> torch.Tensor:
         """(B, L, T, D) of the frozen part ``encoded`` (B, S, W, D): the tuned blocks over each row's window."""
@@ -838,6 +831,15 @@ class WhisperExtractor(FeatureExtractor):
         return self._finish(feats, feat_lengths)
 
 
+def _stack_rows(rows: list[torch.Tensor], dim: int) -> torch.Tensor:
+    """(B, L, T, D) of rows (L, T_b, D), zero past each row's own T_b."""
+    t = max(r.shape[1] for r in rows)
+    out = rows[0].new_zeros(len(rows), rows[0].shape[0], t, dim)
+    for b, r in enumerate(rows):
+        out[b, :, : r.shape[1]] = r
+    return out
+
+
 def _drop_encoder_state(module: WhisperExtractor, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
     tuned = module.tuned_prefixes(prefix)
     for key in [k for k in state_dict if k.startswith(prefix + "encoder.") and not k.startswith(tuned)]:
@@ -864,6 +866,11 @@ def _forgive_encoder_keys(module: WhisperExtractor, incompatible: Any) -> None:
                                     if not k.startswith(prefix) or k.startswith(tuned)]
 
 
+MAX_CACHE_MEMORY_BYTES = 8 * 2**30
+"""What an :class:`EncoderOutputCache` keeps in memory at most (8 GiB): a tuned-Whisper run caches whole 30-s windows,
+15 MB per utterance for whisper-base with weighted layers and 2 tuned blocks, so a corpus of thousands would not fit."""
+
+
 class EncoderOutputCache:
     """Frozen encoder outputs (wav2vec2's CNN encoder, Whisper's encoder) by key, in memory and, with ``directory``,
     in files.
@@ -873,14 +880,29 @@ class EncoderOutputCache:
     Files (``<key>.pt``, one tensor, read with ``torch.load(weights_only=True)`` on the CPU and moved to the
     requested device) are written atomically (``visemeflow.atomic``), so a killed run leaves whole files or
     none; a directory can be shared by runs and processes. Memory use: ``conv_dim[-1]`` floats per encoder
-    frame, e.g. 512 x 50 per second of audio for XLSR-53 (100 kB/s in float32).
+    frame, e.g. 512 x 50 per second of audio for XLSR-53 (100 kB/s in float32), at most ``max_memory_bytes``
+    (the least recently used entries beyond it are dropped from memory).
     """
 
-    def __init__(self, directory: str | Path | None = None) -> None:
+    def __init__(self, directory: str | Path | None = None, max_memory_bytes: int = MAX_CACHE_MEMORY_BYTES) -> None:
         self.directory = Path(directory) if directory is not None else None
-        self._memory: dict[str, torch.Tensor] = {}
+        self._memory: OrderedDict[str, torch.Tensor] = OrderedDict()   # least recently used first
+        self.max_memory_bytes = max_memory_bytes
+        self._bytes = 0
         self.hits = 0  # answered from memory or a file
         self.misses = 0  # computed by the encoder
+
+    def _remember(self, key: str, value: torch.Tensor) -> None:
+        """Keep `value` in memory, dropping the least recently used entries beyond `max_memory_bytes` (they are
+        read again from their files, or encoded again without a directory)."""
+        old = self._memory.pop(key, None)
+        if old is not None:
+            self._bytes -= old.numel() * old.element_size()
+        self._memory[key] = value
+        self._bytes += value.numel() * value.element_size()
+        while self._bytes > self.max_memory_bytes and len(self._memory) > 1:
+            _, dropped = self._memory.popitem(last=False)
+            self._bytes -= dropped.numel() * dropped.element_size()
 
     @staticmethod
     def key(fingerprint: str, audio_hash: str, precision: str | None = None) -> str:
@@ -893,11 +915,13 @@ class EncoderOutputCache:
 
     def get(self, key: str, device: torch.device | str = "cpu") -> torch.Tensor | None:
         value = self._memory.get(key)
-        if value is None and self.directory is not None:
+        if value is not None:
+            self._memory.move_to_end(key)
+        elif self.directory is not None:
             path = self.directory / f"{key}.pt"
             if path.is_file():
-                value = torch.load(path, map_location="cpu", weights_only=True)
-                self._memory[key] = value = value.to(device)
+                value = torch.load(path, map_location="cpu", weights_only=True).to(device)
+                self._remember(key, value)
         if value is not None:
             self.hits += 1
             return value.to(device)
@@ -905,7 +929,7 @@ class EncoderOutputCache:
 
     def put(self, key: str, value: torch.Tensor) -> None:
         value = value.detach()
-        self._memory[key] = value
+        self._remember(key, value)
         if self.directory is not None:
             from visemeflow.atomic import atomic_write
 

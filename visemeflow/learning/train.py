@@ -105,7 +105,7 @@ from visemeflow.learning.features import (
     build_feature_extractor,
     resample_audio,
 )
-from visemeflow.learning.config import TrainConfig
+from visemeflow.learning.config import AugmentConfig, TrainConfig
 from visemeflow.learning.model import AudioCurveModel, ClosurePeaks, CurveModel, MeanCurveBaseline, l1_loss
 from visemeflow.learning.presets import (
     Preset,
@@ -536,6 +536,7 @@ class Trainer:
         self.dev = resolve_device(device)
         self.amp = resolve_precision(self.dev, precision)
         self.hook: AudioAugment | None = None
+        default_hook = config.train_augment and augment_audio is None   # its speed range is AugmentConfig's
         if config.train_augment:
             if augment_audio is None:
                 from visemeflow.learning.augment import train_augment_hook
@@ -553,11 +554,17 @@ class Trainer:
         tuned = self.model.features.tuned_parameters() if isinstance(self.model.features, WhisperExtractor) else []
         if tuned:
             windows = self.model.features.windows
-            long = [ex.utterance_id for ex in train if not windows.fits_one_window(len(ex.audio))]
+            # train_augment's speed changes lengthen audio by up to 1 / the slowest factor (a custom hook: as given)
+            slowest = AugmentConfig().speed[0] if default_hook else 1.0
+            long = [ex.utterance_id for ex in train
+                    if not windows.fits_one_window(math.ceil(len(ex.audio) / min(slowest, 1.0)))]
             if long:
+                limit = windows.window / 100 * min(slowest, 1.0)
                 raise ValueError(f"whisper_tune_layers={config.whisper_tune_layers}: tuned Whisper blocks train on "
-                                 f"utterances of at most {windows.window // 100} s; {len(long)} are longer "
-                                 f"({', '.join(long[:3])}{', ...' if len(long) > 3 else ''}): cut them or tune none")
+                                 f"utterances of at most {limit:g} s"
+                                 + (" (30 s at the slowest train_augment speed)" if slowest < 1 else "")
+                                 + f"; {len(long)} are longer ({', '.join(long[:3])}{', ...' if len(long) > 3 else ''})"
+                                 ": cut them or tune none")
         optimizer = build_optimizer(self.preset, self.model, slow=tuned, slow_lr=config.whisper_tune_lr)
         if optimizer is None:
             raise ValueError(f"preset {self.preset.name!r} has no trainable parameters")
@@ -1103,7 +1110,8 @@ def _build_checked(mf: ModelFile) -> AudioCurveModel:
             raise ModelFileError(mf.path, f"its feature config (n_mels={fcfg.n_mels}, a {fcfg.win_length}-sample "
                                           f"window) asks for feature tables of {_feature_table_values(fcfg):,} "
                                           f"values; a model may ask for at most {MAX_FEATURE_TABLE_VALUES:,}")
-        features = build_feature_extractor(fcfg)  # parameter-free or frozen: nothing of it is built from the file
+        # parameter-free, or a Whisper encoder from its own source (tuned blocks then loaded from the file)
+        features = build_feature_extractor(fcfg)
 
         def build_features() -> nn.Module:
             return features

@@ -303,6 +303,12 @@ class WhisperEncoder(nn.Module):
 # windows
 
 
+def _samples(audio: np.ndarray | Tensor) -> Tensor:
+    """Audio as one float32 row of samples on the CPU."""
+    x = torch.as_tensor(np.asarray(audio, dtype=np.float32) if not isinstance(audio, Tensor) else audio)
+    return x.detach().reshape(-1).to(torch.float32).cpu()
+
+
 class WhisperFeatures:
     """Audio of any length -> encoder features (T_enc, D) at 50 Hz, or (L + 1, T_enc, D) with ``all_layers``.
 
@@ -350,8 +356,7 @@ class WhisperFeatures:
     def single_window_mel(self, audio: np.ndarray | Tensor) -> Tensor:
         """(n_mels, frames): the one window that audio of at most one window is encoded in (padded to the window
         when ``pad_short``); ValueError for longer audio."""
-        x = torch.as_tensor(np.asarray(audio, dtype=np.float32) if not isinstance(audio, Tensor) else audio)
-        x = x.detach().reshape(-1).to(torch.float32).cpu()
+        x = _samples(audio)
         n_mel = mel_frame_count(x.shape[0])
         if not self.fits_one_window(x.shape[0]):
             raise ValueError(f"{x.shape[0] / SAMPLE_RATE:.1f} s of audio is longer than one {self.window * HOP / SAMPLE_RATE:.0f}-s "
@@ -364,8 +369,7 @@ class WhisperFeatures:
         self, audio: np.ndarray | Tensor, all_layers: bool = False,
         progress: Callable[[int, int], None] | None = None,
     ) -> Tensor:
-        x = torch.as_tensor(np.asarray(audio, dtype=np.float32) if not isinstance(audio, Tensor) else audio)
-        x = x.detach().reshape(-1).to(torch.float32).cpu()
+        x = _samples(audio)
         n_mel = mel_frame_count(x.shape[0])
         t_enc = (n_mel + 1) // 2
         dims = self.encoder.dims

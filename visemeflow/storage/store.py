@@ -567,18 +567,23 @@ class Store:
         return _read_whole(path).cast(TABLE_SCHEMAS[table_name]) if path.exists() else TABLE_SCHEMAS[table_name].empty_table()
 
     def has_curves(self, source: str, variant: str, utterance_id: str) -> bool:
-        return self.curve_path(source, variant, utterance_id).exists()
+        """Whether the curve file is there and not empty (a file renamed inside `atomic.group_sync` can come back
+        empty after a power loss: one stat, so a stage's check of thousands stays cheap)."""
+        try:
+            return self.curve_path(source, variant, utterance_id).stat().st_size > 0
+        except FileNotFoundError:
+            return False
 
     def curves_provenance(self, source: str, variant: str, utterance_id: str) -> str | None:
-        """What made the stored curves (as given to `write_curves`), or None when there are none, or when the file
-        cannot be read as Parquet (empty or cut short by a crash inside `atomic.group_sync`): a stage that compares
-        provenances then writes it again."""
+        """What made the stored curves (as given to `write_curves`), or None when there are none, or when the file's
+        Parquet footer cannot be read (empty or cut short by a crash inside `atomic.group_sync`): a stage that
+        compares provenances then writes it again."""
         path = self.curve_path(source, variant, utterance_id)
         if not path.exists():
             return None
         try:
             meta = pq.read_schema(path).metadata or {}
-        except pa.ArrowInvalid:
+        except (pa.ArrowInvalid, OSError):   # no footer (ArrowInvalid), a footer that does not parse (OSError)
             return None
         return meta.get(PROVENANCE_KEY, b"").decode()
 
