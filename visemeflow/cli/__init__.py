@@ -980,6 +980,12 @@ def main() -> None:
     if code is not None and not isinstance(code, int):  # a message: printed, status 1, as Python does
         print(code, file=sys.stderr)
         code = 1
+    # as Python's own exit: first the threading module's exit callbacks (Prefect's log and event workers drain
+    # there, `threading._register_atexit`), then the atexit handlers (which stop a temporary server); skipping the
+    # first sent the run's last logs to a server already stopped ("Error logging to API")
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is not None:
+        shutdown()
     atexit._run_exitfuncs()
     status = code or 0
     for stream in (sys.stdout, sys.stderr):
