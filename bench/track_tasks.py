@@ -77,7 +77,7 @@ def main() -> int:
 
     stub_tracking()
     modes = {"per task": 0, "grouped": TrackParams.model_fields["joint_frames"].default}
-    with tempfile.TemporaryDirectory(prefix="visemeflow-track-tasks-") as tmp_name, prefect_test_harness(), \
+    with tempfile.TemporaryDirectory(prefix="visemeflow-track-tasks-") as tmp_name, prefect_test_harness(server_startup_timeout=180), \
             disable_run_logger():
         tmp = Path(tmp_name)
         base = tmp / "base"

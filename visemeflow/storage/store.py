@@ -571,7 +571,7 @@ class Store:
         empty after a power loss: one stat, so a stage's check of thousands stays cheap)."""
         try:
             return self.curve_path(source, variant, utterance_id).stat().st_size > 0
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):   # as Path.exists: a file where a folder would be
             return False
 
     def curves_provenance(self, source: str, variant: str, utterance_id: str) -> str | None:
