@@ -555,11 +555,10 @@ class Trainer:
         if tuned:
             windows = self.model.features.windows
             # train_augment's speed changes lengthen audio by up to 1 / the slowest factor (a custom hook: as given)
-            slowest = AugmentConfig().speed[0] if default_hook else 1.0
-            long = [ex.utterance_id for ex in train
-                    if not windows.fits_one_window(math.ceil(len(ex.audio) / min(slowest, 1.0)))]
+            slowest = min(AugmentConfig().speed[0], 1.0) if default_hook else 1.0
+            long = [ex.utterance_id for ex in train if not windows.fits_one_window(math.ceil(len(ex.audio) / slowest))]
             if long:
-                limit = windows.window / 100 * min(slowest, 1.0)
+                limit = windows.window * 0.01 * slowest   # mel frames are 10 ms
                 raise ValueError(f"whisper_tune_layers={config.whisper_tune_layers}: tuned Whisper blocks train on "
                                  f"utterances of at most {limit:g} s"
                                  + (" (30 s at the slowest train_augment speed)" if slowest < 1 else "")
