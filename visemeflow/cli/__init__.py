@@ -17,6 +17,7 @@ import typer  # noqa: E402
 from visemeflow.cli.options import Opt, stage_command  # noqa: E402
 from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong argument still fails in under a second)
     DEFAULT_STORE,
+    REMOTE_COMMANDS,
     AnimateParams,
     EvaluateParams,
     ImportCurvesParams,
@@ -33,6 +34,7 @@ from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong
     TrackParams,
     TrainParams,
 )
+from visemeflow.location import is_url, parse_root, remote_problem  # noqa: E402
 
 # plain help (click's): typer's boxed style labels every flag `<bool>` as if it took a value
 app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True,
@@ -57,11 +59,30 @@ _NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export"
                       "espeak-corpus"})
 
 
-def _usable_store(ctx: typer.Context, store: Path) -> Path:
+# Commands that run on a store on object storage (`s3://bucket/prefix`, location.py); the others need a folder.
+_REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "rejects"})
+
+
+def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
     """Fail before any flow starts when the store cannot be a writable folder (no side effects). Run as the command,
     for a command that runs a flow, point Prefect at a server already up (PREFECT_API_URL, else a running
     `visemeflow serve --store STORE`), else start Prefect's temporary server now, while the command imports its
     libraries, rather than when the flow is called (`visemeflow.ops.connect`)."""
+    store = parse_root(store)
+    if is_url(store):
+        if ctx.resilient_parsing:
+            return store
+        if ctx.info_name not in _REMOTE_OK:
+            _fail(f"{ctx.info_name} needs a store folder: {store} is on object storage, where only "
+                  f"{REMOTE_COMMANDS} run so far")
+        problem = remote_problem(store)
+        if problem:
+            _fail(problem)
+        if _AS_COMMAND and ctx.info_name not in _NO_FLOW and not ctx.resilient_parsing and "prefect" not in sys.modules:
+            from visemeflow.ops.connect import use_running_api
+
+            use_running_api(store)
+        return store
     probe = store
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
@@ -128,7 +149,8 @@ def _known_model(store: Path, model: str) -> None:
 
 
 
-StoreOpt = Annotated[Path, typer.Option("--store", help="Folder of the Parquet store.", callback=_usable_store)]
+StoreOpt = Annotated[str, typer.Option("--store", help="Folder of the Parquet store (a URL such as s3://bucket/prefix "
+                                      "for the commands that run on object storage).", callback=_usable_store)]
 
 
 def _device(device: str, precision: str | None = None) -> str:
@@ -162,7 +184,7 @@ def _print_stage_rejects(rejects: list[dict], store: Path, stage: str) -> None:
 
 
 # Options several stage commands share (visemeflow.cli.options: type, default and help from the params models)
-STORE = Opt("store", callback=_usable_store)
+STORE = Opt("store", type=str, callback=_usable_store)
 SHARDS = Opt("n_shards", "--shards")
 RUNNER = (Opt("runner.kind", "--runner"), Opt("runner.dask_workers"), Opt("runner.dask_address"),
           Opt("runner.threads"))

@@ -3,7 +3,7 @@
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from visemeflow.animation.config import AnimateConfig
 from visemeflow.learning.default_model import DEFAULT_MODEL
@@ -16,10 +16,26 @@ from visemeflow.learning.config import AugmentConfig, TrainConfig
 from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
 from visemeflow.schemas.ids import normalize_utterance_id, validate_name
 from visemeflow.schemas.sources import CurveSource
+from visemeflow.location import is_url, parse_root
 from visemeflow.synth.config import SynthConfig
 from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
+REMOTE_COMMANDS = "pipeline (without characters), ingest, procedural, landmarks, track, rerun, rejects"
+"""What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
+
+
+def _local_store(value: object) -> object:
+    if is_url(value):
+        raise ValueError(f"{value}: this command needs a store folder (a local or shared path); a store on object "
+                         f"storage runs {REMOTE_COMMANDS}")
+    return value
+
+
+StoreLocation = Annotated[Path | str, BeforeValidator(parse_root)]
+"""A store folder, or a URL of a store on object storage (`s3://bucket/prefix`, kept as text)."""
+LocalStore = Annotated[Path, BeforeValidator(_local_store)]
+"""A store folder: for commands that do not run on object storage yet (one line says which do)."""
 # the curve sources `animate` puts on characters
 SOURCES = (CurveSource.TRACKED, CurveSource.PROCEDURAL, CurveSource.GROUND_TRUTH, CurveSource.PREDICTED)
 
@@ -88,7 +104,8 @@ EncoderCacheField = Field(None, description="wav2vec2 presets: folder keeping th
 class StoreParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store, or its URL on object "
+                                                            "storage (s3://bucket/prefix).")
     n_shards: int = Field(
         8, ge=1, le=4096,
         description="Cheap stages run one task per shard of utterances (a stable hash of the id).",
@@ -123,13 +140,20 @@ class PipelineParams(StoreParams):
                                                    "no utterance has a video); none: no animate stage.")
     animate: AnimateConfig = Field(default_factory=AnimateConfig)
 
+    @model_validator(mode="after")
+    def _characters_need_a_folder(self) -> "PipelineParams":
+        if self.characters and is_url(self.store):
+            raise ValueError(f"{self.store}: animating characters needs a store folder; on object storage run the "
+                             "pipeline without characters, then `visemeflow animate` on a store folder")
+        return self
+
 
 class SynthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     corpus: CorpusPath = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
     out: Path = Field(Path("visemeflow-out/synth-corpus"), description="Folder of the synthetic corpus written.")
-    store: Path = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth').")
+    store: LocalStore = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth').")
     rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")
     config: SynthConfig = Field(default_factory=SynthConfig)
 
@@ -154,7 +178,7 @@ class TrackParams(StoreParams):
 class TrainParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     config: TrainConfig = Field(default_factory=TrainConfig)
     source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
@@ -175,7 +199,7 @@ class TrainParams(BaseModel):
 class SweepParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     config: TrainConfig = Field(default_factory=TrainConfig)
     sizes: list[Annotated[int, Field(ge=1)]] = Field([100, 300, 1000, 3000], min_length=1,
                                                      description="Training-set sizes (nested subsets), each at least 1.")
@@ -194,7 +218,7 @@ class RerunParams(BaseModel):
     utterance_id: str = Field(..., description="The utterance to rerun, '<speaker>/<name>'.")
     stage: Literal[RERUNNABLE] = Field(  # type: ignore[valid-type] (the stages table's rerunnable rows)
         "procedural", description="The stage to rerun.")
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     force: bool = Field(True, description="Recompute even when a cached result is valid.")
 
     @field_validator("utterance_id")
@@ -206,7 +230,7 @@ class RerunParams(BaseModel):
 class EvaluateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     models: list[str] = Field(..., min_length=1, description="Names of trained models in the store; `phones`: the "
                                                              "curves of phones recognised in the audio (no training).")
     conditions: list[Literal["volume", "pitch", "speed", "noise"]] = Field(
@@ -229,7 +253,7 @@ class EvaluateParams(BaseModel):
 class AnimateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     characters: list[Path] = Field(default_factory=_demo_characters, min_length=1,
                                    description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
                                                "folders; default: the shipped ICT demo character.")
@@ -258,7 +282,7 @@ class AnimateParams(BaseModel):
 class SpeakParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     model: ModelName = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
                                               "with the package; `phones`: no model, phones recognised in the audio "
                                               "(English).")
@@ -274,7 +298,7 @@ class SpeakParams(BaseModel):
 class PreviewParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     utterance_id: str = Field(..., description="The utterance, '<speaker>/<name>'.")
     character: Path = Field(default_factory=_demo_character, description="Character file or folder.")
     mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")
@@ -302,7 +326,7 @@ class PreviewParams(BaseModel):
 class PredictParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     model: ModelName = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
                                                    "with the package (installed into the store on first use); "
                                                    "`phones`: no model, phones recognised in the audio (English).")
@@ -321,7 +345,7 @@ class ImportCurvesParams(BaseModel):
     takes: Path = Field(..., description="Manifest CSV of takes (utterance_id,audio,capture,format,channels,names,"
                                          "fps,language,split), a folder holding takes.csv, or a folder "
                                          "<speaker>/<name>.wav + <name>.livelink.csv|.capture.csv|.capture.npy.")
-    store: Path = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     n_shards: int = Field(8, ge=1, le=4096, description="Shards of the utterances table the rows go to (as ingest).")
     channel_table: Path | None = Field(None, description="Channel -> ARKit table (CSV arkit,expression[,status] or "
                                                          "channel,arkit,weight, or .xlsx) for takes that give none.")

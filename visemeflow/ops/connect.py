@@ -28,6 +28,8 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
+from visemeflow.location import is_url
+
 # The names `visemeflow.ops.serve` writes under; repeated here because importing serve would import Prefect.
 SERVE_DIR = ".prefect-serve"
 AUTH_FILE = "auth-string"
@@ -125,9 +127,9 @@ def find_api(store: Path | None) -> Api | None:
     configured_elsewhere = configured_api()
     if configured_elsewhere is not None:
         return configured_elsewhere
-    if store is None:
-        return None
-    return serve_api(store)
+    if store is None or is_url(store):
+        return None   # `visemeflow serve` keeps its server's record in a local store folder
+    return serve_api(Path(store))
 
 
 class EarlyServer:

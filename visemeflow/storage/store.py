@@ -32,10 +32,14 @@ import fcntl
 import json
 import os
 import re
+import secrets
 import shutil
+import socket
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from datetime import timezone
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +48,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer, this_machine
+from visemeflow.location import parse_root, remote_root
 from visemeflow.schemas import (
     CURVES,
     METRICS,
@@ -146,18 +151,43 @@ def _read_whole(path: Path) -> pa.Table:
     interpreter exits must take the GIL, is ended by Python and aborts the process (`visemeflow predict` exited
     with SIGABRT after its work was done).
     """
+    if not isinstance(path, Path):   # an object of a store on object storage: one GET, one version
+        return pq.read_table(pa.BufferReader(path.read_bytes()))
     with pa.OSFile(str(path)) as fh:
         return pq.read_table(fh)
 
 
+def _read_schema(path: Path) -> pa.Schema:
+    """The Arrow schema (with the file's metadata) of one Parquet file, read through one handle (`_read_whole`)."""
+    if not isinstance(path, Path):
+        return pq.read_schema(pa.BufferReader(path.read_bytes()))   # small files; one GET, one version
+    with pa.OSFile(str(path)) as fh:
+        return pq.read_schema(fh)
+
+
+LOCK_LEASE_S = float(os.environ.get("VISEMEFLOW_LOCK_LEASE_S", "600"))
+"""A lock object of a store on object storage older than this is taken for a dead holder's and removed (no pid can
+be checked across machines). The locked sections are short (one shard file read and written back)."""
+
+
 class Store:
-    """A local Parquet store rooted at one folder."""
+    """A Parquet store rooted at one folder, or at a prefix on object storage (`s3://bucket/prefix`: see
+    `visemeflow.location`). `root` is a `Path` for a folder and a `upath.UPath` for a URL; the paths the methods give
+    are of the same kind, with the same `/`, `name`, `parent`, `exists()`, `read_bytes()`."""
 
     def __init__(self, root: Path | str):
-        self.root = Path(root).resolve()
+        parsed = parse_root(root)
+        self.remote = isinstance(parsed, str)
+        self.url: str | None = parsed if self.remote else None
+        self.root = remote_root(parsed) if self.remote else Path(parsed).resolve()
 
     def __repr__(self) -> str:
         return f"Store({str(self.root)!r})"
+
+    @property
+    def location(self) -> str:
+        """The root as text for messages and task arguments: the folder, or the URL."""
+        return self.url or str(self.root)
 
     # ---- paths -------------------------------------------------------------------------------
     def table_dir(self, table: str, stage: str | None = None) -> Path:
@@ -194,8 +224,7 @@ class Store:
         path = self.landmark_path(utterance_id)
         if not path.is_file():
             return None
-        with pa.OSFile(str(path)) as fh:
-            return (pq.read_schema(fh).metadata or {}).get(PROVENANCE_KEY, b"").decode()
+        return (_read_schema(path).metadata or {}).get(PROVENANCE_KEY, b"").decode()
 
     @staticmethod
     def utterance_id_of(path: str | Path) -> str:
@@ -284,6 +313,12 @@ class Store:
 
     # ---- writes ------------------------------------------------------------------------------
     def _inside(self, path: Path) -> Path:
+        if self.remote:
+            text, root = str(path), str(self.root)
+            if type(path) is not type(self.root) or ".." in text.split("/") or not (
+                    text == root or text.startswith(root + "/")):
+                raise ValueError(f"{path} is not inside the store {root}")
+            return path
         path = Path(path)
         resolved = path.resolve()
         if resolved != self.root and self.root not in resolved.parents:
@@ -302,10 +337,34 @@ class Store:
 
     def _replace(self, path: Path, writer: Callable[[Path], object], keep_suffix: bool = False) -> Path:
         """`write_file` for a path this class made (inside the store by construction: no check on the hot path)."""
+        if self.remote:
+            return self._upload(path, writer, keep_suffix)
         try:
             with atomic_path(path, keep_suffix=keep_suffix) as tmp:
                 writer(tmp)
         except OSError as exc:  # any other failure (ArrowInvalid, Ctrl-C) propagates as it is
+            reason = "disk full" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
+            raise StoreError(exc.errno or 0, f"cannot write {path}: {reason}; stored data is unchanged") from exc
+        return path
+
+    def _upload(self, path: Path, writer: Callable[[Path], object], keep_suffix: bool,
+                put: Callable[[Path], object] | None = None) -> Path:
+        """`_replace` on object storage: `writer` writes a local temporary file, which is then uploaded in one PUT
+        (a multipart upload, completed only when whole, for a large file), so the object appears whole or not at
+        all and a writer that fails or is killed uploads nothing. `put(local_file)` replaces the upload (a
+        conditional PUT)."""
+        suffix = path.suffix if keep_suffix else ""
+        try:
+            with tempfile.TemporaryDirectory(prefix="visemeflow-put-") as folder:
+                tmp = Path(folder) / f".{path.name}.tmp{suffix}"
+                writer(tmp)
+                if put is not None:
+                    put(tmp)
+                else:
+                    self.root.fs.put_file(str(tmp), path.path)
+        except FileExistsError:
+            raise   # a conditional PUT refused (`replace_utterance_rows` reads again)
+        except OSError as exc:
             reason = "disk full" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
             raise StoreError(exc.errno or 0, f"cannot write {path}: {reason}; stored data is unchanged") from exc
         return path
@@ -378,7 +437,7 @@ class Store:
         files = self.tracking_frame_files(variant)
         if not files or utterance_ids == []:
             return TRACKING_FRAMES.empty_table()
-        dataset = _dataset(files, schema=TRACKING_FRAMES, format="parquet")
+        dataset = self._dataset(files, schema=TRACKING_FRAMES, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(utterance_ids) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
 
@@ -410,12 +469,19 @@ class Store:
         if model:
             folder = folder / validate_name(model, "model name")
         files = self._files(folder)
-        return _dataset(files, schema=METRICS, format="parquet").to_table() if files else METRICS.empty_table()
+        return self._dataset(files, schema=METRICS, format="parquet").to_table() if files else METRICS.empty_table()
 
     @contextmanager
     def locked(self, name: str) -> Iterator[None]:
-        """Hold an exclusive lock named `name` (a file under the store) for a read-modify-write."""
+        """Hold an exclusive lock named `name` (a file under the store) for a read-modify-write.
+
+        On object storage the lock is an object created only where none exists (`If-None-Match: *`), removed when
+        the block ends; one older than `LOCK_LEASE_S` is taken for a dead holder's and removed."""
         lock_path = self.root / ".locks" / f"{validate_name(name, 'lock name')}.lock"
+        if self.remote:
+            with self._object_lock(lock_path):
+                yield
+            return
         try:
             lock_path.parent.mkdir(parents=True, exist_ok=True)
             fh = open(lock_path, "a")
@@ -428,21 +494,78 @@ class Store:
             finally:
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
+    @contextmanager
+    def _object_lock(self, lock_path: Path) -> Iterator[None]:
+        """`locked` on object storage (see there)."""
+        fs, key = self.root.fs, lock_path.path
+        token = f"{socket.gethostname()} {os.getpid()} {secrets.token_hex(8)}".encode()
+        delay = 0.02
+        while True:
+            try:
+                fs.pipe_file(key, token, mode="create")
+                break
+            except FileExistsError:
+                try:
+                    modified = fs.modified(key)
+                except FileNotFoundError:
+                    continue   # released between the two calls
+                stamp = modified.timestamp() if modified.tzinfo else modified.replace(tzinfo=timezone.utc).timestamp()
+                if time.time() - stamp > LOCK_LEASE_S:
+                    fs.rm_file(key)   # a dead holder's: whoever creates it next holds it
+                    continue
+                time.sleep(delay)
+                delay = min(2 * delay, 0.5)
+            except OSError as exc:
+                raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc}") from exc
+        try:
+            yield
+        finally:
+            try:
+                if fs.cat_file(key) == token:   # never another holder's (ours may have been broken as stale)
+                    fs.rm_file(key)
+            except FileNotFoundError:
+                pass
+
     def replace_utterance_rows(
         self, table_name: str, shard: int, utterance_id: str, rows: pa.Table, stage: str | None = None
     ) -> Path:
-        """In one shard file, replace the rows of `utterance_id` with `rows`, under the shard's lock."""
+        """In one shard file, replace the rows of `utterance_id` with `rows`, under the shard's lock.
+
+        On S3 the shard is also written back only if it is still the version read (`If-Match` its ETag, or
+        `If-None-Match: *` where there was none), else read again: a writer whose lock was taken for a dead one's
+        still loses no rows."""
         lock = f"{table_name}-{stage or 'all'}-{shard:04d}"
-        with self.locked(lock):
-            path = self.shard_path(table_name, shard, stage)
-            schema = TABLE_SCHEMAS[table_name]
-            old = _read_whole(path) if path.exists() else schema.empty_table()
+        path = self.shard_path(table_name, shard, stage)
+        schema = TABLE_SCHEMAS[table_name]
+
+        def merged(old: pa.Table) -> pa.Table:
             kept = old.filter(pc.invert(pc.equal(old.column(C.UTTERANCE_ID), utterance_id)))
             new = pa.concat_tables([kept.cast(schema), rows.cast(schema)])
             if table_name == "rejects":
                 new = _cap_messages(new)
             # Keep the file's metadata (e.g. the config hash that lets later runs reuse these rows).
-            return self._write_atomic(new.replace_schema_metadata(old.schema.metadata), path)
+            return new.replace_schema_metadata(old.schema.metadata)
+
+        with self.locked(lock):
+            if not (self.remote and self.root.protocol in ("s3", "s3a")):
+                old = _read_whole(path) if path.exists() else schema.empty_table()
+                return self._write_atomic(merged(old), path)
+            for _ in range(20):
+                try:
+                    etag = self.root.fs.info(path.path, refresh=True)["ETag"]
+                    old = pq.read_table(pa.BufferReader(path.read_bytes()))
+                except FileNotFoundError:
+                    etag, old = None, schema.empty_table()
+                condition = {"mode": "create"} if etag is None else {"IfMatch": etag}
+                try:
+                    return self._upload(path, lambda tmp, old=old: pq.write_table(merged(old), tmp, compression="zstd"),
+                                        False, put=lambda tmp, c=condition: self.root.fs.pipe_file(
+                                            path.path, tmp.read_bytes(), **c))
+                except (FileExistsError, StoreError) as exc:
+                    if isinstance(exc, StoreError) and "condition" not in str(exc).lower():
+                        raise
+                    continue   # changed since it was read: read it again
+            raise StoreError(0, f"cannot write {path}: it kept changing while being rewritten; stored data is unchanged")
 
     def stale_temporary_files(self, min_age_s: float = 3600.0) -> list[Path]:
         """Temporary files left by killed writers (names of `visemeflow.atomic`), sorted.
@@ -452,8 +575,8 @@ class Store:
         machine is writing (a store on a shared folder) is judged by its age alone: its pid means nothing here.
         Temporary files of older versions, whose names carry no pid, are stale when older than `min_age_s`.
         """
-        if not self.root.exists():
-            return []
+        if self.remote or not self.root.exists():
+            return []   # object storage has no temporary objects: a write is one PUT of a local temporary file
         stale, now = [], time.time()
         for folder, dirs, files in os.walk(self.root):
             if Path(folder) == self.root:
@@ -514,8 +637,14 @@ class Store:
     def delete_path(self, path: Path) -> None:
         """Remove a file or folder of the store (what `visemeflow clean` reclaims)."""
         path = self._inside(path)
-        if path == self.root:
+        if str(path) == str(self.root):
             raise ValueError(f"refusing to delete the whole store {self.root}")
+        if self.remote:
+            try:
+                self.root.fs.rm(path.path, recursive=True)
+            except FileNotFoundError:
+                pass
+            return
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
         else:
@@ -524,6 +653,8 @@ class Store:
     def disk_usage(self, path: Path) -> int:
         """Bytes of a file of the store, or of every file under a folder of it."""
         path = self._inside(path)
+        if self.remote:
+            return int(self.root.fs.du(path.path)) if path.exists() else 0
         if path.is_file():
             return path.stat().st_size
         total = 0
@@ -537,9 +668,24 @@ class Store:
 
     # ---- reads -------------------------------------------------------------------------------
     def _files(self, folder: Path) -> list[str]:
+        if self.remote:   # one recursive listing (no per-folder calls); the names as URLs
+            protocol = str(self.root).split("://", 1)[0]
+            try:
+                found = self.root.fs.find(folder.path)
+            except FileNotFoundError:
+                return []
+            return sorted(f"{protocol}://{f}" for f in found
+                          if f.endswith(".parquet") and not f.rsplit("/", 1)[-1].startswith("."))
         if not folder.exists():
             return []
         return sorted(str(p) for p in folder.rglob("*.parquet") if not p.name.startswith("."))
+
+    def _dataset(self, files: list[str], **kwargs: object):
+        """A pyarrow dataset of some of the store's Parquet files (`_files`), through its filesystem."""
+        if self.remote:
+            fs = self.root.fs
+            return _dataset([fs._strip_protocol(f) for f in files], filesystem=fs, **kwargs)
+        return _dataset(files, **kwargs)
 
     def read_table(self, table_name: str, stage: str | None = None, utterance_ids: list[str] | None = None) -> pa.Table:
         """All rows of a table (of one stage for rejects; all stages when None), optionally for some ids."""
@@ -547,7 +693,7 @@ class Store:
         files = self._files(self.table_dir(table_name, stage))
         if not files:
             return schema.empty_table()
-        dataset = _dataset(files, schema=schema, format="parquet")
+        dataset = self._dataset(files, schema=schema, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(pa.array(utterance_ids, pa.string())) if utterance_ids is not None else None
         return dataset.to_table(filter=flt)
 
@@ -559,8 +705,7 @@ class Store:
         path = self.shard_path(table_name, shard, stage)
         if not path.is_file():
             return None
-        with pa.OSFile(str(path)) as fh:
-            return dict(pq.read_schema(fh).metadata or {})
+        return dict(_read_schema(path).metadata or {})
 
     def read_shard(self, table_name: str, shard: int, stage: str | None = None) -> pa.Table:
         path = self.shard_path(table_name, shard, stage)
@@ -582,7 +727,7 @@ class Store:
         if not path.exists():
             return None
         try:
-            meta = pq.read_schema(path).metadata or {}
+            meta = _read_schema(path).metadata or {}
         except (pa.ArrowInvalid, OSError):   # no footer (ArrowInvalid), a footer that does not parse (OSError)
             return None
         return meta.get(PROVENANCE_KEY, b"").decode()
@@ -665,7 +810,7 @@ class Store:
         files = self.curve_files(source, variant)
         if not files:
             return CURVES.empty_table() if columns is None else CURVES.empty_table().select(columns)
-        dataset = _dataset(files, schema=CURVES, format="parquet")
+        dataset = self._dataset(files, schema=CURVES, format="parquet")
         flt = pc.field(C.UTTERANCE_ID).isin(pa.array(utterance_ids, pa.string())) if utterance_ids is not None else None
         return dataset.to_table(columns=columns, filter=flt)
 

@@ -1,5 +1,6 @@
 """What every task shares: the cache policy, result storage and serializer, and reject rows."""
 
+import functools
 import logging
 import os
 import stat
@@ -11,13 +12,19 @@ from typing import Any
 from prefect import get_run_logger
 from prefect.cache_policies import INPUTS, TASK_SOURCE, CachePolicy
 from prefect.context import TaskRunContext
-from prefect.filesystems import LocalFileSystem
+from prefect.filesystems import LocalFileSystem, RemoteFileSystem
 
 from visemeflow.schemas import C
 from visemeflow.storage import Store
-from visemeflow.storage.store import cap_message
+from visemeflow.storage.store import RESULTS_DIR, cap_message
 from visemeflow.tasks.code_version import code_digest
-from visemeflow.tasks.results import StoreJSONSerializer, UntrustedResultError, check_result_record
+from visemeflow.tasks.results import (
+    MAX_RECORD_BYTES,
+    StoreJSONSerializer,
+    UntrustedResultError,
+    check_result_bytes,
+    check_result_record,
+)
 
 # Every persisted task writes its result as JSON data; `DataOnlyCache` keeps Prefect from reading anything else.
 RESULT_SERIALIZER = StoreJSONSerializer()
@@ -61,6 +68,8 @@ class DataOnlyCache(CachePolicy):
 
 def discard_untrusted_record(storage: object, key: str, logger: logging.Logger | logging.LoggerAdapter) -> bool:
     """Delete the record at `key` in `storage` unless it is a JSON record of ours; whether one was refused."""
+    if isinstance(storage, RemoteFileSystem):
+        return _discard_untrusted_object(storage, key, logger)
     if not isinstance(storage, LocalFileSystem):
         raise TypeError(f"cached results are checked in a local folder; {type(storage).__name__} storage is not "
                         "supported")
@@ -74,6 +83,29 @@ def discard_untrusted_record(storage: object, key: str, logger: logging.Logger |
         if not stat.S_ISDIR(os.lstat(path).st_mode):
             path.unlink()
         return True
+    return False
+
+
+def _discard_untrusted_object(storage: Any, key: str, logger: logging.Logger | logging.LoggerAdapter) -> bool:
+    """`discard_untrusted_record` for results on object storage (a store at a URL): the same check of the bytes
+    (an object has no links or special files to refuse)."""
+    path = f"{storage.basepath.rstrip('/')}/{key}"
+    fs = storage.filesystem
+    try:
+        size = fs.size(path)
+    except FileNotFoundError:
+        return False
+    try:
+        if size > MAX_RECORD_BYTES:
+            raise UntrustedResultError(f"{path}: {size} bytes, more than a cached result record holds "
+                                       f"({MAX_RECORD_BYTES} at most)")
+        check_result_bytes(path, fs.cat_file(path))
+    except UntrustedResultError as exc:
+        logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
+        fs.rm_file(path)
+        return True
+    except FileNotFoundError:
+        return False
     return False
 
 
@@ -93,9 +125,32 @@ CODE = CodeDigest()
 CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE + CODE)
 
 
-def result_storage(store_root: str | Path) -> Path:
-    """Folder of Prefect's persisted task results and cache records, kept inside the store."""
-    return Store(store_root).results_dir()
+def result_storage(store_root: str | Path) -> Any:
+    """Where Prefect keeps the persisted task results and cache records: inside the store. A folder (`Path`) for a
+    local store; for a store on object storage a `RemoteFileSystem` at the same place (`<url>/.prefect-results`),
+    so that a cache hit works from any machine that reaches the store."""
+    store = Store(store_root)
+    if store.remote:
+        return _saved_remote_storage(f"{store.url}/{RESULTS_DIR}")
+    return store.results_dir()
+
+
+@functools.cache
+def _saved_remote_storage(basepath: str) -> Any:
+    """A `RemoteFileSystem` block at `basepath`, saved on the Prefect API (a task accepts only saved storage blocks),
+    under a name made from the path, so every process and machine of a run saves and uses the same one. The block
+    holds no credentials: each machine's fsspec reads them from its environment."""
+    import hashlib
+
+    name = "visemeflow-results-" + hashlib.blake2b(basepath.encode(), digest_size=6).hexdigest()
+    block = RemoteFileSystem(basepath=basepath)
+    try:
+        block.save(name, overwrite=True)
+    except Exception:   # another process saved it at the same moment (a name conflict): use the saved one
+        block = RemoteFileSystem.load(name)
+        if block.basepath != basepath:
+            raise
+    return block
 
 
 def results_of(store_root: str | Path) -> Any:
@@ -103,8 +158,10 @@ def results_of(store_root: str | Path) -> Any:
     JSON serializer: what a persisted task of this package reads its cached records from and writes them to."""
     from prefect.results import ResultStore
 
-    return ResultStore(result_storage=LocalFileSystem(basepath=str(result_storage(store_root))),
-                       serializer=RESULT_SERIALIZER)
+    store = Store(store_root)
+    storage = (RemoteFileSystem(basepath=f"{store.url}/{RESULTS_DIR}") if store.remote
+               else LocalFileSystem(basepath=str(store.results_dir())))
+    return ResultStore(result_storage=storage, serializer=RESULT_SERIALIZER)
 
 
 def cache_key_of(task: Any, results: Any, *args: Any) -> str | None:

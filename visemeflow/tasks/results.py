@@ -84,8 +84,13 @@ def check_result_record(path: Path) -> None:
     if info.st_size > MAX_RECORD_BYTES:
         raise UntrustedResultError(f"{path}: {info.st_size} bytes, more than a cached result record holds "
                                    f"({MAX_RECORD_BYTES} at most)")
+    check_result_bytes(path, path.read_bytes())
+
+
+def check_result_bytes(path: object, data: bytes) -> None:
+    """`check_result_record` of the bytes of the record at `path` (named in the error)."""
     try:
-        record = json.loads(path.read_bytes())
+        record = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise UntrustedResultError(f"{path}: not a JSON result record ({type(exc).__name__}: {exc}); a raw pickle "
                                    "or other binary is never loaded") from None

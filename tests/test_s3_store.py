@@ -1,0 +1,236 @@
+"""The store on object storage: a real S3 server (moto, in server mode on 127.0.0.1) holds the store; stages and
+workers in other processes reach it only through the S3 endpoint and the Prefect API."""
+
+import logging
+import multiprocessing
+import os
+import secrets
+import threading
+import time
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from visemeflow.schemas import C, TABLE_SCHEMAS, curves_array
+from visemeflow.schemas.curves import Curves
+from visemeflow.storage import Store, StoreError
+from visemeflow.visemes import VISEMES
+
+
+@pytest.fixture(scope="module")
+def s3_endpoint():
+    """A moto S3 server on a free port of 127.0.0.1, with the environment every AWS client (and so every worker
+    process started here) reads: endpoint and test credentials."""
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    env = {"AWS_ENDPOINT_URL": f"http://{host}:{port}", "AWS_ACCESS_KEY_ID": "test",
+           "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1"}
+    before = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    yield env
+    for key, value in before.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+    server.stop()
+
+
+@pytest.fixture
+def bucket(s3_endpoint) -> str:
+    """A new, empty bucket."""
+    import s3fs
+
+    name = f"vf-{secrets.token_hex(4)}"
+    s3fs.S3FileSystem(use_listings_cache=False).mkdir(name)
+    return name
+
+
+def _curves(uid: str, n: int = 12, seed: int = 0, variant: str = "v1") -> Curves:
+    values = np.random.default_rng(seed).random((n, len(VISEMES))).astype(np.float32)
+    return Curves(values, 25.0, uid, "procedural", variant, f"made by seed {seed}")
+
+
+def test_curves_tables_and_listings_round_trip_on_s3(bucket):
+    store = Store(f"s3://{bucket}/store")
+    assert store.remote and store.location == f"s3://{bucket}/store"
+    path = store.save_curves(_curves("spk one/a", seed=1))
+    store.save_curves(_curves("spk/b", seed=2))
+    assert str(path) == f"s3://{bucket}/store/curves/procedural/v1/spk%20one/a.parquet"
+    assert store.has_curves("procedural", "v1", "spk one/a") and not store.has_curves("procedural", "v1", "spk/c")
+    assert store.curves_provenance("procedural", "v1", "spk/b") == "made by seed 2"
+    assert store.curve_ids("procedural", "v1") == ["spk one/a", "spk/b"]
+    assert store.curve_sets() == [("procedural", "v1")]
+    loaded = store.load_curves("spk/b", "procedural")
+    np.testing.assert_array_equal(loaded.values, _curves("spk/b", seed=2).values)
+    assert loaded.fps == 25.0
+    scanned = store.scan_curves(utterance_ids=["spk one/a"])
+    assert scanned.num_rows == 12 and set(scanned.column(C.UTTERANCE_ID).to_pylist()) == {"spk one/a"}
+
+    rows = pa.table({C.UTTERANCE_ID: ["u1"], C.STAGE: ["ingest"], C.ERROR_TYPE: ["E"], C.MESSAGE: ["m" * 9000],
+                     C.PATH: [None], C.TIME: pa.array([0], pa.timestamp("us", tz="UTC"))})
+    store.write_shard("rejects", 3, rows, stage="ingest", metadata={b"k": b"v"})
+    assert store.shards("rejects", "ingest") == [3]
+    assert store.shard_metadata("rejects", 3, "ingest")[b"k"] == b"v"
+    message = store.read_table("rejects").column(C.MESSAGE)[0].as_py()
+    assert len(message) == 4000 and message.endswith("characters cut]")   # capped as in a folder store
+    assert store.disk_usage(store.root / "curves") > 0
+    store.delete_path(store.root / "curves" / "procedural" / "v1" / "spk%20one")
+    assert store.curve_ids("procedural", "v1") == ["spk/b"]
+    with pytest.raises(ValueError, match="not inside the store"):
+        store.delete_path(Store(f"s3://{bucket}/other").root / "x")
+    with pytest.raises(ValueError, match="whole store"):
+        store.delete_path(store.root)
+
+
+def test_a_failing_writer_uploads_nothing_and_keeps_the_old_object(bucket):
+    store = Store(f"s3://{bucket}/s")
+    path = store.report_path("note.md")
+    store.write_report_text("note.md", "first")
+
+    def broken(tmp):
+        tmp.write_text("half of it")
+        raise RuntimeError("the writer died")
+
+    with pytest.raises(RuntimeError, match="died"):
+        store.write_file(path, broken)
+    assert path.read_text() == "first"
+    assert [p.name for p in store.report_files()] == ["note.md"]   # no temporary object was ever made
+    assert store.stale_temporary_files() == [] and store.sweep_temporary_files() == 0
+
+
+def test_the_lock_is_exclusive_across_threads_and_a_dead_holders_lock_expires(bucket, monkeypatch):
+    store = Store(f"s3://{bucket}/locks")
+    inside, overlaps = [], []
+
+    def work(i: int) -> None:
+        with store.locked("shard-0001"):
+            inside.append(i)
+            if len(inside) > 1:
+                overlaps.append(tuple(inside))
+            time.sleep(0.05)
+            inside.remove(i)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert overlaps == []
+    assert not store.root.fs.exists(f"{store.root.path}/.locks/shard-0001.lock")   # released
+
+    # a holder killed inside the block leaves its lock object: younger than the lease it blocks, older it is broken
+    store.root.fs.pipe_file(f"{store.root.path}/.locks/stuck.lock", b"a dead process")
+    import visemeflow.storage.store as store_module
+
+    monkeypatch.setattr(store_module, "LOCK_LEASE_S", 2.0)
+    started = time.monotonic()
+    with store.locked("stuck"):
+        waited = time.monotonic() - started
+    assert 0.9 <= waited < 30   # it waited for the lease (S3 dates objects to the second), then broke the lock
+
+
+def _replace_rows(url: str, worker: int, n: int) -> None:
+    store = Store(url)
+    for i in range(n):
+        uid = f"w{worker}/u{i}"
+        rows = pa.table({C.UTTERANCE_ID: [uid], C.STAGE: ["ingest"], C.ERROR_TYPE: ["E"], C.MESSAGE: [f"{worker}"],
+                         C.PATH: [None], C.TIME: pa.array([0], pa.timestamp("us", tz="UTC"))})
+        store.replace_utterance_rows("rejects", 0, uid, rows, stage="ingest")
+
+
+def test_two_processes_rewriting_one_shard_lose_no_rows(bucket):
+    """Two processes (sharing nothing but the endpoint) replace rows of one shard file 10 times each."""
+    url = f"s3://{bucket}/rmw"
+    context = multiprocessing.get_context("spawn")
+    workers = [context.Process(target=_replace_rows, args=(url, w, 10)) for w in range(2)]
+    for p in workers:
+        p.start()
+    for p in workers:
+        p.join(120)
+    assert [p.exitcode for p in workers] == [0, 0]
+    ids = sorted(Store(url).read_shard("rejects", 0, "ingest").column(C.UTTERANCE_ID).to_pylist())
+    assert ids == sorted(f"w{w}/u{i}" for w in range(2) for i in range(10))
+
+
+def test_a_shard_changed_after_it_was_read_is_read_again(bucket, monkeypatch):
+    """The conditional PUT (If-Match the ETag read) refuses a write over a version the writer never saw: a writer
+    whose lock was broken as stale re-reads instead of dropping the other writer's rows."""
+    url = f"s3://{bucket}/cas"
+    store = Store(url)
+    _replace_rows(url, 0, 1)
+    original = Store._upload
+    calls = []
+
+    def racing_upload(self, path, writer, keep_suffix, put=None):
+        if put is not None and not calls:   # first conditional write: another writer gets in first
+            calls.append(1)
+            _replace_rows(url, 1, 1)
+        return original(self, path, writer, keep_suffix, put)
+
+    monkeypatch.setattr(Store, "_upload", racing_upload)
+    monkeypatch.setattr(Store, "locked", lambda self, name: _no_lock())   # as if the lock had been broken
+    rows = pa.table({C.UTTERANCE_ID: ["w2/u0"], C.STAGE: ["ingest"], C.ERROR_TYPE: ["E"], C.MESSAGE: ["2"],
+                     C.PATH: [None], C.TIME: pa.array([0], pa.timestamp("us", tz="UTC"))})
+    store.replace_utterance_rows("rejects", 0, "w2/u0", rows, stage="ingest")
+    ids = sorted(store.read_shard("rejects", 0, "ingest").column(C.UTTERANCE_ID).to_pylist())
+    assert calls and ids == ["w0/u0", "w1/u0", "w2/u0"]
+
+
+class _no_lock:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
+    from pydantic import ValidationError
+
+    from visemeflow.flows.params import PipelineParams, TrainParams
+    from visemeflow.location import parse_root
+
+    with pytest.raises(ValidationError, match="needs a store folder"):
+        TrainParams(store="s3://bucket/store")
+    with pytest.raises(ValidationError, match="animating characters needs a store folder"):
+        PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])
+    assert PipelineParams(corpus="c", store="s3://bucket/store/").store == "s3://bucket/store"
+    assert str(PipelineParams(corpus="c", store="file:///tmp/store").store) == "/tmp/store"
+    with pytest.raises(ValueError, match="needs a bucket"):
+        parse_root("s3://")
+    with pytest.raises(ValueError, match="'..'"):
+        parse_root("s3://bucket/a/../b")
+
+
+def test_result_records_on_s3_are_checked_before_prefect_reads_them(bucket):
+    """A planted pickle among the cached results is refused and deleted, as in a folder store."""
+    from visemeflow.tasks.common import discard_untrusted_record, results_of
+
+    storage = results_of(f"s3://{bucket}/r").result_storage
+    fs = storage.filesystem
+    fs.pipe_file(f"{storage.basepath}/badkey", b"\x80\x04pickle")
+    assert discard_untrusted_record(storage, "badkey", logging.getLogger("test")) is True
+    assert not fs.exists(f"{storage.basepath}/badkey")
+    assert discard_untrusted_record(storage, "absent", logging.getLogger("test")) is False
+
+
+def test_shards_missing_on_s3_read_as_empty(bucket):
+    store = Store(f"s3://{bucket}/empty")
+    assert store.read_table("utterances").num_rows == 0
+    assert store.read_shard("phones", 0).schema == TABLE_SCHEMAS["phones"]
+    assert store.curve_ids("procedural", "v1") == [] and store.model_names() == []
+    with pytest.raises(StoreError, match="cannot write s3://no-such-bucket-here/x/reports/a.md"):
+        Store("s3://no-such-bucket-here/x").write_report_text("a.md", "x")
+    from visemeflow.location import remote_problem
+
+    assert "bucket 'no-such-bucket-here' at http://127.0.0.1" in remote_problem("s3://no-such-bucket-here/x")
+    assert remote_problem(store.location) is None
+    assert curves_array(store.scan_curves()).shape[0] == 0
+    assert pq is not None
