@@ -155,6 +155,20 @@ def make_lj_corpus(root: Path, speakers: int = 2, names: list[str] = LJ_NAMES) -
     return root
 
 
+def render_videos(root: Path, utterances: Sequence[tuple[str, str]]) -> Path:
+    """Demo utterances (speaker, name) rendered as talking-face videos (with their audio and alignments) under
+    `root / "videos"`; returns that corpus folder."""
+    from visemeflow.flows.params import SynthParams
+    from visemeflow.flows.synth import synth_flow
+
+    for speaker, name in utterances:
+        (root / "source" / speaker).mkdir(parents=True, exist_ok=True)
+        for ext in (".wav", ".TextGrid"):
+            shutil.copyfile(DEMO_CORPUS / speaker / f"{name}{ext}", root / "source" / speaker / f"{name}{ext}")
+    synth_flow(SynthParams(corpus=root / "source", out=root / "videos", store=root / "truth"))
+    return root / "videos"
+
+
 def run_pipeline(corpus: Path, store: Path, n_shards: int = 4) -> dict:
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
@@ -175,7 +189,7 @@ def snapshot(store: Path) -> dict[str, list[dict]]:
         ({k: v for k, v in r.items() if k != C.TIME} for r in s.read_table("rejects").to_pylist()), key=str
     )
     out["curves"] = sorted(s.scan_curves().to_pylist(), key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
-    out["curve_files"] = sorted(os.path.relpath(p, s.root) for p in s.curve_files())
+    out["curve_files"] = sorted(str(p)[len(str(s.root)) + 1:] for p in s.curve_files())   # a folder's or a bucket's
     out["tracking_frames"] = sorted(s.read_tracking_frames().to_pylist(),
                                     key=lambda r: (r[C.UTTERANCE_ID], r[C.VARIANT], r[C.FRAME]))
     return out

@@ -1,18 +1,17 @@
 """Scale-out with prefect-dask: tracking on a local 2-worker cluster equals the run on Prefect's thread pool."""
 
 import os
-import shutil
 import threading
 import time
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from factories import DEMO_CORPUS
+from factories import render_videos
 from prefect import flow, task
 from prefect.settings import PREFECT_API_URL, temporary_settings
 
-from visemeflow.flows.params import PipelineParams, RunnerConfig, SynthParams
+from visemeflow.flows.params import PipelineParams, RunnerConfig
 from visemeflow.flows.runners import (
     available_cpus,
     local_cluster,
@@ -34,15 +33,7 @@ DASK = RunnerConfig(kind="dask", dask_workers=2)
 @pytest.fixture(scope="module")
 def video_corpus(tmp_path_factory, prefect_harness):
     """Four short demo utterances rendered as talking-face videos (about 8 s of speech)."""
-    from visemeflow.flows.synth import synth_flow
-
-    root = tmp_path_factory.mktemp("dask")
-    for speaker, name in SHORT:
-        (root / "source" / speaker).mkdir(parents=True, exist_ok=True)
-        for ext in (".wav", ".TextGrid"):
-            shutil.copyfile(DEMO_CORPUS / speaker / f"{name}{ext}", root / "source" / speaker / f"{name}{ext}")
-    synth_flow(SynthParams(corpus=root / "source", out=root / "videos", store=root / "truth"))
-    return root / "videos"
+    return render_videos(tmp_path_factory.mktemp("dask"), SHORT)
 
 
 def tracked_store(store) -> dict[str, object]:

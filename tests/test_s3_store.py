@@ -234,3 +234,106 @@ def test_shards_missing_on_s3_read_as_empty(bucket):
     assert remote_problem(store.location) is None
     assert curves_array(store.scan_curves()).shape[0] == 0
     assert pq is not None
+
+
+# ---- the pipeline on an S3 store: Dask workers, a killed run, two runs at once ---------------------------------
+TWO = [("LJ", "LJ001-0002"), ("SSB1624", "SSB16240001")]
+
+
+@pytest.fixture(scope="module")
+def video_corpus(tmp_path_factory, prefect_harness):
+    """Two demo utterances (English, Mandarin) rendered as talking-face videos."""
+    from factories import render_videos
+
+    return render_videos(tmp_path_factory.mktemp("s3videos"), TWO)
+
+
+@pytest.fixture(scope="module")
+def local_reference(tmp_path_factory, video_corpus):
+    """The pipeline's store in a local folder, in this process (Prefect's thread pool): what every S3 run must equal."""
+    from factories import run_pipeline, snapshot
+
+    store = tmp_path_factory.mktemp("s3ref") / "store"
+    result = run_pipeline(video_corpus, store, n_shards=2)
+    assert result["track"]["tracked"] == len(TWO)
+    return snapshot(store)
+
+
+def _assert_same_store(got: dict, want: dict) -> None:
+    """Equal tables, curve files and diagnostics; tracked values up to float summation order (one torch thread per
+    Dask worker against the thread pool's: seen 7e-7 apart)."""
+    for key in ("utterances", "phones", "rejects", "curve_files"):
+        assert got[key] == want[key], key
+    for key in ("curves", "tracking_frames"):
+        assert len(got[key]) == len(want[key]), key
+        for a, b in zip(got[key], want[key]):
+            assert {k: v for k, v in a.items() if not isinstance(v, float)} == \
+                   {k: v for k, v in b.items() if not isinstance(v, float)}
+            floats = [k for k, v in b.items() if isinstance(v, float)]
+            np.testing.assert_allclose([a[k] for k in floats], [b[k] for k in floats], rtol=0, atol=1e-5,
+                                       equal_nan=True)
+
+
+@pytest.mark.flow
+def test_the_pipeline_on_s3_with_two_dask_workers_equals_a_local_run(bucket, video_corpus, local_reference,
+                                                                      prefect_harness):
+    """Two Dask worker processes (started by the flow, each reaching the store only through the S3 endpoint in its
+    environment and the flow run through the Prefect API) track the clips; the S3 store equals the folder store;
+    a second run is all cache hits, read from the result records on S3."""
+    from factories import snapshot
+
+    from visemeflow.flows.params import PipelineParams, RunnerConfig
+    from visemeflow.flows.pipeline import pipeline_flow
+
+    url = f"s3://{bucket}/store"
+    params = PipelineParams(corpus=video_corpus, store=url, n_shards=2,
+                            runner=RunnerConfig(kind="dask", dask_workers=2))
+    first = pipeline_flow(params)
+    assert first["track"]["tracked"] == len(TWO) and first["track"]["rejected"] == 0
+    _assert_same_store(snapshot(url), local_reference)
+    again = pipeline_flow(params)
+    assert again["ingest"]["cached_shards"] == first["ingest"]["shards"] >= 1
+    assert again["procedural"]["cached_shards"] == first["procedural"]["shards"]
+    assert again["track"]["cached"] == len(TWO) and again["track"]["tracked"] == 0
+    import s3fs
+
+    keys = s3fs.S3FileSystem(use_listings_cache=False).find(f"{bucket}/store")
+    assert any("/.prefect-results/" in k for k in keys)
+    assert not any(k.rsplit("/", 1)[-1].startswith(".") and k.endswith(".tmp") for k in keys)
+    assert not any("/.locks/" in k for k in keys)   # every lock released
+
+
+def _cli(args: list[str], api: str) -> "subprocess.Popen":
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PREFECT_API_URL": api, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    return subprocess.Popen([sys.executable, "-m", "visemeflow.cli", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+@pytest.mark.flow
+def test_a_pipeline_killed_on_s3_loses_nothing_and_two_runs_at_once_corrupt_nothing(
+        bucket, video_corpus, local_reference, prefect_api_url):
+    """kill -9 of a `visemeflow pipeline` process once the procedural stage has written curves; then that store
+    rerun twice at once, by two processes: both finish, and the store equals the local run's."""
+    import s3fs
+    from factories import kill_cli_when, snapshot
+
+    url = f"s3://{bucket}/killed"
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    args = ["pipeline", str(video_corpus), "--store", url, "--shards", "2"]
+
+    def procedural_written() -> bool:   # the stage before tracking (which writes a joint group's curves at once)
+        try:
+            return bool(fs.find(f"{bucket}/killed/curves/procedural"))
+        except FileNotFoundError:
+            return False
+
+    kill_cli_when(args, prefect_api_url, procedural_written)
+    assert len(fs.find(f"{bucket}/killed/curves/tracked")) < len(TWO)   # killed mid-run
+    runs = [_cli(args, prefect_api_url) for _ in range(2)]
+    outputs = [p.communicate(timeout=600)[0] for p in runs]
+    assert [p.returncode for p in runs] == [0, 0], outputs
+    _assert_same_store(snapshot(url), local_reference)
+    assert not fs.exists(f"{bucket}/killed/.locks") or fs.find(f"{bucket}/killed/.locks") == []

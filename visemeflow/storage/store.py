@@ -226,6 +226,25 @@ class Store:
             return None
         return (_read_schema(path).metadata or {}).get(PROVENANCE_KEY, b"").decode()
 
+    def local_file(self, path: Path) -> str:
+        """A local path holding the store file `path`, for readers that take only a local path (the tracker's
+        landmark reader): `path` itself in a folder store. From object storage the file is downloaded once per
+        version (its ETag names the copy) into this machine's temporary folder, so repeated reads cost one HEAD."""
+        if not self.remote:
+            return str(path)
+        import hashlib
+
+        info = self.root.fs.info(path.path)
+        version = str(info.get("ETag") or info.get("mtime") or info.get("size"))
+        digest = hashlib.blake2b(f"{path}\0{version}".encode(), digest_size=12).hexdigest()
+        folder = Path(tempfile.gettempdir()) / f"visemeflow-objects-{os.getuid()}"
+        local = folder / f"{digest}-{path.name}"
+        if not local.is_file():
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+            with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
+                self.root.fs.get_file(path.path, str(tmp))
+        return str(local)
+
     @staticmethod
     def utterance_id_of(path: str | Path) -> str:
         """The utterance id of a per-utterance file of the store (`.../<speaker>/<name>.<ext>`)."""

@@ -84,7 +84,7 @@ def landmark_file(store: Store, utterance: dict) -> str | None:
     uid = utterance[C.UTTERANCE_ID]
     if utterance[C.LANDMARK_PATH]:
         return utterance[C.LANDMARK_PATH]
-    return str(store.landmark_path(uid)) if store.has_landmarks(uid) else None
+    return store.local_file(store.landmark_path(uid)) if store.has_landmarks(uid) else None
 
 
 def alignment_end_s(store: Store, uid: str) -> float | None:
