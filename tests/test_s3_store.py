@@ -303,7 +303,7 @@ def test_the_pipeline_on_s3_with_two_dask_workers_equals_a_local_run(bucket, vid
     assert not any("/.locks/" in k for k in keys)   # every lock released
 
 
-def _cli(args: list[str], api: str) -> "subprocess.Popen":
+def _cli(args: list[str], api: str):
     import subprocess
     import sys
 
@@ -337,3 +337,52 @@ def test_a_pipeline_killed_on_s3_loses_nothing_and_two_runs_at_once_corrupt_noth
     assert [p.returncode for p in runs] == [0, 0], outputs
     _assert_same_store(snapshot(url), local_reference)
     assert not fs.exists(f"{bucket}/killed/.locks") or fs.find(f"{bucket}/killed/.locks") == []
+
+
+@pytest.mark.flow
+def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, video_corpus, local_reference,
+                                                                      prefect_api_url):
+    """prefect.yaml's `pipeline/pool` entrypoint deployed to a process work pool; two `prefect worker` processes
+    (sharing nothing with this one but the Prefect API and the S3 endpoint) each take one of two runs started at
+    once on one S3 store; both complete and the store equals the local run's."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from factories import REPO, snapshot
+    from prefect import Flow
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.actions import WorkPoolCreate
+    from prefect.deployments import run_deployment
+
+    pool = f"s3pool-{secrets.token_hex(3)}"
+    url = f"s3://{bucket}/pool"
+    with get_client(sync_client=True) as client:
+        client.create_work_pool(WorkPoolCreate(name=pool, type="process"))
+    pipeline = Flow.from_source(source=str(REPO), entrypoint="visemeflow/ops/pool.py:pipeline_flow")
+    deployment = pipeline.deploy(name=pool, work_pool_name=pool, build=False, print_next_steps=False,
+                                 parameters={"store": url, "corpus": str(video_corpus), "n_shards": 2})
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    env.pop("VISEMEFLOW_SERVE_ROOTS", None)
+    prefect = str(Path(sys.executable).with_name("prefect"))
+    workers = [subprocess.Popen([prefect, "worker", "start", "--pool", pool, "--limit", "1", "--name", f"w{i}"],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
+               for i in range(2)]
+    try:
+        runs = [run_deployment(deployment, timeout=0) for _ in range(2)]
+        deadline = time.monotonic() + 600
+        with get_client(sync_client=True) as client:
+            while True:
+                states = [client.read_flow_run(r.id).state for r in runs]
+                if all(s.is_final() for s in states) or time.monotonic() > deadline:
+                    break
+                time.sleep(2)
+            spans = sorted((run.start_time, run.end_time) for run in (client.read_flow_run(r.id) for r in runs))
+    finally:
+        for w in workers:
+            w.terminate()
+        for w in workers:
+            w.wait(60)
+    assert [s.type.value for s in states] == ["COMPLETED", "COMPLETED"], [s.message for s in states]
+    assert spans[1][0] < spans[0][1]   # they overlapped: each worker takes one run at a time (--limit 1)
+    _assert_same_store(snapshot(url), local_reference)

@@ -173,6 +173,12 @@ def test_pool_entrypoints_check_paths_only_where_the_workers_environment_names_r
     with pytest.raises(PathOutsideRootsError, match="flow parameter store = "):
         pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": str(outside)}))
     assert len(seen) == 1
+    # a store on object storage: a confined run refuses it (no folder to confine it to), an unconfined one takes it
+    with pytest.raises(PathOutsideRootsError, match="on object storage"):
+        pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store"}))
+    monkeypatch.delenv(ROOTS_ENV)
+    assert pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store"})) == {"ok": 1}
+    assert seen[-1].store == "s3://bucket/store"
 
 
 @pytest.mark.flow

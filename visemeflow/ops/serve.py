@@ -40,6 +40,7 @@ from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_U
 from prefect.utilities.callables import parameter_schema
 from pydantic import BaseModel
 
+from visemeflow.location import is_url
 from visemeflow.flows.stages import STAGES, Stage
 from visemeflow.storage import Store
 
@@ -128,6 +129,14 @@ def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Path]) 
     from visemeflow.rig import demo_rig_path
 
     shipped = {demo_rig_path().resolve()}
+    for name, value in parameters.items():
+        store = value.get("store") if isinstance(value, Mapping) else getattr(value, "store", value if name == "store"
+                                                                                else None)
+        if isinstance(store, str) and is_url(store):
+            raise PathOutsideRootsError(
+                f"flow parameter {name} names the store {store} on object storage; runs confined to folders "
+                f"({ROOTS_ENV} set, as `visemeflow serve` does) take store folders only: run it from the command "
+                f"line, or from a work-pool worker without {ROOTS_ENV}")
     for name, path in (found for key, value in parameters.items() for found in paths_in(value, key)):
         resolved = path.resolve()  # through links: a link inside a root to a file elsewhere is elsewhere
         if resolved in shipped or any(resolved.is_relative_to(root) for root in roots):
