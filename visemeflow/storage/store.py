@@ -25,6 +25,10 @@ are updated under a lock file so two writers cannot lose each other's rows. Curv
 before they are written: a NaN or infinite value is refused with the utterance and the first bad value named.
 Reject messages are capped where they are written (`write_shard`, `replace_utterance_rows`): the head and
 how many characters were cut.
+
+The root may also be a URL on object storage (`s3://bucket/prefix`, `visemeflow.location`): the same layout, each
+file uploaded whole in one PUT from a local temporary file, the locks and the shard rewrites conditional PUTs (no
+rename, flock or pid), listings uncached; docs/reference.md, "A store on object storage".
 """
 
 import errno
