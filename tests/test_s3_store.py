@@ -386,3 +386,28 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
     assert [s.type.value for s in states] == ["COMPLETED", "COMPLETED"], [s.message for s in states]
     assert spans[1][0] < spans[0][1]   # they overlapped: each worker takes one run at a time (--limit 1)
     _assert_same_store(snapshot(url), local_reference)
+
+
+def test_bulk_presence_provenance_and_records_on_s3(bucket):
+    """What the flows ask of thousands of utterances at once, answered with one listing or one batch of GETs: an
+    empty or garbled curve file counts as missing, as in a folder; a planted record is refused, not decoded."""
+    from visemeflow.tasks.common import fetch_records, results_of
+
+    store = Store(f"s3://{bucket}/bulk")
+    for i, uid in enumerate(["s/a", "s/b", "s/c"]):
+        store.save_curves(_curves(uid, seed=i))
+    fs = store.root.fs
+    fs.pipe_file(store.curve_path("procedural", "v1", "s/d").path, b"")             # cut short by a crash
+    fs.pipe_file(store.curve_path("procedural", "v1", "s/e").path, b"not parquet")  # garbled
+    ids = ["s/a", "s/b", "s/c", "s/d", "s/e", "s/missing"]
+    assert store.curves_present("procedural", "v1", ids) == {"s/a", "s/b", "s/c", "s/e"}
+    assert store.curves_present("procedural", "nothing", ids) == set()
+    assert store.curves_provenances("procedural", "v1", ids) == {
+        "s/a": "made by seed 0", "s/b": "made by seed 1", "s/c": "made by seed 2", "s/d": None, "s/e": None,
+        "s/missing": None}
+
+    results = results_of(store.location)
+    base = results.result_storage.basepath
+    fs.pipe_file(f"{base}/planted", b"\x80\x04pickle")
+    assert fetch_records(results, ["planted", "absent"], logging.getLogger("test")) == {}
+    assert not fs.exists(f"{base}/planted")   # refused and deleted, never decoded

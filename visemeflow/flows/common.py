@@ -138,10 +138,24 @@ def read_cached(stage: str, task, store_root, calls: list[tuple[str, tuple, bool
     output still in the store), read from the records without a task run, each with `cached` 1; and the calls
     left to run, `(uid, args, key)`. A task run costs Prefect 15-60 ms even as a cache hit: 24,000 of them, one per
     utterance at the paper's scale, were most of a rerun's time (bench/track_tasks.py)."""
-    from visemeflow.tasks.common import cache_key_of, results_of
+    from visemeflow.storage import Store
+    from visemeflow.tasks.common import cache_key_of, fetch_records, results_of
 
     results = results_of(store_root)
     reports, left = [], []
+    if Store(store_root).remote:   # object storage: every record fetched at once, one GET each
+        keyed = [(uid, args, present, cache_key_of(task, results, *args, checked=False))
+                 for uid, args, present in calls]
+        records = fetch_records(results, [k for _, _, present, k in keyed if present and k is not None], logger)
+        for uid, args, present, key in keyed:
+            record = records.get(key) if present and key is not None else None
+            if record is not None:
+                reports.append({**record.result, "cached": 1})
+            else:
+                left.append((uid, args, key))
+        if reports:
+            logger.info("%s: %d utterances cached (read from their cached results, no task run)", stage, len(reports))
+        return reports, left
     for uid, args, present in calls:
         key = cache_key_of(task, results, *args)
         if key is not None and present and results.exists(key):

@@ -18,7 +18,8 @@ def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, 
     """Whether the shard's curve files and rejects file exist, so a cached result still describes the store."""
     if not store.has_shard("rejects", shard, STAGE):
         return False
-    return all(store.has_curves(SOURCE, variant, u[C.UTTERANCE_ID]) or u[C.UTTERANCE_ID] in rejected for u in items)
+    ids = [u[C.UTTERANCE_ID] for u in items if u[C.UTTERANCE_ID] not in rejected]
+    return len(store.curves_present(SOURCE, variant, ids)) == len(set(ids))
 
 
 @flow(name="procedural", flow_run_name="procedural[{params.store}]")

@@ -227,15 +227,18 @@ def track_flow(params: TrackParams) -> dict[str, object]:
     rejected_before = run.rejected_before()
     identities = speaker_identities(store, rows, config, rig_path, rig_hash, run.logger)
     calls = []          # each utterance's track_utterance call: (uid, row, its arguments)
+    provenances = store.curves_provenances(PROCEDURAL, procedural_variant, [r[C.UTTERANCE_ID] for r in rows])
     for row in rows:
         uid = row[C.UTTERANCE_ID]
-        provenance = store.curves_provenance(PROCEDURAL, procedural_variant, uid) or ""
+        provenance = provenances[uid] or ""
         row = keyed_row(store, row)
         calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
                                  config, identities.get(uid))))
     # a cache hit must not hide deleted curves: recompute unless they are there (or the utterance was rejected)
-    present = {uid: store.has_curves(SOURCE, utterance_config(row, config).variant, uid) or uid in rejected_before
-               for uid, row, _ in calls}
+    variants = {uid: utterance_config(row, config).variant for uid, row, _ in calls}
+    stored = set().union(*(store.curves_present(SOURCE, v, [u for u in variants if variants[u] == v])
+                           for v in set(variants.values())))
+    present = {uid: uid in stored or uid in rejected_before for uid, _, _ in calls}
     if params.joint_frames > 0 and joins(config):    # L_rgb or LM: one clip at a time, so one task each
         reports, rejects, unexpected, jointly = track_in_groups(store, calls, present, params.joint_frames,
                                                                 run.logger, params.device)

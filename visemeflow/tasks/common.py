@@ -92,14 +92,14 @@ def _discard_untrusted_object(storage: Any, key: str, logger: logging.Logger | l
     path = f"{storage.basepath.rstrip('/')}/{key}"
     fs = storage.filesystem
     try:
-        size = fs.size(path)
+        data = fs.cat_file(path, start=0, end=MAX_RECORD_BYTES + 1)   # one ranged GET: never more than that
     except FileNotFoundError:
         return False
     try:
-        if size > MAX_RECORD_BYTES:
-            raise UntrustedResultError(f"{path}: {size} bytes, more than a cached result record holds "
-                                       f"({MAX_RECORD_BYTES} at most)")
-        check_result_bytes(path, fs.cat_file(path))
+        if len(data) > MAX_RECORD_BYTES:
+            raise UntrustedResultError(f"{path}: more than the {MAX_RECORD_BYTES} bytes a cached result record "
+                                       "holds")
+        check_result_bytes(path, data)
     except UntrustedResultError as exc:
         logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
         fs.rm_file(path)
@@ -164,18 +164,51 @@ def results_of(store_root: str | Path) -> Any:
     return ResultStore(result_storage=storage, serializer=RESULT_SERIALIZER)
 
 
-def cache_key_of(task: Any, results: Any, *args: Any) -> str | None:
+def fetch_records(results: Any, keys: list[str], logger: logging.Logger | logging.LoggerAdapter) -> dict[str, Any]:
+    """The result records at `keys` of a result store on object storage, fetched together (one GET each, all in
+    flight at once), each checked as `discard_untrusted_record` checks it (a refused one is deleted, with a warning)
+    and then decoded as Prefect's `ResultStore.read` decodes it; absent and refused keys are left out."""
+    from prefect.results import ResultRecord
+
+    storage = results.result_storage
+    base = storage.basepath.rstrip("/")
+    paths = {f"{base}/{key}": key for key in keys}
+    fs = storage.filesystem
+    blobs = fs.cat(list(paths), on_error="return") if paths else {}
+    found = {}
+    for path, key in paths.items():
+        data = blobs.get(fs._strip_protocol(path), blobs.get(path))
+        if not isinstance(data, bytes):
+            continue
+        try:
+            if len(data) > MAX_RECORD_BYTES:
+                raise UntrustedResultError(f"{path}: more than the {MAX_RECORD_BYTES} bytes a cached result record "
+                                           "holds")
+            check_result_bytes(path, data)
+        except UntrustedResultError as exc:
+            logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
+            fs.rm_file(path)
+            continue
+        found[key] = ResultRecord.deserialize(data, backup_serializer=results.serializer)
+    return found
+
+
+def cache_key_of(task: Any, results: Any, *args: Any, checked: bool = True) -> str | None:
     """The cache key `task`'s cache policy gives the call `task(*args)`, as Prefect computes it when the task runs
     (the policies read the task, its inputs and its result storage; none of them the flow's parameters). A flow that
     does the work of several such calls in one task writes each result under its call's key (`results_of(...).
     write`), so that the call itself is then a cache hit, and reruns and `rerun` of one utterance stay as they were.
-    `results`: the store's `results_of`, made once by a caller that keys many calls."""
+    `results`: the store's `results_of`, made once by a caller that keys many calls. `checked=False`: the key without
+    `DataOnlyCache`'s check of the record at it, for a caller that checks the records itself (`fetch_records`)."""
     from types import SimpleNamespace
 
     from prefect.utilities.callables import get_call_parameters
 
     context = SimpleNamespace(task=task, result_store=results)
-    return task.cache_policy.compute_key(task_ctx=context, inputs=get_call_parameters(task.fn, args, {}),
+    policy = task.cache_policy
+    if not checked and isinstance(policy, DataOnlyCache):   # the caller checks the records itself (`fetch_records`)
+        policy = policy.policy
+    return policy.compute_key(task_ctx=context, inputs=get_call_parameters(task.fn, args, {}),
                                          flow_parameters={})
 
 
