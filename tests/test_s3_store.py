@@ -411,3 +411,22 @@ def test_bulk_presence_provenance_and_records_on_s3(bucket):
     fs.pipe_file(f"{base}/planted", b"\x80\x04pickle")
     assert fetch_records(results, ["planted", "absent"], logging.getLogger("test")) == {}
     assert not fs.exists(f"{base}/planted")   # refused and deleted, never decoded
+
+
+def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket, tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "gettempdir", lambda: str(tmp_path))
+    store = Store(f"s3://{bucket}/copies")
+    path = store.report_path("a.bin")
+    store.write_file(path, lambda tmp: tmp.write_bytes(b"one"))
+    first = store.local_file(path)
+    assert open(first, "rb").read() == b"one" and store.local_file(path) == first   # the same version: no new copy
+    store.write_file(path, lambda tmp: tmp.write_bytes(b"two"))
+    second = store.local_file(path)
+    assert second != first and open(second, "rb").read() == b"two"
+    folder = tmp_path / f"visemeflow-objects-{os.getuid()}"
+    assert folder.stat().st_mode & 0o777 == 0o700
+    folder.chmod(0o777)   # a folder others may write: a copy planted there would be read as the store's
+    with pytest.raises(StoreError, match="no one else may write"):
+        store.local_file(path)

@@ -251,8 +251,12 @@ class Store:
         digest = hashlib.blake2b(f"{path}\0{version}".encode(), digest_size=12).hexdigest()
         folder = Path(tempfile.gettempdir()) / f"visemeflow-objects-{os.getuid()}"
         local = folder / f"{digest}-{path.name}"
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        info = os.lstat(folder)
+        if not os.path.isdir(folder) or os.path.islink(folder) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+            raise StoreError(errno.EPERM, f"{folder}: the local copies of store objects must be in a folder of this "
+                             "user's that no one else may write (a copy planted there would be read as the store's)")
         if not local.is_file():
-            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
             with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
                 self.root.fs.get_file(path.path, str(tmp))
         return str(local)
