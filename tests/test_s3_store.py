@@ -430,3 +430,25 @@ def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket
     folder.chmod(0o777)   # a folder others may write: a copy planted there would be read as the store's
     with pytest.raises(StoreError, match="no one else may write"):
         store.local_file(path)
+
+
+def test_commands_on_an_s3_store(bucket):
+    """`curves show` and `rejects` read an S3 store; `train` says it needs a folder; a missing bucket is one line."""
+    import subprocess
+    import sys
+
+    url = f"s3://{bucket}/cli"
+    Store(url).save_curves(_curves("spk/a", n=30, seed=4))
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "visemeflow.cli", *args], capture_output=True, text=True,
+                              timeout=120, env={**os.environ, "VISEMEFLOW_NO_SERVER_LOOKUP": "1"})
+
+    shown = cli("curves", "show", "spk/a", "--store", url)
+    assert shown.returncode == 0 and "spk/a  source procedural  variant v1  30 frames" in shown.stdout, shown.stderr
+    assert cli("rejects", "--store", url).stdout.strip() == "no rejects"
+    refused = cli("train", "--store", url)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: train needs a store folder: {url}")
+    missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
+    assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
+    assert len(missing.stderr.strip().splitlines()) == 1
