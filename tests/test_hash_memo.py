@@ -261,3 +261,25 @@ def test_threads_hashing_at_once(memo, tmp_path):
         for _ in range(3):
             assert list(pool.map(file_hash, paths)) == expected
     assert rows(memo) == len(paths)
+
+
+def test_threads_opening_a_new_memo_at_once_all_keep_it(tmp_path, monkeypatch):
+    """Eight threads open a new memo file at the same moment, 40 times: none gives the memo up (switching a new file
+    to WAL fails at once with "database is locked" for all but one; before they retried, 1 try in about 40 lost the
+    memo for the whole process, and `test_threads_hashing_at_once` then found 1 row of 30)."""
+    import threading
+
+    given_up = 0
+    for trial in range(40):
+        monkeypatch.setenv(hashmemo.ENV, str(tmp_path / f"m{trial}" / "file-digests.sqlite"))
+        monkeypatch.setattr(hashmemo, "_broken", set())
+        monkeypatch.setattr(hashmemo, "_local", threading.local())
+        barrier = threading.Barrier(8)
+
+        def open_memo(_):
+            barrier.wait()
+            return hashmemo._memo() is not None
+
+        with ThreadPoolExecutor(8) as pool:
+            given_up += not all(pool.map(open_memo, range(8)))
+    assert given_up == 0

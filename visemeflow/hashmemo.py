@@ -56,6 +56,8 @@ PRUNE_EVERY = 10_000
 REFRESH_USED_S = 86_400
 BUSY_TIMEOUT_S = 2.0
 MAX_LOCK_FAILURES = 3
+INIT_ATTEMPTS = 20
+"""Tries to open a memo that other connections are opening at the same moment (see `_Memo`)."""
 """Writes in a row that fail (a lock held past the timeout, a read-only file) before this process stops writing to
 that memo (reads go on)."""
 
@@ -115,10 +117,21 @@ class _Memo:
         self.conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=True)
         try:
             self.conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
-            self.conn.execute("PRAGMA journal_mode = WAL")
             self.conn.execute("PRAGMA synchronous = NORMAL")
-            for sql in _SCHEMA:
-                self.conn.execute(sql)
+            for attempt in range(INIT_ATTEMPTS):
+                try:
+                    # WAL is kept in the file: only the first connection to a new memo switches it. Connections
+                    # that switch at once (threads of a pool starting together) get "database is locked" at once,
+                    # without the busy timeout's wait: they try again shortly instead of giving the memo up.
+                    if self.conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+                        self.conn.execute("PRAGMA journal_mode = WAL")
+                    for sql in _SCHEMA:
+                        self.conn.execute(sql)
+                    break
+                except sqlite3.OperationalError as exc:
+                    if "locked" not in str(exc) or attempt == INIT_ATTEMPTS - 1:
+                        raise
+                    time.sleep(0.02 * (attempt + 1))
         except BaseException:
             self.conn.close()
             raise
