@@ -88,6 +88,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def work_folder(keep: Path | None, prefix: str) -> Path:
+    """The bench's folder (`keep`, else a new temporary one), with a throw-away Prefect home there and no analytics,
+    set before Prefect is imported."""
+    work = keep or Path(tempfile.mkdtemp(prefix=prefix))
+    work.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("PREFECT_HOME", str(work / "prefect-home"))
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    return work
+
+
 def ensure_demo_corpus(work: Path) -> Path:
     if not DEMO_CORPUS.exists():
         print(f"rendering the demo corpus into {DEMO_CORPUS} (once)...", flush=True)
@@ -283,12 +294,7 @@ def main() -> None:
                              "below this (a shared machine); default: do not wait.")
     parser.add_argument("--keep", type=Path, help="Folder for the stores (kept); default: a temporary folder.")
     args = parser.parse_args()
-    work = args.keep or Path(tempfile.mkdtemp(prefix="visemeflow-bench-orchestration-"))
-    work.mkdir(parents=True, exist_ok=True)
-    # before Prefect is imported: a throw-away Prefect home, no analytics
-    os.environ.setdefault("PREFECT_HOME", str(work / "prefect-home"))
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    work = work_folder(args.keep, "visemeflow-bench-orchestration-")
     from visemeflow.ops.serve import ensure_server
 
     corpus = ensure_demo_corpus(work)

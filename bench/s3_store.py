@@ -26,12 +26,11 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from orchestration import ensure_demo_corpus, free_port, one_thread  # bench/orchestration.py, beside this script
+from orchestration import ensure_demo_corpus, free_port, one_thread, work_folder  # bench/orchestration.py, beside this script
 from report import print_table  # bench/report.py, beside this script
 
 PAPER_FRAMES = 16 * 3600 * 25
@@ -113,11 +112,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="Workers of the local Dask cluster.")
     parser.add_argument("--keep", type=Path, help="Folder for the stores (kept); default: a temporary folder.")
     args = parser.parse_args()
-    work = args.keep or Path(tempfile.mkdtemp(prefix="visemeflow-bench-s3-"))
-    work.mkdir(parents=True, exist_ok=True)
-    os.environ.setdefault("PREFECT_HOME", str(work / "prefect-home"))
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    work = work_folder(args.keep, "visemeflow-bench-s3-")
     from visemeflow.ops.serve import ensure_server
 
     corpus = ensure_demo_corpus(work)

@@ -67,7 +67,8 @@ def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
     """Fail before any flow starts when the store cannot be a writable folder (no side effects). Run as the command,
     for a command that runs a flow, point Prefect at a server already up (PREFECT_API_URL, else a running
     `visemeflow serve --store STORE`), else start Prefect's temporary server now, while the command imports its
-    libraries, rather than when the flow is called (`visemeflow.ops.connect`)."""
+    libraries, rather than when the flow is called (`visemeflow.ops.connect`). A URL store (`s3://...`): the command
+    must be one that runs there, and its bucket must answer (one request; none while the shell completes words)."""
     store = parse_root(store)
     if is_url(store):
         if ctx.resilient_parsing:
@@ -78,18 +79,14 @@ def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
         problem = remote_problem(store)
         if problem:
             _fail(problem)
-        if _AS_COMMAND and ctx.info_name not in _NO_FLOW and not ctx.resilient_parsing and "prefect" not in sys.modules:
-            from visemeflow.ops.connect import use_running_api
-
-            use_running_api(store)
-        return store
-    probe = store
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if probe.exists() and not probe.is_dir():
-        _fail(f"cannot use {store} as a store: {probe} is a file, not a folder")
-    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
-        _fail(f"cannot write the store {store}: no write permission on {probe}")
+    else:
+        probe = store
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        if probe.exists() and not probe.is_dir():
+            _fail(f"cannot use {store} as a store: {probe} is a file, not a folder")
+        if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+            _fail(f"cannot write the store {store}: no write permission on {probe}")
     if _AS_COMMAND and ctx.info_name not in _NO_FLOW and not ctx.resilient_parsing and "prefect" not in sys.modules:
         from visemeflow.ops.connect import use_running_api
 

@@ -142,23 +142,19 @@ def read_cached(stage: str, task, store_root, calls: list[tuple[str, tuple, bool
     from visemeflow.tasks.common import cache_key_of, fetch_records, results_of
 
     results = results_of(store_root)
+    remote = Store(store_root).remote
+    # on object storage every record is fetched at once (one GET each, all in flight) and checked there, not one
+    # key at a time through the cache policy's check and Prefect's reads (four requests an utterance)
+    keyed = [(uid, args, present, cache_key_of(task, results, *args, checked=not remote))
+             for uid, args, present in calls]
+    records = fetch_records(results, [k for _, _, present, k in keyed if present and k is not None], logger) \
+        if remote else {}
     reports, left = [], []
-    if Store(store_root).remote:   # object storage: every record fetched at once, one GET each
-        keyed = [(uid, args, present, cache_key_of(task, results, *args, checked=False))
-                 for uid, args, present in calls]
-        records = fetch_records(results, [k for _, _, present, k in keyed if present and k is not None], logger)
-        for uid, args, present, key in keyed:
-            record = records.get(key) if present and key is not None else None
-            if record is not None:
-                reports.append({**record.result, "cached": 1})
-            else:
-                left.append((uid, args, key))
-        if reports:
-            logger.info("%s: %d utterances cached (read from their cached results, no task run)", stage, len(reports))
-        return reports, left
-    for uid, args, present in calls:
-        key = cache_key_of(task, results, *args)
-        if key is not None and present and results.exists(key):
+    for uid, args, present, key in keyed:
+        if remote and key in records:
+            reports.append({**records[key].result, "cached": 1})
+            continue
+        if not remote and key is not None and present and results.exists(key):
             try:
                 reports.append({**results.read(key).result, "cached": 1})
                 continue

@@ -728,7 +728,7 @@ class Store:
 
         fs = self.root.fs
         paths = [fs._strip_protocol(f) for f in files]
-        blobs = fs.cat(paths) if len(paths) > 1 else {paths[0]: fs.cat_file(paths[0])}
+        blobs = fs.cat(paths)   # a list: a dict of them, each fetched by one GET, all in flight together
         tables = [_conform(pq.read_table(pa.BufferReader(blobs[p])), schema) for p in paths]
         return ds.dataset(tables, schema=schema.remove_metadata())
 

@@ -95,6 +95,12 @@ def _discard_untrusted_object(storage: Any, key: str, logger: logging.Logger | l
         data = fs.cat_file(path, start=0, end=MAX_RECORD_BYTES + 1)   # one ranged GET: never more than that
     except FileNotFoundError:
         return False
+    return _refused_object(fs, path, data, logger)
+
+
+def _refused_object(fs: Any, path: str, data: bytes, logger: logging.Logger | logging.LoggerAdapter) -> bool:
+    """Check the bytes of the record object at `path` (read with at most one byte more than a record holds) as
+    `check_result_record` checks a file; a refused one is deleted, with a warning. Whether it was refused."""
     try:
         if len(data) > MAX_RECORD_BYTES:
             raise UntrustedResultError(f"{path}: more than the {MAX_RECORD_BYTES} bytes a cached result record "
@@ -102,10 +108,11 @@ def _discard_untrusted_object(storage: Any, key: str, logger: logging.Logger | l
         check_result_bytes(path, data)
     except UntrustedResultError as exc:
         logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
-        fs.rm_file(path)
+        try:
+            fs.rm_file(path)
+        except FileNotFoundError:
+            pass
         return True
-    except FileNotFoundError:
-        return False
     return False
 
 
@@ -171,25 +178,16 @@ def fetch_records(results: Any, keys: list[str], logger: logging.Logger | loggin
     from prefect.results import ResultRecord
 
     storage = results.result_storage
-    base = storage.basepath.rstrip("/")
-    paths = {f"{base}/{key}": key for key in keys}
     fs = storage.filesystem
-    blobs = fs.cat(list(paths), on_error="return") if paths else {}
+    base = fs._strip_protocol(storage.basepath.rstrip("/"))
+    paths = {f"{base}/{key}": key for key in keys}
+    # ranged GETs, as `_discard_untrusted_object`: a planted giant object is never read whole
+    blobs = fs.cat(list(paths), on_error="return", start=0, end=MAX_RECORD_BYTES + 1) if paths else {}
     found = {}
     for path, key in paths.items():
-        data = blobs.get(fs._strip_protocol(path), blobs.get(path))
-        if not isinstance(data, bytes):
-            continue
-        try:
-            if len(data) > MAX_RECORD_BYTES:
-                raise UntrustedResultError(f"{path}: more than the {MAX_RECORD_BYTES} bytes a cached result record "
-                                           "holds")
-            check_result_bytes(path, data)
-        except UntrustedResultError as exc:
-            logger.warning("refused a cached result, the task runs again and replaces it: %s", exc)
-            fs.rm_file(path)
-            continue
-        found[key] = ResultRecord.deserialize(data, backup_serializer=results.serializer)
+        data = blobs.get(path)
+        if isinstance(data, bytes) and not _refused_object(fs, path, data, logger):
+            found[key] = ResultRecord.deserialize(data, backup_serializer=results.serializer)
     return found
 
 
