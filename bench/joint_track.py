@@ -1,6 +1,7 @@
 """Benchmark: the track stage one clip at a time against several clips in one joint solve (issue 29, item 1).
 
 Run:  .venv/bin/python bench/joint_track.py [--repeats R] [--joint 5,10] [--no-pin] [--config JSON] [--clips N] [--grid-only]
+      [--reference]
 
 Clips and set-up as bench/end_to_end.py (GRID s1's 10 guided clips, talking_heads 1 and 4 unguided; landmarks made
 once by the landmarks stage's own function, not timed here). Timed, on one pinned core, side by side in one run:
@@ -9,6 +10,8 @@ once by the landmarks stage's own function, not timed here). Timed, on one pinne
 The track stage's work only: frame times, landmark file, identity, optical flow, the solve. Per set: wall seconds,
 frames/s per core, the solver's part (`solve_fast` / `solve_fast_many`), the speed-up against alone, and the largest
 difference of the joint curves from the alone ones (the joint solve is the same objective: float rounding only).
+  ref N     (`--reference`) joint N as it was before the written-out derivatives: the solver's Adam steps take
+            their gradient from autograd through the loss terms, the identity fit its Jacobian from forward-mode AD
 Each configuration runs R times (default 2), interleaved; the best run is kept. Printed, never asserted.
 `--config '{"speaker_identity": true}'` tracks with one identity per speaker and image size, fitted once as the
 track flow fits it (bench/end_to_end.py's `fit_identities`, best of R); its time is added to every path's wall.
@@ -17,6 +20,7 @@ track flow fits it (bench/end_to_end.py's `fit_identities`, best of R); its time
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import tempfile
 import time
@@ -36,6 +40,29 @@ from visemeflow.tracking.solver import TrackingConfig  # noqa: E402
 import visemeflow.tracking.utterance as utterance_mod  # noqa: E402
 
 SOLVER = {"s": 0.0}
+
+
+@contextlib.contextmanager
+def autodiff():
+    """The solver's gradient and the identity fit's Jacobian from autograd, as before they were written out."""
+    import functools
+
+    import torch
+
+    import visemeflow.tracking.identity as identity_mod
+    import visemeflow.tracking.solver as solver_mod
+
+    adam, jacobian = solver_mod._adam_joined, identity_mod._Problem.jacobian
+
+    def forward_mode(self, theta, identity=True):
+        return torch.func.jacfwd(lambda th: self.residuals(th, identity))(theta)
+
+    solver_mod._adam_joined = functools.partial(adam, gradient="autograd")
+    identity_mod._Problem.jacobian = forward_mode
+    try:
+        yield
+    finally:
+        solver_mod._adam_joined, identity_mod._Problem.jacobian = adam, jacobian
 
 
 def _timed(fn):
@@ -88,6 +115,8 @@ def main() -> int:
     parser.add_argument("--clips", type=int, default=None, help="only the first N GRID clips (default all 10)")
     parser.add_argument("--grid-only", action="store_true", help="leave out the talking heads")
     parser.add_argument("--config", default=None, metavar="JSON", help="TrackingConfig fields for every path")
+    parser.add_argument("--reference", action="store_true",
+                        help="also the largest group with autograd's gradient and Jacobian (see the doc)")
     args = parser.parse_args()
     if not (e2e.GRID / "video").is_dir():
         print(f"missing benchmark data: {e2e.GRID}")
@@ -114,14 +143,18 @@ def main() -> int:
         sets: dict[str, list] = {}
         for clip in clips:
             sets.setdefault(clip.set_name, []).append(clip)
-        paths = [None, *sizes]
+        paths: list = [None, *sizes] + ([("ref", max(sizes))] if args.reference else [])
         for name, members in sets.items():
             run(members[:1], store, rig, config, None, identities)     # warm-up
             fitting = sum(shares.get(c.uid, (0.0, 0.0))[0] for c in members)
             best: dict = {}
             for _ in range(args.repeats):
                 for joint in paths:
-                    wall, solver, curves = run(members, store, rig, config, joint, identities)
+                    if isinstance(joint, tuple):
+                        with autodiff():
+                            wall, solver, curves = run(members, store, rig, config, joint[1], identities)
+                    else:
+                        wall, solver, curves = run(members, store, rig, config, joint, identities)
                     wall += fitting
                     if joint not in best or wall < best[joint][0]:
                         best[joint] = (wall, solver, curves)
@@ -133,7 +166,8 @@ def main() -> int:
             for joint in paths:
                 wall, solver, curves = best[joint]
                 diff = max(float(np.abs(a - b).max()) for a, b in zip(curves, alone[2]))
-                label = "alone" if joint is None else f"joint {joint}"
+                label = ("alone" if joint is None else f"ref {joint[1]}" if isinstance(joint, tuple)
+                         else f"joint {joint}")
                 print(f"  {label:<10}{wall:8.2f}{frames / wall:10.1f}{solver:10.2f}{frames / solver:12.0f}"
                       f"{alone[0] / wall:10.2f}{alone[1] / solver:10.2f}{diff:18.2e}")
     return 0

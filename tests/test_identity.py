@@ -301,3 +301,50 @@ def test_speaker_without_a_neutral_frame_has_no_speaker_identity(rig, modes, syn
     # a clip without one is left out, the others still give the identity
     mixed = fit_speaker_identity(rig, modes, [blind[0], *clips[1:]], (360, 288), total_frames=6)
     assert mixed is not None and mixed.clips == ("spk/b", "spk/c")
+
+
+@pytest.mark.parametrize("fit_focal", [False, True])
+def test_the_written_out_jacobian_equals_forward_mode_autodiff(fit_focal):
+    """fit_identity's Levenberg-Marquardt uses `_Problem.jacobian`, written out block by block; forward-mode AD
+    through `residuals` is the reference (it was the solver's Jacobian until it was a quarter of tracking's time),
+    at zero rotation (fit_identity's start), small and large angles, with and without the identity prior."""
+    import math
+
+    from visemeflow.tracking.identity import _Problem
+
+    gen = torch.Generator().manual_seed(0)
+    frames, points, modes = 4, 30, 5
+
+    def rand(*shape):
+        return torch.randn(*shape, generator=gen, dtype=torch.float64)
+
+    problem = _Problem(rand(points, 3), 0.1 * rand(modes, points, 3), 300 * torch.rand(frames, points, 2, generator=gen,
+                       dtype=torch.float64), (torch.rand(frames, points, generator=gen) > 0.2).double(),
+                       torch.rand(points, generator=gen, dtype=torch.float64), CAMERA, CAMERA.fx, fit_focal,
+                       (2.0, 0.1, 0.5))
+    for angle in (0.0, 0.05, 0.6):
+        theta = problem.pack(0.3 * rand(modes), torch.tensor(0.05, dtype=torch.float64), angle * rand(frames, 3),
+                             torch.tensor([[0.0, 0.0, -40.0]], dtype=torch.float64) + rand(frames, 3),
+                             torch.tensor(math.log(CAMERA.fx * 1.01), dtype=torch.float64))
+        for with_identity in (True, False):
+            written = problem.jacobian(theta, with_identity)
+            reference = torch.func.jacfwd(lambda th: problem.residuals(th, with_identity))(theta)
+            assert written.shape == reference.shape
+            assert float((written - reference).abs().max()) < 1e-9 * float(reference.abs().max())
+
+
+def test_right_jacobian_gives_the_derivative_of_a_rotated_point():
+    """d(R(r) p)/dr = -R [p]_x J_r(r) against autograd through `rotation_matrices`, in float64 at zero, small
+    and large angles, and in float32 at the small angles where the series replaces t - sin t."""
+    from visemeflow.render.camera import cross_matrices, right_jacobian, rotation_matrices
+
+    gen = torch.Generator().manual_seed(1)
+    point = torch.randn(3, generator=gen, dtype=torch.float64)
+    for angle in (0.0, 1e-4, 0.02, 0.09, 0.11, 0.7, 2.5):
+        for dtype, tol in ((torch.float64, 1e-9), (torch.float32, 2e-6)):
+            r = torch.randn(3, generator=gen, dtype=torch.float64)
+            r = (angle * r / r.norm()).to(dtype)
+            reference = torch.autograd.functional.jacobian(
+                lambda v: rotation_matrices(v[None])[0] @ point.to(dtype), r)
+            written = -(rotation_matrices(r[None])[0] @ cross_matrices(point.to(dtype)) @ right_jacobian(r[None])[0])
+            assert float((written - reference).abs().max()) < tol, (angle, dtype)

@@ -503,3 +503,29 @@ def test_lbf_wiring_with_a_model_file_that_holds_no_model(tmp_path):
         detect_landmarks_lbf(grid_frames("bbaf2n")[:1], empty_model)
     with pytest.raises(LandmarkError, match="nocascade.xml"):
         detect_landmarks_lbf(blank, empty_model, cascade=tmp_path / "nocascade.xml")
+
+
+def test_a_mediapipe_parquet_file_reads_only_the_68_points_and_equals_the_whole_table(tmp_path):
+    """The track stage reads the landmarks stage's Parquet files through a column projection (141 of 1,437
+    columns); the track is the one the whole table gives, the CSV's too, and a file missing a used column still
+    names it."""
+    from visemeflow.tracking.landmarks import _from_mediapipe, _load_table, _mediapipe_columns
+
+    source = _need(GRID / "landmarks" / "bbaf2n.mediapipe478.csv")
+    table = pd.read_csv(source)
+    path = tmp_path / "bbaf2n.mediapipe478.parquet"
+    table.to_parquet(path, index=False)
+    used = _mediapipe_columns(list(table.columns))
+    assert len(table.columns) == 1437 and len(used) == 3 + 136
+    assert {"frame", "time_s", "detected"} <= set(used) and not any(c.startswith("z_") for c in used)
+    projected = read_landmarks(path)
+    whole = _from_mediapipe(_load_table(path), path)
+    from_csv = read_landmarks(source)
+    for other in (whole, from_csv):
+        np.testing.assert_array_equal(projected.points, other.points)
+        np.testing.assert_array_equal(projected.valid, other.valid)
+        assert projected.fps == other.fps and projected.source == other.source == "mediapipe478"
+    broken = tmp_path / "broken.mediapipe478.parquet"
+    table.drop(columns=["y_13"]).to_parquet(broken, index=False)       # y of the upper lip's middle
+    with pytest.raises(LandmarkError, match=r"broken.mediapipe478.parquet.*y_13"):
+        read_landmarks(broken)

@@ -274,11 +274,10 @@ def test_soft_box_and_rgb_keep_the_adam_path(rig):
     assert "method" not in soft.extra and soft.iterations == 20
 
 
-def test_several_utterances_solved_together_equal_each_solved_alone(rig):
-    """solve_fast_many: one optimiser over the frames of several clips (different lengths, cameras, rigs, flow
-    vertex lists, one without flow) gives each clip the curves and pose of its own solve; a clip whose objective
-    diverges gets its error in its place and costs the others nothing."""
-    from visemeflow.tracking.solver import FlowTerm, solve_fast_many
+def _three_clips(rig):
+    """Three clips to solve together: different lengths, one without flow, one of another face (rig), camera and
+    list of flow vertices."""
+    from visemeflow.tracking.solver import FlowTerm
 
     _, a = _noisy_problem(rig, frames=24, flow=True)
     _, b = _noisy_problem(rig, frames=17, flow=False)
@@ -289,6 +288,53 @@ def test_several_utterances_solved_together_equal_each_solved_alone(rig):
                             flow=FlowTerm(c.flow.vertex_ids[:30], c.flow.correspond_back, c.flow.correspond))
     c = dataclasses.replace(c, flow=FlowTerm(c.flow.vertex_ids, lambda j, p: (np.zeros((30, 2)), np.ones(30, bool)),
                                              c.flow.correspond_back))
+    return a, b, c
+
+
+def test_the_written_out_gradient_is_autograd_through_the_loss_terms(rig):
+    """The fast Adam path's step takes its gradient from `_Gradient` (no autograd): the objective and the
+    gradients in the weights, rotation and translation equal autograd through the loss terms as the autograd path
+    sums them, for one clip and for joined clips (other rig, camera, flow vertices; a clip without flow), with the
+    soft box's L_range active and with guidance off; whole solves of both paths agree to float rounding."""
+    from visemeflow.tracking.solver import _FastFlow, _Gradient, _Joined, _adam_joined
+
+    clips = list(_three_clips(rig))
+    for problems in (clips[:1], clips):
+        for config in (TrackingConfig(), TrackingConfig(box="soft"), TrackingConfig(guidance=False)):
+            joined = _Joined(problems, config)
+            rot, trans = joined.initial_pose("autograd")
+            gen = torch.Generator().manual_seed(0)
+            x = (torch.rand(joined.n_frames, 16, generator=gen) * 1.2 - 0.1).requires_grad_(True)
+            rot = (rot + 0.01 * torch.randn(rot.shape, generator=gen)).requires_grad_(True)
+            trans = trans.clone().requires_grad_(True)
+            flow = _FastFlow(joined, [p.flow is not None for p in problems])
+            flow.refresh(x, rot, trans)
+            terms = joined.frame_terms(x, rot, trans)
+            d = joined.diff(x)
+            terms["diff"] = torch.cat([d, d.new_zeros(1)]) + torch.cat([d.new_zeros(1), d])
+            terms["flow"] = flow.loss(x, rot, trans)
+            if config.box == "soft":
+                assert float(terms["range"].sum()) > 0
+            loss = joined.objs[0].weighted(terms).sum()
+            loss.backward()
+            with torch.no_grad():
+                value, g_x, g_rot, g_trans = _Gradient(joined)(x, rot, trans, flow)
+            assert value == pytest.approx(float(loss), rel=1e-5)
+            for written, reference in ((g_x, x.grad), (g_rot, rot.grad), (g_trans, trans.grad)):
+                assert float((written - reference).abs().max()) < 1e-5 * float(reference.abs().max())
+        config = TrackingConfig(pose_iterations=20, fast_iterations=80)
+        for fast, slow in zip(_adam_joined(problems, config), _adam_joined(problems, config, gradient="autograd")):
+            assert np.abs(fast.curves - slow.curves).max() < 1e-4
+            assert np.abs(fast.rotation - slow.rotation).max() < 1e-5
+
+
+def test_several_utterances_solved_together_equal_each_solved_alone(rig):
+    """solve_fast_many: one optimiser over the frames of several clips (different lengths, cameras, rigs, flow
+    vertex lists, one without flow) gives each clip the curves and pose of its own solve; a clip whose objective
+    diverges gets its error in its place and costs the others nothing."""
+    from visemeflow.tracking.solver import solve_fast_many
+
+    a, b, c = _three_clips(rig)
     config = TrackingConfig(pose_iterations=10, fast_iterations=60)
     together = solve_fast_many([a, b, c], config)
     for problem, joint in zip((a, b, c), together):

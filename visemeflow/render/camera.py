@@ -53,11 +53,34 @@ def rotation_matrices(rotation: torch.Tensor) -> torch.Tensor:
     theta = torch.sqrt((rotation * rotation).sum(-1, keepdim=True) + 1e-12)
     a = torch.sinc(theta / math.pi)                          # sin(t) / t
     b = 0.5 * torch.sinc(theta / (2.0 * math.pi)) ** 2       # (1 - cos t) / t^2 = 2 sin^2(t/2) / t^2
-    x, y, z = rotation.unbind(-1)
-    zero = torch.zeros_like(x)
-    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*rotation.shape[:-1], 3, 3)
+    k = cross_matrices(rotation)
     eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand_as(k)
     return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+def right_jacobian(rotation: torch.Tensor) -> torch.Tensor:
+    """(T, 3) axis-angle -> (T, 3, 3) right Jacobian J of SO(3): R(r + dr) = R(r) exp([J dr]_x) to first order,
+    J = I - (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2 (K the cross-product matrix of r, t = |r|; a Taylor series
+    below 0.1 rad, where float32 would lose t - sin t to cancellation). The derivative of a rotated point is then
+    d(R(r) p)/dr = -R [p]_x J: the solvers' gradients and Jacobians use it instead of differentiating through
+    `rotation_matrices`."""
+    theta2 = (rotation * rotation).sum(-1, keepdim=True)
+    small = theta2 < 1e-2
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    safe = torch.sqrt(safe2)
+    t4 = theta2 * theta2
+    a = torch.where(small, 0.5 - theta2 / 24.0 + t4 / 720.0, (1.0 - torch.cos(safe)) / safe2)
+    b = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + t4 / 5040.0, (safe - torch.sin(safe)) / (safe2 * safe))
+    k = cross_matrices(rotation)
+    eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand_as(k)
+    return eye - a[..., None] * k + b[..., None] * (k @ k)
+
+
+def cross_matrices(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) -> (..., 3, 3) cross-product matrices [v]_x ([v]_x w = v x w)."""
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*v.shape[:-1], 3, 3)
 
 
 def to_camera(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,6 @@ through c. `apply_identity` still takes a scale, for callers who know the subjec
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 from visemeflow.rig import RigError, VisemeRig, rig_data_path
-from visemeflow.render.camera import Intrinsics, to_camera
+from visemeflow.render.camera import Intrinsics, cross_matrices, right_jacobian, rotation_matrices, to_camera
 from visemeflow.tracking.landmarks import GROUPS, N_POINTS, LandmarkTrack
 
 # Inner-lip pairs facing each other across the mouth (upper, lower) and the mouth corners, Multi-PIE numbering.
@@ -245,17 +244,65 @@ class _Problem:
         return torch.cat([data, *prior])
 
 
-_FORWARD_AD_LOCK = threading.Lock()
+    def jacobian(self, theta: torch.Tensor, identity: bool = True) -> torch.Tensor:
+        """d residuals(theta, identity) / d theta, written out: (rows of `residuals`, len(theta)).
+
+        Each frame's residuals depend on the shared entries (coefficients, scale, focal) and on that frame's pose
+        alone, so the matrix is built block by block; equal to forward-mode AD through `residuals` to float64
+        rounding (tests/test_identity.py), at a tenth of its cost (`torch.func.jacfwd` pushed one tangent per
+        entry of theta, 6 per frame, through the whole model)."""
+        c, log_scale, rotation, translation, log_focal = self.split(theta)
+        k, t = self.n_modes, self.n_frames
+        n_points = self.base.shape[0]
+        scale = torch.exp(log_scale)
+        shape = self.base + torch.einsum("k,kld->ld", c, self.basis)              # (L, 3) before the scale
+        rmat = rotation_matrices(rotation)                                          # (T, 3, 3)
+        mesh = scale * shape
+        cam = mesh @ rmat.transpose(1, 2) + translation[:, None, :]                # (T, L, 3)
+        depth = (-cam[..., 2]).clamp_min(1e-6)
+        focal = torch.exp(log_focal)
+        inv = 1.0 / depth
+        d = cam.new_zeros(t, n_points, 2, 3)                                       # d pixel / d camera point
+        d[..., 0, 0] = focal * inv
+        d[..., 0, 2] = focal * cam[..., 0] * inv * inv
+        d[..., 1, 1] = -focal * inv
+        d[..., 1, 2] = -focal * cam[..., 1] * inv * inv
+        d = d * (self.sqrt_w / self.sigma_px / self.sqrt_frames)[..., None]       # as the residuals weigh them
+        d_mesh = d @ rmat[:, None]                                                 # (T, L, 2, 3) per mesh offset
+        d_rot = -d_mesh @ cross_matrices(mesh)[None] @ right_jacobian(rotation)[:, None]
+        rows_data = t * n_points * 2
+        n_prior = 1 + (k if identity else 0) + (1 if self.fit_focal else 0)
+        jac = theta.new_zeros(rows_data + n_prior, theta.shape[0])
+        data = jac[:rows_data].view(t, n_points, 2, -1)
+        data[..., :k] = scale * torch.einsum("tlpd,kld->tlpk", d_mesh, self.basis)
+        data[..., k] = torch.einsum("tlpd,ld->tlp", d_mesh, mesh)
+        frames = torch.arange(t)
+        rot_cols = k + 1 + 3 * frames[:, None] + torch.arange(3)[None]              # (T, 3)
+        data[frames[:, None, None, None], torch.arange(n_points)[None, :, None, None],
+             torch.arange(2)[None, None, :, None], rot_cols[:, None, None, :]] = d_rot
+        data[frames[:, None, None, None], torch.arange(n_points)[None, :, None, None],
+             torch.arange(2)[None, None, :, None], (rot_cols + 3 * t)[:, None, None, :]] = d
+        if self.fit_focal:
+            pixels = torch.stack([focal * cam[..., 0] * inv, -focal * cam[..., 1] * inv], dim=-1)
+            data[..., -1] = pixels * (self.sqrt_w / self.sigma_px / self.sqrt_frames)
+        row = rows_data
+        jac[row, k] = 1.0 / self.scale_sigma
+        row += 1
+        if identity:
+            jac[row:row + k, :k] = torch.eye(k, dtype=theta.dtype)
+            row += k
+        if self.fit_focal:
+            jac[row, -1] = 1.0 / self.focal_sigma
+        return jac
 
 
-def _gauss_newton(residual_fn, theta: torch.Tensor, free: torch.Tensor, iterations: int) -> torch.Tensor:
+def _gauss_newton(residual_fn, jacobian_fn, theta: torch.Tensor, free: torch.Tensor, iterations: int) -> torch.Tensor:
     """Levenberg-Marquardt on the entries of `theta` where `free` is True; returns the improved theta."""
     damping = 1e-3
     r = residual_fn(theta)
     cost = float(r @ r)
     for _ in range(iterations):
-        with _FORWARD_AD_LOCK:  # forward-mode AD levels are process-global: one jacobian at a time
-            jacobian = torch.func.jacfwd(residual_fn)(theta)[:, free]
+        jacobian = jacobian_fn(theta)[:, free]
         hessian = jacobian.T @ jacobian
         gradient = jacobian.T @ r
         diagonal = torch.diag(hessian).clamp_min(1e-9)
@@ -310,7 +357,7 @@ def fit_identity(
 
     Solver: the pose of each frame is first fitted to the mean face from a frontal start at the landmark centroid,
     at the depth where the face's size matches the landmark spread; then everything together. Both stages are
-    Levenberg-Marquardt (Gauss-Newton with adaptive damping) on exact Jacobians (torch forward mode, float64).
+    Levenberg-Marquardt (Gauss-Newton with adaptive damping) on exact Jacobians (written out, float64).
     """
     _check_modes(rig, modes)
     if regularisation <= 0 or scale_sigma <= 0 or focal_sigma <= 0:
@@ -359,8 +406,9 @@ def fit_identity(
     )
     pose_only = torch.zeros_like(theta, dtype=torch.bool)
     pose_only[modes.n_modes + 1 : modes.n_modes + 1 + 6 * len(frames)] = True
-    theta = _gauss_newton(lambda th: problem.residuals(th, identity=False), theta, pose_only, iterations)
-    theta = _gauss_newton(problem.residuals, theta, torch.ones_like(pose_only), iterations)
+    theta = _gauss_newton(lambda th: problem.residuals(th, identity=False),
+                          lambda th: problem.jacobian(th, identity=False), theta, pose_only, iterations)
+    theta = _gauss_newton(problem.residuals, problem.jacobian, theta, torch.ones_like(pose_only), iterations)
 
     c, log_scale, rotation, translation, log_focal = problem.split(theta)
     if fit_focal:

@@ -8,8 +8,9 @@ weights to [0, 1] at the end.
   exponentially every 10 iterations; the previous frame's solution is fixed in L_diff and L_flow; a forward pass
   through the frames, then a backward pass in reverse order (the neighbour is then the next frame).
 - Fast: the same objective over the whole utterance at once, all frames one batch, L_diff and L_flow linking
-  neighbouring frames in both directions. By default Adam with a cosine-decayed learning rate (500 autograd
-  steps; also the only method for box="soft" and with L_rgb); `fast_method="lm"`: Levenberg-Marquardt on the
+  neighbouring frames in both directions. By default Adam with a cosine-decayed learning rate (50 pose + 200
+  joint steps, their gradient written out, `_Gradient`; autograd with L_rgb; also the only method for
+  box="soft" and with L_rgb); `fast_method="lm"`: Levenberg-Marquardt on the
   block-tridiagonal least squares (analytic Jacobians in NumPy, a banded Cholesky per step, a convergence stop:
   tens of steps, see `_solve_fast_lm`). LM's solver is 1.8x (GRID, real video) to 20x (synthetic, no flow) faster
   and reaches a lower objective and keypoint error, but on the synthetic benchmark its curves are further from the
@@ -36,7 +37,7 @@ import numpy as np
 import torch
 
 from visemeflow.rig import VisemeRig, evaluate_rig
-from visemeflow.render.camera import Intrinsics, project
+from visemeflow.render.camera import Intrinsics, project, right_jacobian, rotation_matrices
 from visemeflow.tracking.config import TrackingConfig
 from visemeflow.tracking.losses import (
     activation_loss,
@@ -303,8 +304,7 @@ def solve_fast(problem: TrackingProblem, config: TrackingConfig = TrackingConfig
 
 
 def _solve_fast_adam(problem: TrackingProblem, config: TrackingConfig, on_step: OnStep | None = None) -> TrackingResult:
-    """Adam with cosine decay on all frames at once (50 + 200 small autograd steps, each costing about the same
-    whatever T)."""
+    """Adam with cosine decay on all frames at once (50 + 200 steps)."""
     check_problem(problem)
     return _adam_joined([problem], config, on_step)[0]
 
@@ -315,8 +315,8 @@ def solve_fast_many(problems: Sequence[TrackingProblem], config: TrackingConfig 
     """`solve_fast` of several utterances in one run of the optimiser: their frames one after the other, no term
     linking two utterances.
 
-    Why: an Adam step on one clip's tiny tensors costs the autograd engine's per-operation overhead, about the same
-    for 75 frames as for 750, so ten clips solved together cost little more than one. The result equals solving each
+    Why: an Adam step on one clip's tiny tensors costs mostly torch's per-operation overhead, so ten clips solved
+    together cost far less than ten solves. The result equals solving each
     problem alone (to float rounding): the loss is a sum of per-frame terms, L_diff and L_flow are cut at the joins,
     and Adam's update is element-wise, so no clip's weights see another's gradient.
 
@@ -423,8 +423,9 @@ class _Joined:
         d = diff_loss(x[1:], x[:-1])
         return d if self.inside is None else d * self.inside
 
-    def initial_pose(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-frame head pose fitted to the non-mouth landmarks with the procedural weights held fixed."""
+    def initial_pose(self, gradient: str = "analytic") -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-frame head pose fitted to the non-mouth landmarks with the procedural weights held fixed
+        (`gradient`: "analytic", `_Gradient.pose_only`, or "autograd")."""
         config, has = self.config, _landmark_ids(self.problems[0].rig)[1]
         beta = landmark_beta(config)[torch.as_tensor(has)]
         beta = torch.where(beta > 0, torch.ones_like(beta), beta)
@@ -449,22 +450,187 @@ class _Joined:
         if config.pose_iterations:
             opt = torch.optim.Adam([rotation, translation], lr=0.02)
             target = self.target * self.scale
+            written = _Gradient(self) if gradient == "analytic" else None
             for _ in range(config.pose_iterations):
                 opt.zero_grad()
-                projected = project(points, rotation, translation, self.camera) * self.scale
-                loss = landmark_loss(projected, target, self.valid, beta).sum()
-                loss.backward()
+                if written is not None:
+                    with torch.no_grad():
+                        _, rotation.grad, translation.grad = written.pose_only(points, beta, rotation, translation)
+                else:
+                    projected = project(points, rotation, translation, self.camera) * self.scale
+                    loss = landmark_loss(projected, target, self.valid, beta).sum()
+                    loss.backward()
                 opt.step()
         return rotation.detach(), translation.detach()
 
 
+class _Planar:
+    """Rig vertices in planar layout for the written-out gradient: (T, 3, N), the x, y and z of N vertices each a
+    contiguous row, so that the pose is one (3, 3) @ (3, N) product per frame and every element-wise step runs
+    over contiguous memory (slicing the last axis of (T, N, 3) made each of them several times slower)."""
+
+    def __init__(self, joined: "_Joined", ids: list[np.ndarray] | np.ndarray):
+        from visemeflow.rig.model import rig_tensors
+
+        self.joined = joined
+        per = [ids] if isinstance(ids, np.ndarray) and joined.one_rig else (
+            ids if isinstance(ids, list) else [ids] * len(joined.problems))
+        rigs = [joined.problems[0].rig] if len(per) == 1 else [p.rig for p in joined.problems]
+        self.parts = []
+        for rig, i in zip(rigs, per):
+            basis, offset = rig_tensors(rig, joined.device).basis(np.asarray(i, dtype=np.int64).reshape(-1))
+            n = basis.shape[1] // 3
+            self.parts.append((basis.reshape(N_VISEMES, n, 3).transpose(1, 2).reshape(N_VISEMES, 3 * n).contiguous(),
+                               offset.reshape(n, 3).T.reshape(-1).contiguous()))
+        self.n = self.parts[0][0].shape[1] // 3
+        self.slices = [slice(0, joined.n_frames)] if len(self.parts) == 1 else joined.slices()
+
+    def points(self, x: torch.Tensor) -> torch.Tensor:
+        """(T, 3, N) vertices for the weights x (T, 16)."""
+        out = [torch.addmm(offset, x[sl], basis) for (basis, offset), sl in zip(self.parts, self.slices)]
+        return (out[0] if len(out) == 1 else torch.cat(out)).view(-1, 3, self.n)
+
+    def weights_gradient(self, g_points: torch.Tensor) -> torch.Tensor:
+        """(T, 16) from the vertices' gradient (T, 3, N)."""
+        flat = g_points.reshape(len(g_points), -1)
+        out = [flat[sl] @ basis.T for (basis, _), sl in zip(self.parts, self.slices)]
+        return out[0] if len(out) == 1 else torch.cat(out)
+
+
+class _Projection:
+    """Planar vertices (T, 3, N) through the head pose to pixels u, v (T, N) each (`render.camera.project`'s
+    arithmetic), keeping what the way back needs."""
+
+    def __init__(self, points: torch.Tensor, rotation: torch.Tensor, rmat: torch.Tensor, translation: torch.Tensor,
+                 camera):
+        self.points, self.rotation, self.rmat, self.camera = points, rotation, rmat, camera
+        self.cam = torch.baddbmm(translation[:, :, None], rmat, points)
+        depth = -self.cam[:, 2]
+        self.in_front = depth > 1e-6                  # where `clamp_min` passes the gradient on
+        self.inv = 1.0 / depth.clamp_min(1e-6)
+        self.x_over_z, self.y_over_z = self.cam[:, 0] * self.inv, self.cam[:, 1] * self.inv
+        self.u = camera.cx + camera.fx * self.x_over_z
+        self.v = camera.cy - camera.fy * self.y_over_z
+
+    def pull(self, g_u: torch.Tensor, g_v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(gradient of the vertices (T, 3, N), of the axis-angle rotation (T, 3), of the translation (T, 3)) for
+        the pixels' gradients g_u, g_v (T, N). The rotation's: d(R(r) p)/dr = -R [p]_x J_r(r), so with g the
+        vertices' gradient, dL/dr = J_r^T sum_n p_n x g_n."""
+        fu, fv = g_u * self.camera.fx, g_v * self.camera.fy
+        g_z = (fu * self.x_over_z - fv * self.y_over_z) * self.inv
+        g_cam = torch.stack([fu * self.inv, -fv * self.inv, torch.where(self.in_front, g_z, torch.zeros_like(g_z))],
+                            dim=1)
+        g_points = self.rmat.transpose(1, 2) @ g_cam
+        m = g_points @ self.points.transpose(1, 2)          # (T, 3, 3): m[a, b] = sum_n g_a p_b
+        moment = torch.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], dim=-1)
+        g_rot = (moment[:, None, :] @ right_jacobian(self.rotation))[:, 0]
+        return g_points, g_rot, g_cam.sum(-1)
+
+
+class _Gradient:
+    """Eq. 1 of joined problems and its gradient written out (no autograd): the fast Adam path's step.
+
+    The sum of the same per-frame terms as `_Joined.frame_terms`, `_Joined.diff` and `_FastFlow.loss`, weighted as
+    `_Objective.weighted`, equal to autograd through them to float rounding (tests/test_tracking.py). Why: the
+    autograd engine's bookkeeping was half of each of the solver's 250 small steps."""
+
+    def __init__(self, joined: _Joined):
+        self.joined = joined
+        c = joined.config
+        self.c = c
+        self.landmarks = _Planar(joined, joined.ids)
+        self.flow_points: _Planar | None = None
+        scale = joined.scale
+        self.scale = scale if isinstance(scale, float) else scale[:, :, 0]              # (T, 1) or a float
+        weight = joined.beta * joined.valid.to(joined.beta.dtype)
+        self.lmk_w = c.w_lmk * weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)      # (T, K)
+        sup, act = joined.suppress.float(), joined.activate.float()
+        self.guide = (c.w_sup * sup / sup.sum(-1, keepdim=True).clamp_min(1.0)
+                      - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0)) if (c.w_sup or c.w_act) else None
+        target = joined.target * joined.scale
+        self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
+
+    def _landmarks(self, proj: _Projection, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(value, g_u, g_v) of the landmark term with per-point weights `weight` (T, K), zero where not valid."""
+        res_u = proj.u * self.scale - self.target_u
+        res_v = proj.v * self.scale - self.target_v
+        value = (weight * (res_u * res_u + res_v * res_v)).sum()
+        twice = 2.0 * weight * self.scale
+        return value, twice * res_u, twice * res_v
+
+    def pose_only(self, mesh: torch.Tensor, beta: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor
+                  ) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """The rigid start's objective (landmarks with weights `beta`, the vertices `mesh` (T, K, 3) fixed) and its
+        pose gradients."""
+        weight = beta * self.joined.valid.to(beta.dtype)
+        weight = weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
+        proj = _Projection(mesh.transpose(1, 2).contiguous(), rot, rotation_matrices(rot), trans, self.joined.camera)
+        value, g_u, g_v = self._landmarks(proj, weight)
+        _, g_rot, g_trans = proj.pull(g_u, g_v)
+        return float(value), g_rot, g_trans
+
+    def __call__(self, x: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor, flow: "_FastFlow | None"
+                 ) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(objective, d/dx (T, 16), d/drot (T, 3), d/dtrans (T, 3))."""
+        joined, c = self.joined, self.c
+        rmat = rotation_matrices(rot)
+        proj = _Projection(self.landmarks.points(x), rot, rmat, trans, joined.camera)
+        value, g_u, g_v = self._landmarks(proj, self.lmk_w)
+        g_points, g_rot, g_trans = proj.pull(g_u, g_v)
+        gx = self.landmarks.weights_gradient(g_points)
+        if self.guide is not None:
+            value = value + (self.guide * x * x).sum()
+            gx = gx + 2.0 * self.guide * x
+        if c.w_range:
+            upper, lower = (x > 1).float(), (x < 0).float()
+            n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
+            value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
+            gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+        if joined.n_frames > 1 and c.w_diff:
+            step = x[1:] - x[:-1]
+            if joined.inside is not None:
+                step = step * joined.inside[:, None]
+            # every pair is in both of its frames' L_diff (as `_adam_joined` sums it)
+            value = value + 2.0 * c.w_diff * (step * step).sum() / N_VISEMES
+            g_step = 4.0 * c.w_diff * step / N_VISEMES
+            zero = g_step.new_zeros(1, N_VISEMES)
+            gx = gx + torch.cat([-g_step, zero]) + torch.cat([zero, g_step])
+        if flow is not None:
+            if self.flow_points is None:
+                self.flow_points = _Planar(joined, flow.ids)
+            f_value, f_x, f_rot, f_trans = self._flow(flow, x, rot, rmat, trans)
+            value, gx, g_rot, g_trans = value + f_value, gx + f_x, g_rot + f_rot, g_trans + f_trans
+        return float(value), gx, g_rot, g_trans
+
+    def _flow(self, flow: "_FastFlow", x, rot, rmat, trans):
+        """w_flow times the sum of `_FastFlow.loss`, and its gradients in x, rotation and translation."""
+        scale = self.scale
+        proj = _Projection(self.flow_points.points(x), rot, rmat, trans, self.joined.camera)
+        u, v = proj.u * scale, proj.v * scale
+        disp_u, disp_v = flow.planar()
+        next_scale = scale if isinstance(scale, float) else scale[1:]
+        ok = flow.valid.to(u.dtype)
+        diff_u = (u[1:] - u[:-1] - disp_u * next_scale) * ok
+        diff_v = (v[1:] - v[:-1] - disp_v * next_scale) * ok
+        per_pair = self.c.w_flow / flow.valid.sum(-1, keepdim=True).clamp_min(1).to(u.dtype)     # (T - 1, 1)
+        value = (per_pair * (diff_u * diff_u + diff_v * diff_v)).sum()
+        zero = u.new_zeros(1, u.shape[1])
+
+        def back(diff):
+            g = 2.0 * per_pair * diff
+            return (torch.cat([zero, g]) - torch.cat([g, zero])) * scale
+
+        g_points, g_rot, g_trans = proj.pull(back(diff_u), back(diff_v))
+        return value, self.flow_points.weights_gradient(g_points), g_rot, g_trans
+
+
 def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_step: OnStep | None = None,
-                 device: torch.device = torch.device("cpu")) -> list[TrackingResult]:
+                 device: torch.device = torch.device("cpu"), gradient: str = "analytic") -> list[TrackingResult]:
     """Adam with cosine decay on all frames of `problems` at once (see `solve_fast_many`)."""
     started = time.perf_counter()
     joined = _Joined(problems, config, device)
     cfg = joined.objs[0].config
-    rot, trans = joined.initial_pose()
+    rot, trans = joined.initial_pose(gradient)
     x = torch.tensor(np.concatenate([p.procedural for p in problems]), dtype=torch.float32, device=device,
                      requires_grad=True)
     rot.requires_grad_(True)
@@ -477,12 +643,25 @@ def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_ste
     flow_state = _FastFlow(joined, with_flow) if cfg.w_flow and any(with_flow) else None
     rgb = problems[0].rgb if len(problems) == 1 and cfg.w_rgb else None
     total_iterations = config.fast_iterations + (config.rgb_iterations if rgb is not None else 0)
+    written = _Gradient(joined) if gradient == "analytic" and rgb is None else None
     for it in range(total_iterations):
         if on_step is not None:
             on_step(it, total_iterations)
         for g, lr in zip(opt.param_groups, base):
             g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * it / total_iterations))
         opt.zero_grad()
+        if written is not None:
+            with torch.no_grad():
+                if flow_state is not None and it % 50 == 0:
+                    flow_state.refresh(x, rot, trans)
+                value, x.grad, rot.grad, trans.grad = written(x, rot, trans, flow_state)
+            if not math.isfinite(value):
+                raise FloatingPointError(f"non-finite tracking loss at iteration {it}")
+            opt.step()
+            if config.box == "projected":
+                with torch.no_grad():
+                    x.clamp_(0.0, 1.0)
+            continue
         terms = joined.frame_terms(x, rot, trans)
         if t > 1 and cfg.w_diff:
             d = joined.diff(x)
@@ -838,7 +1017,7 @@ class _FastFlow:
         self.ids = [np.concatenate([i, np.zeros(width - len(i), np.int64)]).astype(np.int64) for i in lists]
         if joined.one_rig and all(np.array_equal(i, self.ids[0]) for i in self.ids):
             self.ids = self.ids[0]
-        self.disp = self.valid = None
+        self.disp = self.valid = self._planar = None
 
     def _project(self, x, rot, trans):
         return project(self.joined.points(x, self.ids), rot, trans, self.joined.camera)
@@ -857,6 +1036,15 @@ class _FastFlow:
                 disp[k, :n], valid[k, :n] = problem.flow.correspond(j, proj[k, :n])
         self.disp = torch.as_tensor(disp, device=self.joined.device)
         self.valid = torch.as_tensor(valid, device=self.joined.device)
+        self._planar = None
+
+    def planar(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The displacements' u and v (T - 1, N), each contiguous and 0 where not valid (a correspondence may
+        hold NaN there), for `_Gradient`; made once per refresh."""
+        if self._planar is None:
+            disp = torch.where(self.valid[..., None], self.disp, torch.zeros_like(self.disp))
+            self._planar = (disp[..., 0].contiguous(), disp[..., 1].contiguous())
+        return self._planar
 
     def loss(self, x, rot, trans) -> torch.Tensor:
         scale = self.joined.scale
