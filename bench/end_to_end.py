@@ -1,7 +1,7 @@
 """Benchmark: video -> tracked curves end to end on one core (issue 15): decoding, FaceMesh detection, identity
 fit, optical flow and the solver, per clip, with the share of each step.
 
-Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare]
+Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare] [--joint N]
                                             [--compare-flow PRESET:ROI] [--compare-config JSON]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
@@ -19,7 +19,9 @@ none of that is timed. What is timed is what the pipeline runs per utterance, th
   track stage      `tracking.utterance.track_video` on the `VideoInput` `tasks.track.track_one` builds (the stored
                    landmark file, the alignment's end), default TrackingConfig (fast solver, L_flow on), the demo
                    rig; guided with the procedural curves, unguided (None) without an alignment.
-(Writing the tracked curves and diagnostics to the store is not timed: a few kB.)
+(Writing the tracked curves and diagnostics to the store is not timed: a few kB.) `--joint N`: the track stage
+as the pipeline runs it by default, `tracking.utterance.track_videos` on groups of N clips of a set (one joint
+solve; the pipeline's `--joint-frames 400` makes groups of 5 GRID clips), a group's time shared over its clips.
 
 Steps are split by wrapping the functions those two call (exclusive time: a step's time excludes the steps it
 calls), so the split is of exactly the code the pipeline runs:
@@ -36,7 +38,7 @@ calls), so the split is of exactly the code the pipeline runs:
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
 --compare also runs every clip with the fast solver's other method, TrackingConfig(fast_method="lm")
 (Levenberg-Marquardt, issue 29), as "after", beside the default Adam with cosine decay (50 pose + 200 joint
-autograd steps, "before"); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
+steps, "before"); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
 side by side: the mean mouth keypoint error (the 20 mouth points of the tracked face to the detected landmarks,
 px) per set, and on GRID the MBP activation: at the midpoint frame of every phone whose viseme is MBP (b, p, m),
 the share where MBP is the tracked top viseme and among the top two; and the largest curve difference per clip.
@@ -84,7 +86,7 @@ from visemeflow.schemas import C  # noqa: E402
 from visemeflow.storage import Store  # noqa: E402
 from visemeflow.tracking.facemesh import FaceMeshConfig  # noqa: E402
 from visemeflow.tracking.solver import TrackingConfig  # noqa: E402
-from visemeflow.tracking.utterance import VideoInput, track_video, video_size  # noqa: E402
+from visemeflow.tracking.utterance import VideoInput, track_video, track_videos, video_size  # noqa: E402
 from visemeflow.tasks.track import identity_clips, speaker_identity  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -171,6 +173,7 @@ def install_profile() -> None:
         (utterance_mod, "rig_and_camera", _wrap, "identity"),
         (utterance_mod, "flow_term", _wrap, "flow"),
         (utterance_mod, "solve_fast", _wrap, "solver"),
+        (utterance_mod, "solve_fast_many", _wrap, "solver"),
     ]
     for owner, name, wrapper, step in patches:
         if hasattr(owner, name):
@@ -285,6 +288,41 @@ def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMe
     return wall, cpu, steps
 
 
+def run_group(clips: list[Clip], store: Store, rig, config: TrackingConfig, mesh: FaceMeshConfig,
+              identities: dict, shares: dict) -> list[tuple[float, float, dict]]:
+    """`--joint N`: the clips through the landmarks stage one by one, then the track stage on all of them in one
+    joint solve (`track_videos`, as the track flow's `track-joint` tasks run groups); the group's wall, CPU and
+    steps shared over its clips by frames."""
+    PROFILE.reset()
+    wall, cpu = time.perf_counter(), time.process_time()
+    PROFILE.enter()
+    videos = []
+    for clip in clips:
+        u = clip.utterance
+        landmarks_task.landmarks_one(store, u, mesh)
+        videos.append((VideoInput(u[C.VIDEO_PATH], str(store.landmark_path(clip.uid)), u[C.FPS], int(u[C.N_FRAMES]),
+                                  audio_path=u.get(C.AUDIO_PATH), alignment_path=u.get(C.ALIGNMENT_PATH) or None,
+                                  alignment_end_s=clip.alignment_end_s), clip.procedural))
+    tracked = track_videos(videos, rig, config, [identities.get(c.uid) for c in clips])
+    PROFILE.leave("other")
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    frames = sum(c.frames for c in clips)
+    out = []
+    for clip, result in zip(clips, tracked):
+        if isinstance(result, Exception):
+            raise result
+        part = clip.frames / frames
+        share = shares.get(clip.uid, (0.0, 0.0))
+        steps = {k: v * part for k, v in PROFILE.seconds.items()}
+        steps.update({f"cpu {k}": v * part for k, v in PROFILE.cpu.items()})
+        steps["identity"] = steps.get("identity", 0.0) + share[0]
+        steps["cpu identity"] = steps.get("cpu identity", 0.0) + share[1]
+        steps["_curves"] = result.result.curves
+        steps["_mouth"] = result.result.mouth_error_px
+        out.append((wall * part + share[0], cpu * part + share[1], steps))
+    return out
+
+
 # ---- printing -----------------------------------------------------------------------------------------------------
 
 def print_set(name: str, clips: list[Clip], path: str) -> dict[str, float]:
@@ -348,6 +386,9 @@ def main() -> int:
                              "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'; "
                              "'{\"speaker_identity\": true}': one identity per speaker and image size, fitted once "
                              "(timed, its time shared over the group's clips by frames, in their identity step)")
+    parser.add_argument("--joint", type=int, default=None, metavar="N",
+                        help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
+                             "runs it (landmarks per clip; a group's time shared over its clips by frames)")
     args = parser.parse_args()
     if args.compare_flow or args.compare_config:
         args.compare = True
@@ -376,6 +417,8 @@ def main() -> int:
         update = json.loads(args.compare_config)
         configs = {"before": config, "after": config.model_copy(update=update)}
         label = f"before (default TrackingConfig) -> after ({update})"
+    if not args.compare:
+        configs = {"after": config}          # the default alone (not --compare's other method)
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
@@ -384,9 +427,20 @@ def main() -> int:
         run_clip(clips[0], store, rig, config, mesh)            # warm-up: MediaPipe's and torch's first-use costs
         fitted = {path: fit_identities(clips, store, rig, configs[path], mesh, args.repeats) for path in paths}
         started = time.perf_counter()
+        groups: list[list[Clip]] = []
+        for clip in clips:
+            if args.joint and groups and groups[-1][0].set_name == clip.set_name and len(groups[-1]) < args.joint:
+                groups[-1].append(clip)
+            else:
+                groups.append([clip])
         for r in range(args.repeats):
-            for clip in clips:
+            for group in groups:
                 for path in paths:
+                    if args.joint:
+                        for clip, run in zip(group, run_group(group, store, rig, configs[path], mesh, *fitted[path])):
+                            clip.runs.setdefault(path, []).append(run)
+                        continue
+                    clip = group[0]
                     identity, share = fitted[path][0].get(clip.uid), fitted[path][1].get(clip.uid, (0.0, 0.0))
                     clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], mesh, identity,
                                                                    share))

@@ -525,6 +525,19 @@ def test_a_mediapipe_parquet_file_reads_only_the_68_points_and_equals_the_whole_
         np.testing.assert_array_equal(projected.points, other.points)
         np.testing.assert_array_equal(projected.valid, other.valid)
         assert projected.fps == other.fps and projected.source == other.source == "mediapipe478"
+    # as the landmarks stage stores it: no column statistics or dictionaries, snappy; the same track back
+    import pyarrow.parquet as pq
+
+    from visemeflow.storage import Store
+    from visemeflow.tracking.facemesh import mediapipe478_table, read_mediapipe478
+
+    store = Store(tmp_path / "store")
+    stored = store.write_landmarks("s1/bbaf2n", mediapipe478_table(read_mediapipe478(source)), provenance="test")
+    chunk = pq.ParquetFile(stored).metadata.row_group(0).column(5)
+    assert chunk.compression == "SNAPPY" and not chunk.is_stats_set and not chunk.has_dictionary_page
+    back = read_landmarks(stored)
+    np.testing.assert_array_equal(back.points, projected.points)
+    np.testing.assert_array_equal(back.valid, projected.valid)
     broken = tmp_path / "broken.mediapipe478.parquet"
     table.drop(columns=["y_13"]).to_parquet(broken, index=False)       # y of the upper lip's middle
     with pytest.raises(LandmarkError, match=r"broken.mediapipe478.parquet.*y_13"):
