@@ -63,14 +63,14 @@ def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
     monkeypatch.setattr("visemeflow.flows.runners.run_on_runner", fake_run)
     store = make_curve_store(tmp_path / "s", n=1)   # the command checks the store has utterances first
     result = runner.invoke(app, ["track", "--store", str(store.root), "--shards", "3", "--solver", "faithful",
-                                 "--no-guidance", "--rgb", "--no-flow", "--dask-address", "tcp://127.0.0.1:1",
-                                 "--threads", "2"])
+                                 "--no-guidance", "--rgb", "--no-flow", "--flow-preset", "fast",
+                                 "--dask-address", "tcp://127.0.0.1:1", "--threads", "2"])
     assert result.exit_code == 0, result.output
     params = seen["params"]
     assert isinstance(params, TrackParams)
     assert params == TrackParams(
         store=store.root, n_shards=3,
-        config={"solver": "faithful", "guidance": False, "use_rgb": True, "use_flow": False},
+        config={"solver": "faithful", "guidance": False, "use_rgb": True, "use_flow": False, "flow_preset": "fast"},
         runner={"kind": "dask", "dask_address": "tcp://127.0.0.1:1", "threads": 2})  # an address means dask
 
 
@@ -96,6 +96,9 @@ def test_a_refused_value_is_one_line_naming_its_option(tmp_path):
     bad = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--solver", "quick"])
     assert bad.exit_code == 2
     assert bad.output.strip() == "error: --solver must be one of fast, faithful, not 'quick'"
+    bad = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--flow-preset", "slow"])
+    assert bad.exit_code == 2
+    assert bad.output.strip() == "error: --flow-preset must be one of ultrafast, fast, medium, not 'slow'"
     bad = runner.invoke(app, ["sweep", "--store", str(tmp_path / "s"), "--sizes", "10,x"])
     assert bad.exit_code == 2 and bad.output.startswith("error: --sizes: ") and "\n" == bad.output[-1]
     bad = runner.invoke(app, ["landmarks", "--store", str(tmp_path / "s"), "--max-faces", "1"])
