@@ -136,6 +136,44 @@ def test_the_lock_is_exclusive_across_threads_and_a_dead_holders_lock_expires(bu
     assert 0.9 <= waited < 30   # it waited for the lease (S3 dates objects to the second), then broke the lock
 
 
+def test_a_locks_age_is_judged_on_the_servers_clock_not_the_machines(bucket, monkeypatch):
+    """A machine whose clock runs an hour ahead does not break a live holder's lock, and one an hour behind does
+    not wait an hour on a dead holder's: the lock's age is its object's date against the server's now (a probe
+    object's date), both on the object store's clock."""
+    import types
+
+    import visemeflow.storage.store as store_module
+
+    store = Store(f"s3://{bucket}/clocks")
+    lock_key = f"{store.root.path}/.locks/shard-0002.lock"
+
+    def skewed(seconds: float):
+        monkeypatch.setattr(store_module, "time", types.SimpleNamespace(
+            time=lambda: time.time() + seconds, sleep=time.sleep, monotonic=time.monotonic))
+
+    # an hour ahead, the default lease: the live holder releases after 1.5 s, and only then is the lock ours
+    skewed(3600.0)
+    store.root.fs.pipe_file(lock_key, b"a live holder")
+    releaser = threading.Timer(1.5, lambda: store.root.fs.rm_file(lock_key))
+    releaser.start()
+    started = time.monotonic()
+    with store.locked("shard-0002"):
+        waited = time.monotonic() - started
+        assert store.root.fs.cat_file(lock_key) != b"a live holder"
+    releaser.join()
+    assert waited >= 1.4
+    # an hour behind, a 2-s lease: a dead holder's lock is broken after about the lease, not after an hour
+    skewed(-3600.0)
+    monkeypatch.setattr(store_module, "LOCK_LEASE_S", 2.0)
+    store.root.fs.pipe_file(lock_key, b"a dead process")
+    started = time.monotonic()
+    with store.locked("shard-0002"):
+        waited = time.monotonic() - started
+    assert 0.9 <= waited < 30
+    keys = store.root.fs.find(f"{store.root.path}/.locks")
+    assert keys == []   # the lock released, no clock probe left
+
+
 def _replace_rows(url: str, worker: int, n: int) -> None:
     store = Store(url)
     for i in range(n):

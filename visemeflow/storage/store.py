@@ -179,7 +179,13 @@ def _read_schema(path: Path) -> pa.Schema:
 
 LOCK_LEASE_S = float(os.environ.get("VISEMEFLOW_LOCK_LEASE_S", "600"))
 """A lock object of a store on object storage older than this is taken for a dead holder's and removed (no pid can
-be checked across machines). The locked sections are short (one shard file read and written back)."""
+be checked across machines). The locked sections are short (one shard file read and written back). Its age is
+judged on the object store's clock (`Store._server_clock_skew`), not the machines'."""
+
+
+def _timestamp(moment) -> float:
+    """POSIX seconds of an object's date (fsspec gives datetimes, naive ones in UTC)."""
+    return moment.timestamp() if moment.tzinfo else moment.replace(tzinfo=timezone.utc).timestamp()
 
 
 class Store:
@@ -540,17 +546,19 @@ class Store:
         fs, key = self.root.fs, lock_path.path
         token = f"{socket.gethostname()} {os.getpid()} {secrets.token_hex(8)}".encode()
         delay = 0.02
+        skew: float | None = None      # the server's clock minus this machine's, learnt when a lock is met
         while True:
             try:
                 fs.pipe_file(key, token, mode="create")
                 break
             except FileExistsError:
                 try:
-                    modified = fs.modified(key)
+                    stamp = _timestamp(fs.modified(key))
                 except FileNotFoundError:
                     continue   # released between the two calls
-                stamp = modified.timestamp() if modified.tzinfo else modified.replace(tzinfo=timezone.utc).timestamp()
-                if time.time() - stamp > LOCK_LEASE_S:
+                if skew is None:
+                    skew = self._server_clock_skew(lock_path)
+                if time.time() + skew - stamp > LOCK_LEASE_S:
                     fs.rm_file(key)   # a dead holder's: whoever creates it next holds it
                     continue
                 time.sleep(delay)
@@ -563,6 +571,23 @@ class Store:
             try:
                 if fs.cat_file(key) == token:   # never another holder's (ours may have been broken as stale)
                     fs.rm_file(key)
+            except FileNotFoundError:
+                pass
+
+    def _server_clock_skew(self, lock_path: Path) -> float:
+        """Seconds the object store's clock is ahead of this machine's: a lock's age is its object's date (the
+        server's clock) against the server's now, so machines whose clocks disagree neither break a live lock
+        nor wait on a dead one longer than the lease. Measured with one probe object (written, dated, removed)
+        per contended lock; to the second, as S3 dates objects."""
+        fs, key = self.root.fs, f"{lock_path.path}.clock-{secrets.token_hex(6)}"
+        before = time.time()
+        fs.pipe_file(key, b"")
+        after = time.time()
+        try:
+            return _timestamp(fs.modified(key)) - 0.5 * (before + after)
+        finally:
+            try:
+                fs.rm_file(key)
             except FileNotFoundError:
                 pass
 
