@@ -451,11 +451,12 @@ class _Joined:
             opt = torch.optim.Adam([rotation, translation], lr=0.02)
             target = self.target * self.scale
             written = _Gradient(self) if gradient == "analytic" else None
+            planar = points.transpose(1, 2).contiguous()
             for _ in range(config.pose_iterations):
                 opt.zero_grad()
                 if written is not None:
                     with torch.no_grad():
-                        _, rotation.grad, translation.grad = written.pose_only(points, beta, rotation, translation)
+                        _, rotation.grad, translation.grad = written.pose_only(planar, beta, rotation, translation)
                 else:
                     projected = project(points, rotation, translation, self.camera) * self.scale
                     loss = landmark_loss(projected, target, self.valid, beta).sum()
@@ -558,13 +559,13 @@ class _Gradient:
         twice = 2.0 * weight * self.scale
         return value, twice * res_u, twice * res_v
 
-    def pose_only(self, mesh: torch.Tensor, beta: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor
+    def pose_only(self, planar: torch.Tensor, beta: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor
                   ) -> tuple[float, torch.Tensor, torch.Tensor]:
-        """The rigid start's objective (landmarks with weights `beta`, the vertices `mesh` (T, K, 3) fixed) and its
-        pose gradients."""
+        """The rigid start's objective (landmarks with weights `beta`, the vertices `planar` (T, 3, K) fixed) and
+        its pose gradients."""
         weight = beta * self.joined.valid.to(beta.dtype)
         weight = weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
-        proj = _Projection(mesh.transpose(1, 2).contiguous(), rot, rotation_matrices(rot), trans, self.joined.camera)
+        proj = _Projection(planar, rot, rotation_matrices(rot), trans, self.joined.camera)
         value, g_u, g_v = self._landmarks(proj, weight)
         _, g_rot, g_trans = proj.pull(g_u, g_v)
         return float(value), g_rot, g_trans
