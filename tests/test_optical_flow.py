@@ -557,6 +557,30 @@ def test_large_roi_is_shrunk_and_queries_stay_in_image_pixels():
         assert np.abs(b[okb] + want).max() < 0.5
 
 
+def test_all_correspondences_at_once_equal_the_per_frame_queries(field):
+    """The fast solver refreshes its correspondences with one `all_correspondences` call per clip; it is exactly
+    `correspondences(j, points[j - 1])` for every j, inside the ROI and out, NaN points, masked pixels, on a field
+    shrunk to max_roi_px and one at native size, and refuses points of another number of pairs."""
+    rng = np.random.default_rng(4)
+    big = texture(400, 480, seed=6, sigma=8.0)
+    frames = [shifted(big, *m) for m in ((0.0, 0.0), (3.0, -1.5), (5.5, 0.5), (4.0, 2.0))]
+    shrunk = estimate_optical_flow(frames, FlowConfig(max_roi_px=120), roi=(40, 30, 380, 300))
+    assert shrunk.scale < 1.0
+    for flow in (field, shrunk):
+        pts = np.stack([rng.uniform(-20, flow.width + 20, (flow.n_pairs, 60)),
+                        rng.uniform(-20, flow.height + 20, (flow.n_pairs, 60))], axis=-1)
+        pts[0, 3] = np.nan
+        disp, ok = flow.all_correspondences(pts)
+        assert disp.dtype == np.float32 and ok.shape == (flow.n_pairs, 60)
+        assert 0 < ok.sum() < ok.size                  # some outside the ROI or masked
+        for j in range(1, flow.n_frames):
+            one, one_ok = flow.correspondences(j, pts[j - 1])
+            np.testing.assert_array_equal(disp[j - 1], one)
+            np.testing.assert_array_equal(ok[j - 1], one_ok)
+        with pytest.raises(ValueError, match="one row of points per frame pair"):
+            flow.all_correspondences(pts[:-1])
+
+
 def test_frames_may_come_one_at_a_time():
     frames = moving_frames()
     whole = estimate_optical_flow(frames)

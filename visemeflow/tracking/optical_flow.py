@@ -291,29 +291,36 @@ def sample_flow(flow: np.ndarray, valid: np.ndarray | None, points) -> tuple[np.
         valid = np.asarray(valid, dtype=bool)
         if valid.shape != (h, w):
             raise ValueError(f"valid must be {(h, w)}, got {valid.shape}")
-    pts = _as_points(points)
-    n = len(pts)
-    out = np.zeros((n, 2), dtype=np.float32)
-    ok = np.isfinite(pts).all(axis=1)
-    ok &= (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
-    idx = np.flatnonzero(ok)
+    out, ok = _sample_flows(flow[None], None if valid is None else valid[None], _as_points(points)[None])
+    return out[0], ok[0]
+
+
+def _sample_flows(flows: np.ndarray, valid: np.ndarray | None, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`sample_flow` of P flows (P, H, W, 2) at their own points (P, N, 2) float64 in one pass (the same
+    arithmetic): ((P, N, 2) float32, (P, N) bool)."""
+    p, n = pts.shape[:2]
+    h, w = flows.shape[1:3]
+    out = np.zeros((p, n, 2), dtype=np.float32)
+    ok = np.isfinite(pts).all(axis=2)
+    ok &= (pts[..., 0] >= 0) & (pts[..., 0] <= w - 1) & (pts[..., 1] >= 0) & (pts[..., 1] <= h - 1)
+    pair, idx = np.nonzero(ok)
     if len(idx) == 0:
         return out, ok
-    x, y = pts[idx, 0], pts[idx, 1]
+    x, y = pts[pair, idx, 0], pts[pair, idx, 1]
     x0 = np.minimum(np.floor(x).astype(np.intp), w - 1)
     y0 = np.minimum(np.floor(y).astype(np.intp), h - 1)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     ax, ay = (x - x0)[:, None], (y - y0)[:, None]
-    f00 = flow[y0, x0].astype(np.float64)
-    f01 = flow[y0, x1].astype(np.float64)
-    f10 = flow[y1, x0].astype(np.float64)
-    f11 = flow[y1, x1].astype(np.float64)
+    f00 = flows[pair, y0, x0].astype(np.float64)
+    f01 = flows[pair, y0, x1].astype(np.float64)
+    f10 = flows[pair, y1, x0].astype(np.float64)
+    f11 = flows[pair, y1, x1].astype(np.float64)
     val = (1 - ay) * ((1 - ax) * f00 + ax * f01) + ay * ((1 - ax) * f10 + ax * f11)
     good = np.isfinite(val).all(axis=1)
     if valid is not None:
-        good &= valid[y0, x0] & valid[y0, x1] & valid[y1, x0] & valid[y1, x1]
-    ok[idx] = good
-    out[idx[good]] = val[good].astype(np.float32)
+        good &= valid[pair, y0, x0] & valid[pair, y0, x1] & valid[pair, y1, x0] & valid[pair, y1, x1]
+    ok[pair, idx] = good
+    out[pair[good], idx[good]] = val[good].astype(np.float32)
     return out, ok
 
 
@@ -367,6 +374,21 @@ class FlowField:
             return sample_flow(flow, valid, pts - np.array([x0, y0], dtype=np.float64))
         # pixel centres: image pixel p covers array pixel (p + 0.5) * scale - 0.5
         u, ok = sample_flow(flow, valid, (pts - np.array([x0, y0], dtype=np.float64) + 0.5) * self.scale - 0.5)
+        return (u / self.scale).astype(np.float32), ok
+
+    def all_correspondences(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """`correspondences(j, points[j - 1])` for every frame j >= 1 at once: points (T-1, N, 2) of frames 0..T-2
+        (full-image pixels) -> ((T-1, N, 2) float32 displacements, (T-1, N) bool), equal to the per-frame calls (one
+        pass of NumPy instead of T-1: the fast solver asks at every refresh of its correspondences)."""
+        pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points,
+                         dtype=np.float64)
+        if pts.ndim != 3 or pts.shape[0] != self.n_pairs or pts.shape[2] != 2:
+            raise ValueError(f"points must be ({self.n_pairs}, N, 2), one row of points per frame pair, got "
+                             f"{pts.shape}")
+        shift = np.array(self.roi[:2], dtype=np.float64)
+        if self.scale == 1.0:
+            return _sample_flows(self.forward, self.forward_valid, pts - shift)
+        u, ok = _sample_flows(self.forward, self.forward_valid, (pts - shift + 0.5) * self.scale - 0.5)
         return (u / self.scale).astype(np.float32), ok
 
     def correspondences(self, j: int, points_prev) -> tuple[np.ndarray, np.ndarray]:

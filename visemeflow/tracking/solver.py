@@ -59,11 +59,14 @@ class FlowTerm:
 
     `correspond(j, points)` gives (displacement (N, 2), valid (N,)) from frame j-1 to frame j for the pixel
     positions `points` (N, 2) in frame j-1; `correspond_back(j, points)` from frame j+1 to frame j.
+    `correspond_all(points)`, where given, is `correspond` of every frame j >= 1 at once: points (T-1, N, 2) of
+    frames 0..T-2 -> ((T-1, N, 2), (T-1, N)) (`FlowField.all_correspondences`).
     """
 
     vertex_ids: np.ndarray
     correspond: Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
     correspond_back: Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    correspond_all: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
 
 class RgbTerm(Protocol):
@@ -815,13 +818,19 @@ class _LeastSquares:
         """Correspondences from frame j-1's current projections, as `_FastFlow.refresh` makes them."""
         proj, _ = self.flow.project(x, rot, trans, self.cam, jacobian=False)
         proj = proj.astype(np.float32).astype(np.float64)
-        disp, valid = [], []
-        for j in range(1, self.problem.n_frames):
-            d, ok = self.problem.flow.correspond(j, proj[j - 1])
-            disp.append(np.where(ok[:, None], d, 0.0))
-            valid.append(ok)
-        self.disp = np.stack(disp).astype(np.float64)
-        ok = np.stack(valid).astype(np.float64)
+        flow = self.problem.flow
+        if flow.correspond_all is not None:
+            d, ok = flow.correspond_all(proj[:-1])
+            self.disp = np.where(ok[..., None], d, 0.0).astype(np.float64)
+            ok = ok.astype(np.float64)
+        else:
+            disp, valid = [], []
+            for j in range(1, self.problem.n_frames):
+                d, ok = flow.correspond(j, proj[j - 1])
+                disp.append(np.where(ok[:, None], d, 0.0))
+                valid.append(ok)
+            self.disp = np.stack(disp).astype(np.float64)
+            ok = np.stack(valid).astype(np.float64)
         self.flow_w = self.w_flow * ok / np.maximum(ok.sum(axis=1, keepdims=True), 1)      # (T-1, N)
 
     def value(self, x: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> float:
@@ -1031,6 +1040,10 @@ class _FastFlow:
         valid = np.zeros((t - 1, width), bool)
         for problem, sl, on, n in zip(self.joined.problems, self.joined.slices(), self.with_flow, self.n_ids):
             if not on:
+                continue
+            if problem.flow.correspond_all is not None:   # pairs (k, k + 1) of the whole for k in the problem
+                disp[sl.start:sl.stop - 1, :n], valid[sl.start:sl.stop - 1, :n] = problem.flow.correspond_all(
+                    proj[sl.start:sl.stop - 1, :n])
                 continue
             for j in range(1, problem.n_frames):
                 k = sl.start + j - 1            # the pair (k, k + 1) of the whole

@@ -291,7 +291,8 @@ def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack
     roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
     flow = estimate_optical_flow(itertools.chain([first], it), config or FlowConfig(), roi)
     valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, flow.n_frames)], np.float32)
-    return FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences), valid_fraction
+    return (FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences,
+                     flow.all_correspondences), valid_fraction)
 
 
 def _counted(frames: Iterable[np.ndarray], seen: Callable[[int], None]) -> Iterator[np.ndarray]:
