@@ -29,8 +29,9 @@ class TrackingConfig(BaseModel):
     use_flow: bool = Field(True, description="Include L_flow (needs the video frames).")
     flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
         "medium", description="DIS optical-flow preset of L_flow (`tracking.optical_flow.FlowConfig.preset`). "
-                              "fast: the speed setting, end to end per core GRID 47 -> 62 frames/s, 700x700 talking "
-                              "heads 32 -> 50 (bench/end_to_end.py --joint 5 --compare-flow fast:256), at a cost: "
+                              "fast: the speed setting, end to end per core GRID 47-54 -> 62-70 frames/s, 700x700 "
+                              "talking heads 32 -> 50-51 (two runs of bench/end_to_end.py --joint 5 --compare-flow "
+                              "fast:256), at a cost: "
                               "mouth error 1.410 -> 1.420 px and 2.741 -> 2.762 px, MBP 14/14 both; on synthetic "
                               "takes with known curves L1 x 100 5.135 -> 5.174 (no flow: 5.620), so medium stays "
                               "the default.")
