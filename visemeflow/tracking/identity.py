@@ -260,13 +260,14 @@ class _Problem:
         mesh = scale * shape
         cam = mesh @ rmat.transpose(1, 2) + translation[:, None, :]                # (T, L, 3)
         depth = (-cam[..., 2]).clamp_min(1e-6)
+        in_front = (-cam[..., 2] > 1e-6).to(cam.dtype)                            # where the clamp passes z on
         focal = torch.exp(log_focal)
         inv = 1.0 / depth
         d = cam.new_zeros(t, n_points, 2, 3)                                       # d pixel / d camera point
         d[..., 0, 0] = focal * inv
-        d[..., 0, 2] = focal * cam[..., 0] * inv * inv
+        d[..., 0, 2] = focal * cam[..., 0] * inv * inv * in_front
         d[..., 1, 1] = -focal * inv
-        d[..., 1, 2] = -focal * cam[..., 1] * inv * inv
+        d[..., 1, 2] = -focal * cam[..., 1] * inv * inv * in_front
         d = d * (self.sqrt_w / self.sigma_px / self.sqrt_frames)[..., None]       # as the residuals weigh them
         d_mesh = d @ rmat[:, None]                                                 # (T, L, 2, 3) per mesh offset
         d_rot = -d_mesh @ cross_matrices(mesh)[None] @ right_jacobian(rotation)[:, None]
@@ -276,6 +277,7 @@ class _Problem:
         data = jac[:rows_data].view(t, n_points, 2, -1)
         data[..., :k] = scale * torch.einsum("tlpd,kld->tlpk", d_mesh, self.basis)
         data[..., k] = torch.einsum("tlpd,ld->tlp", d_mesh, mesh)
+        # frame j's rows get its own pose's columns only: rotation at k + 1 + 3j.., translation 3T further
         frames = torch.arange(t)
         rot_cols = k + 1 + 3 * frames[:, None] + torch.arange(3)[None]              # (T, 3)
         data[frames[:, None, None, None], torch.arange(n_points)[None, :, None, None],

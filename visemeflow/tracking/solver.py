@@ -630,7 +630,10 @@ class _Gradient:
 
 def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_step: OnStep | None = None,
                  device: torch.device = torch.device("cpu"), gradient: str = "analytic") -> list[TrackingResult]:
-    """Adam with cosine decay on all frames of `problems` at once (see `solve_fast_many`)."""
+    """Adam with cosine decay on all frames of `problems` at once (see `solve_fast_many`); `gradient`: "analytic"
+    (`_Gradient`, the default) or "autograd" (through the loss terms: the reference it is tested against)."""
+    if gradient not in ("analytic", "autograd"):
+        raise ValueError(f"gradient must be analytic or autograd, got {gradient!r}")
     started = time.perf_counter()
     joined = _Joined(problems, config, device)
     cfg = joined.objs[0].config
