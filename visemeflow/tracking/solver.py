@@ -473,21 +473,25 @@ class _Planar:
     contiguous row, so that the pose is one (3, 3) @ (3, N) product per frame and every element-wise step runs
     over contiguous memory (slicing the last axis of (T, N, 3) made each of them several times slower)."""
 
-    def __init__(self, joined: "_Joined", ids: list[np.ndarray] | np.ndarray):
+    def __init__(self, parts: list[tuple[VisemeRig, np.ndarray, slice]], device: torch.device):
+        """`parts`: (rig, vertex ids, the frames it holds) for each run of frames sharing a rig."""
         from visemeflow.rig.model import rig_tensors
 
-        self.joined = joined
-        per = [ids] if isinstance(ids, np.ndarray) and joined.one_rig else (
-            ids if isinstance(ids, list) else [ids] * len(joined.problems))
-        rigs = [joined.problems[0].rig] if len(per) == 1 else [p.rig for p in joined.problems]
-        self.parts = []
-        for rig, i in zip(rigs, per):
-            basis, offset = rig_tensors(rig, joined.device).basis(np.asarray(i, dtype=np.int64).reshape(-1))
+        self.parts, self.slices = [], [sl for _, _, sl in parts]
+        for rig, ids, _ in parts:
+            basis, offset = rig_tensors(rig, device).basis(np.asarray(ids, dtype=np.int64).reshape(-1))
             n = basis.shape[1] // 3
             self.parts.append((basis.reshape(N_VISEMES, n, 3).transpose(1, 2).reshape(N_VISEMES, 3 * n).contiguous(),
                                offset.reshape(n, 3).T.reshape(-1).contiguous()))
         self.n = self.parts[0][0].shape[1] // 3
-        self.slices = [slice(0, joined.n_frames)] if len(self.parts) == 1 else joined.slices()
+
+    @classmethod
+    def of(cls, joined: "_Joined", ids: list[np.ndarray] | np.ndarray) -> "_Planar":
+        """The vertices `ids` (one array for all problems, or one per problem) of joined problems."""
+        if isinstance(ids, np.ndarray) and joined.one_rig:
+            return cls([(joined.problems[0].rig, ids, slice(0, joined.n_frames))], joined.device)
+        per = ids if isinstance(ids, list) else [ids] * len(joined.problems)
+        return cls([(p.rig, i, sl) for p, i, sl in zip(joined.problems, per, joined.slices())], joined.device)
 
     def points(self, x: torch.Tensor) -> torch.Tensor:
         """(T, 3, N) vertices for the weights x (T, 16)."""
@@ -542,7 +546,7 @@ class _Gradient:
         self.joined = joined
         c = joined.config
         self.c = c
-        self.landmarks = _Planar(joined, joined.ids)
+        self.landmarks = _Planar.of(joined, joined.ids)
         self.flow_points: _Planar | None = None
         scale = joined.scale
         self.scale = scale if isinstance(scale, float) else scale[:, :, 0]              # (T, 1) or a float
@@ -601,7 +605,7 @@ class _Gradient:
             gx = gx + torch.cat([-g_step, zero]) + torch.cat([zero, g_step])
         if flow is not None:
             if self.flow_points is None:
-                self.flow_points = _Planar(joined, flow.ids)
+                self.flow_points = _Planar.of(joined, flow.ids)
             f_value, f_x, f_rot, f_trans = self._flow(flow, x, rot, rmat, trans)
             value, gx, g_rot, g_trans = value + f_value, gx + f_x, g_rot + f_rot, g_trans + f_trans
         return float(value), gx, g_rot, g_trans
@@ -1072,11 +1076,16 @@ class _FastFlow:
 
 
 def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingConfig(),
-                   on_step: OnStep | None = None) -> TrackingResult:
-    """The paper's schedule: per frame, Adam (lr 0.1, x0.9 every 10 iterations), forward then backward pass."""
+                   on_step: OnStep | None = None, gradient: str = "analytic") -> TrackingResult:
+    """The paper's schedule: per frame, Adam (lr 0.1, x0.9 every 10 iterations), forward then backward pass.
+    `gradient`: "analytic" (`_FrameGradient`; with L_rgb autograd) or "autograd" (the reference)."""
+    if gradient not in ("analytic", "autograd"):
+        raise ValueError(f"gradient must be analytic or autograd, got {gradient!r}")
     check_problem(problem)
     started = time.perf_counter()
     obj = _Objective(problem, config)
+    written = (_FrameGradient(problem, obj)
+               if gradient == "analytic" and not (obj.config.w_rgb and problem.rgb is not None) else None)
     rot0, trans0 = initial_pose(problem, config)
     t = problem.n_frames
     x_all = torch.tensor(problem.procedural, dtype=torch.float32)
@@ -1092,15 +1101,77 @@ def solve_faithful(problem: TrackingProblem, config: TrackingConfig = TrackingCo
             if on_step is not None:
                 on_step(solved, t * len(config.passes))
             solved += 1
-            frame_terms = _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, direction)
+            frame_terms = _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, direction,
+                                       written)
             for k, v in frame_terms.items():
                 terms_all.setdefault(k, np.zeros(t, np.float32))[j] = v
             prev_j = j
     return _finish(problem, x_all, rot_all, trans_all, terms_all, started, config.iterations * t * len(config.passes))
 
 
-def _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, direction) -> dict[str, float]:
-    """Optimise frame j in place (x_all, rot_all, trans_all hold the current solution of every frame)."""
+class _FrameGradient:
+    """`_frame_objective` of one frame without L_rgb, weighted and summed, and its gradient written out (no
+    autograd): the faithful solver's 250 steps per frame, each on one frame's tiny tensors, were all autograd
+    bookkeeping. Equal to autograd through `_frame_objective` to float rounding (tests/test_tracking.py)."""
+
+    def __init__(self, problem: TrackingProblem, obj: _Objective):
+        self.problem, self.obj, c = problem, obj, obj.config
+        self.c = c
+        self.landmarks = _Planar([(problem.rig, obj.ids, slice(0, 1))], torch.device("cpu"))
+        self.flow_points = None if obj.flow_ids is None else _Planar(
+            [(problem.rig, obj.flow_ids, slice(0, 1))], torch.device("cpu"))
+        weight = obj.beta * obj.valid.to(obj.beta.dtype)
+        self.lmk_w = c.w_lmk * weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)     # (T, K)
+        sup, act = obj.suppress.float(), obj.activate.float()
+        self.guide = (c.w_sup * sup / sup.sum(-1, keepdim=True).clamp_min(1.0)
+                      - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0)) if (c.w_sup or c.w_act) else None
+        target = obj.target * obj.scale
+        self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
+
+    def __call__(self, j: int, x, rot, trans, prev_x, flow) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(objective, d/dx (1, 16), d/drot (1, 3), d/dtrans (1, 3)) of frame j; `prev_x` and `flow` as
+        `_frame_objective` takes them (the neighbour held fixed)."""
+        c, s, camera = self.c, self.obj.scale, self.problem.camera
+        rmat = rotation_matrices(rot)
+        proj = _Projection(self.landmarks.points(x), rot, rmat, trans, camera)
+        res_u = proj.u * s - self.target_u[j:j + 1]
+        res_v = proj.v * s - self.target_v[j:j + 1]
+        weight = self.lmk_w[j:j + 1]
+        value = (weight * (res_u * res_u + res_v * res_v)).sum()
+        g_points, g_rot, g_trans = proj.pull(2.0 * weight * res_u * s, 2.0 * weight * res_v * s)
+        gx = self.landmarks.weights_gradient(g_points)
+        if self.guide is not None:
+            guide = self.guide[j:j + 1]
+            value = value + (guide * x * x).sum()
+            gx = gx + 2.0 * guide * x
+        if c.w_range:
+            upper, lower = (x > 1).float(), (x < 0).float()
+            n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
+            value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
+            gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+        if prev_x is not None and c.w_diff:
+            step = x - prev_x
+            value = value + c.w_diff * (step * step).sum() / N_VISEMES
+            gx = gx + 2.0 * c.w_diff * step / N_VISEMES
+        if flow is not None and c.w_flow:
+            prev_proj, disp, valid = flow                     # (1, N, 2) each, (1, N)
+            fproj = _Projection(self.flow_points.points(x), rot, rmat, trans, camera)
+            ok = valid.to(fproj.u.dtype)
+            du = torch.nan_to_num(disp[..., 0]) * ok
+            dv = torch.nan_to_num(disp[..., 1]) * ok
+            diff_u = (fproj.u - prev_proj[..., 0] - du) * s * ok
+            diff_v = (fproj.v - prev_proj[..., 1] - dv) * s * ok
+            per = c.w_flow / valid.sum(-1, keepdim=True).clamp_min(1).to(diff_u.dtype)
+            value = value + (per * (diff_u * diff_u + diff_v * diff_v)).sum()
+            f_points, f_rot, f_trans = fproj.pull(2.0 * per * diff_u * s, 2.0 * per * diff_v * s)
+            gx, g_rot, g_trans = gx + self.flow_points.weights_gradient(f_points), g_rot + f_rot, g_trans + f_trans
+        return float(value), gx, g_rot, g_trans
+
+
+def _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, direction,
+                 written: _FrameGradient | None = None) -> dict[str, float]:
+    """Optimise frame j in place (x_all, rot_all, trans_all hold the current solution of every frame); `written`:
+    the frame's gradient written out (without L_rgb), else autograd."""
     frames = np.array([j])
     x = x_all[j:j + 1].clone().requires_grad_(True)
     if prev_j is not None:
@@ -1123,11 +1194,17 @@ def _solve_frame(problem, obj, config, j, prev_j, x_all, rot_all, trans_all, dir
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=10, gamma=config.lr_decay)
     for _ in range(config.iterations):
         opt.zero_grad()
-        terms = _frame_objective(problem, obj, frames, x, rot, trans, prev_x, flow)
-        loss = obj.weighted(terms).sum()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite tracking loss at frame {j}")
-        loss.backward()
+        if written is not None:
+            with torch.no_grad():
+                value, x.grad, rot.grad, trans.grad = written(j, x, rot, trans, prev_x, flow)
+            if not math.isfinite(value):
+                raise FloatingPointError(f"non-finite tracking loss at frame {j}")
+        else:
+            terms = _frame_objective(problem, obj, frames, x, rot, trans, prev_x, flow)
+            loss = obj.weighted(terms).sum()
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"non-finite tracking loss at frame {j}")
+            loss.backward()
         opt.step()
         sched.step()
         if config.box == "projected":
