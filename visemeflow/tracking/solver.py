@@ -535,6 +535,33 @@ class _Projection:
         return g_points, g_rot, g_cam.sum(-1)
 
 
+def _weights_of(c: TrackingConfig, beta: torch.Tensor, valid: torch.Tensor, suppress: torch.Tensor,
+                activate: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Per frame and point, w_lmk times L_lmk's normalised weights (T, K); per frame and viseme, the factor g of
+    w_sup L_sup + w_act L_act = sum g x^2 (T, 16), None without guidance."""
+    weight = beta * valid.to(beta.dtype)
+    lmk = c.w_lmk * weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
+    if not (c.w_sup or c.w_act):
+        return lmk, None
+    sup, act = suppress.float(), activate.float()
+    return lmk, (c.w_sup * sup / sup.sum(-1, keepdim=True).clamp_min(1.0)
+                 - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0))
+
+
+def _weight_terms(c: TrackingConfig, x: torch.Tensor, guide: torch.Tensor | None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(value, d/dx) of the terms on the weights alone: guidance (`guide` from `_weights_of`) and w_range L_range."""
+    value, gx = x.new_zeros(()), torch.zeros_like(x)
+    if guide is not None:
+        value, gx = (guide * x * x).sum(), 2.0 * guide * x
+    if c.w_range:
+        upper, lower = (x > 1).float(), (x < 0).float()
+        n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
+        value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
+        gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+    return value, gx
+
+
 class _Gradient:
     """Eq. 1 of joined problems and its gradient written out (no autograd): the fast Adam path's step.
 
@@ -550,11 +577,7 @@ class _Gradient:
         self.flow_points: _Planar | None = None
         scale = joined.scale
         self.scale = scale if isinstance(scale, float) else scale[:, :, 0]              # (T, 1) or a float
-        weight = joined.beta * joined.valid.to(joined.beta.dtype)
-        self.lmk_w = c.w_lmk * weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)      # (T, K)
-        sup, act = joined.suppress.float(), joined.activate.float()
-        self.guide = (c.w_sup * sup / sup.sum(-1, keepdim=True).clamp_min(1.0)
-                      - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0)) if (c.w_sup or c.w_act) else None
+        self.lmk_w, self.guide = _weights_of(c, joined.beta, joined.valid, joined.suppress, joined.activate)
         target = joined.target * joined.scale
         self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
 
@@ -585,15 +608,8 @@ class _Gradient:
         proj = _Projection(self.landmarks.points(x), rot, rmat, trans, joined.camera)
         value, g_u, g_v = self._landmarks(proj, self.lmk_w)
         g_points, g_rot, g_trans = proj.pull(g_u, g_v)
-        gx = self.landmarks.weights_gradient(g_points)
-        if self.guide is not None:
-            value = value + (self.guide * x * x).sum()
-            gx = gx + 2.0 * self.guide * x
-        if c.w_range:
-            upper, lower = (x > 1).float(), (x < 0).float()
-            n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
-            value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
-            gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+        w_value, w_gx = _weight_terms(c, x, self.guide)
+        value, gx = value + w_value, self.landmarks.weights_gradient(g_points) + w_gx
         if joined.n_frames > 1 and c.w_diff:
             step = x[1:] - x[:-1]
             if joined.inside is not None:
@@ -1120,11 +1136,7 @@ class _FrameGradient:
         self.landmarks = _Planar([(problem.rig, obj.ids, slice(0, 1))], torch.device("cpu"))
         self.flow_points = None if obj.flow_ids is None else _Planar(
             [(problem.rig, obj.flow_ids, slice(0, 1))], torch.device("cpu"))
-        weight = obj.beta * obj.valid.to(obj.beta.dtype)
-        self.lmk_w = c.w_lmk * weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)     # (T, K)
-        sup, act = obj.suppress.float(), obj.activate.float()
-        self.guide = (c.w_sup * sup / sup.sum(-1, keepdim=True).clamp_min(1.0)
-                      - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0)) if (c.w_sup or c.w_act) else None
+        self.lmk_w, self.guide = _weights_of(c, obj.beta, obj.valid, obj.suppress, obj.activate)
         target = obj.target * obj.scale
         self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
 
@@ -1139,16 +1151,8 @@ class _FrameGradient:
         weight = self.lmk_w[j:j + 1]
         value = (weight * (res_u * res_u + res_v * res_v)).sum()
         g_points, g_rot, g_trans = proj.pull(2.0 * weight * res_u * s, 2.0 * weight * res_v * s)
-        gx = self.landmarks.weights_gradient(g_points)
-        if self.guide is not None:
-            guide = self.guide[j:j + 1]
-            value = value + (guide * x * x).sum()
-            gx = gx + 2.0 * guide * x
-        if c.w_range:
-            upper, lower = (x > 1).float(), (x < 0).float()
-            n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
-            value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
-            gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+        w_value, w_gx = _weight_terms(c, x, None if self.guide is None else self.guide[j:j + 1])
+        value, gx = value + w_value, self.landmarks.weights_gradient(g_points) + w_gx
         if prev_x is not None and c.w_diff:
             step = x - prev_x
             value = value + c.w_diff * (step * step).sum() / N_VISEMES
