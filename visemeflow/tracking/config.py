@@ -39,7 +39,9 @@ class TrackingConfig(BaseModel):
         256, ge=16, description="L_flow: the face region is shrunk until its longer side is at most this many pixels "
                                 "before DIS runs (`FlowConfig.max_roi_px`; None: native size). 256 instead of 480: "
                                 "1.7x the flow's frames/s on 700x700 talking heads, mouth keypoint error 2.730 -> "
-                                "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow).")
+                                "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow). "
+                                "192: talking heads end to end 31.8 -> 40.0 frames/s per core, mouth error 2.741 -> "
+                                "2.747 px (--joint 5 --compare-flow medium:192).")
     speaker_identity: bool = Field(
         False, description="Fit the face (ICT identity modes) and camera focal length of real video once per speaker "
                            "and image size, on neutral frames pooled from `identity_clips` of the speaker's clips, "
