@@ -557,7 +557,10 @@ class Store:
                 except FileNotFoundError:
                     continue   # released between the two calls
                 if skew is None:
-                    skew = self._server_clock_skew(lock_path)
+                    try:
+                        skew = self._server_clock_skew(lock_path)
+                    except OSError as exc:
+                        raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc}") from exc
                 if time.time() + skew - stamp > LOCK_LEASE_S:
                     fs.rm_file(key)   # a dead holder's: whoever creates it next holds it
                     continue
