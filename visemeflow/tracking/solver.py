@@ -548,6 +548,16 @@ def _weights_of(c: TrackingConfig, beta: torch.Tensor, valid: torch.Tensor, supp
                  - c.w_act * act / act.sum(-1, keepdim=True).clamp_min(1.0))
 
 
+def _landmark_term(proj: _Projection, scale, target_u: torch.Tensor, target_v: torch.Tensor, weight: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(value, g_u, g_v) of w_lmk L_lmk: pixels times `scale` against the scaled targets (T, K) each, with the
+    per-point weights `weight` (T, K) from `_weights_of`, zero where a landmark is missing."""
+    res_u = proj.u * scale - target_u
+    res_v = proj.v * scale - target_v
+    twice = 2.0 * weight * scale
+    return (weight * (res_u * res_u + res_v * res_v)).sum(), twice * res_u, twice * res_v
+
+
 def _weight_terms(c: TrackingConfig, x: torch.Tensor, guide: torch.Tensor | None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """(value, d/dx) of the terms on the weights alone: guidance (`guide` from `_weights_of`) and w_range L_range."""
@@ -581,14 +591,6 @@ class _Gradient:
         target = joined.target * joined.scale
         self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
 
-    def _landmarks(self, proj: _Projection, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(value, g_u, g_v) of the landmark term with per-point weights `weight` (T, K), zero where not valid."""
-        res_u = proj.u * self.scale - self.target_u
-        res_v = proj.v * self.scale - self.target_v
-        value = (weight * (res_u * res_u + res_v * res_v)).sum()
-        twice = 2.0 * weight * self.scale
-        return value, twice * res_u, twice * res_v
-
     def pose_only(self, planar: torch.Tensor, beta: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor
                   ) -> tuple[float, torch.Tensor, torch.Tensor]:
         """The rigid start's objective (landmarks with weights `beta`, the vertices `planar` (T, 3, K) fixed) and
@@ -596,7 +598,7 @@ class _Gradient:
         weight = beta * self.joined.valid.to(beta.dtype)
         weight = weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
         proj = _Projection(planar, rot, rotation_matrices(rot), trans, self.joined.camera)
-        value, g_u, g_v = self._landmarks(proj, weight)
+        value, g_u, g_v = _landmark_term(proj, self.scale, self.target_u, self.target_v, weight)
         _, g_rot, g_trans = proj.pull(g_u, g_v)
         return float(value), g_rot, g_trans
 
@@ -606,7 +608,7 @@ class _Gradient:
         joined, c = self.joined, self.c
         rmat = rotation_matrices(rot)
         proj = _Projection(self.landmarks.points(x), rot, rmat, trans, joined.camera)
-        value, g_u, g_v = self._landmarks(proj, self.lmk_w)
+        value, g_u, g_v = _landmark_term(proj, self.scale, self.target_u, self.target_v, self.lmk_w)
         g_points, g_rot, g_trans = proj.pull(g_u, g_v)
         w_value, w_gx = _weight_terms(c, x, self.guide)
         value, gx = value + w_value, self.landmarks.weights_gradient(g_points) + w_gx
@@ -1146,11 +1148,9 @@ class _FrameGradient:
         c, s, camera = self.c, self.obj.scale, self.problem.camera
         rmat = rotation_matrices(rot)
         proj = _Projection(self.landmarks.points(x), rot, rmat, trans, camera)
-        res_u = proj.u * s - self.target_u[j:j + 1]
-        res_v = proj.v * s - self.target_v[j:j + 1]
-        weight = self.lmk_w[j:j + 1]
-        value = (weight * (res_u * res_u + res_v * res_v)).sum()
-        g_points, g_rot, g_trans = proj.pull(2.0 * weight * res_u * s, 2.0 * weight * res_v * s)
+        value, g_u, g_v = _landmark_term(proj, s, self.target_u[j:j + 1], self.target_v[j:j + 1],
+                                         self.lmk_w[j:j + 1])
+        g_points, g_rot, g_trans = proj.pull(g_u, g_v)
         w_value, w_gx = _weight_terms(c, x, None if self.guide is None else self.guide[j:j + 1])
         value, gx = value + w_value, self.landmarks.weights_gradient(g_points) + w_gx
         if prev_x is not None and c.w_diff:
