@@ -400,7 +400,10 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
     pipeline = Flow.from_source(source=str(REPO), entrypoint="visemeflow/ops/pool.py:pipeline_flow")
     deployment = pipeline.deploy(name=pool, work_pool_name=pool, build=False, print_next_steps=False,
                                  parameters={"store": url, "corpus": str(video_corpus), "n_shards": 2})
-    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING"}
+    # workers poll every second (Prefect's default is 10 s): a run is now shorter than one default poll, and the
+    # second worker would pick its run up after the first had finished
+    env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING",
+           "PREFECT_WORKER_QUERY_SECONDS": "1"}
     env.pop("VISEMEFLOW_SERVE_ROOTS", None)
     prefect = str(Path(sys.executable).with_name("prefect"))
     workers = [subprocess.Popen([prefect, "worker", "start", "--pool", pool, "--limit", "1", "--name", f"w{i}"],
