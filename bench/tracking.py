@@ -22,9 +22,11 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
   guided faithful soft  the same with box="soft": the paper's L_range penalty and truncation at the end instead of
                      projection after every step (the paper-exact form, which overshoots: see TrackingConfig.box).
   guided fast+flow   `solve_fast`, TrackingConfig(): the default pipeline config (L_flow on, DIS optical flow of
-                     the rendered frames built as `visemeflow.tracking.utterance.flow_term` builds it).
-  ... adam           the row above it with fast_method="adam": the fast solver's earlier method (Adam with cosine
-                     decay, 50 pose + 200 joint steps) beside the default Levenberg-Marquardt, same objective.
+                     the rendered frames built as `visemeflow.tracking.utterance.flow_term` builds it, on the
+                     lower face).
+  ... lm             the row above it with fast_method="lm": the fast solver's Levenberg-Marquardt method beside
+                     the default Adam (50 pose + 200 joint steps with cosine decay), same objective.
+  guided fast+flow face  the flow row with flow_region="face": DIS on the whole face instead of the lower face.
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames
@@ -85,7 +87,7 @@ from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.procedural import generate_procedural_curves
 from visemeflow.rig import VisemeRig, load_demo_rig
 from visemeflow.synth.take import SynthConfig, SyntheticTake, make_take, render_take
-from visemeflow.tracking.utterance import flow_term
+from visemeflow.tracking.utterance import flow_config_of, flow_term
 from visemeflow.timebase import frame_count
 from visemeflow.render.camera import Intrinsics
 from visemeflow.tracking.landmarks import LandmarkTrack
@@ -119,13 +121,15 @@ METHODS: dict[str, tuple[str, TrackingConfig | None, str | None]] = {
     "guided faithful soft": ("faithful", TrackingConfig(solver="faithful", use_flow=False, box="soft"), None),
     "guided fast+flow": ("fast", TrackingConfig(), "flow"),
     "guided fast+rgb": ("fast", TrackingConfig(use_flow=False, use_rgb=True), "rgb"),
-    # the fast solver's earlier method (Adam, 500 autograd steps), beside the default Levenberg-Marquardt (issue 29)
-    "unguided fast adam": ("fast", TrackingConfig(guidance=False, use_flow=False, fast_method="adam"), None),
-    "guided fast adam": ("fast", TrackingConfig(use_flow=False, fast_method="adam"), None),
-    "guided fast+flow adam": ("fast", TrackingConfig(fast_method="adam"), "flow"),
+    # the fast solver's other method, Levenberg-Marquardt, beside the default Adam (issue 29)
+    "unguided fast lm": ("fast", TrackingConfig(guidance=False, use_flow=False, fast_method="lm"), None),
+    "guided fast lm": ("fast", TrackingConfig(use_flow=False, fast_method="lm"), None),
+    "guided fast+flow lm": ("fast", TrackingConfig(fast_method="lm"), "flow"),
+    # L_flow's optical flow on the whole face rather than the default lower face (issue 29)
+    "guided fast+flow face": ("fast", TrackingConfig(flow_region="face"), "flow"),
 }
-FULL_ROWS = ("procedural", "unguided fast", "unguided fast adam", "guided fast", "guided fast adam",
-             "guided fast+flow", "guided fast+flow adam")
+FULL_ROWS = ("procedural", "unguided fast", "unguided fast lm", "guided fast", "guided fast lm",
+             "guided fast+flow", "guided fast+flow lm", "guided fast+flow face")
 SUBSET_ROWS = tuple(METHODS)
 
 
@@ -281,7 +285,7 @@ def run_method(name: str, rig: VisemeRig, u: Utterance, tally: Tally) -> Trackin
     terms = {}
     if needs == "flow" and u.n > 1:
         start = time.perf_counter()
-        terms["flow"], _ = flow_term(u.frames, rig, u.take.landmarks)
+        terms["flow"], _ = flow_term(u.frames, rig, u.take.landmarks, flow_config_of(config), config.flow_region)
         prep = time.perf_counter() - start
     elif needs == "rgb":
         start = time.perf_counter()
@@ -310,12 +314,12 @@ def fmt(value: float, spec: str) -> str:
 
 def print_table(title: str, tallies: dict[str, Tally]) -> None:
     print(title)
-    head = (f"{'method':<19}{'frames':>7}{'mouth px det':>14}{'mouth px true':>15}{'L1x100':>8}"
+    head = (f"{'method':<22}{'frames':>7}{'mouth px det':>14}{'mouth px true':>15}{'L1x100':>8}"
             f"{'top1@apex':>11}{'top2@apex':>11}{'fps':>9}{'fps+prep':>10}")
     print(head)
     print("-" * len(head))
     for name, t in tallies.items():
-        print(f"{name:<19}{t.frames:>7}{fmt(t.det, '.3f'):>14}{fmt(t.true, '.3f'):>15}{fmt(t.l1, '.2f'):>8}"
+        print(f"{name:<22}{t.frames:>7}{fmt(t.det, '.3f'):>14}{fmt(t.true, '.3f'):>15}{fmt(t.l1, '.2f'):>8}"
               f"{fmt(100 * t.acc1, '.1f') + '%':>11}{fmt(100 * t.acc2, '.1f') + '%':>11}"
               f"{fmt(t.fps, '.2f'):>9}{fmt(t.fps_prep, '.2f'):>10}")
     first = next(iter(tallies.values()))
@@ -374,13 +378,13 @@ def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole
     render_seconds = 0.0
     rgb_rows: list[tuple[str, Tally]] = []
     for k, u in enumerate(utterances):
-        for name in ("procedural", "unguided fast", "unguided fast adam", "guided fast", "guided fast adam"):
+        for name in ("procedural", "unguided fast", "unguided fast lm", "guided fast", "guided fast lm"):
             run_method(name, rig, u, full[name])
         start = time.perf_counter()
         u.frames = render(rig, u)
         render_seconds += time.perf_counter() - start
-        run_method("guided fast+flow", rig, u, full["guided fast+flow"])
-        run_method("guided fast+flow adam", rig, u, full["guided fast+flow adam"])
+        for name in ("guided fast+flow", "guided fast+flow lm", "guided fast+flow face"):
+            run_method(name, rig, u, full[name])
         if k < FAITHFUL_UTTERANCES:
             subset_source.append(u.cut(faithful_frames))
         if k < rgb_whole:

@@ -64,6 +64,7 @@ def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
     store = make_curve_store(tmp_path / "s", n=1)   # the command checks the store has utterances first
     result = runner.invoke(app, ["track", "--store", str(store.root), "--shards", "3", "--solver", "faithful",
                                  "--no-guidance", "--rgb", "--no-flow", "--flow-preset", "fast", "--flow-max-roi-px", "192",
+                                 "--flow-region", "face",
                                  "--dask-address", "tcp://127.0.0.1:1", "--threads", "2"])
     assert result.exit_code == 0, result.output
     params = seen["params"]
@@ -71,7 +72,7 @@ def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
     assert params == TrackParams(
         store=store.root, n_shards=3,
         config={"solver": "faithful", "guidance": False, "use_rgb": True, "use_flow": False, "flow_preset": "fast",
-                "flow_max_roi_px": 192},
+                "flow_max_roi_px": 192, "flow_region": "face"},
         runner={"kind": "dask", "dask_address": "tcp://127.0.0.1:1", "threads": 2})  # an address means dask
 
 

@@ -589,3 +589,20 @@ def test_frames_may_come_one_at_a_time():
     np.testing.assert_array_equal(streamed.backward_valid, whole.backward_valid)
     with pytest.raises(ValueError, match="at least one frame"):
         estimate_optical_flow(iter(()))
+
+
+def test_a_crop_of_a_region_keeps_the_region_s_resolution():
+    """`scale_roi`: the flow of a part of a face is sampled at the shrink that fits the whole face into max_roi_px,
+    not the larger one the part alone would get, and still finds the motion there."""
+    big = texture(400, 480, seed=8, sigma=8.0)
+    frames = [shifted(big, *m) for m in ((0.0, 0.0), (4.0, -2.0))]
+    face, part = (40, 30, 380, 300), (100, 150, 200, 120)
+    config = FlowConfig(max_roi_px=190)
+    whole = estimate_optical_flow(frames, config, roi=face)
+    crop = estimate_optical_flow(frames, config, roi=part, scale_roi=face)
+    alone = estimate_optical_flow(frames, config, roi=part)
+    assert crop.scale == whole.scale == pytest.approx(0.5) and alone.scale == pytest.approx(190 / 200)
+    assert crop.forward.shape[1:3] == (60, 100)
+    pts = np.array([[150.0, 180.0], [250.0, 220.0]])
+    disp, ok = crop.correspondences(1, pts)
+    assert ok.all() and np.abs(disp - [4.0, -2.0]).max() < 0.5

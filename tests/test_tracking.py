@@ -545,3 +545,30 @@ def test_track_flow_ends_failed_when_every_utterance_is_rejected(tracked_store):
     with pytest.raises(StageFailed) as failed:
         state.result()
     assert failed.value.summary["rejected"] == 2
+
+
+# ---- L_flow's region (issue 29) --------------------------------------------------------------------------------------
+def test_the_lower_face_region_holds_every_point_l_flow_follows(rig):
+    """DIS runs on the lower face by default (`flow_roi(..., "lower")`): on a synthetic take whose head turns and
+    moves, every flow vertex of every frame projects inside that region, at least 3 px from its edge, while the
+    region is well under the whole face's area and inside it."""
+    from visemeflow.render.raster import project as project_np
+    from visemeflow.rig.model import evaluate_rig
+    from visemeflow.tracking.solver import flow_vertices
+    from visemeflow.tracking.utterance import flow_roi
+
+    take = make_take(rig, SEGMENTS, N_FRAMES, "spk", "spk/region", SynthConfig(landmark_noise_px=0.0,
+                                                                                landmark_miss_rate=0.0))
+    cam = take.camera
+    ids = flow_vertices(rig)
+    vertices = evaluate_rig(rig, take.curves, ids).numpy()
+    pixels = np.stack([project_np(vertices[t], cam, take.poses[t]) for t in range(N_FRAMES)])
+    x0, y0, w, h = flow_roi(take.landmarks, cam.width, cam.height, "lower")
+    fx0, fy0, fw, fh = flow_roi(take.landmarks, cam.width, cam.height, "face")
+    assert np.isfinite(pixels).all() and len(ids) > 100
+    assert pixels[..., 0].min() >= x0 + 3 and pixels[..., 0].max() <= x0 + w - 3
+    assert pixels[..., 1].min() >= y0 + 3 and pixels[..., 1].max() <= y0 + h - 3
+    assert fx0 <= x0 and fy0 <= y0 and x0 + w <= fx0 + fw and y0 + h <= fy0 + fh
+    assert w * h < 0.6 * fw * fh
+    with pytest.raises(ValueError, match="flow region"):
+        flow_roi(take.landmarks, cam.width, cam.height, "mouth")

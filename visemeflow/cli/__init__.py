@@ -324,7 +324,7 @@ def procedural(params: ProceduralParams) -> None:
 @stage_command(app, TrackParams, [
     STORE, SHARDS, Opt("config.solver"), Opt("config.guidance"), Opt("config.use_rgb", "--rgb"),
     Opt("config.use_flow", "--flow"), Opt("config.flow_preset"), Opt("config.flow_max_roi_px"),
-    Opt("config.speaker_identity"), Opt("joint_frames"), Opt("device"),
+    Opt("config.flow_region"), Opt("config.speaker_identity"), Opt("joint_frames"), Opt("device"),
     Opt("rig", callback=_path),
     *RUNNER,
 ])

@@ -42,6 +42,10 @@ class TrackingConfig(BaseModel):
                                 "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow). "
                                 "192: talking heads end to end 31.8 -> 40.0 frames/s per core, mouth error 2.741 -> "
                                 "2.747 px (--joint 5 --compare-flow medium:192).")
+    flow_region: Literal["face", "lower"] = Field(
+        "lower", description="L_flow: the region DIS runs on, around the landmarks of the whole face or of the lower "
+                            "face only (the chin, the nose's base and the mouth), which holds every point L_flow "
+                            "follows (`tracking.utterance.flow_roi`).")
     speaker_identity: bool = Field(
         False, description="Fit the face (ICT identity modes) and camera focal length of real video once per speaker "
                            "and image size, on neutral frames pooled from `identity_clips` of the speaker's clips, "

@@ -421,11 +421,13 @@ def roi_scale(roi: Roi, config: FlowConfig = DEFAULT_CONFIG) -> float:
 
 
 def estimate_optical_flow(frames: Iterable[np.ndarray] | np.ndarray, config: FlowConfig = DEFAULT_CONFIG,
-               roi: Sequence[int] | None = None) -> FlowField:
+               roi: Sequence[int] | None = None, scale_roi: Sequence[int] | None = None) -> FlowField:
     """Bi-directional DIS flow and forward-backward masks for every consecutive pair of ``frames`` ((T, H, W, 3)
     uint8 RGB, or an iterable of such frames, e.g. frames decoded one at a time), on ``roi`` (x0, y0, w, h; the
     whole frame when None), computed once per utterance. Each frame is converted to gray, cropped to the ROI and
-    shrunk to ``config.max_roi_px`` as it comes, so only the crops are held; one DIS instance serves all pairs."""
+    shrunk as it comes, so only the crops are held; one DIS instance serves all pairs. The shrink is the one that
+    fits ``scale_roi`` (default: ``roi`` itself) into ``config.max_roi_px``: a part of a face, e.g., keeps the
+    whole face's resolution."""
     crops: list[np.ndarray] = []
     height = width = 0
     box: Roi = (0, 0, 0, 0)
@@ -435,7 +437,7 @@ def estimate_optical_flow(frames: Iterable[np.ndarray] | np.ndarray, config: Flo
         if t == 0:
             height, width = g.shape
             box = clip_roi(roi, width, height)
-            scale = roi_scale(box, config)
+            scale = roi_scale(box if scale_roi is None else clip_roi(scale_roi, width, height), config)
         elif g.shape != (height, width):
             raise ValueError(f"frame {t} is {g.shape[1]}x{g.shape[0]}, frame 0 is {width}x{height}")
         crop = _crop(g, box)

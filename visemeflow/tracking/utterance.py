@@ -279,17 +279,40 @@ def rig_and_camera(video_path: str, rig: VisemeRig, track: LandmarkTrack, info: 
     return fitted, fit.camera, {"identity": "fitted", "identity_rms_px": round(float(fit.rms_px), 3)}
 
 
+# The 68 landmarks around the part of the face L_flow follows (`solver.flow_vertices`: between the bottom of the
+# nose and the chin, about the mouth's width): the chin's stretch of the jaw line, the nose's base and the mouth.
+LOWER_FACE_POINTS = np.r_[4:13, 31:36, 48:68]
+
+
+def flow_config_of(config: TrackingConfig) -> FlowConfig:
+    """The DIS settings of L_flow that `config` names."""
+    return FlowConfig(preset=config.flow_preset, max_roi_px=config.flow_max_roi_px)
+
+
+def flow_roi(track: LandmarkTrack, width: int, height: int, region: str = "lower") -> tuple[int, int, int, int]:
+    """The region (x0, y0, w, h) of a width x height clip on which L_flow's optical flow is computed: around all
+    frames' landmarks of the whole face ("face") or of the lower face only ("lower", `LOWER_FACE_POINTS`), grown by
+    15% of its size on every side."""
+    if region not in ("face", "lower"):
+        raise ValueError(f"flow region must be 'face' or 'lower', got {region!r}")
+    points = track.points if region == "face" else track.points[:, LOWER_FACE_POINTS]
+    return roi_around(points.reshape(-1, 2), width, height, margin=0.15)
+
+
 def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack,
-              config: FlowConfig | None = None) -> tuple[FlowTerm, np.ndarray]:
-    """Optical-flow correspondences over the face region of `frames` ((T, H, W, 3), or RGB frames one at a time:
-    only their face crops are kept), and the valid fraction per frame ((T,), NaN at frame 0)."""
+              config: FlowConfig | None = None, region: str = "lower") -> tuple[FlowTerm, np.ndarray]:
+    """Optical-flow correspondences over the lower face (`region` "lower", see `flow_roi`) or the whole face
+    ("face") of `frames` ((T, H, W, 3), or RGB frames one at a time: only their crops are kept), and the valid
+    fraction per frame ((T,), NaN at frame 0). Either region is sampled at the resolution `config.max_roi_px`
+    sets for the whole face."""
     it = iter(frames)
     first = next(it, None)
     if first is None:
         raise ValueError("flow_term needs at least one frame")
     height, width = first.shape[:2]
-    roi = roi_around(track.points[track.valid].reshape(-1, 2), width, height, margin=0.15)
-    flow = estimate_optical_flow(itertools.chain([first], it), config or FlowConfig(), roi)
+    face = flow_roi(track, width, height, "face")
+    roi = face if region == "face" else flow_roi(track, width, height, region)
+    flow = estimate_optical_flow(itertools.chain([first], it), config or FlowConfig(), roi, scale_roi=face)
     valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, flow.n_frames)], np.float32)
     return (FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences,
                      flow.all_correspondences), valid_fraction)
@@ -411,8 +434,7 @@ def _prepare(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, c
                 f for f, _ in itertools.islice(iter_timed_frames(video.video_path), n_frames))
             if on_step is not None:
                 decoded = _counted(decoded, lambda k: on_step("optical flow", k, n_frames))
-            flow, flow_valid = flow_term(decoded, rig, track, FlowConfig(preset=config.flow_preset,
-                                                                      max_roi_px=config.flow_max_roi_px))
+            flow, flow_valid = flow_term(decoded, rig, track, flow_config_of(config), config.flow_region)
         if config.use_rgb:
             photo = PhotoTerm(rig, camera, frames, track.points)
     except VideoError as exc:
