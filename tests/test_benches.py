@@ -54,6 +54,7 @@ QUICK = {
     "track_tasks.py": ["--utterances", "3", "--repeats", "1"],
     "transfer.py": [],
     "truth_vs_procedural.py": [],
+    "video_closures.py": ["--models", "procedural"],
     "wav2vec2_cache.py": ["--epochs", "1", "--utterances", "2", "--repeats", "1"],
     "whisper_encoder.py": ["--repeats", "1", "--quick"],
 }
