@@ -493,3 +493,60 @@ def test_commands_on_an_s3_store(bucket):
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1
+
+
+def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkeypatch):
+    """A writer killed while uploading a large file leaves a multipart upload whose parts the bucket keeps and bills.
+    `visemeflow clean temporary` on an S3 store finds those begun over an hour ago on the server's clock, with
+    their size, and aborts them; a younger one (maybe a live writer's), one of another store in the bucket and
+    finished objects are left alone. (moto dates every upload 2010-11-10, so "now" is set on the server's clock
+    through its measured skew.)"""
+    import subprocess
+    import sys
+
+    import s3fs
+
+    from visemeflow.ops.clean import reclaimable
+
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    url = f"s3://{bucket}/farm"
+    store = Store(url)
+    store.save_curves(_curves("spk/a", seed=5))
+
+    def start(key: str, parts: int) -> str:
+        upload = fs.call_s3("create_multipart_upload", Bucket=bucket, Key=key)["UploadId"]
+        for n in range(1, parts + 1):
+            fs.call_s3("upload_part", Bucket=bucket, Key=key, UploadId=upload, PartNumber=n, Body=b"x" * 5 * 2**20)
+        return upload
+
+    def uploads() -> list[tuple[str, str]]:
+        return sorted((u["Key"], u["UploadId"]) for u in fs.call_s3("list_multipart_uploads", Bucket=bucket)
+                      .get("Uploads", []))
+
+    killed = start("farm/landmarks/spk/a.mediapipe478.parquet", 2)
+    other = start("another-store/curves/x.parquet", 1)
+    began = fs.call_s3("list_multipart_uploads", Bucket=bucket)["Uploads"][0]["Initiated"].timestamp()
+    monkeypatch.setattr(Store, "_server_clock_skew", lambda self, path: began + 60 - time.time())
+    assert store.stale_uploads() == []          # begun a minute ago: may be a live writer's
+    assert reclaimable(store, ["temporary"])[0].count == 0
+    monkeypatch.setattr(Store, "_server_clock_skew", lambda self, path: began + 3660 - time.time())
+    found = store.stale_uploads()
+    assert [(str(u.path), u.upload_id, u.n_bytes) for u in found] == [
+        (f"{url}/landmarks/spk/a.mediapipe478.parquet", killed, 10 * 2**20)]
+    item, = reclaimable(store, ["temporary"])
+    assert item.count == 1 and item.n_bytes == 10 * 2**20 and item.paths == []
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "visemeflow.cli", "clean", *args, "--store", url],
+                              capture_output=True, text=True, timeout=120,
+                              env={**os.environ, "VISEMEFLOW_NO_SERVER_LOOKUP": "1"})
+
+    listed = cli()                              # the command on the real clock: moto's 2010 uploads are stale
+    assert listed.returncode == 0, listed.stderr
+    assert "temporary      10.0 MiB reclaimable in 1 path (of which 1 unfinished upload)" in listed.stdout
+    assert len(uploads()) == 2
+    removed = cli("temporary")
+    assert removed.returncode == 0, removed.stderr
+    assert "temporary      10.0 MiB removed in 1 path" in removed.stdout
+    assert uploads() == [("another-store/curves/x.parquet", other)]
+    assert store.has_curves("procedural", "v1", "spk/a") and store.stale_uploads() == []

@@ -60,7 +60,8 @@ _NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export"
 
 
 # Commands that run on a store on object storage (`s3://bucket/prefix`, location.py); the others need a folder.
-_REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "rejects", "show", "export"})
+_REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "rejects", "clean", "show",
+                        "export"})
 
 
 def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
@@ -779,7 +780,7 @@ def clean(
 ) -> None:
     """Reclaim disk: data the flows can make again (never curves, tables, models or metrics).
 
-    temporary: files of killed writers; augmented: evaluate's augmented audio (written again when needed);
+    temporary: files of killed writers (on object storage: their unfinished uploads); augmented: evaluate's augmented audio (written again when needed);
     checkpoints: of models whose training finished; results: Prefect's cached task results (the next run of
     every stage then recomputes its tasks once). Run it while no flow writes to the store.
     """
@@ -795,8 +796,10 @@ def clean(
     items = reclaimable(s, chosen or KINDS) if listing else remove(s, chosen)
     verb = "reclaimable" if listing else "removed"
     for item in items:
-        typer.echo(f"{item.kind:12s} {human_bytes(item.n_bytes):>10s} {verb} in {len(item.paths)} "
-                   f"{'path' if len(item.paths) == 1 else 'paths'}")
+        what = f"{item.count} {'path' if item.count == 1 else 'paths'}"
+        if item.uploads:
+            what += f" (of which {len(item.uploads)} unfinished upload{'' if len(item.uploads) == 1 else 's'})"
+        typer.echo(f"{item.kind:12s} {human_bytes(item.n_bytes):>10s} {verb} in {what}")
     if not chosen:
         typer.echo(f"nothing removed; name the kinds to remove, e.g. visemeflow clean augmented --store {store}")
 

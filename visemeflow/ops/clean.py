@@ -1,7 +1,9 @@
 """Reclaim disk in a store: only what the flows can make again, never curves, tables, models or metrics.
 
 Kinds of reclaimable data:
-  temporary    files left by writers that were killed (their process is gone, or they are over an hour old)
+  temporary    files left by writers that were killed (their process is gone, or they are over an hour old); on
+               object storage, multipart uploads a killed writer left unfinished, begun over an hour ago by the
+               server's clock (their parts are kept and billed until aborted)
   augmented    the augmented validation audio of `evaluate` (`augmented/<condition>-s<seed>/`): the next
                `evaluate` that needs a set writes it again
   checkpoints  `models/<name>/checkpoints/` of models whose training finished (`model.pt` exists): only
@@ -18,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from visemeflow.storage import Store
+from visemeflow.storage.store import PartialUpload
 
 KINDS = ("temporary", "augmented", "checkpoints", "results")
 
@@ -27,6 +30,11 @@ class Reclaimable:
     kind: str
     paths: list[Path] = field(default_factory=list)
     n_bytes: int = 0
+    uploads: list[PartialUpload] = field(default_factory=list)   # unfinished uploads on object storage (temporary)
+
+    @property
+    def count(self) -> int:
+        return len(self.paths) + len(self.uploads)
 
 
 def _paths(store: Store, kind: str) -> list[Path]:
@@ -47,7 +55,9 @@ def reclaimable(store: Store, kinds: Iterable[str] = KINDS) -> list[Reclaimable]
     found = []
     for kind in kinds:
         paths = _paths(store, kind)
-        found.append(Reclaimable(kind, paths, sum(store.disk_usage(p) for p in paths)))
+        uploads = store.stale_uploads() if kind == "temporary" else []
+        found.append(Reclaimable(kind, paths, sum(store.disk_usage(p) for p in paths) + sum(u.n_bytes for u in uploads),
+                                 uploads))
     return found
 
 
@@ -57,6 +67,8 @@ def clean(store: Store, kinds: Iterable[str]) -> list[Reclaimable]:
     for item in removed:
         for path in item.paths:
             store.delete_path(path)
+        for upload in item.uploads:
+            store.abort_upload(upload)
     return removed
 
 

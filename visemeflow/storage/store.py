@@ -43,6 +43,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import timezone
 from pathlib import Path
 
@@ -186,6 +187,17 @@ judged on the object store's clock (`Store._server_clock_skew`), not the machine
 def _timestamp(moment) -> float:
     """POSIX seconds of an object's date (fsspec gives datetimes, naive ones in UTC)."""
     return moment.timestamp() if moment.tzinfo else moment.replace(tzinfo=timezone.utc).timestamp()
+
+
+@dataclass(frozen=True)
+class PartialUpload:
+    """An unfinished multipart upload under a store on object storage (`Store.stale_uploads`)."""
+
+    path: Path        # the store path it would have written
+    key: str          # its object key in the bucket
+    upload_id: str
+    started: float    # POSIX seconds, the server's clock
+    n_bytes: int      # of the parts uploaded so far
 
 
 class Store:
@@ -661,6 +673,63 @@ class Store:
                 except FileNotFoundError:
                     continue
         return sorted(stale)
+
+    def stale_uploads(self, min_age_s: float = 3600.0) -> list["PartialUpload"]:
+        """Unfinished multipart uploads under a store on object storage that began more than `min_age_s` ago on the
+        server's clock (`_server_clock_skew`), sorted by path: what a writer killed while uploading a large file
+        leaves. The bucket keeps (and bills) their parts until they are aborted (`abort_upload`), and nothing
+        reads them. Younger ones may be a live writer's. A folder store has none."""
+        if not self.remote:
+            return []
+        fs = self.root.fs
+        bucket, _, prefix = self.root.path.partition("/")
+        found, page = [], {}
+        try:
+            while True:
+                out = fs.call_s3("list_multipart_uploads", Bucket=bucket, Prefix=f"{prefix}/", **page)
+                found += out.get("Uploads", [])
+                if not out.get("IsTruncated"):
+                    break
+                page = {"KeyMarker": out["NextKeyMarker"], "UploadIdMarker": out["NextUploadIdMarker"]}
+            if not found:
+                return []
+            now = time.time() + self._server_clock_skew(self.root / ".uploads")
+            stale = []
+            for upload in found:
+                started = _timestamp(upload["Initiated"])
+                if now - started <= min_age_s:
+                    continue
+                key, upload_id = upload["Key"], upload["UploadId"]
+                path = self.root.joinpath(*key[len(prefix) + 1:].split("/"))
+                stale.append(PartialUpload(path, key, upload_id, started, self._upload_bytes(bucket, key, upload_id)))
+        except OSError as exc:
+            raise StoreError(exc.errno or 0, f"cannot list the unfinished uploads of {self.location}: {exc}") from exc
+        return sorted(stale, key=lambda u: (str(u.path), u.started))
+
+    def _upload_bytes(self, bucket: str, key: str, upload_id: str) -> int:
+        total, page = 0, {}
+        while True:
+            try:
+                out = self.root.fs.call_s3("list_parts", Bucket=bucket, Key=key, UploadId=upload_id, **page)
+            except FileNotFoundError:   # finished or aborted meanwhile
+                return total
+            total += sum(int(part.get("Size", 0)) for part in out.get("Parts", []))
+            if not out.get("IsTruncated"):
+                return total
+            page = {"PartNumberMarker": out["NextPartNumberMarker"]}
+
+    def abort_upload(self, upload: "PartialUpload") -> None:
+        """Abort an unfinished multipart upload of this store (`stale_uploads`): its parts are removed; an upload
+        finished or aborted meanwhile is left as it is."""
+        bucket, _, prefix = self.root.path.partition("/")
+        if not upload.key.startswith(f"{prefix}/"):
+            raise ValueError(f"{upload.key} is not inside the store {self.location}")
+        try:
+            self.root.fs.call_s3("abort_multipart_upload", Bucket=bucket, Key=upload.key, UploadId=upload.upload_id)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise StoreError(exc.errno or 0, f"cannot abort the upload of {upload.path}: {exc}") from exc
 
     def sweep_temporary_files(self, min_age_s: float = 3600.0) -> int:
         """Remove the stale temporary files (`stale_temporary_files`); returns how many were removed."""
