@@ -367,14 +367,17 @@ class FlowField:
             raise IndexError(f"{what}: no frame pair ({i}, {i + 1}) in a field of {self.n_frames} frames")
         return int(i)
 
-    def _query(self, flow: np.ndarray, valid: np.ndarray, points) -> tuple[np.ndarray, np.ndarray]:
-        pts = _as_points(points)
-        x0, y0, _, _ = self.roi
+    def _sampled(self, sample, flow: np.ndarray, valid: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`sample(flow, valid, array pixels)` at image pixels `pts` (..., 2), its displacements back in image
+        pixels: image pixel p covers array pixel (p - roi corner + 0.5) * scale - 0.5 (pixel centres)."""
+        shift = np.array(self.roi[:2], dtype=np.float64)
         if self.scale == 1.0:
-            return sample_flow(flow, valid, pts - np.array([x0, y0], dtype=np.float64))
-        # pixel centres: image pixel p covers array pixel (p + 0.5) * scale - 0.5
-        u, ok = sample_flow(flow, valid, (pts - np.array([x0, y0], dtype=np.float64) + 0.5) * self.scale - 0.5)
+            return sample(flow, valid, pts - shift)
+        u, ok = sample(flow, valid, (pts - shift + 0.5) * self.scale - 0.5)
         return (u / self.scale).astype(np.float32), ok
+
+    def _query(self, flow: np.ndarray, valid: np.ndarray, points) -> tuple[np.ndarray, np.ndarray]:
+        return self._sampled(sample_flow, flow, valid, _as_points(points))
 
     def all_correspondences(self, points) -> tuple[np.ndarray, np.ndarray]:
         """`correspondences(j, points[j - 1])` for every frame j >= 1 at once: points (T-1, N, 2) of frames 0..T-2
@@ -385,11 +388,7 @@ class FlowField:
         if pts.ndim != 3 or pts.shape[0] != self.n_pairs or pts.shape[2] != 2:
             raise ValueError(f"points must be ({self.n_pairs}, N, 2), one row of points per frame pair, got "
                              f"{pts.shape}")
-        shift = np.array(self.roi[:2], dtype=np.float64)
-        if self.scale == 1.0:
-            return _sample_flows(self.forward, self.forward_valid, pts - shift)
-        u, ok = _sample_flows(self.forward, self.forward_valid, (pts - shift + 0.5) * self.scale - 0.5)
-        return (u / self.scale).astype(np.float32), ok
+        return self._sampled(_sample_flows, self.forward, self.forward_valid, pts)
 
     def correspondences(self, j: int, points_prev) -> tuple[np.ndarray, np.ndarray]:
         """Forward pass, frame j >= 1: the flow displacement u_k (N, 2) float32 carrying the (N, 2) points of frame
