@@ -410,6 +410,12 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
                                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
                for i in range(2)]
     try:
+        # both workers polling before the runs exist: a worker still starting (seconds under load) would leave both
+        # runs to the first, one after the other
+        with get_client(sync_client=True) as client:
+            deadline = time.monotonic() + 180
+            while len(client.read_workers_for_work_pool(pool)) < 2 and time.monotonic() < deadline:
+                time.sleep(0.5)
         runs = [run_deployment(deployment, timeout=0) for _ in range(2)]
         deadline = time.monotonic() + 600
         with get_client(sync_client=True) as client:
