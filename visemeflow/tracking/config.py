@@ -45,7 +45,11 @@ class TrackingConfig(BaseModel):
     flow_region: Literal["face", "lower"] = Field(
         "lower", description="L_flow: the region DIS runs on, around the landmarks of the whole face or of the lower "
                             "face only (the chin, the nose's base and the mouth), which holds every point L_flow "
-                            "follows (`tracking.utterance.flow_roi`).")
+                            "follows (`tracking.utterance.flow_roi`), at the whole face's resolution. lower: flow "
+                            "137 -> 281 frames/s on GRID, 48 -> 89 on 700x700 talking heads, end to end 46.3 -> 58.5 "
+                            "and 29.3 -> 41.3 per core; mouth error 1.410 -> 1.409 px and 2.741 -> 2.742 px, MBP "
+                            "14/14 both; synthetic L1 x 100 5.14 both (bench/end_to_end.py --compare-config "
+                            "'{\"flow_region\": \"face\"}', bench/tracking.py).")
     speaker_identity: bool = Field(
         False, description="Fit the face (ICT identity modes) and camera focal length of real video once per speaker "
                            "and image size, on neutral frames pooled from `identity_clips` of the speaker's clips, "
