@@ -381,10 +381,13 @@ def test_a_pipeline_killed_on_s3_loses_nothing_and_two_runs_at_once_corrupt_noth
 def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, video_corpus, local_reference,
                                                                       prefect_api_url):
     """prefect.yaml's `pipeline/pool` entrypoint deployed to a process work pool; two `prefect worker` processes
-    (sharing nothing with this one but the Prefect API and the S3 endpoint) each take one of two runs started at
-    once on one S3 store; both complete and the store equals the local run's."""
+    (sharing nothing with this one but the Prefect API, the S3 endpoint and the corpus folder: each has its own
+    temporary folder and Prefect home) each take one of two runs started at once on one S3 store; both complete
+    and the store equals the local run's."""
+    import shutil
     import subprocess
     import sys
+    import tempfile
     from pathlib import Path
 
     from factories import REPO, snapshot
@@ -406,9 +409,15 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
            "PREFECT_WORKER_QUERY_SECONDS": "1"}
     env.pop("VISEMEFLOW_SERVE_ROOTS", None)
     prefect = str(Path(sys.executable).with_name("prefect"))
+    # each worker (and the flow runs it starts) with a temporary folder and a Prefect home of its own, as on two
+    # machines: nothing host-local is shared but the corpus
+    homes = [Path(tempfile.mkdtemp(prefix=f"s3pool-w{i}-")) for i in range(2)]
+    for home in homes:
+        (home / "tmp").mkdir()
     workers = [subprocess.Popen([prefect, "worker", "start", "--pool", pool, "--limit", "1", "--name", f"w{i}"],
-                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
-               for i in range(2)]
+                                env={**env, "TMPDIR": str(home / "tmp"), "PREFECT_HOME": str(home / "prefect")},
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
+               for i, home in enumerate(homes)]
     try:
         # both workers polling before the runs exist: a worker still starting (seconds under load) would leave both
         # runs to the first, one after the other
@@ -430,6 +439,8 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
             w.terminate()
         for w in workers:
             w.wait(60)
+        for home in homes:
+            shutil.rmtree(home, ignore_errors=True)
     assert [s.type.value for s in states] == ["COMPLETED", "COMPLETED"], [s.message for s in states]
     assert spans[1][0] < spans[0][1]   # they overlapped: each worker takes one run at a time (--limit 1)
     _assert_same_store(snapshot(url), local_reference)
