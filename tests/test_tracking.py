@@ -572,3 +572,8 @@ def test_the_lower_face_region_holds_every_point_l_flow_follows(rig):
     assert w * h < 0.6 * fw * fh
     with pytest.raises(ValueError, match="flow region"):
         flow_roi(take.landmarks, cam.width, cam.height, "mouth")
+    # a landmark file whose lower-face points were never detected (an occluded chin and mouth): the whole face
+    points, valid = take.landmarks.points.copy(), take.landmarks.valid.copy()
+    valid[:, np.r_[4:13, 31:36, 48:68]] = False
+    upper = dataclasses.replace(take.landmarks, points=points, valid=valid)
+    assert flow_roi(upper, cam.width, cam.height, "lower") == flow_roi(upper, cam.width, cam.height, "face")

@@ -291,11 +291,12 @@ def flow_config_of(config: TrackingConfig) -> FlowConfig:
 
 def flow_roi(track: LandmarkTrack, width: int, height: int, region: str = "lower") -> tuple[int, int, int, int]:
     """The region (x0, y0, w, h) of a width x height clip on which L_flow's optical flow is computed: around all
-    frames' landmarks of the whole face ("face") or of the lower face only ("lower", `LOWER_FACE_POINTS`), grown by
-    15% of its size on every side."""
+    frames' landmarks of the whole face ("face") or of the lower face only ("lower", `LOWER_FACE_POINTS`; the whole
+    face's region where no lower-face landmark was detected), grown by 15% of its size on every side."""
     if region not in ("face", "lower"):
         raise ValueError(f"flow region must be 'face' or 'lower', got {region!r}")
-    points = track.points if region == "face" else track.points[:, LOWER_FACE_POINTS]
+    lower = track.points[:, LOWER_FACE_POINTS]
+    points = lower if region == "lower" and np.isfinite(lower).all(axis=-1).any() else track.points
     return roi_around(points.reshape(-1, 2), width, height, margin=0.15)
 
 
