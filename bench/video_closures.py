@@ -72,9 +72,11 @@ def video_opening(path: Path) -> tuple[np.ndarray, np.ndarray]:
     at its own time stamp (the file's `time_s`)."""
     import pyarrow.csv as pacsv
 
-    times = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=["time_s"]))
-    times = times.column("time_s").to_numpy().astype(np.float64)
-    ratio = mouth_opening(read_landmarks(path)).ratio
+    rows = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=["frame", "time_s"]))
+    ratio = mouth_opening(read_landmarks(path)).ratio     # one row per frame number, rows missing left NaN
+    times = np.full(len(ratio), np.nan)
+    times[rows.column("frame").to_numpy()] = rows.column("time_s").to_numpy()
+    ratio = np.where(np.isfinite(times), ratio, np.nan)
     keep = np.isfinite(ratio)
     return times[keep], ratio[keep]
 
@@ -194,17 +196,18 @@ def main() -> int:
     predict = CachedPredictor(CACHE)
     print(f"GRID s1, {len(grid)} clips, phones {args.grid_phones}; closed: inner-lip gap <= {args.closed:g} of the "
           f"mouth's width at a video frame inside the phone\n")
+    models = {}
     for name in [m.strip() for m in args.models.split(",") if m.strip()]:
         if name == "procedural":
             report("procedural (the alignment's own curves, ProceduralConfig's defaults)",
                    phone_rows(None, predict, grid), args.closed)
             continue
-        path = shipped_model_path(name) if name in SHIPPED_MODELS else Path(name)
-        report(name, phone_rows(load_model(path)[0], predict, grid), args.closed)
-    probe, clips = LipProbe.from_rig(load_demo_rig()), frame_clips()
-    for name in [m.strip() for m in args.models.split(",") if m.strip() and m.strip() != "procedural"]:
-        path = shipped_model_path(name) if name in SHIPPED_MODELS else Path(name)
-        frame_report(name, load_model(path)[0], predict, clips, probe, args.closed, args.open)
+        models[name] = load_model(shipped_model_path(name) if name in SHIPPED_MODELS else Path(name))[0]
+        report(name, phone_rows(models[name], predict, grid), args.closed)
+    if models:
+        probe, clips = LipProbe.from_rig(load_demo_rig()), frame_clips()
+        for name, model in models.items():
+            frame_report(name, model, predict, clips, probe, args.closed, args.open)
     return 0
 
 

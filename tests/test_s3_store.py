@@ -425,6 +425,7 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
             deadline = time.monotonic() + 180
             while len(client.read_workers_for_work_pool(pool)) < 2 and time.monotonic() < deadline:
                 time.sleep(0.5)
+            assert len(client.read_workers_for_work_pool(pool)) == 2, "a worker never registered"
         runs = [run_deployment(deployment, timeout=0) for _ in range(2)]
         deadline = time.monotonic() + 600
         with get_client(sync_client=True) as client:
@@ -516,13 +517,14 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
     """A writer killed while uploading a large file leaves a multipart upload whose parts the bucket keeps and bills.
     `visemeflow clean temporary` on an S3 store finds those begun over an hour ago on the server's clock, with
     their size, and aborts them; a younger one (maybe a live writer's), one of another store in the bucket and
-    finished objects are left alone. (moto dates every upload 2010-11-10, so "now" is set on the server's clock
-    through its measured skew.)"""
+    finished objects are left alone; listing them writes nothing. A store at a bucket's root finds its own. (moto
+    dates every upload 2010-11-10, so the server's "now", the date of its answer, is set here.)"""
     import subprocess
     import sys
 
     import s3fs
 
+    import visemeflow.storage.store as store_module
     from visemeflow.ops.clean import reclaimable
 
     fs = s3fs.S3FileSystem(use_listings_cache=False)
@@ -543,11 +545,15 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
     killed = start("farm/landmarks/spk/a.mediapipe478.parquet", 2)
     other = start("another-store/curves/x.parquet", 1)
     began = fs.call_s3("list_multipart_uploads", Bucket=bucket)["Uploads"][0]["Initiated"].timestamp()
-    monkeypatch.setattr(Store, "_server_clock_skew", lambda self, path: began + 60 - time.time())
+    listing = fs.call_s3("list_multipart_uploads", Bucket=bucket)
+    assert abs(store_module._server_time(listing) - time.time()) < 60   # the answer's Date: the server's now
+    monkeypatch.setattr(store_module, "_server_time", lambda response: began + 60)
     assert store.stale_uploads() == []          # begun a minute ago: may be a live writer's
     assert reclaimable(store, ["temporary"])[0].count == 0
-    monkeypatch.setattr(Store, "_server_clock_skew", lambda self, path: began + 3660 - time.time())
+    monkeypatch.setattr(store_module, "_server_time", lambda response: began + 3660)
+    objects = fs.find(bucket)
     found = store.stale_uploads()
+    assert fs.find(bucket) == objects           # no probe object: read-only credentials may list
     assert [(str(u.path), u.upload_id, u.n_bytes) for u in found] == [
         (f"{url}/landmarks/spk/a.mediapipe478.parquet", killed, 10 * 2**20)]
     item, = reclaimable(store, ["temporary"])
@@ -560,10 +566,19 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
 
     listed = cli()                              # the command on the real clock: moto's 2010 uploads are stale
     assert listed.returncode == 0, listed.stderr
-    assert "temporary      10.0 MiB reclaimable in 1 path (of which 1 unfinished upload)" in listed.stdout
+    assert "temporary      10.0 MiB reclaimable in 1 item (of which 1 unfinished upload)" in listed.stdout
     assert len(uploads()) == 2
     removed = cli("temporary")
     assert removed.returncode == 0, removed.stderr
-    assert "temporary      10.0 MiB removed in 1 path" in removed.stdout
+    assert "temporary      10.0 MiB removed in 1 item" in removed.stdout
     assert uploads() == [("another-store/curves/x.parquet", other)]
     assert store.has_curves("procedural", "v1", "spk/a") and store.stale_uploads() == []
+
+    root = f"vf-{secrets.token_hex(4)}"         # a store at a bucket's root
+    fs.mkdir(root)
+    at_root = fs.call_s3("create_multipart_upload", Bucket=root, Key="landmarks/b.parquet")["UploadId"]
+    upload, = Store(f"s3://{root}").stale_uploads()
+    assert (str(upload.path), upload.key, upload.upload_id) == (f"s3://{root}/landmarks/b.parquet",
+                                                                  "landmarks/b.parquet", at_root)
+    Store(f"s3://{root}").abort_upload(upload)
+    assert fs.call_s3("list_multipart_uploads", Bucket=root).get("Uploads", []) == []

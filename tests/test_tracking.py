@@ -577,3 +577,29 @@ def test_the_lower_face_region_holds_every_point_l_flow_follows(rig):
     valid[:, np.r_[4:13, 31:36, 48:68]] = False
     upper = dataclasses.replace(take.landmarks, points=points, valid=valid)
     assert flow_roi(upper, cam.width, cam.height, "lower") == flow_roi(upper, cam.width, cam.height, "face")
+
+
+def test_a_lower_face_region_too_small_for_dis_falls_back_to_the_whole_face(rig):
+    """At the whole face's resolution the lower region must keep MIN_FLOW_SIDE_PX array pixels a side (DIS fails on
+    about 12): with the face shrunk to 16 px (`--flow-max-roi-px 16`), or only a sliver of points detected, DIS runs
+    on the whole face; the flow term is still built."""
+    from visemeflow.tracking.optical_flow import FlowConfig
+    from visemeflow.tracking.utterance import flow_regions, flow_roi, flow_term
+
+    take = make_take(rig, SEGMENTS, 6, "spk", "spk/small", SynthConfig(landmark_noise_px=0.0, landmark_miss_rate=0.0))
+    cam = take.camera
+    face = flow_roi(take.landmarks, cam.width, cam.height, "face")
+    lower = flow_roi(take.landmarks, cam.width, cam.height, "lower")
+    assert flow_regions(take.landmarks, cam.width, cam.height, "lower", FlowConfig()) == (lower, face)
+    assert flow_regions(take.landmarks, cam.width, cam.height, "lower", FlowConfig(max_roi_px=16)) == (face, face)
+    valid = take.landmarks.valid.copy()
+    valid[:, np.r_[4:13, 31:36, 49:68]] = False      # one mouth corner left: a sliver
+    valid[1:, 48] = False
+    sliver = dataclasses.replace(take.landmarks, valid=valid)
+    rest = flow_roi(sliver, cam.width, cam.height, "face")
+    assert flow_regions(sliver, cam.width, cam.height, "lower", FlowConfig()) == (rest, rest)
+    from visemeflow.synth.take import render_take
+
+    frames = render_take(rig, take)
+    term, valid_fraction = flow_term(frames, rig, take.landmarks, FlowConfig(max_roi_px=16))
+    assert valid_fraction.shape == (6,)

@@ -796,7 +796,8 @@ def clean(
     items = reclaimable(s, chosen or KINDS) if listing else remove(s, chosen)
     verb = "reclaimable" if listing else "removed"
     for item in items:
-        what = f"{item.count} {'path' if item.count == 1 else 'paths'}"
+        what = (f"{item.count} {'item' if item.count == 1 else 'items'}" if item.uploads else
+                f"{item.count} {'path' if item.count == 1 else 'paths'}")
         if item.uploads:
             what += f" (of which {len(item.uploads)} unfinished upload{'' if len(item.uploads) == 1 else 's'})"
         typer.echo(f"{item.kind:12s} {human_bytes(item.n_bytes):>10s} {verb} in {what}")

@@ -200,6 +200,17 @@ class PartialUpload:
     n_bytes: int      # of the parts uploaded so far
 
 
+def _server_time(response: Mapping) -> float | None:
+    """POSIX seconds of an S3 answer's `Date` header: the server's clock when it answered, or None without one."""
+    from email.utils import parsedate_to_datetime
+
+    date = response.get("ResponseMetadata", {}).get("HTTPHeaders", {}).get("date")
+    try:
+        return _timestamp(parsedate_to_datetime(date)) if date else None
+    except (TypeError, ValueError):
+        return None
+
+
 class Store:
     """A Parquet store rooted at one folder, or at a prefix on object storage (`s3://bucket/prefix`: see
     `visemeflow.location`). `root` is a `Path` for a folder and a `upath.UPath` for a URL; the paths the methods give
@@ -676,35 +687,44 @@ class Store:
 
     def stale_uploads(self, min_age_s: float = 3600.0) -> list["PartialUpload"]:
         """Unfinished multipart uploads under a store on object storage that began more than `min_age_s` ago on the
-        server's clock (`_server_clock_skew`), sorted by path: what a writer killed while uploading a large file
-        leaves. The bucket keeps (and bills) their parts until they are aborted (`abort_upload`), and nothing
-        reads them. Younger ones may be a live writer's. A folder store has none."""
+        server's clock (its answer's `Date`, so listing writes nothing), sorted by path: what a writer killed while
+        uploading a large file leaves. The bucket keeps (and bills) their parts until they are aborted
+        (`abort_upload`), and nothing reads them. Younger ones may be a live writer's. A folder store has none."""
         if not self.remote:
             return []
         fs = self.root.fs
-        bucket, _, prefix = self.root.path.partition("/")
-        found, page = [], {}
+        bucket, base = self._bucket_and_base()
+        found, page, now = [], {}, None
         try:
             while True:
-                out = fs.call_s3("list_multipart_uploads", Bucket=bucket, Prefix=f"{prefix}/", **page)
+                out = fs.call_s3("list_multipart_uploads", Bucket=bucket, Prefix=base, **page)
+                now = _server_time(out) if now is None else now
                 found += out.get("Uploads", [])
                 if not out.get("IsTruncated"):
                     break
                 page = {"KeyMarker": out["NextKeyMarker"], "UploadIdMarker": out["NextUploadIdMarker"]}
             if not found:
                 return []
-            now = time.time() + self._server_clock_skew(self.root / ".uploads")
+            if now is None:   # a server that sends no date: measure it with a probe object
+                now = time.time() + self._server_clock_skew(self.root / ".uploads")
             stale = []
             for upload in found:
                 started = _timestamp(upload["Initiated"])
                 if now - started <= min_age_s:
                     continue
                 key, upload_id = upload["Key"], upload["UploadId"]
-                path = self.root.joinpath(*key[len(prefix) + 1:].split("/"))
+                path = self.root.joinpath(*key[len(base):].split("/"))
                 stale.append(PartialUpload(path, key, upload_id, started, self._upload_bytes(bucket, key, upload_id)))
         except OSError as exc:
             raise StoreError(exc.errno or 0, f"cannot list the unfinished uploads of {self.location}: {exc}") from exc
         return sorted(stale, key=lambda u: (str(u.path), u.started))
+
+    def _bucket_and_base(self) -> tuple[str, str]:
+        """The bucket of a store on object storage and the key prefix of its objects ('' at the bucket's root, else
+        'prefix/')."""
+        bucket, _, prefix = self.root.path.partition("/")
+        prefix = prefix.strip("/")
+        return bucket, f"{prefix}/" if prefix else ""
 
     def _upload_bytes(self, bucket: str, key: str, upload_id: str) -> int:
         total, page = 0, {}
@@ -721,8 +741,8 @@ class Store:
     def abort_upload(self, upload: "PartialUpload") -> None:
         """Abort an unfinished multipart upload of this store (`stale_uploads`): its parts are removed; an upload
         finished or aborted meanwhile is left as it is."""
-        bucket, _, prefix = self.root.path.partition("/")
-        if not upload.key.startswith(f"{prefix}/"):
+        bucket, base = self._bucket_and_base()
+        if not upload.key.startswith(base):
             raise ValueError(f"{upload.key} is not inside the store {self.location}")
         try:
             self.root.fs.call_s3("abort_multipart_upload", Bucket=bucket, Key=upload.key, UploadId=upload.upload_id)

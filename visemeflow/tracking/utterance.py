@@ -37,7 +37,7 @@ from visemeflow.tracking.identity import (
     neutral_frames,
 )
 from visemeflow.tracking.landmarks import LandmarkError, LandmarkTrack, read_landmarks
-from visemeflow.tracking.optical_flow import FlowConfig, estimate_optical_flow, roi_around
+from visemeflow.tracking.optical_flow import FlowConfig, estimate_optical_flow, roi_around, roi_scale
 from visemeflow.tracking.photo import PhotoTerm
 from visemeflow.tracking.solver import (
     FlowTerm,
@@ -300,6 +300,27 @@ def flow_roi(track: LandmarkTrack, width: int, height: int, region: str = "lower
     return roi_around(points.reshape(-1, 2), width, height, margin=0.15)
 
 
+MIN_FLOW_SIDE_PX = 32
+"""The lower face's region is used only while its shorter side, at the whole face's resolution, keeps this many
+array pixels: DIS fails on crops of about 12 px, and a few detected points make a sliver."""
+
+
+def flow_regions(track: LandmarkTrack, width: int, height: int, region: str,
+                 config: FlowConfig) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
+    """(the region DIS runs on, the whole face's region whose size sets the resolution): the lower face's for
+    `region` "lower" unless it is too small at that resolution (`MIN_FLOW_SIDE_PX`) or lies outside the image, then
+    the whole face's."""
+    face = flow_roi(track, width, height, "face")
+    if region == "face":
+        return face, face
+    try:
+        lower = flow_roi(track, width, height, region)
+    except ValueError:         # outside the image
+        return face, face
+    small = min(lower[2], lower[3]) * roi_scale(face, config) < MIN_FLOW_SIDE_PX
+    return (face if small else lower), face
+
+
 def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack,
               config: FlowConfig | None = None, region: str = "lower") -> tuple[FlowTerm, np.ndarray]:
     """Optical-flow correspondences over the lower face (`region` "lower", see `flow_roi`) or the whole face
@@ -311,9 +332,9 @@ def flow_term(frames: Iterable[np.ndarray], rig: VisemeRig, track: LandmarkTrack
     if first is None:
         raise ValueError("flow_term needs at least one frame")
     height, width = first.shape[:2]
-    face = flow_roi(track, width, height, "face")
-    roi = face if region == "face" else flow_roi(track, width, height, region)
-    flow = estimate_optical_flow(itertools.chain([first], it), config or FlowConfig(), roi, scale_roi=face)
+    config = config or FlowConfig()
+    roi, face = flow_regions(track, width, height, region, config)
+    flow = estimate_optical_flow(itertools.chain([first], it), config, roi, scale_roi=face)
     valid_fraction = np.array([np.nan] + [flow.valid_fraction(j) for j in range(1, flow.n_frames)], np.float32)
     return (FlowTerm(flow_vertices(rig), flow.correspondences, flow.backward_correspondences,
                      flow.all_correspondences), valid_fraction)
