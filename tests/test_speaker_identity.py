@@ -52,7 +52,8 @@ def counted(monkeypatch):
         uid = utterance[C.UTTERANCE_ID]
         calls["tracked"][uid] = identity
         curves = np.zeros((int(utterance[C.N_FRAMES]), N_VISEMES), np.float32)
-        store.save_curves(Curves(curves, utterance[C.FPS], uid, track_task.SOURCE, config.variant, "fake"))
+        store.save_curves(Curves(curves, utterance[C.FPS], uid, track_task.SOURCE, config.variant,
+                                 track_task.tracked_provenance(utterance, config, identity)))
         return {"utterance_id": uid, "frames": int(utterance[C.N_FRAMES]), "seconds": 0.0, "mouth_error_px": 1.0,
                 "variant": config.variant, "guided": True, "unguided_reason": None, "interpolated_frames": 0}
 
@@ -130,3 +131,29 @@ def test_identity_off_or_without_neutral_frames_fits_per_clip(tmp_path, counted)
         track_task_patch.undo()
     assert set(counted["tracked"].values()) == {None} and len(counted["tracked"]) == 3
     assert real is track_task.speaker_identity
+
+
+def test_curves_another_config_wrote_over_are_tracked_again(tmp_path, counted):
+    """One variant folder holds the tracked curves of every flow region, preset and size: after `track
+    --flow-region face`, a track with the default settings again must not take the face run's curves for its
+    own cached ones (it did: "cached", with the other run's curves on disk)."""
+    from visemeflow.flows.params import TrackParams
+    from visemeflow.flows.track import track_flow
+    from visemeflow.storage import Store
+    from visemeflow.tasks import track as track_task
+    from visemeflow.tracking.solver import TrackingConfig
+
+    corpus, store = grid_corpus(tmp_path / "corpus"), tmp_path / "store"
+    ingest(corpus, store)
+    default, face = TrackingConfig(), TrackingConfig(flow_region="face")
+    assert default.variant == face.variant
+    assert track_flow(TrackParams(store=store, config=default))["tracked"] == 3
+    assert track_flow(TrackParams(store=store, config=face))["tracked"] == 3
+    again = track_flow(TrackParams(store=store, config=default))
+    assert again["tracked"] == 3 and again["cached"] == 0
+    stored = Store(store)
+    for uid in counted["tracked"]:
+        row = next(r for r in stored.read_table("utterances").to_pylist() if r[C.UTTERANCE_ID] == uid)
+        assert stored.curves_provenance(track_task.SOURCE, default.variant, uid) == \
+            track_task.tracked_provenance(row, default, None)
+    assert track_flow(TrackParams(store=store, config=default))["cached"] == 3

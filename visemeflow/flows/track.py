@@ -50,6 +50,7 @@ from visemeflow.tasks.track import (
     landmark_file,
     track_jointly,
     track_utterance,
+    tracked_provenance,
     utterance_config,
 )
 from visemeflow.tracking.solver import TrackingConfig, joins
@@ -234,11 +235,15 @@ def track_flow(params: TrackParams) -> dict[str, object]:
         row = keyed_row(store, row)
         calls.append((uid, row, (str(store.root), row, procedural_variant, provenance, str(rig_path), rig_hash,
                                  config, identities.get(uid))))
-    # a cache hit must not hide deleted curves: recompute unless they are there (or the utterance was rejected)
+    # a cache hit must not hide deleted curves, nor curves another config wrote over (one variant folder holds the
+    # curves of every flow region, preset, ...): recompute unless they are there as this call would write them (or
+    # the utterance was rejected)
     variants = {uid: utterance_config(row, config).variant for uid, row, _ in calls}
-    stored = set().union(*(store.curves_present(SOURCE, v, [u for u in variants if variants[u] == v])
-                           for v in set(variants.values())))
-    present = {uid: uid in stored or uid in rejected_before for uid, _, _ in calls}
+    recorded = {}
+    for v in set(variants.values()):
+        recorded.update(store.curves_provenances(SOURCE, v, [u for u in variants if variants[u] == v]))
+    present = {uid: recorded.get(uid) == tracked_provenance(row, config, identities.get(uid))
+               or uid in rejected_before for uid, row, _ in calls}
     if params.joint_frames > 0 and joins(config):    # L_rgb or LM: one clip at a time, so one task each
         reports, rejects, unexpected, jointly = track_in_groups(store, calls, present, params.joint_frames,
                                                                 run.logger, params.device)

@@ -72,6 +72,18 @@ def utterance_config(utterance: dict, config: TrackingConfig) -> TrackingConfig:
     return config
 
 
+def tracked_provenance(utterance: dict, config: TrackingConfig, identity: SpeakerIdentity | dict | None) -> str:
+    """What the tracked curves of `utterance` record as their making: its content, the whole config it was tracked
+    with (`utterance_config`), this code and the speaker identity (or its `to_dict`, as the flow holds it). The
+    track flow counts stored curves as done only while they record exactly this (curves of other settings in the
+    same variant folder are tracked again)."""
+    config = utterance_config(utterance, config)
+    if isinstance(identity, dict):
+        identity = SpeakerIdentity.from_dict(identity)
+    return (f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"
+            + ("" if identity is None else f":identity={identity.digest}"))
+
+
 def unguided_reason(utterance: dict, config: TrackingConfig) -> str | None:
     """Why an utterance is tracked without phoneme guidance; None when it is guided."""
     if not config.guidance:
@@ -140,8 +152,7 @@ def _stored(store: Store, utterance: dict, config: TrackingConfig, tracked: Trac
     uid = utterance[C.UTTERANCE_ID]
     result, variant = tracked.result, config.variant
     store.save_curves(Curves(result.curves, utterance[C.FPS], uid, SOURCE, variant,
-                             f"{SOURCE}:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{code_digest(__name__)}"
-                             + ("" if identity is None else f":identity={identity.digest}")))
+                             tracked_provenance(utterance, config, identity)))
     store.write_tracking_frames(diagnostics_table(uid, variant, tracked))
     error = result.mouth_error_px
     n_frames = int(utterance[C.N_FRAMES])

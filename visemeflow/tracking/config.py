@@ -28,28 +28,31 @@ class TrackingConfig(BaseModel):
     use_rgb: bool = Field(False, description="Include L_rgb (needs the video frames).")
     use_flow: bool = Field(True, description="Include L_flow (needs the video frames).")
     flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
-        "medium", description="DIS optical-flow preset of L_flow (`tracking.optical_flow.FlowConfig.preset`). "
-                              "fast: the speed setting, end to end per core GRID 47-54 -> 62-70 frames/s, 700x700 "
-                              "talking heads 32 -> 50-51 (two runs of bench/end_to_end.py --joint 5 --compare-flow "
-                              "fast:256), at a cost: "
-                              "mouth error 1.410 -> 1.420 px and 2.741 -> 2.762 px, MBP 14/14 both; on synthetic "
-                              "takes with known curves L1 x 100 5.135 -> 5.174 (no flow: 5.620), so medium stays "
-                              "the default.")
+        "medium", description="How carefully the optical flow (which helps tracking follow the skin between the "
+                              "landmarks, L_flow) is computed: medium (the default, the most accurate), fast or "
+                              "ultrafast (faster, slightly less accurate). Measured before the flow ran on the lower "
+                              "face (bench/end_to_end.py --joint 5 --compare-flow fast:256, one core): fast took GRID "
+                              "end to end from 47-54 to 62-70 frames/s and 700x700 talking heads from 32 to 50-51, "
+                              "mouth error 1.410 -> 1.420 px and 2.741 -> 2.762 px, MBP 14/14 both; synthetic takes "
+                              "L1 x 100 to the truth 5.135 -> 5.174 (no flow: 5.620) "
+                              "(`tracking.optical_flow.FlowConfig.preset`).")
     flow_max_roi_px: int | None = Field(
-        256, ge=16, description="L_flow: the face region is shrunk until its longer side is at most this many pixels "
-                                "before DIS runs (`FlowConfig.max_roi_px`; None: native size). 256 instead of 480: "
-                                "1.7x the flow's frames/s on 700x700 talking heads, mouth keypoint error 2.730 -> "
-                                "2.733 px; GRID's faces are smaller and unchanged (bench/end_to_end.py --compare-flow). "
+        256, ge=16, description="Largest size in pixels of the face the optical flow works on: a larger face is "
+                                "shrunk until its longer side fits (smaller: faster, slightly less accurate; null in a "
+                                "JSON config: never shrunk). 256 instead of 480: 1.7x the flow's speed on 700x700 "
+                                "talking heads, mouth error 2.730 -> 2.733 px; GRID's faces are smaller and unchanged. "
                                 "192: talking heads end to end 31.8 -> 40.0 frames/s per core, mouth error 2.741 -> "
-                                "2.747 px (--joint 5 --compare-flow medium:192).")
+                                "2.747 px (bench/end_to_end.py --joint 5 --compare-flow medium:192; "
+                                "`FlowConfig.max_roi_px`).")
     flow_region: Literal["face", "lower"] = Field(
-        "lower", description="L_flow: the region DIS runs on, around the landmarks of the whole face or of the lower "
-                            "face only (the chin, the nose's base and the mouth), which holds every point L_flow "
-                            "follows (`tracking.utterance.flow_roi`), at the whole face's resolution. lower: flow "
-                            "137 -> 281 frames/s on GRID, 48 -> 89 on 700x700 talking heads, end to end 46.3 -> 58.5 "
-                            "and 29.3 -> 41.3 per core; mouth error 1.410 -> 1.409 px and 2.741 -> 2.742 px, MBP "
-                            "14/14 both; synthetic L1 x 100 5.14 both (bench/end_to_end.py --compare-config "
-                            "'{\"flow_region\": \"face\"}', bench/tracking.py).")
+        "lower", description="Where the optical flow is computed: lower (the default: the chin, the nose's base and "
+                             "the mouth, which hold every point the flow term follows, at the whole face's "
+                             "resolution) or face (the whole face, as before; slower, the same curves within "
+                             "0.001 px of mouth error). Measured (bench/end_to_end.py --compare-config "
+                             "'{\"flow_region\": \"face\"}', one core): flow 137 -> 281 frames/s on GRID and 48 -> "
+                             "89 on 700x700 talking heads, end to end 46.3 -> 58.5 and 29.3 -> 41.3; mouth error "
+                             "1.410 -> 1.409 px and 2.741 -> 2.742 px, MBP 14/14 both; synthetic L1 x 100 5.14 both "
+                             "(`tracking.utterance.flow_regions`).")
     speaker_identity: bool = Field(
         False, description="Fit the face (ICT identity modes) and camera focal length of real video once per speaker "
                            "and image size, on neutral frames pooled from `identity_clips` of the speaker's clips, "

@@ -206,7 +206,8 @@ def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path:
     with missing frames or cut to its length."""
     if not landmark_path:
         raise TrackingInputError(video_path, "NoLandmarks", f"no landmark file ({LANDMARK_FILES}) beside the video "
-                                 "and none stored by the landmarks stage")
+                                 "and none stored by the landmarks stage (run `visemeflow landmarks`; where it "
+                                 "found no face, `visemeflow rejects --stage landmarks` says so)")
     try:
         track = read_landmarks(landmark_path, fps=fps)
     except LandmarkError as exc:
