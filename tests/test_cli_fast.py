@@ -357,8 +357,11 @@ def test_the_command_ends_its_process_after_the_exit_handlers_with_its_output_an
               "sys.argv = ['visemeflow', *sys.argv[1:]]\n"
               "runpy.run_module('visemeflow.cli', run_name='__main__', alter_sys=True)\n")
     store = tmp_path / "store"
+    store.mkdir()
     for args, status, out, err in (
         (["rejects", "--store", str(store)], 0, ["no rejects", "exit handler ran"], []),
+        (["rejects", "--store", str(tmp_path / "stor")], 2, ["exit handler ran"],
+         [f"error: no store at {tmp_path / 'stor'}: give the folder a pipeline wrote with --store"]),
         (["predict", str(tmp_path / "missing.wav"), "--store", str(store)], 2, ["exit handler ran"],
          [f"error: audio file {tmp_path / 'missing.wav'} does not exist"]),
     ):

@@ -45,6 +45,13 @@ app.add_typer(curves_app, name="curves")
 
 
 
+def _existing_store(store: Path | str) -> None:
+    """A command that only reads a store: a folder that does not exist is a mistyped path, one line, not an empty
+    store (a URL store's bucket was checked by `_usable_store`)."""
+    if not is_url(store) and not Path(store).is_dir():
+        _fail(f"no store at {store}: give the folder a pipeline wrote with --store")
+
+
 def _fail(message: str) -> None:
     """A wrong argument: one line on stderr and exit 2, before any flow (and Prefect, with its temporary server) starts."""
     typer.echo(f"error: {message}", err=True)
@@ -763,6 +770,7 @@ def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typ
     """List rejected inputs with their reasons."""
     from visemeflow.storage import Store
 
+    _existing_store(store)
     table = Store(store).read_table("rejects", stage)
     if table.num_rows == 0:
         typer.echo("no rejects")
@@ -790,6 +798,7 @@ def clean(
     unknown = sorted(set(kinds or []) - set(KINDS))
     if unknown:
         raise typer.BadParameter(f"unknown kind {', '.join(unknown)}; choose from {', '.join(KINDS)}")
+    _existing_store(store)
     s = Store(store)
     chosen = [k for k in KINDS if k in (kinds or [])]
     listing = not chosen or dry_run
