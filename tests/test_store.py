@@ -211,6 +211,14 @@ def test_read_curves_lookup_errors(tmp_path):
         store.read_curves("spk/u1", "procedural")
     with pytest.raises(LookupError, match="'c'"):
         store.read_curves("spk/u1", "procedural", "c")
+    # what a user can do next: the variants there are, the sources that hold the utterance, no variant to name
+    with pytest.raises(LookupError, match=r"no procedural curves of variant 'c' .*; its variants: a, b$"):
+        store.read_curves("spk/u1", "procedural", "c")
+    with pytest.raises(LookupError, match=r"^spk/u1: no tracked curves in .*; it has procedural curves "
+                                          r"\(--source procedural\)$"):
+        store.read_curves("spk/u1", "tracked")
+    with pytest.raises(LookupError, match=r"^spk/nope: no procedural curves in [^;]*$"):
+        store.read_curves("spk/nope", "procedural")
 
 
 def test_write_curves_holds_one_utterance(tmp_path):

@@ -944,15 +944,23 @@ class Store:
         """The file of one utterance's curves from one source; `variant` may be omitted when only one exists."""
         if variant is None:
             variants = self.curve_variants(source, utterance_id)
-            if len(variants) != 1:
-                raise LookupError(
-                    f"{utterance_id}: {len(variants)} variants of {source} curves ({', '.join(variants) or 'none'}); name one"
-                )
+            if len(variants) > 1:
+                raise LookupError(f"{utterance_id}: {len(variants)} variants of {source} curves "
+                                  f"({', '.join(variants)}); name one with --variant")
+            if not variants:
+                raise LookupError(self._no_curves(utterance_id, source))
             variant = variants[0]
         path = self.curve_path(source, variant, utterance_id)
         if not path.exists():
-            raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.root}")
+            variants = self.curve_variants(source, utterance_id)
+            raise LookupError(f"{utterance_id}: no {source} curves of variant {variant!r} in {self.location}; its "
+                              f"variants: {', '.join(variants)}" if variants else self._no_curves(utterance_id, source))
         return path
+
+    def _no_curves(self, utterance_id: str, source: str) -> str:
+        others = sorted({s for s, v in self.curve_sets() if s != source and self.curve_path(s, v, utterance_id).exists()})
+        hint = f"; it has {', '.join(others)} curves (--source {others[0]})" if others else ""
+        return f"{utterance_id}: no {source} curves in {self.location}{hint}"
 
     def read_curves(self, utterance_id: str, source: str, variant: str | None = None) -> pa.Table:
         """Curves of one utterance from one source; `variant` may be omitted when only one exists."""
