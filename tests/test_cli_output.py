@@ -178,3 +178,38 @@ def test_a_command_on_a_temporary_server_sends_its_last_logs_before_the_server_s
         assert f"1 file, {int(attempt == 'predicted')} predicted, {int(attempt == 'cached')} cached" in done.stdout
         assert "Error logging to API" not in done.stderr and "connection attempts failed" not in done.stderr, (
             attempt, done.stderr[-2000:])
+
+
+def test_a_task_rejecting_bad_input_is_one_warning_line_and_a_bug_keeps_its_trace():
+    """Prefect logs a failed task run at ERROR with a 30-line traceback. For the errors that name a reject (an
+    `error_type`, e.g. LandmarksError: no face) it is one WARNING line, the state line after it too; any other
+    error (a bug) keeps its level and its trace."""
+    import logging
+
+    import visemeflow.tasks.common  # noqa: F401  (puts the filter on Prefect's task-run logger)
+    from visemeflow.tasks.landmarks import LandmarksError
+
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append((record.levelname, self.format(record)))
+
+    logger = logging.getLogger("prefect.task_runs")
+    handler = Keep()
+    logger.addHandler(handler)
+    try:
+        for error in (LandmarksError("s1/x", "/c/x.mpg", "NoFace", "no face found on any of its 75 frames"),
+                      KeyError("bug")):
+            try:
+                raise error
+            except Exception as exc:
+                logger.error("Task run failed with exception: %r - Retries are exhausted", exc, exc_info=True)
+                logger.error("Finished in state Failed('Task run encountered an exception %s: %s')",
+                             type(exc).__name__, exc)
+    finally:
+        logger.removeHandler(handler)
+    (level1, text1), (level2, text2), (level3, text3), (level4, _) = records
+    assert (level1, level2) == ("WARNING", "WARNING")
+    assert "Traceback" not in text1 and len(text1.splitlines()) == 1 and "no face found" in text1
+    assert level3 == level4 == "ERROR" and "Traceback" in text3 and "KeyError" in text3

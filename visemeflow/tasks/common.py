@@ -3,6 +3,7 @@
 import functools
 import logging
 import os
+import re
 import stat
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -208,6 +209,41 @@ def cache_key_of(task: Any, results: Any, *args: Any, checked: bool = True) -> s
         policy = policy.policy
     return policy.compute_key(task_ctx=context, inputs=get_call_parameters(task.fn, args, {}),
                                          flow_parameters={})
+
+
+class _RejectsInOneLine(logging.Filter):
+    """Prefect logs every failed task run at ERROR with its traceback, about 30 lines. A task that fails on bad
+    input raises an error naming its reject (`error_type`: TrackError, LandmarksError, ...): the stage records it
+    in the rejects table and says so in one line, so here it is one WARNING line, without the trace. Any other
+    error keeps its trace."""
+
+    _FINISHED = re.compile(r"encountered an exception (\w+):")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.expected: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        if error is not None and hasattr(error, "error_type"):
+            self.expected.add(type(error).__name__)
+            record.exc_info, record.exc_text, record.stack_info = None, None, None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        elif error is None and record.levelno >= logging.ERROR:
+            match = self._FINISHED.search(record.getMessage())
+            if match and match[1] in self.expected:
+                record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+def quiet_rejects(logger_name: str = "prefect.task_runs") -> None:
+    """Put `_RejectsInOneLine` on Prefect's task-run logger, once (again after Prefect reconfigured logging)."""
+    logger = logging.getLogger(logger_name)
+    if not any(isinstance(f, _RejectsInOneLine) for f in logger.filters):
+        logger.addFilter(_RejectsInOneLine())
+
+
+quiet_rejects()
 
 
 def reject_row(utterance_id: str | None, stage: str, error_type: str, message: str, path: str | None) -> dict[str, object]:
