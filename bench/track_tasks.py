@@ -49,7 +49,8 @@ def stub_tracking() -> None:
     def track_one(store, utterance, procedural_variant, rig, config, on_step=None, identity=None):
         uid = utterance[C.UTTERANCE_ID]
         curves = np.zeros((int(utterance[C.N_FRAMES]), N_VISEMES), np.float32)
-        store.save_curves(Curves(curves, utterance[C.FPS], uid, track_task.SOURCE, config.variant, "stub"))
+        store.save_curves(Curves(curves, utterance[C.FPS], uid, track_task.SOURCE, config.variant,
+                                 track_task.tracked_provenance(utterance, config, identity)))
         return {"utterance_id": uid, "frames": int(utterance[C.N_FRAMES]), "seconds": 0.0, "mouth_error_px": 1.0,
                 "variant": config.variant, "guided": True, "unguided_reason": None, "interpolated_frames": 0}
 
