@@ -805,8 +805,7 @@ def clean(
     items = reclaimable(s, chosen or KINDS) if listing else remove(s, chosen)
     verb = "reclaimable" if listing else "removed"
     for item in items:
-        what = (f"{item.count} {'item' if item.count == 1 else 'items'}" if item.uploads else
-                f"{item.count} {'path' if item.count == 1 else 'paths'}")
+        what = f"{item.count} {'item' if item.uploads else 'path'}{'' if item.count == 1 else 's'}"
         if item.uploads:
             what += f" (of which {len(item.uploads)} unfinished upload{'' if len(item.uploads) == 1 else 's'})"
         typer.echo(f"{item.kind:12s} {human_bytes(item.n_bytes):>10s} {verb} in {what}")
@@ -918,9 +917,7 @@ def dashboard(
 
     from visemeflow.dashboards.html import build_dashboard
 
-    if not store.is_dir():
-        typer.echo(f"error: no store at {store}; run `visemeflow pipeline CORPUS --store {store}` first", err=True)
-        raise typer.Exit(2)
+    _existing_store(store)
     started = time.perf_counter()
     result = build_dashboard(store, out, utterance, max_utterances)
     for uid in result.missing:
