@@ -76,6 +76,36 @@ def test_option_values_become_the_nested_params_model(monkeypatch, tmp_path):
         runner={"kind": "dask", "dask_address": "tcp://127.0.0.1:1", "threads": 2})  # an address means dask
 
 
+def test_a_number_that_may_be_none_takes_the_word_none_and_the_pipeline_takes_the_tracking_options(
+        monkeypatch, tmp_path):
+    seen = []
+    monkeypatch.setattr("visemeflow.flows.runners.run_on_runner",
+                        lambda flow, params: seen.append(params) or {"utterances": 0})
+    store = make_curve_store(tmp_path / "s", n=1)
+    for word, expected in (("none", None), ("NONE", None), ("320", 320)):
+        result = runner.invoke(app, ["track", "--store", str(store.root), "--flow-max-roi-px", word])
+        assert result.exit_code == 0, result.output
+        assert seen.pop().config.flow_max_roi_px == expected
+    result = runner.invoke(app, ["track", "--store", str(store.root)])
+    assert result.exit_code == 0 and seen.pop().config.flow_max_roi_px == 256   # the field's default
+    bad = runner.invoke(app, ["track", "--store", str(store.root), "--flow-max-roi-px", "big"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: --flow-max-roi-px: ") and bad.output.count("\n") == 1
+    bad = runner.invoke(app, ["track", "--store", str(store.root), "--flow-max-roi-px", "8"])
+    assert bad.exit_code == 2 and "greater than or equal to 16" in bad.output
+
+    monkeypatch.setattr("visemeflow.flows.pipeline.pipeline_flow", lambda params: seen.append(params) or {})
+    corpus = tmp_path / "corpus" / "alice"
+    corpus.mkdir(parents=True)
+    (corpus / "take01.wav").write_bytes(b"")
+    result = runner.invoke(app, ["pipeline", str(tmp_path / "corpus"), "--store", str(tmp_path / "p"),
+                                 "--flow-region", "face", "--flow-preset", "fast", "--flow-max-roi-px", "none",
+                                 "--speaker-identity"])
+    assert result.exit_code == 0, result.output
+    tracking = seen.pop().tracking
+    assert (tracking.flow_region, tracking.flow_preset, tracking.flow_max_roi_px, tracking.speaker_identity,
+            tracking.use_flow) == ("face", "fast", None, True, True)
+
+
 def test_an_option_filling_two_fields_and_a_list_option(monkeypatch, tmp_path):
     seen = {}
     monkeypatch.setattr("visemeflow.flows.train.train_flow", lambda params: seen.setdefault("params", params) and {})

@@ -143,6 +143,8 @@ class _Resolved:
     help: str
     is_list: bool
     choices: tuple[str, ...] = ()
+    none_word: bool = False
+    """A number that may be None but defaults to a number: the value `none` on the command line sets None."""
 
 
 def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
@@ -161,6 +163,10 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
         annotation = _cli_type(field_type)
         if optional:
             annotation = Optional[annotation]   # noqa: UP007
+    none_word = (opt.type is FROM_FIELD and not is_list and optional and stripped in (int, float)
+                 and _field_default(info) not in (None, _FACTORY, ...))
+    if none_word:
+        annotation = Optional[str]   # noqa: UP007 (a number or `none`; the model parses the number)
     if opt.default is not FROM_FIELD:
         default = opt.default
     else:
@@ -176,9 +182,11 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
     limits = _limits(info) if info is not None and not is_list else ""
     if limits:
         text = f"{text} ({limits})"
+    if none_word and "none" not in text.lower().split():
+        text = f"{text} none: no value (None)."
     if opt.repeat and not opt.argument and "repeat" not in text.lower():
         text = f"{text} Repeat for several.".strip()
-    return _Resolved(opt, annotation, default, text, is_list, choices)
+    return _Resolved(opt, annotation, default, text, is_list, choices, none_word)
 
 
 _LIMIT_WORDS = (("ge", "at least"), ("gt", "above"), ("le", "at most"), ("lt", "below"))
@@ -195,7 +203,7 @@ def _limits(info: FieldInfo) -> str:
     return ", ".join(found)
 
 
-def _metavar(annotation: Any, is_list: bool, repeat: bool) -> str | None:
+def _metavar(annotation: Any, is_list: bool, repeat: bool, none_word: bool = False) -> str | None:
     """The word that stands for an option's value in the help: FILE-like paths, N, X, TEXT, A,B for a list."""
     if is_list and not repeat:
         return "A,B"
@@ -204,6 +212,8 @@ def _metavar(annotation: Any, is_list: bool, repeat: bool) -> str | None:
         inner = typing.get_args(inner)[0]
     if inner is bool:
         return None
+    if none_word:
+        return "N|none"
     if isinstance(inner, type) and issubclass(inner, PurePath):
         return "PATH"
     return {int: "N", float: "X"}.get(inner, "TEXT")
@@ -226,7 +236,7 @@ def _one_of(flag: str, choices: tuple[str, ...], then: Callable[..., Any] | None
 def _typer_param(r: _Resolved) -> inspect.Parameter:
     opt = r.opt
     callback = _one_of(opt.flag_name, r.choices, opt.callback, r.is_list) if r.choices else opt.callback
-    metavar = _metavar(r.annotation, r.is_list, opt.repeat)
+    metavar = _metavar(r.annotation, r.is_list, opt.repeat, r.none_word)
     if opt.argument:
         info = typer.Argument(help=r.help, callback=callback, metavar=opt.param_name.upper(), **opt.extra)
     elif metavar is not None:
@@ -251,6 +261,8 @@ def _set(tree: dict[str, Any], path: str, value: Any) -> None:
 def _value(r: _Resolved, value: Any) -> Any:
     if r.is_list and isinstance(value, str):
         return [x.strip() for x in value.split(",") if x.strip()]
+    if r.none_word and isinstance(value, str):
+        return None if value.strip().lower() in ("none", "null") else value.strip()
     return value
 
 

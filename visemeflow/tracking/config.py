@@ -38,8 +38,8 @@ class TrackingConfig(BaseModel):
                               "(`tracking.optical_flow.FlowConfig.preset`).")
     flow_max_roi_px: int | None = Field(
         256, ge=16, description="Largest size in pixels of the face the optical flow works on: a larger face is "
-                                "shrunk until its longer side fits (smaller: faster, slightly less accurate; null in a "
-                                "JSON config: never shrunk). 256 instead of 480: 1.7x the flow's speed on 700x700 "
+                                "shrunk until its longer side fits (smaller: faster, slightly less accurate; none, null "
+                                "in a JSON config: never shrunk). 256 instead of 480: 1.7x the flow's speed on 700x700 "
                                 "talking heads, mouth error 2.730 -> 2.733 px; GRID's faces are smaller and unchanged. "
                                 "192: talking heads end to end 31.8 -> 40.0 frames/s per core, mouth error 2.741 -> "
                                 "2.747 px (bench/end_to_end.py --joint 5 --compare-flow medium:192; "
