@@ -71,7 +71,7 @@ def test_cli_lists_without_removing_and_removes_what_is_named(tmp_path):
     assert not any((tmp_path / rel).exists() for rel in files["augmented"] + files["checkpoints"])
     assert all((tmp_path / rel).exists() for rel in files["keep"] + files["results"])
     bad = runner.invoke(app, ["clean", "curves", "--store", str(tmp_path)])
-    assert bad.exit_code == 2 and "unknown kind curves" in bad.output
+    assert bad.exit_code == 2 and bad.output == "error: unknown kind curves; choose from temporary, augmented, checkpoints, results\n"
     typo = runner.invoke(app, ["clean", "--store", str(tmp_path / "no-such-store")])
     assert typo.exit_code == 2 and f"no store at {tmp_path / 'no-such-store'}" in typo.output
 

@@ -799,7 +799,7 @@ def clean(
 
     unknown = sorted(set(kinds or []) - set(KINDS))
     if unknown:
-        raise typer.BadParameter(f"unknown kind {', '.join(unknown)}; choose from {', '.join(KINDS)}")
+        _fail(f"unknown kind {', '.join(unknown)}; choose from {', '.join(KINDS)}")
     _existing_store(store)
     s = Store(store)
     chosen = [k for k in KINDS if k in (kinds or [])]
