@@ -5,6 +5,8 @@
 #   espeak-ng       libespeak-ng.so.1: the synthetic scale corpus (`visemeflow espeak-corpus`) and tests/test_espeak.py
 #   chromium        headless browser of tests/test_dashboard.py (opens the HTML dashboard)
 #   nodejs, npm     Node for the Khronos glTF validator (npm `gltf-validator`) of the animation stages
+#   klettres-data   real syllables spoken in 16 languages (KDE's KLettres, GPL-2+, read where installed, never
+#                   copied): tests/test_syllables.py and bench/syllables.py judge the default model's lips on them
 #
 # All present: exit 0 at once, no apt call. Missing, as root: apt-get update + install, then check again.
 # Missing, not root: one line on stderr naming the packages and the command that installs them, exit 1.
@@ -28,6 +30,7 @@ check() {
     have chromium || have chromium-browser || have google-chrome || need chromium
     have node || { need nodejs; need npm; }
     have npm || need npm
+    [ -f /usr/share/klettres/fr/sounds.xml ] || need klettres-data
 }
 
 check
