@@ -232,11 +232,12 @@ class _no_lock:
 def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
     from pydantic import ValidationError
 
-    from visemeflow.flows.params import PipelineParams, TrainParams
+    from visemeflow.flows.params import EvaluateParams, PipelineParams, TrainParams
     from visemeflow.location import parse_root
 
     with pytest.raises(ValidationError, match="needs a store folder"):
-        TrainParams(store="s3://bucket/store")
+        EvaluateParams(store="s3://bucket/store", models=["m"])
+    assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
     with pytest.raises(ValidationError, match="animating characters needs a store folder"):
         PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])
     assert PipelineParams(corpus="c", store="s3://bucket/store/").store == "s3://bucket/store"
@@ -492,7 +493,8 @@ def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket
 
 
 def test_commands_on_an_s3_store(bucket):
-    """`curves show` and `rejects` read an S3 store; `train` says it needs a folder; a missing bucket is one line."""
+    """`curves show` and `rejects` read an S3 store; `evaluate` says it needs a folder; a missing bucket is one
+    line."""
     import subprocess
     import sys
 
@@ -506,8 +508,8 @@ def test_commands_on_an_s3_store(bucket):
     shown = cli("curves", "show", "spk/a", "--store", url)
     assert shown.returncode == 0 and "spk/a  source procedural  variant v1  30 frames" in shown.stdout, shown.stderr
     assert cli("rejects", "--store", url).stdout.strip() == "no rejects"
-    refused = cli("train", "--store", url)
-    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: train needs a store folder: {url}")
+    refused = cli("evaluate", "--models", "m", "--store", url)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: evaluate needs a store folder: {url}")
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1
@@ -582,3 +584,64 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
                                                                   "landmarks/b.parquet", at_root)
     Store(f"s3://{root}").abort_upload(upload)
     assert fs.call_s3("list_multipart_uploads", Bucket=root).get("Uploads", []) == []
+
+
+@pytest.mark.flow
+def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predict_reads_the_model(
+        bucket, tmp_path, prefect_harness, monkeypatch):
+    """A training on an S3 store uploads its checkpoint after every epoch: killed after the first, and started again
+    where no local file of it is left (another machine), it resumes from the stored one and ends with the weights
+    of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves."""
+    import shutil
+
+    import torch
+    from factories import DEMO_CORPUS, make_lj_corpus
+
+    import visemeflow.tasks.train as train_tasks
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, PredictParams, ProceduralParams, TrainParams
+    from visemeflow.flows.predict import predict_flow
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.flows.train import train_flow
+    from visemeflow.ingest import IngestConfig
+    from visemeflow.learning.train import TrainConfig, load_model
+
+    corpus = make_lj_corpus(tmp_path / "corpus", speakers=1, names=["LJ001-0002", "LJ001-0005", "LJ001-0012"])
+    url, folder = f"s3://{bucket}/learn", tmp_path / "store"
+    for store in (url, folder):
+        ingest_flow(IngestParams(corpus=corpus, store=store, n_shards=2, config=IngestConfig(val_fraction=0.25)))
+        procedural_flow(ProceduralParams(store=store))
+    config = TrainConfig(preset="fbank-tcn", epochs=2, d_model=16)
+    local = train_flow(TrainParams(store=folder, config=config, source="procedural", model_name="tiny"))
+
+    real, uploads = train_tasks.upload_checkpoint, []
+
+    def killed_after_the_first_epoch(store, name, work):
+        real(store, name, work)
+        raise RuntimeError("killed after epoch 1")
+
+    monkeypatch.setattr(train_tasks, "upload_checkpoint", killed_after_the_first_epoch)
+    params = TrainParams(store=url, config=config, source="procedural", model_name="tiny")
+    with pytest.raises(RuntimeError, match="killed after epoch 1"):
+        train_flow(params)
+    s3 = Store(url)
+    assert s3.has_model("tiny") is False and (s3.checkpoint_dir("tiny") / "last.pt").is_file()
+    shutil.rmtree(s3.local_work_dir(s3.checkpoint_dir("tiny")))          # another machine: no local copy
+    monkeypatch.setattr(train_tasks, "upload_checkpoint",
+                        lambda store, name, work: (uploads.append(name), real(store, name, work)))
+    report = train_flow(params)
+    assert uploads == ["tiny"]                                            # epoch 2 only: epoch 1 came from S3
+    assert report["epochs"] == local["epochs"] == 2 and s3.model_names() == ["tiny"]
+    assert report["path"].startswith(f"s3://{bucket}/learn/models/tiny/")
+    ours, theirs = load_model(s3.model_file("tiny"))[0], load_model(Store(folder).model_path("tiny"))[0]
+    for (name, a), (_, b) in zip(ours.state_dict().items(), theirs.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+    assert s3.read_metrics("tiny").num_rows == Store(folder).read_metrics("tiny").num_rows > 0
+
+    audio = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
+    for store in (url, folder):
+        predict_flow(PredictParams(store=store, model="tiny", audio=[audio], fps=25, device="cpu"))
+    got = s3.read_curves("predict/SSB16240001", "predicted", "tiny")
+    want = Store(folder).read_curves("predict/SSB16240001", "predicted", "tiny")
+    assert got.num_rows == want.num_rows > 0
+    assert got.select(VISEMES).equals(want.select(VISEMES))

@@ -21,8 +21,8 @@ from visemeflow.synth.config import SynthConfig
 from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
-REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, rejects, clean, "
-                   "curves show, curves export")
+REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, predict, "
+                   "rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
@@ -179,7 +179,7 @@ class TrackParams(StoreParams):
 class TrainParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
     config: TrainConfig = Field(default_factory=TrainConfig)
     source: Literal["tracked", "ground_truth", "procedural", "captured"] = Field("tracked", description="Curves to learn.")
     variant: str | None = Field(None, description="Variant of those curves; may be omitted when only one exists.")
@@ -200,7 +200,7 @@ class TrainParams(BaseModel):
 class SweepParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
     config: TrainConfig = Field(default_factory=TrainConfig)
     sizes: list[Annotated[int, Field(ge=1)]] = Field([100, 300, 1000, 3000], min_length=1,
                                                      description="Training-set sizes (nested subsets), each at least 1.")
@@ -283,7 +283,7 @@ class AnimateParams(BaseModel):
 class SpeakParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
     model: ModelName = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
                                               "with the package; `phones`: no model, phones recognised in the audio "
                                               "(English).")
@@ -327,7 +327,7 @@ class PreviewParams(BaseModel):
 class PredictParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
     model: ModelName = Field(DEFAULT_MODEL, description="Name of a trained model in the store; `default`: the model shipped "
                                                    "with the package (installed into the store on first use); "
                                                    "`phones`: no model, phones recognised in the audio (English).")

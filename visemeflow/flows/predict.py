@@ -66,7 +66,7 @@ def ensure_model(store: Store, model: str) -> None:
             if not store.has_model(model):
                 raise LookupError(f"this installation ships no {model} model ({shipped} missing); train one with "
                                   "`visemeflow train` and pass --model NAME")
-        elif not store.has_model(model) or file_hash(store.model_path(model)) != file_hash(shipped):
+        elif not store.has_model(model) or file_hash(store.model_file(model)) != file_hash(shipped):
             # a store made by an older release holds that release's shipped model under this name: the package's
             # own wins (the names of shipped models are reserved), so an upgrade is not silently ignored
             replaced = store.has_model(model)
@@ -74,7 +74,8 @@ def ensure_model(store: Store, model: str) -> None:
             get_run_logger().info("%s the shipped %s model into %s", "updated" if replaced else "installed", model,
                                   store.model_path(model))
     if is_trained(model) and store.has_model(model):
-        check_whisper_weights(store.model_path(model), store.model_dir(model) / FEATURES_MEMO)
+        memo = None if store.remote else store.model_dir(model) / FEATURES_MEMO   # a memo is for local reruns
+        check_whisper_weights(Path(store.model_file(model)), memo)
 
 
 def check_whisper_weights(path: Path, memo: Path | None = None) -> None:

@@ -308,6 +308,30 @@ class Store:
         """Folder of a model's training checkpoints (an interrupted training resumes from them)."""
         return self.model_dir(model) / "checkpoints"
 
+    def model_file(self, model: str) -> str:
+        """A local path holding the trained model's file, for `torch.load` and hashing: the file itself in a folder
+        store; from object storage a copy named by the object's version (`local_file`)."""
+        return self.local_file(self.model_path(model))
+
+    def local_work_dir(self, path: Path) -> Path:
+        """A local folder to work in for the store folder `path` (a training's checkpoints): `path` itself in a
+        folder store; on object storage a folder of this user's under the machine's temporary folder, named by the
+        store path, which the caller uploads from (`write_file`)."""
+        if not self.remote:
+            return path
+        import hashlib
+
+        digest = hashlib.blake2b(str(path).encode(), digest_size=12).hexdigest()
+        base = Path(tempfile.gettempdir()) / f"visemeflow-work-{os.getuid()}"
+        base.mkdir(mode=0o700, parents=True, exist_ok=True)
+        info = os.lstat(base)
+        if not os.path.isdir(base) or os.path.islink(base) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+            raise StoreError(errno.EPERM, f"{base}: the local work folders of a store on object storage must be in "
+                             "a folder of this user's that no one else may write")
+        local = base / f"{digest}-{path.name}"
+        local.mkdir(mode=0o700, exist_ok=True)
+        return local
+
     def install_model(self, model: str, source: Path) -> Path:
         """Copy a trained model file (e.g. the package's default model) into the store as `model`, atomically."""
         data = Path(source).read_bytes()

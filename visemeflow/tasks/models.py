@@ -26,7 +26,7 @@ def is_trained(name: str) -> bool:
 
 def model_hash(store: Store, name: str) -> str:
     """What a model's outputs depend on besides the audio: the file's content hash, or the recogniser's settings."""
-    return file_hash(store.model_path(name)) if is_trained(name) else recognised_model_hash()
+    return file_hash(store.model_file(name)) if is_trained(name) else recognised_model_hash()
 
 
 def load_curve_model(store: Store, name: str, device: str = "cpu") -> tuple[torch.nn.Module, str, bool]:
@@ -37,5 +37,5 @@ def load_curve_model(store: Store, name: str, device: str = "cpu") -> tuple[torc
         return CurveFunctionModel(recognised_curves, RECOGNISED_PRESET), RECOGNISED_PRESET, False
     from visemeflow.learning.train import load_model
 
-    model, config, _ = load_model(store.model_path(name), device=device)
+    model, config, _ = load_model(store.model_file(name), device=device)
     return model, config.preset, config.train_augment

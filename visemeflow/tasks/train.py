@@ -6,6 +6,8 @@ the same config and data, and the other way round.
 """
 
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -69,9 +71,31 @@ def checkpoint_of_this_code(store: Store, model_name: str) -> bool:
     removed = (folder / CHECKPOINT_NAME).exists()
     if removed:
         store.delete_path(folder / CHECKPOINT_NAME)
-    folder.mkdir(parents=True, exist_ok=True)
+    if not store.remote:   # object storage has no folders to make
+        folder.mkdir(parents=True, exist_ok=True)
     store.write_file(marker, lambda tmp: tmp.write_text(code, encoding="utf-8"))
     return removed
+
+
+def checkpoint_work_dir(store: Store, model_name: str) -> Path:
+    """The local folder the training writes its checkpoint in: the store's checkpoint folder itself, or, for a store
+    on object storage, a local folder holding a fresh copy of the store's checkpoint (none when the store has
+    none), so that a training resumes on any machine from the last epoch any machine uploaded."""
+    if not store.remote:
+        return store.checkpoint_dir(model_name)
+    work = store.local_work_dir(store.checkpoint_dir(model_name))
+    stored, local = store.checkpoint_dir(model_name) / CHECKPOINT_NAME, work / CHECKPOINT_NAME
+    local.unlink(missing_ok=True)
+    if stored.is_file():
+        shutil.copyfile(store.local_file(stored), local)
+    return work
+
+
+def upload_checkpoint(store: Store, model_name: str, work: Path) -> None:
+    """After an epoch on a store on object storage: the checkpoint written in `work` replaces the store's."""
+    if store.remote and (work / CHECKPOINT_NAME).is_file():
+        store.write_file(store.checkpoint_dir(model_name) / CHECKPOINT_NAME,
+                         lambda tmp: shutil.copyfile(work / CHECKPOINT_NAME, tmp))
 
 
 def metrics_rows(run: str, model: str, condition: str, overall: float, per_utterance: dict[str, float],
@@ -124,10 +148,20 @@ def train_model_task(
     if checkpoint_of_this_code(store, model_name):
         logger.info("%s: the checkpoint was written by other code; training starts over", model_name)
     logger.info("%s: training on %s (precision %s)", model_name, where, precision)
+    work = checkpoint_work_dir(store, model_name)
+
+    def epoch_done(epoch: EpochReport) -> None:
+        upload_checkpoint(store, model_name, work)
+        report(epoch)
+
     with line:
-        result = train_model(train, val, config, checkpoint_dir=store.checkpoint_dir(model_name), on_epoch=report,
+        result = train_model(train, val, config, checkpoint_dir=work, on_epoch=epoch_done,
                              device=where, precision=precision, encoder_cache=encoder_cache_dir or True)
-    model_path = save_model(result.model, config, store.model_path(model_name), lineage)
+    if store.remote:
+        model_path = store.write_file(store.model_path(model_name),
+                                      lambda tmp: save_model(result.model, config, tmp, lineage))
+    else:
+        model_path = save_model(result.model, config, store.model_path(model_name), lineage)
     # Validation metrics exist only with a validation set: no rows rather than NaN rows (the store refuses NaN).
     rows = []
     for epoch in result.history:
