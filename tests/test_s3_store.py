@@ -587,11 +587,12 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
 
 
 @pytest.mark.flow
-def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predict_reads_the_model(
+def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predict_and_sweep_run_there(
         bucket, tmp_path, prefect_harness, monkeypatch):
     """A training on an S3 store uploads its checkpoint after every epoch: killed after the first, and started again
     where no local file of it is left (another machine), it resumes from the stored one and ends with the weights
-    of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves."""
+    of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves, and
+    a sweep trains its sizes and uploads its plot."""
     import shutil
 
     import torch
@@ -645,3 +646,11 @@ def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predi
     want = Store(folder).read_curves("predict/SSB16240001", "predicted", "tiny")
     assert got.num_rows == want.num_rows > 0
     assert got.select(VISEMES).equals(want.select(VISEMES))
+
+    from visemeflow.flows.params import SweepParams
+    from visemeflow.flows.sweep import sweep_flow
+
+    swept = sweep_flow(SweepParams(store=url, config=TrainConfig(preset="fbank-tcn", d_model=8), sizes=[1, 2],
+                                   steps=4, source="procedural"))
+    assert [p[0] for p in swept["points"]] == [1, 2] and swept["plot"].startswith(f"s3://{bucket}/learn/reports/")
+    assert (s3.root / "reports" / "sweep-fbank-tcn.png").read_bytes()[:4] == b"\x89PNG"

@@ -21,8 +21,8 @@ from visemeflow.synth.config import SynthConfig
 from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
-REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, predict, "
-                   "rejects, clean, curves show, curves export")
+REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, sweep, "
+                   "predict, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 

@@ -29,7 +29,8 @@ def nested_subsets(rows: list[dict], sizes: list[int]) -> dict[int, list[dict]]:
 def data_digest(store: Store, lineage: dict, rows: list[dict], val: list[dict]) -> str:
     """Digest of what a model is trained and judged on: the curves (`lineage`: source, variant, each utterance's
     curves' provenance, or the curve file's own hash where none was recorded) and each utterance's input files."""
-    curves = {split: {uid: provenance or file_hash(store.curve_path(lineage["source"], lineage["variant"], uid))
+    curves = {split: {uid: provenance or file_hash(store.local_file(store.curve_path(lineage["source"],
+                                                                                      lineage["variant"], uid)))
                       for uid, provenance in lineage[split].items()} for split in ("train", "val")}
     audio = [[r[C.UTTERANCE_ID], r[C.CONTENT_HASH]] for r in rows + val]
     return stable_hash(lineage["source"], lineage["variant"], curves, audio)
@@ -80,8 +81,9 @@ def sweep_flow(params: SweepParams) -> dict:
         )
     results = {size: future.result() for size, future in futures.items()}
     points = [(size, float(r["val_l1_x100"])) for size, r in sorted(results.items())]
-    plot = plot_sweep(points, store.report_path(f"sweep-{params.config.preset}.png"),
-                      f"{params.config.preset}: validation L1 x 100 by training size ({params.steps} steps each)")
+    title = f"{params.config.preset}: validation L1 x 100 by training size ({params.steps} steps each)"
+    plot = store.write_file(store.report_path(f"sweep-{params.config.preset}.png"),
+                            lambda tmp: plot_sweep(points, tmp, title), keep_suffix=True)
     create_table_artifact(
         key=f"sweep-{params.config.preset.replace('_', '-')}",
         table=[{"train_utterances": s, "val_l1_x100": round(v, 3)} for s, v in points],
