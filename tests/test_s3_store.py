@@ -232,11 +232,11 @@ class _no_lock:
 def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
     from pydantic import ValidationError
 
-    from visemeflow.flows.params import EvaluateParams, PipelineParams, TrainParams
+    from visemeflow.flows.params import AnimateParams, PipelineParams, TrainParams
     from visemeflow.location import parse_root
 
     with pytest.raises(ValidationError, match="needs a store folder"):
-        EvaluateParams(store="s3://bucket/store", models=["m"])
+        AnimateParams(store="s3://bucket/store")
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
     with pytest.raises(ValidationError, match="animating characters needs a store folder"):
         PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])
@@ -493,7 +493,7 @@ def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket
 
 
 def test_commands_on_an_s3_store(bucket):
-    """`curves show` and `rejects` read an S3 store; `evaluate` says it needs a folder; a missing bucket is one
+    """`curves show` and `rejects` read an S3 store; `animate` says it needs a folder; a missing bucket is one
     line."""
     import subprocess
     import sys
@@ -508,8 +508,8 @@ def test_commands_on_an_s3_store(bucket):
     shown = cli("curves", "show", "spk/a", "--store", url)
     assert shown.returncode == 0 and "spk/a  source procedural  variant v1  30 frames" in shown.stdout, shown.stderr
     assert cli("rejects", "--store", url).stdout.strip() == "no rejects"
-    refused = cli("evaluate", "--models", "m", "--store", url)
-    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: evaluate needs a store folder: {url}")
+    refused = cli("animate", "--store", url)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: animate needs a store folder: {url}")
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1
@@ -587,12 +587,13 @@ def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkey
 
 
 @pytest.mark.flow
-def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predict_and_sweep_run_there(
+def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predict_evaluate_sweep_run_there(
         bucket, tmp_path, prefect_harness, monkeypatch):
     """A training on an S3 store uploads its checkpoint after every epoch: killed after the first, and started again
     where no local file of it is left (another machine), it resumes from the stored one and ends with the weights
-    of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves, and
-    a sweep trains its sizes and uploads its plot."""
+    of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves,
+    `evaluate` judges it on augmented copies written to S3 as in the folder, and a sweep trains its sizes and uploads
+    its plot."""
     import shutil
 
     import torch
@@ -647,8 +648,20 @@ def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predi
     assert got.num_rows == want.num_rows > 0
     assert got.select(VISEMES).equals(want.select(VISEMES))
 
-    from visemeflow.flows.params import SweepParams
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, SweepParams
     from visemeflow.flows.sweep import sweep_flow
+
+    for store in (url, folder):
+        evaluate_flow(EvaluateParams(store=store, models=["tiny"], conditions=["volume", "speed"], device="cpu"))
+    import pyarrow.compute as pc
+
+    judged = [Store(x).read_metrics("tiny").filter(pc.equal(pc.field(C.RUN), "evaluate"))
+              .sort_by([(C.CONDITION, "ascending"), (C.UTTERANCE_ID, "ascending")]) for x in (url, folder)]
+    assert judged[0].num_rows == judged[1].num_rows > 0
+    assert judged[0].select([C.CONDITION, C.UTTERANCE_ID, C.L1_X100]).equals(
+        judged[1].select([C.CONDITION, C.UTTERANCE_ID, C.L1_X100]))
+    assert (s3.root / "reports" / "robustness.md").read_text() == (folder / "reports" / "robustness.md").read_text()
 
     swept = sweep_flow(SweepParams(store=url, config=TrainConfig(preset="fbank-tcn", d_model=8), sizes=[1, 2],
                                    steps=4, source="procedural"))

@@ -58,7 +58,7 @@ def check_model(store: Store, model: str) -> dict | None:
         known = store.model_names()
         raise LookupError(f"no trained model named {model} in {store.root}; "
                           f"known models: {', '.join(known) or 'none (run visemeflow train first)'}")
-    return load_model(store.model_path(model))[2]
+    return load_model(store.model_file(model))[2]
 
 
 def model_reject(store: Store, model: str, exc: BaseException, trace: str = "") -> dict:

@@ -22,7 +22,7 @@ from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, sweep, "
-                   "predict, rejects, clean, curves show, curves export")
+                   "evaluate, predict, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
@@ -231,7 +231,7 @@ class RerunParams(BaseModel):
 class EvaluateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
     models: list[str] = Field(..., min_length=1, description="Names of trained models in the store; `phones`: the "
                                                              "curves of phones recognised in the audio (no training).")
     conditions: list[Literal["volume", "pitch", "speed", "noise"]] = Field(

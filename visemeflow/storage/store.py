@@ -308,6 +308,12 @@ class Store:
         """Folder of a model's training checkpoints (an interrupted training resumes from them)."""
         return self.model_dir(model) / "checkpoints"
 
+    def local_file_at(self, location: str) -> str:
+        """`local_file` of a store file given as text (a path, or a URL this store's methods made, as task results
+        carry them); ValueError when it is not inside the store."""
+        path = remote_root(location) if self.remote else Path(location)
+        return self.local_file(self._inside(path))
+
     def model_file(self, model: str) -> str:
         """A local path holding the trained model's file, for `torch.load` and hashing: the file itself in a folder
         store; from object storage a copy named by the object's version (`local_file`)."""

@@ -209,7 +209,7 @@ def evaluate_model(
     set_phones = {"validation": aligned}
     for condition, items in augmented.items():
         sets[condition] = [
-            Example(item["utterance_id"], load_audio(item["path"]),
+            Example(item["utterance_id"], load_audio(store.local_file_at(item["path"])),
                     resample_curves(by_id[item["source_id"]].curves, item["time_factor"]), by_id[item["source_id"]].fps)
             for item in items
         ]
