@@ -492,9 +492,9 @@ def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket
         store.local_file(path)
 
 
-def test_commands_on_an_s3_store(bucket):
-    """`curves show` and `rejects` read an S3 store; `animate` says it needs a folder; a missing bucket is one
-    line."""
+def test_commands_on_an_s3_store(bucket, tmp_path):
+    """`curves show`, `rejects` and `dashboard` read an S3 store; `animate` says it needs a folder; a missing bucket
+    is one line."""
     import subprocess
     import sys
 
@@ -508,6 +508,9 @@ def test_commands_on_an_s3_store(bucket):
     shown = cli("curves", "show", "spk/a", "--store", url)
     assert shown.returncode == 0 and "spk/a  source procedural  variant v1  30 frames" in shown.stdout, shown.stderr
     assert cli("rejects", "--store", url).stdout.strip() == "no rejects"
+    board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
+    assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
+    assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
     refused = cli("animate", "--store", url)
     assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: animate needs a store folder: {url}")
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
@@ -592,8 +595,8 @@ def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predi
     """A training on an S3 store uploads its checkpoint after every epoch: killed after the first, and started again
     where no local file of it is left (another machine), it resumes from the stored one and ends with the weights
     of an uninterrupted training in a folder; `predict` then reads the model from S3 and writes the same curves,
-    `evaluate` judges it on augmented copies written to S3 as in the folder, and a sweep trains its sizes and uploads
-    its plot."""
+    `evaluate` judges it on augmented copies written to S3 as in the folder, a sweep trains its sizes and uploads
+    its plot, and the dashboard of the S3 store shows them."""
     import shutil
 
     import torch
@@ -667,3 +670,11 @@ def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predi
                                    steps=4, source="procedural"))
     assert [p[0] for p in swept["points"]] == [1, 2] and swept["plot"].startswith(f"s3://{bucket}/learn/reports/")
     assert (s3.root / "reports" / "sweep-fbank-tcn.png").read_bytes()[:4] == b"\x89PNG"
+
+    from visemeflow.dashboards.html import build_dashboard
+
+    result = build_dashboard(s3, tmp_path / "dashboard")
+    page = (tmp_path / "dashboard" / "index.html").read_text()
+    assert f"<code>s3://{bucket}/learn</code>" in page and 'id="chart-sweep-0"' in page
+    assert not result.empty and len(result.utterances) == 5 and len(result.charts) > 5   # 4 ingested + 1 predicted
+    assert "tiny" in page.split('id="robustness"', 1)[1]

@@ -22,7 +22,7 @@ from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, sweep, "
-                   "evaluate, predict, rejects, clean, curves show, curves export")
+                   "evaluate, predict, dashboard, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
