@@ -1,7 +1,7 @@
-"""Benchmark: the `pipeline` flow on a store in a local folder against the same on an S3 server, with one worker
-and with a 2-worker Dask cluster, side by side in one run; and the projection to the paper's 16 hours.
+"""Benchmark: the `pipeline` flow and a training on a store in a local folder against the same on an S3 server,
+with one worker and with a 2-worker Dask cluster, side by side in one run; and the projection to the paper's 16 hours.
 
-Run:  .venv/bin/python bench/s3_store.py [--workers 2] [--keep DIR]
+Run:  .venv/bin/python bench/s3_store.py [--workers 2] [--epochs 5] [--keep DIR]
 
 It prints one table and asserts nothing. The rendered demo corpus `visemeflow-out/demo-corpus` (25 utterances with
 video) is used, rendered first when missing. A Prefect server (`ensure_server`) and a moto S3 server (`moto_server`,
@@ -13,6 +13,10 @@ procedural, tracking) into a new store:
 Then a second, cached call on each store (every task a cache hit read from the store's result records).
 Ratios: S3 wall / folder wall for the same runner (what object storage costs), and sequential / dask for the same
 store (the speed-up the workers give). The S3 and folder stores' tracked curves are compared.
+
+Then training on each sequential run's tracked curves (`train_flow`, fbank-blstm, d = 64, `--epochs` epochs, one
+thread), on the folder and on S3, timed side by side: on S3 the checkpoint is uploaded after every epoch and the
+model at the end; the two models' weights are compared.
 
 The projection: the paper's 16 h of 25-fps video is 1.44 M frames; hours = frames / (frames/s of the dask run on
 S3) / machines, for 1, 4 and 16 machines of this kind, each running `--workers` workers against one S3 store,
@@ -91,6 +95,31 @@ def run_pipeline(kind: str, runner: str, corpus: Path, store: str, workers: int)
     return Run(kind, runner, wall, cached, result["track"]["frames"], result["track"]["tracked"], store)
 
 
+def run_training(kind: str, store: str, epochs: int) -> tuple[float, dict]:
+    """Wall time of a cold `train_flow` on the store's tracked curves, and its report."""
+    from visemeflow.flows.params import TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+
+    params = TrainParams(store=store, config=TrainConfig(preset="fbank-blstm", epochs=epochs, d_model=64),
+                         model_name="bench")
+    print(f"train ({kind}), load average {os.getloadavg()[0]:.2f}...", flush=True)
+    started = time.perf_counter()
+    with one_thread():
+        report = train_flow(params)
+    return time.perf_counter() - started, report
+
+
+def same_weights(a: str, b: str) -> bool:
+    import torch
+
+    from visemeflow.learning.train import load_model
+    from visemeflow.storage import Store
+
+    x, y = (load_model(Store(s).model_file("bench"))[0].state_dict() for s in (a, b))
+    return x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x)
+
+
 def same_tracked(a: str, b: str) -> float:
     """Largest difference between the tracked curves of two stores (inf when their files differ)."""
     import numpy as np
@@ -110,6 +139,7 @@ def same_tracked(a: str, b: str) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=2, help="Workers of the local Dask cluster.")
+    parser.add_argument("--epochs", type=int, default=5, help="Epochs of the training timed on each store.")
     parser.add_argument("--keep", type=Path, help="Folder for the stores (kept); default: a temporary folder.")
     args = parser.parse_args()
     work = work_folder(args.keep, "visemeflow-bench-s3-")
@@ -126,6 +156,8 @@ def main() -> None:
                 store = str(work / f"store-{i}") if kind == "folder" else f"s3://bench/store-{i}"
                 runs.append(run_pipeline(kind, runner, corpus, store, args.workers))
             diff = same_tracked(runs[2].store, runs[3].store)
+            trained = [run_training(kind, runs[i].store, args.epochs) for i, kind in ((0, "folder"), (1, "S3"))]
+            same = same_weights(runs[0].store, runs[1].store)
     finally:
         s3.terminate()
         s3.wait(30)
@@ -148,6 +180,11 @@ def main() -> None:
         rows.append((f"speed-up, dask ({args.workers} workers) vs sequential, {kind}",
                      f"{by[(kind, 'sequential')].wall_s / by[(kind, 'dask')].wall_s:.2f}x", "", ""))
     rows.append(("tracked curves, S3 vs folder (dask): largest difference", f"{diff:.1e}", "<= 1e-5", ""))
+    (folder_s, report), (s3_s, _) = trained
+    rows.append((f"## train_flow, fbank-blstm d=64, {args.epochs} epochs on {report['train']} + {report['val']} "
+                 "utterances' tracked curves, one thread", "", "", ""))
+    rows.append(("folder / S3 wall time", f"{folder_s:.1f} s / {s3_s:.1f} s ({s3_s / folder_s:.2f}x)", "", ""))
+    rows.append(("the two models' weights", "identical" if same else "DIFFERENT", "identical", ""))
     rows.append(("## the paper's 16 h (1.44 M frames) at the S3 dask rate, end to end", "", "", ""))
     for machines in (1, 4, 16):
         rows.append((f"{machines} machine(s) x {args.workers} workers", f"{PAPER_FRAMES / rate / machines / 3600:.1f} h",
