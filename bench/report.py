@@ -28,3 +28,23 @@ def print_table(rows: list[tuple[str, str, str, str]], notes: list[str]) -> None
 def met(ok: bool | None) -> str:
     """'yes' or 'NO' for a target, '' where there is none."""
     return "" if ok is None else ("yes" if ok else "NO")
+
+
+def print_grid(header: list[str], rows: list[list[str] | str]) -> None:
+    """A table of any columns: `header`, then rows of cells; a row given as text is a section line across it."""
+    widths = [max(len(r[i]) for r in [header, *rows] if isinstance(r, list)) for i in range(len(header))]
+    line = "+-" + "-+-".join("-" * w for w in widths) + "-+"
+
+    def show(r: list[str]) -> None:
+        print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) + " |")
+
+    print(line)
+    show(header)
+    print(line)
+    for r in rows:
+        if isinstance(r, str):
+            print("| " + r.ljust(len(line) - 4) + " |")
+            print(line)
+        else:
+            show(r)
+    print(line)

@@ -38,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from encoders import CachedPredictor  # noqa: E402
 from judging import FPS, probe  # noqa: E402
 from realspeech import SAMPLE_RATE, fraction  # noqa: E402
+from report import print_grid  # noqa: E402
 
 from visemeflow.articulation import close_lips  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
@@ -115,14 +116,7 @@ def main() -> None:
                       else [j for per in results[name].values() for j in per])
             n_all = counts[lang] if lang != "all" else tuple(sum(c[i] for c in counts.values()) for i in range(3))
             rows.append([lang, f"{n_all[0]} ({n_all[1]} / {n_all[2]})", name, *cells(judged)])
-    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    line = "+-" + "-+-".join("-" * w for w in widths) + "-+"
-    print(line)
-    print("| " + " | ".join(c.ljust(w) for c, w in zip(header, widths, strict=True)) + " |")
-    print(line)
-    for r in rows:
-        print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) + " |")
-    print(line)
+    print_grid(header, rows)
     print(f"{time.perf_counter() - started:.0f} s. Data: Debian klettres-data (GPL-2+), read from {data}; closure "
           f"frame: MBP top and >= {args.min_weight:g}.")
 

@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from encoders import CachedPredictor  # noqa: E402
 from realspeech import FPS, SAMPLE_RATE, fraction, read_corpus  # noqa: E402
+from report import print_grid  # noqa: E402
 
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
@@ -303,18 +304,7 @@ def main() -> None:
             rows.append(row(name, [predict(model, u.audio, u.n) for u in utts], utts, args.tolerance))
         rows.append(row("procedural (alignment)", [u.procedural for u in utts], utts, args.tolerance))
 
-    widths = [max(len(r[i]) for r in [header, *rows] if isinstance(r, list)) for i in range(len(header))]
-    line = "+-" + "-+-".join("-" * w for w in widths) + "-+"
-    print(line)
-    print("| " + " | ".join(c.ljust(w) for c, w in zip(header, widths, strict=True)) + " |")
-    for r in rows:
-        if isinstance(r, str):
-            print(line)
-            print("| " + r.ljust(len(line) - 4) + " |")
-            print(line)
-        else:
-            print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) + " |")
-    print(line)
+    print_grid(header, rows)
     print(f"alignment (espeak-ng + DTW) and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. "
           f"Data: Debian fillets-ng-data{{,-nl,-cs}} 1.0.1 (GPL-2), read from {game}.")
 

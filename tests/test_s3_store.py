@@ -232,11 +232,13 @@ class _no_lock:
 def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
     from pydantic import ValidationError
 
-    from visemeflow.flows.params import AnimateParams, PipelineParams, TrainParams
+    from visemeflow.flows.params import AnimateParams, PipelineParams, SpeakParams, TrainParams
     from visemeflow.location import parse_root
 
     with pytest.raises(ValidationError, match="needs a store folder"):
         AnimateParams(store="s3://bucket/store")
+    with pytest.raises(ValidationError, match="needs a store folder"):   # speak animates a character
+        SpeakParams(store="s3://bucket/store", audio=["a.wav"])
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
     with pytest.raises(ValidationError, match="animating characters needs a store folder"):
         PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])

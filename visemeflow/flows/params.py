@@ -283,7 +283,7 @@ class AnimateParams(BaseModel):
 class SpeakParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: StoreLocation = Field(DEFAULT_STORE, description="The Parquet store: a folder, or s3://bucket/prefix.")
+    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
     model: ModelName = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
                                               "with the package; `phones`: no model, phones recognised in the audio "
                                               "(English).")

@@ -211,6 +211,18 @@ def _server_time(response: Mapping) -> float | None:
         return None
 
 
+def _private_folder(kind: str, what: str) -> Path:
+    """`visemeflow-<kind>-<uid>` in the machine's temporary folder, made when missing; StoreError unless it is a
+    folder of this user's that no one else may write (`what` it holds names it in the message)."""
+    folder = Path(tempfile.gettempdir()) / f"visemeflow-{kind}-{os.getuid()}"
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = os.lstat(folder)
+    if not os.path.isdir(folder) or os.path.islink(folder) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        raise StoreError(errno.EPERM, f"{folder}: {what} must be in a folder of this user's that no one else may "
+                         "write")
+    return folder
+
+
 class Store:
     """A Parquet store rooted at one folder, or at a prefix on object storage (`s3://bucket/prefix`: see
     `visemeflow.location`). `root` is a `Path` for a folder and a `upath.UPath` for a URL; the paths the methods give
@@ -278,13 +290,8 @@ class Store:
         info = self.root.fs.info(path.path)
         version = str(info.get("ETag") or info.get("mtime") or info.get("size"))
         digest = hashlib.blake2b(f"{path}\0{version}".encode(), digest_size=12).hexdigest()
-        folder = Path(tempfile.gettempdir()) / f"visemeflow-objects-{os.getuid()}"
-        local = folder / f"{digest}-{path.name}"
-        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-        info = os.lstat(folder)
-        if not os.path.isdir(folder) or os.path.islink(folder) or info.st_uid != os.getuid() or info.st_mode & 0o022:
-            raise StoreError(errno.EPERM, f"{folder}: the local copies of store objects must be in a folder of this "
-                             "user's that no one else may write (a copy planted there would be read as the store's)")
+        local = _private_folder("objects", "the local copies of store objects (a copy planted there would be "
+                                "read as the store's)") / f"{digest}-{path.name}"
         if not local.is_file():
             with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
                 self.root.fs.get_file(path.path, str(tmp))
@@ -328,13 +335,7 @@ class Store:
         import hashlib
 
         digest = hashlib.blake2b(str(path).encode(), digest_size=12).hexdigest()
-        base = Path(tempfile.gettempdir()) / f"visemeflow-work-{os.getuid()}"
-        base.mkdir(mode=0o700, parents=True, exist_ok=True)
-        info = os.lstat(base)
-        if not os.path.isdir(base) or os.path.islink(base) or info.st_uid != os.getuid() or info.st_mode & 0o022:
-            raise StoreError(errno.EPERM, f"{base}: the local work folders of a store on object storage must be in "
-                             "a folder of this user's that no one else may write")
-        local = base / f"{digest}-{path.name}"
+        local = _private_folder("work", "the local work folders of a store on object storage") / f"{digest}-{path.name}"
         local.mkdir(mode=0o700, exist_ok=True)
         return local
 
