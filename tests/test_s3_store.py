@@ -300,9 +300,17 @@ def local_reference(tmp_path_factory, video_corpus):
     return snapshot(store)
 
 
-def _assert_same_store(got: dict, want: dict) -> None:
+def _assert_same_store(got: dict, want: dict, corpus: tuple[str, object] | None = None) -> None:
     """Equal tables, curve files and diagnostics; tracked values up to float summation order (one torch thread per
-    Dask worker against the thread pool's: seen 7e-7 apart)."""
+    Dask worker against the thread pool's: seen 7e-7 apart). `corpus` (URL, folder): the store `got` read the
+    corpus from that URL, `want` from that folder; their paths are compared as the folder's."""
+    if corpus is not None:
+        url, folder = corpus
+        assert all(row[C.VIDEO_PATH].startswith(f"{url}/") for row in got["utterances"])   # read from the URL
+        paths = (C.AUDIO_PATH, C.ALIGNMENT_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.PATH, C.MESSAGE)
+        got = {**got, **{table: [{k: v.replace(url, str(folder.resolve())) if k in paths and v else v
+                                  for k, v in row.items()} for row in got[table]]
+                         for table in ("utterances", "rejects")}}
     for key in ("utterances", "phones", "rejects", "curve_files"):
         assert got[key] == want[key], key
     for key in ("curves", "tracking_frames"):
@@ -384,9 +392,9 @@ def test_a_pipeline_killed_on_s3_loses_nothing_and_two_runs_at_once_corrupt_noth
 def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, video_corpus, local_reference,
                                                                       prefect_api_url):
     """prefect.yaml's `pipeline/pool` entrypoint deployed to a process work pool; two `prefect worker` processes
-    (sharing nothing with this one but the Prefect API, the S3 endpoint and the corpus folder: each has its own
-    temporary folder and Prefect home) each take one of two runs started at once on one S3 store; both complete
-    and the store equals the local run's."""
+    (sharing nothing with this one but the Prefect API and the S3 endpoint: each has its own temporary folder and
+    Prefect home, and the corpus is on S3 too, read through each one's own local copies) each take one of two runs
+    started at once on one S3 store; both complete and the store equals the local run's."""
     import shutil
     import subprocess
     import sys
@@ -399,13 +407,17 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
     from prefect.client.schemas.actions import WorkPoolCreate
     from prefect.deployments import run_deployment
 
+    import s3fs
+
     pool = f"s3pool-{secrets.token_hex(3)}"
     url = f"s3://{bucket}/pool"
+    corpus = f"s3://{bucket}/pool-corpus"
+    s3fs.S3FileSystem(use_listings_cache=False).put(str(video_corpus), corpus.removeprefix("s3://"), recursive=True)
     with get_client(sync_client=True) as client:
         client.create_work_pool(WorkPoolCreate(name=pool, type="process"))
     pipeline = Flow.from_source(source=str(REPO), entrypoint="visemeflow/ops/pool.py:pipeline_flow")
     deployment = pipeline.deploy(name=pool, work_pool_name=pool, build=False, print_next_steps=False,
-                                 parameters={"store": url, "corpus": str(video_corpus), "n_shards": 2})
+                                 parameters={"store": url, "corpus": corpus, "n_shards": 2})
     # workers poll every second (Prefect's default is 10 s): a run is now shorter than one default poll, and the
     # second worker would pick its run up after the first had finished
     env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING",
@@ -413,7 +425,7 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
     env.pop("VISEMEFLOW_SERVE_ROOTS", None)
     prefect = str(Path(sys.executable).with_name("prefect"))
     # each worker (and the flow runs it starts) with a temporary folder and a Prefect home of its own, as on two
-    # machines: nothing host-local is shared but the corpus
+    # machines: nothing host-local is shared
     homes = [Path(tempfile.mkdtemp(prefix=f"s3pool-w{i}-")) for i in range(2)]
     for home in homes:
         (home / "tmp").mkdir()
@@ -447,7 +459,7 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
             shutil.rmtree(home, ignore_errors=True)
     assert [s.type.value for s in states] == ["COMPLETED", "COMPLETED"], [s.message for s in states]
     assert spans[1][0] < spans[0][1]   # they overlapped: each worker takes one run at a time (--limit 1)
-    _assert_same_store(snapshot(url), local_reference)
+    _assert_same_store(snapshot(url), local_reference, corpus=(corpus, video_corpus))
 
 
 def test_bulk_presence_provenance_and_records_on_s3(bucket):
@@ -492,6 +504,105 @@ def test_local_copies_of_objects_are_kept_per_version_in_a_private_folder(bucket
     folder.chmod(0o777)   # a folder others may write: a copy planted there would be read as the store's
     with pytest.raises(StoreError, match="no one else may write"):
         store.local_file(path)
+
+
+def test_inputs_on_s3_are_read_through_local_copies_and_a_mirror_that_follows_the_prefix(bucket, tmp_path,
+                                                                                         monkeypatch):
+    """`local_input` copies an object once per version; `mirror` is the prefix as it is now (a changed object
+    fetched again, a deleted one gone, keys that would leave the folder skipped); a missing object names its URL."""
+    import s3fs
+
+    from visemeflow.location import input_exists, local_input, mirror
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    base = f"{bucket}/corpus"
+    fs.pipe_file(f"{base}/spk/a.wav", b"one")
+    fs.pipe_file(f"{base}/spk/b.TextGrid", b"text")
+    fs.pipe_file(f"{base}/spk/../escape.wav", b"x")   # a key S3 takes as it is
+    url = f"s3://{base}"
+    first = local_input(f"{url}/spk/a.wav")
+    assert first.startswith(str(tmp_path)) and open(first, "rb").read() == b"one"
+    assert local_input(f"{url}/spk/a.wav") == first and local_input("rel/x.wav") == "rel/x.wav"
+    assert local_input(None) is None and input_exists(f"{url}/spk/a.wav") and not input_exists(f"{url}/spk/z.wav")
+    tree = mirror(url)
+    assert sorted(str(p.relative_to(tree)) for p in tree.rglob("*") if p.is_file()) == ["spk/a.wav", "spk/b.TextGrid"]
+    assert os.path.samefile(tree / "spk" / "a.wav", first)   # a hard link to the versioned copy, not a second one
+    fs.pipe_file(f"{base}/spk/a.wav", b"two")
+    fs.rm(f"{base}/spk/b.TextGrid")
+    tree = mirror(url)
+    assert (tree / "spk" / "a.wav").read_bytes() == b"two" and not (tree / "spk" / "b.TextGrid").exists()
+    assert open(local_input(f"{url}/spk/a.wav"), "rb").read() == b"two"
+    with pytest.raises(FileNotFoundError, match=f"{url}/spk/z.wav: no such object"):
+        local_input(f"{url}/spk/z.wav")
+    with pytest.raises(FileNotFoundError, match="no objects under this prefix"):
+        mirror(f"s3://{bucket}/nothing")
+    # a file readers look for beside another (a synthetic video's camera record) comes along, and goes with it
+    fs.pipe_file(f"{base}/spk/v.mp4", b"video")
+    fs.pipe_file(f"{base}/spk/v.camera.json", b"{}")
+    video = local_input(f"{url}/spk/v.mp4", beside=(".camera.json",))
+    assert os.path.basename(video) == "v.mp4" and open(os.path.join(os.path.dirname(video), "v.camera.json")).read() == "{}"
+    fs.rm(f"{base}/spk/v.camera.json")
+    assert local_input(f"{url}/spk/v.mp4", beside=(".camera.json",)) == video
+    assert not os.path.exists(os.path.join(os.path.dirname(video), "v.camera.json"))
+
+
+@pytest.mark.flow
+def test_a_corpus_on_s3_is_ingested_with_the_hashes_of_a_folder_and_its_bad_files_are_rejects_naming_urls(
+        bucket, tmp_path, prefect_harness):
+    """`ingest s3://bucket/corpus`: the same rows as the same corpus in a folder but for the paths, which name the
+    objects; a broken TextGrid and an object deleted after discovery are rejects naming their URLs, the rest is
+    ingested; the CLI checks the corpus URL before any flow starts."""
+    import shutil
+    import subprocess
+    import sys
+
+    import s3fs
+    from factories import REPO, snapshot
+
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams
+    from visemeflow.ingest.corpus import discover_corpus
+    from visemeflow.tasks.ingest import ingest_entries
+
+    local = tmp_path / "corpus"
+    (local / "LJ").mkdir(parents=True)
+    for name in ("LJ001-0001", "LJ001-0002", "LJ001-0003"):
+        for ext in (".wav", ".TextGrid"):
+            shutil.copyfile(REPO / "examples" / "corpus" / "LJ" / f"{name}{ext}", local / "LJ" / f"{name}{ext}")
+    (local / "LJ" / "broken.wav").write_bytes((local / "LJ" / "LJ001-0001.wav").read_bytes())
+    (local / "LJ" / "broken.TextGrid").write_text("File type = \"ooTextFile\"\nObject class = \"TextGrid\"\nxmin = 0\n")
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    fs.put(str(local / "LJ"), f"{bucket}/corpus/LJ", recursive=True)
+    url = f"s3://{bucket}/corpus"
+
+    ingest_flow(IngestParams(corpus=local, store=tmp_path / "folder", n_shards=2))
+    ingest_flow(IngestParams(corpus=url, store=tmp_path / "s3", n_shards=2))
+    want, got = snapshot(tmp_path / "folder"), snapshot(tmp_path / "s3")
+    assert len(got["utterances"]) == len(want["utterances"]) >= 3
+    to_folder = {c: (lambda v: v and v.replace(url, str(local.resolve()))) for c in
+                 (C.AUDIO_PATH, C.ALIGNMENT_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.PATH, C.MESSAGE)}
+    for table in ("utterances", "phones", "rejects"):
+        assert [{k: to_folder.get(k, lambda v: v)(v) for k, v in row.items()} for row in got[table]] == want[table]
+    assert all(row[C.AUDIO_PATH].startswith(f"{url}/LJ/") for row in got["utterances"])
+    [reject] = got["rejects"]
+    assert reject[C.UTTERANCE_ID] == "LJ/broken" and reject[C.PATH] == f"{url}/LJ/broken.TextGrid"
+
+    entries = [e for e in discover_corpus(url).entries if e.utterance_id == "LJ/LJ001-0001"]
+    fs.rm(f"{bucket}/corpus/LJ/LJ001-0001.wav")   # gone between discovery and the task (a move, a lifecycle rule)
+    rows, _, rejects, _ = ingest_entries(entries, IngestParams(corpus=url).config)
+    assert rows == [] and rejects[0][C.ERROR_TYPE] == "UnreadableObject" and rejects[0][C.PATH] == f"{url}/LJ/LJ001-0001.wav"
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "visemeflow.cli", *args], capture_output=True, text=True,
+                              timeout=120, env={**os.environ, "VISEMEFLOW_NO_SERVER_LOOKUP": "1"})
+
+    for corpus, expected in ((f"s3://{bucket}/nothing", "corpus s3://" + bucket + "/nothing does not exist"),
+                             ("s3://no-such-bucket-here/c", "cannot read the corpus s3://no-such-bucket-here/c: bucket")):
+        out = cli("ingest", corpus, "--store", str(tmp_path / "never"))
+        assert out.returncode == 2 and expected in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not (tmp_path / "never").exists()
 
 
 def test_commands_on_an_s3_store(bucket, tmp_path):

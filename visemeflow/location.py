@@ -14,11 +14,23 @@ What object storage gives instead of what a folder gives:
   <ETag>`) are conditional PUTs, which S3 (since 2024), MinIO and moto honour: the store's lock objects and its
   read-modify-write of shard files (a rerun of one utterance) use them (`Store.locked`, `replace_utterance_rows`).
 - Listings are never cached (`use_listings_cache=False`): another machine's writes must be seen.
+
+Input files may live there too (a corpus at `s3://bucket/corpus`): readers that take only a local path (soundfile,
+PyAV, the TextGrid parser) get a local copy of each object, downloaded once per version of it (`local_input`: its
+ETag names the copy, so a file replaced on the server is fetched again and an unchanged one costs one HEAD), in a
+folder of this user's under the machine's temporary folder (`TMPDIR` chooses the disk). `mirror` gives a prefix's
+objects as a local folder tree of such copies (hard links), which corpus discovery reads as it reads a folder.
 """
 
+import errno
+import fcntl
+import hashlib
 import os
 import re
+import tempfile
 from pathlib import Path
+
+from visemeflow.atomic import atomic_path
 
 URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<rest>.*)$")
 
@@ -57,6 +69,12 @@ def parse_root(root: object) -> StoreRoot:
     return Path(text)
 
 
+def as_text(location: object) -> str:
+    """A location as flows record it: a URL as it is, a local path made absolute."""
+    parsed = parse_root(location)
+    return parsed if isinstance(parsed, str) else str(parsed.resolve())
+
+
 def remote_root(url: str):
     """The fsspec path (`upath.UPath`) of a URL store root; its filesystem caches no listings."""
     try:
@@ -89,3 +107,136 @@ def remote_problem(url: str) -> str | None:
         reason = f"cannot be reached ({type(exc).__name__}: {exc})"
     where = f" at {endpoint}" if root.protocol in ("s3", "s3a") else ""
     return f"cannot use the store {url}: bucket {bucket!r}{where} {reason}"
+
+
+def private_folder(kind: str, what: str) -> Path:
+    """`visemeflow-<kind>-<uid>` in the machine's temporary folder, made when missing; PermissionError unless it is
+    a folder of this user's that no one else may write (`what` it holds names it in the message): a copy planted
+    there by another user would be read as the original."""
+    folder = Path(tempfile.gettempdir()) / f"visemeflow-{kind}-{os.getuid()}"
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = os.lstat(folder)
+    if not os.path.isdir(folder) or os.path.islink(folder) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        raise PermissionError(errno.EPERM, f"{folder}: {what} must be in a folder of this user's that no one else "
+                              "may write")
+    return folder
+
+
+def _version(info: dict) -> str:
+    """What names one version of an object: its ETag (the server's digest of the content), else its time and size."""
+    return str(info.get("ETag") or info.get("etag") or (info.get("mtime") or info.get("LastModified"), info.get("size")))
+
+
+def _copy_path(url: str, version: str) -> Path:
+    """Where the local copy of one version of the object `url` lives: a folder named by a digest of the URL and the
+    version, holding the object under its own name (its suffix tells readers the format; messages show it), cut to
+    keep within the file system's 255 bytes."""
+    digest = hashlib.blake2b(f"{url}\0{version}".encode(), digest_size=12).hexdigest()
+    name = url.rsplit("/", 1)[-1]
+    while len(name.encode()) > 200:
+        name = name[1:]
+    folder = private_folder("objects", "the local copies of objects (a copy planted there would be read as the "
+                            "original)")
+    return folder / digest / name
+
+
+def object_copy(fs, key: str, url: str, info: dict | None = None) -> str:
+    """A local file holding the object `key` of the fsspec filesystem `fs` (`url` names it), downloaded once per
+    version into this user's private folder; `info` (a listing's entry) spares the HEAD. The copy is written whole
+    or not at all."""
+    info = fs.info(key) if info is None else info
+    if info.get("type") == "directory":
+        raise IsADirectoryError(errno.EISDIR, f"{url} is a folder, not a file")
+    local = _copy_path(url, _version(info))
+    if not local.is_file():
+        local.parent.mkdir(mode=0o700, exist_ok=True)
+        with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
+            fs.get_file(key, str(tmp))
+    return str(local)
+
+
+def _link(source: str, target: Path) -> None:
+    """`target` made a hard link to `source` (a copy where links are refused), replaced atomically; nothing done
+    when it already is one."""
+    if target.is_file() and os.path.samefile(target, source):
+        return
+    with atomic_path(target, fsync=False) as tmp:
+        try:
+            os.link(source, tmp)
+        except OSError:
+            import shutil
+
+            shutil.copyfile(source, tmp)
+
+
+def local_input(location: str | os.PathLike | None, beside: tuple[str, ...] = ()) -> str | None:
+    """A local path to read the file `location` from: a path stays itself; a URL (`s3://bucket/corpus/a.wav`)
+    becomes its local copy (`object_copy`). None and "" pass through. FileNotFoundError names the URL when the
+    object is gone.
+
+    `beside`: suffixes of files that readers look for next to this one under its stem (a synthetic video's
+    `.camera.json`): where the object `<stem><suffix>` exists beside the URL, its copy is put next to the local copy
+    under the same name, and a stale one is removed where it is gone."""
+    if location is None or location == "" or not is_url(location):
+        return None if location is None else os.fspath(location)
+    location = str(location)
+    path = remote_root(location)
+    try:
+        copy = object_copy(path.fs, path.path, location)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(errno.ENOENT, f"{location}: no such object", location) from exc
+    folder, name = location.rsplit("/", 1)
+    for suffix in beside:
+        sibling = f"{folder}/{name.rsplit('.', 1)[0]}{suffix}"
+        target = Path(copy).with_name(Path(sibling).name)
+        there = remote_root(sibling)
+        try:
+            _link(object_copy(there.fs, there.path, sibling), target)
+        except FileNotFoundError:
+            target.unlink(missing_ok=True)
+    return copy
+
+
+def input_exists(location: str | os.PathLike | None) -> bool:
+    """Whether the file `location` (a path or a URL) is there to be read."""
+    if not location:
+        return False
+    if not is_url(location):
+        return Path(location).is_file()
+    path = remote_root(str(location))
+    return path.fs.isfile(path.path)
+
+
+def mirror(url: str) -> Path:
+    """A local folder tree holding what lies under the prefix `url`: `<folder>/<key below the prefix>`, each file a
+    hard link to the object's versioned local copy (`object_copy`; a copy where links are refused). Only objects
+    whose version changed are downloaded; files of objects gone from the prefix are removed, so the tree is the
+    prefix as it is now. Keys with empty, `.` or `..` segments are skipped (they could leave the folder).
+    FileNotFoundError when nothing lies under `url`."""
+    url = url.rstrip("/")
+    root = remote_root(url)
+    base = root.path.rstrip("/")
+    listing = root.fs.find(base, detail=True, withdirs=False)
+    digest = hashlib.blake2b(url.encode(), digest_size=12).hexdigest()
+    folder = private_folder("mirrors", "the local trees of objects under a prefix") / digest
+    folder.mkdir(mode=0o700, exist_ok=True)
+    wanted: set[Path] = set()
+    with open(folder.parent / f".{digest}.lock", "a") as lock:   # two flows on this machine mirror in turn
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for key, info in sorted(listing.items()):
+            rel = key[len(base):].lstrip("/") if key.startswith(base) else ""
+            parts = rel.split("/")
+            if not rel or info.get("type") == "directory" or any(p in ("", ".", "..") for p in parts):
+                continue
+            copy = object_copy(root.fs, key, f"{url}/{rel}", info)
+            target = folder.joinpath(*parts)
+            wanted.add(target)
+            _link(copy, target)
+        for path in sorted(folder.rglob("*"), reverse=True):   # what is gone from the prefix; deepest first
+            if path.is_file() and path not in wanted:
+                path.unlink()
+            elif path.is_dir() and not any(path.iterdir()):
+                path.rmdir()
+    if not wanted:
+        raise FileNotFoundError(errno.ENOENT, f"{url}: no objects under this prefix", url)
+    return folder

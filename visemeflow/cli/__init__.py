@@ -129,14 +129,27 @@ _corpus_exists = _must_exist("corpus (a folder, a manifest CSV or one audio or v
 def _corpus(ctx: typer.Context, value):
     """The corpus exists and has a corpus's layout: one line and exit 2 before any flow starts, else (a single
     video, a flat folder of wavs, a binary manifest)."""
-    value = _corpus_exists(ctx, value)
-    if value is not None and not ctx.resilient_parsing:
+    if value is None or ctx.resilient_parsing:
+        return value
+    try:
+        value = parse_root(value)
+    except ValueError as exc:
+        _fail(str(exc))
+    if is_url(value):   # on object storage: its bucket answers, then its layout as a folder's (on a local mirror)
+        problem = remote_problem(value)
+        if problem is not None:
+            _fail(problem.replace("cannot use the store", "cannot read the corpus"))
+    else:
+        value = _corpus_exists(ctx, value)
+    if value is not None:
         from visemeflow.ingest.corpus import check_corpus
 
         problem = check_corpus(value)
         if problem is not None:
             _fail(problem)
     return value
+
+
 _character = _must_exist("character")
 _file = _must_exist("file", "file")
 _path = _must_exist("path")

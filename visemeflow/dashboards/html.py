@@ -35,6 +35,7 @@ import pyarrow.dataset as ds
 
 from visemeflow.atomic import atomic_write_text
 from visemeflow.hashing import file_hash
+from visemeflow.location import local_input
 from visemeflow.dashboards import plots
 from visemeflow.dashboards.records import recorded_packages, recorded_predicted_audio
 # The robustness table is built by the same function as the `evaluate` report, so both show the same cells in the
@@ -259,7 +260,7 @@ def curve_only_audio(store: Store, uid: str, sources: dict[str, list[str]], rows
     for row in same_named:
         path = row.get(C.AUDIO_PATH)
         try:
-            if path and hashes and file_hash(path) in hashes:
+            if path and hashes and file_hash(local_input(path)) in hashes:
                 return CurveOnlyAudio(path, row[C.UTTERANCE_ID], "the same audio file as")
         except OSError:
             continue
@@ -288,6 +289,7 @@ def load_waveform(row: dict | None, until_s: float | None = None) -> tuple[tuple
     errors = []
     for path in dict.fromkeys(p for p in (row.get(C.AUDIO_PATH), row.get(C.VIDEO_PATH)) if p):
         try:
+            path = local_input(path)   # a corpus on object storage: its local copy
             head = _read_audio_head(path, until_s) if until_s is not None and not is_video_file(path) else None
             if head is not None:
                 return head, ""

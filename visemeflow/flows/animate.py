@@ -15,6 +15,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
 from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
+from visemeflow.location import input_exists, local_input
 from visemeflow.rig.character import CharacterError
 from visemeflow.dashboards.records import record_packages
 from visemeflow.flows.errors import RerunError
@@ -84,7 +85,7 @@ def animate_flow(params: AnimateParams):
     per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
     for uid in ids:
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
-        audio = str(audio) if audio and Path(audio).is_file() else None
+        audio = local_input(audio) if audio and input_exists(audio) else None
         per_utterance[uid] = (audio, file_hash(audio) if audio else None,
                               store.curves_provenance(params.source, variant, uid) or "")
     out = str(params.out) if params.out else None
@@ -211,9 +212,9 @@ def preview_flow(params: PreviewParams) -> dict:
         raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select(
         [C.UTTERANCE_ID, C.AUDIO_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS]).to_pylist()
-    audio = read_audio(rows[0][C.AUDIO_PATH]) if rows and rows[0][C.AUDIO_PATH] else None
+    audio = read_audio(local_input(rows[0][C.AUDIO_PATH])) if rows and rows[0][C.AUDIO_PATH] else None
     # tracked curves are judged against the footage they came from: its face crop as the first panel
-    video = video_source(rows[0][C.VIDEO_PATH], landmark_file(store, rows[0]), rows[0][C.FPS]) \
+    video = video_source(local_input(rows[0][C.VIDEO_PATH]), landmark_file(store, rows[0]), rows[0][C.FPS]) \
         if tracked and rows and rows[0][C.VIDEO_PATH] else None
     phones = _phones(store, [uid]).get(uid)
     folder = package_dir(store, None, character_key(path), uid)
@@ -237,7 +238,7 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
     if not store.has_curves(last.source, last.variant, uid):
         raise RerunError(f"{uid} has no {last.source} curves of variant {last.variant!r} in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
-    audio = rows[0][C.AUDIO_PATH] if rows and rows[0][C.AUDIO_PATH] and Path(rows[0][C.AUDIO_PATH]).is_file() else None
+    audio = local_input(rows[0][C.AUDIO_PATH]) if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
     mapping = last.mapping
     task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
     packages = [task(str(store.root), uid, last.source, last.variant,

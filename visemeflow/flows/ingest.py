@@ -9,6 +9,7 @@ from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.params import IngestParams, IngestSettings
 from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
 from visemeflow.ingest.hints import reject_advice, reject_lines
+from visemeflow.location import as_text
 from visemeflow.schemas import REJECTS, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
@@ -34,10 +35,10 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     problem = check_corpus(params.corpus)
     if problem is not None:
         return _no_corpus(problem)
-    run = StageRun(STAGE, params.store, IngestSettings(corpus=str(params.corpus.resolve()), n_shards=params.n_shards,
+    run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,
                                                        config=params.config))
     store = run.store
-    found = discover_corpus_task(str(params.corpus.resolve()))
+    found = discover_corpus_task(as_text(params.corpus))
     if not found["entries"] and not found["rejects"]:
         return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
     shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)

@@ -51,13 +51,15 @@ def _demo_characters() -> list[Path]:
     return [_demo_character()]
 
 
-def _existing(corpus: Path) -> Path:
-    if not corpus.exists():
+def _existing(corpus: Path | str) -> Path | str:
+    if isinstance(corpus, Path) and not corpus.exists():
         raise ValueError(f"corpus {corpus} does not exist")
     return corpus
 
 
-CorpusPath = Annotated[Path, AfterValidator(_existing)]
+CorpusPath = Annotated[Path | str, BeforeValidator(parse_root), AfterValidator(_existing)]
+"""A corpus folder, manifest or file, or its URL on object storage (`s3://bucket/corpus`, kept as text): the tasks
+read its files through local copies (`location.local_input`), so no machine needs it on a shared disk."""
 # a model's name as a file name in the store (no path, no dot-dot)
 ModelName = Annotated[str, AfterValidator(lambda name: validate_name(name, "model name"))]
 
@@ -114,7 +116,8 @@ class StoreParams(BaseModel):
 
 
 class IngestParams(StoreParams):
-    corpus: CorpusPath = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV.")
+    corpus: CorpusPath = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV, "
+                                                "or its URL (s3://bucket/corpus).")
     config: IngestConfig = Field(default_factory=IngestConfig)
 
 
@@ -130,7 +133,7 @@ class ProceduralParams(StoreParams):
 
 
 class PipelineParams(StoreParams):
-    corpus: Path = Field(..., description="Corpus folder or manifest CSV.")
+    corpus: CorpusPath = Field(..., description="Corpus folder or manifest CSV, or its URL (s3://bucket/corpus).")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
     landmarks: FaceMeshConfig = Field(default_factory=FaceMeshConfig)

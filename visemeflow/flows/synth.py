@@ -6,6 +6,7 @@ from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summa
 from visemeflow.flows.common import collect
 from visemeflow.flows.params import SynthParams
 from visemeflow.hashing import file_hash
+from visemeflow.location import as_text
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
@@ -23,7 +24,7 @@ def synth_flow(params: SynthParams) -> dict[str, object]:
     rig_path = (params.rig or demo_rig_path()).resolve()
     rig_hash = file_hash(rig_path)
     variant = truth_variant(params.config)
-    found = discover_corpus_task(str(params.corpus.resolve()))
+    found = discover_corpus_task(as_text(params.corpus))
     out = params.out.resolve()
     futures = []
     for entry in found["entries"]:

@@ -34,6 +34,7 @@ from visemeflow.flows.errors import RerunError
 from visemeflow.flows.params import TrackParams, TrackSettings
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash
+from visemeflow.location import local_input
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -54,7 +55,7 @@ from visemeflow.tasks.track import (
     utterance_config,
 )
 from visemeflow.tracking.solver import TrackingConfig, joins
-from visemeflow.tracking.utterance import needs_identity, video_size
+from visemeflow.tracking.utterance import CAMERA_SUFFIX, needs_identity, video_size
 
 LANDMARKS_KEY = "stored_landmarks"
 """Key of the stored landmarks' provenance in a task's utterance row (part of the task's cache key)."""
@@ -87,9 +88,9 @@ def identity_groups(store: Store, rows: list[dict]) -> dict[tuple[str, int, int]
                         .to_pydict().values()))
     groups: dict[tuple[str, int, int], list[dict]] = {}
     for row in rows:
-        if not needs_identity(row[C.VIDEO_PATH]):
+        if not needs_identity(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,))):
             continue
-        size = video_size(row[C.VIDEO_PATH])
+        size = video_size(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,)))
         if size is not None:
             groups.setdefault((speakers[row[C.UTTERANCE_ID]], *size), []).append(row)
     return groups
@@ -285,7 +286,7 @@ def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -
     provenance = store.curves_provenance(PROCEDURAL, variant, uid) or ""
     row, config = keyed_row(store, rows[0]), last.config      # the flow's row: the same cache key
     identity = None
-    if config.speaker_identity and needs_identity(row[C.VIDEO_PATH]):
+    if config.speaker_identity and needs_identity(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,))):
         # the speaker identity the track run used (cached), from the same clips of the same speaker and image size
         speaker = store.read_table("utterances", utterance_ids=[uid]).column(C.SPEAKER)[0].as_py()
         same = [r for r in store.read_table("utterances").select(TRACK_FIELDS + [C.SPEAKER]).to_pylist()

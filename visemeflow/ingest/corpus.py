@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from visemeflow.hashing import files_hash, stable_hash
+from visemeflow.location import is_url, mirror, remote_root
 from visemeflow.ingest.audio import AUDIO_EXTS, VIDEO_EXTS
 from visemeflow.phonetics.htk import (
     MLF_HEADER,
@@ -136,13 +137,21 @@ class CorpusError(ValueError):
 
 
 def check_corpus(path: Path | str) -> str | None:
-    """Why `path` (which exists) cannot be a corpus, in one line, or None when it may be one.
+    """Why `path` (which exists) cannot be a corpus, in one line, or None when it may be one. A URL
+    (`s3://bucket/corpus`) is checked on its local mirror (`remote_corpus`), the message naming the URL.
 
     Cheap (a directory listing, the first bytes of a file), so that a command can call it before any flow starts:
     an alignment file, a file that is not a CSV, a manifest without an `utterance_id` column, or a folder holding no
     speaker folder with audio, video or alignment files (a flat folder of wavs). One audio or video file (by its
     extension, any case) is a corpus of one utterance (None), and so is a path that does not exist, left to the
     caller."""
+    if is_url(path):
+        try:
+            remote = remote_corpus(str(path))
+        except (OSError, ValueError) as exc:
+            return f"cannot read the corpus {path}: {exc}"
+        problem = check_corpus(remote.local)
+        return None if problem is None else remote.to_url(problem)
     path = Path(path)
     if path.is_file() and _media_ext(path.name) is not None:
         return None  # one audio or video file: a corpus of one utterance, read by discovery
@@ -214,11 +223,61 @@ def _inside(path: Path, root: Path) -> bool:
         return False
 
 
+@dataclass(frozen=True, slots=True)
+class RemoteCorpus:
+    """A corpus on object storage (`s3://bucket/corpus`, a manifest or one file there) as a local mirror of its
+    folder (`location.mirror`): `local` is the corpus's path in the mirror, `folder` the mirror of the URL `url`."""
+
+    local: Path
+    folder: Path
+    url: str
+
+    def to_url(self, text: str) -> str:
+        """`text` (a path, a message) with the mirror's paths written as the URLs they mirror."""
+        return text.replace(str(self.folder), self.url)
+
+
+def remote_corpus(url: str) -> RemoteCorpus:
+    """The local mirror of the corpus at `url`: a prefix is mirrored whole; one object (a manifest, one audio or
+    video file) with the folder it lies in, where its relative paths and the files beside it are.
+    FileNotFoundError when nothing lies at `url`."""
+    url = url.rstrip("/")
+    root = remote_root(url)
+    if root.fs.isfile(root.path):
+        folder_url, name = url.rsplit("/", 1)
+        folder = mirror(folder_url)
+        return RemoteCorpus(folder / name, folder, folder_url)
+    if not root.fs.isdir(root.path):
+        raise FileNotFoundError(f"corpus {url} does not exist")
+    folder = mirror(url)
+    return RemoteCorpus(folder, folder, url)
+
+
+def _discover_remote(url: str, only: str | None) -> Discovery:
+    """`discover_corpus` of a corpus on object storage: discovered in its local mirror (content hashes of the same
+    bytes as a folder's), every path and message then naming the object's URL, which the tasks read through
+    `location.local_input` on whatever machine they run."""
+    remote = remote_corpus(url)
+    found = discover_corpus(remote.local, only)
+
+    def back(value):
+        return remote.to_url(value) if isinstance(value, str) else value
+
+    entries = tuple(replace(e, audio_path=back(e.audio_path), alignment_path=back(e.alignment_path),
+                            video_path=back(e.video_path), landmark_path=back(e.landmark_path))
+                    for e in found.entries)
+    rejects = tuple(replace(r, message=back(r.message), path=back(r.path)) for r in found.rejects)
+    return Discovery(entries, rejects)
+
+
 def discover_corpus(corpus: Path | str, only: str | None = None) -> Discovery:
-    """Entries of a corpus folder (layout `<speaker>/<name>.*`) or of a manifest CSV file.
+    """Entries of a corpus folder (layout `<speaker>/<name>.*`) or of a manifest CSV file; a URL
+    (`s3://bucket/corpus`) through its local mirror (`remote_corpus`), the entries naming the objects' URLs.
 
     With `only`, just that utterance is looked up (and hashed), as a rerun of one utterance needs.
     """
+    if is_url(corpus):
+        return _discover_remote(str(corpus), only)
     corpus = Path(corpus)
     if not corpus.exists():
         raise FileNotFoundError(f"corpus {corpus} does not exist")

@@ -12,7 +12,7 @@ videos; see `ingest.audio`): such audio is a reject naming the file and the bad 
 import math
 import re
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import soundfile as sf
@@ -20,6 +20,7 @@ import soundfile as sf
 from visemeflow.ingest.audio import AudioError, check_audio_file_finite, read_audio
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import TRANSCRIPT_FORMAT, CorpusEntry
+from visemeflow.location import is_url, local_input
 from visemeflow.phonetics.htk import LabelFileError, load_mlf, parse_htk_label
 from visemeflow.phonetics.inventory import (
     NoInventoryError,
@@ -332,8 +333,44 @@ def ingest_unaligned(entry: CorpusEntry, config: IngestConfig) -> IngestedUttera
     return IngestedUtterance(utterance, [])
 
 
+PATH_COLUMNS = (C.AUDIO_PATH, C.VIDEO_PATH, C.ALIGNMENT_PATH, C.LANDMARK_PATH)
+
+
 def ingest_utterance(entry: CorpusEntry, config: IngestConfig) -> IngestedUtterance:
-    """Rows of the `utterances` and `phones` tables for one corpus entry (`ingest_unaligned` without alignment)."""
+    """Rows of the `utterances` and `phones` tables for one corpus entry (`ingest_unaligned` without alignment).
+
+    An entry of a corpus on object storage (URL paths) is read from local copies of its files
+    (`location.local_input`); its rows and errors name the URLs, which every later stage reads the same way."""
+    urls: dict[str, str] = {}
+    for url in (entry.audio_path, entry.alignment_path, entry.video_path, entry.landmark_path):
+        if url and is_url(url) and url not in urls:
+            try:
+                urls[url] = local_input(url)
+            except OSError as exc:   # gone since discovery, or the server refuses: this utterance's reject
+                raise IngestError(entry.utterance_id, url, "UnreadableObject", f"cannot fetch it: {exc}") from exc
+    if not urls:
+        return _ingest_files(entry, config)
+    back = {local: url for url, local in urls.items()}
+
+    def local(path):
+        return urls.get(path, path)
+
+    def named(text):
+        for copy, url in back.items():
+            text = text.replace(copy, url)
+        return text
+
+    copy = replace(entry, audio_path=local(entry.audio_path), alignment_path=local(entry.alignment_path),
+                   video_path=local(entry.video_path), landmark_path=local(entry.landmark_path))
+    try:
+        result = _ingest_files(copy, config)
+    except IngestError as exc:
+        raise IngestError(exc.utterance_id, named(exc.path), exc.error_type, named(exc.reason)) from exc
+    row = {**result.utterance, **{c: back.get(result.utterance[c], result.utterance[c]) for c in PATH_COLUMNS}}
+    return IngestedUtterance(row, result.phones)
+
+
+def _ingest_files(entry: CorpusEntry, config: IngestConfig) -> IngestedUtterance:
     if not entry.has_alignment:
         return ingest_unaligned(entry, config)
     alignment = read_alignment(entry, config)

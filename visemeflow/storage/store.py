@@ -53,7 +53,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from visemeflow.atomic import atomic_path, is_temporary_name, temporary_writer, this_machine
-from visemeflow.location import parse_root, remote_root
+from visemeflow.location import object_copy, parse_root, private_folder, remote_root
 from visemeflow.schemas import (
     CURVES,
     METRICS,
@@ -212,15 +212,11 @@ def _server_time(response: Mapping) -> float | None:
 
 
 def _private_folder(kind: str, what: str) -> Path:
-    """`visemeflow-<kind>-<uid>` in the machine's temporary folder, made when missing; StoreError unless it is a
-    folder of this user's that no one else may write (`what` it holds names it in the message)."""
-    folder = Path(tempfile.gettempdir()) / f"visemeflow-{kind}-{os.getuid()}"
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    info = os.lstat(folder)
-    if not os.path.isdir(folder) or os.path.islink(folder) or info.st_uid != os.getuid() or info.st_mode & 0o022:
-        raise StoreError(errno.EPERM, f"{folder}: {what} must be in a folder of this user's that no one else may "
-                         "write")
-    return folder
+    """`location.private_folder`, its refusal a StoreError as every other of the store's."""
+    try:
+        return private_folder(kind, what)
+    except PermissionError as exc:
+        raise StoreError(exc.errno, exc.strerror) from exc
 
 
 class Store:
@@ -285,17 +281,9 @@ class Store:
         version (its ETag names the copy) into this machine's temporary folder, so repeated reads cost one HEAD."""
         if not self.remote:
             return str(path)
-        import hashlib
-
-        info = self.root.fs.info(path.path)
-        version = str(info.get("ETag") or info.get("mtime") or info.get("size"))
-        digest = hashlib.blake2b(f"{path}\0{version}".encode(), digest_size=12).hexdigest()
-        local = _private_folder("objects", "the local copies of store objects (a copy planted there would be "
-                                "read as the store's)") / f"{digest}-{path.name}"
-        if not local.is_file():
-            with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
-                self.root.fs.get_file(path.path, str(tmp))
-        return str(local)
+        _private_folder("objects", "the local copies of store objects (a copy planted there would be read as the "
+                        "store's)")
+        return object_copy(self.root.fs, path.path, str(path))
 
     @staticmethod
     def utterance_id_of(path: str | Path) -> str:

@@ -30,6 +30,7 @@ from prefect.cache_policies import TASK_SOURCE, CachePolicy, Inputs
 from prefect.context import TaskRunContext
 
 from visemeflow.animation.apply import CurvesError
+from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
@@ -166,13 +167,13 @@ def preview_video(store: Store, utterance_id: str):
         return None, None
     from visemeflow.animation.preview import video_problem, video_source
 
-    problem = video_problem(row[C.VIDEO_PATH])
+    problem = video_problem(local_input(row[C.VIDEO_PATH]))
     if problem:
         return None, f"the preview shows the character alone: {problem}"
     # the tracker's landmarks (`tasks.track.landmark_file`'s rule; not imported: its module would put the solver's
     # code in this task's digest): the file beside the video, else the `landmarks` stage's
     stored = store.landmark_path(utterance_id) if store.has_landmarks(utterance_id) else None
-    return video_source(row[C.VIDEO_PATH], row[C.LANDMARK_PATH] or stored, row[C.FPS]), None
+    return video_source(local_input(row[C.VIDEO_PATH]), local_input(row[C.LANDMARK_PATH]) or stored, row[C.FPS]), None
 
 
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:

@@ -36,6 +36,7 @@ from visemeflow.learning.robustness_table import (
     REALSPEECH_RUNS,
 )
 from visemeflow.learning.train import SAMPLE_RATE, Example, evaluate, resample_curves
+from visemeflow.location import local_input
 from visemeflow.rig import load_demo_rig
 from visemeflow.schemas import METRICS, C
 from visemeflow.storage import Store
@@ -77,7 +78,7 @@ def augment_condition(store_root: str, condition: str, seed: int, config: Augmen
     out = []
     for row in rows:
         uid = row[C.UTTERANCE_ID]
-        aug = augment_utterance(load_audio(row[C.AUDIO_PATH]), SAMPLE_RATE, uid, condition, seed, config)
+        aug = augment_utterance(load_audio(local_input(row[C.AUDIO_PATH])), SAMPLE_RATE, uid, condition, seed, config)
         path = store.augmented_audio_path(name, aug.utterance_id)
         _write_wav(store, path, aug.audio)
         out.append({"source_id": uid, "utterance_id": aug.utterance_id, "path": str(path),

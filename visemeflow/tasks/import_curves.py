@@ -16,6 +16,7 @@ from prefect import get_run_logger, task
 
 from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.hashing import file_hash, stable_hash
+from visemeflow.location import local_input
 from visemeflow.ingest.captured import (
     BAD_INPUT_ERRORS,
     CAPTURED_ALIGNMENT_FORMAT,
@@ -82,7 +83,7 @@ def import_take_task(store_root: str, n_shards: int, take: dict, config: Capture
             raise RuntimeError(f"the ARKit-to-viseme table changed while the flow ran ({solver_digest} -> "
                                f"{solver.digest}); run it again")
         if ingested_audio is not None and ingested_audio != obj.audio_path and \
-                file_hash(ingested_audio) != file_hash(obj.audio_path):
+                file_hash(local_input(ingested_audio)) != file_hash(obj.audio_path):
             raise CaptureReadError(obj.audio_path, "IdInUse",
                                    f"{uid} is already an utterance ingested from a corpus with other audio "
                                    f"({ingested_audio}); give the take another id")

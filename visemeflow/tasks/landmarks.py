@@ -10,6 +10,7 @@ import time
 from prefect import get_run_logger, task
 
 from visemeflow.hashing import stable_hash
+from visemeflow.location import local_input
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -43,7 +44,7 @@ def landmarks_one(store: Store, utterance: dict, config: FaceMeshConfig) -> dict
         raise LandmarksError(uid, None, "NoVideo", "the utterance has no video")
     start = time.perf_counter()
     try:
-        track = detect_video(video, config)
+        track = detect_video(local_input(video), config)
     except FaceMeshError as exc:
         raise LandmarksError(uid, exc.path, exc.error_type, exc.reason) from exc
     seconds = time.perf_counter() - start

@@ -11,6 +11,7 @@ from visemeflow.atomic import atomic_write, atomic_write_text
 from visemeflow.hashing import stable_hash
 from visemeflow.ingest.audio import read_audio
 from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
+from visemeflow.location import local_input
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_rig
 from visemeflow.schemas import C, CurveSource, Curves, split_utterance_id
@@ -55,8 +56,8 @@ def synth_utterance(
     folder.mkdir(parents=True, exist_ok=True)
     alignment = folder / (name + Path(source.alignment_path).suffix)
     audio = folder / f"{name}.wav"
-    atomic_write(alignment, lambda tmp: shutil.copyfile(source.alignment_path, tmp))
-    samples, rate = read_audio(source.audio_path)
+    atomic_write(alignment, lambda tmp: shutil.copyfile(local_input(source.alignment_path), tmp))
+    samples, rate = read_audio(local_input(source.audio_path))
     atomic_write(audio, lambda tmp: sf.write(tmp, samples, rate, subtype="PCM_16", format="WAV"))
     video = write_video(folder / f"{name}.{config.video_ext}", render_take(rig, take), config.fps, samples, rate)
     landmarks = write_landmarks(take.landmarks, folder / f"{name}.landmarks.parquet")

@@ -23,6 +23,7 @@ from prefect.cache_policies import NO_CACHE
 from visemeflow.atomic import group_sync
 from visemeflow.hashing import stable_hash
 from visemeflow.learning.device import resolve_device
+from visemeflow.location import local_input
 from visemeflow.rig import VisemeRig, load_rig
 from visemeflow.schemas import (
     LOSS_TERMS,
@@ -40,6 +41,7 @@ from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.identity import SpeakerIdentity, fit_speaker_identity
 from visemeflow.tracking.landmarks import LandmarkError, read_landmarks
 from visemeflow.tracking.utterance import (
+    CAMERA_SUFFIX,
     TrackedVideo,
     TrackingInputError,
     VideoInput,
@@ -95,7 +97,7 @@ def landmark_file(store: Store, utterance: dict) -> str | None:
     """The utterance's landmark file: the one beside its video, else what the `landmarks` stage stored."""
     uid = utterance[C.UTTERANCE_ID]
     if utterance[C.LANDMARK_PATH]:
-        return utterance[C.LANDMARK_PATH]
+        return local_input(utterance[C.LANDMARK_PATH])
     return store.local_file(store.landmark_path(uid)) if store.has_landmarks(uid) else None
 
 
@@ -140,9 +142,9 @@ def _video_input(store: Store, utterance: dict, procedural_variant: str,
         except LookupError as exc:
             raise TrackError(uid, None, "NoProceduralCurves", f"{exc}; run the procedural stage first") from exc
         end_s = alignment_end_s(store, uid)
-    video = VideoInput(utterance[C.VIDEO_PATH], landmark_file(store, utterance), utterance[C.FPS],
-                       int(utterance[C.N_FRAMES]), audio_path=utterance.get(C.AUDIO_PATH),
-                       alignment_path=utterance.get(C.ALIGNMENT_PATH) or None, alignment_end_s=end_s)
+    video = VideoInput(local_input(utterance[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,)), landmark_file(store, utterance), utterance[C.FPS],
+                       int(utterance[C.N_FRAMES]), audio_path=local_input(utterance.get(C.AUDIO_PATH)),
+                       alignment_path=local_input(utterance.get(C.ALIGNMENT_PATH) or None), alignment_end_s=end_s)
     return video, procedural, config
 
 

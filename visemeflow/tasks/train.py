@@ -28,6 +28,7 @@ from visemeflow.learning.train import (
     save_model,
     train_model,
 )
+from visemeflow.location import local_input
 from visemeflow.schemas import METRICS, C
 from visemeflow.tasks.progress import Progress
 from visemeflow.storage import Store
@@ -57,7 +58,7 @@ def load_examples(store: Store, rows: list[dict], source: str, variant: str) -> 
     for row in rows:
         uid = row[C.UTTERANCE_ID]
         curves = store.load_curves(uid, source, variant, default_fps=float(row[C.FPS]))
-        examples.append(Example(uid, load_audio(row[C.AUDIO_PATH]), curves.values, curves.fps))
+        examples.append(Example(uid, load_audio(local_input(row[C.AUDIO_PATH])), curves.values, curves.fps))
     return examples
 
 

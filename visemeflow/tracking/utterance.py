@@ -195,10 +195,15 @@ def on_grid(tracked: TrackedVideo, timeline: FrameTimeline) -> TrackedVideo:
     return TrackedVideo(result, landmarks, flow_valid, tracked.camera_info, index, timeline.times)
 
 
+CAMERA_SUFFIX = ".camera.json"
+"""`<name>.camera.json` beside a video: the known intrinsics of a synthetic take (what `local_input` of a video on
+object storage must bring along: `beside=(CAMERA_SUFFIX,)`)."""
+
+
 def camera_record_path(video_path: str) -> Path:
     """`<name>.camera.json` beside the video: the known intrinsics of a synthetic take."""
     video = Path(video_path)
-    return video.with_name(video.name.rsplit(".", 1)[0] + ".camera.json")
+    return video.with_name(video.name.rsplit(".", 1)[0] + CAMERA_SUFFIX)
 
 
 def load_track(landmark_path: str | None, fps: float, n_frames: int, video_path: str | None = None) -> LandmarkTrack:
