@@ -244,6 +244,7 @@ def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
         PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])
     assert PipelineParams(corpus="c", store="s3://bucket/store/").store == "s3://bucket/store"
     assert str(PipelineParams(corpus="c", store="file:///tmp/store").store) == "/tmp/store"
+    assert PipelineParams(corpus="s3://bucket/corpus/", store="s3://bucket/store").corpus == "s3://bucket/corpus"
     with pytest.raises(ValueError, match="needs a bucket"):
         parse_root("s3://")
     with pytest.raises(ValueError, match="'..'"):

@@ -57,9 +57,11 @@ def _existing(corpus: Path | str) -> Path | str:
     return corpus
 
 
-CorpusPath = Annotated[Path | str, BeforeValidator(parse_root), AfterValidator(_existing)]
+CorpusLocation = Annotated[Path | str, BeforeValidator(parse_root)]
 """A corpus folder, manifest or file, or its URL on object storage (`s3://bucket/corpus`, kept as text): the tasks
 read its files through local copies (`location.local_input`), so no machine needs it on a shared disk."""
+CorpusPath = Annotated[CorpusLocation, AfterValidator(_existing)]
+"""A `CorpusLocation` whose folder or file exists (a URL is checked when it is read)."""
 # a model's name as a file name in the store (no path, no dot-dot)
 ModelName = Annotated[str, AfterValidator(lambda name: validate_name(name, "model name"))]
 
@@ -133,7 +135,7 @@ class ProceduralParams(StoreParams):
 
 
 class PipelineParams(StoreParams):
-    corpus: CorpusPath = Field(..., description="Corpus folder or manifest CSV, or its URL (s3://bucket/corpus).")
+    corpus: CorpusLocation = Field(..., description="Corpus folder or manifest CSV, or its URL (s3://bucket/corpus).")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
     landmarks: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
