@@ -7,6 +7,7 @@ import os
 import secrets
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -232,16 +233,15 @@ class _no_lock:
 def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
     from pydantic import ValidationError
 
-    from visemeflow.flows.params import AnimateParams, PipelineParams, SpeakParams, TrainParams
+    from visemeflow.flows.params import AnimateParams, PipelineParams, PreviewParams, SpeakParams, TrainParams
     from visemeflow.location import parse_root
 
     with pytest.raises(ValidationError, match="needs a store folder"):
-        AnimateParams(store="s3://bucket/store")
-    with pytest.raises(ValidationError, match="needs a store folder"):   # speak animates a character
-        SpeakParams(store="s3://bucket/store", audio=["a.wav"])
+        PreviewParams(store="s3://bucket/store", utterance_id="spk/a")
+    assert AnimateParams(store="s3://bucket/store").store == "s3://bucket/store"
+    assert SpeakParams(store="s3://bucket/store", audio=["a.wav"]).store == "s3://bucket/store"
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
-    with pytest.raises(ValidationError, match="animating characters needs a store folder"):
-        PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"])
+    assert PipelineParams(corpus="c", store="s3://bucket/store", characters=["x.glb"]).characters == [Path("x.glb")]
     assert PipelineParams(corpus="c", store="s3://bucket/store/").store == "s3://bucket/store"
     assert str(PipelineParams(corpus="c", store="file:///tmp/store").store) == "/tmp/store"
     assert PipelineParams(corpus="s3://bucket/corpus/", store="s3://bucket/store").corpus == "s3://bucket/corpus"
@@ -606,8 +606,72 @@ def test_a_corpus_on_s3_is_ingested_with_the_hashes_of_a_folder_and_its_bad_file
     assert not (tmp_path / "never").exists()
 
 
+@pytest.mark.flow
+def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket, tmp_path, prefect_harness):
+    """`animate` on an S3 store writes each package locally and uploads it: the same files as in a folder, read back
+    by their readers; a second run is all cache hits, a deleted object is made again; `speak` puts its package in the
+    S3 store; the dashboard of that store lists the packages."""
+    import s3fs
+    from factories import DEMO_AUDIO, make_curve_store, tiny_model
+    from test_animate_flow import tiny_character
+
+    from visemeflow.animation.gltf import write_glb
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.animation.usd import read_usd_weights
+    from visemeflow.dashboards.html import build_dashboard
+    from visemeflow.flows.animate import AnimateParams, SpeakParams, animate_flow, speak_flow
+    from visemeflow.shapes.conventions import ARKIT_52
+
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    folder = make_curve_store(tmp_path / "folder", n=2)
+    fs.put(str(folder.root), f"{bucket}/anim", recursive=True)   # the same store, byte for byte, on S3
+    url = f"s3://{bucket}/anim"
+    glb = tmp_path / "arkit.glb"
+    write_glb(glb, tiny_character(list(ARKIT_52), name="arkit"), np.zeros((1, len(ARKIT_52)), np.float32), 30.0)
+    config = AnimateConfig(formats=("glb", "usd", "json"))
+
+    def animate(store):
+        return animate_flow(AnimateParams(store=store, characters=[glb], source="ground_truth", config=config))
+
+    want, got = animate(folder.root), animate(url)
+    assert got["written"] == 2 and got["rejected"] == 0
+    s3 = Store(url)
+    for mine, theirs in zip(sorted(got["packages_written"], key=lambda r: r["utterance_id"]),
+                            sorted(want["packages_written"], key=lambda r: r["utterance_id"])):
+        assert mine["folder"].startswith(f"{url}/animations/arkit/") and set(mine["files"]) == set(theirs["files"])
+        for kind, path in mine["files"].items():
+            assert path.startswith(mine["folder"] + "/"), path
+            local = s3.local_file_at(path)
+            if kind == "usd":   # what a reader of the file sees
+                np.testing.assert_array_equal(read_usd_weights(local)[1], read_usd_weights(theirs["files"][kind])[1])
+            else:
+                assert open(local, "rb").read() == open(theirs["files"][kind], "rb").read(), kind
+    again = animate(url)
+    assert again["cached"] == 2 and again["written"] == 0
+    fs.rm(got["packages_written"][0]["files"]["glb"].removeprefix("s3://"))
+    third = animate(url)
+    assert third["written"] == 1 and third["cached"] == 1
+
+    model = tmp_path / "tiny"
+    tiny_model_store = Store(model)
+    tiny_model(tiny_model_store)
+    s3.install_model("tiny", tiny_model_store.model_path("tiny"))
+    spoken = speak_flow(SpeakParams(store=url, model="tiny", audio=[DEMO_AUDIO], characters=[glb],
+                                    config=AnimateConfig(formats=("glb",), preview=True)))
+    (report,) = spoken["packages_written"]
+    assert report["files"]["glb"].startswith(f"{url}/animations/arkit/predict/SSB16240001/")
+    assert fs.exists(report["files"]["glb"].removeprefix("s3://"))
+    build_dashboard(s3, tmp_path / "board")
+    page = (tmp_path / "board" / "index.html").read_text()
+    assert "spk/u0" in page and "predict/SSB16240001" in page
+    assert f'href="{report["files"]["glb"]}"' in page   # files on S3 are named by their URL
+    copy = tmp_path / "board" / "media" / "arkit" / "predict" / "SSB16240001" / "SSB16240001.mp4"
+    assert 'src="media/arkit/predict/SSB16240001/SSB16240001.mp4"' in page   # the preview plays from a local copy
+    assert copy.read_bytes() == fs.cat_file(report["files"]["preview"].removeprefix("s3://"))
+
+
 def test_commands_on_an_s3_store(bucket, tmp_path):
-    """`curves show`, `rejects` and `dashboard` read an S3 store; `animate` says it needs a folder; a missing bucket
+    """`curves show`, `rejects` and `dashboard` read an S3 store; `preview` says it needs a folder; a missing bucket
     is one line."""
     import subprocess
     import sys
@@ -625,8 +689,8 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
     assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
     assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
-    refused = cli("animate", "--store", url)
-    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: animate needs a store folder: {url}")
+    refused = cli("preview", "spk/a", "--store", url)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: preview needs a store folder: {url}")
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1

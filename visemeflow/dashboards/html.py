@@ -33,7 +33,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.dataset as ds
 
-from visemeflow.atomic import atomic_write_text
+from visemeflow.atomic import atomic_write_bytes, atomic_write_text
 from visemeflow.hashing import file_hash
 from visemeflow.location import local_input
 from visemeflow.dashboards import plots
@@ -592,12 +592,27 @@ def _tracking_section(page: _Page, store: Store) -> bool:
 
 
 def _file_url(path: Path, page_dir: Path) -> str:
-    """A link from the page's folder to a store file: relative when it can be, percent-encoded."""
+    """A link from the page's folder to a store file: relative when it can be, percent-encoded; a file on object
+    storage by its URL (what `aws s3 cp` and the bucket's console take; a browser does not open it)."""
+    if not isinstance(path, Path):   # a UPath of a store on object storage
+        return str(path)
     try:
         target = os.path.relpath(path.resolve(), page_dir.resolve())
     except ValueError:  # another drive (Windows)
         return path.resolve().as_uri()
     return quote(Path(target).as_posix())
+
+
+def _playable(video, out: Path) -> Path:
+    """A preview MP4 the page can play: the file itself in a folder; one on object storage copied next to the page
+    (`media/<character>/<speaker>/<name>/`), since a browser does not open s3:// URLs."""
+    if isinstance(video, Path):
+        return video
+    local = out / "media" / Path(*video.parts[-4:])
+    if not local.is_file() or local.stat().st_size != video.stat().st_size:
+        data = video.read_bytes()
+        atomic_write_bytes(local, data)
+    return local
 
 
 @dataclass
@@ -621,7 +636,7 @@ def animation_packages(store: Store) -> list[Package]:
         except ValueError:
             uid = f"{speaker}/{name}"
         found.append(Package(folder, uid, character))
-    seen = {p.folder.resolve() for p in found}
+    seen = {p.folder.resolve() for p in found if isinstance(p.folder, Path)}
     for entry in recorded_packages(store):
         folder = entry["folder"].resolve()
         if folder not in seen:
@@ -652,7 +667,7 @@ def _animations_section(page: "_Page", packages: Sequence[Package], out: Path, l
         page.add(f'<div class="animation" id="animation-{n}"><h3><code>{esc(package.utterance_id)}</code> on '
                  f"{esc(package.character)}</h3>{where}<p>{links}</p>")
         for video in (p for p in files if p.suffix == ".mp4"):
-            page.add(f'<video controls preload="none" width="640" src="{esc(_file_url(video, out))}" '
+            page.add(f'<video controls preload="none" width="640" src="{esc(_file_url(_playable(video, out), out))}" '
                      f'title="{esc(video.name)}"></video>')
         page.add("</div>")
 

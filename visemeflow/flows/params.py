@@ -21,8 +21,8 @@ from visemeflow.synth.config import SynthConfig
 from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
-REMOTE_COMMANDS = ("pipeline (without characters), ingest, procedural, landmarks, track, rerun, train, sweep, "
-                   "evaluate, predict, dashboard, rejects, clean, curves show, curves export")
+REMOTE_COMMANDS = ("pipeline, ingest, procedural, landmarks, track, rerun, train, sweep, evaluate, predict, "
+                   "animate, speak, dashboard, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
@@ -146,13 +146,6 @@ class PipelineParams(StoreParams):
                                                    "no utterance has a video); none: no animate stage.")
     animate: AnimateConfig = Field(default_factory=AnimateConfig)
 
-    @model_validator(mode="after")
-    def _characters_need_a_folder(self) -> "PipelineParams":
-        if self.characters and is_url(self.store):
-            raise ValueError(f"{self.store}: animating characters needs a store folder; on object storage run the "
-                             "pipeline without characters, then `visemeflow animate` on a store folder")
-        return self
-
 
 class SynthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -259,7 +252,8 @@ class EvaluateParams(BaseModel):
 class AnimateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store, or its URL on object "
+                                                            "storage (s3://bucket/prefix).")
     characters: list[Path] = Field(default_factory=_demo_characters, min_length=1,
                                    description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
                                                "folders; default: the shipped ICT demo character.")
@@ -288,7 +282,8 @@ class AnimateParams(BaseModel):
 class SpeakParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store, or its URL on object "
+                                                            "storage (s3://bucket/prefix).")
     model: ModelName = Field("default", description="Name of a trained model in the store; `default`: the model shipped "
                                               "with the package; `phones`: no model, phones recognised in the audio "
                                               "(English).")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import json
 import re
+import shutil
 from collections import defaultdict
 import time
 from dataclasses import dataclass
@@ -172,8 +173,23 @@ def preview_video(store: Store, utterance_id: str):
         return None, f"the preview shows the character alone: {problem}"
     # the tracker's landmarks (`tasks.track.landmark_file`'s rule; not imported: its module would put the solver's
     # code in this task's digest): the file beside the video, else the `landmarks` stage's
-    stored = store.landmark_path(utterance_id) if store.has_landmarks(utterance_id) else None
+    stored = store.local_file(store.landmark_path(utterance_id)) if store.has_landmarks(utterance_id) else None
     return video_source(local_input(row[C.VIDEO_PATH]), local_input(row[C.LANDMARK_PATH]) or stored, row[C.FPS]), None
+
+
+def _fresh_work_dir(store: Store, target: Path) -> Path:
+    """An empty local folder to write the package of the store folder `target` (on object storage) into."""
+    folder = store.local_work_dir(target)
+    for old in folder.iterdir():
+        shutil.rmtree(old) if old.is_dir() else old.unlink()
+    return folder
+
+
+def _upload(store: Store, local: Path, target: Path) -> Path:
+    """The package file `local` (in its work folder) uploaded into the store folder `target`, in one PUT."""
+    path = target / local.relative_to(store.local_work_dir(target))
+    data = local.read_bytes()
+    return store.write_file(path, lambda tmp: Path(tmp).write_bytes(data), keep_suffix=True)
 
 
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
@@ -203,8 +219,10 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
             audio = read_audio(audio_path)
         except AudioError as exc:
             raise AnimateError(utterance_id, audio_path, "AudioError", str(exc)) from exc
-    folder = package_dir(store, out, character_name or character_key(character_path), utterance_id)
-    stem = folder.name
+    target = package_dir(store, out, character_name or character_key(character_path), utterance_id)
+    stem = target.name
+    # a store on object storage: the package is written into a local work folder, then uploaded file by file
+    folder = _fresh_work_dir(store, target) if store.remote and not out else target
     started = time.perf_counter()
     try:
         package = export_animation(folder, stem, character, binding, curves, fps, config, utterance_id=utterance_id,
@@ -232,10 +250,13 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
                                title=f"{utterance_id} - {character.name}", video=video)
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
+    if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
+        uploaded = {str(p): str(_upload(store, p, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
+        files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
     seconds = time.perf_counter() - started
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
             "meshes": [part.name for part in character.parts],
-            "folder": str(folder), "files": files, "frames": package.frames, "fps": package.fps,
+            "folder": str(target), "files": files, "frames": package.frames, "fps": package.fps,
             "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4),
             "lips": lips, "warnings": warnings}
 
@@ -252,8 +273,14 @@ def animate_one(store_root: str, utterance_id: str, source: str, variant: str, p
                      character_name)
     inputs = package_inputs(utterance_id, source, variant, provenance, character_hash, mapping_hash, config,
                             audio_hash, phones)
-    with atomic_path(Path(report["folder"]) / INPUTS_FILE) as tmp:
-        tmp.write_text(json.dumps(inputs, sort_keys=True), encoding="utf-8")
+    text = json.dumps(inputs, sort_keys=True)
+    if out is None:   # in the store (a folder or object storage), after the package's files
+        store = Store(store_root)
+        store.write_file(store.animation_dir(character_name, utterance_id) / INPUTS_FILE,
+                         lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    else:
+        with atomic_path(Path(report["folder"]) / INPUTS_FILE) as tmp:
+            tmp.write_text(text, encoding="utf-8")
     logger = get_run_logger()
     logger.info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"], report["fps"],
                 ", ".join(report["files"]))
@@ -268,7 +295,8 @@ def outputs_present(store: Store, out: str | None, character_name: str, utteranc
     (`package_inputs`) as what it was made from: a deleted file, or a package made from other inputs under the same
     folder, recomputes."""
     folder = package_dir(store, out, character_name, utterance_id)
-    paths = list(export_paths(folder, folder.name, config.formats, config.mode).values())
+    names = export_paths(Path(), folder.name, config.formats, config.mode).values()   # a UPath on object storage
+    paths = [folder / name.name for name in names]
     paths += [folder / f"{folder.name}.wav"] if with_audio and config.audio else []
     paths += [folder / f"{folder.name}.mp4"] if config.preview else []
     return all(p.is_file() for p in paths) and _recorded_inputs(folder) == inputs
