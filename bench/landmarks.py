@@ -1,7 +1,7 @@
 """Benchmark: MediaPipe FaceMesh landmark detection (visemeflow.tracking.facemesh) on one core, and agreement
 with MediaPipe's reference landmark files.
 
-Run:  .venv/bin/python bench/landmarks.py [--repeats R] [--no-pin] [--frame docs/landmarks_frame.png]
+Run:  .venv/bin/python bench/landmarks.py [--repeats R] [--no-pin] [--clips N] [--frame docs/landmarks_frame.png]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. The process is pinned to one CPU
 (os.sched_setaffinity, so MediaPipe's and FFmpeg's own threads share it too) and OMP/MKL/OpenBLAS to one thread.
@@ -112,7 +112,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--no-pin", action="store_true")
     parser.add_argument("--frame", type=Path, default=None, help="save a GRID frame with our landmarks drawn")
+    parser.add_argument("--clips", type=int, default=None, help="only the first N clips of each set (a smoke run)")
     args = parser.parse_args()
+    if args.clips is not None:
+        for name in SETS:
+            SETS[name] = SETS[name][:max(1, args.clips)]
     missing = [p for clips in SETS.values() for p in clips if not p.is_file() or not reference_of(p).is_file()]
     if missing or not SETS["GRID 360x288"]:
         sys.exit(f"missing benchmark data: {missing or DATA / 'grid_s1'}")

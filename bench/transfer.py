@@ -1,6 +1,6 @@
 """Benchmark: deformation transfer of the demo rig's 16 visemes (visemeflow/authoring/transfer.py) onto new faces.
 
-Run:  .venv/bin/python bench/transfer.py [--sheet docs/transfer_contact_sheet.png] [--size 180]
+Run:  .venv/bin/python bench/transfer.py [--sheet docs/transfer_contact_sheet.png] [--size 180] [--targets self,auto]
 
 Prints, never asserts (exit 0 whatever the figures). Targets, all built from the shipped demo rig
 (`load_demo_rig()`, 21,984 vertices, 43,393 triangles, centimetres) and its identity modes (ict_identities.npz):
@@ -80,58 +80,71 @@ def contact_sheet(character, path: Path, size: int) -> int:
     return path.stat().st_size
 
 
+TARGETS = ("self", "identity", "remeshed", "auto")
+"""Targets 1-4 of the module's text, by the names `--targets` takes."""
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sheet", type=Path, default=None, help="write the contact sheet PNG here")
     parser.add_argument("--size", type=int, default=180, help="panel size in pixels")
+    parser.add_argument("--targets", default=",".join(TARGETS),
+                        help="which of the targets 1-4 to run, by name (a smoke run: self,auto)")
     args = parser.parse_args()
+    targets = {t.strip() for t in args.targets.split(",") if t.strip()}
+    if targets - set(TARGETS):
+        parser.error(f"unknown targets: {', '.join(sorted(targets - set(TARGETS)))}; choose from {', '.join(TARGETS)}")
+    if args.sheet is not None:   # the sheet draws target 3's visemes
+        targets.add("remeshed")
     demo = load_demo_rig()
     modes = np.load(rig_data_path("ict_identities.npz"))["modes"].astype(np.float64)
     print(f"template: {demo.name}, {demo.n_vertices} vertices, {len(demo.faces)} triangles, 16 visemes")
     print("template: " + landmark_figures(make_character("t", demo.neutral, demo.faces, VISEMES, demo.deltas),
                                           demo.landmark_ids))
 
-    start = time.perf_counter()
-    result = transfer_visemes(demo, demo.neutral, demo.faces, name="self")
-    wall = time.perf_counter() - start
-    error = np.abs(result.character.deltas - demo.deltas).max()
-    print(f"\n1. self (same topology), {wall:.2f} s wall: largest vertex error {error:.2e} cm "
-          f"(the template moves up to {np.abs(demo.deltas).max():.2f} cm)")
-    print("   " + "\n   ".join(result.report.lines()))
+    if "self" in targets:
+        start = time.perf_counter()
+        result = transfer_visemes(demo, demo.neutral, demo.faces, name="self")
+        wall = time.perf_counter() - start
+        error = np.abs(result.character.deltas - demo.deltas).max()
+        print(f"\n1. self (same topology), {wall:.2f} s wall: largest vertex error {error:.2e} cm "
+              f"(the template moves up to {np.abs(demo.deltas).max():.2f} cm)")
+        print("   " + "\n   ".join(result.report.lines()))
 
-    result = transfer_visemes(demo, identity_face(demo, modes, [1.0, -1.0, 1.0, -0.5, 0.5]), demo.faces,
-                              name="identity")
-    print("\n2. identity (same topology)")
-    print("   " + "\n   ".join(result.report.lines()))
-    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids))
+    if "identity" in targets:
+        result = transfer_visemes(demo, identity_face(demo, modes, [1.0, -1.0, 1.0, -0.5, 0.5]), demo.faces,
+                                  name="identity")
+        print("\n2. identity (same topology)")
+        print("   " + "\n   ".join(result.report.lines()))
+        print("   landmarks: " + landmark_figures(result.character, result.landmark_ids))
 
     vertices, faces, landmarks = remeshed_face(demo, modes)
-    result = transfer_visemes(demo, vertices, faces, target_landmarks=landmarks, name="remeshed")
-    print(f"\n3. remeshed (different topology): target {len(vertices)} vertices, {len(faces)} triangles")
-    print("   " + "\n   ".join(result.report.lines()))
-    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+    sheet_result = None
+    if "remeshed" in targets:
+        result = transfer_visemes(demo, vertices, faces, target_landmarks=landmarks, name="remeshed")
+        print(f"\n3. remeshed (different topology): target {len(vertices)} vertices, {len(faces)} triangles")
+        print("   " + "\n   ".join(result.report.lines()))
+        print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+        sheet_result = result
 
-    sheet_result = result
-
-    # the same target without markers: pairs found by FaceMesh on renders of both meshes (automarkers)
-    carried = np.union1d(demo.regions["mouth_interior"], demo.regions["eyes"])
-    start = time.perf_counter()
-    auto = automatic_markers(demo.neutral, demo.faces, vertices, faces, exclude=carried)
-    found_s = time.perf_counter() - start
-    truth = placed(identity_face(demo, modes, REMESHED_IDENTITY))
-    error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth[auto.pairs[:, 0]], axis=1)
-    result = transfer_visemes(demo, vertices, faces, name="remeshed-auto")
-    landmark_gap = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
-    print(f"\n4. remeshed, automatic markers ({found_s:.1f} s to find them): {len(auto.pairs)} pairs, target points "
-          f"{np.median(error):.3f} cm from the true correspondence (median; 90th percentile "
-          f"{np.percentile(error, 90):.3f}, largest {error.max():.3f}); the 68 landmarks it places "
-          f"{np.median(landmark_gap):.3f} cm from the nearest-point truth (median)")
-    print("   " + "\n   ".join(result.report.lines()))
-    print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+    if "auto" in targets:   # the same target without markers: pairs found by FaceMesh on renders of both meshes
+        carried = np.union1d(demo.regions["mouth_interior"], demo.regions["eyes"])
+        start = time.perf_counter()
+        auto = automatic_markers(demo.neutral, demo.faces, vertices, faces, exclude=carried)
+        found_s = time.perf_counter() - start
+        truth = placed(identity_face(demo, modes, REMESHED_IDENTITY))
+        error = np.linalg.norm(vertices[auto.pairs[:, 1]] - truth[auto.pairs[:, 0]], axis=1)
+        result = transfer_visemes(demo, vertices, faces, name="remeshed-auto")
+        landmark_gap = np.linalg.norm(vertices[result.landmark_ids] - vertices[landmarks], axis=1)
+        print(f"\n4. remeshed, automatic markers ({found_s:.1f} s to find them): {len(auto.pairs)} pairs, target "
+              f"points {np.median(error):.3f} cm from the true correspondence (median; 90th percentile "
+              f"{np.percentile(error, 90):.3f}, largest {error.max():.3f}); the 68 landmarks it places "
+              f"{np.median(landmark_gap):.3f} cm from the nearest-point truth (median)")
+        print("   " + "\n   ".join(result.report.lines()))
+        print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
 
     if args.sheet is not None:
-        result = sheet_result
-        c = result.character
+        c = sheet_result.character
         frontal = make_character(c.name, c.neutral @ ROTATION, c.faces, c.shape_names, c.deltas @ ROTATION,
                                  vertex_colors=c.vertex_colors)
         size = contact_sheet(frontal, args.sheet, args.size)
