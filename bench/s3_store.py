@@ -10,7 +10,9 @@ procedural, tracking) into a new store:
   sequential   `--runner threads --threads 1`, torch and OpenCV on one thread (what one Dask worker does);
   dask         `--runner dask`: a local cluster of `--workers` one-thread processes started by the flow (timed),
                each worker reaching the S3 store only through the endpoint in its environment.
-Then a second, cached call on each store (every task a cache hit read from the store's result records).
+Then a second, cached call on each store (every task a cache hit read from the store's result records). A fifth
+run puts the corpus on S3 too (`s3://bench/corpus`, uploaded untimed, this machine's local copies cleared): the
+flow mirrors it and each task fetches its utterance's files (`visemeflow.location`), inside the timed run.
 Ratios: S3 wall / folder wall for the same runner (what object storage costs), and sequential / dask for the same
 store (the speed-up the workers give). The S3 and folder stores' tracked curves are compared.
 
@@ -74,7 +76,7 @@ def start_s3(work: Path) -> tuple[subprocess.Popen, dict[str, str]]:
     return server, env
 
 
-def run_pipeline(kind: str, runner: str, corpus: Path, store: str, workers: int) -> Run:
+def run_pipeline(kind: str, runner: str, corpus: Path | str, store: str, workers: int) -> Run:
     from visemeflow.flows.params import PipelineParams, RunnerConfig
     from visemeflow.flows.pipeline import pipeline_flow
 
@@ -155,7 +157,19 @@ def main() -> None:
                                                 ("folder", "dask"), ("S3", "dask")]):
                 store = str(work / f"store-{i}") if kind == "folder" else f"s3://bench/store-{i}"
                 runs.append(run_pipeline(kind, runner, corpus, store, args.workers))
+            # the corpus on S3 too: uploaded (not timed), then mirrored and fetched per task within the timed run;
+            # this process's local copies cleared first, so the run pays every download
+            import s3fs
+
+            from visemeflow.location import private_folder
+
+            s3fs.S3FileSystem(skip_instance_cache=True).put(str(corpus), "bench/corpus", recursive=True)
+            for kind_ in ("objects", "mirrors"):
+                shutil.rmtree(private_folder(kind_, "bench"), ignore_errors=True)
+            runs.append(run_pipeline("S3 corpus + S3", "dask", "s3://bench/corpus", "s3://bench/store-4",
+                                     args.workers))
             diff = same_tracked(runs[2].store, runs[3].store)
+            diff_corpus = same_tracked(runs[3].store, runs[4].store)
             trained = [run_training(kind, runs[i].store, args.epochs) for i, kind in ((0, "folder"), (1, "S3"))]
             same = same_weights(runs[0].store, runs[1].store)
     finally:
@@ -180,6 +194,12 @@ def main() -> None:
         rows.append((f"speed-up, dask ({args.workers} workers) vs sequential, {kind}",
                      f"{by[(kind, 'sequential')].wall_s / by[(kind, 'dask')].wall_s:.2f}x", "", ""))
     rows.append(("tracked curves, S3 vs folder (dask): largest difference", f"{diff:.1e}", "<= 1e-5", ""))
+    with_corpus = by[("S3 corpus + S3", "dask")]
+    rows.append(("corpus on S3 too / corpus in a folder (S3 store, dask)",
+                 f"{with_corpus.wall_s / best.wall_s:.2f}x (cached {with_corpus.cached_wall_s / best.cached_wall_s:.2f}x)",
+                 "", ""))
+    rows.append(("tracked curves, corpus on S3 vs in a folder: largest difference", f"{diff_corpus:.1e}", "<= 1e-5",
+                 ""))
     (folder_s, report), (s3_s, _) = trained
     rows.append((f"## train_flow, fbank-blstm d=64, {args.epochs} epochs on {report['train']} + {report['val']} "
                  "utterances' tracked curves, one thread", "", "", ""))
