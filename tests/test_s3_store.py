@@ -534,7 +534,8 @@ def test_inputs_on_s3_are_read_through_local_copies_and_a_mirror_that_follows_th
     fs.rm(f"{base}/spk/b.TextGrid")
     tree = mirror(url)
     assert (tree / "spk" / "a.wav").read_bytes() == b"two" and not (tree / "spk" / "b.TextGrid").exists()
-    assert open(local_input(f"{url}/spk/a.wav"), "rb").read() == b"two"
+    second = local_input(f"{url}/spk/a.wav")
+    assert open(second, "rb").read() == b"two" and not os.path.exists(first)   # no copy of the old version kept
     with pytest.raises(FileNotFoundError, match=f"{url}/spk/z.wav: no such object"):
         local_input(f"{url}/spk/z.wav")
     with pytest.raises(FileNotFoundError, match="no objects under this prefix"):

@@ -27,6 +27,7 @@ import fcntl
 import hashlib
 import os
 import re
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -128,30 +129,37 @@ def _version(info: dict) -> str:
 
 
 def _copy_path(url: str, version: str) -> Path:
-    """Where the local copy of one version of the object `url` lives: a folder named by a digest of the URL and the
-    version, holding the object under its own name (its suffix tells readers the format; messages show it), cut to
-    keep within the file system's 255 bytes."""
-    digest = hashlib.blake2b(f"{url}\0{version}".encode(), digest_size=12).hexdigest()
+    """Where the local copy of one version of the object `url` lives: `<digest of the URL>/<digest of the version>/`,
+    holding the object under its own name (its suffix tells readers the format; messages show it), cut to keep
+    within the file system's 255 bytes."""
+    folder = private_folder("objects", "the local copies of objects (a copy planted there would be read as the "
+                            "original)")
     name = url.rsplit("/", 1)[-1]
     while len(name.encode()) > 200:
         name = name[1:]
-    folder = private_folder("objects", "the local copies of objects (a copy planted there would be read as the "
-                            "original)")
-    return folder / digest / name
+    return folder / _digest(url) / _digest(version) / name
+
+
+def _digest(text: str) -> str:
+    return hashlib.blake2b(text.encode(), digest_size=12).hexdigest()
 
 
 def object_copy(fs, key: str, url: str, info: dict | None = None) -> str:
     """A local file holding the object `key` of the fsspec filesystem `fs` (`url` names it), downloaded once per
     version into this user's private folder; `info` (a listing's entry) spares the HEAD. The copy is written whole
-    or not at all."""
+    or not at all. Copies of the object's older versions are removed then, so the copies take the disk of the
+    objects as they are now, not of every version ever read (a reader that opened an old copy keeps reading it)."""
     info = fs.info(key) if info is None else info
     if info.get("type") == "directory":
         raise IsADirectoryError(errno.EISDIR, f"{url} is a folder, not a file")
     local = _copy_path(url, _version(info))
     if not local.is_file():
-        local.parent.mkdir(mode=0o700, exist_ok=True)
+        local.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         with atomic_path(local, keep_suffix=True, fsync=False) as tmp:
             fs.get_file(key, str(tmp))
+        for old in local.parent.parent.iterdir():
+            if old != local.parent:
+                shutil.rmtree(old, ignore_errors=True)
     return str(local)
 
 
@@ -164,8 +172,6 @@ def _link(source: str, target: Path) -> None:
         try:
             os.link(source, tmp)
         except OSError:
-            import shutil
-
             shutil.copyfile(source, tmp)
 
 
@@ -217,7 +223,7 @@ def mirror(url: str) -> Path:
     root = remote_root(url)
     base = root.path.rstrip("/")
     listing = root.fs.find(base, detail=True, withdirs=False)
-    digest = hashlib.blake2b(url.encode(), digest_size=12).hexdigest()
+    digest = _digest(url)
     folder = private_folder("mirrors", "the local trees of objects under a prefix") / digest
     folder.mkdir(mode=0o700, exist_ok=True)
     wanted: set[Path] = set()
