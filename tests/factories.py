@@ -373,6 +373,17 @@ DEMO_AUDIO = DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"
 """A real Mandarin utterance of the demo corpus (AISHELL-3 speaker SSB1624, 16 kHz)."""
 
 
+def tiny_character(names, seed=0, name="tiny"):
+    """A 16-vertex character whose shapes are the given names, random deltas: animation packages in seconds."""
+    from visemeflow.rig.character import make_character
+
+    rng = np.random.default_rng(seed)
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)
+    neutral = np.c_[grid, np.zeros(len(grid))]
+    faces = [[i, i + 1, i + 4] for i in range(11) if i % 4 != 3]
+    return make_character(name, neutral, faces, names, rng.normal(0, 0.1, size=(len(names), len(neutral), 3)))
+
+
 def tiny_model(store, name: str = "tiny", seed: int = 0) -> None:
     """An untrained small model saved where training would put it (prediction needs weights, not good ones)."""
     import torch

@@ -10,7 +10,7 @@ import pytest
 import soundfile as sf
 from factories import make_corpus, make_curve_store, validate
 from factories import DEMO_AUDIO as AUDIO
-from factories import tiny_model
+from factories import tiny_character, tiny_model
 
 from visemeflow.articulation import close_lips
 from visemeflow.rig.character import make_character, save_character_npz
@@ -30,14 +30,6 @@ from visemeflow.storage import Store
 
 pytestmark = [pytest.mark.flow, pytest.mark.usefixtures("prefect_harness")]
 ALL = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json")
-
-
-def tiny_character(names, seed=0, name="tiny"):
-    rng = np.random.default_rng(seed)
-    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)
-    neutral = np.c_[grid, np.zeros(len(grid))]
-    faces = [[i, i + 1, i + 4] for i in range(11) if i % 4 != 3]
-    return make_character(name, neutral, faces, names, rng.normal(0, 0.1, size=(len(names), len(neutral), 3)))
 
 
 @pytest.fixture

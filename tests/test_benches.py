@@ -74,7 +74,7 @@ SLOW = {
     "orchestration.py": ("renders the 25-video demo corpus when missing, starts a Prefect server and a Dask cluster "
                          "and runs the pipeline on them: minutes", ["--repeat", "1"]),
     "s3_store.py": ("renders the 25-video demo corpus when missing, starts Prefect and moto S3 servers and runs the "
-                    "pipeline cold four times (folder and S3, one worker and a Dask cluster): minutes", []),
+                    "pipeline cold five times (folder and S3, one worker and a Dask cluster, the corpus on S3): minutes", []),
     "realspeech.py": ("trains on the fixed 700 + 500 utterance espeak corpus and k-fold LJ models: minutes",
                       ["--espeak-epochs", "1", "--lj-epochs", "1", "--folds", "2", "--threads", "1"]),
     "recogniser.py": ("88 s with --models phones (no size flag): pocketsphinx on all 37 utterances under five "

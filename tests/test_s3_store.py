@@ -613,8 +613,7 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     by their readers; a second run is all cache hits, a deleted object is made again; `speak` puts its package in the
     S3 store; the dashboard of that store lists the packages."""
     import s3fs
-    from factories import DEMO_AUDIO, make_curve_store, tiny_model
-    from test_animate_flow import tiny_character
+    from factories import DEMO_AUDIO, make_curve_store, tiny_character, tiny_model
 
     from visemeflow.animation.gltf import write_glb
     from visemeflow.animation.package import AnimateConfig
