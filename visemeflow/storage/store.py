@@ -281,9 +281,10 @@ class Store:
         version (its ETag names the copy) into this machine's temporary folder, so repeated reads cost one HEAD."""
         if not self.remote:
             return str(path)
-        _private_folder("objects", "the local copies of store objects (a copy planted there would be read as the "
-                        "store's)")
-        return object_copy(self.root.fs, path.path, str(path))
+        try:
+            return object_copy(self.root.fs, path.path, str(path))
+        except PermissionError as exc:   # the private folder refused (or the server: fsspec's 403), as the store's
+            raise StoreError(exc.errno or errno.EACCES, exc.strerror or f"{path}: {exc}") from exc
 
     @staticmethod
     def utterance_id_of(path: str | Path) -> str:

@@ -185,9 +185,9 @@ def _fresh_work_dir(store: Store, target: Path) -> Path:
     return folder
 
 
-def _upload(store: Store, local: Path, target: Path) -> Path:
-    """The package file `local` (in its work folder) uploaded into the store folder `target`, in one PUT."""
-    path = target / local.relative_to(store.local_work_dir(target))
+def _upload(store: Store, local: Path, folder: Path, target: Path) -> Path:
+    """The package file `local` (in the work folder `folder`) uploaded into the store folder `target`, in one PUT."""
+    path = target / local.relative_to(folder)
     data = local.read_bytes()
     return store.write_file(path, lambda tmp: Path(tmp).write_bytes(data), keep_suffix=True)
 
@@ -251,7 +251,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
     if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
-        uploaded = {str(p): str(_upload(store, p, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
+        uploaded = {str(p): str(_upload(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
         files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
     seconds = time.perf_counter() - started
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
