@@ -8,6 +8,7 @@ import secrets
 import threading
 import time
 from pathlib import Path
+from unittest.mock import ANY
 
 import numpy as np
 import pyarrow as pa
@@ -304,7 +305,8 @@ def local_reference(tmp_path_factory, video_corpus):
 def _assert_same_store(got: dict, want: dict, corpus: tuple[str, object] | None = None) -> None:
     """Equal tables, curve files and diagnostics; tracked values up to float summation order (one torch thread per
     Dask worker against the thread pool's: seen 7e-7 apart). `corpus` (URL, folder): the store `got` read the
-    corpus from that URL, `want` from that folder; their paths are compared as the folder's."""
+    corpus from that URL, `want` from that folder; their paths are compared as the folder's, and the utterances'
+    content hashes (of the objects' ETags on S3, of the bytes in a folder) wherever they appear as the folder's."""
     if corpus is not None:
         url, folder = corpus
         assert all(row[C.VIDEO_PATH].startswith(f"{url}/") for row in got["utterances"])   # read from the URL
@@ -312,6 +314,18 @@ def _assert_same_store(got: dict, want: dict, corpus: tuple[str, object] | None 
         got = {**got, **{table: [{k: v.replace(url, str(folder.resolve())) if k in paths and v else v
                                   for k, v in row.items()} for row in got[table]]
                          for table in ("utterances", "rejects")}}
+        theirs = {row[C.UTTERANCE_ID]: row[C.CONTENT_HASH] for row in want["utterances"]}
+        hashes = {row[C.CONTENT_HASH]: theirs[row[C.UTTERANCE_ID]] for row in got["utterances"]}
+        assert not set(hashes) & set(theirs.values())   # the corpus's identity on S3 is not its bytes'
+
+        def as_folder(value):
+            if isinstance(value, str):
+                for mine, folder_hash in hashes.items():
+                    value = value.replace(mine, folder_hash)
+            return value
+
+        got = {key: [{k: as_folder(v) for k, v in row.items()} if isinstance(row, dict) else as_folder(row)
+                     for row in rows] for key, rows in got.items()}
     for key in ("utterances", "phones", "rejects", "curve_files"):
         assert got[key] == want[key], key
     for key in ("curves", "tracking_frames"):
@@ -540,6 +554,14 @@ def test_inputs_on_s3_are_read_through_local_copies_and_a_mirror_that_follows_th
         local_input(f"{url}/spk/z.wav")
     with pytest.raises(FileNotFoundError, match="no objects under this prefix"):
         mirror(f"s3://{bucket}/nothing")
+    # media only named: the file holds the object's ETag and size, never its bytes; it follows the object
+    named = mirror(url, lambda name: name.endswith(".wav"))
+    identity = (named / "spk" / "a.wav").read_text()
+    assert identity.startswith("visemeflow object version ") and identity.endswith(" size 3\n")
+    assert not os.path.samefile(named / "spk" / "a.wav", second) and open(second, "rb").read() == b"two"
+    fs.pipe_file(f"{base}/spk/a.wav", b"three")
+    assert (mirror(url, lambda name: name.endswith(".wav")) / "spk" / "a.wav").read_text() not in (identity, "")
+    assert not any(p.read_bytes() == b"three" for p in tmp_path.rglob("a.wav"))   # never downloaded
     # a file readers look for beside another (a synthetic video's camera record) comes along, and goes with it
     fs.pipe_file(f"{base}/spk/v.mp4", b"video")
     fs.pipe_file(f"{base}/spk/v.camera.json", b"{}")
@@ -551,11 +573,12 @@ def test_inputs_on_s3_are_read_through_local_copies_and_a_mirror_that_follows_th
 
 
 @pytest.mark.flow
-def test_a_corpus_on_s3_is_ingested_with_the_hashes_of_a_folder_and_its_bad_files_are_rejects_naming_urls(
-        bucket, tmp_path, prefect_harness):
+def test_a_corpus_on_s3_is_ingested_as_a_folder_is_its_media_named_not_downloaded_at_discovery(
+        bucket, tmp_path, prefect_harness, monkeypatch):
     """`ingest s3://bucket/corpus`: the same rows as the same corpus in a folder but for the paths, which name the
-    objects; a broken TextGrid and an object deleted after discovery are rejects naming their URLs, the rest is
-    ingested; the CLI checks the corpus URL before any flow starts."""
+    objects, and the content hashes, which cover the media objects' ETags (discovery downloads the alignments only;
+    a changed object changes its utterance's hash alone); a broken TextGrid and an object deleted after discovery
+    are rejects naming their URLs, the rest is ingested; the CLI checks the corpus URL before any flow starts."""
     import shutil
     import subprocess
     import sys
@@ -585,11 +608,27 @@ def test_a_corpus_on_s3_is_ingested_with_the_hashes_of_a_folder_and_its_bad_file
     assert len(got["utterances"]) == len(want["utterances"]) >= 3
     to_folder = {c: (lambda v: v and v.replace(url, str(local.resolve()))) for c in
                  (C.AUDIO_PATH, C.ALIGNMENT_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.PATH, C.MESSAGE)}
+    to_folder[C.CONTENT_HASH] = lambda v: None
     for table in ("utterances", "phones", "rejects"):
-        assert [{k: to_folder.get(k, lambda v: v)(v) for k, v in row.items()} for row in got[table]] == want[table]
+        assert [{k: to_folder.get(k, lambda v: v)(v) for k, v in row.items()} for row in got[table]] == \
+            [{k: to_folder.get(k, lambda v: v)(v) if k == C.CONTENT_HASH else v for k, v in row.items()}
+             for row in want[table]]
     assert all(row[C.AUDIO_PATH].startswith(f"{url}/LJ/") for row in got["utterances"])
     [reject] = got["rejects"]
     assert reject[C.UTTERANCE_ID] == "LJ/broken" and reject[C.PATH] == f"{url}/LJ/broken.TextGrid"
+
+    # discovery on a machine with no copies yet: a listing and the TextGrids; no audio object is downloaded
+    fresh = tmp_path / "fresh-machine"
+    fresh.mkdir()
+    monkeypatch.setenv("TMPDIR", str(fresh))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    hashes = {e.utterance_id: e.content_hash for e in discover_corpus(url).entries}
+    assert hashes == {row[C.UTTERANCE_ID]: row[C.CONTENT_HASH] for row in got["utterances"]} | {"LJ/broken": ANY}
+    fetched = sorted(p.name for p in (fresh / f"visemeflow-objects-{os.getuid()}").rglob("*") if p.is_file())
+    assert fetched == sorted(f"{n}.TextGrid" for n in ("LJ001-0001", "LJ001-0002", "LJ001-0003", "broken"))
+    fs.pipe_file(f"{bucket}/corpus/LJ/LJ001-0002.wav", (local / "LJ" / "LJ001-0003.wav").read_bytes())
+    changed = {e.utterance_id: e.content_hash for e in discover_corpus(url).entries}
+    assert {u for u in hashes if hashes[u] != changed[u]} == {"LJ/LJ001-0002"}
 
     entries = [e for e in discover_corpus(url).entries if e.utterance_id == "LJ/LJ001-0001"]
     fs.rm(f"{bucket}/corpus/LJ/LJ001-0001.wav")   # gone between discovery and the task (a move, a lifecycle rule)

@@ -19,7 +19,9 @@ Input files may live there too (a corpus at `s3://bucket/corpus`): readers that 
 PyAV, the TextGrid parser) get a local copy of each object, downloaded once per version of it (`local_input`: its
 ETag names the copy, so a file replaced on the server is fetched again and an unchanged one costs one HEAD), in a
 folder of this user's under the machine's temporary folder (`TMPDIR` chooses the disk). `mirror` gives a prefix's
-objects as a local folder tree of such copies (hard links), which corpus discovery reads as it reads a folder.
+objects as a local folder tree of such copies (hard links), which corpus discovery reads as it reads a folder;
+there the media are only named (`object_identity`: their ETag and size), never downloaded, so discovering a corpus
+costs a listing and its text files, and each audio or video file is fetched by the task that reads it.
 """
 
 import errno
@@ -29,9 +31,11 @@ import os
 import re
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from visemeflow.atomic import atomic_path
+from visemeflow.hashing import file_hash, stable_hash
 
 URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<rest>.*)$")
 
@@ -163,6 +167,19 @@ def object_copy(fs, key: str, url: str, info: dict | None = None) -> str:
     return str(local)
 
 
+def _write_if_changed(target: Path, text: str) -> None:
+    """`target` holding `text`, replaced atomically (a hard link there is replaced, never written through)."""
+    data = text.encode()
+    try:
+        if target.is_file() and not target.is_symlink() and target.stat().st_size == len(data) \
+                and target.read_bytes() == data:
+            return
+    except OSError:
+        pass
+    with atomic_path(target, fsync=False) as tmp:
+        Path(tmp).write_bytes(data)
+
+
 def _link(source: str, target: Path) -> None:
     """`target` made a hard link to `source` (a copy where links are refused), replaced atomically; nothing done
     when it already is one."""
@@ -203,6 +220,20 @@ def local_input(location: str | os.PathLike | None, beside: tuple[str, ...] = ()
     return copy
 
 
+def input_digest(location: str | os.PathLike) -> str:
+    """What identifies the content of the input file `location` in cache keys: a file's digest of its bytes; an
+    object's digest of its `object_identity` (ETag and size: one request, no download), as corpus discovery has
+    it. FileNotFoundError names the URL when the object is gone."""
+    if not is_url(location):
+        return file_hash(location)
+    path = remote_root(str(location))
+    try:
+        info = path.fs.info(path.path)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(errno.ENOENT, f"{location}: no such object", str(location)) from exc
+    return stable_hash(object_identity(info))
+
+
 def input_exists(location: str | os.PathLike | None) -> bool:
     """Whether the file `location` (a path or a URL) is there to be read."""
     if not location:
@@ -213,12 +244,22 @@ def input_exists(location: str | os.PathLike | None) -> bool:
     return path.fs.isfile(path.path)
 
 
-def mirror(url: str) -> Path:
+def object_identity(info: dict) -> str:
+    """One line naming the content of an object from a listing's entry, without reading it: its version (the ETag,
+    the server's digest of the content; else its time) and its size."""
+    return f"visemeflow object version {_version(info)} size {info.get('size')}\n"
+
+
+def mirror(url: str, named_only: Callable[[str], bool] | None = None) -> Path:
     """A local folder tree holding what lies under the prefix `url`: `<folder>/<key below the prefix>`, each file a
     hard link to the object's versioned local copy (`object_copy`; a copy where links are refused). Only objects
     whose version changed are downloaded; files of objects gone from the prefix are removed, so the tree is the
     prefix as it is now. Keys with empty, `.` or `..` segments are skipped (they could leave the folder).
-    FileNotFoundError when nothing lies under `url`."""
+
+    `named_only(name)` True: that object is not downloaded; its file in the tree holds `object_identity` instead (a
+    few bytes that change whenever the object does), for what reads the tree only to find and tell files apart
+    (corpus discovery: the media are read by each utterance's task, on whatever machine it runs, through
+    `local_input`). FileNotFoundError when nothing lies under `url`."""
     url = url.rstrip("/")
     root = remote_root(url)
     base = root.path.rstrip("/")
@@ -234,10 +275,12 @@ def mirror(url: str) -> Path:
             parts = rel.split("/")
             if not rel or info.get("type") == "directory" or any(p in ("", ".", "..") for p in parts):
                 continue
-            copy = object_copy(root.fs, key, f"{url}/{rel}", info)
             target = folder.joinpath(*parts)
             wanted.add(target)
-            _link(copy, target)
+            if named_only is not None and named_only(parts[-1]):
+                _write_if_changed(target, object_identity(info))
+            else:
+                _link(object_copy(root.fs, key, f"{url}/{rel}", info), target)
         for path in sorted(folder.rglob("*"), reverse=True):   # what is gone from the prefix; deepest first
             if path.is_file() and path not in wanted:
                 path.unlink()

@@ -19,6 +19,7 @@ from collections.abc import Iterable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 
+from visemeflow.location import is_url
 from visemeflow.storage import Store
 
 RECORD_NAME = "packages-outside-store.json"
@@ -49,7 +50,8 @@ def record_packages(store: Store, reports: Iterable[Mapping], audio: Mapping[str
         sound = (audio or {}).get(uid)
         fresh.append({"folder": str(Path(r["folder"]).resolve()), "utterance_id": uid,
                       "character": str(r.get("character") or ""),
-                      "audio": str(Path(sound).resolve()) if sound else None, "written": now})
+                      "audio": (sound if is_url(sound) else str(Path(sound).resolve())) if sound else None,
+                      "written": now})
     if not fresh:
         return len(_read(store))
     with store.locked("packages-outside-store"):

@@ -15,7 +15,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
 from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
-from visemeflow.location import input_exists, local_input
+from visemeflow.location import input_digest, input_exists, local_input
 from visemeflow.rig.character import CharacterError
 from visemeflow.dashboards.records import record_packages
 from visemeflow.flows.errors import RerunError
@@ -85,8 +85,8 @@ def animate_flow(params: AnimateParams):
     per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
     for uid in ids:
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
-        audio = local_input(audio) if audio and input_exists(audio) else None
-        per_utterance[uid] = (audio, file_hash(audio) if audio else None,
+        audio = str(audio) if audio and input_exists(audio) else None   # a URL stays one: its task reads it
+        per_utterance[uid] = (audio, input_digest(audio) if audio else None,
                               store.curves_provenance(params.source, variant, uid) or "")
     out = str(params.out) if params.out else None
     rejects, futures, choices = [], {}, []
@@ -238,12 +238,12 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
     if not store.has_curves(last.source, last.variant, uid):
         raise RerunError(f"{uid} has no {last.source} curves of variant {last.variant!r} in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
-    audio = local_input(rows[0][C.AUDIO_PATH]) if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
+    audio = rows[0][C.AUDIO_PATH] if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
     mapping = last.mapping
     task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
     packages = [task(str(store.root), uid, last.source, last.variant,
                      store.curves_provenance(last.source, last.variant, uid) or "", path, content_hash(path),
                      key, mapping, file_hash(mapping) if mapping else None, last.config, audio,
-                     file_hash(audio) if audio else None, last.out)
+                     input_digest(audio) if audio else None, last.out)
                 for path, key in zip(last.characters, character_keys(last.characters)) if Path(path).exists()]
     return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}

@@ -237,25 +237,33 @@ class RemoteCorpus:
         return text.replace(str(self.folder), self.url)
 
 
+def named_only(filename: str) -> bool:
+    """Whether discovery reads the file `filename` of a corpus only by its name: audio, video and landmark files (the
+    media). Of a corpus on object storage these are named in its mirror, not downloaded (`location.mirror`); their
+    tasks read them. Alignments, transcripts, manifests and MLFs are read at discovery."""
+    return _media_ext(filename) is not None or filename.lower().endswith(LANDMARK_SUFFIXES)
+
+
 def remote_corpus(url: str) -> RemoteCorpus:
     """The local mirror of the corpus at `url`: a prefix is mirrored whole; one object (a manifest, one audio or
-    video file) with the folder it lies in, where its relative paths and the files beside it are.
-    FileNotFoundError when nothing lies at `url`."""
+    video file) with the folder it lies in, where its relative paths and the files beside it are. The media are
+    only named there (`named_only`), so an utterance's content hash covers its media objects' ETags and sizes
+    (`location.object_identity`) and its alignment's bytes. FileNotFoundError when nothing lies at `url`."""
     url = url.rstrip("/")
     root = remote_root(url)
     if root.fs.isfile(root.path):
         folder_url, name = url.rsplit("/", 1)
-        folder = mirror(folder_url)
+        folder = mirror(folder_url, named_only)
         return RemoteCorpus(folder / name, folder, folder_url)
     if not root.fs.isdir(root.path):
         raise FileNotFoundError(f"corpus {url} does not exist")
-    folder = mirror(url)
+    folder = mirror(url, named_only)
     return RemoteCorpus(folder, folder, url)
 
 
 def _discover_remote(url: str, only: str | None) -> Discovery:
-    """`discover_corpus` of a corpus on object storage: discovered in its local mirror (content hashes of the same
-    bytes as a folder's), every path and message then naming the object's URL, which the tasks read through
+    """`discover_corpus` of a corpus on object storage: discovered in its local mirror (its media named, not
+    downloaded: `remote_corpus`), every path and message then naming the object's URL, which the tasks read through
     `location.local_input` on whatever machine they run."""
     remote = remote_corpus(url)
     found = discover_corpus(remote.local, only)

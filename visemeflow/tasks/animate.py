@@ -216,7 +216,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     audio = None
     if audio_path and config.audio:
         try:
-            audio = read_audio(audio_path)
+            audio = read_audio(local_input(audio_path))
         except AudioError as exc:
             raise AnimateError(utterance_id, audio_path, "AudioError", str(exc)) from exc
     target = package_dir(store, out, character_name or character_key(character_path), utterance_id)
