@@ -55,6 +55,7 @@ QUICK = {
     "transfer.py": ["--targets", "self,auto"],
     "truth_vs_procedural.py": [],
     "video_closures.py": ["--models", "procedural"],
+    "s3_discovery.py": ["--utterances", "20", "--repeats", "1"],
     "syllables.py": ["--models", "default-fbank", "--languages", "cs"],
     "wav2vec2_cache.py": ["--epochs", "1", "--utterances", "2", "--repeats", "1"],
     "whisper_encoder.py": ["--repeats", "1", "--quick"],

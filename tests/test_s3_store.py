@@ -572,6 +572,31 @@ def test_inputs_on_s3_are_read_through_local_copies_and_a_mirror_that_follows_th
     assert not os.path.exists(os.path.join(os.path.dirname(video), "v.camera.json"))
 
 
+def test_a_mirror_fetches_many_objects_at_once_or_one_by_one_and_leaves_only_whole_copies(bucket, tmp_path,
+                                                                                          monkeypatch):
+    """S3 (asynchronous in fsspec) is fetched in batches, memory:// one by one: the same tree, no partial file; an
+    object that vanishes between the listing and its download fails the mirror and leaves no partial copy."""
+    import fsspec
+    import s3fs
+
+    from visemeflow.location import _fetch_copies, mirror
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    files = {f"spk{i % 3}/u{i:03d}.TextGrid": f"alignment {i}".encode() for i in range(40)}
+    s3fs.S3FileSystem(use_listings_cache=False).pipe({f"{bucket}/many/{k}": v for k, v in files.items()})
+    fsspec.filesystem("memory").pipe({f"/many/{k}": v for k, v in files.items()})
+    for url in (f"s3://{bucket}/many", "memory://many"):
+        tree = mirror(url, concurrency=8)
+        assert {str(p.relative_to(tree)): p.read_bytes() for p in tree.rglob("*") if p.is_file()} == files
+    objects = tmp_path / f"visemeflow-objects-{os.getuid()}"
+    assert not [p for p in objects.rglob("*.part")]
+    with pytest.raises(FileNotFoundError):
+        _fetch_copies(s3fs.S3FileSystem(), [(f"{bucket}/many/spk0/u000.TextGrid", tmp_path / "x" / "a" / "ok"),
+                                            (f"{bucket}/many/gone", tmp_path / "x" / "b" / "gone")], 2)
+    assert not (tmp_path / "x" / "b" / "gone").exists() and not list((tmp_path / "x").rglob("*.part"))
+
+
 @pytest.mark.flow
 def test_a_corpus_on_s3_is_ingested_as_a_folder_is_its_media_named_not_downloaded_at_discovery(
         bucket, tmp_path, prefect_harness, monkeypatch):
