@@ -597,6 +597,34 @@ def test_a_mirror_fetches_many_objects_at_once_or_one_by_one_and_leaves_only_who
     assert not (tmp_path / "x" / "b" / "gone").exists() and not list((tmp_path / "x").rglob("*.part"))
 
 
+def test_speaker_identity_grouping_reads_a_video_objects_header_only(bucket, tmp_path, monkeypatch):
+    """`--speaker-identity` groups real videos by speaker and image size: of a video on S3 the flow reads the camera
+    record's presence (a HEAD) and the header (ranged reads), never a local copy of the whole clip."""
+    import s3fs
+    from factories import SHARED_DATA
+
+    from visemeflow.flows.track import frame_size, real_video
+    from visemeflow.tracking.utterance import video_size
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    clips = {"heads/1.mp4": SHARED_DATA / "talking_heads" / "1.mp4",
+             "grid/bbaf2n.mpg": SHARED_DATA / "grid_s1" / "video" / "bbaf2n.mpg"}
+    for key, path in clips.items():
+        assert path.is_file(), f"test data {path} is missing"
+        fs.put_file(str(path), f"{bucket}/v.d/{key}")
+    for key, path in clips.items():
+        url = f"s3://{bucket}/v.d/{key}"
+        assert frame_size(url) == video_size(str(path)) is not None and real_video(url)
+    fs.pipe_file(f"{bucket}/v.d/heads/1.camera.json", b"{}")
+    assert not real_video(f"s3://{bucket}/v.d/heads/1.mp4") and real_video(f"s3://{bucket}/v.d/grid/bbaf2n.mpg")
+    fs.pipe_file(f"{bucket}/v.d/heads/broken.mp4", b"not a video at all")
+    assert frame_size(f"s3://{bucket}/v.d/heads/broken.mp4") is None
+    assert frame_size(f"s3://{bucket}/v.d/heads/gone.mp4") is None
+    assert not list(tmp_path.rglob("*.mp4")) and not list(tmp_path.rglob("*.mpg"))   # no copy was made
+
+
 @pytest.mark.flow
 def test_a_corpus_on_s3_is_ingested_as_a_folder_is_its_media_named_not_downloaded_at_discovery(
         bucket, tmp_path, prefect_harness, monkeypatch):

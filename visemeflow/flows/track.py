@@ -34,7 +34,7 @@ from visemeflow.flows.errors import RerunError
 from visemeflow.flows.params import TrackParams, TrackSettings
 from visemeflow.flows.runners import cpu_thread_pool, on_requested_runner, run_on_runner
 from visemeflow.hashing import file_hash
-from visemeflow.location import local_input
+from visemeflow.location import input_exists, is_url, remote_root
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import C
 from visemeflow.storage import Store
@@ -80,6 +80,31 @@ def procedural_variant_of(store: Store, given: str | None) -> str:
     return default_variant(ProceduralConfig())
 
 
+def real_video(video: str) -> bool:
+    """`needs_identity` of a video path or URL: no `<name>.camera.json` beside it (on S3 one HEAD; the video is
+    not fetched)."""
+    if not is_url(video):
+        return needs_identity(video)
+    folder, name = video.rsplit("/", 1)
+    return not input_exists(f"{folder}/{name.rsplit('.', 1)[0]}{CAMERA_SUFFIX}")
+
+
+def frame_size(video: str) -> tuple[int, int] | None:
+    """`video_size` of a video path or URL; of an object only the header's bytes are fetched (ranged reads)."""
+    if not is_url(video):
+        return video_size(video)
+    root = remote_root(video)
+    try:
+        with root.fs.open(root.path, "rb", block_size=HEADER_BLOCK) as fh:
+            return video_size(fh)
+    except OSError:
+        return None
+
+
+HEADER_BLOCK = 1 << 18
+"""Bytes per ranged read of a video object whose header `frame_size` reads."""
+
+
 def identity_groups(store: Store, rows: list[dict]) -> dict[tuple[str, int, int], list[dict]]:
     """The real-video utterances among `rows` (no `<name>.camera.json`) by (speaker, width, height): one speaker
     identity each. A video whose size cannot be read is in no group (tracked as without a speaker identity)."""
@@ -88,9 +113,9 @@ def identity_groups(store: Store, rows: list[dict]) -> dict[tuple[str, int, int]
                         .to_pydict().values()))
     groups: dict[tuple[str, int, int], list[dict]] = {}
     for row in rows:
-        if not needs_identity(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,))):
+        if not real_video(row[C.VIDEO_PATH]):
             continue
-        size = video_size(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,)))
+        size = frame_size(row[C.VIDEO_PATH])
         if size is not None:
             groups.setdefault((speakers[row[C.UTTERANCE_ID]], *size), []).append(row)
     return groups
@@ -286,7 +311,7 @@ def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -
     provenance = store.curves_provenance(PROCEDURAL, variant, uid) or ""
     row, config = keyed_row(store, rows[0]), last.config      # the flow's row: the same cache key
     identity = None
-    if config.speaker_identity and needs_identity(local_input(row[C.VIDEO_PATH], beside=(CAMERA_SUFFIX,))):
+    if config.speaker_identity and real_video(row[C.VIDEO_PATH]):
         # the speaker identity the track run used (cached), from the same clips of the same speaker and image size
         speaker = store.read_table("utterances", utterance_ids=[uid]).column(C.SPEAKER)[0].as_py()
         same = [r for r in store.read_table("utterances").select(TRACK_FIELDS + [C.SPEAKER]).to_pylist()

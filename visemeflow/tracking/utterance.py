@@ -20,6 +20,7 @@ import functools
 import itertools
 import json
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import BinaryIO
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -244,11 +245,14 @@ def needs_identity(video_path: str) -> bool:
     return not camera_record_path(video_path).exists()
 
 
-def video_size(video_path: str) -> tuple[int, int] | None:
-    """(width, height) of the video's frames from its stream header (no decoding); None when it cannot be read."""
+def video_size(video: str | BinaryIO) -> tuple[int, int] | None:
+    """(width, height) of the video's frames from its stream header (no decoding); None when it cannot be read.
+    `video`: a path, or a seekable binary file object (an object on S3 opened by fsspec: only the bytes of its
+    header are fetched)."""
+    name = Path(str(video)) if isinstance(video, str) else Path(str(getattr(video, "path", "video")))
     try:
-        with _open_video(Path(video_path)) as container:
-            stream = _video_stream(container, Path(video_path))
+        with _open_video(Path(video) if isinstance(video, str) else video) as container:
+            stream = _video_stream(container, name)
             width, height = int(stream.codec_context.width), int(stream.codec_context.height)
     except VideoError:
         return None

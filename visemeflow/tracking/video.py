@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Iterator
+from typing import BinaryIO
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -79,7 +80,13 @@ class VideoInfo:
         return span != self.n_frames or abs(self.nominal_fps - self.fps) > 1e-3 * self.fps
 
 
-def _open(path: Path):
+def _open(path: Path | BinaryIO):
+    """A PyAV container of the video file `path`, or of a seekable binary file object (read as far as asked)."""
+    if not isinstance(path, Path):
+        try:
+            return av.open(path)
+        except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as exc:
+            raise VideoError(f"{getattr(path, 'path', 'video')}: not a readable video ({exc})") from exc
     if not path.is_file():
         raise VideoError(f"{path}: video file not found")
     try:
