@@ -2,7 +2,7 @@
 fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare] [--joint N]
-                                            [--compare-flow PRESET:ROI] [--compare-config JSON]
+                                            [--compare-flow PRESET:ROI] [--compare-config JSON] [--compare-storage]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -74,6 +74,7 @@ torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import visemeflow.tracking.optical_flow as optical_flow  # noqa: E402
 import visemeflow.tracking.utterance as utterance_mod  # noqa: E402
 import visemeflow.tracking.video as video_mod  # noqa: E402
 import visemeflow.tasks.landmarks as landmarks_task  # noqa: E402
@@ -386,11 +387,14 @@ def main() -> int:
                              "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'; "
                              "'{\"speaker_identity\": true}': one identity per speaker and image size, fitted once "
                              "(timed, its time shared over the group's clips by frames, in their identity step)")
+    parser.add_argument("--compare-storage", action="store_true",
+                        help="instead of --compare's solvers: the flows converted to float16 by NumPy as before "
+                             "(until 2026-11-28), by OpenCV's vectorised conversion as after (the same values)")
     parser.add_argument("--joint", type=int, default=None, metavar="N",
                         help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
                              "runs it (landmarks per clip; a group's time shared over its clips by frames)")
     args = parser.parse_args()
-    if args.compare_flow or args.compare_config:
+    if args.compare_flow or args.compare_config or args.compare_storage:
         args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
@@ -417,8 +421,15 @@ def main() -> int:
         update = json.loads(args.compare_config)
         configs = {"before": config, "after": config.model_copy(update=update)}
         label = f"before (default TrackingConfig) -> after ({update})"
+    if args.compare_storage:
+        configs = {"before": config, "after": config}
+        label = "before (flows to float16 by NumPy) -> after (by OpenCV)"
     if not args.compare:
         configs = {"after": config}          # the default alone (not --compare's other method)
+    vectorised = optical_flow._CONVERT_FP16
+
+    def storage(path: str) -> None:
+        optical_flow._CONVERT_FP16 = None if args.compare_storage and path == "before" else vectorised
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
@@ -436,6 +447,7 @@ def main() -> int:
         for r in range(args.repeats):
             for group in groups:
                 for path in paths:
+                    storage(path)
                     if args.joint:
                         for clip, run in zip(group, run_group(group, store, rig, configs[path], mesh, *fitted[path])):
                             clip.runs.setdefault(path, []).append(run)

@@ -606,3 +606,31 @@ def test_a_crop_of_a_region_keeps_the_region_s_resolution():
     pts = np.array([[150.0, 180.0], [250.0, 220.0]])
     disp, ok = crop.correspondences(1, pts)
     assert ok.all() and np.abs(disp - [4.0, -2.0]).max() < 0.5
+
+
+def test_flows_are_stored_with_numpy_s_float16_values_and_a_crop_s_gray_is_the_gray_s_crop():
+    """The stored field equals one computed the plain way (whole frames to gray, then cropped, shrunk, DIS both
+    ways, NumPy's float16): the vectorised float16 conversion rounds as NumPy does, down to the last bit, also at
+    the edges of float16's range."""
+    from visemeflow.tracking import optical_flow
+
+    edges = np.array([0.0, -0.0, 1e-8, 6e-8, -3e-5, 6.1e-5, 0.33333334, 2047.5, 65504.0, 65520.0, -1e6, 1e6],
+                     np.float32)
+    flow = np.concatenate([edges, np.random.default_rng(0).normal(0, 20, 10 * 12 * 2 - len(edges))
+                           .astype(np.float32)]).reshape(10, 12, 2)
+    np.testing.assert_array_equal(optical_flow.as_storage(flow, np.float16).view(np.uint16),
+                                  flow.astype(np.float16).view(np.uint16))
+    assert optical_flow.as_storage(flow, np.float32) is flow
+
+    rgb = [shifted(texture(120, 160, seed=3), 1.5 * k, -0.5 * k) for k in range(3)]   # colour: gray matters
+    roi, scale_roi = (30, 20, 90, 70), (10, 5, 140, 110)
+    config = FlowConfig(max_roi_px=100)
+    field = estimate_optical_flow(rgb, config, roi=roi, scale_roi=scale_roi)
+    x0, y0, w, h = roi
+    s = 100 / 140
+    crops = [cv2.resize(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)[y0:y0 + h, x0:x0 + w], (round(w * s), round(h * s)),
+                        interpolation=cv2.INTER_AREA) for f in rgb]
+    dis = cv2.DISOpticalFlow_create(config.cv_preset)
+    for i in range(2):
+        np.testing.assert_array_equal(field.forward[i], dis.calc(crops[i], crops[i + 1], None).astype(np.float16))
+        np.testing.assert_array_equal(field.backward[i], dis.calc(crops[i + 1], crops[i], None).astype(np.float16))

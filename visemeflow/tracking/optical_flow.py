@@ -412,6 +412,19 @@ class FlowField:
         return float(self.forward_valid[self._pair(j - 1, f"valid_fraction(j={j})")].mean())
 
 
+_CONVERT_FP16 = getattr(cv2, "convertFp16", None)
+
+
+def as_storage(flow: np.ndarray, dtype: type) -> np.ndarray:
+    """An (h, w, 2) float32 flow in the storage dtype. float16 goes through OpenCV's vectorised conversion when it
+    has one: the same values as NumPy's (both round to nearest even), which took 0.9 ms per flow of 200x157 on this
+    machine against 0.05 ms, a fifth of the whole flow step on the 700x700 talking heads."""
+    if dtype is np.float16 and _CONVERT_FP16 is not None and flow.dtype == np.float32 and flow.ndim == 3:
+        h = flow.shape[0]
+        return _CONVERT_FP16(np.ascontiguousarray(flow).reshape(h, -1)).view(np.float16).reshape(flow.shape)
+    return np.asarray(flow, dtype=dtype)
+
+
 def roi_scale(roi: Roi, config: FlowConfig = DEFAULT_CONFIG) -> float:
     """Array pixels per image pixel of the flows on ``roi``: 1, or less so that its longer side fits
     ``config.max_roi_px``."""
@@ -432,14 +445,17 @@ def estimate_optical_flow(frames: Iterable[np.ndarray] | np.ndarray, config: Flo
     box: Roi = (0, 0, 0, 0)
     scale = 1.0
     for t, f in enumerate(frames):   # an array iterates over its first (time) axis
-        g = _to_channel(f, config)
+        f = np.asarray(f)
+        if f.ndim < 2:
+            raise ValueError(f"a frame must be (H, W, 3) RGB or (H, W) gray, got shape {f.shape}")
         if t == 0:
-            height, width = g.shape
+            height, width = f.shape[:2]
             box = clip_roi(roi, width, height)
             scale = roi_scale(box if scale_roi is None else clip_roi(scale_roi, width, height), config)
-        elif g.shape != (height, width):
-            raise ValueError(f"frame {t} is {g.shape[1]}x{g.shape[0]}, frame 0 is {width}x{height}")
-        crop = _crop(g, box)
+        elif f.shape[:2] != (height, width):
+            raise ValueError(f"frame {t} is {f.shape[1]}x{f.shape[0]}, frame 0 is {width}x{height}")
+        x0, y0, w, h = box
+        crop = _to_channel(f[y0:y0 + h, x0:x0 + w], config)   # gray is per pixel: the crop's gray is the gray's crop
         if scale != 1.0:
             crop = cv2.resize(crop, (max(1, round(box[2] * scale)), max(1, round(box[3] * scale))),
                               interpolation=cv2.INTER_AREA)
@@ -460,6 +476,6 @@ def estimate_optical_flow(frames: Iterable[np.ndarray] | np.ndarray, config: Flo
         fwd = _calc(dis, crops[i], crops[i + 1])
         bwd = _calc(dis, crops[i + 1], crops[i])
         fvalid[i], bvalid[i] = flow_masks(crops[i], crops[i + 1], fwd, bwd, config)
-        forward[i] = fwd
-        backward[i] = bwd
+        forward[i] = as_storage(fwd, dtype)
+        backward[i] = as_storage(bwd, dtype)
     return FlowField(forward, backward, fvalid, bvalid, box, int(width), int(height), scale)
