@@ -234,11 +234,13 @@ class _no_lock:
 def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
     from pydantic import ValidationError
 
-    from visemeflow.flows.params import AnimateParams, PipelineParams, PreviewParams, SpeakParams, TrainParams
+    from visemeflow.flows.params import AnimateParams, ImportCurvesParams, PipelineParams, PreviewParams, SpeakParams, \
+        TrainParams
     from visemeflow.location import parse_root
 
     with pytest.raises(ValidationError, match="needs a store folder"):
-        PreviewParams(store="s3://bucket/store", utterance_id="spk/a")
+        ImportCurvesParams(store="s3://bucket/store", takes="takes")
+    assert PreviewParams(store="s3://bucket/store", utterance_id="spk/a").store == "s3://bucket/store"
     assert AnimateParams(store="s3://bucket/store").store == "s3://bucket/store"
     assert SpeakParams(store="s3://bucket/store", audio=["a.wav"]).store == "s3://bucket/store"
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
@@ -761,10 +763,20 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     assert 'src="media/arkit/predict/SSB16240001/SSB16240001.mp4"' in page   # the preview plays from a local copy
     assert copy.read_bytes() == fs.cat_file(report["files"]["preview"].removeprefix("s3://"))
 
+    # `preview` of an utterance of the S3 store: rendered locally, uploaded beside its package
+    from visemeflow.flows.animate import PreviewParams, preview_flow
+    from visemeflow.tracking.video import read_video_frames
+
+    shown = {store: preview_flow(PreviewParams(store=store, utterance_id="spk/u0", character=glb,
+                                               sources=["ground_truth"])) for store in (folder.root, url)}
+    assert shown[url]["path"] == f"{url}/animations/arkit/spk/u0/u0.preview.mp4"
+    mp4 = s3.local_file_at(shown[url]["path"])
+    assert shown[url]["frames"] == shown[folder.root]["frames"] == len(read_video_frames(mp4)) > 0
+
 
 def test_commands_on_an_s3_store(bucket, tmp_path):
-    """`curves show`, `rejects` and `dashboard` read an S3 store; `preview` says it needs a folder; a missing bucket
-    is one line."""
+    """`curves show`, `rejects` and `dashboard` read an S3 store; `import-curves` says it needs a folder; a missing
+    bucket is one line."""
     import subprocess
     import sys
 
@@ -781,8 +793,9 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
     assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
     assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
-    refused = cli("preview", "spk/a", "--store", url)
-    assert refused.returncode == 2 and refused.stderr.strip().startswith(f"error: preview needs a store folder: {url}")
+    refused = cli("import-curves", str(tmp_path), "--store", url)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(
+        f"error: import-curves needs a store folder: {url}"), refused.stderr
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1

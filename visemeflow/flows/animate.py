@@ -178,7 +178,7 @@ def preview_flow(params: PreviewParams) -> dict:
     from visemeflow.articulation import close_lips
     from visemeflow.animation.preview import BoneSource, render_preview, video_source
     from visemeflow.ingest.audio import read_audio
-    from visemeflow.tasks.animate import curves_and_fps, package_dir
+    from visemeflow.tasks.animate import curves_and_fps, fresh_work_dir, package_dir, upload_file
     from visemeflow.tasks.track import landmark_file
 
     store = Store(params.store)
@@ -219,8 +219,12 @@ def preview_flow(params: PreviewParams) -> dict:
     phones = _phones(store, [uid]).get(uid)
     folder = package_dir(store, None, character_key(path), uid)
     out = params.out or folder / f"{folder.name}.preview.mp4"
-    report = render_preview(out, character, panels, rate, audio=audio, phones=phones,
+    # a store on object storage: rendered into a local work folder, then uploaded in one PUT
+    work = fresh_work_dir(store, folder) if store.remote and not params.out else None
+    report = render_preview(work / out.name if work else out, character, panels, rate, audio=audio, phones=phones,
                             title=f"{uid} - {character.name}", size=params.size, video=video)
+    if work is not None:
+        out = upload_file(store, work / out.name, work, folder)
     get_run_logger().info("preview %s: %s (%d frames, %s); left out: %s", uid, out, report.frames,
                           ", ".join(panels), "; ".join(skipped) or "nothing")
     return {"utterance_id": uid, "path": str(out), "sources": (["video"] if video is not None else []) + list(panels),

@@ -22,7 +22,7 @@ from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 REMOTE_COMMANDS = ("pipeline, ingest, procedural, landmarks, track, rerun, train, sweep, evaluate, predict, "
-                   "animate, speak, dashboard, rejects, clean, curves show, curves export")
+                   "animate, speak, preview, dashboard, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
@@ -299,7 +299,7 @@ class SpeakParams(BaseModel):
 class PreviewParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store, or its URL on object storage.")
     utterance_id: str = Field(..., description="The utterance, '<speaker>/<name>'.")
     character: Path = Field(default_factory=_demo_character, description="Character file or folder.")
     mapping: Path | None = Field(None, description="CSV viseme,shape,weight for characters of any other naming.")

@@ -177,7 +177,7 @@ def preview_video(store: Store, utterance_id: str):
     return video_source(local_input(row[C.VIDEO_PATH]), local_input(row[C.LANDMARK_PATH]) or stored, row[C.FPS]), None
 
 
-def _fresh_work_dir(store: Store, target: Path) -> Path:
+def fresh_work_dir(store: Store, target: Path) -> Path:
     """An empty local folder to write the package of the store folder `target` (on object storage) into."""
     folder = store.local_work_dir(target)
     for old in folder.iterdir():
@@ -185,8 +185,8 @@ def _fresh_work_dir(store: Store, target: Path) -> Path:
     return folder
 
 
-def _upload(store: Store, local: Path, folder: Path, target: Path) -> Path:
-    """The package file `local` (in the work folder `folder`) uploaded into the store folder `target`, in one PUT."""
+def upload_file(store: Store, local: Path, folder: Path, target: Path) -> Path:
+    """The file `local` (in the work folder `folder`) uploaded into the store folder `target`, in one PUT."""
     path = target / local.relative_to(folder)
     data = local.read_bytes()
     return store.write_file(path, lambda tmp: Path(tmp).write_bytes(data), keep_suffix=True)
@@ -222,7 +222,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     target = package_dir(store, out, character_name or character_key(character_path), utterance_id)
     stem = target.name
     # a store on object storage: the package is written into a local work folder, then uploaded file by file
-    folder = _fresh_work_dir(store, target) if store.remote and not out else target
+    folder = fresh_work_dir(store, target) if store.remote and not out else target
     started = time.perf_counter()
     try:
         package = export_animation(folder, stem, character, binding, curves, fps, config, utterance_id=utterance_id,
@@ -251,7 +251,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
     if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
-        uploaded = {str(p): str(_upload(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
+        uploaded = {str(p): str(upload_file(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
         files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
     seconds = time.perf_counter() - started
     return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
