@@ -238,9 +238,12 @@ def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
         TrainParams
     from visemeflow.location import parse_root
 
+    from visemeflow.flows.params import SynthParams
+
     with pytest.raises(ValidationError, match="needs a store folder"):
-        ImportCurvesParams(store="s3://bucket/store", takes="takes")
+        SynthParams(corpus=".", out="o", store="s3://bucket/store")
     assert PreviewParams(store="s3://bucket/store", utterance_id="spk/a").store == "s3://bucket/store"
+    assert ImportCurvesParams(store="s3://bucket/store", takes=".").store == "s3://bucket/store"
     assert AnimateParams(store="s3://bucket/store").store == "s3://bucket/store"
     assert SpeakParams(store="s3://bucket/store", audio=["a.wav"]).store == "s3://bucket/store"
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
@@ -774,9 +777,37 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     assert shown[url]["frames"] == shown[folder.root]["frames"] == len(read_video_frames(mp4)) > 0
 
 
+@pytest.mark.flow
+def test_import_curves_into_an_s3_store_writes_what_a_folder_gets(bucket, tmp_path, prefect_harness):
+    """Captured takes (local files) imported into an S3 store: the rows and curves a folder store gets, a bad take a
+    reject, and a second run all cache hits."""
+    from factories import snapshot, write_wav
+
+    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
+    from visemeflow.shapes.conventions import arkit_weights
+    from visemeflow.shapes.livelink import write_livelink_csv
+
+    takes = tmp_path / "takes"
+    rng = np.random.default_rng(3)
+    for name in ("a", "b"):
+        write_wav(takes / "spk" / f"{name}.wav", 1.0)
+        write_livelink_csv(takes / "spk" / f"{name}.livelink.csv",
+                           arkit_weights(rng.uniform(0, 0.6, (30, len(VISEMES))).astype(np.float32)), 30)
+    write_wav(takes / "spk" / "short.wav", 1.0)
+    write_livelink_csv(takes / "spk" / "short.livelink.csv", arkit_weights(np.zeros((10, len(VISEMES)))), 30)
+    url = f"s3://{bucket}/captured"
+    runs = {store: import_curves_flow(ImportCurvesParams(takes=takes, store=store, n_shards=2))
+            for store in (tmp_path / "folder", url)}
+    assert runs[url]["imported"] == runs[tmp_path / "folder"]["imported"] == 2 and runs[url]["rejected"] == 1
+    got, want = snapshot(url), snapshot(tmp_path / "folder")
+    for key in ("utterances", "rejects", "curves", "curve_files"):
+        assert got[key] == want[key], key
+    assert import_curves_flow(ImportCurvesParams(takes=takes, store=url, n_shards=2))["cached"] == 2
+
+
 def test_commands_on_an_s3_store(bucket, tmp_path):
-    """`curves show`, `rejects` and `dashboard` read an S3 store; `import-curves` says it needs a folder; a missing
-    bucket is one line."""
+    """`curves show`, `rejects` and `dashboard` read an S3 store; `serve` says it needs a folder; a missing bucket is
+    one line."""
     import subprocess
     import sys
 
@@ -793,9 +824,9 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
     assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
     assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
-    refused = cli("import-curves", str(tmp_path), "--store", url)
+    refused = cli("serve", "--store", url)
     assert refused.returncode == 2 and refused.stderr.strip().startswith(
-        f"error: import-curves needs a store folder: {url}"), refused.stderr
+        f"error: serve needs a store folder: {url}"), refused.stderr
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1

@@ -68,8 +68,8 @@ _NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export"
 
 # Commands that run on a store on object storage (`s3://bucket/prefix`, location.py); the others need a folder.
 _REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "train", "sweep",
-                        "evaluate", "predict", "animate", "speak", "preview", "dashboard", "rejects", "clean", "show",
-                        "export"})
+                        "evaluate", "predict", "animate", "speak", "preview", "import-curves", "dashboard", "rejects",
+                        "clean", "show", "export"})
 
 
 def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:

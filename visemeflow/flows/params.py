@@ -22,7 +22,7 @@ from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 REMOTE_COMMANDS = ("pipeline, ingest, procedural, landmarks, track, rerun, train, sweep, evaluate, predict, "
-                   "animate, speak, preview, dashboard, rejects, clean, curves show, curves export")
+                   "animate, speak, preview, import-curves, dashboard, rejects, clean, curves show, curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 
@@ -346,7 +346,7 @@ class ImportCurvesParams(BaseModel):
     takes: Path = Field(..., description="Manifest CSV of takes (utterance_id,audio,capture,format,channels,names,"
                                          "fps,language,split), a folder holding takes.csv, or a folder "
                                          "<speaker>/<name>.wav + <name>.livelink.csv|.capture.csv|.capture.npy.")
-    store: LocalStore = Field(DEFAULT_STORE, description="Folder of the Parquet store.")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Folder of the Parquet store, or its URL on object storage.")
     n_shards: int = Field(8, ge=1, le=4096, description="Shards of the utterances table the rows go to (as ingest).")
     channel_table: Path | None = Field(None, description="Channel -> ARKit table (CSV arkit,expression[,status] or "
                                                          "channel,arkit,weight, or .xlsx) for takes that give none.")
