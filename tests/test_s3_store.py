@@ -805,8 +805,66 @@ def test_import_curves_into_an_s3_store_writes_what_a_folder_gets(bucket, tmp_pa
     assert import_curves_flow(ImportCurvesParams(takes=takes, store=url, n_shards=2))["cached"] == 2
 
 
+@pytest.mark.server
+def test_serve_serves_a_store_and_corpus_on_s3_and_keeps_runs_to_their_prefixes(bucket, tmp_path):
+    """`visemeflow serve --store s3://... --corpus s3://...` on this machine: its Prefect home is a local folder
+    named by the store's URL; the served `ingest` (no parameters: the served store and corpus) and `rerun` write the
+    S3 store; a run naming another prefix of the bucket fails before its stage runs."""
+    import socket
+    import subprocess
+    import sys
+
+    import s3fs
+    from factories import make_corpus, stop_process
+    from prefect.deployments import run_deployment
+    from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
+
+    from visemeflow.ops.serve import AUTH_FILE, serve_home
+    from visemeflow.procedural import ProceduralConfig
+    from visemeflow.tasks.procedural import default_variant
+
+    corpus = make_corpus(tmp_path / "corpus", {"spk/a": [("", 0.0, 0.2), ("AA1", 0.2, 0.5), ("M", 0.5, 0.7)]})
+    s3fs.S3FileSystem(use_listings_cache=False).put(str(corpus), f"{bucket}/corpus", recursive=True)
+    store, corpus_url = f"s3://{bucket}/served", f"s3://{bucket}/corpus"
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_API_AUTH_STRING")}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_RUNNER_POLL_FREQUENCY="2", XDG_STATE_HOME=str(tmp_path / "state"))
+    said = tmp_path / "serve.log"
+    with said.open("w") as out:
+        serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", "--store", store, "--corpus",
+                                  corpus_url, "--port", str(port), "--cron", ""], env=env, cwd=tmp_path, stdout=out,
+                                 stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 240
+        while "deployments are being served" not in said.read_text():
+            assert serve.poll() is None and time.monotonic() < deadline, said.read_text()
+            time.sleep(0.5)
+        assert f"flow runs may name paths under: s3://{bucket}/corpus, {store}" in said.read_text()
+        home = tmp_path / "state" / "visemeflow" / "serve"
+        (auth_file,) = home.glob(f"*/{AUTH_FILE}")
+        assert auth_file.parent.name == serve_home(store).name and auth_file.parent.stat().st_mode & 0o777 == 0o700
+        with temporary_settings(updates={PREFECT_API_URL: f"http://127.0.0.1:{port}/api",
+                                         PREFECT_API_AUTH_STRING: auth_file.read_text()}):
+            states = [run_deployment(name, parameters=parameters, timeout=240).state for name, parameters in (
+                ("ingest/served", {}),
+                ("rerun/served", {"utterance_id": "spk/a", "stage": "procedural"}),
+                ("rerun/served", {"utterance_id": "spk/a", "store": f"s3://{bucket}/other"}))]
+    finally:
+        stop_process(serve)
+    assert states[0].is_completed() and states[1].is_completed(), (states, said.read_text())
+    assert states[2].is_failed() and "outside the prefixes" in str(states[2].message) + said.read_text()
+    served = Store(store)
+    assert served.read_table("utterances").column(C.UTTERANCE_ID).to_pylist() == ["spk/a"]
+    assert served.has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
+    assert served.read_table("utterances").column(C.AUDIO_PATH)[0].as_py() == f"{corpus_url}/spk/a.wav"
+    assert not s3fs.S3FileSystem(use_listings_cache=False).exists(f"{bucket}/other")
+
+
 def test_commands_on_an_s3_store(bucket, tmp_path):
-    """`curves show`, `rejects` and `dashboard` read an S3 store; `serve` says it needs a folder; a missing bucket is
+    """`curves show`, `rejects` and `dashboard` read an S3 store; `synth` says it needs a folder; a missing bucket is
     one line."""
     import subprocess
     import sys
@@ -824,9 +882,9 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
     assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
     assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
-    refused = cli("serve", "--store", url)
+    refused = cli("synth", str(tmp_path), "--store", url)
     assert refused.returncode == 2 and refused.stderr.strip().startswith(
-        f"error: serve needs a store folder: {url}"), refused.stderr
+        f"error: synth needs a store folder: {url}"), refused.stderr
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1

@@ -17,6 +17,7 @@ from visemeflow.ops import serve as serve_module
 from visemeflow.ops.serve import (
     AUTH_FILE,
     ROOTS_ENV,
+    URL_ROOTS_ENV,
     SERVE_DIR,
     PathOutsideRootsError,
     ServerStartError,
@@ -55,6 +56,31 @@ def test_deployments_of_every_stage_with_the_pipeline_on_the_cron_schedule(tmp_p
         assert deployments[f"{stage}/served"].parameters == {"store": str(store)}
     for name, d in deployments.items():
         assert flow_of(d.entrypoint).name == d.flow_name == name.split("/")[0]
+
+
+def test_a_store_and_corpus_on_object_storage_are_served_by_their_urls_and_confined_to_their_prefixes(
+        tmp_path, monkeypatch):
+    """`serve --store s3://... --corpus s3://...`: the deployments default to the URLs, served runs may name those
+    prefixes (a manifest's: the prefix it lies under) and the folders given, the Prefect home is a local folder named
+    by the store's URL."""
+    from visemeflow.ops.serve import serve_home, serve_roots
+
+    store, corpus = "s3://bucket/store/", "s3://bucket/corpora/c1"
+    deployments = {d.full_name: d for d in build_deployments(store, corpus, "0 3 * * *")}
+    assert deployments["pipeline/served"].parameters == {"store": "s3://bucket/store", "corpus": corpus}
+    assert deployments["rerun/served"].parameters == {"store": "s3://bucket/store"}
+    assert deployments["pipeline/served"].schedules
+    roots = serve_roots(store, "s3://bucket/corpora/c2/manifest.csv", [tmp_path])
+    assert roots == [tmp_path.resolve(), "s3://bucket/corpora/c2", "s3://bucket/store"]
+    check_paths_within({"store": "s3://bucket/store", "corpus": "s3://bucket/corpora/c2/a.wav",
+                        "out": tmp_path / "out"}, roots)
+    for outside in ("s3://bucket/corpora/c1", "s3://bucket/corpora/c2/../c1/a.wav", "s3://bucket/corpora/c2/./a.wav"):
+        with pytest.raises(PathOutsideRootsError, match=f"corpus = {re.escape(outside)} is outside"):
+            check_paths_within({"store": "s3://bucket/store", "corpus": outside}, roots)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    home = serve_home("s3://bucket/store")
+    assert home.parent == tmp_path / "state" / "visemeflow" / "serve" and home != serve_home("s3://bucket/other")
+    assert serve_home(tmp_path / "store") == tmp_path / "store" / SERVE_DIR
 
 
 def test_the_pipeline_defaults_to_the_corpus_last_ingested_else_has_no_schedule(tmp_path):
@@ -173,10 +199,18 @@ def test_pool_entrypoints_check_paths_only_where_the_workers_environment_names_r
     with pytest.raises(PathOutsideRootsError, match="flow parameter store = "):
         pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": str(outside)}))
     assert len(seen) == 1
-    # a store on object storage: a confined run refuses it (no folder to confine it to), an unconfined one takes it
-    with pytest.raises(PathOutsideRootsError, match="on object storage"):
+    # a store on object storage: a run confined to folders refuses it, one confined to its prefix takes it (and
+    # nothing beside or above it), an unconfined one takes it
+    with pytest.raises(PathOutsideRootsError, match="outside the prefixes on object storage"):
         pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store"}))
+    monkeypatch.setenv(URL_ROOTS_ENV, "s3://bucket/store\ns3://corpora/c1")
+    assert pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store"})) == {"ok": 1}
+    assert pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store/x"})) == {"ok": 1}
+    for elsewhere in ("s3://bucket/store2", "s3://bucket", "s3://corpora/c2"):
+        with pytest.raises(PathOutsideRootsError, match=f"flow parameter store = {re.escape(elsewhere)} is outside"):
+            pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": elsewhere}))
     monkeypatch.delenv(ROOTS_ENV)
+    monkeypatch.delenv(URL_ROOTS_ENV)
     assert pool.fn(**pool.validate_parameters({"utterance_id": "spk/a", "store": "s3://bucket/store"})) == {"ok": 1}
     assert seen[-1].store == "s3://bucket/store"
 

@@ -68,8 +68,8 @@ _NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export"
 
 # Commands that run on a store on object storage (`s3://bucket/prefix`, location.py); the others need a folder.
 _REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "train", "sweep",
-                        "evaluate", "predict", "animate", "speak", "preview", "import-curves", "dashboard", "rejects",
-                        "clean", "show", "export"})
+                        "evaluate", "predict", "animate", "speak", "preview", "import-curves", "serve", "dashboard",
+                        "rejects", "clean", "show", "export"})
 
 
 def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
@@ -451,8 +451,9 @@ def espeak_corpus(
 @app.command()
 def serve(
     store: StoreOpt = DEFAULT_STORE,
-    corpus: Annotated[Path | None, typer.Option(
-        help="Corpus of the scheduled pipeline; default: the one the store last ingested.")] = None,
+    corpus: Annotated[Optional[str], typer.Option(
+        help="Corpus of the scheduled pipeline (a folder, a manifest, or its URL on object storage); default: the "
+             "one the store last ingested.")] = None,
     cron: Annotated[str, typer.Option(help="Schedule of the pipeline (cron); '' for none.")] = "0 3 * * *",
     timezone: Annotated[str, typer.Option(help="Time zone of the schedule (IANA name).")] = "UTC",
     port: Annotated[int, typer.Option(help="Port of the local Prefect server started when PREFECT_API_URL is unset.")] = 4200,
@@ -464,7 +465,8 @@ def serve(
     from visemeflow.ops.serve import ServerStartError, serve_stages
 
     try:
-        serve_stages(store, corpus, cron or None, timezone, port, echo=typer.echo, roots=root or [])
+        serve_stages(store, (corpus if is_url(corpus) else Path(corpus)) if corpus else None, cron or None, timezone,
+                     port, echo=typer.echo, roots=root or [])
     except ServerStartError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -22,7 +22,8 @@ from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
 REMOTE_COMMANDS = ("pipeline, ingest, procedural, landmarks, track, rerun, train, sweep, evaluate, predict, "
-                   "animate, speak, preview, import-curves, dashboard, rejects, clean, curves show, curves export")
+                   "animate, speak, preview, import-curves, serve, dashboard, rejects, clean, curves show, "
+                   "curves export")
 """What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
 
 

@@ -9,8 +9,10 @@ from visemeflow/ops/pool.py (`pool_flow`).
 
 The server `serve` starts answers only callers holding its auth string, asks every change for a CSRF token, and
 allows cross-origin calls from its own UI only. Its database, log and auth string live in `<store>/.prefect-serve/`
-(mode 0700): two serves never share a database, and a second serve of one store is refused. A served flow run may
-name paths only under the folders `serve` was started with.
+(mode 0700; for a store on object storage, in `~/.local/state/visemeflow/serve/<digest of its URL>/` on the machine
+serve runs on): two serves never share a database, and a second serve of one store is refused (on that machine). A
+served flow run may name paths only under the folders `serve` was started with, and URLs only under its prefixes
+(the store's and the corpus's on object storage).
 """
 
 import ctypes
@@ -40,7 +42,7 @@ from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_U
 from prefect.utilities.callables import parameter_schema
 from pydantic import BaseModel
 
-from visemeflow.location import is_url
+from visemeflow.location import is_url, parse_root
 from visemeflow.flows.stages import STAGES, Stage
 from visemeflow.storage import Store
 
@@ -53,6 +55,7 @@ AUTH_FILE = "auth-string"
 LOG_FILE = "server.log"
 LOCK_FILE = "serve.lock"
 ROOTS_ENV = "VISEMEFLOW_SERVE_ROOTS"
+URL_ROOTS_ENV = "VISEMEFLOW_SERVE_URL_ROOTS"   # prefixes on object storage, one a line (a URL holds `:`)
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 # What the UI sends (prefect/server/ui assets); cross-origin only from the UI's own origin.
 CORS_METHODS = "GET,POST,PUT,PATCH,DELETE"
@@ -76,29 +79,72 @@ class PathOutsideRootsError(ValueError):
     """A served flow run names a path outside the folders `visemeflow serve` was started with."""
 
 
-def last_ingested_corpus(store: Path) -> Path | None:
-    """The corpus the store's last ingest run read, if any."""
+Root = Path | str
+"""Where served runs may name inputs and outputs: a folder, or a prefix on object storage (`s3://bucket/store`)."""
+
+
+def _location(value: Path | str) -> Path | str:
+    """A store or corpus as given: a URL stays text (normalised), a path is resolved."""
+    return parse_root(str(value)) if is_url(str(value)) else Path(value).resolve()
+
+
+def last_ingested_corpus(store: Path | str) -> Path | str | None:
+    """The corpus the store's last ingest run read, if any (its URL where it lies on object storage)."""
     run = Store(store).read_run_config("ingest")
-    return Path(run["corpus"]) if run and run.get("corpus") else None
+    return _location(run["corpus"]) if run and run.get("corpus") else None
 
 
-def serve_roots(store: Path, corpus: Path | None, extra: Sequence[Path] = ()) -> list[Path]:
-    """The folders served flow runs may name paths under: the store, the corpus (a manifest's folder) and `extra`."""
-    folders = [store, *extra]
+def serve_roots(store: Root, corpus: Root | None, extra: Sequence[Path] = ()) -> list[Root]:
+    """Where served flow runs may name paths: the store, the corpus (a manifest's folder) and `extra` folders;
+    a store or corpus on object storage is its URL prefix (a manifest's: the prefix it lies under)."""
+    roots: list[Root] = [_location(store), *(Path(p).resolve() for p in extra)]
     if corpus is not None:
-        folders.append(corpus.parent if corpus.is_file() else corpus)
-    return sorted({folder.resolve() for folder in folders})
+        corpus = _location(corpus)
+        if isinstance(corpus, str):
+            roots.append(corpus.rsplit("/", 1)[0] if corpus.lower().endswith(".csv") else corpus)
+        else:
+            roots.append(corpus.parent if corpus.is_file() else corpus)
+    folders = sorted({r for r in roots if isinstance(r, Path)})
+    return [*folders, *sorted({r for r in roots if isinstance(r, str)})]
 
 
-def roots_from_environment() -> list[Path]:
-    return [Path(p) for p in os.environ.get(ROOTS_ENV, "").split(os.pathsep) if p]
+def roots_from_environment() -> list[Root]:
+    folders = [Path(p) for p in os.environ.get(ROOTS_ENV, "").split(os.pathsep) if p]
+    return [*folders, *(u for u in os.environ.get(URL_ROOTS_ENV, "").splitlines() if u.strip())]
 
 
 @contextmanager
-def using_roots(roots: Sequence[Path]) -> Iterator[None]:
+def using_roots(roots: Sequence[Root]) -> Iterator[None]:
     """Served flow runs (processes this one starts) may name paths under `roots` only."""
-    with _environment({ROOTS_ENV: os.pathsep.join(map(str, roots))}):
+    with _environment({ROOTS_ENV: os.pathsep.join(str(r) for r in roots if isinstance(r, Path)),
+                       URL_ROOTS_ENV: "\n".join(r for r in roots if isinstance(r, str))}):
         yield
+
+
+def urls_in(value: object, name: str) -> Iterator[tuple[str, str]]:
+    """Every URL (text with a scheme, `s3://...`) inside a parameter value, with where it sits."""
+    if isinstance(value, str):
+        if is_url(value):
+            yield name, value
+    elif isinstance(value, BaseModel):
+        for field in type(value).model_fields:
+            yield from urls_in(getattr(value, field), f"{name}.{field}")
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            yield from urls_in(item, f"{name}[{key!r}]")
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        for i, item in enumerate(value):
+            yield from urls_in(item, f"{name}[{i}]")
+
+
+def _under_prefix(url: str, prefixes: Sequence[str]) -> bool:
+    """`url` is one of `prefixes` or lies below one, with no `.` or `..` segment (a key may hold them literally,
+    and a reader that resolves them would leave the prefix)."""
+    scheme, _, rest = url.partition("://")
+    if any(part in (".", "..") for part in rest.split("/")):
+        return False
+    text = f"{scheme.lower()}://{rest}".rstrip("/")
+    return any(text == p.rstrip("/") or text.startswith(p.rstrip("/") + "/") for p in prefixes)
 
 
 def paths_in(value: object, name: str) -> Iterator[tuple[str, Path]]:
@@ -124,19 +170,20 @@ def _local_path(text: str) -> bool:
     return text.startswith(("/", "~", ".")) or Path(text).expanduser().exists()
 
 
-def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Path]) -> None:
-    """PathOutsideRootsError for the first path parameter outside `roots` (the shipped demo rig is always allowed)."""
+def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Root]) -> None:
+    """PathOutsideRootsError for the first path parameter outside the folders of `roots` (the shipped demo rig is
+    always allowed), or the first URL outside its prefixes (`s3://bucket/store`)."""
     from visemeflow.rig import demo_rig_path
 
-    shipped = {demo_rig_path().resolve()}
-    for name, value in parameters.items():
-        store = value.get("store") if isinstance(value, Mapping) else getattr(value, "store", value if name == "store"
-                                                                                else None)
-        if isinstance(store, str) and is_url(store):
+    prefixes = [r for r in roots if isinstance(r, str)]
+    roots = [r for r in roots if isinstance(r, Path)]
+    for name, url in (found for key, value in parameters.items() for found in urls_in(value, key)):
+        if not _under_prefix(url, prefixes):
+            allowed = ", ".join(prefixes) or "none"
             raise PathOutsideRootsError(
-                f"flow parameter {name} names the store {store} on object storage; runs confined to folders "
-                f"({ROOTS_ENV} set, as `visemeflow serve` does) take store folders only: run it from the command "
-                f"line, or from a work-pool worker without {ROOTS_ENV}")
+                f"flow parameter {name} = {url} is outside the prefixes on object storage `visemeflow serve` was "
+                f"started with ({allowed}; {URL_ROOTS_ENV}); serve that store, or run it from the command line")
+    shipped = {demo_rig_path().resolve()}
     for name, path in (found for key, value in parameters.items() for found in paths_in(value, key)):
         resolved = path.resolve()  # through links: a link inside a root to a file elsewhere is elsewhere
         if resolved in shipped or any(resolved.is_relative_to(root) for root in roots):
@@ -186,7 +233,7 @@ def served_run_name(template: object) -> object:
     return template.replace("{params.", "{") if isinstance(template, str) else template
 
 
-def flat_flow(flow: Flow, module: str, roots: Callable[[], Sequence[Path] | None]) -> Flow:
+def flat_flow(flow: Flow, module: str, roots: Callable[[], Sequence[Root] | None]) -> Flow:
     """A copy of a stage's `flow` whose parameters are the fields of its `params` model (`flat_signature`), named
     as the stage and importable as `module.<attribute>`: it builds the model from the flat fields, checks every path
     in it against `roots()` (None: no check) before it runs a line of the stage, and calls the stage with it.
@@ -222,9 +269,10 @@ def confined(flow: Flow) -> Flow:
     return flat_flow(flow, __name__, roots_from_environment)
 
 
-def roots_if_set() -> list[Path] | None:
-    """The pool entrypoints' roots: ROOTS_ENV's folders where the worker's environment sets it, else no check."""
-    return roots_from_environment() if os.environ.get(ROOTS_ENV) else None
+def roots_if_set() -> list[Root] | None:
+    """The pool entrypoints' roots: ROOTS_ENV's folders (and URL_ROOTS_ENV's prefixes) where the worker's
+    environment sets either, else no check."""
+    return roots_from_environment() if os.environ.get(ROOTS_ENV) or os.environ.get(URL_ROOTS_ENV) else None
 
 
 def stage_flow(name: str) -> Flow:
@@ -253,7 +301,7 @@ def __getattr__(name: str) -> Flow:
 
 
 def build_deployments(
-    store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
+    store: Root, corpus: Root | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
 ) -> list[RunnerDeployment]:
     """A deployment of every stage of `STAGES` (the pipeline on `cron` in `timezone`); the store is their default.
     Each runs the stage confined to the folders `serve` allows (`confined`).
@@ -263,8 +311,8 @@ def build_deployments(
     """
     from prefect.schedules import Cron
 
-    store = store.resolve()
-    corpus = corpus.resolve() if corpus else last_ingested_corpus(store)
+    store = _location(store)
+    corpus = _location(corpus) if corpus else last_ingested_corpus(store)
     on_store = {"store": str(store)}
     on_corpus = {"store": str(store), "corpus": str(corpus)} if corpus else on_store
 
@@ -557,10 +605,21 @@ def _tail(log: Path, lines: int = 30) -> str:
         return "(no log)"
 
 
-def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
+def serve_home(store: Root) -> Path:
+    """Where serve keeps the Prefect database, log and auth string of `store`: `<store>/.prefect-serve/`, or for a
+    store on object storage a folder of this user's on this machine named by the URL's digest."""
+    if isinstance(store, Path):
+        return store / SERVE_DIR
+    import hashlib
+
+    state = Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state")
+    return state / "visemeflow" / "serve" / hashlib.blake2b(store.encode(), digest_size=12).hexdigest()
+
+
+def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CRON, timezone: str = "UTC",
                  port: int = DEFAULT_PORT, echo=print, roots: Sequence[Path] = ()) -> None:
     """Serve every deployment until interrupted, with a local server unless PREFECT_API_URL names one; flow runs may
-    name paths under the store, the corpus and `roots` only."""
+    name paths under the store, the corpus and `roots` only (URLs under the store's and the corpus's prefixes)."""
     from prefect import serve
 
     def stop(signum: int, frame: object) -> None:  # systemd and `kill` stop with SIGTERM: leave like Ctrl-C does
@@ -568,10 +627,10 @@ def serve_stages(store: Path, corpus: Path | None, cron: str | None = DEFAULT_CR
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, stop)  # until Prefect's runner installs its own, which also exits
-    store = store.resolve()
-    corpus = corpus.resolve() if corpus else last_ingested_corpus(store)
+    store = _location(store)
+    corpus = _location(corpus) if corpus else last_ingested_corpus(store)
     allowed = serve_roots(store, corpus, roots)
-    with ensure_server(store / SERVE_DIR, port) as api, using_roots(allowed):
+    with ensure_server(serve_home(store), port) as api, using_roots(allowed):
         deployments = build_deployments(store, corpus, cron, timezone)
         pipeline = deployments[0]
         echo(f"Prefect UI: {ui_url(api.url)}  (API {api.url})")
