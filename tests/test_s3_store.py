@@ -231,19 +231,21 @@ class _no_lock:
         return False
 
 
-def test_commands_that_need_a_folder_say_so_and_urls_are_checked():
-    from pydantic import ValidationError
+def test_every_command_with_a_store_takes_a_url_and_urls_are_checked():
+    import typing
 
-    from visemeflow.flows.params import AnimateParams, ImportCurvesParams, PipelineParams, PreviewParams, SpeakParams, \
+    import visemeflow.flows.params as params
+    from visemeflow.flows.params import AnimateParams, PipelineParams, PreviewParams, SpeakParams, SynthParams, \
         TrainParams
     from visemeflow.location import parse_root
 
-    from visemeflow.flows.params import SynthParams
-
-    with pytest.raises(ValidationError, match="needs a store folder"):
-        SynthParams(corpus=".", out="o", store="s3://bucket/store")
+    with_store = [m for m in vars(params).values() if isinstance(m, type) and issubclass(m, params.BaseModel)
+                  and "store" in m.model_fields]
+    assert len(with_store) >= 15
+    for model in with_store:   # a store field of every params model is a StoreLocation: a folder or a URL
+        assert typing.get_args(model.model_fields["store"].annotation) == (Path, str), model
     assert PreviewParams(store="s3://bucket/store", utterance_id="spk/a").store == "s3://bucket/store"
-    assert ImportCurvesParams(store="s3://bucket/store", takes=".").store == "s3://bucket/store"
+    assert SynthParams(corpus=".", store="s3://bucket/store").store == "s3://bucket/store"
     assert AnimateParams(store="s3://bucket/store").store == "s3://bucket/store"
     assert SpeakParams(store="s3://bucket/store", audio=["a.wav"]).store == "s3://bucket/store"
     assert TrainParams(store="s3://bucket/store/").store == "s3://bucket/store"
@@ -709,6 +711,9 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     """`animate` on an S3 store writes each package locally and uploads it: the same files as in a folder, read back
     by their readers; a second run is all cache hits, a deleted object is made again; `speak` puts its package in the
     S3 store; the dashboard of that store lists the packages."""
+    import subprocess
+    import sys
+
     import s3fs
     from factories import DEMO_AUDIO, make_curve_store, tiny_character, tiny_model
 
@@ -753,6 +758,10 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     tiny_model_store = Store(model)
     tiny_model(tiny_model_store)
     s3.install_model("tiny", tiny_model_store.model_path("tiny"))
+    exported = subprocess.run([sys.executable, "-m", "visemeflow.cli", "export-model", "tiny", "--store", url, "--out",
+                               str(tmp_path / "tiny.onnx")], capture_output=True, text=True, timeout=300)
+    assert exported.returncode == 0 and "onnxruntime vs torch" in exported.stdout, exported.stderr
+    assert (tmp_path / "tiny.onnx").stat().st_size > 1000
     spoken = speak_flow(SpeakParams(store=url, model="tiny", audio=[DEMO_AUDIO], characters=[glb],
                                     config=AnimateConfig(formats=("glb",), preview=True)))
     (report,) = spoken["packages_written"]
@@ -863,9 +872,26 @@ def test_serve_serves_a_store_and_corpus_on_s3_and_keeps_runs_to_their_prefixes(
     assert not s3fs.S3FileSystem(use_listings_cache=False).exists(f"{bucket}/other")
 
 
+@pytest.mark.flow
+def test_synth_writes_the_true_curves_into_an_s3_store_as_into_a_folder(bucket, tmp_path, prefect_harness):
+    from factories import make_corpus, snapshot
+
+    from visemeflow.flows.params import SynthParams
+    from visemeflow.flows.synth import synth_flow
+    from visemeflow.tracking.video import read_video_frames
+
+    corpus = make_corpus(tmp_path / "source", {"spk/a": [("", 0.0, 0.2), ("AA1", 0.2, 0.5), ("M", 0.5, 0.7)]})
+    url = f"s3://{bucket}/truth"
+    for store, out in ((tmp_path / "truth", tmp_path / "videos-folder"), (url, tmp_path / "videos-s3")):
+        synth_flow(SynthParams(corpus=corpus, out=out, store=store))
+    got, want = snapshot(url), snapshot(tmp_path / "truth")
+    assert got["curves"] == want["curves"] and got["curve_files"] == want["curve_files"] and len(got["curves"]) > 0
+    np.testing.assert_array_equal(read_video_frames(tmp_path / "videos-s3" / "spk" / "a.mp4"),
+                                  read_video_frames(tmp_path / "videos-folder" / "spk" / "a.mp4"))
+
+
 def test_commands_on_an_s3_store(bucket, tmp_path):
-    """`curves show`, `rejects` and `dashboard` read an S3 store; `synth` says it needs a folder; a missing bucket is
-    one line."""
+    """`curves show`, `rejects` and `dashboard` read an S3 store; a missing bucket is one line."""
     import subprocess
     import sys
 
@@ -882,9 +908,6 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     board = cli("dashboard", "--store", url, "--out", str(tmp_path / "board"))
     assert board.returncode == 0 and "dashboard:" in board.stdout, board.stderr
     assert "spk/a" in (tmp_path / "board" / "index.html").read_text()
-    refused = cli("synth", str(tmp_path), "--store", url)
-    assert refused.returncode == 2 and refused.stderr.strip().startswith(
-        f"error: synth needs a store folder: {url}"), refused.stderr
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1

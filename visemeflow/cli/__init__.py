@@ -17,7 +17,6 @@ import typer  # noqa: E402
 from visemeflow.cli.options import Opt, stage_command  # noqa: E402
 from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong argument still fails in under a second)
     DEFAULT_STORE,
-    REMOTE_COMMANDS,
     AnimateParams,
     EvaluateParams,
     ImportCurvesParams,
@@ -66,25 +65,16 @@ _NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export"
                       "espeak-corpus"})
 
 
-# Commands that run on a store on object storage (`s3://bucket/prefix`, location.py); the others need a folder.
-_REMOTE_OK = frozenset({"pipeline", "ingest", "procedural", "landmarks", "track", "rerun", "train", "sweep",
-                        "evaluate", "predict", "animate", "speak", "preview", "import-curves", "serve", "dashboard",
-                        "rejects", "clean", "show", "export"})
-
-
 def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
     """Fail before any flow starts when the store cannot be a writable folder (no side effects). Run as the command,
     for a command that runs a flow, point Prefect at a server already up (PREFECT_API_URL, else a running
     `visemeflow serve --store STORE`), else start Prefect's temporary server now, while the command imports its
-    libraries, rather than when the flow is called (`visemeflow.ops.connect`). A URL store (`s3://...`): the command
-    must be one that runs there, and its bucket must answer (one request; none while the shell completes words)."""
+    libraries, rather than when the flow is called (`visemeflow.ops.connect`). A URL store (`s3://...`): its bucket
+    must answer (one request; none while the shell completes words)."""
     store = parse_root(store)
     if is_url(store):
         if ctx.resilient_parsing:
             return store
-        if ctx.info_name not in _REMOTE_OK:
-            _fail(f"{ctx.info_name} needs a store folder: {store} is on object storage, where only "
-                  f"{REMOTE_COMMANDS} run so far")
         problem = remote_problem(store)
         if problem:
             _fail(problem)
@@ -743,9 +733,12 @@ def export_model(
         typer.echo(f"error: unknown format {format!r}; use onnx", err=True)
         raise typer.Exit(2)
     s = Store(store)
-    path = s.model_path(model) if s.has_model(model) or not is_shipped(model) else shipped_model_path(model)
-    if not path.is_file():
-        typer.echo(f"error: no model {model!r} in {s.root} ({path} missing)", err=True)
+    if s.has_model(model):
+        path = Path(s.model_file(model))   # on object storage: a local copy named by the object's version
+    elif is_shipped(model):
+        path = shipped_model_path(model)
+    else:
+        typer.echo(f"error: no model {model!r} in {s.root} ({s.model_path(model)} missing)", err=True)
         raise typer.Exit(2)
     try:
         from visemeflow.learning.onnx_export import OnnxExportError, export_onnx

@@ -16,28 +16,13 @@ from visemeflow.learning.config import AugmentConfig, TrainConfig
 from visemeflow.procedural.config import RECOGNISED_MODEL, ProceduralConfig
 from visemeflow.schemas.ids import normalize_utterance_id, validate_name
 from visemeflow.schemas.sources import CurveSource
-from visemeflow.location import is_url, parse_root
+from visemeflow.location import parse_root
 from visemeflow.synth.config import SynthConfig
 from visemeflow.tracking.config import FaceMeshConfig, TrackingConfig
 
 DEFAULT_STORE = Path("visemeflow-out/store")
-REMOTE_COMMANDS = ("pipeline, ingest, procedural, landmarks, track, rerun, train, sweep, evaluate, predict, "
-                   "animate, speak, preview, import-curves, serve, dashboard, rejects, clean, curves show, "
-                   "curves export")
-"""What runs on a store on object storage (`s3://bucket/prefix`); the other commands need a store folder."""
-
-
-def _local_store(value: object) -> object:
-    if is_url(value):
-        raise ValueError(f"{value}: this command needs a store folder (a local or shared path); a store on object "
-                         f"storage runs {REMOTE_COMMANDS}")
-    return value
-
-
 StoreLocation = Annotated[Path | str, BeforeValidator(parse_root)]
 """A store folder, or a URL of a store on object storage (`s3://bucket/prefix`, kept as text)."""
-LocalStore = Annotated[Path, BeforeValidator(_local_store)]
-"""A store folder: for commands that do not run on object storage yet (one line says which do)."""
 # the curve sources `animate` puts on characters
 SOURCES = (CurveSource.TRACKED, CurveSource.PROCEDURAL, CurveSource.GROUND_TRUTH, CurveSource.PREDICTED)
 
@@ -153,7 +138,8 @@ class SynthParams(BaseModel):
 
     corpus: CorpusPath = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
     out: Path = Field(Path("visemeflow-out/synth-corpus"), description="Folder of the synthetic corpus written.")
-    store: LocalStore = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth').")
+    store: StoreLocation = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth'): "
+                                                           "a folder, or its URL on object storage.")
     rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")
     config: SynthConfig = Field(default_factory=SynthConfig)
 
