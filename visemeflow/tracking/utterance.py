@@ -17,6 +17,7 @@ there, and their diagnostics (landmarks, mouth error, flow, every loss term) are
 """
 
 import functools
+import os
 import itertools
 import json
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -249,9 +250,10 @@ def video_size(video: str | BinaryIO) -> tuple[int, int] | None:
     """(width, height) of the video's frames from its stream header (no decoding); None when it cannot be read.
     `video`: a path, or a seekable binary file object (an object on S3 opened by fsspec: only the bytes of its
     header are fetched)."""
-    name = Path(str(video)) if isinstance(video, str) else Path(str(getattr(video, "path", "video")))
+    local = isinstance(video, str | os.PathLike)
+    name = Path(video) if local else Path(str(getattr(video, "path", "video")))
     try:
-        with _open_video(Path(video) if isinstance(video, str) else video) as container:
+        with _open_video(Path(video) if local else video) as container:
             stream = _video_stream(container, name)
             width, height = int(stream.codec_context.width), int(stream.codec_context.height)
     except VideoError:
