@@ -12,11 +12,27 @@ from factories import make_curve_store
 from typer.testing import CliRunner
 
 import visemeflow.cli as cli
+import visemeflow.flows.runners as runners
 from visemeflow.cli import app
 from visemeflow.cli.options import FROM_FIELD, Opt, field_at, stage_command
+from visemeflow.flows import landmarks, pipeline, sweep, track
 from visemeflow.flows.params import DEFAULT_STORE, TrackParams, TrainParams
 
 runner = CliRunner()
+BINDERS = (landmarks, pipeline, sweep, track)
+"""Flow modules that bind `run_on_runner` by name when first imported. They are imported here, before any test patches
+`visemeflow.flows.runners.run_on_runner`: one imported first under a patch would keep the fake for the rest of the
+worker process (seen: later pipeline tests in the same pytest-xdist worker got the fake's `{"utterances": 0}` as the
+landmarks and track stages' summaries)."""
+
+
+@pytest.fixture(autouse=True)
+def _no_fake_run_on_runner_outlives_its_test():
+    yield
+    real = runners.run_on_runner
+    assert real.__module__ == runners.__name__, "run_on_runner is still patched after the test"
+    for module in BINDERS:
+        assert module.run_on_runner is real, f"{module.__name__} kept a patched run_on_runner"
 
 
 def stage_commands() -> list:
