@@ -463,3 +463,18 @@ def stop_process(proc: "subprocess.Popen") -> None:
             proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+def start_serve(args: list[str], env: dict, cwd: Path, log: Path, timeout_s: float = 240) -> "subprocess.Popen":
+    """`visemeflow serve ARGS` in a child process writing to `log`, returned once its deployments are served (fails
+    if it exits or takes longer than `timeout_s`); stop it with `stop_process`."""
+    with log.open("w") as out:
+        serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", *args], env=env, cwd=cwd,
+                                 stdout=out, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + timeout_s
+    while "deployments are being served" not in log.read_text():
+        if serve.poll() is not None or time.monotonic() > deadline:
+            stop_process(serve)
+            raise AssertionError(log.read_text())
+        time.sleep(0.5)
+    return serve

@@ -820,11 +820,9 @@ def test_serve_serves_a_store_and_corpus_on_s3_and_keeps_runs_to_their_prefixes(
     named by the store's URL; the served `ingest` (no parameters: the served store and corpus) and `rerun` write the
     S3 store; a run naming another prefix of the bucket fails before its stage runs."""
     import socket
-    import subprocess
-    import sys
 
     import s3fs
-    from factories import make_corpus, stop_process
+    from factories import make_corpus, start_serve, stop_process
     from prefect.deployments import run_deployment
     from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
@@ -842,15 +840,9 @@ def test_serve_serves_a_store_and_corpus_on_s3_and_keeps_runs_to_their_prefixes(
     env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false",
                PREFECT_RUNNER_POLL_FREQUENCY="2", XDG_STATE_HOME=str(tmp_path / "state"))
     said = tmp_path / "serve.log"
-    with said.open("w") as out:
-        serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", "--store", store, "--corpus",
-                                  corpus_url, "--port", str(port), "--cron", ""], env=env, cwd=tmp_path, stdout=out,
-                                 stderr=subprocess.STDOUT)
+    serve = start_serve(["--store", store, "--corpus", corpus_url, "--port", str(port), "--cron", ""], env, tmp_path,
+                        said)
     try:
-        deadline = time.monotonic() + 240
-        while "deployments are being served" not in said.read_text():
-            assert serve.poll() is None and time.monotonic() < deadline, said.read_text()
-            time.sleep(0.5)
         assert f"flow runs may name paths under: s3://{bucket}/corpus, {store}" in said.read_text()
         home = tmp_path / "state" / "visemeflow" / "serve"
         (auth_file,) = home.glob(f"*/{AUTH_FILE}")

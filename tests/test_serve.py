@@ -10,7 +10,7 @@ import sys
 import httpx
 import pytest
 import yaml
-from factories import REPO, stop_process
+from factories import REPO, start_serve, stop_process
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
 from visemeflow.ops import serve as serve_module
@@ -537,15 +537,9 @@ def test_the_prefect_cli_runs_served_deployments_with_flat_or_partial_parameters
     env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false",
                PREFECT_RUNNER_POLL_FREQUENCY="2")
     said = tmp_path / "serve.log"
-    with said.open("w") as out:
-        serve = subprocess.Popen([sys.executable, "-m", "visemeflow.cli", "serve", "--store", str(store), "--corpus",
-                                  str(corpus), "--port", str(port), "--cron", ""], env=env, cwd=work, stdout=out,
-                                 stderr=subprocess.STDOUT)
+    serve = start_serve(["--store", str(store), "--corpus", str(corpus), "--port", str(port), "--cron", ""], env,
+                        work, said)
     try:
-        deadline = time.monotonic() + 240
-        while "deployments are being served" not in said.read_text():
-            assert serve.poll() is None and time.monotonic() < deadline, said.read_text()
-            time.sleep(0.5)
         auth = (store / SERVE_DIR / AUTH_FILE).read_text()
         cli_env = {**env, "PREFECT_API_URL": api_url, "PREFECT_API_AUTH_STRING": auth}
 

@@ -121,20 +121,25 @@ def using_roots(roots: Sequence[Root]) -> Iterator[None]:
         yield
 
 
-def urls_in(value: object, name: str) -> Iterator[tuple[str, str]]:
-    """Every URL (text with a scheme, `s3://...`) inside a parameter value, with where it sits."""
-    if isinstance(value, str):
-        if is_url(value):
-            yield name, value
-    elif isinstance(value, BaseModel):
-        for field in type(value).model_fields:
-            yield from urls_in(getattr(value, field), f"{name}.{field}")
+def _leaves(value: object, name: str, field: str | None = None) -> Iterator[tuple[str, object, str | None]]:
+    """Every leaf inside a parameter value (pydantic models, lists, dicts), with where it sits (`params.store`) and
+    the model field that holds it directly (None inside a list or dict)."""
+    if isinstance(value, BaseModel):
+        for key in type(value).model_fields:
+            yield from _leaves(getattr(value, key), f"{name}.{key}", key)
     elif isinstance(value, Mapping):
         for key, item in value.items():
-            yield from urls_in(item, f"{name}[{key!r}]")
+            yield from _leaves(item, f"{name}[{key!r}]")
     elif isinstance(value, (list, tuple, set, frozenset)):
         for i, item in enumerate(value):
-            yield from urls_in(item, f"{name}[{i}]")
+            yield from _leaves(item, f"{name}[{i}]")
+    else:
+        yield name, value, field
+
+
+def urls_in(value: object, name: str) -> Iterator[tuple[str, str]]:
+    """Every URL (text with a scheme, `s3://...`) inside a parameter value, with where it sits."""
+    return ((where, leaf) for where, leaf, _ in _leaves(value, name) if isinstance(leaf, str) and is_url(leaf))
 
 
 def _under_prefix(url: str, prefixes: Sequence[str]) -> bool:
@@ -149,21 +154,11 @@ def _under_prefix(url: str, prefixes: Sequence[str]) -> bool:
 
 def paths_in(value: object, name: str) -> Iterator[tuple[str, Path]]:
     """Every path inside a parameter value (pydantic models, lists, dicts), with where it sits (`params.store`)."""
-    if isinstance(value, PurePath):
-        yield name, Path(value)
-    elif isinstance(value, BaseModel):
-        for field in type(value).model_fields:
-            item = getattr(value, field)
-            if field in PATH_OR_NAME and isinstance(item, str) and _local_path(item):
-                yield f"{name}.{field}", Path(item).expanduser()
-            else:
-                yield from paths_in(item, f"{name}.{field}")
-    elif isinstance(value, Mapping):
-        for key, item in value.items():
-            yield from paths_in(item, f"{name}[{key!r}]")
-    elif isinstance(value, (list, tuple, set, frozenset)):
-        for i, item in enumerate(value):
-            yield from paths_in(item, f"{name}[{i}]")
+    for where, leaf, field in _leaves(value, name):
+        if isinstance(leaf, PurePath):
+            yield where, Path(leaf)
+        elif field in PATH_OR_NAME and isinstance(leaf, str) and _local_path(leaf):
+            yield where, Path(leaf).expanduser()
 
 
 def _local_path(text: str) -> bool:
