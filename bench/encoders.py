@@ -152,6 +152,10 @@ def held_out_sets(tmp: Path, grid_phones: str = GRID_PHONES) -> dict[str, list[U
     return sets
 
 
+CROP_S = (0.3, 1.0)    # `ljw`: the speech of a crop lasts 0.3-1.0 s ...
+CROP_PAD_S = 0.3       # ... with this much silence either side
+
+
 @dataclass
 class Sets:
     lj: list[Example]
@@ -168,6 +172,9 @@ class Sets:
     rooms: int = 0                                             # copies of each LJ utterance in `ljr` / `ljrc`
     lj_rooms: list[Example] = field(default_factory=list)      # the LJ utterances heard in rooms (`ljr`), made
     lj_channels: list[Example] = field(default_factory=list)   # ... and through a channel (`ljrc`): on first use
+    lj_crops: list[Example] = field(default_factory=list)      # short pieces of them in silence (`ljw`)
+    lj_utterances: list[Utterance] = field(default_factory=list)  # the LJ utterances of `lj` (phones for `ljw`)
+    crop_s: tuple[float, float] = CROP_S                         # `ljw`: seconds of speech in a crop (low, high)
 
 
 VARIANTS = "pitch:-3,pitch:3,speed:0.8,speed:1.25"
@@ -210,14 +217,23 @@ def room_copies(examples: list[Example], copies: int = ROOMS, channel: bool = Fa
     return out
 
 
-def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | None = None,
+def ramps(text: str) -> float | tuple[float, float]:
+    """`--closure-ramps`: one number (onset = decay) or ONSET,DECAY, in seconds."""
+    values = [float(x) for x in text.split(",")]
+    if len(values) not in (1, 2):
+        raise argparse.ArgumentTypeError(f"{text!r}: SECONDS or ONSET,DECAY")
+    return values[0] if len(values) == 1 else (values[0], values[1])
+
+
+def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | tuple[float, float] | None = None,
               variants: str = VARIANTS, grid_phones: str = GRID_PHONES, rooms: int = ROOMS,
               esx: str = "") -> Sets:
     """Training sets and held-out speech (module docstring); `espeak` = (English, Mandarin) utterances or None;
     `closure_ramp_s`: the LJ targets' MBP/FFF onset and decay (`ProceduralConfig.closure_onset_s`/`closure_decay_s`;
-    None: the procedural default's ramps); `variants`: the voices of `ljv`; `rooms`: the copies of each LJ
+    one number for both or (onset, decay); None: the procedural default's ramps); `variants`: the voices of `ljv`; `rooms`: the copies of each LJ
     utterance in `ljr` and `ljrc`; `esx`: `LANGS:N` of the `esx` corpus (bench/espeak_langs.py), "" for none."""
-    targets = ProceduralConfig(closure_onset_s=closure_ramp_s, closure_decay_s=closure_ramp_s)
+    onset, decay = closure_ramp_s if isinstance(closure_ramp_s, tuple) else (closure_ramp_s, closure_ramp_s)
+    targets = ProceduralConfig(closure_onset_s=onset, closure_decay_s=decay)
     lj_utts = [u for u in read_corpus(ROOT / "examples" / "corpus", procedural=targets) if u.speaker == "LJ"]
     lj, lj_truth = [labelled(u) for u in lj_utts], [labelled(u, "truth") for u in lj_utts]
     lj_variants = voice_variants(lj, variants)
@@ -246,7 +262,42 @@ def load_sets(espeak: tuple[int, int] | None = None, closure_ramp_s: float | Non
     jaw = np.asarray(take.arkit)[:, ARKIT_52.index("jawOpen")]
     floor = np.concatenate([e.curves for e in facegood]).mean(axis=0)
     return Sets(lj, lj_truth, lj_variants, facegood, es, held, test_audio, test_curves, jaw, floor, esx_examples,
-                rooms)
+                rooms, lj_utterances=lj_utts)
+
+
+def short_crops(utterances: list[Utterance], examples: list[Example],
+                seconds: tuple[float, float] = CROP_S) -> list[Example]:
+    """`ljw`: each LJ utterance cut at phone boundaries into pieces of 0.3-1.0 s of speech (seeded per utterance),
+    each faded in and out over 10 ms and put between 0.3 s of silence, as an isolated word or syllable is heard;
+    targets and per-frame visemes are the utterance's own over the piece, at rest (zero, no viseme) in the
+    silence. Whisper sees every piece inside its 30-s window of silence, as it sees a lone syllable."""
+    out = []
+    pad = int(round(CROP_PAD_S * FPS))
+    fade = int(0.01 * SAMPLE_RATE)
+    for u, e in zip(utterances, examples, strict=True):
+        rng = np.random.default_rng(zlib.crc32(u.uid.encode("utf-8")))
+        voiced = [p for p in u.phones if p.viseme is not None]
+        i = 0
+        while i < len(voiced):
+            want = rng.uniform(*seconds)
+            j = i
+            while j + 1 < len(voiced) and voiced[j].end_s - voiced[i].start_s < want:
+                j += 1
+            f0, f1 = int(round(voiced[i].start_s * FPS)), min(int(round(voiced[j].end_s * FPS)), len(e.curves))
+            i = j + 1
+            if f1 - f0 < 3:
+                continue
+            audio = e.audio[int(f0 / FPS * SAMPLE_RATE):int(f1 / FPS * SAMPLE_RATE)].copy()
+            ramp = np.linspace(0.0, 1.0, fade, dtype=np.float32)
+            audio[:fade] *= ramp[:len(audio[:fade])]
+            audio[-fade:] *= ramp[::-1][-len(audio[-fade:]):]
+            silence = np.zeros(int(pad / FPS * SAMPLE_RATE), np.float32)
+            curves = np.concatenate([np.zeros((pad, 16), np.float32), e.curves[f0:f1],
+                                     np.zeros((pad, 16), np.float32)])
+            visemes = np.concatenate([np.full(pad, -1), e.visemes[f0:f1], np.full(pad, -1)]).astype(np.int64)
+            out.append(Example(f"{e.utterance_id}__crop{len(out):03d}", np.concatenate([silence, audio, silence]),
+                               curves, e.fps, visemes))
+    return out
 
 
 def recipe_data(sets: Sets, recipe: str) -> list[Example]:
@@ -255,8 +306,11 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
         sets.lj_rooms = room_copies(sets.lj, sets.rooms)
     if "ljrc" in parts and not sets.lj_channels:
         sets.lj_channels = room_copies(sets.lj, sets.rooms, channel=True)
+    if "ljw" in parts and not sets.lj_crops:
+        sets.lj_crops = short_crops(sets.lj_utterances, sets.lj, sets.crop_s)
     data = {"lj": sets.lj, "ljt": sets.lj_truth, "ljv": sets.lj_variants, "fg": sets.facegood,
-            "es": sets.espeak, "esx": sets.espeak_langs, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels}
+            "es": sets.espeak, "esx": sets.espeak_langs, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels,
+            "ljw": sets.lj_crops}
     unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)
                or (p == "esx" and not sets.espeak_langs)]
     if unknown:
@@ -327,8 +381,11 @@ def main() -> int:
     parser.add_argument("--esx", default="nl,cs:200",
                         help="LANGS:N of the `esx` corpus (espeak-ng in nl, cs, de, pl; N per language), made only "
                              "when a recipe has `esx`")
-    parser.add_argument("--closure-ramps", type=float, default=None,
-                        help="onset and decay, s, of the MBP/FFF ramps in the LJ targets (default: procedural's)")
+    parser.add_argument("--closure-ramps", type=ramps, default=None, metavar="SECONDS[,DECAY]",
+                        help="onset and decay, s, of the MBP/FFF ramps in the LJ targets: one number for both or "
+                             "ONSET,DECAY (default: procedural's)")
+    parser.add_argument("--crop-seconds", default=f"{CROP_S[0]},{CROP_S[1]}", metavar="LOW,HIGH",
+                        help="`ljw`: seconds of speech in each crop, drawn uniformly in [LOW, HIGH]")
     parser.add_argument("--grid-phones", default=GRID_PHONES, choices=("spread", "aligned"),
                         help="held-out GRID phone timings: spread over its word timings, or aligned by pocketsphinx")
     parser.add_argument("--variants", default=VARIANTS,
@@ -350,6 +407,7 @@ def main() -> int:
     uses_esx = any("esx" in r.split("+") for r in args.recipes.split(","))
     sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones, args.rooms,
                      args.esx if uses_esx else "")
+    sets.crop_s = tuple(float(x) for x in args.crop_seconds.split(","))
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
           f"espeak {len(sets.espeak)}, esx {len(sets.espeak_langs)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)

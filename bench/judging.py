@@ -33,10 +33,14 @@ def make_loss(spec: str):
         m = mask.to(pred.dtype)[..., None]
         if kind == "closure":
             weights = 1 + w * target[..., closure].sum(-1, keepdim=True)
+        elif kind == "sym":
+            # closures weigh where either the target or the prediction has them: a closure held into the next
+            # phone costs as much as one missed
+            weights = 1 + w * torch.maximum(target[..., closure], pred.detach()[..., closure]).sum(-1, keepdim=True)
         elif kind == "activation":
             weights = 1 + w * target
         else:
-            raise SystemExit(f"unknown loss {spec!r}: l1, closure:W or activation:W")
+            raise SystemExit(f"unknown loss {spec!r}: l1, closure:W, sym:W or activation:W")
         return ((pred - target).abs() * weights * m).sum() / (m.sum() * pred.shape[-1]).clamp(min=1)
 
     return weighted
