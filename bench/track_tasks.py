@@ -11,7 +11,8 @@ records, the store's reads and writes. In each store, side by side:
   grouped    the default `joint_frames` (400): `track-joint[...]` tasks of about 400 frames; on the rerun each
              utterance's record is read without a task run
 Each is timed on a fresh store (every utterance tracked) and on a rerun with nothing changed (every utterance
-cached), R times (the best kept), in one process on Prefect's temporary test server. Printed, never asserted.
+cached), R times (the best kept), in one process on Prefect's temporary test server (or the server VISEMEFLOW_BENCH_API_URL names,
+bench/prefect_api.py). Printed, never asserted.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def main() -> int:
         print(f"missing benchmark data: {GRID}")
         return 0
     from prefect.logging import disable_run_logger
-    from prefect.testing.utilities import prefect_test_harness
+    from prefect_api import prefect_server
 
     from visemeflow.flows.ingest import ingest_flow
     from visemeflow.flows.params import IngestParams, ProceduralParams, TrackParams
@@ -78,7 +79,7 @@ def main() -> int:
 
     stub_tracking()
     modes = {"per task": 0, "grouped": TrackParams.model_fields["joint_frames"].default}
-    with tempfile.TemporaryDirectory(prefix="visemeflow-track-tasks-") as tmp_name, prefect_test_harness(server_startup_timeout=180), \
+    with tempfile.TemporaryDirectory(prefix="visemeflow-track-tasks-") as tmp_name, prefect_server(), \
             disable_run_logger():
         tmp = Path(tmp_name)
         base = tmp / "base"

@@ -53,7 +53,7 @@ frames/s without rgb (target >= 30 per core) and with rgb (target >= 3).
 Table 2 (--grid), real video: the GRID s1 clips in ../shared/data/grid_s1 (video/*.mpg, align/*.align,
 landmarks/*.mediapipe478.csv) are copied into a temporary corpus <tmp>/corpus/s1/, and `pipeline_flow` (ingest,
 procedural, track with the default TrackingConfig except `guidance`; L_flow on, identity fitted from the landmarks)
-runs twice inside `prefect_test_harness()`, into one store for guided and one for unguided tracking. From each
+runs twice inside `prefect_api.prefect_server()` (a temporary local server), into one store for guided and one for unguided tracking. From each
 store: for every phone whose viseme is MBP (phones table), its midpoint frame; the share where MBP is the tracked
 top viseme and among the top two (the procedural curves as reference); per clip the mean mouth keypoint error
 (tracking_frames) and the identity-fit rms (re-computed with `visemeflow.tracking.utterance.rig_and_camera`, the same
@@ -463,7 +463,7 @@ def mbp_counts(store, variant: str | None, source: str, phones, fps: dict[str, f
 
 
 def grid() -> None:
-    from prefect.testing.utilities import prefect_test_harness
+    from prefect_api import prefect_server
 
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow
@@ -480,7 +480,7 @@ def grid() -> None:
         corpus, clips = grid_corpus(tmp)
         runs = {}
         started = time.perf_counter()
-        with prefect_test_harness(server_startup_timeout=180):
+        with prefect_server():
             harness = time.perf_counter() - started
             for label, guidance in (("guided", True), ("unguided", False)):
                 config = TrackingConfig(guidance=guidance)
