@@ -865,7 +865,8 @@ def test_serve_serves_a_store_and_corpus_on_s3_and_keeps_runs_to_their_prefixes(
 
 
 @pytest.mark.flow
-def test_synth_writes_the_true_curves_into_an_s3_store_as_into_a_folder(bucket, tmp_path, prefect_harness):
+def test_synth_writes_the_true_curves_into_an_s3_store_as_into_a_folder(bucket, tmp_path, prefect_harness,
+                                                                        monkeypatch):
     from factories import make_corpus, snapshot
 
     from visemeflow.flows.params import SynthParams
@@ -880,6 +881,39 @@ def test_synth_writes_the_true_curves_into_an_s3_store_as_into_a_folder(bucket, 
     assert got["curves"] == want["curves"] and got["curve_files"] == want["curve_files"] and len(got["curves"]) > 0
     np.testing.assert_array_equal(read_video_frames(tmp_path / "videos-s3" / "spk" / "a.mp4"),
                                   read_video_frames(tmp_path / "videos-folder" / "spk" / "a.mp4"))
+
+    # the rendered corpus itself into the bucket: the same files, each object whole, and a corpus the pipeline reads
+    import tempfile
+
+    import s3fs
+
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    work = tmp_path / "tmp"
+    work.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(work))
+    videos = f"s3://{bucket}/videos"
+    first = synth_flow(SynthParams(corpus=corpus, out=videos, store=f"s3://{bucket}/truth2"))
+    assert first["rendered"] == 1 and first["failed"] == 0 and first["out"] == videos
+    folder = tmp_path / "videos-folder" / "spk"
+    names = sorted(p.name for p in folder.iterdir())
+    assert sorted(Path(k).name for k in fs.ls(f"{bucket}/videos/spk")) == names
+    for name in names:
+        if name.endswith((".mp4", ".parquet")):
+            continue   # an encoder's and Parquet's metadata may differ byte for byte; compared below by content
+        assert fs.cat_file(f"{bucket}/videos/spk/{name}") == (folder / name).read_bytes(), name
+    fs.get_file(f"{bucket}/videos/spk/a.mp4", str(tmp_path / "fetched.mp4"))
+    np.testing.assert_array_equal(read_video_frames(tmp_path / "fetched.mp4"), read_video_frames(folder / "a.mp4"))
+    assert not list(work.glob("visemeflow-synth-*")), "the local work folder stays behind"
+    again = synth_flow(SynthParams(corpus=corpus, out=videos, store=f"s3://{bucket}/truth2"))
+    assert again["rendered"] == 0 and again["cached"] == 1
+    fs.rm_file(f"{bucket}/videos/spk/a.mp4")     # a lost video is rendered again
+    assert synth_flow(SynthParams(corpus=corpus, out=videos, store=f"s3://{bucket}/truth2"))["rendered"] == 1
+    assert fs.exists(f"{bucket}/videos/spk/a.mp4")
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams
+
+    ingested = ingest_flow(IngestParams(corpus=videos, store=f"s3://{bucket}/from-videos"))
+    assert ingested["ingested"] == 1 and ingested.get("rejected", 0) == 0, ingested
 
 
 def test_commands_on_an_s3_store(bucket, tmp_path):
@@ -903,6 +937,14 @@ def test_commands_on_an_s3_store(bucket, tmp_path):
     missing = cli("rejects", "--store", "s3://no-such-bucket-here/x")
     assert missing.returncode == 2 and "bucket 'no-such-bucket-here'" in missing.stderr
     assert len(missing.stderr.strip().splitlines()) == 1
+    corpus = tmp_path / "corpus" / "spk"
+    corpus.mkdir(parents=True)
+    (corpus / "a.wav").write_bytes(b"")
+    (corpus / "a.TextGrid").write_text("")
+    nowhere = cli("synth", str(corpus.parent), "--out", "s3://no-such-bucket-here/videos", "--store", url)
+    assert nowhere.returncode == 2 and nowhere.stderr.strip() == (
+        "error: cannot write to s3://no-such-bucket-here/videos: bucket 'no-such-bucket-here' at "
+        f"{os.environ['AWS_ENDPOINT_URL']} does not exist or this machine's credentials may not see it"), nowhere.stderr
 
 
 def test_clean_aborts_the_unfinished_uploads_a_killed_writer_left(bucket, monkeypatch):

@@ -267,6 +267,14 @@ def input_digest(location: str | os.PathLike) -> str:
     return stable_hash(object_identity(info))
 
 
+def put_file(local: str | os.PathLike, url: str) -> str:
+    """The local file uploaded to the object `url` in one PUT (a large file as a multipart upload, completed only
+    when whole): the object appears whole or not at all. Returns `url`."""
+    path = remote_root(url)
+    path.fs.put_file(os.fspath(local), path.path)
+    return url
+
+
 def input_exists(location: str | os.PathLike | None) -> bool:
     """Whether the file `location` (a path or a URL) is there to be read."""
     if not location:

@@ -406,8 +406,23 @@ def pipeline(params: PipelineParams) -> None:
 
 
 
+def _output_location(ctx: typer.Context, value):
+    """An output folder or URL (`synth --out`): a URL's bucket must answer (one request), as a store's must."""
+    if value is None:
+        return value
+    try:
+        value = parse_root(value)
+    except ValueError as exc:
+        _fail(str(exc))
+    if is_url(value) and not ctx.resilient_parsing:
+        problem = remote_problem(value)
+        if problem:
+            _fail(problem.replace("cannot use the store", "cannot write to", 1))
+    return value
+
+
 @stage_command(app, SynthParams, [
-    Opt("corpus", argument=True, callback=_corpus), Opt("out"), STORE, Opt("rig", callback=_path),
+    Opt("corpus", argument=True, callback=_corpus), Opt("out", type=str, callback=_output_location), STORE, Opt("rig", callback=_path),
     Opt("config.width"), Opt("config.height"), Opt("config.fps"), Opt("config.truth.seed"),
 ])
 def synth(params: SynthParams) -> None:

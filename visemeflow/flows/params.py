@@ -137,7 +137,9 @@ class SynthParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     corpus: CorpusPath = Field(..., description="Source corpus: audio + alignments (folder or manifest CSV).")
-    out: Path = Field(Path("visemeflow-out/synth-corpus"), description="Folder of the synthetic corpus written.")
+    out: StoreLocation = Field(Path("visemeflow-out/synth-corpus"),
+                               description="Folder of the synthetic corpus written, or its URL on object storage "
+                                           "(s3://bucket/prefix: each file uploaded whole).")
     store: StoreLocation = Field(DEFAULT_STORE, description="Store receiving the true curves (source 'ground_truth'): "
                                                            "a folder, or its URL on object storage.")
     rig: Path | None = Field(None, description="Viseme rig (folder, GLB or npz); default: the shipped ICT demo rig.")

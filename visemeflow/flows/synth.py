@@ -1,12 +1,14 @@
 """The `synth` flow: a corpus of audio + alignments becomes talking-face videos with known true curves."""
 
+from pathlib import Path
+
 from prefect import flow, get_run_logger
 
 from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 from visemeflow.flows.common import collect
 from visemeflow.flows.params import SynthParams
 from visemeflow.hashing import file_hash
-from visemeflow.location import as_text
+from visemeflow.location import as_text, input_exists, is_url
 from visemeflow.rig import demo_rig_path
 from visemeflow.schemas import REJECTS, table_from_rows
 from visemeflow.storage import Store
@@ -25,15 +27,17 @@ def synth_flow(params: SynthParams) -> dict[str, object]:
     rig_hash = file_hash(rig_path)
     variant = truth_variant(params.config)
     found = discover_corpus_task(as_text(params.corpus))
-    out = params.out.resolve()
+    out = as_text(params.out)
     futures = []
     for entry in found["entries"]:
         uid = entry["utterance_id"]
         speaker, name = uid.split("/")
-        present = (out / speaker / f"{name}.{params.config.video_ext}").exists() and store.has_curves(SOURCE, variant, uid)
+        video = (f"{out}/{speaker}/{name}.{params.config.video_ext}" if is_url(out)
+                 else Path(out) / speaker / f"{name}.{params.config.video_ext}")
+        present = input_exists(video) and store.has_curves(SOURCE, variant, uid)
         futures.append(
             synth_utterance.with_options(result_storage=result_storage(store.root), refresh_cache=not present)
-            .submit(entry, str(out), str(rig_path), rig_hash, params.config, str(store.root))
+            .submit(entry, out, str(rig_path), rig_hash, params.config, str(store.root))
         )
     reports, errors = collect(futures, STAGE, kept_when_cached=("utterance_id", "frames"), cached_key="cached",
                               unit="utterances")

@@ -2,6 +2,8 @@
 
 import json
 import shutil
+import tempfile
+from contextlib import nullcontext
 from pathlib import Path
 
 import soundfile as sf
@@ -11,7 +13,7 @@ from visemeflow.atomic import atomic_write, atomic_write_text
 from visemeflow.hashing import stable_hash
 from visemeflow.ingest.audio import read_audio
 from visemeflow.ingest import CorpusEntry, IngestConfig, ingest_utterance
-from visemeflow.location import local_input
+from visemeflow.location import is_url, local_input, put_file
 from visemeflow.phonetics.types import VisemeSegment
 from visemeflow.rig import load_rig
 from visemeflow.schemas import C, CurveSource, Curves, split_utterance_id
@@ -50,18 +52,26 @@ def synth_utterance(
     rig = load_rig(rig_path)
     take = make_take(rig, segments, n_frames, source.speaker, source.utterance_id, config)
 
-    # The output is a corpus: its folders are the id's speaker and name as they are (not store paths).
+    # The output is a corpus: its folders are the id's speaker and name as they are (not store paths). On object
+    # storage the files are written in a local folder first, then each uploaded whole, the video last: the flow
+    # takes an utterance whose video is there as rendered.
     speaker, name = split_utterance_id(source.utterance_id)
-    folder = Path(out_root) / speaker
-    folder.mkdir(parents=True, exist_ok=True)
-    alignment = folder / (name + Path(source.alignment_path).suffix)
-    audio = folder / f"{name}.wav"
-    atomic_write(alignment, lambda tmp: shutil.copyfile(local_input(source.alignment_path), tmp))
-    samples, rate = read_audio(local_input(source.audio_path))
-    atomic_write(audio, lambda tmp: sf.write(tmp, samples, rate, subtype="PCM_16", format="WAV"))
-    video = write_video(folder / f"{name}.{config.video_ext}", render_take(rig, take), config.fps, samples, rate)
-    landmarks = write_landmarks(take.landmarks, folder / f"{name}.landmarks.parquet")
-    atomic_write_text(folder / f"{name}.camera.json", json.dumps(camera_record(take), indent=1))
+    remote = is_url(out_root)
+    with tempfile.TemporaryDirectory(prefix="visemeflow-synth-") if remote else nullcontext(out_root) as base:
+        folder = Path(base) / speaker
+        folder.mkdir(parents=True, exist_ok=True)
+        alignment = folder / (name + Path(source.alignment_path).suffix)
+        audio = folder / f"{name}.wav"
+        atomic_write(alignment, lambda tmp: shutil.copyfile(local_input(source.alignment_path), tmp))
+        samples, rate = read_audio(local_input(source.audio_path))
+        atomic_write(audio, lambda tmp: sf.write(tmp, samples, rate, subtype="PCM_16", format="WAV"))
+        video = write_video(folder / f"{name}.{config.video_ext}", render_take(rig, take), config.fps, samples, rate)
+        landmarks = write_landmarks(take.landmarks, folder / f"{name}.landmarks.parquet")
+        camera = folder / f"{name}.camera.json"
+        atomic_write_text(camera, json.dumps(camera_record(take), indent=1))
+        if remote:
+            alignment, audio, camera, landmarks, video = (
+                put_file(f, f"{out_root}/{speaker}/{Path(f).name}") for f in (alignment, audio, camera, landmarks, video))
 
     variant = truth_variant(config)
     Store(store_root).save_curves(Curves(
