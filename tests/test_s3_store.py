@@ -1107,3 +1107,64 @@ def test_train_on_s3_resumes_on_any_machine_from_the_stored_checkpoint_and_predi
     assert f"<code>s3://{bucket}/learn</code>" in page and 'id="chart-sweep-0"' in page
     assert not result.empty and len(result.utterances) == 5 and len(result.charts) > 5   # 4 ingested + 1 predicted
     assert "tiny" in page.split('id="robustness"', 1)[1]
+
+
+def test_a_lease_is_held_across_machines_renewed_while_held_and_taken_from_a_dead_holder(bucket, monkeypatch):
+    """`Store.held`: a second holder is refused with the holder named while the first holds it, however long (the
+    lease object is rewritten); released at the end; one not renewed for LOCK_LEASE_S is taken."""
+    import errno
+    import socket
+
+    import s3fs
+
+    import visemeflow.storage.store as store_module
+
+    monkeypatch.setattr(store_module, "LOCK_LEASE_S", 2.0)
+    url = f"s3://{bucket}/leased"
+    fs = s3fs.S3FileSystem(use_listings_cache=False)
+    key = f"{bucket}/leased/.locks/serve.lease"
+    with Store(url).held("serve", "the test store"):
+        first = fs.info(key)["LastModified"]
+        time.sleep(3.5)    # beyond the lease: renewed, so still held
+        with pytest.raises(StoreError) as refused:
+            with Store(url).held("serve", "the test store"):
+                pass
+        assert refused.value.errno == errno.EBUSY
+        assert f"the test store is held by {socket.gethostname()} pid {os.getpid()} (renewed" in str(refused.value)
+        assert fs.info(key, refresh=True)["LastModified"] > first
+    assert not fs.exists(key)
+    fs.pipe_file(key, b"gone-host pid 1 0123456789abcdef")   # a holder killed with -9 never removes its lease
+    with pytest.raises(StoreError, match="held by gone-host pid 1"):
+        with Store(url).held("serve", "the test store"):
+            pass
+    time.sleep(3.2)
+    with Store(url).held("serve", "the test store"):
+        assert fs.cat_file(key).startswith(f"{socket.gethostname()} pid {os.getpid()} ".encode())
+
+
+def test_a_lease_in_a_folder_store_refuses_a_second_holder(tmp_path):
+    with Store(tmp_path / "store").held("serve", "the folder store"):
+        with pytest.raises(StoreError, match=f"the folder store is held by .* pid {os.getpid()}"):
+            with Store(tmp_path / "store").held("serve", "the folder store"):
+                pass
+    with Store(tmp_path / "store").held("serve", "the folder store"):
+        pass
+
+
+def test_a_second_serve_of_a_bucket_store_is_refused_before_it_starts_a_server(bucket, monkeypatch):
+    """Two `visemeflow serve` of one bucket store (on two machines: here a held lease) would each schedule the
+    pipeline; the second stops with one line naming the first, before starting any server."""
+    import signal
+
+    from visemeflow.ops import serve as serve_module
+
+    started = []
+    monkeypatch.setattr(serve_module, "ensure_server", lambda *a, **k: started.append(a))
+    monkeypatch.setattr(signal, "signal", lambda *a: None)
+    url = f"s3://{bucket}/served-twice"
+    with Store(url).held("serve", "held by the first serve"):
+        with pytest.raises(serve_module.ServerStartError,
+                           match=rf"another `visemeflow serve` runs on this store: the store {url} is held by .* pid "
+                                 r".*; stop it first, or serve another store"):
+            serve_module.serve_stages(url, None, port=0)
+    assert started == []

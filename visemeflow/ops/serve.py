@@ -16,6 +16,7 @@ served flow run may name paths only under the folders `serve` was started with, 
 """
 
 import ctypes
+import errno
 import fcntl
 import functools
 import importlib
@@ -30,7 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import Annotated
@@ -600,6 +601,27 @@ def _tail(log: Path, lines: int = 30) -> str:
         return "(no log)"
 
 
+@contextmanager
+def serving(store: Root) -> Iterator[None]:
+    """Held while serve runs on a store on object storage: one serve of a bucket store at a time on any machine (its
+    lease in the store, `Store.held`). Two would each schedule the pipeline and hold their own deployments. A
+    folder store is guarded by `home_lock` on its database (in the store)."""
+    if isinstance(store, Path):
+        yield
+        return
+    from visemeflow.storage import Store, StoreError
+
+    with ExitStack() as stack:
+        try:
+            stack.enter_context(Store(store).held("serve", f"the store {store}"))
+        except StoreError as exc:
+            if exc.errno != errno.EBUSY:
+                raise
+            raise ServerStartError(f"another `visemeflow serve` runs on this store: {exc.strerror}; stop it first, "
+                                   "or serve another store") from None
+        yield
+
+
 def serve_home(store: Root) -> Path:
     """Where serve keeps the Prefect database, log and auth string of `store`: `<store>/.prefect-serve/`, or for a
     store on object storage a folder of this user's on this machine named by the URL's digest."""
@@ -625,7 +647,7 @@ def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CR
     store = _location(store)
     corpus = _location(corpus) if corpus else last_ingested_corpus(store)
     allowed = serve_roots(store, corpus, roots)
-    with ensure_server(serve_home(store), port) as api, using_roots(allowed):
+    with serving(store), ensure_server(serve_home(store), port) as api, using_roots(allowed):
         deployments = build_deployments(store, corpus, cron, timezone)
         pipeline = deployments[0]
         echo(f"Prefect UI: {ui_url(api.url)}  (API {api.url})")

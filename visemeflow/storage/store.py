@@ -40,6 +40,7 @@ import secrets
 import shutil
 import socket
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -616,6 +617,81 @@ class Store:
         finally:
             try:
                 if fs.cat_file(key) == token:   # never another holder's (ours may have been broken as stale)
+                    fs.rm_file(key)
+            except FileNotFoundError:
+                pass
+
+    @contextmanager
+    def held(self, name: str, what: str) -> Iterator[None]:
+        """Hold the lease `name` (for `what`, named in the refusal) while the block runs, for hours if need be;
+        StoreError (EBUSY) naming the holder when another holder's lease is live, on any machine.
+
+        On object storage the lease is an object created only where none exists (`If-None-Match: *`), rewritten
+        every `LOCK_LEASE_S` / 4 by a background thread while held (its date, the server's clock, is the
+        heartbeat) and removed at the end. One not rewritten for `LOCK_LEASE_S` is a dead holder's and is taken
+        over; its old holder, if it was only stalled, sees the object is no longer its own and stops renewing. In a
+        folder it is an `flock`, which the kernel releases when its holder dies."""
+        lock_path = self.root / ".locks" / f"{validate_name(name, 'lease name')}.lease"
+        if not self.remote:
+            try:
+                lock_path.parent.mkdir(parents=True, exist_ok=True)
+                fh = open(lock_path, "a+")
+            except OSError as exc:
+                raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc.strerror or exc}") from exc
+            with fh:
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    fh.seek(0)
+                    holder = fh.read().strip() or "another process"
+                    raise StoreError(errno.EBUSY, f"{what} is held by {holder}") from None
+                fh.seek(0)
+                fh.truncate()
+                fh.write(f"{this_machine()} pid {os.getpid()}")
+                fh.flush()
+                yield
+            return
+        fs, key = self.root.fs, lock_path.path
+        holder = f"{socket.gethostname()} pid {os.getpid()}"
+        token = f"{holder} {secrets.token_hex(8)}".encode()
+        for _ in range(5):
+            try:
+                fs.pipe_file(key, token, mode="create")
+                break
+            except FileExistsError:
+                try:
+                    stamp, other = _timestamp(fs.modified(key)), fs.cat_file(key).decode("utf-8", "replace")
+                except FileNotFoundError:
+                    continue   # released between the calls
+                age = time.time() + self._server_clock_skew(lock_path) - stamp
+                if age > LOCK_LEASE_S:
+                    fs.rm_file(key)   # a dead holder's
+                    continue
+                other = other.rsplit(" ", 1)[0] if " pid " in other else "another holder"
+                raise StoreError(errno.EBUSY, f"{what} is held by {other} (renewed {age:.0f} s ago; a lease "
+                                              f"not renewed for {LOCK_LEASE_S:.0f} s is taken for a dead one's)") from None
+        else:
+            raise StoreError(errno.EBUSY, f"{what}: its lease {lock_path} kept changing hands")
+        stop = threading.Event()
+
+        def renew() -> None:
+            while not stop.wait(LOCK_LEASE_S / 4):
+                try:
+                    if fs.cat_file(key) != token:
+                        return   # taken over as a dead holder's: never take it back
+                    fs.pipe_file(key, token)
+                except Exception:   # a missed renewal is retried; LOCK_LEASE_S allows three
+                    continue
+
+        renewer = threading.Thread(target=renew, name=f"lease-{name}", daemon=True)
+        renewer.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            renewer.join(timeout=10)
+            try:
+                if fs.cat_file(key) == token:
                     fs.rm_file(key)
             except FileNotFoundError:
                 pass
