@@ -3,6 +3,7 @@ fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare] [--joint N]
                                             [--compare-flow PRESET:ROI] [--compare-config JSON] [--compare-storage]
+                                            [--compare-mesh JSON]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -382,6 +383,9 @@ def main() -> int:
                         help="instead of --compare's solvers: the default L_flow (TrackingConfig's flow_preset and "
                              "flow_max_roi_px) as before, TrackingConfig(flow_preset=PRESET, flow_max_roi_px=ROI) "
                              "as after (ROI empty: native size)")
+    parser.add_argument("--compare-mesh", default=None, metavar="JSON",
+                        help="instead of --compare's solvers: the default FaceMeshConfig against one with these "
+                             "fields changed, e.g. '{\"refine_landmarks\": false}' (same TrackingConfig)")
     parser.add_argument("--compare-config", default=None, metavar="JSON",
                         help="instead of --compare's solvers: the default TrackingConfig as before, the default updated "
                              "with JSON as after, e.g. '{\"pose_iterations\": 50, \"fast_iterations\": 100}'; "
@@ -394,7 +398,7 @@ def main() -> int:
                         help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
                              "runs it (landmarks per clip; a group's time shared over its clips by frames)")
     args = parser.parse_args()
-    if args.compare_flow or args.compare_config or args.compare_storage:
+    if args.compare_flow or args.compare_config or args.compare_storage or args.compare_mesh:
         args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
@@ -424,6 +428,13 @@ def main() -> int:
     if args.compare_storage:
         configs = {"before": config, "after": config}
         label = "before (flows to float16 by NumPy) -> after (by OpenCV)"
+    meshes = {"before": mesh, "after": mesh}
+    if args.compare_mesh:
+        import json
+
+        update = json.loads(args.compare_mesh)
+        configs, meshes = {"before": config, "after": config}, {"before": mesh, "after": mesh.model_copy(update=update)}
+        label = f"before (default FaceMeshConfig) -> after ({update})"
     if not args.compare:
         configs = {"after": config}          # the default alone (not --compare's other method)
     vectorised = optical_flow._CONVERT_FP16
@@ -436,7 +447,7 @@ def main() -> int:
         install_profile()
         store = Store(tmp / "store")
         run_clip(clips[0], store, rig, config, mesh)            # warm-up: MediaPipe's and torch's first-use costs
-        fitted = {path: fit_identities(clips, store, rig, configs[path], mesh, args.repeats) for path in paths}
+        fitted = {path: fit_identities(clips, store, rig, configs[path], meshes[path], args.repeats) for path in paths}
         started = time.perf_counter()
         groups: list[list[Clip]] = []
         for clip in clips:
@@ -449,13 +460,14 @@ def main() -> int:
                 for path in paths:
                     storage(path)
                     if args.joint:
-                        for clip, run in zip(group, run_group(group, store, rig, configs[path], mesh, *fitted[path])):
+                        for clip, run in zip(group, run_group(group, store, rig, configs[path], meshes[path],
+                                                              *fitted[path])):
                             clip.runs.setdefault(path, []).append(run)
                         continue
                     clip = group[0]
                     identity, share = fitted[path][0].get(clip.uid), fitted[path][1].get(clip.uid, (0.0, 0.0))
-                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], mesh, identity,
-                                                                   share))
+                    clip.runs.setdefault(path, []).append(run_clip(clip, store, rig, configs[path], meshes[path],
+                                                                   identity, share))
             print(f"  [{time.perf_counter() - started:6.0f} s] run {r + 1} of {args.repeats}", file=sys.stderr,
                   flush=True)
     print()
