@@ -422,7 +422,8 @@ def _output_location(ctx: typer.Context, value):
 
 
 @stage_command(app, SynthParams, [
-    Opt("corpus", argument=True, callback=_corpus), Opt("out", type=str, callback=_output_location), STORE, Opt("rig", callback=_path),
+    Opt("corpus", argument=True, callback=_corpus), Opt("out", type=str, callback=_output_location), STORE,
+    Opt("rig", callback=_path),
     Opt("config.width"), Opt("config.height"), Opt("config.fps"), Opt("config.truth.seed"),
 ])
 def synth(params: SynthParams) -> None:

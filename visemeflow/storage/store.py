@@ -663,13 +663,18 @@ class Store:
                     stamp, other = _timestamp(fs.modified(key)), fs.cat_file(key).decode("utf-8", "replace")
                 except FileNotFoundError:
                     continue   # released between the calls
-                age = time.time() + self._server_clock_skew(lock_path) - stamp
+                try:
+                    age = time.time() + self._server_clock_skew(lock_path) - stamp
+                except OSError as exc:
+                    raise StoreError(exc.errno or 0, f"cannot take the lease {lock_path}: {exc}") from exc
                 if age > LOCK_LEASE_S:
                     fs.rm_file(key)   # a dead holder's
                     continue
                 other = other.rsplit(" ", 1)[0] if " pid " in other else "another holder"
                 raise StoreError(errno.EBUSY, f"{what} is held by {other} (renewed {age:.0f} s ago; a lease "
                                               f"not renewed for {LOCK_LEASE_S:.0f} s is taken for a dead one's)") from None
+            except OSError as exc:
+                raise StoreError(exc.errno or 0, f"cannot take the lease {lock_path}: {exc}") from exc
         else:
             raise StoreError(errno.EBUSY, f"{what}: its lease {lock_path} kept changing hands")
         stop = threading.Event()
