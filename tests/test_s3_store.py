@@ -442,8 +442,10 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
                                  parameters={"store": url, "corpus": corpus, "n_shards": 2})
     # workers poll every second (Prefect's default is 10 s): a run is now shorter than one default poll, and the
     # second worker would pick its run up after the first had finished
+    # A worker registers by its heartbeat; one refused by the test server's SQLite under load ("database is locked",
+    # seen once in CI) is sent again after this many seconds rather than Prefect's 30
     env = {**os.environ, "PREFECT_API_URL": prefect_api_url, "PREFECT_LOGGING_LEVEL": "WARNING",
-           "PREFECT_WORKER_QUERY_SECONDS": "1"}
+           "PREFECT_WORKER_QUERY_SECONDS": "1", "PREFECT_WORKER_HEARTBEAT_SECONDS": "5"}
     env.pop("VISEMEFLOW_SERVE_ROOTS", None)
     prefect = str(Path(sys.executable).with_name("prefect"))
     # each worker (and the flow runs it starts) with a temporary folder and a Prefect home of its own, as on two
