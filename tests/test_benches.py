@@ -90,15 +90,8 @@ SLOW = {
 }
 """bench -> (why it is not run by default, its smallest arguments)."""
 
-FLOWS = {"ingest_procedural.py", "track_tasks.py"}
-"""Benches whose smallest run runs Prefect flows: they get the session's test server (bench/prefect_api.py's
-`VISEMEFLOW_BENCH_API_URL`) instead of each starting a temporary one (about 20 s of a core each)."""
-
-
-def run_bench(name: str, args: list[str], tmp_path, api_url: str | None = None) -> None:
+def run_bench(name: str, args: list[str], tmp_path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "WARNING"}
-    if api_url:
-        env["VISEMEFLOW_BENCH_API_URL"] = api_url
     argv = [sys.executable, str(BENCH / name), *(a.replace("{tmp}", str(tmp_path)) for a in args)]
     done = subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     out = (done.stdout + done.stderr)[-4000:]
@@ -116,9 +109,8 @@ def test_every_bench_is_run_or_marked():
 
 
 @pytest.mark.parametrize("name", sorted(QUICK))
-def test_bench_runs_on_its_smallest_input(name, tmp_path, request):
-    api_url = request.getfixturevalue("prefect_api_url") if name in FLOWS else None
-    run_bench(name, QUICK[name], tmp_path, api_url)
+def test_bench_runs_on_its_smallest_input(name, tmp_path):
+    run_bench(name, QUICK[name], tmp_path)
 
 
 @pytest.mark.parametrize("name", sorted(SLOW))
