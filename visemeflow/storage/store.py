@@ -185,6 +185,16 @@ be checked across machines). The locked sections are short (one shard file read 
 judged on the object store's clock (`Store._server_clock_skew`), not the machines'."""
 
 
+def _lock_file(lock_path: Path):
+    """The local lock file `lock_path` opened for reading and appending (made with its folder when missing); a
+    StoreError naming it when it cannot be."""
+    try:
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        return open(lock_path, "a+")
+    except OSError as exc:
+        raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc.strerror or exc}") from exc
+
+
 def _timestamp(moment) -> float:
     """POSIX seconds of an object's date (fsspec gives datetimes, naive ones in UTC)."""
     return moment.timestamp() if moment.tzinfo else moment.replace(tzinfo=timezone.utc).timestamp()
@@ -572,12 +582,7 @@ class Store:
             with self._object_lock(lock_path):
                 yield
             return
-        try:
-            lock_path.parent.mkdir(parents=True, exist_ok=True)
-            fh = open(lock_path, "a")
-        except OSError as exc:
-            raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc.strerror or exc}") from exc
-        with fh:
+        with _lock_file(lock_path) as fh:
             fcntl.flock(fh, fcntl.LOCK_EX)
             try:
                 yield
@@ -633,12 +638,7 @@ class Store:
         folder it is an `flock`, which the kernel releases when its holder dies."""
         lock_path = self.root / ".locks" / f"{validate_name(name, 'lease name')}.lease"
         if not self.remote:
-            try:
-                lock_path.parent.mkdir(parents=True, exist_ok=True)
-                fh = open(lock_path, "a+")
-            except OSError as exc:
-                raise StoreError(exc.errno or 0, f"cannot lock {lock_path}: {exc.strerror or exc}") from exc
-            with fh:
+            with _lock_file(lock_path) as fh:
                 try:
                     fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
