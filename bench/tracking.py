@@ -1,6 +1,7 @@
 """Benchmark: phoneme-guided viseme tracking (paper 4.3-4.4), fast vs faithful solver, guided vs unguided, on one core.
 
 Run:  .venv/bin/python bench/tracking.py [--utterances N] [--faithful-frames F] [--rgb-whole K] [--grid]
+                                        [--flow-sizes PX,PX,...]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)), so every frames/s is
@@ -27,6 +28,9 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
   ... lm             the row above it with fast_method="lm": the fast solver's Levenberg-Marquardt method beside
                      the default Adam (50 pose + 200 joint steps with cosine decay), same objective.
   guided fast+flow face  the flow row with flow_region="face": DIS on the whole face instead of the lower face.
+  guided fast+flow PX    with --flow-sizes: the flow row with TrackingConfig(flow_max_roi_px=PX), the face shrunk
+                     until its longer side is at most PX pixels before DIS runs on its lower part (the rendered
+                     face spans about 230 px, as the 700x700 talking heads' 242x256 do; the default is 256).
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames
@@ -363,7 +367,18 @@ def print_ratios(full: dict[str, Tally], sub: dict[str, Tally], f: int) -> None:
 
 # ---- Table 1 ----------------------------------------------------------------------------------------------------
 
-def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole: int) -> None:
+def add_flow_sizes(sizes: list[int]) -> tuple[str, ...]:
+    """Rows of the flow row at other `flow_max_roi_px` values (--flow-sizes), added to METHODS; their names."""
+    names = []
+    for px in sizes:
+        name = f"guided fast+flow {px}"
+        METHODS[name] = ("fast", TrackingConfig(flow_max_roi_px=px), "flow")
+        names.append(name)
+    return tuple(names)
+
+
+def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole: int,
+              flow_sizes: tuple[str, ...] = ()) -> None:
     started = time.perf_counter()
     utterances = load_utterances(rig, limit)
     warm_up(rig, utterances[0])
@@ -373,7 +388,7 @@ def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole
           f"{SynthConfig().landmark_noise_px:g} px, miss rate {SynthConfig().landmark_miss_rate:.0%})")
     print()
 
-    full = {name: Tally() for name in FULL_ROWS}
+    full = {name: Tally() for name in FULL_ROWS + flow_sizes}
     subset_source: list[Utterance] = []
     render_seconds = 0.0
     rgb_rows: list[tuple[str, Tally]] = []
@@ -383,7 +398,7 @@ def synthetic(rig: VisemeRig, limit: int | None, faithful_frames: int, rgb_whole
         start = time.perf_counter()
         u.frames = render(rig, u)
         render_seconds += time.perf_counter() - start
-        for name in ("guided fast+flow", "guided fast+flow lm", "guided fast+flow face"):
+        for name in ("guided fast+flow", "guided fast+flow lm", "guided fast+flow face") + flow_sizes:
             run_method(name, rig, u, full[name])
         if k < FAITHFUL_UTTERANCES:
             subset_source.append(u.cut(faithful_frames))
@@ -563,13 +578,16 @@ def main() -> int:
     parser.add_argument("--rgb-whole", type=int, default=0,
                         help="Also run the rgb row on the first K utterances whole (slow: ~1-2 frames/s).")
     parser.add_argument("--grid", action="store_true", help="Also run Table 2 on the GRID s1 clips (real video).")
+    parser.add_argument("--flow-sizes", default="", metavar="PX,PX",
+                        help="Also run the flow row with the face shrunk to at most PX pixels for DIS.")
     args = parser.parse_args()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); solver defaults: fast "
           f"{TrackingConfig().fast_iterations} it (+{TrackingConfig().rgb_iterations} rgb it), faithful "
           f"{TrackingConfig().iterations} it x {len(TrackingConfig().passes)} passes per frame, pose init "
           f"{TrackingConfig().pose_iterations} it")
     print()
-    synthetic(load_demo_rig(), args.utterances, args.faithful_frames, args.rgb_whole)
+    sizes = [int(v) for v in args.flow_sizes.split(",") if v.strip()]
+    synthetic(load_demo_rig(), args.utterances, args.faithful_frames, args.rgb_whole, add_flow_sizes(sizes))
     if args.grid:
         grid()
     return 0

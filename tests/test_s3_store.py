@@ -489,7 +489,13 @@ def test_a_process_work_pool_with_two_workers_runs_the_pipeline_on_s3(bucket, vi
         for w in workers:
             w.terminate()
         for w in workers:
-            w.wait(60)
+            # a worker whose channel to the server is reconnecting after a refused heartbeat (seen in a full run)
+            # can take minutes to act on SIGTERM; how fast Prefect's worker stops is not what this test is about
+            try:
+                w.wait(60)
+            except subprocess.TimeoutExpired:
+                w.kill()
+                w.wait(30)
         for home in homes:
             shutil.rmtree(home, ignore_errors=True)
     assert [s.type.value for s in states] == ["COMPLETED", "COMPLETED"], [s.message for s in states]
