@@ -43,9 +43,8 @@ class TrackingConfig(BaseModel):
                                 "talking heads, mouth error 2.730 -> 2.733 px; GRID's faces are smaller and unchanged. "
                                 "192: talking heads end to end 31.8 -> 40.0 frames/s per core, mouth error 2.741 -> "
                                 "2.747 px (bench/end_to_end.py --joint 5 --compare-flow medium:192; "
-                                "`FlowConfig.max_roi_px`). With the flow on the lower face, 160: talking heads "
-                                "40.3 -> 47.6 frames/s, mouth error 2.742 -> 2.756 px, synthetic takes L1 x 100 "
-                                "5.14 -> 5.15 (docs/reference.md).")
+                                "`FlowConfig.max_roi_px`). 160 is the speed setting for large faces (figures in "
+                                "docs/reference.md, 'The face's size for DIS').")
     flow_region: Literal["face", "lower"] = Field(
         "lower", description="Where the optical flow is computed: lower (the default: the chin, the nose's base and "
                              "the mouth, which hold every point the flow term follows, at the whole face's "
