@@ -1,8 +1,9 @@
 """The Prefect server a bench's flows report to (`prefect_server()`): a throw-away local one by default
 (`prefect_test_harness`, about 20 s of a core to start, mostly its database set-up), or the running server that
-`VISEMEFLOW_BENCH_API_URL` names (`prefect server start`, or the test session's server when tests/test_benches.py
-smoke-runs the bench). A bench variable rather than PREFECT_API_URL, so that a user's own PREFECT_API_URL (their
-team's server, Prefect Cloud) never receives a bench's throw-away runs."""
+`VISEMEFLOW_BENCH_API_URL` names (a `prefect server start` of your own; tests/test_benches.py no longer hands the
+benches its session's server: a work-pool test in the same worker then found that server's SQLite locked).
+A bench variable rather than PREFECT_API_URL, so that a user's own PREFECT_API_URL (their team's server, Prefect
+Cloud) never receives a bench's throw-away runs."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Benchmark: phoneme-guided viseme tracking (paper 4.3-4.4), fast vs faithful solver, guided vs unguided, on one core.
 
 Run:  .venv/bin/python bench/tracking.py [--utterances N] [--faithful-frames F] [--rgb-whole K] [--grid]
-                                        [--flow-sizes PX,PX,...]
+                                        [--flow-sizes [PRESET:]PX,...]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)), so every frames/s is
@@ -31,6 +31,8 @@ curves (`generate_procedural_curves`) guide the tracker; the camera is the take'
   guided fast+flow PX    with --flow-sizes: the flow row with TrackingConfig(flow_max_roi_px=PX), the face shrunk
                      until its longer side is at most PX pixels before DIS runs on its lower part (the rendered
                      face spans about 230 px, as the 700x700 talking heads' 242x256 do; the default is 256).
+                     An item PRESET:PX (e.g. fast:160) also sets TrackingConfig(flow_preset=PRESET): row
+                     "guided fast+flow PRESET PX".
   guided fast+rgb    `solve_fast`, TrackingConfig(use_flow=False, use_rgb=True), L_rgb from
                      `visemeflow.tracking.photo.PhotoTerm` on the rendered frames.
 Block (a) runs the cheap rows on every utterance, whole. Block (b) is the faithful subset: the first F frames
@@ -318,12 +320,13 @@ def fmt(value: float, spec: str) -> str:
 
 def print_table(title: str, tallies: dict[str, Tally]) -> None:
     print(title)
-    head = (f"{'method':<22}{'frames':>7}{'mouth px det':>14}{'mouth px true':>15}{'L1x100':>8}"
+    w = max([22, *(len(name) + 1 for name in tallies)])
+    head = (f"{'method':<{w}}{'frames':>7}{'mouth px det':>14}{'mouth px true':>15}{'L1x100':>8}"
             f"{'top1@apex':>11}{'top2@apex':>11}{'fps':>9}{'fps+prep':>10}")
     print(head)
     print("-" * len(head))
     for name, t in tallies.items():
-        print(f"{name:<22}{t.frames:>7}{fmt(t.det, '.3f'):>14}{fmt(t.true, '.3f'):>15}{fmt(t.l1, '.2f'):>8}"
+        print(f"{name:<{w}}{t.frames:>7}{fmt(t.det, '.3f'):>14}{fmt(t.true, '.3f'):>15}{fmt(t.l1, '.2f'):>8}"
               f"{fmt(100 * t.acc1, '.1f') + '%':>11}{fmt(100 * t.acc2, '.1f') + '%':>11}"
               f"{fmt(t.fps, '.2f'):>9}{fmt(t.fps_prep, '.2f'):>10}")
     first = next(iter(tallies.values()))
@@ -367,12 +370,15 @@ def print_ratios(full: dict[str, Tally], sub: dict[str, Tally], f: int) -> None:
 
 # ---- Table 1 ----------------------------------------------------------------------------------------------------
 
-def add_flow_sizes(sizes: list[int]) -> tuple[str, ...]:
-    """Rows of the flow row at other `flow_max_roi_px` values (--flow-sizes), added to METHODS; their names."""
+def add_flow_sizes(items: list[str]) -> tuple[str, ...]:
+    """Rows of the flow row at other `flow_max_roi_px` values, each item `PX` or `PRESET:PX` (--flow-sizes; PRESET
+    also sets `flow_preset`), added to METHODS; their names."""
     names = []
-    for px in sizes:
-        name = f"guided fast+flow {px}"
-        METHODS[name] = ("fast", TrackingConfig(flow_max_roi_px=px), "flow")
+    for item in items:
+        preset, _, px = item.rpartition(":")
+        config = TrackingConfig(flow_max_roi_px=int(px), **({"flow_preset": preset} if preset else {}))
+        name = f"guided fast+flow {preset + ' ' if preset else ''}{int(px)}"
+        METHODS[name] = ("fast", config, "flow")
         names.append(name)
     return tuple(names)
 
@@ -578,15 +584,16 @@ def main() -> int:
     parser.add_argument("--rgb-whole", type=int, default=0,
                         help="Also run the rgb row on the first K utterances whole (slow: ~1-2 frames/s).")
     parser.add_argument("--grid", action="store_true", help="Also run Table 2 on the GRID s1 clips (real video).")
-    parser.add_argument("--flow-sizes", default="", metavar="PX,PX",
-                        help="Also run the flow row with the face shrunk to at most PX pixels for DIS.")
+    parser.add_argument("--flow-sizes", default="", metavar="[PRESET:]PX,...",
+                        help="Also run the flow row with the face shrunk to at most PX pixels for DIS "
+                             "(PRESET:PX also picks the DIS preset, e.g. fast:160).")
     args = parser.parse_args()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); solver defaults: fast "
           f"{TrackingConfig().fast_iterations} it (+{TrackingConfig().rgb_iterations} rgb it), faithful "
           f"{TrackingConfig().iterations} it x {len(TrackingConfig().passes)} passes per frame, pose init "
           f"{TrackingConfig().pose_iterations} it")
     print()
-    sizes = [int(v) for v in args.flow_sizes.split(",") if v.strip()]
+    sizes = [v.strip() for v in args.flow_sizes.split(",") if v.strip()]
     synthetic(load_demo_rig(), args.utterances, args.faithful_frames, args.rgb_whole, add_flow_sizes(sizes))
     if args.grid:
         grid()
