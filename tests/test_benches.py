@@ -85,6 +85,9 @@ SLOW = {
                           "its first step", ["run", "{tmp}/tuning.pt.gz", "--device", "cpu", "--tune", "1",
                                              "--seeds", "0", "--steps", "2", "--cost", "--cost-encoders", "base",
                                              "--cost-steps", "1"]),
+    "prompts.py": ("needs the Debian packages asterisk-core-sounds-{en,es,fr,it,ru}{,-wav} (CC-BY-SA-3.0 / CC-BY-3.0 "
+                   "telephone prompts, about 100 MB) and Whisper-encodes them", ["--utterances", "1", "--languages",
+                                                                              "en,fr"]),
     "thirdlang.py": ("needs the Debian packages fillets-ng-data-nl/-cs (GPL-2 voice recordings) and Whisper-encodes "
                      "them", ["--utterances", "1"]),
 }

@@ -1,0 +1,239 @@
+"""Audio-to-curves models on real read speech in five languages none of them trained on: the Asterisk telephone
+prompts (English, Spanish, French, Italian, Russian; four professional voices). Printed, never asserted.
+
+Run: .venv/bin/python bench/prompts.py [--root /] [--models default[,default-fbank,PATH.pt]] [--utterances 20]
+     [--languages en,es,fr,it,ru] [--seed 0] [--tolerance 0.1]
+
+Data: the Debian packages `asterisk-core-sounds-<lang>-wav` (the prompts, 8 kHz 16-bit WAV, about 25 min per
+language) and `asterisk-core-sounds-<lang>` (their transcripts, `/usr/share/doc/asterisk-core-sounds-<lang>/
+core-sounds-<lang>.txt.gz`, one `name: text` line per prompt), version 1.6.1-1; licence CC-BY-SA-3.0 (en, es, fr)
+and CC-BY-3.0 (it, ru), per each package's copyright file. Voices: Allison Smith (en_US and es_MX), June Wallack
+(fr_CA), Carlo (it_IT, male), IvrvoiceRU (ru_RU). This repository holds neither audio nor text: both are read at run
+time from the installed packages (`apt-get install asterisk-core-sounds-en asterisk-core-sounds-en-wav ...`) or from
+`--root DIR`, a folder the .debs were extracted into with `dpkg -x`. Without them the bench prints the install
+command and exits.
+
+Which prompts: per language, a seeded random pick (`--seed`) of `--utterances` among the prompts of 1.5-8 s whose
+text has at least 4 words and a b/p/m letter (Cyrillic б/п/м), and no digit, bracket or slash (a `[tone]` is no
+speech; a number is read in words the text does not give).
+
+Alignment (made here, each run, into a temporary corpus folder read by bench/realspeech.py's `read_corpus`):
+- English: pocketsphinx forced alignment of the transcript (`visemeflow.phonetics.forcealign.align_transcript`, the
+  product's own aligner): every phone placed in the audio.
+- Spanish, French, Italian, Russian: no forced aligner here knows them, so bench/thirdlang.py's method: the words by
+  dynamic time warping of the recording's MFCCs against espeak-ng's word-by-word synthesis, each word's espeak-ng
+  phones spread evenly over it (`NORMALISE` maps espeak's IPA to the product's table). Rough: word boundaries within
+  ~50-150 ms, phones inside a word off by the order of a phone, so the strict per-phone closure figures understate a
+  model there; `MBP within +-T s` is the tolerant reading.
+The audio is 8 kHz telephone speech (nothing above 4 kHz), resampled to 16 kHz: a channel none of the models
+trained on, on top of the voices and languages.
+
+Rows and columns as bench/thirdlang.py's: per language, each model of `--models` (its curves at 30 fps,
+`predict_curves`, the Whisper encoder's outputs cached in bench/out/prompts/cache), and `procedural (alignment)`, the
+alignment's own procedural curves (the ceiling of the definitions); b/p/m phones whose top viseme is MBP, false MBP
+closures (other phones whose top is MBP), f/v phones whose top is FFF, top-2 agreement, and b/p/m phones with MBP the
+top viseme of a frame within `--tolerance` s. Then all languages pooled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import random
+import re
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from encoders import CachedPredictor  # noqa: E402
+from realspeech import SAMPLE_RATE, read_corpus  # noqa: E402
+from report import print_grid  # noqa: E402
+from thirdlang import align_words, row, with_gaps, word_phones, words_of  # noqa: E402
+
+from visemeflow.ingest.audio import read_audio  # noqa: E402
+from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
+from visemeflow.learning.features import resample_audio  # noqa: E402
+from visemeflow.learning.train import load_model  # noqa: E402
+from visemeflow.phonetics.inventory import UnknownPhonemeError, map_phone  # noqa: E402
+from visemeflow.phonetics.textgrid import Tier, format_textgrid  # noqa: E402
+
+SOUNDS = Path("usr/share/asterisk/sounds")
+DOCS = Path("usr/share/doc")
+CACHE = Path(__file__).resolve().parent / "out" / "prompts" / "cache"
+VOICES = {"en": "en_US_f_Allison", "es": "es_MX_f_Allison", "fr": "fr_CA_f_June", "it": "it_IT_m_Carlo",
+          "ru": "ru_RU_f_IvrvoiceRU"}
+ESPEAK = {"es": "es", "fr": "fr", "it": "it", "ru": "ru"}
+NAMES = {"en": "English (en_US, Allison)", "es": "Spanish (es_MX, Allison)", "fr": "French (fr_CA, June)",
+         "it": "Italian (it_IT, Carlo)", "ru": "Russian (ru_RU)"}
+LABIAL = re.compile(r"[bpmбпм]", re.IGNORECASE)
+NORMALISE = {"ɡ": "g", "ː": "", "ɾ": "r", "ʲ": ""}
+"""espeak-ng IPA -> the product's table: the script g to ASCII g; length marks and palatalisation dropped (a
+palatalised Russian consonant looks like its plain one); the tap as r."""
+
+
+def packages(lang: str) -> str:
+    return f"asterisk-core-sounds-{lang} asterisk-core-sounds-{lang}-wav"
+
+
+def prompts(root: Path, lang: str) -> dict[str, str]:
+    """name -> text of a language's transcript file (the first line of a name wins)."""
+    path = root / DOCS / f"asterisk-core-sounds-{lang}" / f"core-sounds-{lang}.txt.gz"
+    out: dict[str, str] = {}
+    with gzip.open(path, "rt", encoding="utf-8", errors="replace") as f:
+        for line in f:
+            if line.startswith(";") or ":" not in line:
+                continue
+            name, text = line.split(":", 1)
+            out.setdefault(name.strip(), text.strip())
+    return out
+
+
+def pick(root: Path, lang: str, count: int, seed: int) -> list[tuple[str, Path, str]]:
+    """(name, wav path, text) of the prompts judged (module docstring)."""
+    folder = root / SOUNDS / VOICES[lang]
+    usable = []
+    for name, text in sorted(prompts(root, lang).items()):
+        wav = folder / f"{name}.wav"
+        if ("/" in name or not wav.is_file() or re.search(r"[\d\[\]/()]", text) or len(words_of(text)) < 4
+                or not LABIAL.search(text)):
+            continue
+        if 1.5 <= sf.info(wav).duration <= 8.0:
+            usable.append((name, wav, text))
+    random.Random(seed).shuffle(usable)
+    return usable[:count]
+
+
+def ipa_phones(phone: str) -> list[str]:
+    """One espeak-ng phone as phones of the product's IPA table: `NORMALISE` applied and espeak's own marks dropped
+    (`-` of French liaison, `"` and `^`); a cluster the table lacks as one symbol (Russian `ja`, Italian `ss`) split
+    into its symbols."""
+    clean = "".join(NORMALISE.get(c, c) for c in re.sub(r'[-"^]', "", phone))
+    if not clean:
+        return []
+    try:
+        map_phone(clean, "ipa")
+        return [clean]
+    except UnknownPhonemeError:
+        return list(clean)
+
+
+def espeak_phones(words: list[tuple[float, float, str]], lang: str) -> list[tuple[float, float, str]]:
+    out = []
+    for t0, t1, w in words:
+        ps = [q for p in word_phones(w.lower(), ESPEAK[lang]) for q in ipa_phones(p)]
+        step = (t1 - t0) / max(len(ps), 1)
+        out += [(t0 + k * step, t1 if k == len(ps) - 1 else t0 + (k + 1) * step, p) for k, p in enumerate(ps)]
+    return out
+
+
+def align(audio: np.ndarray, text: str, lang: str, source: str):
+    """(words, phones) as (start, end, label) lists."""
+    if lang == "en":
+        from visemeflow.phonetics.forcealign import align_transcript
+
+        done = align_transcript(audio, SAMPLE_RATE, text, source=source)
+        return ([(w.start_s, w.end_s, w.label) for w in done.words],
+                [(p.start_s, p.end_s, p.label) for p in done.phones])
+    words = align_words(audio, words_of(text), ESPEAK[lang])
+    return words, espeak_phones(words, lang)
+
+
+def build_corpus(root: Path, tmp: Path, languages: list[str], count: int, seed: int) -> dict[str, Path]:
+    """`<tmp>/<lang>/<lang>/<name>.wav` + `.TextGrid` for the prompts of each language."""
+    roots = {}
+    for lang in languages:
+        folder = tmp / lang / lang
+        folder.mkdir(parents=True)
+        roots[lang] = folder.parent
+        for name, wav, text in pick(root, lang, count, seed):
+            samples, rate = read_audio(wav)
+            audio = resample_audio(samples, rate, SAMPLE_RATE)
+            end = len(audio) / SAMPLE_RATE
+            try:
+                words, phones = align(audio, text, lang, f"{VOICES[lang]}/{name}.wav")
+            except ValueError as exc:     # a word neither dictionary nor espeak-ng can spell: that prompt is left out
+                print(f"  {lang} {name}: not aligned ({exc}); left out")
+                continue
+            sf.write(folder / f"{name}.wav", audio, SAMPLE_RATE, subtype="PCM_16")
+            tiers = [Tier(tier, "IntervalTier", 0.0, end, with_gaps(items, end))
+                     for tier, items in (("words", words), ("phones", phones))]
+            (folder / f"{name}.TextGrid").write_text(format_textgrid(tiers, 0.0, end), encoding="utf-8")
+    return roots
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, default=Path("/"),
+                    help="where the packages are installed or extracted (dpkg -x): DIR/usr/share/asterisk/sounds")
+    ap.add_argument("--models", default="default", help="comma-separated: shipped model names or .pt files")
+    ap.add_argument("--languages", default=",".join(VOICES), help="comma-separated, of " + ",".join(VOICES))
+    ap.add_argument("--utterances", type=int, default=20, help="prompts per language")
+    ap.add_argument("--seed", type=int, default=0, help="which prompts (a seeded random pick)")
+    ap.add_argument("--tolerance", type=float, default=0.1, help="seconds either side of a b/p/m phone")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    languages = [x.strip() for x in args.languages.split(",") if x.strip()]
+    unknown = [x for x in languages if x not in VOICES]
+    if unknown:
+        raise SystemExit(f"unknown language(s) {unknown}: use some of {','.join(VOICES)}")
+    lacking = [x for x in languages if not (args.root / SOUNDS / VOICES[x]).is_dir()
+               or not (args.root / DOCS / f"asterisk-core-sounds-{x}" / f"core-sounds-{x}.txt.gz").is_file()]
+    if lacking:
+        print(f"the Asterisk prompts are not under {args.root} for {','.join(lacking)}; install them with\n"
+              f"    sudo apt-get install {' '.join(packages(x) for x in lacking)}\nor extract the .debs with "
+              f"`dpkg -x PKG.deb DIR` and pass --root DIR. Nothing measured.")
+        return
+    if shutil.which("espeak-ng") is None:
+        print("espeak-ng is needed for the alignment: sudo apt-get install espeak-ng. Nothing measured.")
+        return
+
+    models = {}
+    for name in [m.strip() for m in args.models.split(",") if m.strip()]:
+        path = shipped_model_path(name) if name in SHIPPED_MODELS else Path(name)
+        models[name] = load_model(path)[0]
+
+    started = time.perf_counter()
+    tmp = Path(tempfile.mkdtemp(prefix="prompts-"))
+    try:
+        roots = build_corpus(args.root, tmp, languages, args.utterances, args.seed)
+        corpora = {lang: read_corpus(root) for lang, root in roots.items()}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    aligned = time.perf_counter() - started
+
+    predict = CachedPredictor(CACHE)
+    header = ["model", "b/p/m: MBP top", "false MBP", "f/v: FFF top", "top-2 agreement",
+              f"MBP within +-{args.tolerance:g} s"]
+    rows: list = []
+    pooled: dict[str, tuple[list, list]] = {}
+    for lang, utts in corpora.items():
+        seconds = sum(len(u.audio) for u in utts) / SAMPLE_RATE
+        rows.append(f"{NAMES[lang]}: {len(utts)} prompt{'s' * (len(utts) != 1)}, {seconds:.1f} s of speech, "
+                    f"{'pocketsphinx' if lang == 'en' else 'espeak-ng + DTW'} alignment")
+        sources = {name: [predict(model, u.audio, u.n) for u in utts] for name, model in models.items()}
+        sources["procedural (alignment)"] = [u.procedural for u in utts]
+        for name, curves in sources.items():
+            rows.append(row(name, curves, utts, args.tolerance))
+            pooled.setdefault(name, ([], []))[0].extend(curves)
+            pooled[name][1].extend(utts)
+    if len(corpora) > 1:
+        rows.append(f"all {len(corpora)} languages pooled")
+        rows += [row(name, curves, utts, args.tolerance) for name, (curves, utts) in pooled.items()]
+
+    print_grid(header, rows)
+    print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "
+          f"asterisk-core-sounds-{{{','.join(languages)}}}{{,-wav}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read from "
+          f"{args.root / SOUNDS}.")
+
+
+if __name__ == "__main__":
+    main()
