@@ -5,7 +5,9 @@ Data: ../shared/data/grid_s1 (GRID s1 .mpg with reference landmarks/*.mediapipe4
 tests fail, never skip, when the data is missing.
 """
 
+import os
 import re
+import sys
 from fractions import Fraction
 from pathlib import Path
 
@@ -197,6 +199,21 @@ def test_a_detector_exception_is_an_error_naming_the_clip():
     with pytest.raises(FaceMeshError, match=r"rgba-clip: MediaPipe FaceMesh failed on frame 0") as caught:
         detect_frames(rgba, fps=25, name="rgba-clip")
     assert caught.value.error_type == "DetectorError"
+
+
+def test_mediapipe_start_up_lines_are_held_back_and_every_other_stderr_line_is_kept(capfd):
+    from visemeflow.tracking import facemesh
+
+    capfd.readouterr()
+    track = detect_frames(read_video_frames(grid_video("bbaf2n"), 0, 5), fps=25, name="bbaf2n")
+    assert track.detected.all()
+    err = capfd.readouterr().err
+    assert not re.search(r"inference_feedback_manager|landmark_projection_calculator|XNNPACK", err), err
+    with facemesh._quiet_graph_start():
+        os.write(2, b"W0000 00:00:1 9 inference_feedback_manager.cc:114] Feedback manager...\n")
+        os.write(2, b"E0000 a real problem\n")
+        print("a Python warning", file=sys.stderr)
+    assert sorted(capfd.readouterr().err.splitlines()) == ["E0000 a real problem", "a Python warning"]
 
 
 # ---- several faces ------------------------------------------------------------------------------------------------

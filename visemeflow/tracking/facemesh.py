@@ -33,7 +33,12 @@ of the frames; the message gives the share), ``DetectorError`` (MediaPipe raised
 from __future__ import annotations
 
 import os
+import re
+import sys
+import tempfile
+import threading
 from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -150,6 +155,47 @@ def _mediapipe(path: str):
     return face_mesh, face_detection
 
 
+# MediaPipe's C++ side writes a few lines to the process's stderr when a graph starts and runs its first frame
+# (TensorFlow Lite's XNNPACK delegate, its feedback manager, NORM_RECT without image dimensions, absl's note that it
+# logs to stderr): six lines a clip, none of them about the user's video. They are held back there; anything else
+# written to stderr meanwhile (by any thread) is written on afterwards. One graph start at a time holds stderr.
+_MEDIAPIPE_NOISE = re.compile(rb"inference_feedback_manager\.cc|landmark_projection_calculator\.cc|"
+                              rb"Created TensorFlow Lite XNNPACK delegate|before absl::InitializeLog\(\) is called")
+_STDERR_HELD = threading.Lock()
+
+
+@contextmanager
+def _quiet_graph_start() -> Iterator[None]:
+    """Inside: file descriptor 2 goes to a temporary file; on leaving, its lines that are not MediaPipe's start-up
+    noise (`_MEDIAPIPE_NOISE`) are written to the real stderr. Without a file descriptor 2 (an embedding host), a
+    plain pass-through."""
+    with _STDERR_HELD:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
+            saved = None
+        if saved is None:
+            yield
+            return
+        with tempfile.TemporaryFile() as held:
+            os.dup2(held.fileno(), 2)
+            try:
+                yield
+            finally:
+                try:
+                    sys.stderr.flush()
+                except (OSError, ValueError):
+                    pass
+                os.dup2(saved, 2)
+                os.close(saved)
+                held.seek(0)
+                kept = b"".join(line for line in held.read().splitlines(keepends=True)
+                                if not _MEDIAPIPE_NOISE.search(line))
+                if kept:
+                    os.write(2, kept)
+
+
 def _face_arrays(result, width: int, height: int) -> list[np.ndarray]:
     """(478, 3) float64 arrays (x, y in pixels, z as returned) of the faces in one FaceMesh result."""
     faces = []
@@ -165,43 +211,59 @@ class _MultiFace(Exception):
     """A probe saw more than one face: the clip is run again following several faces."""
 
 
-def _run(frames: Iterable[tuple[np.ndarray, float]], name: str, config: FaceMeshConfig, n_faces: int,
-         probe: bool) -> tuple[list[list[np.ndarray]], list[float], tuple[int, int]]:
-    """Per frame the FaceMesh faces found, the frame times and the frame size (width, height)."""
+def _start_graphs(name: str, config: FaceMeshConfig, n_faces: int, probe: bool):
+    """(FaceMesh, the face-detector probe or None), started."""
     face_mesh, face_detection = _mediapipe(name)
-    per_frame: list[list[np.ndarray]] = []
-    times: list[float] = []
-    size: tuple[int, int] | None = None
     try:
         mesh = face_mesh.FaceMesh(static_image_mode=False, max_num_faces=n_faces,
                                   refine_landmarks=config.refine_landmarks,
                                   min_detection_confidence=config.min_detection_confidence,
                                   min_tracking_confidence=config.min_tracking_confidence)
-        detector = (face_detection.FaceDetection(model_selection=0,
-                                                 min_detection_confidence=config.min_detection_confidence)
-                    if probe and config.probe_every > 0 else None)
     except Exception as exc:  # noqa: BLE001 - MediaPipe raises RuntimeError/ValueError/... from its graph
         raise FaceMeshError(name, "DetectorError", f"MediaPipe FaceMesh could not start ({type(exc).__name__}: {exc})") \
             from exc
+    try:
+        detector = (face_detection.FaceDetection(model_selection=0,
+                                                 min_detection_confidence=config.min_detection_confidence)
+                    if probe and config.probe_every > 0 else None)
+    except Exception as exc:  # noqa: BLE001
+        mesh.close()
+        raise FaceMeshError(name, "DetectorError", f"MediaPipe FaceMesh could not start ({type(exc).__name__}: {exc})") \
+            from exc
+    return mesh, detector
+
+
+def _run(frames: Iterable[tuple[np.ndarray, float]], name: str, config: FaceMeshConfig, n_faces: int,
+         probe: bool) -> tuple[list[list[np.ndarray]], list[float], tuple[int, int]]:
+    """Per frame the FaceMesh faces found, the frame times and the frame size (width, height). The graphs start and
+    run the first frame inside `_quiet_graph_start`."""
+    per_frame: list[list[np.ndarray]] = []
+    times: list[float] = []
+    size: tuple[int, int] | None = None
+    mesh = detector = None
     try:
         for i, (frame, t) in enumerate(frames):
             frame = np.asarray(frame)
             if size is None:
                 size = (int(frame.shape[1]), int(frame.shape[0])) if frame.ndim >= 2 else (0, 0)
-            try:
-                if detector is not None and i % config.probe_every == 0:
-                    if len(detector.process(frame).detections or ()) > 1:
-                        raise _MultiFace
-                result = mesh.process(frame)
-            except _MultiFace:
-                raise
-            except Exception as exc:  # noqa: BLE001 - a detector failure is this clip's error, never a crash
-                raise FaceMeshError(name, "DetectorError",
-                                    f"MediaPipe FaceMesh failed on frame {i} ({type(exc).__name__}: {exc})") from exc
+            with _quiet_graph_start() if i == 0 else nullcontext():
+                if i == 0:
+                    mesh, detector = _start_graphs(name, config, n_faces, probe)
+                try:
+                    if detector is not None and i % config.probe_every == 0:
+                        if len(detector.process(frame).detections or ()) > 1:
+                            raise _MultiFace
+                    result = mesh.process(frame)
+                except _MultiFace:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - a detector failure is this clip's error, never a crash
+                    raise FaceMeshError(name, "DetectorError",
+                                        f"MediaPipe FaceMesh failed on frame {i} ({type(exc).__name__}: {exc})") from exc
             per_frame.append(_face_arrays(result, *size))
             times.append(float(t))
     finally:
-        mesh.close()
+        if mesh is not None:
+            mesh.close()
         if detector is not None:
             detector.close()
     return per_frame, times, size or (0, 0)
