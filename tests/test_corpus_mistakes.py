@@ -247,6 +247,7 @@ def test_pipeline_and_ingest_take_one_audio_or_video_file_as_a_corpus_of_one(tmp
     assert done.returncode == 1, done.stdout + done.stderr
     assert "all 1 utterances failed" in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert f"MissingAlignment: loose/take: no alignment for {lone}" in done.stderr and "Montreal" in done.stderr
+    assert "for English speech, put its words in <name>.txt" in done.stderr   # the route without an aligner
     (reject,) = pq.read_table(tmp_path / "lone" / "tables" / "rejects").to_pylist()
     assert (reject["utterance_id"], reject["error_type"], reject["path"]) == ("loose/take", "MissingAlignment",
                                                                               str(lone))

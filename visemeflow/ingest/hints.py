@@ -8,9 +8,11 @@ SHOWN = 5
 """Rejects printed one per line before `... and N more`."""
 _LINE_CHARS = 300
 
-ALIGNER_HINT = ("these utterances have no alignment (phone timings): run a forced aligner such as the Montreal Forced "
-                "Aligner (`mfa align CORPUS english_us_arpa english_us_arpa ALIGNED`, then put each <name>.TextGrid "
-                "beside its audio), or use `visemeflow speak` / `visemeflow predict`, which need no alignment")
+ALIGNER_HINT = ("these utterances have no alignment (phone timings): for English speech, put its words in <name>.txt "
+                "beside the audio and ingest aligns them itself; otherwise run a forced aligner such as the Montreal "
+                "Forced Aligner (`mfa align CORPUS english_us_arpa english_us_arpa ALIGNED`, then put each "
+                "<name>.TextGrid beside its audio), or use `visemeflow speak` / `visemeflow predict`, which need no "
+                "alignment")
 TRANSCRIPT_HINT = ("English transcripts beside their audio (<name>.lab or <name>.txt) are aligned by ingest itself; "
                    "these could not be: other languages need an aligner of their own, such as the Montreal Forced "
                    "Aligner (`mfa align CORPUS MODEL DICTIONARY ALIGNED`, a TextGrid beside each audio), or "
