@@ -146,7 +146,7 @@ def test_a_refused_value_is_one_line_naming_its_option(tmp_path):
     assert bad.output.strip() == "error: --solver must be one of fast, faithful, not 'quick'"
     bad = runner.invoke(app, ["track", "--store", str(tmp_path / "s"), "--flow-preset", "slow"])
     assert bad.exit_code == 2
-    assert bad.output.strip() == "error: --flow-preset must be one of ultrafast, fast, medium, not 'slow'"
+    assert bad.output.strip() == "error: --flow-preset must be one of ultrafast, fast, balanced, medium, not 'slow'"
     bad = runner.invoke(app, ["sweep", "--store", str(tmp_path / "s"), "--sizes", "10,x"])
     assert bad.exit_code == 2 and bad.output.startswith("error: --sizes: ") and "\n" == bad.output[-1]
     bad = runner.invoke(app, ["landmarks", "--store", str(tmp_path / "s"), "--max-faces", "1"])

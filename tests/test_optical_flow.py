@@ -24,6 +24,7 @@ from visemeflow.tracking.optical_flow import (
     roi_around,
     sample_flow,
     estimate_optical_flow,
+    _make_dis,
 )
 from visemeflow.tracking.losses import flow_loss
 from visemeflow.tracking.video import read_video_frames
@@ -56,8 +57,16 @@ def shifted(img: np.ndarray, tx: float, ty: float) -> np.ndarray:
 
 def test_config_defaults_and_validation():
     cfg = FlowConfig()
-    assert (cfg.preset, cfg.fb_threshold_px, cfg.grayscale) == ("medium", 1.0, True)
+    assert (cfg.preset, cfg.fb_threshold_px, cfg.grayscale) == ("balanced", 1.0, True)
     assert cfg.cv_preset == cv2.DISOPTICAL_FLOW_PRESET_MEDIUM
+    assert cfg.dis_settings == {"VariationalRefinementIterations": 0, "PatchStride": 4, "GradientDescentIterations": 16}
+    assert FlowConfig(preset="medium").dis_settings == {}
+    dis = _make_dis(cfg)   # the settings reach OpenCV's DIS; the rest stay medium's
+    assert (dis.getVariationalRefinementIterations(), dis.getPatchStride(), dis.getGradientDescentIterations(),
+            dis.getFinestScale(), dis.getPatchSize()) == (0, 4, 16, 1, 8)
+    medium = _make_dis(FlowConfig(preset="medium"))
+    assert (medium.getVariationalRefinementIterations(), medium.getPatchStride(),
+            medium.getGradientDescentIterations()) == (5, 3, 25)
     assert FlowConfig(preset="ULTRAFAST").cv_preset == cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST
     assert FlowConfig(preset="fast").cv_preset == cv2.DISOPTICAL_FLOW_PRESET_FAST
     with pytest.raises(ValueError, match="preset"):
@@ -101,7 +110,7 @@ def test_subpixel_translation_is_recovered(preset):
     assert fwd.shape == bwd.shape == (H, W, 2) and fwd.dtype == np.float32
     err_f = np.linalg.norm(fwd - t, axis=-1)[INNER]
     err_b = np.linalg.norm(bwd + t, axis=-1)[INNER]
-    # medium (the default) refines variationally; ultrafast / fast stop at a coarser scale
+    # medium refines variationally; balanced (the default) does not, ultrafast / fast stop at a coarser scale
     bound = 0.2 if preset == "medium" else 0.5
     assert err_f.max() < bound and err_b.max() < bound
     if preset == "medium":
@@ -346,21 +355,25 @@ def test_track_flow_correspondences_per_pair(field):
         np.testing.assert_allclose(disp, np.broadcast_to(POSITIONS[j] - POSITIONS[j + 1], disp.shape), atol=0.2)
 
 
-def test_track_flow_correspondences_chain(field):
+@pytest.mark.parametrize("preset, bound", [("medium", 0.3), ("balanced", 0.35)])
+def test_track_flow_correspondences_chain(preset, bound):
     """Following the flow frame to frame carries points along the pattern, and the backward flows bring them
-    back: the forward and the backward pass of the tracker see the same motion."""
+    back: the forward and the backward pass of the tracker see the same motion. Without medium's variational
+    refinement, balanced (the default) drifts further over the eight chained steps: 0.32 px at worst here, medium
+    0.23 (one step, what L_flow uses: 0.07 px both)."""
+    field = estimate_optical_flow(moving_frames(), FlowConfig(preset=preset))
     start = _grid_points()
     pts = start.copy()
     for j in range(1, 5):
         disp, ok = field.correspondences(j, pts)
         assert ok.all()
         pts = pts + disp
-        np.testing.assert_allclose(pts, start + (POSITIONS[j] - POSITIONS[0]), atol=0.3)
+        np.testing.assert_allclose(pts, start + (POSITIONS[j] - POSITIONS[0]), atol=bound)
     for j in range(3, -1, -1):
         disp, ok = field.backward_correspondences(j, pts)
         assert ok.all()
         pts = pts + disp
-    np.testing.assert_allclose(pts, start, atol=0.3)
+    np.testing.assert_allclose(pts, start, atol=bound)
 
 
 def test_track_flow_roi_matches_full_frame(field):
@@ -624,7 +637,7 @@ def test_flows_are_stored_with_numpy_s_float16_values_and_a_crop_s_gray_is_the_g
 
     rgb = [shifted(texture(120, 160, seed=3), 1.5 * k, -0.5 * k) for k in range(3)]   # colour: gray matters
     roi, scale_roi = (30, 20, 90, 70), (10, 5, 140, 110)
-    config = FlowConfig(max_roi_px=100)
+    config = FlowConfig(preset="medium", max_roi_px=100)   # an OpenCV preset as it comes (balanced: test_config_...)
     field = estimate_optical_flow(rgb, config, roi=roi, scale_roi=scale_roi)
     x0, y0, w, h = roi
     s = 100 / 140

@@ -306,7 +306,7 @@ def test_a_long_clip_reports_its_frames_and_solver_steps_as_it_goes(rig):
 
 def test_the_flow_settings_of_the_tracking_config_reach_dis(monkeypatch, rig):
     """`TrackingConfig.flow_preset` / `flow_max_roi_px` / `flow_region` are what L_flow's DIS runs with (default:
-    medium, on the lower face, at the resolution that shrinks the whole face to 256 px; bench/end_to_end.py
+    balanced, on the lower face, at the resolution that shrinks the whole face to 256 px; bench/end_to_end.py
     --compare-flow and --compare-config measured them)."""
     import visemeflow.tracking.utterance as utterance
     from visemeflow.tracking.optical_flow import clip_roi
@@ -326,7 +326,7 @@ def test_the_flow_settings_of_the_tracking_config_reach_dis(monkeypatch, rig):
         tracked = track_video(VideoInput(str(video), str(landmarks), 25.0, 75), np.zeros((75, N_VISEMES), np.float32),
                               rig, config)
         assert np.isfinite(tracked.result.curves).all()
-    assert [(c.preset, c.max_roi_px) for c, _, _ in seen] == [("medium", 256), ("fast", 64)]
+    assert [(c.preset, c.max_roi_px) for c, _, _ in seen] == [("balanced", 256), ("fast", 64)]
     track = utterance.load_track(str(landmarks), 25.0, 75, str(video))
     face, lower = (utterance.flow_roi(track, 360, 288, region) for region in ("face", "lower"))
     assert [(roi, scale_roi) for _, roi, scale_roi in seen] == [(lower, face), (face, face)]

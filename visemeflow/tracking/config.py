@@ -27,15 +27,19 @@ class TrackingConfig(BaseModel):
     guidance: bool = Field(True, description="Phoneme guidance on; off sets w3 = w4 = 0 (paper Fig. 3-4 ablation).")
     use_rgb: bool = Field(False, description="Include L_rgb (needs the video frames).")
     use_flow: bool = Field(True, description="Include L_flow (needs the video frames).")
-    flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
-        "medium", description="How carefully the optical flow (which helps tracking follow the skin between the "
-                              "landmarks, L_flow) is computed: medium (the default, the most accurate), fast or "
-                              "ultrafast (faster, slightly less accurate). Measured before the flow ran on the lower "
-                              "face (bench/end_to_end.py --joint 5 --compare-flow fast:256, one core): fast took GRID "
-                              "end to end from 47-54 to 62-70 frames/s and 700x700 talking heads from 32 to 50-51, "
-                              "mouth error 1.410 -> 1.420 px and 2.741 -> 2.762 px, MBP 14/14 both; synthetic takes "
-                              "L1 x 100 to the truth 5.135 -> 5.174 (no flow: 5.620) "
-                              "(`tracking.optical_flow.FlowConfig.preset`).")
+    flow_preset: Literal["ultrafast", "fast", "balanced", "medium"] = Field(
+        "balanced", description="How carefully the optical flow (which helps tracking follow the skin between the "
+                                "landmarks, L_flow) is computed: balanced (the default), medium (OpenCV's medium "
+                                "preset, the default before; slower for the same curves), fast or ultrafast (faster, "
+                                "slightly less accurate). balanced is medium without its variational refinement and "
+                                "with fewer iterations: measured (bench/end_to_end.py --joint 5 --compare-flow medium:256, one "
+                                "core, two runs) GRID end to end 53.0-58.6 -> 55.8-66.6 frames/s and 700x700 talking "
+                                "heads 34.1-42.2 -> 47.2-50.6, the flow step 1.9-2.2x as fast, mouth error 1.409 px "
+                                "both and 2.742 -> 2.741 px, MBP 14/14 both; synthetic takes (bench/tracking.py) L1 x 100 to the truth 5.14 -> 5.15, "
+                                "mouth 0.464 -> 0.469 px (no flow: 5.62). fast (measured against medium before the "
+                                "flow ran on the lower face): GRID 47-54 -> 62-70 frames/s, talking heads 32 -> "
+                                "50-51, mouth error 1.410 -> 1.420 px and 2.741 -> 2.762 px, L1 x 100 5.135 -> 5.174 "
+                                "(`tracking.optical_flow.FlowConfig.preset`, `PRESET_SETTINGS`).")
     flow_max_roi_px: int | None = Field(
         256, ge=16, description="Largest size in pixels of the face the optical flow works on: a larger face is "
                                 "shrunk until its longer side fits (smaller: faster, slightly less accurate; none, null "
