@@ -125,10 +125,22 @@ def ipa_phones(phone: str) -> list[str]:
         return list(clean)
 
 
+LABIODENTAL = {"f", "v"}
+
+
+def labiodental_nasals(phones: list[str]) -> list[str]:
+    """`m` before f or v as `ɱ`, the labiodental nasal: espeak-ng writes a nasal assimilated to a following f as m
+    (Spanish "conferencia" `komfeɾenθja`, "enfermo" `emfeɾmo`, Italian "informazioni"), but the lips do not close
+    there: the lower lip meets the upper teeth for the f, and the nasal is made in the same place ([ɱ], FFF in the
+    product's IPA table). Judged as m, the model's FFF at such a phone counted as a b/p/m phone left open."""
+    return ["ɱ" if p == "m" and k + 1 < len(phones) and phones[k + 1] in LABIODENTAL else p
+            for k, p in enumerate(phones)]
+
+
 def espeak_phones(words: list[tuple[float, float, str]], lang: str) -> list[tuple[float, float, str]]:
     out = []
     for t0, t1, w in words:
-        ps = [q for p in word_phones(w.lower(), ESPEAK[lang]) for q in ipa_phones(p)]
+        ps = labiodental_nasals([q for p in word_phones(w.lower(), ESPEAK[lang]) for q in ipa_phones(p)])
         step = (t1 - t0) / max(len(ps), 1)
         out += [(t0 + k * step, t1 if k == len(ps) - 1 else t0 + (k + 1) * step, p) for k, p in enumerate(ps)]
     return out
