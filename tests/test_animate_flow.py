@@ -290,7 +290,7 @@ def test_a_cache_hit_never_serves_a_package_another_character_wrote(tmp_path, tw
     assert run(arkit)["cached"]
 
 
-def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, characters):
+def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, characters, capfd):
     store = Store(tmp_path / "store")
     tiny_model(store)
     text = tmp_path / "notes.wav"
@@ -314,3 +314,16 @@ def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, charac
     assert done.exit_code == 1, done.output
     assert "speak: packages 1, written 0, cached 1, rejected 0" in done.output and "audio_rejected 1" in done.output
     assert f"rejected {text}: " in done.output
+
+    # a click too short for one frame of curves alone: a reject in one line, the run failed, no traceback
+    click = tmp_path / "click.wav"
+    sf.write(click, np.full(96, 0.01, np.float32), 16000)   # 6 ms: no frame at 30 fps
+    capfd.readouterr()
+    state = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[click], characters=[characters[0]],
+                                   out=tmp_path / "out"), return_state=True)
+    assert state.is_failed()
+    assert state.message.startswith(f"predict: every audio file was rejected: {click}: 6 ms of audio makes no "
+                                    "frame of curves at 30 fps"), state.message
+    assert "Traceback" not in "".join(capfd.readouterr())
+    (row,) = store.read_table("rejects", "predict").to_pylist()
+    assert row[C.PATH] == str(click) and row[C.ERROR_TYPE] == "AudioTooShort"

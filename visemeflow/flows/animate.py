@@ -13,12 +13,13 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
+from prefect.states import Failed
 
 from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
 from visemeflow.location import input_digest, input_exists, local_input
 from visemeflow.rig.character import CharacterError
 from visemeflow.dashboards.records import record_packages
-from visemeflow.flows.errors import RerunError
+from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.common import StageRun, collect_utterance_results, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
 from visemeflow.hashing import file_hash
@@ -141,8 +142,12 @@ def speak_flow(params: SpeakParams):
     audio file `predict` rejects is left out (`audio_rejected`, `rejects`); the others are animated."""
     from visemeflow.flows.predict import PredictParams, predict_flow
 
-    predicted = predict_flow(PredictParams(store=params.store, model=params.model, audio=params.audio,
-                                           fps=params.fps))
+    state = predict_flow(PredictParams(store=params.store, model=params.model, audio=params.audio,
+                                       fps=params.fps), return_state=True)
+    if state.is_failed():   # every file rejected, or an unexpected error: predict's one-line reasons, no traceback
+        failure = state.result(raise_on_failure=False)
+        return Failed(message=state.message, data=StageFailed(state.message, getattr(failure, "summary", {})))
+    predicted = state.result()
     rows = predicted["predictions"]
     animated = animate_flow(AnimateParams(
         store=params.store, characters=params.characters, source=CurveSource.PREDICTED, variant=params.model,

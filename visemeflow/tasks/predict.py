@@ -8,7 +8,7 @@ import time
 from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, Inputs
 
-from visemeflow.ingest.audio import AudioFile
+from visemeflow.ingest.audio import AudioError, AudioFile
 from visemeflow.schemas import CurveSource, Curves
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
@@ -50,6 +50,10 @@ def predict_audio(store_root: str, model_name: str, model_hash: str, audio_path:
     started = time.perf_counter()
     source = AudioFile(audio_path)
     duration = source.n_samples / source.rate
+    if round(duration * fps) <= 0:   # no frame of curves (predict_long's count): a reject, not a crash in the store
+        raise AudioError(audio_path, "AudioTooShort",
+                         f"{1000 * duration:.0f} ms of audio makes no frame of curves at {fps:g} fps (a frame is "
+                         f"{1000 / fps:.0f} ms)")
 
     def progress(done: int, total: int) -> None:
         if total > 1:
