@@ -214,20 +214,18 @@ class _MultiFace(Exception):
 def _start_graphs(name: str, config: FaceMeshConfig, n_faces: int, probe: bool):
     """(FaceMesh, the face-detector probe or None), started."""
     face_mesh, face_detection = _mediapipe(name)
+    mesh = None
     try:
         mesh = face_mesh.FaceMesh(static_image_mode=False, max_num_faces=n_faces,
                                   refine_landmarks=config.refine_landmarks,
                                   min_detection_confidence=config.min_detection_confidence,
                                   min_tracking_confidence=config.min_tracking_confidence)
-    except Exception as exc:  # noqa: BLE001 - MediaPipe raises RuntimeError/ValueError/... from its graph
-        raise FaceMeshError(name, "DetectorError", f"MediaPipe FaceMesh could not start ({type(exc).__name__}: {exc})") \
-            from exc
-    try:
         detector = (face_detection.FaceDetection(model_selection=0,
                                                  min_detection_confidence=config.min_detection_confidence)
                     if probe and config.probe_every > 0 else None)
-    except Exception as exc:  # noqa: BLE001
-        mesh.close()
+    except Exception as exc:  # noqa: BLE001 - MediaPipe raises RuntimeError/ValueError/... from its graph
+        if mesh is not None:
+            mesh.close()
         raise FaceMeshError(name, "DetectorError", f"MediaPipe FaceMesh could not start ({type(exc).__name__}: {exc})") \
             from exc
     return mesh, detector
