@@ -143,6 +143,40 @@ def test_rerun_animate_makes_one_utterance_again_with_the_last_settings(tmp_path
     assert (store.root / target).is_file()
 
 
+def test_a_store_of_guided_and_unguided_tracked_curves_is_animated_whole_each_utterance_from_its_own(
+        tmp_path, characters):
+    """Tracked curves in two variants (aligned videos guided, the others unguided): animate with no variant names
+    every utterance once, from its own variant (the guided one where both exist), one rejects table for the stage;
+    `rerun` of an unguided utterance finds its curves; a named variant order is kept."""
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    store = make_curve_store(tmp_path / "store", n=4)
+    rng = np.random.default_rng(3)
+    for i, variant in enumerate(["guided-fast", "guided-fast", "unguided-fast", "unguided-fast"]):
+        store.write_curves(curves_table(f"spk/u{i}", "tracked", variant, rng.random((25, 16)).astype(np.float32), 25.0))
+    # u0 also has older unguided curves: the guided ones win (the track stage's last run wrote guided-fast)
+    store.write_curves(curves_table("spk/u0", "tracked", "unguided-fast", np.zeros((25, 16), np.float32), 25.0))
+    store.write_run_config("track", {"variant": "guided-fast"})
+    result = animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="tracked",
+                                        config=AnimateConfig(formats=("curves-csv",))))
+    assert result["packages"] == 4 and result["rejected"] == 0
+    assert result["variants"] == "guided-fast: 2, unguided-fast: 2"
+    frames = {r["utterance_id"]: np.loadtxt(store.root / r["files"]["curves-csv"], delimiter=",", skiprows=1)
+              for r in result["packages_written"]}
+    assert set(frames) == {f"spk/u{i}" for i in range(4)}
+    assert frames["spk/u0"][:, 2:].max() > 0   # guided (random), not the all-zero unguided take
+    # a named order: unguided first, so u0 now comes from its zero curves
+    named = animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="tracked",
+                                       variant="unguided-fast,guided-fast", utterances=["spk/u0", "spk/u1"],
+                                       config=AnimateConfig(formats=("curves-csv",))))
+    assert named["variants"] == "unguided-fast: 1, guided-fast: 1"
+    u0 = next(r for r in named["packages_written"] if r["utterance_id"] == "spk/u0")
+    assert np.loadtxt(store.root / u0["files"]["curves-csv"], delimiter=",", skiprows=1)[:, 2:].max() == 0
+    report = rerun_flow(RerunParams(utterance_id="spk/u3", stage="animate", store=store.root))
+    assert report == {"packages": 1, "files": 2}
+
+
 def test_the_pipeline_animates_its_curves_when_characters_are_given(tmp_path, characters):
     from visemeflow.flows.params import PipelineParams
     from visemeflow.flows.pipeline import pipeline_flow

@@ -151,6 +151,16 @@ def test_animate_and_preview_commands_print_every_file_and_refuse_bad_options(tm
     assert all((tmp_path / "out").joinpath(p).is_file() for p in printed)
     bad = runner.invoke(app, ["animate", "--store", str(store.root), "--format", "glb,fbx"])
     assert bad.exit_code == 2 and "unknown export format(s) fbx" in bad.output
+    # tracked curves in two variants (guided and unguided): animated without naming one; a wrong name is one line
+    from visemeflow.schemas import curves_table
+
+    for variant in ("guided-fast", "unguided-fast"):
+        store.write_curves(curves_table("spk/u0", "tracked", variant, np.full((25, 16), 0.5, np.float32), 25.0))
+    both = runner.invoke(app, ["animate", "--store", str(store.root), "--format", "curves-csv"])
+    assert both.exit_code == 0 and "spk/u0 -> ict_visemes" in both.output, both.output
+    bad = runner.invoke(app, ["animate", "--store", str(store.root), "--variant", "guided-fast,nope"])
+    assert bad.exit_code == 2, bad.output
+    assert f"no tracked curves of variant nope in the store {store.root}; it has guided-fast, unguided-fast" in bad.output
     bad = runner.invoke(app, ["animate", "--store", str(store.root), "--convention", "arkit"])
     assert bad.exit_code == 2 and "unknown convention 'arkit'; known: visemeflow16, arkit52, oculus15" in bad.output
     nothing = runner.invoke(app, ["speak", str(tmp_path / "x.wav"), "--model", "nope", "--store", str(store.root)])

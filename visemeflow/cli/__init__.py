@@ -250,19 +250,27 @@ def _check_preset(preset: str, tune_layers: int = 0) -> None:
         _fail(f"--tune-layers: preset {preset!r} has no Whisper encoder to tune (its feature is {feature})")
 
 
-def _check_curves(store: Path, source: str, variant: str | None) -> None:
-    """The store has curves of `source` (of `variant`, or of one variant when none is named): else one line saying
-    which curves it has and what to do, exit 2."""
+def _check_curves(store: Path, source: str, variant: str | None, several: bool = False) -> None:
+    """The store has curves of `source` (of `variant`, or of one variant when none is named; of any when `several`:
+    animate takes each utterance's own, several names may be given comma-separated): else one line saying which
+    curves it has and what to do, exit 2."""
     from visemeflow.flows.train import resolve_variant
     from visemeflow.storage import Store
 
     s = Store(store)
-    if not s.curve_variants(source):
+    stored = s.curve_variants(source)
+    if not stored:
         others = [c for c in ("tracked", "procedural", "captured", "ground_truth", "predicted")
                   if c != source and s.curve_variants(c)]
         then = ", then `visemeflow track` for tracked curves" if source == "tracked" else ""
         _fail(f"no {source} curves in the store {store}; "
               + (f"it has {', '.join(others)} curves: add --source {others[0]}" if others else INGEST_FIRST + then))
+    named = [v.strip() for v in (variant or "").split(",") if v.strip()] if several else [variant] if variant else []
+    missing = [v for v in named if v not in stored]
+    if missing:
+        _fail(f"no {source} curves of variant {', '.join(missing)} in the store {store}; it has {', '.join(stored)}")
+    if several:
+        return
     try:
         resolve_variant(s, source, variant)
     except LookupError as exc:
@@ -679,7 +687,7 @@ def animate(params: AnimateParams) -> None:
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
     _check_characters(params.characters, list(params.config.meshes))
-    _check_curves(params.store, params.source, params.variant)
+    _check_curves(params.store, params.source, params.variant, several=True)
     from visemeflow.flows.animate import animate_flow
 
     _print_packages(dict(animate_flow(params)))

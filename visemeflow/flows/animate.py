@@ -33,6 +33,13 @@ from visemeflow.tasks.common import reject_row, result_storage
 
 
 
+def _last_written(store: Store, source: str) -> str | None:
+    """The variant the stage that makes `source` curves wrote last (its run record), if any."""
+    stage = {"tracked": "track", "procedural": "procedural"}.get(source)
+    run = store.read_run_config(stage) if stage else None
+    return run and (run.get("variant") or (run.get("config") or {}).get("variant"))
+
+
 def resolve_variant(store: Store, source: str, variant: str | None) -> str:
     """The variant of `source` curves to animate: as given, the only one stored, or the one the stage last wrote."""
     if variant:
@@ -40,13 +47,36 @@ def resolve_variant(store: Store, source: str, variant: str | None) -> str:
     variants = store.curve_variants(source)
     if len(variants) == 1:
         return variants[0]
-    stage = {"tracked": "track", "procedural": "procedural"}.get(source)
-    run = store.read_run_config(stage) if stage else None
-    last = run and (run.get("variant") or (run.get("config") or {}).get("variant"))
+    last = _last_written(store, source)
     if last in variants:
         return last
     raise LookupError(f"{store.root}: {len(variants)} variants of {source} curves "
                       f"({', '.join(variants) or 'none; run the stage that makes them first'}); name one")
+
+
+def variant_plan(store: Store, source: str, variant: str | None,
+                 utterances: list[str] | None) -> list[tuple[str, list[str]]]:
+    """Which variant of `source` curves each utterance is animated from: [(variant, utterance ids)], in order.
+
+    `variant` is one name or several, comma-separated, in order of preference; none: every stored variant, the one
+    the stage last wrote first (a tracked corpus holds `guided-fast` curves for aligned videos and
+    `unguided-fast` for the others: both are animated, each utterance once). An utterance is animated from the
+    first variant that has its curves; one that none has goes with the first (its task rejects it: no curves).
+    """
+    stored = store.curve_variants(source)
+    if variant:
+        order = list(dict.fromkeys(validate_name(v.strip(), "variant") for v in variant.split(",") if v.strip()))
+    else:
+        last = _last_written(store, source)
+        order = ([last] if last in stored else []) + [v for v in stored if v != last]
+    if not order:
+        raise LookupError(f"{store.root}: no {source} curves; run the stage that makes them first")
+    present = {v: set(store.curve_ids(source, v)) if v in stored else set() for v in order}
+    wanted = utterances if utterances is not None else sorted(set().union(*present.values()))
+    groups: dict[str, list[str]] = {}
+    for uid in dict.fromkeys(wanted):
+        groups.setdefault(next((v for v in order if uid in present[v]), order[0]), []).append(uid)
+    return [(v, groups[v]) for v in order if v in groups] or [(order[0], [])]
 
 
 def _phones(store: Store, utterance_ids: list[str]) -> dict[str, list[tuple[float, float, str]]]:
@@ -72,14 +102,18 @@ def _markdown(rows: list[dict]) -> str:
 @flow(name="animate", flow_run_name="animate[{params.source}]", task_runner=cpu_thread_pool())
 def animate_flow(params: AnimateParams):
     """Export every (utterance, character) of the chosen curves; bad input becomes rejects, the rest goes on."""
-    variant = resolve_variant(Store(params.store), params.source, params.variant)
+    plan = variant_plan(Store(params.store), params.source, params.variant, params.utterances)
+    variants = [v for v, _ in plan]
+    variant_of = {uid: v for v, uids in plan for uid in uids}
+    label = ", ".join(variants)
     mapping = str(params.mapping.resolve()) if params.mapping else None
     mapping_hash = file_hash(params.mapping) if params.mapping and params.mapping.is_file() else None
     run = StageRun(STAGE, params.store, AnimateSettings(
-        characters=[str(p.resolve()) for p in params.characters], source=params.source, variant=variant,
-        mapping=mapping, out=str(params.out) if params.out else None, n_shards=params.n_shards, config=params.config))
+        characters=[str(p.resolve()) for p in params.characters], source=params.source, variant=variants[0],
+        variants=variants, mapping=mapping, out=str(params.out) if params.out else None, n_shards=params.n_shards,
+        config=params.config))
     store, logger = run.store, run.logger
-    ids = params.utterances if params.utterances is not None else store.curve_ids(params.source, variant)
+    ids = list(variant_of)
     utterances = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances", utterance_ids=ids)
                   .select([C.UTTERANCE_ID, C.AUDIO_PATH]).to_pylist()} if ids else {}
     phones = _phones(store, ids) if params.config.preview else {}
@@ -88,7 +122,7 @@ def animate_flow(params: AnimateParams):
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
         audio = str(audio) if audio and input_exists(audio) else None   # a URL stays one: its task reads it
         per_utterance[uid] = (audio, input_digest(audio) if audio else None,
-                              store.curves_provenance(params.source, variant, uid) or "")
+                              store.curves_provenance(params.source, variant_of[uid], uid) or "")
     out = str(params.out) if params.out else None
     rejects, futures, choices = [], {}, []
     paths = [str(Path(character).resolve()) for character in params.characters]
@@ -107,6 +141,7 @@ def animate_flow(params: AnimateParams):
             continue
         for uid in ids:
             audio, audio_hash, provenance = per_utterance[uid]
+            variant = variant_of[uid]
             inputs = package_inputs(uid, params.source, variant, provenance, character_hash, mapping_hash,
                                     params.config, audio_hash, phones.get(uid))
             present = outputs_present(store, out, key, uid, params.config, audio is not None, inputs)
@@ -130,10 +165,13 @@ def animate_flow(params: AnimateParams):
     # a character that could not be loaded fails every utterance it was asked for
     lost = sum(1 for r in rejects if r[C.UTTERANCE_ID] is None) * max(len(ids), 1)
     failed = sum(1 for r in rejects if r[C.UTTERANCE_ID] is not None) + lost
+    # several variants (guided and unguided tracking): the summary line names them, with how many utterances each
+    used = {"variants": ", ".join(f"{v}: {len(u)}" for v, u in plan)} if len(plan) > 1 else {}
     return run.finish(summary, failed, len(futures) + lost, unexpected=unexpected,
-                      title=f"animate ({params.source}/{variant})", extra={"source": params.source, "variant": variant, "characters": len(params.characters)},
-                      result={**summary, "source": params.source, "variant": variant, "packages_written": reports,
-                              "character_choices": choices})
+                      title=f"animate ({params.source}/{label})",
+                      extra={"source": params.source, "variant": label, "characters": len(params.characters)},
+                      result={**summary, "source": params.source, "variant": label, **used,
+                              "packages_written": reports, "character_choices": choices})
 
 
 @flow(name="speak", flow_run_name="speak[{params.model}]")
@@ -244,14 +282,17 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
 
     if last is None:
         raise RerunError(f"{store.root} has no animate run to repeat; run `visemeflow animate` first")
-    if not store.has_curves(last.source, last.variant, uid):
-        raise RerunError(f"{uid} has no {last.source} curves of variant {last.variant!r} in {store.root}")
+    variants = list(dict.fromkeys([last.variant, *last.variants]))
+    variant = next((v for v in variants if store.has_curves(last.source, v, uid)), None)
+    if variant is None:
+        raise RerunError(f"{uid} has no {last.source} curves of variant {' or '.join(map(repr, variants))} "
+                         f"in {store.root}")
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
     audio = rows[0][C.AUDIO_PATH] if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
     mapping = last.mapping
     task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
-    packages = [task(str(store.root), uid, last.source, last.variant,
-                     store.curves_provenance(last.source, last.variant, uid) or "", path, content_hash(path),
+    packages = [task(str(store.root), uid, last.source, variant,
+                     store.curves_provenance(last.source, variant, uid) or "", path, content_hash(path),
                      key, mapping, file_hash(mapping) if mapping else None, last.config, audio,
                      input_digest(audio) if audio else None, last.out)
                 for path, key in zip(last.characters, character_keys(last.characters)) if Path(path).exists()]

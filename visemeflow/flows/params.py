@@ -247,8 +247,10 @@ class AnimateParams(BaseModel):
                                    description="Character files (.glb/.gltf with morph targets, .npz) or mesh "
                                                "folders; default: the shipped ICT demo character.")
     source: str = Field("tracked", description=f"Curves to animate: {', '.join(SOURCES)}.")
-    variant: str | None = Field(None, description="Variant of those curves (a model's name for predicted); may be "
-                                                  "omitted when only one exists.")
+    variant: str | None = Field(None, description="Variant of those curves (a model's name for predicted), or several, "
+                                                  "comma-separated, in order of preference; none: every stored "
+                                                  "variant, each utterance from its own (tracked: guided and "
+                                                  "unguided), the one the stage last wrote first.")
     utterances: list[str] | None = Field(None, description="Utterance ids; none: every utterance with such curves.")
     audio: dict[str, Path] = Field(default_factory=dict, description="Audio per utterance id where the utterances "
                                                                      "table has none (predictions).")
@@ -398,6 +400,9 @@ class AnimateSettings(StageSettings):
     characters: list[str]
     source: str
     variant: str
+    # every variant the run animated, `variant` first (tracked: the guided one and `unguided-...`); `rerun` takes
+    # each utterance's own
+    variants: list[str] = Field(default_factory=list)
     mapping: str | None = None
     out: str | None = None
     config: AnimateConfig = Field(default_factory=AnimateConfig)

@@ -55,14 +55,14 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
         from visemeflow.flows.animate import AnimateParams, animate_flow
 
         source = CurveSource.TRACKED if len(videos) else CurveSource.PROCEDURAL
-        # every tracked variant this run wrote: the guided one, and `unguided-...` for videos without an alignment
+        # every tracked variant this run wrote, in one animate run: the guided one first, and `unguided-...` for
+        # videos without an alignment (each utterance from its own; one rejects table for the stage)
         written = (result.get("track") or {}).get("variants") or params.tracking.variant
-        variants = sorted({v.strip() for v in written.split(",") if v.strip()}) if len(videos) else [None]
-        for variant in variants:
-            stage = "animate" if variant in (None, params.tracking.variant) else f"animate[{variant}]"
-            run(stage, lambda variant=variant: animate_flow(AnimateParams(
-                store=params.store, n_shards=params.n_shards, characters=params.characters, source=source,
-                variant=variant, config=params.animate)))
+        variants = sorted({v.strip() for v in written.split(",") if v.strip()},
+                          key=lambda v: v != params.tracking.variant)
+        run("animate", lambda: animate_flow(AnimateParams(
+            store=params.store, n_shards=params.n_shards, characters=params.characters, source=source,
+            variant=",".join(variants) if len(videos) else None, config=params.animate)))
     if failures:
         message = "pipeline: " + "; ".join(failures)
         return Failed(message=message, data=StageFailed(message, result))
