@@ -186,3 +186,24 @@ def test_export_model_writes_an_onnx_graph_that_onnxruntime_runs(tmp_path):
     assert missing.exit_code == 2 and "no model 'nope'" in missing.output
     bad = runner.invoke(app, ["export-model", "default", "--out", str(out), "--format", "fbx"])
     assert bad.exit_code == 2 and "unknown format 'fbx'" in bad.output
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_one_exits_0(tmp_path):
+    from factories import make_corpus
+
+    corpus = make_corpus(tmp_path / "corpus", {"s/a": [("HH", 0, .2), ("AH", .2, .5)],
+                                               "s/b": [("M", 0, .2), ("AH", .2, .5)]})
+    good = (corpus / "s" / "b.TextGrid").read_text()
+    (corpus / "s" / "b.TextGrid").write_text("garbage")
+    store = str(tmp_path / "store")
+    done = runner.invoke(app, ["ingest", str(corpus), "--store", store])
+    assert done.exit_code == 0 and "ingested 1" in done.output, done.output
+    again = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
+    assert again.exit_code == 1, again.output
+    assert f"rejected s/b: {corpus / 's' / 'b.TextGrid'}: file ends early" in again.output
+    (corpus / "s" / "b.TextGrid").write_text(good)
+    mended = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
+    assert mended.exit_code == 0 and "ingested 1" in mended.output, mended.output
+    assert Store(store).read_table("rejects", "ingest").num_rows == 0

@@ -794,7 +794,16 @@ def rerun(params: RerunParams) -> None:
 
     _unjoined_heartbeats()
 
-    _print_summary(f"rerun {params.stage} {params.utterance_id}", rerun_flow(params))
+    report = rerun_flow(params)
+    _print_summary(f"rerun {params.stage} {params.utterance_id}", report)
+    if report.get("rejected"):   # still bad input: its reason, and exit 1 (the utterance was not made)
+        from visemeflow.schemas import C
+        from visemeflow.storage import Store
+
+        rows = [{"reason": r[C.MESSAGE]} for r in Store(params.store).read_table("rejects", params.stage).to_pylist()
+                if r[C.UTTERANCE_ID] == params.utterance_id]
+        _print_stage_rejects(rows or [{"reason": f"{params.utterance_id}: rejected again"}], params.store,
+                             params.stage)
 
 
 
