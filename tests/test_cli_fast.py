@@ -47,6 +47,15 @@ def test_importing_the_cli_imports_neither_prefect_nor_the_heavy_libraries():
     assert done.stdout.strip() == "[]", done.stdout
 
 
+def test_version_prints_the_installed_version_without_prefect():
+    import tomllib
+
+    declared = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
+    done = run_cli("--version")
+    assert done.returncode == 0 and done.stdout == f"visemeflow {declared}\n"
+    assert not {m for m in imported(done) if m.split(".")[0] in ("prefect", "torch")}
+
+
 @pytest.mark.parametrize("command", ["ingest", "pipeline", "synth"])
 def test_a_wrong_corpus_path_is_one_line_and_exit_2_before_prefect(tmp_path, command):
     missing = tmp_path / "no-such-corpus"

@@ -202,6 +202,8 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and done.output.startswith("error: --tune-layers: preset 'fbank-blstm' has no Whisper")
     done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no utterance spk/nope" in done.output
+    done = runner.invoke(app, ["rerun", "spk/u0", "--store", str(tmp_path / "mistyped")])
+    assert done.exit_code == 2 and done.output.startswith(f"error: no store at {tmp_path / 'mistyped'}")
     done = runner.invoke(app, ["evaluate", "--models", "nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no model 'nope'" in done.output
     done = runner.invoke(app, ["speak", str(tmp_path / "x.wav")])

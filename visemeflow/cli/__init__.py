@@ -43,6 +43,24 @@ curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_
 app.add_typer(curves_app, name="curves")
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            number = version("visemeflow")
+        except PackageNotFoundError:   # run from a source tree that was never installed
+            from visemeflow import __version__ as number
+        typer.echo(f"visemeflow {number}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: Annotated[bool, typer.Option(
+        "--version", callback=_print_version, is_eager=True, help="Print the version and exit.")] = False) -> None:
+    """Audio-driven viseme curves for 3D face animation, as Prefect flows."""
+
+
 
 def _existing_store(store: Path | str) -> None:
     """A command that only reads a store: a folder that does not exist is a mistyped path, one line, not an empty
@@ -784,6 +802,7 @@ def export_model(
 ])
 def rerun(params: RerunParams) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
+    _existing_store(params.store)   # every stage reruns what a run wrote into a store
     if params.stage != "ingest":   # an utterance ingest rejected can be ingested again, once its files are fixed
         from visemeflow.storage import Store
 
