@@ -34,7 +34,7 @@ ALL = ("glb", "usd", "livelink", "json", "curves-csv", "curves-json")
 
 @pytest.fixture
 def characters(tmp_path):
-    arkit = tiny_character(list(ARKIT_52), name="arkit")
+    arkit = tiny_character(list(ARKIT_52), name="Wolf3D_Head")   # a mesh named otherwise than its file
     oculus = tiny_character(list(OCULUS_15), seed=1, name="oculus")
     glb = tmp_path / "chars" / "arkit.glb"
     write_glb(glb, arkit, np.zeros((1, len(ARKIT_52)), np.float32), 30.0)
@@ -70,6 +70,8 @@ def test_every_format_of_every_package_holds_the_curves_at_the_asked_rate(tmp_pa
         audio, rate = sf.read(report["files"]["audio"])
         assert len(audio) / rate == pytest.approx(1.0, abs=1e-3)
     assert {r["convention"] for r in result["packages_written"]} == {"arkit52", "oculus15"}
+    # each package names its character as people do, by its file (arkit.glb), not by the mesh inside
+    assert {r["character"] for r in result["packages_written"]} == {"arkit", "oculus"}
 
 
 def test_a_second_run_is_all_cache_hits_and_a_deleted_file_is_made_again(tmp_path, characters):

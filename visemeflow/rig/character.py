@@ -101,6 +101,12 @@ class Character:
     def where(self) -> str:
         return f"character {self.name!r}" + (f" ({self.source})" if self.source else "")
 
+    @property
+    def label(self) -> str:
+        """What people call it: its file's name without the suffix (`avatar` for avatar.glb, whose head mesh may be
+        named `Wolf3D_Head`), else its own name."""
+        return Path(self.source).stem if self.source else self.name
+
     def describe(self) -> str:
         """Which meshes it drives, for people: `character a.glb: driving Head (2,162 v), Teeth (480 v): 67 shared
         targets; not driven: Body (no targets)`."""

@@ -247,14 +247,14 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         warnings += [why] if why else []
         path = folder / f"{stem}.mp4"
         shown = render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
-                               title=f"{utterance_id} - {character.name}", video=video)
+                               title=f"{utterance_id} - {character.label}", video=video)
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
     if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
         uploaded = {str(p): str(upload_file(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
         files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
     seconds = time.perf_counter() - started
-    return {"utterance_id": utterance_id, "character": character.name, "convention": binding.convention,
+    return {"utterance_id": utterance_id, "character": character.label, "convention": binding.convention,
             "meshes": [part.name for part in character.parts],
             "folder": str(target), "files": files, "frames": package.frames, "fps": package.fps,
             "resampled_from": package.source_fps if package.resampled else None, "seconds": round(seconds, 4),
