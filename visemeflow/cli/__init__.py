@@ -345,7 +345,7 @@ def ingest(params: IngestParams) -> None:
     from visemeflow.flows.ingest import ingest_flow
 
     _print_summary("ingest", ingest_flow(params))
-    _print_rejects_hint(params.store)
+    _print_rejects_hint(params.store, "discover", "ingest")
 
 
 
@@ -356,6 +356,7 @@ def procedural(params: ProceduralParams) -> None:
     from visemeflow.flows.procedural import procedural_flow
 
     _print_summary("procedural", procedural_flow(params))
+    _print_rejects_hint(params.store, "procedural")
 
 
 
@@ -374,7 +375,7 @@ def track(params: TrackParams) -> None:
     from visemeflow.flows.track import track_flow
 
     _print_summary("track", run_on_runner(track_flow, params))
-    _print_rejects_hint(params.store)
+    _print_rejects_hint(params.store, "track")
 
 
 
@@ -394,7 +395,7 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> 
         from visemeflow.flows.runners import run_on_runner
 
         _print_summary("landmarks", run_on_runner(landmarks_flow, params))
-        _print_rejects_hint(params.store)
+        _print_rejects_hint(params.store, "landmarks")
         return
     if out is None:
         _fail("--out FILE.csv is needed with a VIDEO")
@@ -671,7 +672,7 @@ def import_curves(params: ImportCurvesParams) -> None:
     _print_summary("import-curves", result)
     for r in reports[:20]:
         typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(f"{k} {v}" for k, v in r.items() if k != "utterance_id"))
-    _print_rejects_hint(params.store)
+    _print_rejects_hint(params.store, "import_curves")
 
 
 
@@ -709,7 +710,7 @@ def animate(params: AnimateParams) -> None:
     from visemeflow.flows.animate import animate_flow
 
     _print_packages(dict(animate_flow(params)))
-    _print_rejects_hint(params.store)
+    _print_rejects_hint(params.store, "animate")
 
 
 @stage_command(app, SpeakParams, [
@@ -731,7 +732,7 @@ def speak(params: SpeakParams) -> None:
     _print_packages(result, "speak")
     for r in audio_rejects:
         typer.echo(f"rejected {r['reason'].splitlines()[0]}", err=True)
-    _print_rejects_hint(params.store)
+    _print_rejects_hint(params.store, "animate")
     if audio_rejects or result["rejected"]:   # an audio file or a package left out: the command did not do it all
         raise typer.Exit(1)
 
@@ -939,18 +940,22 @@ def curves_export(
         typer.echo(f"wrote {out}")
 
 
-def _print_rejects_hint(store: Path) -> None:
-    """The first rejects, one line each (utterance, file, reason), what to do about the usual ones, and where the
-    rest are: the reason is on the terminal without a second command."""
+def _print_rejects_hint(store: Path, *stages: str) -> None:
+    """The first rejects (of `stages`, the ones this command runs; of every stage when none is named), one line
+    each (utterance, file, reason), what to do about the usual ones, and where the rest are: the reason is on the
+    terminal without a second command, and an earlier stage's rejects are not repeated by a later one's command."""
     from visemeflow.ingest.hints import reject_advice, reject_lines
     from visemeflow.storage import Store
 
-    rows = Store(store).read_table("rejects").to_pylist()
+    s = Store(store)
+    rows = [r for stage in stages for r in s.read_table("rejects", stage).to_pylist()] if stages \
+        else s.read_table("rejects").to_pylist()
     if rows:
         typer.echo(f"{len(rows)} rejected:")
         for line in reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]:
             typer.echo(line)
-        typer.echo(f"all of them: `visemeflow rejects --store {store}`")
+        only = f" --stage {stages[0]}" if len(stages) == 1 else ""
+        typer.echo(f"all of them: `visemeflow rejects --store {store}{only}`")
 
 
 def _print_outputs(store: Path) -> None:
