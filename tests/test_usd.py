@@ -176,3 +176,51 @@ def test_bad_input_is_refused_and_leaves_the_old_file(tmp_path):
         write_usd(tmp_path / "x.usdz", character, good, 30)
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.usda"]  # no temporary file left behind
+
+
+def test_usd_calls_wait_for_each_other_across_threads(tmp_path):
+    """USD's first use from two threads at once can deadlock for good (C++ static-init guards against the GIL: it
+    hung an `animate` writing two packages' .usd files). Every USD call of ours takes one lock, whose wait releases
+    the GIL: a write started while another thread holds it waits, then finishes."""
+    import threading
+
+    from visemeflow.animation import usd
+
+    character = small_character()
+    weights = smooth_weights(4, character.n_shapes, 30.0)
+    done = threading.Event()
+    with usd._USD_LOCK:
+        writer = threading.Thread(target=lambda: (write_usd(tmp_path / "a.usda", character, weights, 30.0),
+                                                  done.set()))
+        writer.start()
+        assert not done.wait(1.0)          # held off by the lock
+    assert done.wait(60.0) and read_usd_weights(tmp_path / "a.usda")[1].shape == (4, character.n_shapes)
+    writer.join()
+
+
+def test_many_threads_writing_their_first_usd_stage_at_once_all_finish(tmp_path):
+    """The race itself, in fresh processes (it is the first use that builds USD's singletons): 16 threads released
+    together by a barrier each write a stage. Unlocked, such a process hung about 1 run in 10."""
+    import subprocess
+    import sys
+
+    from factories import REPO
+
+    script = f"""
+import sys, threading
+sys.path.insert(0, {str(REPO / 'tests')!r})
+import numpy as np
+from factories import tiny_character
+from visemeflow.animation.usd import write_usd
+c = tiny_character(["a", "b", "c"], name="t")
+barrier = threading.Barrier(16)
+def go(i):
+    barrier.wait()
+    write_usd({str(tmp_path)!r} + f"/{{i}}.usdc", c, np.zeros((3, 3), np.float32), 30.0)
+threads = [threading.Thread(target=go, args=(i,)) for i in range(16)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+"""
+    for _ in range(3):
+        subprocess.run([sys.executable, "-c", script], cwd=REPO, timeout=120, check=True)
+    assert len(list(tmp_path.glob("*.usdc"))) == 16

@@ -38,8 +38,10 @@ the target (`atomic_path`). Values are stored as float32, so the weights and off
 
 from __future__ import annotations
 
+import functools
 import os
 import re
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +57,23 @@ ROOT_JOINT = "root"
 SKELETON = "Skeleton"
 ANIMATION = "Animation"
 MESH = "Mesh"
+# USD (usd-core) from several Python threads at once can deadlock for good: its first use builds singletons (the
+# asset resolver, the file-format registry) under C++ static-init guards while one thread holds the GIL and the
+# other, inside the guard, waits for the GIL (`animate`'s threads writing two packages' .usd files hung CI; a
+# barrier of 8 threads writing their first stage hung 1 run in 10). Every USD call of ours takes this lock:
+# waiting on a Python lock releases the GIL. The stages are small; the lock costs little.
+_USD_LOCK = threading.RLock()
+
+
+def one_at_a_time(function):
+    """`function` (which calls USD) runs in one thread at a time in this process (see `_USD_LOCK`)."""
+    @functools.wraps(function)
+    def locked(*args, **kwargs):
+        with _USD_LOCK:
+            return function(*args, **kwargs)
+    return locked
+
+
 # Store sparse offsets (pointIndices) when they are smaller than dense ones: an index costs 4 bytes, an offset 12.
 _SPARSE_BELOW = 0.75
 
@@ -119,6 +138,7 @@ def _extent(character: Character) -> Vt.Vec3fArray:
     return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
 
 
+@one_at_a_time
 def build_stage(character: Character, weights, fps: float, *, name: str | None = None,
                 meters_per_unit: float = 0.01) -> Usd.Stage:
     """The in-memory stage `write_usd` saves (see the module doc for its layout)."""
@@ -223,6 +243,7 @@ def timed_stage(fps: float, n_frames: int, meters_per_unit: float, documentation
     return stage
 
 
+@one_at_a_time
 def write_usd(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None,
               meters_per_unit: float = 0.01) -> Path:
     """Write `character` animated by `weights` ((T, S) in [0, 1], columns in `character.shape_names` order, frame
@@ -237,6 +258,7 @@ def write_usd(path: str | os.PathLike, character: Character, weights, fps: float
     return path
 
 
+@one_at_a_time
 def read_usd_weights(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray, float]:
     """Read back (shape names, (T, S) float32 weights at time codes 0 .. T-1, fps) from the first SkelAnimation
     of a stage written by `write_usd` (a check and a convenience; any UsdSkel reader sees the same values)."""

@@ -25,7 +25,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from visemeflow.animation.bones import BoneRig, blend_poses
-from visemeflow.animation.usd import _format_args, prim_name, timed_stage
+from visemeflow.animation.usd import _format_args, one_at_a_time, prim_name, timed_stage
 from visemeflow.atomic import atomic_path
 
 __all__ = ["build_skel_stage", "joint_paths", "write_usd_skel"]
@@ -40,6 +40,7 @@ def _translate(v) -> Gf.Matrix4d:
     return Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(*map(float, v)))
 
 
+@one_at_a_time
 def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = None,
                      meters_per_unit: float = 0.01) -> Usd.Stage:
     """The in-memory stage `write_usd_skel` saves (see the module doc)."""
@@ -109,6 +110,7 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
     return stage
 
 
+@one_at_a_time
 def write_usd_skel(path: str | os.PathLike, rig: BoneRig, curves, fps: float, *, name: str | None = None,
                    meters_per_unit: float = 0.01) -> Path:
     """Write the bone animation of (T, 16) `curves` (frame k at time code k) as a UsdSkel stage; atomic."""
