@@ -188,6 +188,31 @@ def test_an_api_set_in_the_prefect_profile_is_left_to_prefect(tmp_path, monkeypa
     assert connect.configured_api() == connect.Api("http://toml.example/api", None, "prefect.toml")
 
 
+def test_on_an_early_temporary_server_prefects_info_lines_are_held_back_unless_asked_for(tmp_path, monkeypatch):
+    """The early temporary server dies with the command: its "View at" run links would be dead, so Prefect logs at
+    WARNING there unless the user set PREFECT_LOGGING_LEVEL; a configured API keeps Prefect's default."""
+    class FakeServer:   # no uvicorn started: only what use_running_api reads
+        url = "http://127.0.0.1:1/api"
+        process = type("P", (), {"pid": 1})()
+
+    for name in ("PREFECT_API_URL", "PREFECT_API_AUTH_STRING", "PREFECT_PROFILE", "PREFECT_PROFILES_PATH",
+                 "PREFECT_LOGGING_LEVEL", "VISEMEFLOW_NO_SERVER_LOOKUP", "VISEMEFLOW_EARLY_SERVER"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(connect, "EarlyServer", FakeServer)
+    assert connect.use_running_api(tmp_path / "store").source.startswith("early temporary server")
+    assert os.environ["PREFECT_LOGGING_LEVEL"] == "WARNING"
+    monkeypatch.setenv("PREFECT_LOGGING_LEVEL", "INFO")    # the user's choice stands
+    monkeypatch.delenv("PREFECT_API_URL")
+    connect.use_running_api(tmp_path / "store")
+    assert os.environ["PREFECT_LOGGING_LEVEL"] == "INFO"
+    monkeypatch.delenv("PREFECT_LOGGING_LEVEL")
+    monkeypatch.setenv("PREFECT_API_URL", "http://prefect.example:4200/api")   # a server that outlives the command
+    assert connect.use_running_api(tmp_path / "store").source == "PREFECT_API_URL"
+    assert "PREFECT_LOGGING_LEVEL" not in os.environ
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

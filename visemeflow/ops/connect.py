@@ -205,6 +205,10 @@ def use_running_api(store: Path | None, start_early: bool = True) -> Api | None:
         api = Api(server.url, None, f"early temporary server (pid {server.process.pid})")
         os.environ["PREFECT_API_URL"] = api.url
         os.environ.pop("PREFECT_API_AUTH_STRING", None)
+        # a temporary server dies with the command: Prefect's INFO lines ("View at http://127.0.0.1:PORT/runs/...")
+        # would point at pages no one can open afterwards. Warnings and our own progress and summary lines stay;
+        # PREFECT_LOGGING_LEVEL=INFO brings the rest back, and with `visemeflow serve` up the links work and show.
+        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     elif api is not None and api.source.startswith("visemeflow serve"):
         os.environ["PREFECT_API_URL"] = api.url
         os.environ["PREFECT_API_AUTH_STRING"] = api.auth_string or ""
