@@ -243,6 +243,12 @@ def test_a_command_runs_its_flow_on_the_running_serve_of_its_store(tmp_path):
             time.sleep(0.5)
         api = connect.serve_api(store)
         assert api is not None and api.url == f"http://127.0.0.1:{port}/api"
+        # the line that says how another shell reaches this server for `prefect deployment run` works when run
+        hint = next(line for line in log.read_text().splitlines() if line.startswith("for `prefect deployment run`"))
+        exports = hint.split(": ", 1)[1].split("  (")[0]
+        shell = subprocess.run(["bash", "-c", exports + '; echo "$PREFECT_API_URL $PREFECT_API_AUTH_STRING"'],
+                               capture_output=True, text=True, check=True, timeout=30)
+        assert shell.stdout.split() == [api.url, api.auth_string], hint
         done = subprocess.run([sys.executable, "-m", "visemeflow.cli", "ingest", str(corpus), "--store", str(store)],
                               env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False)
         assert done.returncode == 0, done.stdout + done.stderr

@@ -660,5 +660,10 @@ def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CR
             echo(f"pipeline on {pipeline.parameters['corpus']}: cron '{cron}' ({timezone})")
         else:
             echo("pipeline: no schedule (no --corpus and the store has no ingest run); run it from the UI")
+        # Prefect's starting message below ends with `prefect deployment run ...`, which another shell can only run
+        # with this server's address (and auth string): say how, first
+        auth = (f"; export PREFECT_API_AUTH_STRING=\"$(cat {api.auth_file})\"" if api.auth_file else "")
+        echo(f"for `prefect deployment run` in another shell: export PREFECT_API_URL={api.url}{auth}  "
+             "(docs/serve.md lists every deployment's parameters)")
         echo("stop with Ctrl-C")
         serve(*deployments, print_starting_message=True)
