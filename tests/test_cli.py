@@ -212,3 +212,18 @@ def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_o
     mended = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
     assert mended.exit_code == 0 and "ingested 1" in mended.output, mended.output
     assert Store(store).read_table("rejects", "ingest").num_rows == 0
+
+
+def test_curves_list_names_every_source_and_variant_with_its_count(store, tmp_path):
+    store.write_curves(curves_table("spk/utt-2", "procedural", "jali", np.zeros((5, 16), np.float32), 30.0), fps=30.0)
+    store.write_curves(curves_table(UID, "tracked", "unguided-fast", np.zeros((5, 16), np.float32), 30.0), fps=30.0)
+    done = runner.invoke(app, ["curves", "list", "--store", str(store.root)])
+    assert done.exit_code == 0, done.output
+    assert [line.split() for line in done.output.splitlines()] == [["procedural", "jali", "2", "utterances"],
+                                                                  ["tracked", "unguided-fast", "1", "utterance"]]
+    assert "curves list" in runner.invoke(app, ["curves", "show", "--help"]).output
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert runner.invoke(app, ["curves", "list", "--store", str(empty)]).output == f"no curves in {empty}\n"
+    missing = runner.invoke(app, ["curves", "list", "--store", str(tmp_path / "nope")])
+    assert missing.exit_code == 2 and "no store at" in missing.output

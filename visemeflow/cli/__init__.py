@@ -877,6 +877,10 @@ def clean(
         typer.echo(f"nothing removed; name the kinds to remove, e.g. visemeflow clean augmented --store {store}")
 
 
+_CURVE_SOURCES_HELP = ("Which curves: procedural, tracked, predicted, ground_truth or captured "
+                       "(`visemeflow curves list` says which the store has).")
+
+
 def _load_curves(utterance_id: str, store: Path, source: str, variant: str | None):
     from visemeflow.storage import Store
 
@@ -887,10 +891,25 @@ def _load_curves(utterance_id: str, store: Path, source: str, variant: str | Non
         raise typer.Exit(2) from None
 
 
+@curves_app.command("list")
+def curves_list(store: StoreOpt = DEFAULT_STORE) -> None:
+    """Which curves the store holds: each source and variant, with how many utterances have them."""
+    from visemeflow.storage import Store
+
+    _existing_store(store)
+    s = Store(store)
+    sets = s.curve_sets()
+    if not sets:
+        typer.echo(f"no curves in {store}")
+    for source, variant in sets:
+        n = len(s.curve_files(source, variant))
+        typer.echo(f"{source:<13}{variant:<24}{n} utterance{'s' if n != 1 else ''}")
+
+
 @curves_app.command("show")
 def curves_show(
     utterance_id: str, store: StoreOpt = DEFAULT_STORE,
-    source: Annotated[str, typer.Option(help="procedural, tracked, predicted or ground_truth.")] = "procedural",
+    source: Annotated[str, typer.Option(help=_CURVE_SOURCES_HELP)] = "procedural",
     variant: Annotated[Optional[str], typer.Option(
         help="Variant of those curves (a model's name for predicted); may be omitted when only one exists.")] = None,
 ) -> None:
@@ -916,8 +935,7 @@ def curves_show(
 @curves_app.command("export")
 def curves_export(
     utterance_id: str, store: StoreOpt = DEFAULT_STORE,
-    source: Annotated[str, typer.Option(
-        help="tracked, procedural, ground_truth, captured or predicted.")] = "procedural",
+    source: Annotated[str, typer.Option(help=_CURVE_SOURCES_HELP)] = "procedural",
     variant: Annotated[Optional[str], typer.Option(
         help="Variant of those curves (a model's name for predicted); may be omitted when only one exists.")] = None,
     format: Annotated[str, typer.Option("--format", help="csv or json.")] = "csv",
