@@ -227,3 +227,19 @@ def test_curves_list_names_every_source_and_variant_with_its_count(store, tmp_pa
     assert runner.invoke(app, ["curves", "list", "--store", str(empty)]).output == f"no curves in {empty}\n"
     missing = runner.invoke(app, ["curves", "list", "--store", str(tmp_path / "nope")])
     assert missing.exit_code == 2 and "no store at" in missing.output
+
+
+def test_the_evaluation_table_explains_its_lip_column_only_when_it_has_one(capsys):
+    from visemeflow.cli import _print_evaluation
+
+    row = {"model": "demo", "preset": "fbank-blstm", "group": "models", "validation": 3.2, "volume": 3.3,
+           "ratio_volume": 1.03}
+    result = {"validation_utterances": 2, "source": "tracked", "variant": "guided-fast", "markdown": "r.md",
+              "csv": "r.csv"}
+    _print_evaluation({**result, "table": [{**row, "lip_closed_validation": 0.0}]})
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].startswith("model") and out[1].endswith("b/p/m lips closed")
+    assert out[2].split()[-1] == "0%"
+    assert any(line.startswith("b/p/m lips closed: of the validation set's b/p/m phones") for line in out)
+    _print_evaluation({**result, "table": [row]})
+    assert "b/p/m lips closed" not in capsys.readouterr().out

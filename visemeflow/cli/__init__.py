@@ -581,6 +581,10 @@ def _print_evaluation(result: dict) -> None:
     if any(r["group"].startswith("baselines") for r in table):
         typer.echo("baseline: a reference a trained model should beat (e.g. the training set's mean curve), not a "
                    "result")
+    if lips:
+        typer.echo("b/p/m lips closed: of the validation set's b/p/m phones, the share at which the model's curves "
+                   "close the demo character's lips below 1.5 mm on its mesh. A model trained for a few epochs on a "
+                   "few utterances (the demo's) rarely does; `speak` without --model uses the shipped default")
     typer.echo(f"full table (every condition, real-speech and lip metrics): {result['markdown']} "
                f"(CSV: {result['csv']})")
 
