@@ -607,3 +607,20 @@ def test_animate_preview_shows_the_utterances_video_beside_the_character_and_the
     again = animate_flow(params)
     assert again["written"] == 1 and [r["utterance_id"] for r in again["packages_written"] if not r["cached"]] == \
         ["spk/u0"]
+
+
+def test_a_long_preview_reports_each_frame_written_and_its_log_lines_count_frames(tmp_path):
+    from visemeflow.tasks.progress import StepLog
+
+    ch = grid_character(12)
+    heard = []
+    report = render_preview(tmp_path / "p.mp4", ch, {"a": np.zeros((20, 2), np.float32)}, 25, size=32,
+                            progress=lambda *a: heard.append(a))
+    assert heard == [("preview", k, 20) for k in range(1, 21)] and report.frames == 20
+    now, lines = [0.0], []
+    log = StepLog("animate[s/x]", lines.append, interval=5.0, clock=lambda: now[0])
+    for phase, k, n in heard:
+        now[0] = k * 0.5                       # 2 frames a second
+        log(phase, k, n)
+    assert lines == ["animate[s/x]: preview 10/20 frames, 2/s, about 4 s left",   # the phase began at frame 1
+                     "animate[s/x]: preview 20/20 frames, 2/s"]

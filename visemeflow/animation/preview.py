@@ -65,7 +65,7 @@ import math
 import os
 import time
 import unicodedata
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 from fractions import Fraction
@@ -786,6 +786,7 @@ def render_preview(
     framing: str = "mouth",
     crf: int = 23,
     video: VideoSource | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> PreviewReport:
     """Write an H.264 + AAC `.mp4` preview of `character` driven by each source, side by side (see the module doc).
 
@@ -806,6 +807,7 @@ def render_preview(
     crf: libx264 quality (lower: better and larger).
     video: optional `VideoSource`: the source video's face crop as the first panel, labelled "video" (see the
         module doc); a missing or unreadable video gives a panel that says so.
+    progress: optional callback ("preview", frames written, frames in all) after each frame.
 
     Frames: the longest source's length or round(audio seconds x fps), whichever is larger; a shorter source
     holds its last frame to the end. Written atomically: a failure leaves no file and keeps an older one.
@@ -859,6 +861,8 @@ def render_preview(
                 container.mux(video.encode(frame))
                 if audio_stream is not None and (i + 1) % 16 == 0:  # interleave: audio up to the video's time
                     push_audio(int(round((i + 1) / rate * sample_rate)))
+                if progress is not None:   # a long file says where it is (`tasks.progress.StepLog`)
+                    progress("preview", i + 1, n_frames)
             container.mux(video.encode(None))
             if audio_stream is not None:
                 push_audio(n_audio)

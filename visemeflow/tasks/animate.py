@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import re
 import shutil
 from collections import defaultdict
@@ -44,6 +45,7 @@ from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
+from visemeflow.tasks.progress import StepLog
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
@@ -198,6 +200,17 @@ def package_dir(store: Store, out: str | None, character: str, utterance_id: str
     return Path(out) / folder.relative_to(store.root / "animations") if out else folder
 
 
+def _step_log(name: str) -> StepLog:
+    """Progress lines of one long step: on the run's logger in a Prefect run (terminal and UI), else this module's."""
+    from prefect.exceptions import MissingContextError
+
+    try:
+        log = get_run_logger().info
+    except MissingContextError:
+        log = logging.getLogger(__name__).info
+    return StepLog(name, log)
+
+
 def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
             mapping_path: str | None, mapping_hash: str | None, config: AnimateConfig, audio_path: str | None,
             out: str | None, phones: list[tuple[float, float, str]] | None = None,
@@ -247,7 +260,8 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         warnings += [why] if why else []
         path = folder / f"{stem}.mp4"
         shown = render_preview(path, character, panels, package.fps, audio=audio, phones=phones,
-                               title=f"{utterance_id} - {character.label}", video=video)
+                               title=f"{utterance_id} - {character.label}", video=video,
+                               progress=_step_log(f"animate[{utterance_id}]"))
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
     if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each

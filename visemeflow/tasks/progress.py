@@ -176,6 +176,6 @@ class StepLog:
             return
         self.last = now
         rate = done / max(now - self.phase_started, 1e-9)
-        unit = "frames" if phase == "optical flow" else "steps"
+        unit = "frames" if phase in ("optical flow", "preview") else "steps"
         left = f", about {duration((total - done) / rate)} left" if total > done and rate > 0 else ""
         self.log(f"{self.name}: {phase} {done}/{total} {unit}, {rate:.0f}/s{left}")
