@@ -65,6 +65,15 @@ def test_rejects_lists_reasons(store):
     store.write_shard("rejects", 0, table_from_rows([row], REJECTS), stage="ingest")
     result = runner.invoke(app, ["rejects", "--store", str(store.root)])
     assert result.exit_code == 0 and "[ingest] UnknownPhoneme: spk/bad" in result.output
+    # an unexpected error's reason carries its traceback: one line unless asked for whole
+    trace = "Traceback (most recent call last):\n  File \"x.py\", line 1, in f\nZeroDivisionError: division by zero"
+    bug = reject_row("spk/bug", "track", "ZeroDivisionError", f"spk/bug: division by zero\n{trace}", None)
+    store.write_shard("rejects", 0, table_from_rows([bug], REJECTS), stage="track")
+    short = runner.invoke(app, ["rejects", "--store", str(store.root), "--stage", "track"]).output.splitlines()
+    assert short == ["[track] ZeroDivisionError: spk/bug: division by zero",
+                     "1 reason goes on over more lines (a traceback): --full shows them"]
+    whole = runner.invoke(app, ["rejects", "--store", str(store.root), "--stage", "track", "--full"]).output
+    assert whole == f"[track] ZeroDivisionError: spk/bug: division by zero\n{trace}\n"
 
 
 # ---- the curve exporters (visemeflow/animation/export.py), used by `curves export` and `predict --out` ----------

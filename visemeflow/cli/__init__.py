@@ -834,7 +834,9 @@ def rerun(params: RerunParams) -> None:
 @app.command()
 def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typer.Option(
         help="Only this stage's rejects (discover, ingest, procedural, landmarks, track, animate, predict, "
-             "evaluate, import_curves); default: every stage's.")] = None) -> None:
+             "evaluate, import_curves); default: every stage's.")] = None,
+        full: Annotated[bool, typer.Option("--full", help="Each reason whole: an unexpected error's traceback "
+                                                          "too (default: its first line).")] = False) -> None:
     """List rejected inputs with their reasons."""
     from visemeflow.storage import Store
 
@@ -843,8 +845,16 @@ def rejects(store: StoreOpt = DEFAULT_STORE, stage: Annotated[Optional[str], typ
     if table.num_rows == 0:
         typer.echo("no rejects")
         return
+    held = 0
     for r in table.to_pylist():
-        typer.echo(f"[{r['stage']}] {r['error_type']}: {r['message']}")
+        message = r["message"] or ""
+        first, _, rest = message.partition("\n")
+        typer.echo(f"[{r['stage']}] {r['error_type']}: {message if full else first}")
+        held += bool(rest.strip()) and not full
+    if held:
+        verb = "goes" if held == 1 else "go"
+        typer.echo(f"{held} reason{'s' if held != 1 else ''} {verb} on over more lines (a traceback): --full shows "
+                   "them")
 
 
 @app.command()
