@@ -158,7 +158,8 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
         annotation = opt.type
     elif is_list:
         annotation = list[_item_type(stripped)] if opt.repeat else str
-        annotation = Optional[annotation]   # noqa: UP007 (typer reads Optional)
+        if not (opt.argument and _field_default(info) is ...):   # a required argument stays one: `AUDIO...`
+            annotation = Optional[annotation]   # noqa: UP007 (typer reads Optional)
     else:
         annotation = _cli_type(field_type)
         if optional:
@@ -173,7 +174,7 @@ def _resolve(model: type[BaseModel], opt: Opt) -> _Resolved:
         default = _field_default(info)
         if default is _FACTORY:
             default = None
-        if is_list:
+        if is_list and not (opt.argument and default is ...):
             default = None if opt.repeat or default in ((), []) else _shown(default)
     text = opt.help if opt.help is not None else (info.description or "")
     choices = _choices(field_type) if info is not None else ()
