@@ -583,8 +583,8 @@ def _print_evaluation(result: dict) -> None:
                    "result")
     if lips:
         typer.echo("b/p/m lips closed: of the validation set's b/p/m phones, the share at which the model's curves "
-                   "close the demo character's lips below 1.5 mm on its mesh. A model trained for a few epochs on a "
-                   "few utterances (the demo's) rarely does; `speak` without --model uses the shipped default")
+                   "close\n  the demo character's lips below 1.5 mm on its mesh. A model trained for a few epochs on a "
+                   "few utterances\n  (the demo's) rarely does; `speak` without --model uses the shipped default")
     typer.echo(f"full table (every condition, real-speech and lip metrics): {result['markdown']} "
                f"(CSV: {result['csv']})")
 
