@@ -31,8 +31,9 @@ trained on, on top of the voices and languages.
 Rows and columns as bench/thirdlang.py's: per language, each model of `--models` (its curves at 30 fps,
 `predict_curves`, the Whisper encoder's outputs cached in bench/out/prompts/cache), and `procedural (alignment)`, the
 alignment's own procedural curves (the ceiling of the definitions); b/p/m phones whose top viseme is MBP, false MBP
-closures (other phones whose top is MBP), f/v phones whose top is FFF, top-2 agreement, and b/p/m phones with MBP the
-top viseme of a frame within `--tolerance` s. Then all languages pooled.
+closures (other phones whose top is MBP), other phones with MBP the top viseme at their middle frame (what a viewer
+sees mid-phone), the false closures next to a b/p/m phone, f/v phones whose top is FFF, top-2 agreement, and b/p/m
+phones with MBP the top viseme of a frame within `--tolerance` s. Then all languages pooled.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from encoders import CachedPredictor  # noqa: E402
 from realspeech import SAMPLE_RATE, read_corpus  # noqa: E402
 from report import print_grid  # noqa: E402
-from thirdlang import align_words, row, with_gaps, word_phones, words_of  # noqa: E402
+from thirdlang import align_words, header, row, with_gaps, word_phones, words_of  # noqa: E402
 
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
@@ -223,8 +224,7 @@ def main() -> None:
     aligned = time.perf_counter() - started
 
     predict = CachedPredictor(CACHE)
-    header = ["model", "b/p/m: MBP top", "false MBP", "f/v: FFF top", "top-2 agreement",
-              f"MBP within +-{args.tolerance:g} s"]
+    columns = header(args.tolerance)
     rows: list = []
     pooled: dict[str, tuple[list, list]] = {}
     for lang, utts in corpora.items():
@@ -241,7 +241,7 @@ def main() -> None:
         rows.append(f"all {len(corpora)} languages pooled")
         rows += [row(name, curves, utts, args.tolerance) for name, (curves, utts) in pooled.items()]
 
-    print_grid(header, rows)
+    print_grid(columns, rows)
     print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "
           f"asterisk-core-sounds-{{{','.join(languages)}}}{{,-wav}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read from "
           f"{args.root / SOUNDS}.")

@@ -29,7 +29,9 @@ Rows: per language, each model of `--models` (`default`, `default-fbank`: the sh
 by `save_model`), its curves as `predict_curves` gives them at 30 fps (the Whisper encoder's outputs cached in
 bench/out/thirdlang/cache), and `procedural (alignment)`: the alignment's own procedural curves, the ceiling of the
 definitions. Columns (`visemeflow.learning.realspeech`): b/p/m phones whose top viseme (the highest peak over the
-phone's frames, strictly) is MBP; false MBP closures (other non-silent phones whose top is MBP); f/v phones whose
+phone's frames, strictly) is MBP; false MBP closures (other non-silent phones whose top is MBP); other phones with
+MBP the top viseme at their middle frame (mid-phone: what a viewer sees there); the false closures next to a b/p/m
+phone (a closure's ramp into its neighbour, or an alignment boundary a frame or two off); f/v phones whose
 top is FFF; top-2 agreement (the phone's viseme among the top 2 at its middle frame, every non-silent phone); and
 b/p/m phones with MBP the top viseme of some frame within `--tolerance` s of the phone.
 """
@@ -59,7 +61,7 @@ from report import print_grid  # noqa: E402
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
 from visemeflow.learning.features import resample_audio  # noqa: E402
-from visemeflow.learning.realspeech import pool, score_utterance  # noqa: E402
+from visemeflow.learning.realspeech import pool, score_phones, score_utterance  # noqa: E402
 from visemeflow.learning.train import load_model  # noqa: E402
 from visemeflow.phonetics.textgrid import Tier, format_textgrid  # noqa: E402
 from visemeflow.visemes import VISEME_INDEX  # noqa: E402
@@ -248,14 +250,42 @@ def mbp_within(curves: list[np.ndarray], utterances, tolerance: float) -> tuple[
     return hits, total
 
 
+def false_mbp_where(curves: list[np.ndarray], utterances) -> tuple[int, int, int, int]:
+    """Where false MBP closures fall: (other phones with MBP the top viseme at their middle frame, which is what
+    a viewer sees mid-phone; other phones; false closures by the per-phone maximum, the `false MBP` column; of
+    those, the ones next to a b/p/m phone, where a closure's ramp reaches into the neighbour or the alignment's
+    boundary is off by a frame or two)."""
+    mid = others = false = beside = 0
+    mbp = VISEME_INDEX["MBP"]
+    for c, u in zip(curves, utterances, strict=True):
+        scores, _ = score_phones(c, FPS, u.phones)
+        for i, s in enumerate(scores):
+            if s.viseme == "MBP":
+                continue
+            others += 1
+            mid += int(np.argmax(c[s.apex_frame])) == mbp
+            if s.top == "MBP" and s.top_unique:
+                false += 1
+                beside += any(scores[j].viseme == "MBP" for j in (i - 1, i + 1) if 0 <= j < len(scores))
+    return mid, others, false, beside
+
+
+def header(tolerance: float) -> list[str]:
+    """The columns of `row`."""
+    return ["model", "b/p/m: MBP top", "false MBP", "false MBP at mid-phone", "false MBP next to b/p/m",
+            "f/v: FFF top", "top-2 agreement", f"MBP within +-{tolerance:g} s"]
+
+
 def row(name: str, curves: list[np.ndarray], utterances, tolerance: float) -> list[str]:
     s = pool(score_utterance(c, FPS, u.phones) for c, u in zip(curves, utterances, strict=True))
+    mid, others, false, beside = false_mbp_where(curves, utterances)
 
     def cell(r) -> str:
         return fraction(r.hits, r.total) if r is not None else "-"
 
-    return [name, cell(s.closure.get("MBP")), cell(s.false_closure.get("MBP")), cell(s.closure.get("FFF")),
-            cell(s.agreement.overall), fraction(*mbp_within(curves, utterances, tolerance))]
+    return [name, cell(s.closure.get("MBP")), cell(s.false_closure.get("MBP")), fraction(mid, others),
+            fraction(beside, false), cell(s.closure.get("FFF")), cell(s.agreement.overall),
+            fraction(*mbp_within(curves, utterances, tolerance))]
 
 
 def main() -> None:
@@ -294,8 +324,7 @@ def main() -> None:
     aligned = time.perf_counter() - started
 
     predict = CachedPredictor(CACHE)
-    header = ["model", "b/p/m: MBP top", "false MBP", "f/v: FFF top", "top-2 agreement",
-              f"MBP within +-{args.tolerance:g} s"]
+    columns = header(args.tolerance)
     rows = []
     for lang, utts in corpora.items():
         seconds = sum(len(u.audio) for u in utts) / SAMPLE_RATE
@@ -304,7 +333,7 @@ def main() -> None:
             rows.append(row(name, [predict(model, u.audio, u.n) for u in utts], utts, args.tolerance))
         rows.append(row("procedural (alignment)", [u.procedural for u in utts], utts, args.tolerance))
 
-    print_grid(header, rows)
+    print_grid(columns, rows)
     print(f"alignment (espeak-ng + DTW) and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. "
           f"Data: Debian fillets-ng-data{{,-nl,-cs}} 1.0.1 (GPL-2), read from {game}.")
 
