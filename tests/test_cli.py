@@ -200,7 +200,7 @@ def test_export_model_writes_an_onnx_graph_that_onnxruntime_runs(tmp_path):
 @pytest.mark.flow
 @pytest.mark.usefixtures("prefect_harness")
 def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_one_exits_0(tmp_path):
-    """Also: a stage's command prints its own rejects, not an earlier stage's."""
+    """Also: a stage's command prints its own rejects, not an earlier stage's, and exits 1 on them with --strict."""
     from factories import make_corpus
 
     corpus = make_corpus(tmp_path / "corpus", {"s/a": [("HH", 0, .2), ("AH", .2, .5)],
@@ -214,6 +214,10 @@ def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_o
     # the next stage's command does not repeat ingest's rejects as if they were its own
     later = runner.invoke(app, ["procedural", "--store", store])
     assert later.exit_code == 0 and "rejected:" not in later.output and "b.TextGrid" not in later.output, later.output
+    # --strict (for schedulers): the same rejects make the command exit 1; a stage with none of its own exits 0
+    strict = runner.invoke(app, ["ingest", str(corpus), "--store", store, "--strict"])
+    assert strict.exit_code == 1 and "1 rejected:" in strict.output and "--strict: 1 rejected" in strict.output
+    assert runner.invoke(app, ["procedural", "--store", store, "--strict"]).exit_code == 0
     again = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
     assert again.exit_code == 1, again.output
     assert f"rejected s/b: {corpus / 's' / 'b.TextGrid'}: file ends early" in again.output

@@ -212,6 +212,9 @@ def _print_stage_rejects(rejects: list[dict], store: Path, stage: str) -> None:
 
 # Options several stage commands share (visemeflow.cli.options: type, default and help from the params models)
 STORE = Opt("store", type=str, callback=_usable_store)
+STRICT = Opt(None, "--strict", type=bool, default=False,
+             help="Exit 1 when any utterance is rejected (for schedulers and CI); without it a corpus stage that "
+                  "finishes with some rejects exits 0 and lists them.")
 SHARDS = Opt("n_shards", "--shards")
 RUNNER = (Opt("runner.kind", "--runner"), Opt("runner.dask_workers"), Opt("runner.dask_address"),
           Opt("runner.threads"))
@@ -338,25 +341,25 @@ def _print_summary(title: str, summary: dict) -> None:
 @stage_command(app, IngestParams, [
     Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("config.inventory"),
     Opt("config.phone_tiers", "--phone-tier", repeat=True), Opt("config.alignment_tolerance_s", "--tolerance"),
-    Opt("config.fps"),
+    Opt("config.fps"), STRICT,
 ])
-def ingest(params: IngestParams) -> None:
+def ingest(params: IngestParams, strict: bool) -> None:
     """Read alignments and audio into the `utterances` and `phones` tables."""
     from visemeflow.flows.ingest import ingest_flow
 
     _print_summary("ingest", ingest_flow(params))
-    _print_rejects_hint(params.store, "discover", "ingest")
+    _print_rejects_hint(params.store, "discover", "ingest", strict=strict)
 
 
 
-@stage_command(app, ProceduralParams, [STORE, SHARDS, Opt("config.fps"), Opt("variant")])
-def procedural(params: ProceduralParams) -> None:
+@stage_command(app, ProceduralParams, [STORE, SHARDS, Opt("config.fps"), Opt("variant"), STRICT])
+def procedural(params: ProceduralParams, strict: bool) -> None:
     """Generate JALI-like procedural viseme curves for every ingested utterance."""
     _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
     from visemeflow.flows.procedural import procedural_flow
 
     _print_summary("procedural", procedural_flow(params))
-    _print_rejects_hint(params.store, "procedural")
+    _print_rejects_hint(params.store, "procedural", strict=strict)
 
 
 
@@ -365,9 +368,9 @@ def procedural(params: ProceduralParams) -> None:
     Opt("config.use_flow", "--flow"), Opt("config.flow_preset"), Opt("config.flow_max_roi_px"),
     Opt("config.flow_region"), Opt("config.speaker_identity"), Opt("joint_frames"), Opt("device"),
     Opt("rig", callback=_path),
-    *RUNNER,
+    *RUNNER, STRICT,
 ])
-def track(params: TrackParams) -> None:
+def track(params: TrackParams, strict: bool) -> None:
     """Fit viseme curves to every ingested utterance with a video (phoneme-guided tracking, paper 4.3)."""
     _device(params.device)
     _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
@@ -375,7 +378,7 @@ def track(params: TrackParams) -> None:
     from visemeflow.flows.track import track_flow
 
     _print_summary("track", run_on_runner(track_flow, params))
-    _print_rejects_hint(params.store, "track")
+    _print_rejects_hint(params.store, "track", strict=strict)
 
 
 
@@ -385,9 +388,9 @@ def track(params: TrackParams) -> None:
              "no landmark file."),
     Opt(None, "--out", type=Optional[Path], default=None, help="CSV to write for VIDEO (the .mediapipe478.csv layout)."),
     STORE, SHARDS, Opt("config.refine_landmarks", "--refine"), Opt("config.max_faces"),
-    Opt("config.min_detected_share", "--min-face-share"), *RUNNER,
+    Opt("config.min_detected_share", "--min-face-share"), *RUNNER, STRICT,
 ])
-def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> None:
+def landmarks(params: LandmarksParams, video: Path | None, out: Path | None, strict: bool) -> None:
     """Detect face landmarks (MediaPipe FaceMesh, 478 points per frame) on one video or on the store's videos."""
     if video is None:
         _check_store_has(params.store, "ingested utterances", INGEST_FIRST)
@@ -395,7 +398,7 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> 
         from visemeflow.flows.runners import run_on_runner
 
         _print_summary("landmarks", run_on_runner(landmarks_flow, params))
-        _print_rejects_hint(params.store, "landmarks")
+        _print_rejects_hint(params.store, "landmarks", strict=strict)
         return
     if out is None:
         _fail("--out FILE.csv is needed with a VIDEO")
@@ -417,9 +420,9 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None) -> 
     Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
     Opt("tracking.flow_region"), Opt("tracking.speaker_identity"),
     Opt("characters", "--character", repeat=True, callback=_character), Opt("animate.formats", "--format"),
-    Opt("animate.meshes", "--mesh", repeat=True),
+    Opt("animate.meshes", "--mesh", repeat=True), STRICT,
 ])
-def pipeline(params: PipelineParams) -> None:
+def pipeline(params: PipelineParams, strict: bool) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.pipeline import pipeline_flow
 
@@ -429,7 +432,7 @@ def pipeline(params: PipelineParams) -> None:
             _print_packages(dict(summary))
         else:
             _print_summary(stage, summary)
-    _print_outputs(params.store)
+    _print_outputs(params.store, strict=strict)
 
 
 
@@ -661,9 +664,9 @@ def _print_packages(result: dict, title: str = "animate") -> None:
 @stage_command(app, ImportCurvesParams, [
     Opt("takes", argument=True, callback=_path), STORE, SHARDS, Opt("channel_table", callback=_file),
     Opt("names", callback=_file), Opt("config.fps"), Opt("config.variant"),
-    Opt("config.max_drift_frames_per_s", "--max-drift"), Opt("config.val_fraction"),
+    Opt("config.max_drift_frames_per_s", "--max-drift"), Opt("config.val_fraction"), STRICT,
 ], name="import-curves")
-def import_curves(params: ImportCurvesParams) -> None:
+def import_curves(params: ImportCurvesParams, strict: bool) -> None:
     """Import captured animation (Live Link Face CSV, channel CSV/NPY) as `captured` viseme curves of real speech.
 
     ARKit weights become the 16 visemes by a per-frame non-negative least-squares fit through the ICT face; each take
@@ -676,7 +679,7 @@ def import_curves(params: ImportCurvesParams) -> None:
     _print_summary("import-curves", result)
     for r in reports[:20]:
         typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(f"{k} {v}" for k, v in r.items() if k != "utterance_id"))
-    _print_rejects_hint(params.store, "import_curves")
+    _print_rejects_hint(params.store, "import_curves", strict=strict)
 
 
 
@@ -703,8 +706,9 @@ def transfer(
 @stage_command(app, AnimateParams, [
     Opt("utterances", argument=True, repeat=True), CHARACTERS, STORE, Opt("source"), Opt("variant"), *ANIMATE_OPTIONS,
     Opt("config.fps"), Opt("config.convention"), Opt("mapping", callback=_file), Opt("config.preview"), Opt("out"),
+    STRICT,
 ])
-def animate(params: AnimateParams) -> None:
+def animate(params: AnimateParams, strict: bool) -> None:
     """Put stored curves on characters and export them: glTF (GLB), USD, Live Link Face CSV, web JSON, the audio.
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
@@ -714,7 +718,7 @@ def animate(params: AnimateParams) -> None:
     from visemeflow.flows.animate import animate_flow
 
     _print_packages(dict(animate_flow(params)))
-    _print_rejects_hint(params.store, "animate")
+    _print_rejects_hint(params.store, "animate", strict=strict)
 
 
 @stage_command(app, SpeakParams, [
@@ -972,10 +976,11 @@ def curves_export(
         typer.echo(f"wrote {out}")
 
 
-def _print_rejects_hint(store: Path, *stages: str) -> None:
+def _print_rejects_hint(store: Path, *stages: str, strict: bool = False) -> None:
     """The first rejects (of `stages`, the ones this command runs; of every stage when none is named), one line
     each (utterance, file, reason), what to do about the usual ones, and where the rest are: the reason is on the
-    terminal without a second command, and an earlier stage's rejects are not repeated by a later one's command."""
+    terminal without a second command, and an earlier stage's rejects are not repeated by a later one's command.
+    `strict` (the commands' --strict): exit 1 after the list when there is any."""
     from visemeflow.ingest.hints import reject_advice, reject_lines
     from visemeflow.storage import Store
 
@@ -988,9 +993,12 @@ def _print_rejects_hint(store: Path, *stages: str) -> None:
             typer.echo(line)
         only = f" --stage {stages[0]}" if len(stages) == 1 else ""
         typer.echo(f"all of them: `visemeflow rejects --store {store}{only}`")
+        if strict:
+            typer.echo(f"--strict: {len(rows)} rejected, exit 1", err=True)
+            raise typer.Exit(1)
 
 
-def _print_outputs(store: Path) -> None:
+def _print_outputs(store: Path, strict: bool = False) -> None:
     from visemeflow.storage import Store
 
     s = Store(store)
@@ -1000,7 +1008,7 @@ def _print_outputs(store: Path) -> None:
     typer.echo(f"  tables/phones      {s.read_table('phones').num_rows} phone rows")
     for source, variant in s.curve_sets():
         typer.echo(f"  curves/{source}/{variant}  {len(s.curve_files(source, variant))} files")
-    _print_rejects_hint(store)
+    _print_rejects_hint(store, strict=strict)
 
 
 @app.command()
