@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from visemeflow.location import is_url
+from visemeflow.ops.prefect_db import seed_home
 
 # The names `visemeflow.ops.serve` writes under; repeated here because importing serve would import Prefect.
 SERVE_DIR = ".prefect-serve"
@@ -97,11 +98,16 @@ def serve_api(store: Path) -> Api | None:
     return Api(url, auth_string, f"visemeflow serve (pid {pid})")
 
 
+def prefect_home() -> Path:
+    """PREFECT_HOME, as Prefect reads it (default ~/.prefect)."""
+    return Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+
+
 def configured_api() -> Api | None:
     """The API the user configured for Prefect without the environment: the active profile's PREFECT_API_URL
     (`prefect config set`, in PREFECT_PROFILES_PATH or PREFECT_HOME/profiles.toml), or `[api] url` of a
     prefect.toml here. Prefect uses it whatever we do: it must not be replaced by a serve or an early server."""
-    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+    home = prefect_home()
     try:
         profiles = tomllib.loads(Path(os.environ.get("PREFECT_PROFILES_PATH") or home / "profiles.toml")
                                  .expanduser().read_text(encoding="utf-8"))
@@ -152,6 +158,7 @@ class EarlyServer:
         listener.listen(128)
         self.port = listener.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
+        seed_home(prefect_home())   # a new home's database from the migrated template (visemeflow.ops.prefect_db)
         env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
                "PREFECT__SERVER_FINAL": "1"}
         env.pop("PREFECT_API_URL", None)

@@ -44,6 +44,7 @@ from prefect.utilities.callables import parameter_schema
 from pydantic import BaseModel
 
 from visemeflow.location import is_url, parse_root
+from visemeflow.ops.prefect_db import seed_home
 from visemeflow.flows.stages import STAGES, Stage
 from visemeflow.storage import Store
 
@@ -516,6 +517,7 @@ def start_server(home: Path, port: int, auth_string: str) -> tuple[subprocess.Po
     process. The caller's thread must outlive the server: Linux sends the signal when the forking thread ends."""
     log = home / LOG_FILE
     ui_api_url = os.environ.get("PREFECT_SERVER_UI_API_URL") or os.environ.get("PREFECT_UI_API_URL")
+    seed_home(home)   # a new home's database from the migrated template: no migrations at its first start
     log.unlink(missing_ok=True)
     out = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
     try:
