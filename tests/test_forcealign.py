@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import soundfile as sf
 from factories import write_wav
 
 from visemeflow.ingest import IngestConfig, discover_corpus, ingest_utterance
@@ -132,3 +133,36 @@ def test_ingest_aligns_english_transcripts_and_rejects_others_with_a_reason(tmp_
     shutil.copyfile(LJ / "LJ001-0002.TextGrid", folder / "LJ001-0002.TextGrid")
     entry = next(e for e in discover_corpus(tmp_path / "corpus").entries if e.utterance_id == "LJ/LJ001-0002")
     assert entry.alignment_format == "textgrid"
+
+
+def test_silence_with_a_transcript_is_a_reject_and_the_shard_keeps_the_rest(tmp_path, monkeypatch):
+    from visemeflow.tasks import ingest as ingest_task
+
+    silent = np.zeros(16000, np.float32)
+    with pytest.raises(AlignmentError, match=r"^quiet\.txt: pocketsphinx heard none of the transcript's words"):
+        align_transcript(silent, 16000, "please record your message", source="quiet.txt")
+    folder = tmp_path / "corpus" / "LJ"
+    folder.mkdir(parents=True)
+    for uid in ("LJ001-0002", "LJ001-0005"):
+        shutil.copyfile(LJ / f"{uid}.wav", folder / f"{uid}.wav")
+        shutil.copyfile(LJ / f"{uid}.TextGrid", folder / f"{uid}.TextGrid")
+    sf.write(folder / "quiet.wav", silent, 16000, subtype="PCM_16")
+    (folder / "quiet.txt").write_text("please record your message\n", encoding="utf-8")
+    entries = sorted(discover_corpus(tmp_path / "corpus").entries, key=lambda e: e.utterance_id)
+    utterances, _, rejects, _ = ingest_task.ingest_entries(entries, IngestConfig())
+    assert [u["utterance_id"] for u in utterances] == ["LJ/LJ001-0002", "LJ/LJ001-0005"]
+    assert [(r["utterance_id"], r["error_type"]) for r in rejects] == [("LJ/quiet", "TranscriptNotAligned")]
+    assert rejects[0]["path"].endswith("quiet.txt")
+    # a fault no check foresaw (here: memory) is that utterance's reject too, naming it and its file
+    real = ingest_task.ingest_utterance
+
+    def fails_on_one(entry, config):
+        if entry.utterance_id == "LJ/LJ001-0005":
+            raise MemoryError("Unable to allocate 7.68 GiB")
+        return real(entry, config)
+
+    monkeypatch.setattr(ingest_task, "ingest_utterance", fails_on_one)
+    utterances, _, rejects, _ = ingest_task.ingest_entries(entries[:2], IngestConfig())
+    assert [u["utterance_id"] for u in utterances] == ["LJ/LJ001-0002"]
+    assert [(r["utterance_id"], r["error_type"]) for r in rejects] == [("LJ/LJ001-0005", "MemoryError")]
+    assert "LJ001-0005.TextGrid" in rejects[0]["message"] and rejects[0]["path"].endswith("LJ001-0005.TextGrid")

@@ -636,6 +636,21 @@ def test_a_symlink_leaving_the_corpus_is_a_reject(tmp_path):
     assert discover_corpus(root, only="s/b").entries == ()
 
 
+def test_a_transcript_linked_outside_the_corpus_is_never_read(tmp_path):
+    secret = tmp_path / "secret.txt"
+    secret.write_text("my secret password hunter two\n", encoding="utf-8")
+    root = tmp_path / "corpus"
+    write_wav(root / "s" / "u.wav", 1.0)
+    (root / "s" / "u.txt").symlink_to(secret)
+    write_wav(root / "s" / "v.wav", 1.0)
+    (root / "s" / "v.txt").write_text("hello there\n", encoding="utf-8")   # a transcript inside stays an entry
+    found = discover_corpus(root)
+    assert [(e.utterance_id, e.alignment_format) for e in found.entries] == [("s/v", "transcript")]
+    [reject] = found.rejects
+    assert (reject.utterance_id, reject.error_type, reject.path) == ("s/u", "PathOutsideCorpus", str(root / "s" / "u.txt"))
+    assert "outside the corpus" in reject.message and "password" not in reject.message
+
+
 def _float_wav(path: Path, seconds: float, bad: dict[int, float], rate: int = 16000, channels: int = 1,
                subtype: str = "FLOAT") -> Path:
     import soundfile as sf
@@ -768,3 +783,33 @@ def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
         assert store.read_curves(uid, "procedural", "jali").num_rows == 30
         assert report["generated"] == 1 and report["reused"] == len(UNICODE_SPEAKERS) - 1
         assert kept == {u: store.curve_path("procedural", "jali", u).stat().st_mtime_ns for u in kept}
+
+
+def _flac_claiming(path: Path, samples: int, claimed: int) -> Path:
+    """A real one-channel 16 kHz FLAC of `samples` whose STREAMINFO claims `claimed` (a 36-bit field)."""
+    import soundfile as sf
+
+    sf.write(path, (0.1 * np.sin(np.arange(samples) / 5.0)).astype(np.float32), 16000, subtype="PCM_16")
+    data = bytearray(path.read_bytes())
+    assert data[:4] == b"fLaC"
+    data[21] = (data[21] & 0xF0) | ((claimed >> 32) & 0x0F)     # STREAMINFO: total samples, bits 108-143
+    data[22:26] = (claimed & 0xFFFFFFFF).to_bytes(4, "big")
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_audio_whose_header_lies_about_its_length_is_refused_before_anything_is_sized_by_it(tmp_path):
+    root = make_corpus(tmp_path / "corpus", {"s/good": HELLO})
+    grid = (root / "s" / "good.TextGrid").read_text()
+    for name, claimed in (("days", 2**36 - 1), ("double", 32000), ("honest", 16000)):
+        _flac_claiming(root / "s" / f"{name}.flac", 16000, claimed)
+        (root / "s" / f"{name}.TextGrid").write_text(grid)
+    entries = {e.utterance_id: e for e in discover_corpus(root).entries}
+    assert ingest_utterance(entries["s/honest"], IngestConfig()).utterance["duration_s"] == pytest.approx(1.0)
+    with pytest.raises(IngestError, match=r"the header gives 1193\.0 h of audio, more than 24 h") as info:
+        ingest_utterance(entries["s/days"], IngestConfig())     # a 49-day claim: 7.7 GiB of curves downstream
+    assert info.value.error_type == "AudioTooLong" and info.value.path.endswith("days.flac")
+    with pytest.raises(IngestError, match=r"the header gives 32000 samples, but sample 32000 cannot be read") as info:
+        ingest_utterance(entries["s/double"], IngestConfig())
+    assert info.value.error_type == "TruncatedAudio" and info.value.path.endswith("double.flac")
+    assert ingest_utterance(entries["s/good"], IngestConfig()).utterance["duration_s"] == pytest.approx(1.0)

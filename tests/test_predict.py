@@ -202,6 +202,11 @@ def test_files_of_one_name_in_different_folders_each_keep_their_own_curves_and_c
     assert len({p for r in rows for p in r["exports"]}) == 6 and len(list(out.iterdir())) == 6
     alone = predict_flow(PredictParams(store=store.root, model="tiny", audio=[b], fps=25.0))["predictions"][0]
     assert alone["utterance_id"] == "predict/x"
+    # another batch of the other file of that name replaces those curves, and says so
+    other = predict_flow(PredictParams(store=store.root, model="tiny", audio=[a], fps=25.0))
+    assert other["replaced"] == [{"utterance_id": "predict/x", "before": str(b.resolve()), "now": str(a.resolve())}]
+    assert predict_flow(PredictParams(store=store.root, model="tiny", audio=[b], fps=25.0))["replaced"][0]["now"] \
+        == str(b.resolve())
     # the same names in the same batch again: the same ids, each file's own curves
     again = predict_flow(PredictParams(store=store.root, model="tiny", audio=[a, b], fps=25.0))["predictions"]
     assert [r["utterance_id"] for r in again] == ids[:2]

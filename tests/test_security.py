@@ -691,3 +691,43 @@ def test_files_xlsx_whose_sizes_lie_or_explode_is_refused_without_unpacking_it(t
     assert "3000000000" in said["huge"], said["huge"]
     assert "ratio" in said["ratio"], said["ratio"]
     assert "LZMA" in said["lzma"] or "compression" in said["lzma"], said["lzma"]
+
+
+@pytest.mark.parametrize("kind", ["character", "rig"])
+def test_files_npz_declared_sizes_are_checked_before_numpy_allocates_them(tmp_path, kind):
+    """A 1 kB .npz whose header declares a 3 TB array made `np.load` ask for it and the animate flow die with a
+    MemoryError, taking the other characters down with it; now it is that file's error."""
+    import zipfile
+
+    import numpy as np
+
+    from visemeflow.animation.load import load_character
+    from visemeflow.rig import RigError, load_demo_rig, load_rig_npz, save_rig_npz
+    from visemeflow.rig.character import CharacterError, character_from_rig, save_character_npz
+    from visemeflow.rig.io import check_npz_sizes
+
+    good = (save_character_npz(character_from_rig(load_demo_rig()), tmp_path / "good.npz") if kind == "character"
+            else save_rig_npz(load_demo_rig(), tmp_path / "good.npz"))
+    lying = tmp_path / "lying.npz"
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(lying, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            if info.filename == "deltas.npy":
+                with dst.open("deltas.npy", "w") as member:
+                    header = {"descr": "<f4", "fortran_order": False, "shape": (100_000, 100_000, 80)}
+                    np.lib.format.write_array_header_1_0(member, header)
+                    member.write(bytes(64))
+            else:
+                dst.writestr(info, src.read(info))
+    assert lying.stat().st_size < 1_000_000      # the demo head's other arrays; the claim is 3 TB
+    message = r"array deltas\.npy declares 3200000000000 bytes \(\(100000, 100000, 80\), float32\) but holds 192"
+    if kind == "character":
+        with pytest.raises(CharacterError, match=rf"^{lying}: not a readable \.npz character file \({message}\)"):
+            load_character(lying)
+        assert len(load_character(good).neutral) > 0
+    else:
+        with pytest.raises(RigError, match=rf"^{lying}: cannot read rig npz: {message}"):
+            load_rig_npz(lying)
+        assert len(load_rig_npz(good).neutral) > 0
+    check_npz_sizes(good)
+    with pytest.raises(ValueError, match=r"its arrays declare more than 0 MiB"):
+        check_npz_sizes(good, limit=1000)      # a real archive over the limit: refused on its headers alone

@@ -354,6 +354,19 @@ def test_served_flow_runs_name_paths_under_the_roots_only(tmp_path):
         check_paths_within({"params": inside}, [])
 
 
+def test_a_served_run_sends_no_work_to_a_dask_scheduler_named_in_its_parameters(tmp_path):
+    from visemeflow.flows.params import PipelineParams, RunnerConfig
+
+    root = tmp_path / "root"
+    check_paths_within({"params": PipelineParams(corpus=root / "c", store=root / "s",
+                                                 runner=RunnerConfig(kind="dask", dask_workers=2))}, [root])
+    for address in ("203.0.113.7:8786", "tcp://203.0.113.7:8786", "localhost:8786"):
+        params = PipelineParams(corpus=root / "c", store=root / "s", runner=RunnerConfig(dask_address=address))
+        with pytest.raises(PathOutsideRootsError, match=rf"params\.runner\.dask_address = {re.escape(address)}: a "
+                                                        r"served run sends no work to a Dask scheduler"):
+            check_paths_within({"params": params}, [root])
+
+
 def test_model_sources_given_as_strings_are_checked_when_they_name_a_local_folder(tmp_path):
     """`wav2vec2_model` and `whisper_source` take a local folder or a hub id: a folder is a path like any other."""
     from visemeflow.flows.params import TrainParams

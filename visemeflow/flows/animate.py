@@ -135,7 +135,7 @@ def animate_flow(params: AnimateParams):
                                         params.config.meshes)
             choices.append(loaded.describe())
             logger.info("animate: %s", choices[-1])
-        except (CharacterError, OSError) as exc:  # the whole character is unusable: one reject, next character
+        except (CharacterError, OSError, MemoryError) as exc:  # the character is unusable: one reject, next one
             rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
             logger.warning("animate: %s", exc)
             continue

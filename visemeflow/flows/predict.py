@@ -34,7 +34,7 @@ from pydantic import BaseModel
 from visemeflow.flows.params import DEFAULT_STORE, PredictParams  # noqa: F401 (re-exported)
 from visemeflow.atomic import atomic_write_text
 from visemeflow.animation.export import CurveTrack, write_export
-from visemeflow.dashboards.records import record_predicted_audio
+from visemeflow.dashboards.records import record_predicted_audio, recorded_predicted_audio
 from visemeflow.flows.common import replace_stage_rejects
 from visemeflow.flows.errors import StageFailed
 from visemeflow.hashing import file_hash, stable_hash
@@ -229,8 +229,14 @@ def predict_flow(params: PredictParams) -> State:
     if not is_trained(params.model):  # once per run: nothing here says which language the audio is in
         logger.warning(PHONES_ENGLISH_ONLY)
     digest = model_hash(store, params.model)
-    rows, rejects, unexpected = [], [], 0
+    rows, rejects, unexpected, replaced = [], [], 0, []
+    earlier = recorded_predicted_audio(store)
     for audio, uid in zip(params.audio, prediction_ids(params.audio)):
+        before, now = earlier.get(uid), str(Path(audio).resolve())
+        if before is not None and before != now:   # ids are unique within a batch, not across batches
+            replaced.append({"utterance_id": uid, "before": before, "now": now})
+            logger.warning("predict: %s held the curves of %s; those of %s replace them (give the files names of "
+                           "their own, or predict them in one batch, to keep both)", uid, before, now)
         try:
             rows.append(_predict_file(store, params, digest, audio, uid))
         except AudioError as exc:
@@ -250,7 +256,7 @@ def predict_flow(params: PredictParams) -> State:
     counts = {"files": len(params.audio), "predicted": sum(not r["cached"] for r in rows),
               "cached": sum(r["cached"] for r in rows), "rejected": len(rejects)}
     logger.info("predict %s: %s", params.model, counts)
-    summary = {"model": params.model, "predictions": rows, **counts,
+    summary = {"model": params.model, "predictions": rows, **counts, "replaced": replaced,
                "rejects": [{"audio": r[C.PATH], "utterance_id": r[C.UTTERANCE_ID], "error_type": r[C.ERROR_TYPE],
                             "reason": r[C.MESSAGE]} for r in rejects]}
     if unexpected or not rows:

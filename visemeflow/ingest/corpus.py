@@ -484,7 +484,14 @@ def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: l
                 continue
             kinds["alignment"] = own_mlf
         if "alignment" not in kinds and stem in transcripts and ("audio" in kinds or "video" in kinds):
-            kinds["alignment"], kind = transcripts[stem], TRANSCRIPT_FORMAT   # ingest aligns it
+            transcript = transcripts[stem]
+            if not _inside(transcript, real_root):   # as the files above: never read a file outside the corpus
+                rejects.append(DiscoveryReject(
+                    utterance_id, "PathOutsideCorpus",
+                    f"{utterance_id}: {transcript} is a link to {transcript.resolve()}, outside the corpus folder "
+                    f"{real_root}; copy the file into the corpus", str(transcript)))
+                continue
+            kinds["alignment"], kind = transcript, TRANSCRIPT_FORMAT   # ingest aligns it
         if "audio" not in kinds and "video" in kinds:
             kinds["audio"] = kinds["video"]  # the audio track inside the video (GRID .mpg)
         if "alignment" not in kinds and "video" not in kinds:

@@ -47,6 +47,10 @@ LANGUAGE_OF_INVENTORY: dict[str, str | None] = {"arpabet": "en", "ipa": "en", "x
 """The language an utterance gets from its inventory when neither the manifest nor the config names one
 (X-SAMPA is written for every language: none)."""
 FILE_END_FORMATS = frozenset({"textgrid", "word_align"})
+# Audio whose header claims more than this, or a rate below speech's, is refused before anything is sized by it (a
+# 132-byte FLAC may declare 49 days): longer recordings are split into utterances first.
+MAX_AUDIO_S = 24 * 3600.0
+MIN_AUDIO_RATE = 4000
 """Formats that say where the file ends (a TextGrid's xmax; the last word of an .align): such an alignment must
 end with the audio. Label files (HTK, MLF) and XRA only say where their last label ends: they may stop before the
 audio ends (the rest is silence) but not run past it."""
@@ -250,13 +254,38 @@ def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
         return int(rate), len(samples) / rate
     if info.frames <= 0 or info.samplerate <= 0:
         raise IngestError(entry.utterance_id, entry.audio_path, "EmptyAudio", "the audio has no samples")
+    if info.samplerate < MIN_AUDIO_RATE:
+        raise IngestError(entry.utterance_id, entry.audio_path, "UnsupportedSampleRate",
+                          f"the header gives {info.samplerate} samples a second; speech needs at least "
+                          f"{MIN_AUDIO_RATE} (a damaged header?)")
+    seconds = info.frames / info.samplerate
+    if seconds > MAX_AUDIO_S:
+        raise IngestError(entry.utterance_id, entry.audio_path, "AudioTooLong",
+                          f"the header gives {seconds / 3600:.1f} h of audio, more than {MAX_AUDIO_S / 3600:.0f} h: "
+                          "split the recording into utterances (or the header is damaged)")
     try:
         check_audio_file_finite(entry.audio_path, info)
+        if info.format != "MPEG":   # an MP3's count may be the encoder's estimate: its decoder is the judge
+            _check_last_frame(entry.audio_path, info.frames)
     except AudioError as exc:
         raise IngestError(entry.utterance_id, exc.path, exc.error_type, exc.reason) from exc
     except (RuntimeError, OSError) as exc:
         raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
-    return int(info.samplerate), info.frames / info.samplerate
+    return int(info.samplerate), seconds
+
+
+def _check_last_frame(path: str, frames: int) -> None:
+    """AudioError unless the header's last frame can be read: a truncated file, or a header that claims more samples
+    than the file holds, would otherwise size every later array by the claim."""
+    try:
+        with sf.SoundFile(path) as f:
+            f.seek(frames - 1)
+            got = len(f.read(1))
+    except (RuntimeError, OSError, ValueError) as exc:   # libsndfile: "Internal psf_fseek() failed"
+        raise AudioError(path, "TruncatedAudio", f"the header gives {frames} samples, but sample {frames} cannot "
+                                                 f"be read ({type(exc).__name__}: {exc})") from exc
+    if got != 1:
+        raise AudioError(path, "TruncatedAudio", f"the header gives {frames} samples, but the file ends before the last")
 
 
 def read_video_info(entry: CorpusEntry) -> VideoInfo:

@@ -169,11 +169,17 @@ def _local_path(text: str) -> bool:
 
 def check_paths_within(parameters: Mapping[str, object], roots: Sequence[Root]) -> None:
     """PathOutsideRootsError for the first path parameter outside the folders of `roots` (the shipped demo rig is
-    always allowed), or the first URL outside its prefixes (`s3://bucket/store`)."""
+    always allowed), the first URL outside its prefixes (`s3://bucket/store`), or a Dask scheduler's address."""
     from visemeflow.rig import demo_rig_path
 
     prefixes = [r for r in roots if isinstance(r, str)]
     roots = [r for r in roots if isinstance(r, Path)]
+    for name, value, field in (found for key, value in parameters.items() for found in _leaves(value, key)):
+        if field == "dask_address" and value:   # `host:port` has no scheme, yet Dask connects to it
+            raise PathOutsideRootsError(
+                f"flow parameter {name} = {value}: a served run sends no work to a Dask scheduler named in its "
+                f"parameters (its tasks would run, and read the store, on that host); use runner.kind dask for a "
+                f"local cluster, or run `visemeflow pipeline --dask-address` from the command line")
     for name, url in (found for key, value in parameters.items() for found in urls_in(value, key)):
         if not _under_prefix(url, prefixes):
             allowed = ", ".join(prefixes) or "none"

@@ -140,7 +140,11 @@ def align_transcript(audio: np.ndarray, sample_rate: int, text: str, source: str
         _decode(decoder, pcm)                     # the words
     except RuntimeError as exc:
         raise AlignmentError(f"{source}: pocketsphinx found no alignment of the transcript ({exc})") from None
-    spans = [(_word(seg.word), seg.start_frame, seg.end_frame + 1) for seg in decoder.seg()
+    segments = decoder.seg()
+    if segments is None:                          # silence or noise: pocketsphinx has no hypothesis at all
+        raise AlignmentError(f"{source}: pocketsphinx heard none of the transcript's words in the audio (silence "
+                             "or noise?)")
+    spans = [(_word(seg.word), seg.start_frame, seg.end_frame + 1) for seg in segments
              if _word(seg.word) not in _SILENCE]
     if [w for w, _, _ in spans] != words:
         raise AlignmentError(f"{source}: the alignment's words {[w for w, _, _ in spans]} are not the "

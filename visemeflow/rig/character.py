@@ -24,6 +24,7 @@ import numpy as np
 
 from visemeflow.atomic import atomic_path
 from visemeflow.rig import RigError, VisemeRig, load_rig_npz, read_mesh
+from visemeflow.rig.io import check_npz_sizes
 from visemeflow.visemes import VISEMES
 
 
@@ -210,6 +211,7 @@ def save_character_npz(character: Character, path: str | os.PathLike) -> Path:
 
 def load_character_npz(path: Path, name: str | None) -> Character:
     try:
+        check_npz_sizes(path)
         with np.load(path, allow_pickle=False) as data:
             keys = set(data.files)
             if set(_NPZ_KEYS) <= keys:

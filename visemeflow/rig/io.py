@@ -339,10 +339,44 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
                 np.lib.format.write_array(handle, np.asanyarray(array), allow_pickle=False)
 
 
+MAX_NPZ_BYTES = 1 << 30
+"""The most bytes the arrays of one rig or character .npz may declare in all (1 GiB, as a glTF file)."""
+
+
+def check_npz_sizes(path: Path | str, limit: int = MAX_NPZ_BYTES) -> None:
+    """ValueError unless every array of the .npz at `path` declares no more bytes than its member holds
+    uncompressed, and all together at most `limit`: `np.load` allocates an array's declared shape before it reads
+    a byte, so a 1 kB file may otherwise ask for terabytes. Reads only the members' headers."""
+    total = 0
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                    elif version == (2, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                    else:   # 3.0 (utf-8 field names) is never written for these arrays
+                        raise ValueError(f"array {info.filename}: .npy format {version} is not read here")
+                declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if declared > info.file_size:
+                    raise ValueError(f"array {info.filename} declares {declared} bytes ({shape}, {dtype}) but holds "
+                                     f"{info.file_size}")
+                total += declared
+                if total > limit:
+                    raise ValueError(f"its arrays declare more than {limit >> 20} MiB")
+    except zipfile.BadZipFile as exc:
+        raise ValueError(f"not a zip archive ({exc})") from None
+
+
 def load_rig_npz(path: Path | str) -> VisemeRig:
     """A rig written by `save_rig_npz`; arrays come back as float32 / int32 / int64 as VisemeRig documents."""
     path = Path(path)
     try:
+        check_npz_sizes(path)
         archive = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as error:
         raise RigError(f"{path}: cannot read rig npz: {error}") from None

@@ -50,6 +50,11 @@ def ingest_entries(
         except IngestError as exc:
             rejects.append(reject_row(exc.utterance_id, STAGE, exc.error_type, str(exc), exc.path))
             continue
+        except Exception as exc:  # noqa: BLE001 - a fault of one utterance's files is its reject, never its shard's
+            path = entry.alignment_path or entry.audio_path
+            rejects.append(reject_row(entry.utterance_id, STAGE, type(exc).__name__,
+                                      f"{entry.utterance_id}: {path}: {type(exc).__name__}: {exc}", path))
+            continue
         utterances.append(result.utterance)
         phones.extend(result.phones)
     return utterances, phones, rejects, reused

@@ -95,8 +95,9 @@ def _generate_many(
             s, e = bounds.get(uid, (0, 0))
             try:
                 generate_for_utterance(store, u, phones.slice(s, e - s), config, variant)
-            except (ValueError, FloatingPointError) as exc:
-                rejects.append(reject_row(uid, STAGE, type(exc).__name__, str(exc), u[C.ALIGNMENT_PATH]))
+            except (ValueError, FloatingPointError, MemoryError) as exc:   # one utterance's fault, not the shard's
+                rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{uid}: {exc}" if isinstance(exc, MemoryError)
+                                          else str(exc), u[C.ALIGNMENT_PATH]))
                 continue
             generated += 1
     return generated, reused, rejects
