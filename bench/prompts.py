@@ -55,13 +55,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from encoders import CachedPredictor  # noqa: E402
-from realspeech import SAMPLE_RATE, read_corpus  # noqa: E402
+from judging import probe  # noqa: E402
+from realspeech import FPS, SAMPLE_RATE, fraction, read_corpus  # noqa: E402
 from report import print_grid  # noqa: E402
 from thirdlang import align_words, header, row, with_gaps, word_phones, words_of  # noqa: E402
 
+from visemeflow.articulation import CLOSED_MM, close_lips  # noqa: E402
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
 from visemeflow.learning.features import resample_audio  # noqa: E402
+from visemeflow.learning.lipscore import pool_lips, score_lips  # noqa: E402
+from visemeflow.learning.realspeech import phone_frames  # noqa: E402
 from visemeflow.learning.train import load_model  # noqa: E402
 from visemeflow.phonetics.inventory import UnknownPhonemeError, map_phone  # noqa: E402
 from visemeflow.phonetics.textgrid import Tier, format_textgrid  # noqa: E402
@@ -182,6 +186,28 @@ def build_corpus(root: Path, tmp: Path, languages: list[str], count: int, seed: 
     return roots
 
 
+MESH_COLUMNS = ["mesh: b/p/m closed (< 1.5 mm)", "mesh: other phones closed mid-phone"]
+
+
+def mesh_cells(curves: list[np.ndarray], utterances) -> list[str]:
+    """The lips on the demo character after the closure rule (`articulation.close_lips`, as the animation stage
+    applies it; `animation.lips.LipProbe`): b/p/m phones whose smallest lip gap is below 1.5 mm, and other phones
+    whose lips are closed at their middle frame (what a viewer sees mid-phone)."""
+    p = probe()
+    widest = p.single_shape_gap("AHH")
+    lips, closed, others = [], 0, 0
+    for c, u in zip(curves, utterances, strict=True):
+        gap = p.measure(close_lips(c)).gap_mm
+        lips.append(score_lips(gap, None, FPS, u.phones, widest))
+        for ph in u.phones:
+            frames = None if ph.viseme in (None, "MBP") else phone_frames(ph.start_s, ph.end_s, FPS, len(gap))
+            if frames is not None:
+                others += 1
+                closed += bool(gap[frames[len(frames) // 2]] < CLOSED_MM)
+    bilabial = pool_lips(lips).closed
+    return [fraction(bilabial.hits, bilabial.total), fraction(closed, others)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, default=Path("/"),
@@ -224,7 +250,7 @@ def main() -> None:
     aligned = time.perf_counter() - started
 
     predict = CachedPredictor(CACHE)
-    columns = header(args.tolerance)
+    columns = header(args.tolerance) + MESH_COLUMNS
     rows: list = []
     pooled: dict[str, tuple[list, list]] = {}
     for lang, utts in corpora.items():
@@ -234,12 +260,13 @@ def main() -> None:
         sources = {name: [predict(model, u.audio, u.n) for u in utts] for name, model in models.items()}
         sources["procedural (alignment)"] = [u.procedural for u in utts]
         for name, curves in sources.items():
-            rows.append(row(name, curves, utts, args.tolerance))
+            rows.append(row(name, curves, utts, args.tolerance) + mesh_cells(curves, utts))
             pooled.setdefault(name, ([], []))[0].extend(curves)
             pooled[name][1].extend(utts)
     if len(corpora) > 1:
         rows.append(f"all {len(corpora)} languages pooled")
-        rows += [row(name, curves, utts, args.tolerance) for name, (curves, utts) in pooled.items()]
+        rows += [row(name, curves, utts, args.tolerance) + mesh_cells(curves, utts)
+                 for name, (curves, utts) in pooled.items()]
 
     print_grid(columns, rows)
     print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "

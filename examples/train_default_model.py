@@ -65,6 +65,8 @@ WHISPER_RECIPE = "lj+fg+cls0.1"
 WHISPER_LOSS = "closure:4"
 FBANK_RECIPE = "mixed"
 LR = 1e-3
+MBP_LEAD_S = 0.0   # s: off; 0.008 helped on pocketsphinx-aligned English and lost b/p/m elsewhere (data README)
+MBP_OTHERS_POWER = 6.0   # where MBP leads a frame, the other visemes capped at (1 - MBP) ** 6 (issue 25)
 
 
 def fbank(args) -> tuple:
@@ -100,8 +102,11 @@ def whisper(args) -> tuple:
     else:
         result = train_model(train, [], config, encoder_cache=encoders.CACHE, loss=domain_gap.make_loss(args.loss))
     window_s, power = args.mbp_peaks
-    config = config.model_copy(update={"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power})
-    result.model.closure_peaks = ClosurePeaks(window_s, power) if window_s > 0 else None
+    config = config.model_copy(update={"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
+                                       "mbp_lead_s": args.mbp_lead if window_s > 0 else 0.0,
+                                       "mbp_others_power": args.mbp_others if window_s > 0 else 0.0})
+    result.model.closure_peaks = (ClosurePeaks(window_s, power, config.mbp_lead_s, config.mbp_others_power)
+                                  if window_s > 0 else None)
     result.model.eval()
     predict = encoders.CachedPredictor()
     figures = encoders.judge(sets, lambda audio, n: predict(result.model, audio, n))
@@ -147,6 +152,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mbp-peaks", type=_peaks, default=(0.067, 16.0), metavar="SECONDS,POWER",
                         help="whisper: narrow the MBP channel to its peaks at inference within SECONDS on either "
                              "side (learning.model.ClosurePeaks; 0,0: off)")
+    parser.add_argument("--mbp-lead", type=float, default=MBP_LEAD_S, metavar="SECONDS",
+                        help="whisper, with the peaks: move the MBP channel this much earlier first "
+                             "(ClosurePeaks.lead_s; 0: off)")
+    parser.add_argument("--mbp-others", type=float, default=MBP_OTHERS_POWER, metavar="K",
+                        help="whisper, with the peaks: where MBP leads a frame, cap the other visemes at "
+                             "(1 - MBP) ** K (ClosurePeaks.others_power; 0: off)")
     parser.add_argument("--from-model", type=Path, default=None,
                         help="whisper: take the weights of this model file instead of training (same recipe), to "
                              "judge and write them again with other inference settings (--mbp-peaks)")
@@ -165,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
                "loss": args.loss if is_whisper else "l1", **({"layers": args.layers} if is_whisper else {}),
                "steps": args.steps, "lr": args.lr, "commit": commit.strip(), "data": data, "held_out": held_out,
                "figures": figures,
-               **({"mbp_peaks": list(args.mbp_peaks), "closure_ramps_s": args.closure_ramps} if is_whisper else {}),
+               **({"mbp_peaks": list(args.mbp_peaks), "mbp_lead_s": args.mbp_lead, "mbp_others_power": args.mbp_others,
+                  "closure_ramps_s": args.closure_ramps} if is_whisper else {}),
                **({"weights_from": _weights_from(args.from_model)} if args.from_model is not None else {})}
     save_model(result.model, config, out, lineage)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB) in {seconds:.0f} s (training and judging)")

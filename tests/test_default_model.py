@@ -25,6 +25,9 @@ def test_the_default_model_ships_small_with_its_recipe_and_figures():
     assert config.preset == "whisper-base-blstm" and config.viseme_loss_weight == 0.1
     assert (config.mbp_peaks_half_window_s, config.mbp_peaks_power) == (0.067, 16.0)
     assert model.closure_peaks is not None and lineage["mbp_peaks"] == [0.067, 16.0]
+    # where MBP leads a frame the opening shapes are capped at (1 - MBP) ** 6: the rendered lips meet (issue 25)
+    assert config.mbp_others_power == model.closure_peaks.others_power == lineage["mbp_others_power"] == 6.0
+    assert config.mbp_lead_s == model.closure_peaks.lead_s == 0.0
     assert lineage["closure_ramps_s"] == 0.05   # the LJ targets' closure ramps
     assert lineage["script"] == "examples/train_default_model.py"
     assert lineage["held_out"]["captured"] == "FACEGOOD 1114_2_05"

@@ -366,11 +366,33 @@ def test_closure_peaks_keep_the_peak_and_cut_its_shoulders_at_any_rate():
         ClosurePeaks(0.0, 16.0)
 
 
+def test_closure_peaks_lead_moves_mbp_earlier_and_a_leading_closure_caps_the_other_visemes():
+    from visemeflow.learning.model import ClosurePeaks
+    from visemeflow.visemes import VISEME_INDEX
+
+    k, aa = VISEME_INDEX["MBP"], VISEME_INDEX["AHH"]
+    y = torch.zeros(1, 8, N_VISEMES)
+    y[0, :, k] = torch.tensor([0.0, 0.0, 0.2, 0.6, 0.2, 0.0, 0.0, 0.4])
+    y[0, :, aa] = torch.tensor([0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
+    led = ClosurePeaks(0.1, 1.0, lead_s=0.25 / 30.0)
+    x = led._lead(y[..., k], 0.25)
+    assert torch.allclose(x[0], torch.tensor([0.0, 0.05, 0.3, 0.5, 0.15, 0.0, 0.1, 0.4]))  # the last frame holds
+    out = led(y, 30.0)
+    assert out[0, 3, k] == pytest.approx(0.5) and torch.equal(out[..., aa], y[..., aa])   # no others_power: as is
+    closed = ClosurePeaks(0.1, 16.0, others_power=3.0)(y, 30.0)
+    assert closed[0, 3, k] == pytest.approx(0.6)                     # MBP leads frame 3: AHH capped at 0.4 ** 3
+    assert closed[0, 3, aa] == pytest.approx(0.4 ** 3) and closed[0, 2, aa] == 0.5   # elsewhere AHH leads: as is
+    assert torch.equal(closed.argmax(-1)[0, [0, 1, 2, 3, 4, 5]], torch.tensor([aa, aa, aa, k, aa, aa]))
+    for bad in ({"lead_s": -0.01}, {"lead_s": 0.2}, {"others_power": -1.0}):
+        with pytest.raises(ValueError):
+            ClosurePeaks(0.1, 16.0, **bad)
+
+
 def test_closure_peaks_apply_at_inference_only_and_configs_without_them_serialise_as_before():
     from visemeflow.learning.train import TrainConfig, build_training_model
 
     plain = TrainConfig(preset="fbank-blstm", d_model=32)
-    assert "mbp_peaks_half_window_s" not in plain.model_dump() and "mbp_peaks_power" not in plain.model_dump()
+    assert not {"mbp_peaks_half_window_s", "mbp_peaks_power", "mbp_lead_s", "mbp_others_power"} & set(plain.model_dump())
     assert build_training_model(plain, 30.0).closure_peaks is None
     config = plain.model_copy(update={"mbp_peaks_half_window_s": 0.1})
     model = build_training_model(config, 30.0)

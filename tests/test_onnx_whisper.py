@@ -53,7 +53,8 @@ def exported(tmp_path_factory):
             train.append(Example(p.stem, a, rng.random((round(len(a) / 16000 * FPS), 16)).astype(np.float32), FPS))
         # with the shipped default's inference-only MBP peaks, so the graph is held to them too
         config = TrainConfig(preset="whisper-base-blstm", d_model=32, epochs=2, batch_size=2,
-                             mbp_peaks_half_window_s=0.1, mbp_peaks_power=32.0)
+                             mbp_peaks_half_window_s=0.1, mbp_peaks_power=32.0, mbp_lead_s=0.008,
+                             mbp_others_power=3.0)
         model = train_model(train, [], config).model.eval()
         root = tmp_path_factory.mktemp("onnx-whisper")
         path = save_model(model, config, root / "whisper.pt", {"source": "test"})

@@ -61,6 +61,10 @@ class TrainConfig(BaseModel):
     # visemeflow.learning.model.ClosurePeaks); a training run never applies it, a loaded model does in eval mode
     mbp_peaks_half_window_s: float = Field(0.0, ge=0, le=0.5)
     mbp_peaks_power: float = Field(16.0, gt=0, le=64)
+    # inference only, with the peaks: the MBP channel moved this much earlier first, s (ClosurePeaks.lead_s)
+    mbp_lead_s: float = Field(0.0, ge=0, le=0.1)
+    # inference only, with the peaks: where MBP leads a frame, the other visemes capped at (1 - MBP) ** this (0: off)
+    mbp_others_power: float = Field(0.0, ge=0, le=16)
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -83,7 +87,8 @@ class TrainConfig(BaseModel):
 _ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
                                    "viseme_loss_weight": 0.0, "whisper_layers": None,
                                    "whisper_tune_layers": 0, "whisper_tune_lr": 1e-5,
-                                   "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0}
+                                   "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0,
+                                   "mbp_lead_s": 0.0, "mbp_others_power": 0.0}
 
 
 CONDITIONS: tuple[str, ...] = ("volume", "pitch", "speed", "noise")

@@ -225,7 +225,8 @@ def _assemble(config: TrainConfig, feature_module: nn.Module, curve_fps: float) 
     head = build_model(
         preset, feature_module.dim, feature_module.frame_rate_hz, curve_fps, d_model=config.d_model
     )
-    peaks = (ClosurePeaks(config.mbp_peaks_half_window_s, config.mbp_peaks_power)
+    peaks = (ClosurePeaks(config.mbp_peaks_half_window_s, config.mbp_peaks_power, config.mbp_lead_s,
+                          config.mbp_others_power)
              if config.mbp_peaks_half_window_s > 0 else None)
     return AudioCurveModel(feature_module, head, peaks)
 
