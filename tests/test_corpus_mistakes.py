@@ -232,6 +232,19 @@ def test_pipeline_and_ingest_take_one_audio_or_video_file_as_a_corpus_of_one(tmp
     assert row["utterance_id"] == "alice/hello" and row["alignment_format"] == "textgrid"
     phones = pq.read_table(store / "tables" / "phones").to_pylist()
     assert [p["label"] for p in phones] == [p[0] for p in PHONES]
+    # the folder holds hello too: it may follow; then hello alone again would drop `other`: it stops and says so
+    done = visemeflow(["ingest", str(corpus), "--store", str(store)], prefect_api_url)
+    assert done.returncode == 0, done.stdout + done.stderr
+    done = visemeflow(["pipeline", str(corpus / "alice" / "hello.wav"), "--store", str(store)], prefect_api_url)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stdout + done.stderr
+    assert (f"{store} was ingested from {corpus}; {corpus / 'alice' / 'hello.wav'} lacks 1 of its utterances "
+            f"(alice/other), which this ingest would drop") in done.stderr and "--replace" in done.stderr
+    assert sorted(r["utterance_id"] for r in pq.read_table(store / "tables" / "utterances").to_pylist()) == [
+        "alice/hello", "alice/other"]
+    done = visemeflow(["ingest", str(corpus / "alice" / "hello.wav"), "--store", str(store), "--replace"],
+                      prefect_api_url)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert [r["utterance_id"] for r in pq.read_table(store / "tables" / "utterances").to_pylist()] == ["alice/hello"]
 
     clip = tmp_path / "s1" / "bbaf2n.MPG"  # a real GRID clip alone: no alignment, tracked unguided
     clip.parent.mkdir()

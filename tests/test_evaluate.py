@@ -492,3 +492,26 @@ def test_a_bad_model_is_a_reject_and_the_others_are_judged(tmp_path):
     assert "evaluate: 1 of 2 models judged, 1 rejected" in done.output and f"rejected model broken ({broken})" in done.output
     with pytest.raises(LookupError, match="no model to evaluate: model broken .*; model nope: no trained model"):
         evaluate_flow(EvaluateParams(store=store.root, models=["broken", "nope"], conditions=["volume"]))
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_evaluate_without_validation_utterances_ends_failed_with_one_line_and_no_traceback(tmp_path, capsys):
+    """A new user's small corpus put no id in the `val` split: the run ends Failed saying what evaluate judges, as a
+    message, not an exception whose traceback Prefect prints."""
+    from visemeflow.flows.errors import StageFailed
+    from visemeflow.flows.evaluate import evaluate_flow
+    from visemeflow.flows.params import EvaluateParams, TrainParams
+    from visemeflow.flows.train import train_flow
+    from visemeflow.learning.train import TrainConfig
+
+    store = make_curve_store(tmp_path / "store")
+    train_flow(TrainParams(store=store.root, config=TrainConfig(preset="mean-curve", epochs=1),
+                           source="ground_truth", variant="cm", model_name="m"))
+    capsys.readouterr()
+    with pytest.raises(StageFailed, match=r"^evaluate: no validation utterance in .* has ground_truth curves of "
+                                          r"variant 'absent'; evaluate judges the `val` split") as info:
+        evaluate_flow(EvaluateParams(store=store.root, models=["m"], source="ground_truth", variant="absent"))
+    assert info.value.summary == {"models": 1, "validation_utterances": 0}
+    out = capsys.readouterr()
+    assert "Traceback" not in out.out + out.err

@@ -166,3 +166,26 @@ def test_silence_with_a_transcript_is_a_reject_and_the_shard_keeps_the_rest(tmp_
     assert [u["utterance_id"] for u in utterances] == ["LJ/LJ001-0002"]
     assert [(r["utterance_id"], r["error_type"]) for r in rejects] == [("LJ/LJ001-0005", "MemoryError")]
     assert "LJ001-0005.TextGrid" in rejects[0]["message"] and rejects[0]["path"].endswith("LJ001-0005.TextGrid")
+
+
+def test_a_textgrid_of_words_alone_is_aligned_as_an_english_transcript(tmp_path):
+    """praatio's bobby_words.TextGrid has word and phrase tiers, no phones: the words are forced-aligned, as a
+    transcript's are, where a reject ('MissingPhoneTier') used to end it; in another language it stays a reject
+    that says why."""
+    praatio = REPO.parent / "shared" / "data" / "praatio_examples"
+    folder = tmp_path / "corpus" / "bobby"
+    folder.mkdir(parents=True)
+    shutil.copyfile(praatio / "bobby.wav", folder / "bobby.wav")
+    shutil.copyfile(praatio / "bobby_words.TextGrid", folder / "bobby.TextGrid")
+    (entry,) = discover_corpus(tmp_path / "corpus").entries
+    row = ingest_utterance(entry, IngestConfig())
+    assert row.utterance["alignment_format"] == "textgrid" and row.utterance["inventory"] == "arpabet"
+    reference = [t for a, b, t in parse_textgrid_bytes((praatio / "bobby_phones.TextGrid").read_bytes())
+                 .tier(("phone",)).items if t.strip()]
+    labels = [p["label"] for p in row.phones if p["part"] == 0]
+    assert labels[:3] == ["B", "AA", "B"] and abs(len(labels) - len(reference)) <= 2   # "bobby", and a phone or
+    assert "MBP" in {p["viseme"] for p in row.phones}                                 # two of pronunciation
+    with pytest.raises(IngestError, match=r"no interval tier named .*; tiers are \['word', 'phrase'\]; its words "
+                                          r"are aligned in English only") as info:
+        ingest_utterance(entry, IngestConfig(language="fr"))
+    assert info.value.error_type == "MissingPhoneTier"

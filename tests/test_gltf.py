@@ -400,6 +400,7 @@ def test_bad_files_raise_character_errors_that_name_the_file(tmp_path):
     good = write_glb(tmp_path / "good.glb", small_character(), random_weights(3, 3), 30.0)
     (tmp_path / "text.glb").write_text("hello, not a model\n")
     (tmp_path / "empty.glb").write_bytes(b"")
+    (tmp_path / "page.glb").write_text("\n<!DOCTYPE html>\n<html><head><title>avatar.glb at main</title>")
     (tmp_path / "truncated.glb").write_bytes(good.read_bytes()[:400])
     (tmp_path / "no-asset.gltf").write_text('{"meshes": []}')
     (tmp_path / "version1.gltf").write_text('{"asset": {"version": "1.0"}}')
@@ -411,6 +412,7 @@ def test_bad_files_raise_character_errors_that_name_the_file(tmp_path):
     cases = {
         "text.glb": "not a glTF 2.0 / GLB file",
         "empty.glb": "not a glTF 2.0 / GLB file",
+        "page.glb": "not a glTF 2.0 / GLB file (it is an HTML page: a web page saved instead of the file?",
         "truncated.glb": "truncated",
         "no-asset.gltf": "not a glTF 2.0 / GLB file",
         "version1.gltf": "only glTF 2.0",

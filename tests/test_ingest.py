@@ -242,6 +242,7 @@ def test_missing_phone_tier(tmp_path):
     message = assert_names(info.value, "s/tiers", tg.resolve())
     assert info.value.error_type == "MissingPhoneTier"
     assert "'segments'" in message and "phones" in message
+    assert "if tier 'segments' holds the phones, name it: --phone-tier segments" in message   # never re-aligned
     # the same file is fine when the tier name is configured
     ok = ingest_utterance(entry_of(tmp_path, "s/tiers"), IngestConfig(phone_tiers=("SEGMENTS",)))
     assert len(ok.phones) == len(HELLO)

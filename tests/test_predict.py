@@ -268,9 +268,13 @@ def test_bad_audio_files_are_rejects_and_the_others_are_predicted(store, tmp_pat
     assert {r["audio"] for r in result["rejects"]} == {str(text), str(missing)}
     with pytest.raises(StageFailed, match="every audio file was rejected.*notes.wav"):
         predict_flow(PredictParams(store=store.root, model="tiny", audio=[text]))
-    # the next run's outcome replaces the stage's rejects
+    # batches are independent: a batch of other files keeps those rejects listed; a file fixed and predicted again
+    # clears its own
     predict_flow(PredictParams(store=store.root, model="tiny", audio=[AUDIO]))
-    assert store.read_table("rejects", "predict").num_rows == 0
+    assert {r[C.PATH] for r in store.read_table("rejects", "predict").to_pylist()} == {str(text), str(missing)}
+    sf.write(text, np.zeros(8000, np.float32), 16000)
+    predict_flow(PredictParams(store=store.root, model="tiny", audio=[text]))
+    assert [r[C.PATH] for r in store.read_table("rejects", "predict").to_pylist()] == [str(missing)]
 
 
 @pytest.mark.flow

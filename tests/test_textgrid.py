@@ -518,3 +518,23 @@ def test_round_trip_long_and_short(intervals, tier_name):
         assert [t.name for t in grid.tiers] == ["words", tier_name]
         assert grid.tiers[1].items == tuple(intervals)
         assert grid.tiers[0].items == tuple(intervals[:1])
+
+
+def test_a_hand_edited_textgrid_error_names_the_line_and_what_stands_there():
+    """A word where a number belongs is skipped by the format (as Praat skips labels), so the error used to quote
+    the next value ('B'); an open quote swallowed the lines after it and was quoted whole, newlines and all."""
+    good = textgrid_long(PHONES, 1.2)
+    lines = good.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.strip().startswith("xmax = 0.31"))
+    bad_number = "\n".join(lines[:at] + ["            xmax = abc "] + lines[at + 1:])
+    with pytest.raises(TextGridError, match=rf"^x\.TextGrid: expected a number for xmax of interval 2 in tier "
+                                            rf"'phones' at line {at + 1} \('xmax = abc'\), found 'HH' at line "
+                                            rf"{at + 2}$"):
+        parse_textgrid(bad_number, "x.TextGrid")
+    text_line = at + 1
+    assert lines[text_line].strip() == 'text = "HH"'
+    open_quote = "\n".join(lines[:text_line] + ['            text = "HH '] + lines[text_line + 1:])
+    with pytest.raises(TextGridError, match=rf"^x\.TextGrid: the text of interval 2 in tier 'phones' opens a quote "
+                                            rf"at line {text_line + 1} that runs over \d+ lines into the next "
+                                            rf"entries \(a quote left open\?\)$"):
+        parse_textgrid(open_quote, "x.TextGrid")

@@ -35,9 +35,23 @@ from visemeflow.flows.params import (  # noqa: E402 (torch-free configs: a wrong
 )
 from visemeflow.location import is_url, parse_root, remote_problem  # noqa: E402
 
-# plain help (click's): typer's boxed style labels every flag `<bool>` as if it took a value
+FIRST_COMMANDS = ("speak", "pipeline", "predict", "animate", "train", "evaluate", "serve", "rerun", "rejects")
+
+
+class _CommandsInUseOrder(typer.core.TyperGroup):
+    """`visemeflow --help` lists what a new user reaches for first (`speak`, then a corpus's `pipeline`), then the
+    stages in the order they are defined."""
+
+    def list_commands(self, ctx):
+        names = super().list_commands(ctx)
+        return [n for n in FIRST_COMMANDS if n in names] + [n for n in names if n not in FIRST_COMMANDS]
+
+
+# plain help (click's): typer's boxed style labels every flag `<bool>` as if it took a value; 100 columns leave room
+# for each command's first line
 app = typer.Typer(help="Audio-driven viseme curves for 3D face animation, as Prefect flows.", no_args_is_help=True,
-                  rich_markup_mode=None, pretty_exceptions_enable=False)
+                  rich_markup_mode=None, pretty_exceptions_enable=False, cls=_CommandsInUseOrder,
+                  context_settings={"max_content_width": 100})
 curves_app = typer.Typer(help="Look at stored curves and export them.", no_args_is_help=True, rich_markup_mode=None,
                          pretty_exceptions_enable=False)
 app.add_typer(curves_app, name="curves")
@@ -341,7 +355,7 @@ def _print_summary(title: str, summary: dict) -> None:
 @stage_command(app, IngestParams, [
     Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("config.inventory"),
     Opt("config.phone_tiers", "--phone-tier", repeat=True), Opt("config.alignment_tolerance_s", "--tolerance"),
-    Opt("config.fps"), STRICT,
+    Opt("config.fps"), Opt("replace"), STRICT,
 ])
 def ingest(params: IngestParams, strict: bool) -> None:
     """Read alignments and audio into the `utterances` and `phones` tables."""
@@ -416,8 +430,8 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None, str
 
 
 @stage_command(app, PipelineParams, [
-    Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, *RUNNER,
-    Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
+    Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("replace"), Opt("ingest.inventory"),
+    Opt("ingest.phone_tiers", "--phone-tier", repeat=True), *RUNNER, Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
     Opt("tracking.flow_region"), Opt("tracking.speaker_identity"),
     Opt("characters", "--character", repeat=True, callback=_character), Opt("animate.formats", "--format"),
     Opt("animate.meshes", "--mesh", repeat=True), STRICT,
@@ -528,6 +542,9 @@ def train(params: TrainParams) -> None:
     _print_summary("train", {names.get(k, k): v for k, v in report.items() if k != "path"})
     if path:
         typer.echo(f"model: {path} (use it with --model {report['model']})")
+    if report.get("val") == 0:
+        typer.echo("note: no validation utterance (ingest puts about 10% of the ids in the `val` split by a hash of "
+                   "each id; a manifest's `split` column chooses): `evaluate` and `sweep` judge on that split", err=True)
 
 
 

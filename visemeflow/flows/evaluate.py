@@ -136,8 +136,12 @@ def evaluate_flow(params: EvaluateParams) -> State:
                           else f"`{RECOGNISED_MODEL}` alone has no training curves to name the targets; pass --variant")
     hashes = {m: model_hash(store, m) for m in usable}
     _, val, _ = training_rows(store, source, variant)
-    if not val:
-        raise LookupError(f"no validation utterance in {store.root} has {source} curves of variant {variant!r}")
+    if not val:   # a Failed run with one line, not an exception (whose traceback Prefect would print)
+        message = (f"no validation utterance in {store.root} has {source} curves of variant {variant!r}; evaluate "
+                   f"judges the `val` split (about 10% of the ids, or a manifest's `split` column)")
+        logger.error("evaluate: %s", message)
+        return Failed(message=message, data=StageFailed(f"evaluate: {message}", {"models": len(usable),
+                                                                                 "validation_utterances": 0}))
     if RECOGNISED_MODEL in usable:
         _warn_phones_language(store, val, logger)
 

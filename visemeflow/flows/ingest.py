@@ -1,16 +1,18 @@
 """The `ingest` flow: corpus to the `utterances`, `phones` and `rejects` tables."""
 
+from pathlib import Path
+
 import pyarrow as pa
 from prefect import flow, get_run_logger
 from prefect.states import Failed, State
 
-from visemeflow.flows.common import StageRun, collect, group_by_shard, totals
+from visemeflow.flows.common import StageRun, collect, group_by_shard, last_settings, totals
 from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.params import IngestParams, IngestSettings
 from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
 from visemeflow.ingest.hints import reject_advice, reject_lines
-from visemeflow.location import as_text
-from visemeflow.schemas import REJECTS, shard_of, table_from_rows
+from visemeflow.location import as_text, is_url
+from visemeflow.schemas import REJECTS, C, shard_of, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.tasks.common import reject_row, result_storage
 from visemeflow.tasks.ingest import (
@@ -19,6 +21,7 @@ from visemeflow.tasks.ingest import (
     discover_corpus_task,
     ingest_one,
     ingest_shard,
+    is_captured,
     remove_stale_shards,
     shard_files_present,
 )
@@ -35,12 +38,17 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     problem = check_corpus(params.corpus)
     if problem is not None:
         return _no_corpus(problem)
-    run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,
-                                                       config=params.config))
-    store = run.store
+    last = last_settings(Store(params.store), STAGE)   # read before this run records its own
     found = discover_corpus_task(as_text(params.corpus))
     if not found["entries"] and not found["rejects"]:
         return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
+    if last is not None and not params.replace:
+        problem = _would_drop(Store(params.store), last.corpus, as_text(params.corpus), found["entries"])
+        if problem is not None:
+            return _no_corpus(problem)
+    run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,
+                                                       config=params.config))
+    store = run.store
     shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)
     futures = [
         ingest_shard.with_options(
@@ -63,6 +71,29 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
     return run.finish(summary, rejected.num_rows, len(found["entries"]) + len(discovery_rejects), rejects=rejected)
+
+
+def _same_place(a: str, b: str) -> bool:
+    if is_url(a) or is_url(b):
+        return a.rstrip("/") == b.rstrip("/")
+    return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+
+
+def _would_drop(store: Store, before: str, now: str, entries: list[dict]) -> str | None:
+    """Why this ingest must not run: the store was last ingested from another corpus, and this one lacks utterances
+    the store holds (the store mirrors its corpus, so they would go from its tables); None when it may run. The
+    same corpus losing files, and captured takes (kept by any ingest), drop nothing here."""
+    if _same_place(before, now):
+        return None
+    kept = {e["utterance_id"] for e in entries}
+    rows = store.read_table("utterances").select([C.UTTERANCE_ID, C.ALIGNMENT_FORMAT]).to_pylist()
+    dropped = sorted(r[C.UTTERANCE_ID] for r in rows if r[C.UTTERANCE_ID] not in kept and not is_captured(store, r))
+    if not dropped:
+        return None
+    shown = ", ".join(dropped[:3]) + (f" and {len(dropped) - 3} more" if len(dropped) > 3 else "")
+    return (f"{store.root} was ingested from {before}; {now} lacks {len(dropped)} of its utterances ({shown}), "
+            f"which this ingest would drop from the store's tables. Use another --store, `visemeflow rerun UID` "
+            f"for one utterance, or --replace to make {now} the store's corpus")
 
 
 def _no_corpus(message: str) -> State:

@@ -103,10 +103,15 @@ class StoreParams(BaseModel):
     )
 
 
+ReplaceField = Field(False, description="Let this corpus replace the one the store was last ingested from, dropping "
+                                        "the utterances it lacks (without it such an ingest stops and says so).")
+
+
 class IngestParams(StoreParams):
     corpus: CorpusPath = Field(..., description="Corpus folder (<speaker>/<name>.wav + .TextGrid) or manifest CSV, "
                                                 "or its URL (s3://bucket/corpus).")
     config: IngestConfig = Field(default_factory=IngestConfig)
+    replace: bool = ReplaceField
 
 
 
@@ -123,6 +128,7 @@ class ProceduralParams(StoreParams):
 class PipelineParams(StoreParams):
     corpus: CorpusLocation = Field(..., description="Corpus folder or manifest CSV, or its URL (s3://bucket/corpus).")
     ingest: IngestConfig = Field(default_factory=IngestConfig)
+    replace: bool = ReplaceField
     procedural: ProceduralConfig = Field(default_factory=ProceduralConfig)
     landmarks: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)

@@ -42,7 +42,8 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
             result[stage] = exc.summary
             failures.append(str(exc))
 
-    run("ingest", lambda: ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, **common)))
+    run("ingest", lambda: ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, replace=params.replace,
+                                                           **common)))
     run("procedural", lambda: procedural_flow(ProceduralParams(config=params.procedural, **common)))
     videos = Store(params.store).read_table("utterances").column(C.VIDEO_PATH).drop_null()
     if len(videos) and utterances_needing_landmarks(Store(params.store)):

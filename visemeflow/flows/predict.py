@@ -231,7 +231,8 @@ def predict_flow(params: PredictParams) -> State:
     digest = model_hash(store, params.model)
     rows, rejects, unexpected, replaced = [], [], 0, []
     earlier = recorded_predicted_audio(store)
-    for audio, uid in zip(params.audio, prediction_ids(params.audio)):
+    ids = prediction_ids(params.audio)
+    for audio, uid in zip(params.audio, ids):
         before, now = earlier.get(uid), str(Path(audio).resolve())
         if before is not None and before != now:   # ids are unique within a batch, not across batches
             replaced.append({"utterance_id": uid, "before": before, "now": now})
@@ -247,7 +248,9 @@ def predict_flow(params: PredictParams) -> State:
             logger.error("predict[%s]: unexpected %s\n%s", audio, type(exc).__name__, trace)
             rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{audio}: {exc}\n{trace}", str(audio)))
             unexpected += 1
-    replace_stage_rejects(store, STAGE, rejects, 1)
+    with store.locked("predict-rejects"):   # batches are independent: another batch's rejects stay listed
+        kept = [r for r in store.read_table("rejects", STAGE).to_pylist() if r[C.UTTERANCE_ID] not in set(ids)]
+        replace_stage_rejects(store, STAGE, kept + rejects, 1)
     # predicted curves record their audio's hash only: where the file was, for the dashboard to draw them over it
     record_predicted_audio(store, {r["utterance_id"]: r["audio"] for r in rows})
     if rows:

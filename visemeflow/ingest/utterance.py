@@ -96,26 +96,35 @@ def _decode_label_text(data: bytes) -> str:
 ENGLISH = re.compile(r"^(en|eng)([-_].*)?$", re.IGNORECASE)
 
 
+def _check_aligner_applies(entry: CorpusEntry, config: IngestConfig, path: str, what: str) -> None:
+    """IngestError naming `path` unless the built-in aligner may align this entry's words: on, and English."""
+    if not config.align_transcripts:
+        raise IngestError(entry.utterance_id, path, "MissingAlignment",
+                          f"{what}, not an alignment (transcripts are not aligned: align_transcripts is off)")
+    language = entry.language or config.language
+    if language is not None and ENGLISH.match(language) is None:
+        raise IngestError(entry.utterance_id, path, "TranscriptNotEnglish",
+                          f"{what} in {language!r}; the built-in aligner is English only: align "
+                          "it with the Montreal Forced Aligner (any language) and put the TextGrid beside the audio")
+
+
 def align_transcript_file(entry: CorpusEntry, config: IngestConfig) -> Alignment:
     """The phones of a transcript without times (`NAME.lab`, `NAME.txt`), forced-aligned to the audio in English
     (`visemeflow.phonetics.forcealign`); IngestError naming the file when that is off, the utterance is in another
     language, or the aligner cannot place the words."""
-    from visemeflow.phonetics.forcealign import AlignmentError, align_transcript
-
     path = entry.alignment_path
-    if not config.align_transcripts:
-        raise IngestError(entry.utterance_id, path, "MissingAlignment",
-                          "a transcript without times, not an alignment (transcripts are not aligned: "
-                          "align_transcripts is off)")
-    language = entry.language or config.language
-    if language is not None and ENGLISH.match(language) is None:
-        raise IngestError(entry.utterance_id, path, "TranscriptNotEnglish",
-                          f"a transcript without times in {language!r}; the built-in aligner is English only: align "
-                          "it with the Montreal Forced Aligner (any language) and put the TextGrid beside the audio")
+    _check_aligner_applies(entry, config, path, "a transcript without times")
     try:
         text = _decode_label_text(Path(path).read_bytes())
     except OSError as exc:
         raise IngestError(entry.utterance_id, path, "UnreadableAlignment", f"cannot read: {exc.strerror}") from exc
+    return _align_words_text(entry, path, text)
+
+
+def _align_words_text(entry: CorpusEntry, path: str, text: str) -> Alignment:
+    """The phones of `text`'s words forced-aligned to the entry's audio (errors name `path`)."""
+    from visemeflow.phonetics.forcealign import AlignmentError, align_transcript
+
     try:
         samples, rate = read_audio(entry.audio_path)
     except AudioError as exc:
@@ -169,11 +178,23 @@ def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
     except UnicodeDecodeError as exc:
         raise IngestError(entry.utterance_id, path, "BadEncoding", f"not UTF-8 text: {exc}") from exc
     tier = grid.tier(config.phone_tiers)
+    word_tier = grid.tier(config.word_tiers)
+    spoken = [t for _, _, t in (word_tier.items if word_tier is not None else ()) if t.strip()]
+    language = entry.language or config.language
+    # a tier finer than the words is the phones under another name: the user's own, never replaced by an aligner's
+    finer = [t.name for t in grid.tiers if t.kind == "IntervalTier" and t is not word_tier
+             and sum(1 for _, _, x in t.items if x.strip()) > len(spoken)]
+    if (tier is None and spoken and not finer and config.align_transcripts
+            and (language is None or ENGLISH.match(language))):
+        # words without phones (praatio's examples, a hand-made word tier): aligned as an English transcript is
+        return _align_words_text(entry, path, " ".join(spoken))
     if tier is None:
         names = [t.name for t in grid.tiers]
+        hint = (f"; if tier {finer[0]!r} holds the phones, name it: --phone-tier {finer[0]}" if finer else
+                "; its words are aligned in English only (set the language), else add a phone tier (MFA, WebMAUS)"
+                if spoken else "")
         raise IngestError(entry.utterance_id, path, "MissingPhoneTier",
-                          f"no interval tier named {' or '.join(config.phone_tiers)}; tiers are {names}")
-    word_tier = grid.tier(config.word_tiers)
+                          f"no interval tier named {' or '.join(config.phone_tiers)}; tiers are {names}{hint}")
     words = _words(word_tier)
     return Alignment(_attach_words(tier.items, words), words, grid.start_s, grid.end_s, path)
 

@@ -91,8 +91,10 @@ def decode_textgrid_bytes(data: bytes) -> str:
         return data.decode("latin-1")
 
 
-def _tokens(text: str) -> list[object]:
+def _tokens(text: str) -> tuple[list[object], list[int]]:
+    """(the values, the offset in `text` where each one's token starts)."""
     out: list[object] = []
+    starts: list[int] = []
     for m in _TOKEN.finditer(text):
         string, flag, number = m.group(1), m.group(2), m.group(3)
         if string is not None:
@@ -101,7 +103,13 @@ def _tokens(text: str) -> list[object]:
             out.append(_Flag(flag))
         elif number is not None:
             out.append(float(number))
-    return out
+        else:
+            continue
+        starts.append(m.start())
+    return out, starts
+
+
+_SWALLOWED = re.compile(r"\n\s*(?:xmin|xmax|text|number|mark|intervals|points)\s*[=\[]")
 
 
 class _Str(str):
@@ -113,8 +121,9 @@ class _Flag(str):
 
 
 class _Cursor:
-    def __init__(self, tokens: list[object], source: str):
+    def __init__(self, tokens: list[object], source: str, starts: list[int] | None = None, text: str = ""):
         self.tokens, self.pos, self.source = tokens, 0, source
+        self.starts, self.text = starts, text
 
     def _next(self, expected: str) -> object:
         if self.pos >= len(self.tokens):
@@ -123,10 +132,32 @@ class _Cursor:
         self.pos += 1
         return tok
 
+    def _line(self, offset: int) -> int:
+        return self.text.count("\n", 0, offset) + 1
+
+    def _found(self, tok: object) -> str:
+        """Where the value was expected and what stood there: the line after the previous value, with its text
+        (`xmax = abc`: a word the format skips), and the value found instead (an unclosed quote swallows lines)."""
+        if not self.starts:
+            return f"found {tok!r}"
+        i = self.pos - 1
+        gap_from = self.starts[i - 1] if i > 0 else 0
+        if i > 0:   # past the previous value's own text
+            gap_from = self.text.find("\n", gap_from)
+            gap_from = self.starts[i] if gap_from < 0 or gap_from > self.starts[i] else gap_from + 1
+        here = self.text[gap_from:self.starts[i]].strip().splitlines()
+        where = f"line {self._line(gap_from)}" + (f" ({here[0].strip()!r})" if here and here[0].strip() else "")
+        if isinstance(tok, _Str) and "\n" in tok:
+            shown = (f"a quoted string running over {tok.count(chr(10)) + 1} lines from line "
+                     f"{self._line(self.starts[i])} (a quote left open?)")
+        else:
+            shown = f"{tok!r} at line {self._line(self.starts[i])}"
+        return f"at {where}, found {shown}"
+
     def number(self, what: str) -> float:
         tok = self._next(what)
         if not isinstance(tok, float):
-            raise TextGridError(f"{self.source}: expected a number for {what}, found {tok!r}")
+            raise TextGridError(f"{self.source}: expected a number for {what} {self._found(tok)}")
         return tok
 
     def count(self, what: str) -> int:
@@ -138,19 +169,24 @@ class _Cursor:
     def string(self, what: str) -> str:
         tok = self._next(what)
         if not isinstance(tok, _Str):
-            raise TextGridError(f"{self.source}: expected a quoted string for {what}, found {tok!r}")
+            raise TextGridError(f"{self.source}: expected a quoted string for {what} {self._found(tok)}")
+        if _SWALLOWED.search(tok) and self.starts:   # a label that holds the next interval's lines: an open quote
+            start = self.starts[self.pos - 1]
+            raise TextGridError(f"{self.source}: {what} opens a quote at line {self._line(start)} that runs "
+                                f"over {tok.count(chr(10)) + 1} lines into the next entries (a quote left open?)")
         return str(tok)
 
     def flag(self, what: str) -> str:
         tok = self._next(what)
         if not isinstance(tok, _Flag):
-            raise TextGridError(f"{self.source}: expected <exists> or <absent> for {what}, found {tok!r}")
+            raise TextGridError(f"{self.source}: expected <exists> or <absent> for {what} {self._found(tok)}")
         return str(tok)
 
 
 def parse_textgrid(text: str, source: str = "<string>") -> TextGridData:
     """Parse TextGrid text in Praat's long or short format into tiers of (start, end, label)."""
-    cur = _Cursor(_tokens(text), source)
+    tokens, starts = _tokens(text)
+    cur = _Cursor(tokens, source, starts, text)
     file_type = cur.string("the file type")
     if file_type == CHRONOLOGICAL_HEADER:
         return _parse_chronological(cur)

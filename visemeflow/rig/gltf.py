@@ -399,6 +399,9 @@ def _load(path: Path) -> gl.GLTF2:
                 if gltf is None:
                     raise ValueError("no JSON chunk")
             else:
+                if data.lstrip()[:15].lower().startswith((b"<!doctype html", b"<html")):
+                    raise ValueError("it is an HTML page: a web page saved instead of the file? (on GitHub, "
+                                     "download the raw file)")
                 document = json.loads(data.decode("utf-8-sig"))
                 if not isinstance(document, dict) or not isinstance(document.get("asset"), dict):
                     raise ValueError("no glTF asset object")

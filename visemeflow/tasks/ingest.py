@@ -117,7 +117,7 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
 CAPTURED_SOURCE = CurveSource.CAPTURED
 
 
-def _is_captured(store: Store, row: dict) -> bool:
+def is_captured(store: Store, row: dict) -> bool:
     """A row that `visemeflow import-curves` wrote: no alignment, and captured curves stored (an import writes
     the curves before the row and removes both on a reject). A corpus video without an alignment has the same
     `alignment_format` but no captured curves: it is the corpus's, and goes when the corpus no longer holds it."""
@@ -128,13 +128,13 @@ def captured_rows(store: Store, shard: int, corpus_ids: set[str]) -> list[dict]:
     """Rows of a shard that no corpus file made (captured takes, `visemeflow import-curves`: no alignment) and the
     corpus does not hold now: an ingest keeps them."""
     rows = store.read_shard("utterances", shard).to_pylist()
-    return [r for r in rows if r[C.UTTERANCE_ID] not in corpus_ids and _is_captured(store, r)]
+    return [r for r in rows if r[C.UTTERANCE_ID] not in corpus_ids and is_captured(store, r)]
 
 
 def captured_shards(store: Store) -> set[int]:
     """Shards holding captured takes' rows (an ingest whose corpus has none in them keeps them alive)."""
     return {shard for shard in store.shards("utterances")
-            if any(_is_captured(store, r) for r in store.read_shard("utterances", shard)
+            if any(is_captured(store, r) for r in store.read_shard("utterances", shard)
                    .select([C.UTTERANCE_ID, C.ALIGNMENT_FORMAT]).to_pylist())}
 
 
