@@ -47,13 +47,15 @@ LANGUAGE_OF_INVENTORY: dict[str, str | None] = {"arpabet": "en", "ipa": "en", "x
 """The language an utterance gets from its inventory when neither the manifest nor the config names one
 (X-SAMPA is written for every language: none)."""
 FILE_END_FORMATS = frozenset({"textgrid", "word_align"})
-# Audio whose header claims more than this, or a rate below speech's, is refused before anything is sized by it (a
-# 132-byte FLAC may declare 49 days): longer recordings are split into utterances first.
-MAX_AUDIO_S = 24 * 3600.0
-MIN_AUDIO_RATE = 4000
 """Formats that say where the file ends (a TextGrid's xmax; the last word of an .align): such an alignment must
 end with the audio. Label files (HTK, MLF) and XRA only say where their last label ends: they may stop before the
 audio ends (the rest is silence) but not run past it."""
+MAX_AUDIO_S = 24 * 3600.0
+"""Audio whose header claims more is refused before anything is sized by it (a 132-byte FLAC may declare 49 days):
+longer recordings are split into utterances first."""
+MIN_AUDIO_RATE = 4000
+"""Audio whose header gives fewer samples a second is refused (no speech fits; a 1-Hz header stretches a second into
+four hours)."""
 
 
 class IngestError(ValueError):
