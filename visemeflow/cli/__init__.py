@@ -431,7 +431,8 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None, str
 
 @stage_command(app, PipelineParams, [
     Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("replace"), Opt("ingest.inventory"),
-    Opt("ingest.phone_tiers", "--phone-tier", repeat=True), *RUNNER, Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
+    Opt("ingest.phone_tiers", "--phone-tier", repeat=True), *RUNNER,
+    Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
     Opt("tracking.flow_region"), Opt("tracking.speaker_identity"),
     Opt("characters", "--character", repeat=True, callback=_character), Opt("animate.formats", "--format"),
     Opt("animate.meshes", "--mesh", repeat=True), STRICT,

@@ -38,12 +38,13 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     problem = check_corpus(params.corpus)
     if problem is not None:
         return _no_corpus(problem)
-    last = last_settings(Store(params.store), STAGE)   # read before this run records its own
+    before = Store(params.store)
+    last = last_settings(before, STAGE)   # read before this run records its own
     found = discover_corpus_task(as_text(params.corpus))
     if not found["entries"] and not found["rejects"]:
         return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
     if last is not None and not params.replace:
-        problem = _would_drop(Store(params.store), last.corpus, as_text(params.corpus), found["entries"])
+        problem = _would_drop(before, last.corpus, as_text(params.corpus), found["entries"])
         if problem is not None:
             return _no_corpus(problem)
     run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,

@@ -249,7 +249,8 @@ def predict_flow(params: PredictParams) -> State:
             rejects.append(reject_row(uid, STAGE, type(exc).__name__, f"{audio}: {exc}\n{trace}", str(audio)))
             unexpected += 1
     with store.locked("predict-rejects"):   # batches are independent: another batch's rejects stay listed
-        kept = [r for r in store.read_table("rejects", STAGE).to_pylist() if r[C.UTTERANCE_ID] not in set(ids)]
+        batch = set(ids)
+        kept = [r for r in store.read_table("rejects", STAGE).to_pylist() if r[C.UTTERANCE_ID] not in batch]
         replace_stage_rejects(store, STAGE, kept + rejects, 1)
     # predicted curves record their audio's hash only: where the file was, for the dashboard to draw them over it
     record_predicted_audio(store, {r["utterance_id"]: r["audio"] for r in rows})
