@@ -409,6 +409,60 @@ def test_several_utterances_solved_together_equal_each_solved_alone(rig):
     assert np.abs(out[2].curves - together[2].curves).max() < 1e-4
 
 
+
+def test_the_fast_steps_own_adam_rotations_and_projection_equal_torchs():
+    """The fast path's step without torch's per-operation costs: `_Adam` is torch.optim.Adam's update bit for bit
+    (cosine-decayed rates, two groups), `_rotations` are `rotation_matrices` and `right_jacobian` to float rounding
+    (at zero, below and above the Taylor branch's 0.1 rad), and `_Projection` passes no gradient to depth through
+    points behind the camera, as autograd through `project` does."""
+    import math
+
+    from visemeflow.render.camera import right_jacobian, rotation_matrices
+    from visemeflow.tracking.solver import _Adam, _Projection, _rotations, _Workspace
+
+    gen = torch.Generator().manual_seed(0)
+    start = [torch.rand(7, 16, generator=gen), torch.randn(7, 3, generator=gen), torch.randn(7, 3, generator=gen)]
+    params = [p.clone().requires_grad_(True) for p in start]
+    mine = [p.clone() for p in start]
+    opt = torch.optim.Adam([{"params": params[:1], "lr": 0.05}, {"params": params[1:], "lr": 0.005}])
+    adam = _Adam(mine)
+    for it in range(30):
+        lrs = [lr * 0.5 * (1 + math.cos(math.pi * it / 30)) for lr in (0.05, 0.005)]
+        for group, lr in zip(opt.param_groups, lrs):
+            group["lr"] = lr
+        grads = [torch.randn(p.shape, generator=gen) * 10.0 ** (it % 7 - 4) for p in start]
+        for p, g in zip(params, grads):
+            p.grad = g
+        opt.step()
+        with torch.no_grad():
+            adam.step(grads, [lrs[0], lrs[1], lrs[1]])
+    assert all(torch.equal(p.detach(), q) for p, q in zip(params, mine))
+
+    rot = torch.cat([torch.zeros(1, 3), torch.randn(8, 3, generator=gen) * 0.01,
+                     torch.randn(8, 3, generator=gen) * 0.5]).float()
+    rmat, jacobian = _rotations(rot)
+    assert rmat.is_contiguous() and jacobian.is_contiguous()
+    assert float((rmat - rotation_matrices(rot)).abs().max()) < 1e-6
+    assert float((jacobian - right_jacobian(rot)).abs().max()) < 1e-6
+
+    camera = Intrinsics.default()
+    points = torch.randn(2, 6, 3, generator=gen, dtype=torch.float32)
+    points[..., 2] -= 40.0
+    points[0, 1, 2] = 45.0                                         # behind the camera (it looks down -z)
+    trans = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, 5.0]])
+    g_pix = torch.randn(2, 6, 2, generator=gen)
+    p = points.clone().requires_grad_(True)
+    r = rot[9:11].clone().requires_grad_(True)
+    t = trans.clone().requires_grad_(True)
+    (project(p, r, t, camera) * g_pix).sum().backward()
+    for work in (None, _Workspace()):
+        proj = _Projection(points.transpose(1, 2).contiguous(), rot[9:11], _rotations(rot[9:11])[0], trans, camera,
+                           work=work)
+        assert proj.in_front is not None and not bool(proj.in_front[0, 1])
+        g_points, g_rot, g_trans = proj.pull(g_pix[..., 0].contiguous(), g_pix[..., 1].contiguous())
+        for written, reference in ((g_points.transpose(1, 2), p.grad), (g_rot, r.grad), (g_trans, t.grad)):
+            assert float((written - reference).abs().max()) <= 1e-5 * float(reference.abs().max())
+
 # ---- the flow -----------------------------------------------------------------------------------------------------
 @pytest.mark.flow
 def test_track_flow_caches_reruns_and_rejects(tmp_path, prefect_harness):

@@ -450,22 +450,51 @@ class _Joined:
         rotation, translation = self._cat(rotations).to(self.device), self._cat(translations).to(self.device)
         rotation.requires_grad_(True)
         translation.requires_grad_(True)
-        if config.pose_iterations:
+        if config.pose_iterations and gradient == "analytic":
+            written, planar = _Gradient(self), points.transpose(1, 2).contiguous()
+            adam = _Adam([rotation, translation])            # torch.optim.Adam(lr=0.02)'s steps
+            with torch.no_grad():
+                for _ in range(config.pose_iterations):
+                    _, g_rot, g_trans = written.pose_only(planar, beta, rotation, translation)
+                    adam.step([g_rot, g_trans], [0.02, 0.02])
+        elif config.pose_iterations:
             opt = torch.optim.Adam([rotation, translation], lr=0.02)
             target = self.target * self.scale
-            written = _Gradient(self) if gradient == "analytic" else None
-            planar = points.transpose(1, 2).contiguous()
             for _ in range(config.pose_iterations):
                 opt.zero_grad()
-                if written is not None:
-                    with torch.no_grad():
-                        _, rotation.grad, translation.grad = written.pose_only(planar, beta, rotation, translation)
-                else:
-                    projected = project(points, rotation, translation, self.camera) * self.scale
-                    loss = landmark_loss(projected, target, self.valid, beta).sum()
-                    loss.backward()
+                projected = project(points, rotation, translation, self.camera) * self.scale
+                loss = landmark_loss(projected, target, self.valid, beta).sum()
+                loss.backward()
                 opt.step()
         return rotation.detach(), translation.detach()
+
+
+class _Workspace:
+    """Arrays a solve's steps reuse, by name, so that a step allocates none of its (T, N) and (T, 3, N) arrays.
+
+    Why: a step of the fast path allocated some 5 MB of temporaries (bench/end_to_end.py's talking heads: 334
+    frames x 368 vertices) and freed them again, and depending on the heap's state the C allocator gave that memory
+    back to the system at every step and had it faulted in anew at the next: on GRID's groups of 5 clips ~3,000
+    page faults a step, half of its time."""
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, torch.Tensor] = {}
+
+    def __call__(self, name: str, shape: tuple[int, ...], like: torch.Tensor, dtype: torch.dtype | None = None
+                 ) -> torch.Tensor:
+        dtype = like.dtype if dtype is None else dtype
+        out = self.arrays.get(name)
+        if out is None or out.shape != shape or out.dtype != dtype or out.device != like.device:
+            out = self.arrays[name] = torch.empty(shape, dtype=dtype, device=like.device)
+        return out
+
+
+def _empty(work: _Workspace | None, name: str, shape: tuple[int, ...], like: torch.Tensor,
+           dtype: torch.dtype | None = None) -> torch.Tensor:
+    """`work`'s array `name`, or a new one without a workspace."""
+    if work is None:
+        return torch.empty(shape, dtype=like.dtype if dtype is None else dtype, device=like.device)
+    return work(name, shape, like, dtype)
 
 
 class _Planar:
@@ -493,45 +522,130 @@ class _Planar:
         per = ids if isinstance(ids, list) else [ids] * len(joined.problems)
         return cls([(p.rig, i, sl) for p, i, sl in zip(joined.problems, per, joined.slices())], joined.device)
 
-    def points(self, x: torch.Tensor) -> torch.Tensor:
-        """(T, 3, N) vertices for the weights x (T, 16)."""
-        out = [torch.addmm(offset, x[sl], basis) for (basis, offset), sl in zip(self.parts, self.slices)]
-        return (out[0] if len(out) == 1 else torch.cat(out)).view(-1, 3, self.n)
+    def points(self, x: torch.Tensor, work: _Workspace | None = None) -> torch.Tensor:
+        """(T, 3, N) vertices for the weights x (T, 16); each run of frames written in its place (no torch.cat)."""
+        out = _empty(work, "points", (len(x), 3 * self.n), x)
+        for (basis, offset), sl in zip(self.parts, self.slices):
+            torch.addmm(offset, x[sl], basis, out=out[sl])
+        return out.view(-1, 3, self.n)
 
     def weights_gradient(self, g_points: torch.Tensor) -> torch.Tensor:
         """(T, 16) from the vertices' gradient (T, 3, N)."""
         flat = g_points.reshape(len(g_points), -1)
-        out = [flat[sl] @ basis.T for (basis, _), sl in zip(self.parts, self.slices)]
-        return out[0] if len(out) == 1 else torch.cat(out)
+        if len(self.parts) == 1:
+            return flat @ self.parts[0][0].T
+        out = flat.new_empty(len(flat), N_VISEMES)
+        for (basis, _), sl in zip(self.parts, self.slices):
+            torch.mm(flat[sl], basis.T, out=out[sl])
+        return out
+
+
+# 3 x 3 matrices as rows of 9: [r]_x = r[_CROSS_INDEX] * _CROSS_SIGN, r r^T = r[_OUTER_ROWS] * r[_OUTER_COLS]
+_CROSS_INDEX = np.array([0, 2, 1, 2, 0, 0, 1, 0, 0])
+_CROSS_SIGN = np.array([0.0, -1.0, 1.0, 1.0, 0.0, -1.0, -1.0, 1.0, 0.0])
+_OUTER_ROWS, _OUTER_COLS = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
+_EYE9 = np.eye(3).reshape(9)
+
+
+def _rotations(rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(`rotation_matrices`, `right_jacobian`) of the axis-angles (T, 3): on the CPU in NumPy (float64, rounded to
+    float32: the same matrices to float rounding, within 3e-7), elsewhere by those functions.
+
+    Why: both are some 60 torch operations on (T, 3) and (T, 3, 3) arrays, each paying torch's per-operation
+    overhead (~8 us here): 0.5 ms of each fast-path step, against 0.05 ms in NumPy. R = I + a K + b K^2 and
+    J = I - b K + c K^2 (K the cross-product matrix of r, t = |r|, K^2 = r r^T - t^2 I) with a = sin(t)/t,
+    b = (1 - cos t)/t^2, c = (t - sin t)/t^3: their Taylor series below t^2 = 0.01 (the first term left out is
+    below 1e-9 there), as `right_jacobian`."""
+    if rotation.device.type != "cpu":
+        return rotation_matrices(rotation), right_jacobian(rotation)
+    r = rotation.detach().numpy().astype(np.float64)
+    theta2 = np.einsum("ti,ti->t", r, r)
+    small = theta2 < 1e-2
+    t = np.sqrt(np.where(small, 1.0, theta2))
+    sin, cos = np.sin(t), np.cos(t)
+    t4 = theta2 * theta2
+    a = np.where(small, 1.0 - theta2 / 6.0 + t4 / 120.0, sin / t)[:, None]
+    b = np.where(small, 0.5 - theta2 / 24.0 + t4 / 720.0, (1.0 - cos) / (t * t))[:, None]
+    c = np.where(small, 1.0 / 6.0 - theta2 / 120.0 + t4 / 5040.0, (t - sin) / (t * t * t))[:, None]
+    k = r[:, _CROSS_INDEX] * _CROSS_SIGN                               # (T, 9): K row by row
+    kk = r[:, _OUTER_ROWS] * r[:, _OUTER_COLS]                         # r r^T - t^2 I
+    kk[:, ::4] -= theta2[:, None]
+    rmat = (_EYE9 + a * k + b * kk).reshape(-1, 3, 3)
+    jacobian = (_EYE9 - b * k + c * kk).reshape(-1, 3, 3)
+    # C order: NumPy's fancy indexing above leaves (T, 9) in Fortran order, and torch.bmm on a (T, 3, 3) of other
+    # strides falls back to one matrix product per frame (10x slower)
+    return (torch.from_numpy(np.ascontiguousarray(rmat, np.float32)),
+            torch.from_numpy(np.ascontiguousarray(jacobian, np.float32)))
+
+
+class _Adam:
+    """torch.optim.Adam's update (its defaults, as its single-tensor CPU path computes it: the same operations in the
+    same order, so the same bits: tests/test_tracking.py) on tensors whose gradients `step` is handed, without the
+    optimiser's bookkeeping (param groups, state, checks): 0.22 ms a step instead of 0.44 on the fast path's
+    (334, 16) weights and (334, 3) poses, one pinned core."""
+
+    def __init__(self, params: list[torch.Tensor], beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
+        self.params, self.beta1, self.beta2, self.eps = params, beta1, beta2, eps
+        self.exp_avg = [torch.zeros_like(p) for p in params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p in params]
+        self.steps = 0
+
+    def step(self, grads: list[torch.Tensor], lrs: list[float]) -> None:
+        self.steps += 1
+        step, beta1, beta2 = float(self.steps), self.beta1, self.beta2
+        bias_correction1 = 1 - beta1**step
+        bias_correction2_sqrt = (1 - beta2**step) ** 0.5
+        for param, grad, exp_avg, exp_avg_sq, lr in zip(self.params, grads, self.exp_avg, self.exp_avg_sq, lrs):
+            exp_avg.lerp_(grad, 1 - beta1)
+            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+            param.addcdiv_(exp_avg, denom, value=-(lr / bias_correction1))
 
 
 class _Projection:
     """Planar vertices (T, 3, N) through the head pose to pixels u, v (T, N) each (`render.camera.project`'s
-    arithmetic), keeping what the way back needs."""
+    arithmetic), keeping what the way back needs. `jacobian`: `right_jacobian(rotation)` where the caller has it
+    (the fast path's step projects once per step and computes it once).
+
+    The arithmetic is the same as written plainly (same operations in the same order, so the same bits), done in
+    place into fewer temporaries: at 700x700 (334 frames x 368 vertices) the step's passes over (T, N) arrays and
+    their allocations were most of its time."""
 
     def __init__(self, points: torch.Tensor, rotation: torch.Tensor, rmat: torch.Tensor, translation: torch.Tensor,
-                 camera):
+                 camera, jacobian: torch.Tensor | None = None, work: _Workspace | None = None):
         self.points, self.rotation, self.rmat, self.camera = points, rotation, rmat, camera
-        self.cam = torch.baddbmm(translation[:, :, None], rmat, points)
-        depth = -self.cam[:, 2]
-        self.in_front = depth > 1e-6                  # where `clamp_min` passes the gradient on
-        self.inv = 1.0 / depth.clamp_min(1e-6)
-        self.x_over_z, self.y_over_z = self.cam[:, 0] * self.inv, self.cam[:, 1] * self.inv
-        self.u = camera.cx + camera.fx * self.x_over_z
-        self.v = camera.cy - camera.fy * self.y_over_z
+        self.jacobian, self.work = jacobian, work
+        t, _, n = points.shape
+        cam = torch.baddbmm(translation[:, :, None], rmat, points, out=_empty(work, "cam", (t, 3, n), points))
+        depth = torch.neg(cam[:, 2], out=_empty(work, "inv", (t, n), points))
+        # where `clamp_min` passes the gradient on: None where that is everywhere (the rule; NaN is not in front)
+        self.in_front = None if depth.numel() == 0 or float(depth.min()) > 1e-6 else depth > 1e-6
+        self.inv = depth.clamp_min_(1e-6).reciprocal_()
+        self.x_over_z = torch.mul(cam[:, 0], self.inv, out=_empty(work, "x_over_z", (t, n), points))
+        self.y_over_z = torch.mul(cam[:, 1], self.inv, out=_empty(work, "y_over_z", (t, n), points))
+        # cx + fx x/z and cy - fy y/z, in place (the same operations: a + b = b + a, a - b = -b + a)
+        self.u = torch.mul(self.x_over_z, camera.fx, out=_empty(work, "u", (t, n), points)).add_(camera.cx)
+        self.v = torch.mul(self.y_over_z, camera.fy, out=_empty(work, "v", (t, n), points)).neg_().add_(camera.cy)
 
     def pull(self, g_u: torch.Tensor, g_v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(gradient of the vertices (T, 3, N), of the axis-angle rotation (T, 3), of the translation (T, 3)) for
         the pixels' gradients g_u, g_v (T, N). The rotation's: d(R(r) p)/dr = -R [p]_x J_r(r), so with g the
-        vertices' gradient, dL/dr = J_r^T sum_n p_n x g_n."""
-        fu, fv = g_u * self.camera.fx, g_v * self.camera.fy
-        g_z = (fu * self.x_over_z - fv * self.y_over_z) * self.inv
-        g_cam = torch.stack([fu * self.inv, -fv * self.inv, torch.where(self.in_front, g_z, torch.zeros_like(g_z))],
-                            dim=1)
-        g_points = self.rmat.transpose(1, 2) @ g_cam
-        m = g_points @ self.points.transpose(1, 2)          # (T, 3, 3): m[a, b] = sum_n g_a p_b
-        moment = torch.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], dim=-1)
-        g_rot = (moment[:, None, :] @ right_jacobian(self.rotation))[:, 0]
+        vertices' gradient, dL/dr = J_r^T sum_n p_n x g_n. With a workspace, the vertices' gradient is its array,
+        valid until the next pull."""
+        work, (t, n) = self.work, g_u.shape
+        fu = torch.mul(g_u, self.camera.fx, out=_empty(work, "fu", (t, n), g_u))
+        fv = torch.mul(g_v, self.camera.fy, out=_empty(work, "fv", (t, n), g_u))
+        g_cam = _empty(work, "g_cam", (t, 3, n), g_u)
+        torch.mul(fu, self.inv, out=g_cam[:, 0])
+        torch.mul(fv, self.inv, out=g_cam[:, 1]).neg_()
+        g_z = torch.mul(fu, self.x_over_z, out=g_cam[:, 2]).sub_(fv.mul_(self.y_over_z)).mul_(self.inv)
+        if self.in_front is not None:                                  # (fu x/z - fv y/z) / z, 0 behind
+            g_z.masked_fill_(~self.in_front, 0.0)
+        g_points = torch.bmm(self.rmat.transpose(1, 2), g_cam, out=_empty(work, "g_points", (t, 3, n), g_u))
+        m = torch.bmm(g_points, self.points.transpose(1, 2))      # (T, 3, 3): m[a, b] = sum_n g_a p_b
+        moment = (m - m.transpose(1, 2))[:, (2, 0, 1), (1, 2, 0)]   # m21 - m12, m02 - m20, m10 - m01
+        jacobian = _rotations(self.rotation)[1] if self.jacobian is None else self.jacobian
+        g_rot = torch.bmm(moment[:, None, :], jacobian)[:, 0]
         return g_points, g_rot, g_cam.sum(-1)
 
 
@@ -577,28 +691,57 @@ class _Gradient:
 
     The sum of the same per-frame terms as `_Joined.frame_terms`, `_Joined.diff` and `_FastFlow.loss`, weighted as
     `_Objective.weighted`, equal to autograd through them to float rounding (tests/test_tracking.py). Why: the
-    autograd engine's bookkeeping was half of each of the solver's 250 small steps."""
+    autograd engine's bookkeeping was half of each of the solver's 250 small steps.
+
+    The landmark and flow vertices go through the pose as one set (`_vertices`): one product with the rig's basis,
+    one projection and one way back per step rather than two, each term writing its pixels' gradient into its
+    columns of one (T, N) array (no torch.cat). Factors constant over a solve (the landmarks' 2 w scale, the
+    guidance's 2 g) are made once, the flow's (its scaled displacements, masks and pair weights) once per refresh.
+    This sums the landmark and flow parts of the pose's and weights' gradients in another order, and `_rotations`
+    rounds otherwise: float rounding (the curves of bench/end_to_end.py's GRID and talking-heads groups within 4e-6
+    of the separate passes). With `_rotations`, `_Adam` and `_Workspace`, on one pinned core: a step 1.6x cheaper
+    on the talking heads (9.4 -> 5.9 ms), 1.8-3x on GRID's groups of 5 clips (whose steps also page-faulted);
+    whole solves 7.7 -> 5.8 ms per frame (talking heads) and 8.0 -> 5.1 (GRID)."""
 
     def __init__(self, joined: _Joined):
         self.joined = joined
         c = joined.config
         self.c = c
-        self.landmarks = _Planar.of(joined, joined.ids)
-        self.flow_points: _Planar | None = None
         scale = joined.scale
         self.scale = scale if isinstance(scale, float) else scale[:, :, 0]              # (T, 1) or a float
         self.lmk_w, self.guide = _weights_of(c, joined.beta, joined.valid, joined.suppress, joined.activate)
         target = joined.target * joined.scale
         self.target_u, self.target_v = target[..., 0].contiguous(), target[..., 1].contiguous()
+        self.twice = 2.0 * self.lmk_w * self.scale                    # `_landmark_term`'s factor on the residuals
+        self.twice_guide = None if self.guide is None else 2.0 * self.guide
+        self._sets: dict[object, _Planar] = {}        # by the flow (None: the landmarks alone)
+        self._flow_of: tuple | None = None            # (the `_FastFlow.planar` it was made from, its factors)
+        self._pose_weight: tuple | None = None        # (beta, `pose_only`'s normalised weights)
+        self.work = _Workspace()
+
+    def _vertices(self, flow: "_FastFlow | None") -> _Planar:
+        """The landmark vertices, then (with `flow`) the flow's, as one planar set."""
+        if flow not in self._sets:
+            joined, ids = self.joined, self.joined.ids
+            if flow is None:
+                both = ids
+            elif isinstance(flow.ids, np.ndarray):
+                both = np.concatenate([ids, flow.ids])
+            else:
+                both = [np.concatenate([ids, i]) for i in flow.ids]
+            self._sets[flow] = _Planar.of(joined, both)
+        return self._sets[flow]
 
     def pose_only(self, planar: torch.Tensor, beta: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor
                   ) -> tuple[float, torch.Tensor, torch.Tensor]:
         """The rigid start's objective (landmarks with weights `beta`, the vertices `planar` (T, 3, K) fixed) and
         its pose gradients."""
-        weight = beta * self.joined.valid.to(beta.dtype)
-        weight = weight / weight.sum(-1, keepdim=True).clamp_min(1e-12)
-        proj = _Projection(planar, rot, rotation_matrices(rot), trans, self.joined.camera)
-        value, g_u, g_v = _landmark_term(proj, self.scale, self.target_u, self.target_v, weight)
+        if self._pose_weight is None or self._pose_weight[0] is not beta:
+            weight = beta * self.joined.valid.to(beta.dtype)
+            self._pose_weight = (beta, weight / weight.sum(-1, keepdim=True).clamp_min(1e-12))
+        rmat, jacobian = _rotations(rot)
+        proj = _Projection(planar, rot, rmat, trans, self.joined.camera, jacobian, self.work)
+        value, g_u, g_v = _landmark_term(proj, self.scale, self.target_u, self.target_v, self._pose_weight[1])
         _, g_rot, g_trans = proj.pull(g_u, g_v)
         return float(value), g_rot, g_trans
 
@@ -606,48 +749,80 @@ class _Gradient:
                  ) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(objective, d/dx (T, 16), d/drot (T, 3), d/dtrans (T, 3))."""
         joined, c = self.joined, self.c
-        rmat = rotation_matrices(rot)
-        proj = _Projection(self.landmarks.points(x), rot, rmat, trans, joined.camera)
-        value, g_u, g_v = _landmark_term(proj, self.scale, self.target_u, self.target_v, self.lmk_w)
+        vertices = self._vertices(flow)
+        k = len(self.joined.ids)
+        work = self.work
+        rmat, jacobian = _rotations(rot)
+        proj = _Projection(vertices.points(x, work), rot, rmat, trans, joined.camera, jacobian, work)
+        u, v = proj.u.mul_(self.scale), proj.v.mul_(self.scale)      # all vertices' pixels, scaled, in place
+        g_u, g_v = work("g_u", u.shape, u), work("g_v", u.shape, u)
+        # w_lmk L_lmk (`_landmark_term`), its pixels' gradient into the first k columns
+        res_u = u[:, :k] - self.target_u
+        res_v = v[:, :k] - self.target_v
+        torch.mul(self.twice, res_u, out=g_u[:, :k])
+        torch.mul(self.twice, res_v, out=g_v[:, :k])
+        value = float((self.lmk_w * (res_u * res_u + res_v * res_v)).sum())
+        if flow is not None:
+            value += self._flow(flow, u[:, k:], v[:, k:], g_u[:, k:], g_v[:, k:])
         g_points, g_rot, g_trans = proj.pull(g_u, g_v)
-        w_value, w_gx = _weight_terms(c, x, self.guide)
-        value, gx = value + w_value, self.landmarks.weights_gradient(g_points) + w_gx
+        w_value, w_gx = self._weight_terms(x)
+        value, gx = value + w_value, vertices.weights_gradient(g_points)
+        if w_gx is not None:
+            gx.add_(w_gx)
         if joined.n_frames > 1 and c.w_diff:
             step = x[1:] - x[:-1]
             if joined.inside is not None:
                 step = step * joined.inside[:, None]
             # every pair is in both of its frames' L_diff (as `_adam_joined` sums it)
-            value = value + 2.0 * c.w_diff * (step * step).sum() / N_VISEMES
+            value += float(2.0 * c.w_diff * (step * step).sum() / N_VISEMES)
             g_step = 4.0 * c.w_diff * step / N_VISEMES
-            zero = g_step.new_zeros(1, N_VISEMES)
-            gx = gx + torch.cat([-g_step, zero]) + torch.cat([zero, g_step])
-        if flow is not None:
-            if self.flow_points is None:
-                self.flow_points = _Planar.of(joined, flow.ids)
-            f_value, f_x, f_rot, f_trans = self._flow(flow, x, rot, rmat, trans)
-            value, gx, g_rot, g_trans = value + f_value, gx + f_x, g_rot + f_rot, g_trans + f_trans
-        return float(value), gx, g_rot, g_trans
+            gx[:-1].sub_(g_step)
+            gx[1:].add_(g_step)
+        return value, gx, g_rot, g_trans
 
-    def _flow(self, flow: "_FastFlow", x, rot, rmat, trans):
-        """w_flow times the sum of `_FastFlow.loss`, and its gradients in x, rotation and translation."""
-        scale = self.scale
-        proj = _Projection(self.flow_points.points(x), rot, rmat, trans, self.joined.camera)
-        u, v = proj.u * scale, proj.v * scale
-        disp_u, disp_v = flow.planar()
-        next_scale = scale if isinstance(scale, float) else scale[1:]
-        ok = flow.valid.to(u.dtype)
-        diff_u = (u[1:] - u[:-1] - disp_u * next_scale) * ok
-        diff_v = (v[1:] - v[:-1] - disp_v * next_scale) * ok
-        per_pair = self.c.w_flow / flow.valid.sum(-1, keepdim=True).clamp_min(1).to(u.dtype)     # (T - 1, 1)
-        value = (per_pair * (diff_u * diff_u + diff_v * diff_v)).sum()
-        zero = u.new_zeros(1, u.shape[1])
+    def _weight_terms(self, x: torch.Tensor) -> tuple[float, torch.Tensor | None]:
+        """`_weight_terms` with the guidance's factor made once; L_range only where a weight is outside [0, 1]
+        (under the projected box, every step but the first: its terms are then exactly 0). None for a gradient
+        of 0."""
+        c = self.c
+        if self.guide is None:
+            value, gx = 0.0, None
+        else:
+            value, gx = float((self.guide * x * x).sum()), self.twice_guide * x
+        if c.w_range:
+            low, high = torch.aminmax(x)
+            if not (float(low) >= 0.0 and float(high) <= 1.0):
+                upper, lower = (x > 1).float(), (x < 0).float()
+                n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
+                value += float(c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum()))
+                g_range = 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+                gx = g_range if gx is None else gx + g_range
+        return value, gx
 
-        def back(diff):
-            g = 2.0 * per_pair * diff
-            return (torch.cat([zero, g]) - torch.cat([g, zero])) * scale
-
-        g_points, g_rot, g_trans = proj.pull(back(diff_u), back(diff_v))
-        return value, self.flow_points.weights_gradient(g_points), g_rot, g_trans
+    def _flow(self, flow: "_FastFlow", u, v, g_u, g_v) -> float:
+        """w_flow times the sum of `_FastFlow.loss` for the flow vertices' scaled pixels u, v (T, F); their
+        gradients written into g_u, g_v (T, F)."""
+        planar = flow.planar()
+        if self._flow_of is None or self._flow_of[0] is not planar:
+            scale = self.scale
+            next_scale = scale if isinstance(scale, float) else scale[1:]
+            per_pair = self.c.w_flow / flow.valid.sum(-1, keepdim=True).clamp_min(1).to(u.dtype)  # (T - 1, 1)
+            self._flow_of = (planar, planar[0] * next_scale, planar[1] * next_scale, flow.valid.to(u.dtype),
+                             2.0 * per_pair)
+        _, disp_u, disp_v, ok, twice = self._flow_of
+        work, shape = self.work, ok.shape
+        diff_u = torch.sub(u[1:], u[:-1], out=work("diff_u", shape, u)).sub_(disp_u).mul_(ok)
+        diff_v = torch.sub(v[1:], v[:-1], out=work("diff_v", shape, u)).sub_(disp_v).mul_(ok)
+        # d/d(u[k + 1]) of pair k's term; -that for u[k]
+        pair_u = torch.mul(twice, diff_u, out=work("pair_u", shape, u))
+        pair_v = torch.mul(twice, diff_v, out=work("pair_v", shape, u))
+        value = 0.5 * float(torch.dot(pair_u.view(-1), diff_u.view(-1)) + torch.dot(pair_v.view(-1), diff_v.view(-1)))
+        for pair, g in ((pair_u, g_u), (pair_v, g_v)):
+            torch.sub(pair[:-1], pair[1:], out=g[1:-1])
+            torch.neg(pair[0], out=g[0])
+            g[-1] = pair[-1]
+            g.mul_(self.scale)
+        return value
 
 
 def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_step: OnStep | None = None,
@@ -665,52 +840,55 @@ def _adam_joined(problems: list[TrackingProblem], config: TrackingConfig, on_ste
     rot.requires_grad_(True)
     trans.requires_grad_(True)
     t = joined.n_frames
-    opt = torch.optim.Adam([{"params": [x], "lr": config.fast_lr},
-                            {"params": [rot, trans], "lr": config.fast_lr * config.pose_lr_factor}])
-    base = [g["lr"] for g in opt.param_groups]
+    base = [config.fast_lr, config.fast_lr * config.pose_lr_factor]       # of x; of the pose
     with_flow = [p.flow is not None and p.n_frames > 1 for p in problems]
     flow_state = _FastFlow(joined, with_flow) if cfg.w_flow and any(with_flow) else None
     rgb = problems[0].rgb if len(problems) == 1 and cfg.w_rgb else None
     total_iterations = config.fast_iterations + (config.rgb_iterations if rgb is not None else 0)
     written = _Gradient(joined) if gradient == "analytic" and rgb is None else None
-    for it in range(total_iterations):
-        if on_step is not None:
-            on_step(it, total_iterations)
-        for g, lr in zip(opt.param_groups, base):
-            g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * it / total_iterations))
-        opt.zero_grad()
-        if written is not None:
-            with torch.no_grad():
+    if written is not None:
+        adam = _Adam([x, rot, trans])
+        with torch.no_grad():
+            for it in range(total_iterations):
+                if on_step is not None:
+                    on_step(it, total_iterations)
+                lr_x, lr_pose = (lr * 0.5 * (1 + math.cos(math.pi * it / total_iterations)) for lr in base)
                 if flow_state is not None and it % 50 == 0:
                     flow_state.refresh(x, rot, trans)
-                value, x.grad, rot.grad, trans.grad = written(x, rot, trans, flow_state)
-            if not math.isfinite(value):
+                value, g_x, g_rot, g_trans = written(x, rot, trans, flow_state)
+                if not math.isfinite(value):
+                    raise FloatingPointError(f"non-finite tracking loss at iteration {it}")
+                adam.step([g_x, g_rot, g_trans], [lr_x, lr_pose, lr_pose])
+                if config.box == "projected":
+                    x.clamp_(0.0, 1.0)
+    else:                               # autograd (the reference), and L_rgb's refinement
+        opt = torch.optim.Adam([{"params": [x], "lr": base[0]}, {"params": [rot, trans], "lr": base[1]}])
+        for it in range(total_iterations):
+            if on_step is not None:
+                on_step(it, total_iterations)
+            for g, lr in zip(opt.param_groups, base):
+                g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * it / total_iterations))
+            opt.zero_grad()
+            terms = joined.frame_terms(x, rot, trans)
+            if t > 1 and cfg.w_diff:
+                d = joined.diff(x)
+                terms["diff"] = torch.cat([d, d.new_zeros(1)]) + torch.cat([d.new_zeros(1), d])
+            if flow_state is not None:
+                if it % 50 == 0:
+                    flow_state.refresh(x, rot, trans)
+                terms["flow"] = flow_state.loss(x, rot, trans)
+            if it >= config.fast_iterations and rgb is not None:
+                if it == config.fast_iterations:
+                    rgb.prepare(x.detach().cpu().numpy(), rot.detach().cpu().numpy(), trans.detach().cpu().numpy())
+                terms["rgb"] = _rgb_all(problems[0], joined.objs[0], x, rot, trans)
+            loss = joined.objs[0].weighted(terms).sum()
+            if not torch.isfinite(loss):
                 raise FloatingPointError(f"non-finite tracking loss at iteration {it}")
+            loss.backward()
             opt.step()
             if config.box == "projected":
                 with torch.no_grad():
                     x.clamp_(0.0, 1.0)
-            continue
-        terms = joined.frame_terms(x, rot, trans)
-        if t > 1 and cfg.w_diff:
-            d = joined.diff(x)
-            terms["diff"] = torch.cat([d, d.new_zeros(1)]) + torch.cat([d.new_zeros(1), d])
-        if flow_state is not None:
-            if it % 50 == 0:
-                flow_state.refresh(x, rot, trans)
-            terms["flow"] = flow_state.loss(x, rot, trans)
-        if it >= config.fast_iterations and rgb is not None:
-            if it == config.fast_iterations:
-                rgb.prepare(x.detach().cpu().numpy(), rot.detach().cpu().numpy(), trans.detach().cpu().numpy())
-            terms["rgb"] = _rgb_all(problems[0], joined.objs[0], x, rot, trans)
-        loss = joined.objs[0].weighted(terms).sum()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite tracking loss at iteration {it}")
-        loss.backward()
-        opt.step()
-        if config.box == "projected":
-            with torch.no_grad():
-                x.clamp_(0.0, 1.0)
     with torch.no_grad():
         final = joined.frame_terms(x, rot, trans)
         if t > 1:
