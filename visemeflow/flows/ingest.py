@@ -65,13 +65,21 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     store.write_shard("rejects", 0, table_from_rows(discovery_rejects, REJECTS), stage=DISCOVER_STAGE)
     summary = {**totals(reports), "discovery_rejected": len(discovery_rejects), "stale_shards_removed": removed}
     rejected = pa.concat_tables([store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE)])
-    if rejected.num_rows:  # on the terminal even when the run ends Failed and the command prints no hint itself
+    total = len(found["entries"]) + len(discovery_rejects)
+    if rejected.num_rows and (errors or rejected.num_rows >= total):
+        # a run that ends Failed: the command prints no list of its own, so the reasons and hints are logged here
         rows = rejected.to_pylist()
         run.logger.warning("ingest: %d rejected:\n%s", len(rows),
                            "\n".join(reject_lines(rows) + [f"hint: {a}" for a in reject_advice(rows)]))
+    elif rejected.num_rows:
+        # the ingest tasks logged their own rejects, discovery's are logged here once; the command lists them all,
+        # with hints, at its end
+        found_lines = reject_lines([r for r in rejected.to_pylist() if r["stage"] == DISCOVER_STAGE])
+        run.logger.warning("ingest: %d of %d rejected (`visemeflow rejects --store %s`)%s", rejected.num_rows, total,
+                           store.root, "".join("\n" + line for line in found_lines))
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
-    return run.finish(summary, rejected.num_rows, len(found["entries"]) + len(discovery_rejects), rejects=rejected)
+    return run.finish(summary, rejected.num_rows, total, rejects=rejected)
 
 
 def _same_place(a: str, b: str) -> bool:
