@@ -672,17 +672,27 @@ def _landmark_term(proj: _Projection, scale, target_u: torch.Tensor, target_v: t
     return (weight * (res_u * res_u + res_v * res_v)).sum(), twice * res_u, twice * res_v
 
 
+def _range_term(w_range: float, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(value, d/dx) of w_range L_range, or None where every weight lies in [0, 1] (both are then exactly 0: under
+    the projected box, every step but the first)."""
+    low, high = torch.aminmax(x)
+    if float(low) >= 0.0 and float(high) <= 1.0:
+        return None
+    upper, lower = (x > 1).float(), (x < 0).float()
+    n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
+    return (w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum()),
+            2.0 * w_range * (upper * (x - 1) / n_up + lower * x / n_low))
+
+
 def _weight_terms(c: TrackingConfig, x: torch.Tensor, guide: torch.Tensor | None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """(value, d/dx) of the terms on the weights alone: guidance (`guide` from `_weights_of`) and w_range L_range."""
     value, gx = x.new_zeros(()), torch.zeros_like(x)
     if guide is not None:
         value, gx = (guide * x * x).sum(), 2.0 * guide * x
-    if c.w_range:
-        upper, lower = (x > 1).float(), (x < 0).float()
-        n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
-        value = value + c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum())
-        gx = gx + 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
+    ranged = _range_term(c.w_range, x) if c.w_range else None
+    if ranged is not None:
+        value, gx = value + ranged[0], gx + ranged[1]
     return value, gx
 
 
@@ -781,22 +791,15 @@ class _Gradient:
         return value, gx, g_rot, g_trans
 
     def _weight_terms(self, x: torch.Tensor) -> tuple[float, torch.Tensor | None]:
-        """`_weight_terms` with the guidance's factor made once; L_range only where a weight is outside [0, 1]
-        (under the projected box, every step but the first: its terms are then exactly 0). None for a gradient
-        of 0."""
-        c = self.c
+        """`_weight_terms` with the guidance's factor made once; None for a gradient of 0."""
         if self.guide is None:
             value, gx = 0.0, None
         else:
             value, gx = float((self.guide * x * x).sum()), self.twice_guide * x
-        if c.w_range:
-            low, high = torch.aminmax(x)
-            if not (float(low) >= 0.0 and float(high) <= 1.0):
-                upper, lower = (x > 1).float(), (x < 0).float()
-                n_up, n_low = upper.sum(-1, keepdim=True).clamp_min(1.0), lower.sum(-1, keepdim=True).clamp_min(1.0)
-                value += float(c.w_range * ((upper * (x - 1) ** 2 / n_up).sum() + (lower * x * x / n_low).sum()))
-                g_range = 2.0 * c.w_range * (upper * (x - 1) / n_up + lower * x / n_low)
-                gx = g_range if gx is None else gx + g_range
+        ranged = _range_term(self.c.w_range, x) if self.c.w_range else None
+        if ranged is not None:
+            value += float(ranged[0])
+            gx = ranged[1] if gx is None else gx + ranged[1]
         return value, gx
 
     def _flow(self, flow: "_FastFlow", u, v, g_u, g_v) -> float:
