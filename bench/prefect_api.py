@@ -1,5 +1,6 @@
 """The Prefect server a bench's flows report to (`prefect_server()`): a throw-away local one by default
-(`prefect_test_harness`, about 20 s of a core to start, mostly its database set-up), or the running server that
+(Prefect's `prefect_test_harness` on a copy of the migrated database template, `visemeflow.ops.prefect_db`:
+about 10 s of a core to start, 20 s when it has to migrate its own), or the running server that
 `VISEMEFLOW_BENCH_API_URL` names (a `prefect server start` of your own; tests/test_benches.py no longer hands the
 benches its session's server: a work-pool test in the same worker then found that server's SQLite locked).
 A bench variable rather than PREFECT_API_URL, so that a user's own PREFECT_API_URL (their team's server, Prefect
@@ -24,7 +25,7 @@ def prefect_server(startup_timeout: float = 180) -> Iterator[None]:
         with temporary_settings({PREFECT_API_URL: url}):
             yield
         return
-    from prefect.testing.utilities import prefect_test_harness
+    from visemeflow.ops.prefect_db import test_harness
 
-    with prefect_test_harness(server_startup_timeout=startup_timeout):
+    with test_harness(startup_timeout_s=startup_timeout):
         yield

@@ -35,11 +35,11 @@ def pytest_configure(config):
 
 @pytest.fixture(scope="session")
 def prefect_harness():
-    """A temporary Prefect server for the whole test session (start-up is paid once)."""
-    from prefect.testing.utilities import prefect_test_harness
+    """A temporary Prefect server for the whole test session (start-up is paid once, on a copy of the template)."""
+    from visemeflow.ops.prefect_db import test_harness
 
-    with prefect_test_harness(server_startup_timeout=180):
-        yield
+    with test_harness(startup_timeout_s=180) as seeded:
+        yield seeded
 
 
 @pytest.fixture(scope="session")

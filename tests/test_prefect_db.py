@@ -82,3 +82,22 @@ def test_a_failed_build_leaves_no_template_and_frees_its_lock(cache, tmp_path, m
     assert prefect_db.main([str(template), str(lock)]) == 1
     assert not template.exists() and not lock.exists()
     assert prefect_db._build_lock(template) is not None   # the next start may try again
+
+
+@pytest.mark.flow
+def test_the_session_server_starts_on_a_copy_of_the_template_and_runs_flows(prefect_harness):
+    """`test_harness` (the tests' and benches' throw-away server) puts the template where Prefect's harness makes its
+    database; a Prefect that makes it elsewhere fails here rather than quietly migrating a new one at every start."""
+    from prefect import flow
+    from prefect.settings import get_current_settings
+    from sqlalchemy.engine import make_url
+
+    assert prefect_harness == "seeded"
+    db = make_url(get_current_settings().server.database.connection_url.get_secret_value()).database
+    assert db.endswith(prefect_db.HARNESS_DB_NAME) and _revision(db) in _sqlite_heads()
+
+    @flow
+    def answer() -> int:
+        return 42
+
+    assert answer() == 42

@@ -654,3 +654,23 @@ def test_a_failed_rig_save_keeps_the_previous_file_whole(tmp_path, monkeypatch):
         save_rig_npz(tiny_rig(name="other"), path)
     assert path.read_bytes() == before and load_rig(path).name == "tiny"
     assert [p.name for p in tmp_path.iterdir()] == ["tiny.npz"]  # no temporary file left
+
+
+def test_obj_reader_names_the_bad_line_and_reads_tabs_crlf_and_mixed_vertex_widths(tmp_path):
+    path = tmp_path / "m.obj"
+    path.write_bytes(b"v 0 0 0\r\nv 1\t0 0 1.0\r\nv 0 1 0 0.5 0.5 0.5\r\nvt 0 0\r\nf 1/1/1 2//2  3\r\n")
+    mesh = read_obj(path)
+    np.testing.assert_array_equal(mesh.vertices, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    assert mesh.faces.tolist() == [[0, 1, 2]] and mesh.colors is None
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 zero\nf 1 2 3\n")
+    with pytest.raises(RigError, match=r"m\.obj: malformed OBJ vertex line: '0 1 zero'"):
+        read_obj(path)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n")
+    with pytest.raises(RigError, match=r"m\.obj: malformed OBJ vertex line: '0 1'"):
+        read_obj(path)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3.5\n")
+    with pytest.raises(RigError, match=r"m\.obj: malformed OBJ face line: '1 2 3.5'"):
+        read_obj(path)
+    path.write_text("v 0 0 0\nv 1 0 0\nf 1 2\n")
+    with pytest.raises(RigError, match=r"m\.obj: OBJ face with 2 vertices \(need at least 3\)"):
+        read_obj(path)

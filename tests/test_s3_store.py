@@ -412,14 +412,16 @@ def test_a_pipeline_killed_on_s3_loses_nothing_and_two_runs_at_once_corrupt_noth
 
 @pytest.fixture
 def own_prefect_api(local_reference) -> str:
-    """A Prefect server of the test's own, with its own SQLite database (about 20 s to start). In three
+    """A Prefect server of the test's own, with its own SQLite database (about 10 s to start on a copy of the
+    template). In three
     clean-clone CI runs the workers of the work-pool test could not register with the session's shared server: its
     SQLite refused their heartbeats for minutes ("database is locked"); alone the test passed. It takes
     `local_reference` so that the reference run is made first, on the session's server, not on this one."""
     from prefect.settings import get_current_settings
-    from prefect.testing.utilities import prefect_test_harness
 
-    with prefect_test_harness(server_startup_timeout=180):
+    from visemeflow.ops.prefect_db import test_harness
+
+    with test_harness(startup_timeout_s=180):
         yield str(get_current_settings().api.url)
 
 
