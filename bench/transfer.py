@@ -15,6 +15,9 @@ Prints, never asserts (exit 0 whatever the figures). Targets, all built from the
 4. remeshed, automatic markers: the same target with no markers given; FaceMesh on renders of both meshes finds
    the pairs (`visemeflow.authoring.automarkers`): how many, how far their target points lie from the true
    correspondence (the same ICT vertex moved with the face), and the transfer with them.
+5. icp: the registration of target 3 (our `visemeflow.authoring.nricp`, the inputs the transfer gives it) side by
+   side with trimesh's `nricp_amberg`, the peer it replaced, on the same inputs: time, the registered surface's RMS
+   distance to the target and the markers' (both relative to the target's size), and how far apart the two are.
 
 For each: time per stage (registration, factorisation, solve, total), the gradient residual, and the landmark
 checks of the demo rig (tests/test_rig.py): inner-lip gap 62-66 of MBP (and of the neutral), AHH's gap and chin drop
@@ -80,8 +83,51 @@ def contact_sheet(character, path: Path, size: int) -> int:
     return path.stat().st_size
 
 
-TARGETS = ("self", "identity", "remeshed", "auto")
-"""Targets 1-4 of the module's text, by the names `--targets` takes."""
+TARGETS = ("self", "identity", "remeshed", "auto", "icp")
+"""Targets 1-5 of the module's text, by the names `--targets` takes."""
+
+
+def icp_side_by_side(demo, vertices, faces, landmarks) -> None:
+    """Target 5: ours and trimesh's non-rigid ICP on the inputs the transfer of target 3 gives ours."""
+    import trimesh
+    from trimesh.registration import nricp_amberg
+
+    from visemeflow.authoring import transfer as transfer_module
+    from visemeflow.authoring.transfer import _closest
+
+    calls = []
+    ours = transfer_module.nricp
+
+    def recorded(*args, **kwargs):
+        start = time.perf_counter()
+        out = ours(*args, **kwargs)
+        calls.append((args, kwargs, out, time.perf_counter() - start))
+        return out
+
+    transfer_module.nricp = recorded
+    try:
+        transfer_visemes(demo, vertices, faces, target_landmarks=landmarks, name="remeshed")
+    finally:
+        transfer_module.nricp = ours
+    (src_v, src_f, tgt_v, tgt_f), kw, got, ours_s = calls[0]
+    start = time.perf_counter()
+    peer = nricp_amberg(trimesh.Trimesh(src_v, src_f, process=False), trimesh.Trimesh(tgt_v, tgt_f, process=False),
+                        source_landmarks=kw["landmarks"], target_positions=kw["landmark_positions"],
+                        steps=kw["steps"], distance_threshold=kw["distance_threshold"], use_faces=False)
+    peer_s = time.perf_counter() - start
+    size = float(np.linalg.norm(np.ptp(tgt_v, axis=0)))
+
+    def figures(x):
+        surface = np.sqrt(np.mean(_closest(tgt_v, tgt_f, x)[1] ** 2)) / size
+        marks = np.sqrt(np.mean(np.sum((x[kw["landmarks"]] - kw["landmark_positions"]) ** 2, axis=1))) / size
+        return f"surface {surface:.5f}, markers {marks:.5f}"
+
+    apart = np.sqrt(np.mean(np.sum((got - peer) ** 2, axis=1))) / size
+    print(f"\n5. icp: the registration of target 3 ({len(src_v)} template vertices onto {len(tgt_v)}, "
+          f"{sum(int(s[3]) for s in kw['steps'])} iterations at most), RMS relative to the target's size")
+    print(f"   ours    {ours_s:6.2f} s  {figures(got)}")
+    print(f"   trimesh {peer_s:6.2f} s  {figures(peer)}")
+    print(f"   trimesh / ours: {peer_s / ours_s:.1f}x the time; the two registrations {apart:.5f} apart (RMS)")
 
 
 def main() -> None:
@@ -89,7 +135,7 @@ def main() -> None:
     parser.add_argument("--sheet", type=Path, default=None, help="write the contact sheet PNG here")
     parser.add_argument("--size", type=int, default=180, help="panel size in pixels")
     parser.add_argument("--targets", default=",".join(TARGETS),
-                        help="which of the targets 1-4 to run, by name (a smoke run: self,auto)")
+                        help="which of the targets 1-5 to run, by name (a smoke run: self,auto)")
     args = parser.parse_args()
     targets = {t.strip() for t in args.targets.split(",") if t.strip()}
     if targets - set(TARGETS):
@@ -142,6 +188,9 @@ def main() -> None:
               f"{np.median(landmark_gap):.3f} cm from the nearest-point truth (median)")
         print("   " + "\n   ".join(result.report.lines()))
         print("   landmarks: " + landmark_figures(result.character, result.landmark_ids, ROTATION))
+
+    if "icp" in targets:
+        icp_side_by_side(demo, vertices, faces, landmarks)
 
     if args.sheet is not None:
         c = sheet_result.character

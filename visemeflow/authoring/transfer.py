@@ -11,8 +11,8 @@ Method (docs/transfer.md has the reasoning and the limits):
    V = [v2 - v1, v3 - v1, v4 - v1]. The deformation gradient of shape k is S_k = V_k V_0^-1 (3 x 3).
 2. Correspondence. Same topology (identical triangles): target triangle t takes template triangle t. Different
    topology: marker pairs (template vertex, target vertex) give a similarity transform (Umeyama), the template's
-   skin is registered onto the target by non-rigid ICP (`trimesh.registration.nricp_amberg`, markers as its
-   landmarks), and each target triangle takes the gradient of the registered template triangle its centroid is
+   skin is registered onto the target by non-rigid ICP (Amberg's optimal step, `visemeflow.authoring.nricp`,
+   markers as its landmarks), and each target triangle takes the gradient of the registered template triangle its centroid is
    closest to (a closest-triangle map). Gradients are turned into the target's frame: R S R^T.
    Without markers the pairs are found automatically: MediaPipe FaceMesh on frontal renders of both meshes, each
    point read back onto the vertex under it (`visemeflow.authoring.automarkers`).
@@ -27,7 +27,7 @@ Method (docs/transfer.md has the reasoning and the limits):
    rig's mouth socket, gums, tongue, teeth and eyeballs) are carried over rigidly by the marker similarity
    transform, their shapes' displacements rotated and scaled with it (`carry_parts=False` leaves them out).
 
-numpy / scipy / trimesh (and MediaPipe for automatic markers); arrays in, a Character out (and files for the
+numpy / scipy (and MediaPipe for automatic markers); arrays in, a Character out (and files for the
 command).
 """
 
@@ -46,6 +46,7 @@ import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
 from visemeflow.authoring.automarkers import automatic_markers
+from visemeflow.authoring.nricp import nricp
 from visemeflow.animation.fit import similarity as _similarity
 from visemeflow.rig.character import Character, CharacterError, make_character
 from visemeflow.rig import N_LANDMARKS, RigError, VisemeRig
@@ -315,9 +316,6 @@ class _Registration:
 
 def _register(tpl: _Template, skin_vertices: np.ndarray, target_v, target_f, markers, max_residual: float,
               steps) -> _Registration:
-    import trimesh
-    from trimesh.registration import nricp_amberg
-
     in_skin = np.zeros(len(tpl.neutral), bool)
     in_skin[skin_vertices] = True
     skin_faces = np.flatnonzero(in_skin[tpl.faces].all(axis=1))
@@ -348,13 +346,11 @@ def _register(tpl: _Template, skin_vertices: np.ndarray, target_v, target_f, mar
     if (local[markers[:, 0]] < 0).any():
         raise TransferError(f"markers: template vertex {int(markers[local[markers[:, 0]] < 0, 0][0])} is on no "
                             "template triangle near the target")
-    source = trimesh.Trimesh(aligned[used], local[tpl.faces[skin_faces]], process=False)
-    target = trimesh.Trimesh(target_v, target_f, process=False)
     if steps is None:   # trimesh's default schedule, 3 iterations a step instead of 10, landmarks kept to the end
         steps = [[0.01, 10, 0.5, 3], [0.02, 5, 0.5, 3], [0.03, 2.5, 0.5, 3], [0.01, 1, 0.0, 3]]
-    registered_skin = nricp_amberg(source, target, source_landmarks=local[markers[:, 0]],
-                                   target_positions=dst_points, steps=steps, distance_threshold=0.05,
-                                   use_faces=False)
+    registered_skin = nricp(aligned[used], local[tpl.faces[skin_faces]], target_v, target_f,
+                            landmarks=local[markers[:, 0]], landmark_positions=dst_points, steps=steps,
+                            distance_threshold=0.05)
     registered = aligned.copy()
     registered[used] = registered_skin
     _, distance, _, _ = _closest(target_v, target_f, registered_skin)
