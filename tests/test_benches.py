@@ -51,7 +51,7 @@ QUICK = {
                       "--augmented", "", "--threads", "1"],
     "rotation.py": ["--takes", "1", "--repeats", "1", "--calls", "20"],
     "textgrid_readers.py": ["--repeat", "1"],
-    "tracking.py": ["--utterances", "1", "--faithful-frames", "2", "--flow-sizes", "fast:160"],
+    "tracking.py": ["--utterances", "1", "--faithful-frames", "1", "--flow-sizes", "fast:160"],
     "track_tasks.py": ["--utterances", "3", "--repeats", "1"],
     "transfer.py": ["--targets", "self,auto"],
     "truth_vs_procedural.py": [],

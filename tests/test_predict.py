@@ -131,8 +131,9 @@ def test_predict_flow_refuses_unknown_models_and_missing_files(store, tmp_path):
 # command's last act was a read), the I/O thread must take the GIL, CPython ends the thread with pthread_exit, and the
 # forced unwind through pyarrow's noexcept ~PyBuffer calls std::terminate. The window is short (the I/O thread must be
 # preempted between completing the read and releasing the buffer), so the reads run four at a time on the 2 cores:
-# that made about 1 process in 8 abort before the fix. A regression shows with probability above 99% in 60 runs.
-READ_RUNS = 60
+# that made about 1 process in 8 abort before the fix. A regression shows with probability above 99% in 40 runs
+# (1 - (7/8)^40 = 99.5%).
+READ_RUNS = 40
 READ_PARALLEL = 4
 PREDICT_RUNS = 4   # the real command end to end (slower: it imports torch and Prefect)
 
