@@ -408,3 +408,22 @@ def test_the_command_ends_its_process_after_the_exit_handlers_with_its_output_an
         done = subprocess.run([sys.executable, "-c", script, *args], cwd=REPO, env=CHILD_ENV, capture_output=True,
                               text=True, timeout=120, check=False)
         assert (done.returncode, done.stdout.splitlines(), done.stderr.splitlines()) == (status, out, err)
+
+
+def test_the_early_server_stopped_while_starting_says_nothing_and_one_that_died_says_why(tmp_path, monkeypatch,
+                                                                                        capfd):
+    """A command that fails its checks within a second stops the early server mid-start: uvicorn's errors about the
+    interrupted start-up used to reach the terminal after the command's one clean line. They go to a log of the
+    command's own, removed when it stops the server; a server that died on its own has its end printed."""
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "home"))
+    early = connect.EarlyServer()
+    time.sleep(1.0)                       # importing the server application: well before it is ready
+    early.stop()
+    out, err = capfd.readouterr()
+    assert out == "" and err == "" and not early.log.exists()
+    dead = connect.EarlyServer()
+    dead.process.kill()
+    dead.process.wait()
+    dead.stop()
+    err = capfd.readouterr().err
+    assert err.startswith("the temporary Prefect server exited -9") and dead.log.exists()

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import typer
 from pydantic import BaseModel, Field
-from factories import make_curve_store
+from factories import make_curve_store, write_wav
 from typer.testing import CliRunner
 
 import visemeflow.cli as cli
@@ -202,6 +202,10 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and done.output.startswith("error: --tune-layers: preset 'fbank-blstm' has no Whisper")
     done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no utterance spk/nope" in done.output
+    for stage in ("track", "landmarks"):   # an audio-only utterance: one line, no flow (and no Prefect traceback)
+        done = runner.invoke(app, ["rerun", "spk/u0", "--stage", stage, "--store", str(store.root)])
+        assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+        assert done.output.startswith("error: spk/u0 has no video") and f"the {stage} stage works on video" in done.output
     done = runner.invoke(app, ["rerun", "spk/u0", "--store", str(tmp_path / "mistyped")])
     assert done.exit_code == 2 and done.output.startswith(f"error: no store at {tmp_path / 'mistyped'}")
     done = runner.invoke(app, ["evaluate", "--models", "nope", "--store", str(store.root)])
@@ -220,3 +224,18 @@ def test_a_character_that_does_not_load_is_one_line_before_any_flow(tmp_path):
     done = runner.invoke(app, ["speak", str(audio), "--character", str(empty), "--store", str(tmp_path / "s")])
     assert done.exit_code == 2 and done.output.startswith(f"error: character {empty}: "), done.output
     assert not (tmp_path / "s").exists()
+
+
+def test_a_convention_the_character_lacks_and_an_out_that_is_a_file_are_one_line_before_any_flow(tmp_path):
+    """`speak --convention arkit52` on the demo character (its shapes are the 16 visemes) used to fail each package
+    after the predictions, with Prefect's traceback; an --out that is a file failed the same way."""
+    audio = tmp_path / "a.wav"
+    write_wav(audio, 0.5)
+    store = tmp_path / "s"
+    done = runner.invoke(app, ["speak", str(audio), "--convention", "arkit52", "--store", str(store)])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith("error: character ") and "none of its shapes has a name of the arkit52 convention" in done.output
+    (tmp_path / "taken.wav").write_bytes(b"")
+    done = runner.invoke(app, ["speak", str(audio), "--out", str(tmp_path / "taken.wav"), "--store", str(store)])
+    assert done.exit_code == 2 and done.output.startswith(f"error: --out {tmp_path / 'taken.wav'}: is a file")
+    assert not store.exists()

@@ -133,6 +133,22 @@ def test_path_encoding_is_fixed():
     assert id_path_parts("Sprecher_ü/x") == ("Sprecher_%C3%BC", "x")
 
 
+def test_files_a_person_opens_are_named_as_the_id_reads_and_stay_apart():
+    """`--out` of animate and speak: `my voice/take 1.glb`, not `my%20voice/take%201.glb`; only what a file system
+    refuses (and `%`) is encoded, so different ids never share a file."""
+    from visemeflow.schemas import readable_path_parts
+    from visemeflow.tasks.animate import package_dir
+
+    assert readable_path_parts("predict/my voice stereo") == ("predict", "my voice stereo")
+    assert readable_path_parts("张三/一") == ("张三", "一")
+    assert readable_path_parts('a/x: "y"?') == ("a", "x%3A %22y%22%3F")
+    assert readable_path_parts("a/x%20y") != readable_path_parts("a/x y")
+    store = Store(Path("/tmp/unused-store"))
+    assert package_dir(store, "/out", "ict_visemes", "predict/my voice") == Path("/out/ict_visemes/predict/my voice")
+    assert package_dir(store, None, "ict_visemes", "predict/my voice") == \
+        store.root / "animations" / "ict_visemes" / "predict" / "my%20voice"
+
+
 def test_ids_are_nfc_normalised_where_they_are_made():
     decomposed = "Sprecher_u\u0308"
     with pytest.raises(InvalidIdError, match="NFC"):

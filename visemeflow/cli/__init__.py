@@ -242,25 +242,36 @@ TRAIN_AUGMENT = Opt(None, "--train-augment", type=float, default=0.0,
                                         "config.train_augment_probability": share or 0.5})
 
 
-def _check_characters(characters: list[Path] | None, meshes: list[str] | None) -> None:
-    """Each character the user named loads (and, with --mesh, holds those meshes): else one line naming the file and
-    why, exit 2, before any flow starts (an empty glTF would otherwise fail every package a minute later)."""
+def _check_characters(characters: list[Path] | None, meshes: list[str] | None, convention: str | None = None,
+                      mapping: Path | None = None) -> None:
+    """Each character the user named loads (and, with --mesh, holds those meshes; with --convention or --mapping,
+    binds to the visemes that way): else one line naming the file and why, exit 2, before any flow starts (an empty
+    glTF or a convention the character does not use would otherwise fail every package after the predictions)."""
     from visemeflow.rig import demo_rig_path
 
     demo = demo_rig_path().resolve()
     named = [path for path in characters or [] if Path(path).resolve() != demo]
     if meshes and not named:
         _fail("--mesh chooses meshes of a .glb/.gltf --character")
-    if not named:
+    binding = convention is not None or mapping is not None
+    checked = [Path(path) for path in characters or [demo]] if binding else named
+    if not checked:
         return
-    from visemeflow.animation.load import load_character
     from visemeflow.rig.character import CharacterError
+    from visemeflow.tasks.animate import bound_character
 
-    for path in named:
+    for path in checked:
         try:
-            load_character(path, meshes=meshes or None)
-        except (CharacterError, OSError) as exc:
+            bound_character(str(path), "", convention, str(mapping) if mapping else None, None,
+                            tuple(meshes or ()) if path.resolve() != demo else ())
+        except (CharacterError, OSError, ValueError) as exc:
             _fail(f"character {path}: {exc}")
+
+
+def _check_out_folder(out: Path | None) -> None:
+    """--out names a folder (made when missing): a file there is one line, exit 2, before the work."""
+    if out is not None and not is_url(str(out)) and Path(out).exists() and not Path(out).is_dir():
+        _fail(f"--out {out}: is a file; give a folder for the output files (made when missing)")
 
 
 def _check_store_has(store: Path, what: str, hint: str) -> None:
@@ -441,7 +452,7 @@ def pipeline(params: PipelineParams, strict: bool) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.pipeline import pipeline_flow
 
-    _check_characters(params.characters, list(params.animate.meshes))
+    _check_characters(params.characters, list(params.animate.meshes), params.animate.convention)
     for stage, summary in pipeline_flow(params).items():
         if stage == "animate":
             _print_packages(dict(summary))
@@ -731,7 +742,8 @@ def animate(params: AnimateParams, strict: bool) -> None:
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
-    _check_characters(params.characters, list(params.config.meshes))
+    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
+    _check_out_folder(params.out)
     _check_curves(params.store, params.source, params.variant, several=True)
     from visemeflow.flows.animate import animate_flow
 
@@ -752,7 +764,8 @@ def speak(params: SpeakParams) -> None:
 
     _unjoined_heartbeats()
 
-    _check_characters(params.characters, list(params.config.meshes))
+    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
+    _check_out_folder(params.out)
     result = dict(speak_flow(params))
     audio_rejects = result.pop("rejects")
     _print_packages(result, "speak")
@@ -831,11 +844,17 @@ def rerun(params: RerunParams) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
     _existing_store(params.store)   # every stage reruns what a run wrote into a store
     if params.stage != "ingest":   # an utterance ingest rejected can be ingested again, once its files are fixed
+        from visemeflow.flows.stages import stage_named
+        from visemeflow.schemas import C
         from visemeflow.storage import Store
 
-        if Store(params.store).read_table("utterances", utterance_ids=[params.utterance_id]).num_rows == 0:
+        row = Store(params.store).read_table("utterances", utterance_ids=[params.utterance_id])
+        if row.num_rows == 0:
             _fail(f"no utterance {params.utterance_id} in the store {params.store} (`visemeflow rejects` says why an "
                   f"utterance was left out; `rerun {params.utterance_id} --stage ingest` reads it again)")
+        if stage_named(params.stage).needs_video and not row.column(C.VIDEO_PATH)[0].as_py():
+            _fail(f"{params.utterance_id} has no video (its corpus gave audio only): the {params.stage} stage works on "
+                  "video; its curves come from the procedural stage (`--stage procedural`)")
     from visemeflow.flows.rerun import rerun_flow
 
     _unjoined_heartbeats()

@@ -27,6 +27,7 @@ class Stage:
     on_corpus: bool = False
     scheduled: bool = False
     rerun: bool = False
+    needs_video: bool = False   # its utterances are videos: one without has nothing for it (rerun refuses it up front)
 
     @property
     def entrypoint(self) -> str:
@@ -53,8 +54,9 @@ STAGES: tuple[Stage, ...] = (
            scheduled=True),
     _stage("ingest", on_corpus=True, rerun=True),
     _stage("procedural", rerun=True),
-    _stage("landmarks", "MediaPipe FaceMesh landmarks of every video without a landmark file.", rerun=True),
-    _stage("track", rerun=True),
+    _stage("landmarks", "MediaPipe FaceMesh landmarks of every video without a landmark file.", rerun=True,
+           needs_video=True),
+    _stage("track", rerun=True, needs_video=True),
     _stage("train"),
     _stage("sweep"),
     _stage("evaluate", "Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),

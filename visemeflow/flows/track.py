@@ -305,6 +305,8 @@ def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -
     rows = store.read_table("utterances", utterance_ids=[uid]).select(TRACK_FIELDS).to_pylist()
     if not rows:
         raise RerunError(f"{uid} is not ingested in {store.root}; see `visemeflow rejects` or rerun --stage ingest")
+    if not rows[0][C.VIDEO_PATH]:
+        raise RerunError(f"{uid} has no video in {store.root}: there is nothing to track")
     last = last or TrackSettings()
     rig_path, rig_hash = rig_and_hash(Path(last.rig) if last.rig else None)
     variant = procedural_variant_of(store, last.procedural_variant)

@@ -158,30 +158,51 @@ class EarlyServer:
         listener.listen(128)
         self.port = listener.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
-        seed_home(prefect_home())   # a new home's database from the migrated template (visemeflow.ops.prefect_db)
+        home = prefect_home()
+        seed_home(home)   # a new home's database from the migrated template (visemeflow.ops.prefect_db)
         env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
                "PREFECT__SERVER_FINAL": "1"}
         env.pop("PREFECT_API_URL", None)
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app",
-             "--fd", str(listener.fileno()), "--log-level", "error", "--lifespan", "on"],
-            env=env, pass_fds=(listener.fileno(),), stdin=subprocess.DEVNULL, preexec_fn=_dies_with_parent(),
-            # a session of its own: Ctrl-C in the terminal and `timeout`'s SIGTERM reach the command's process group,
-            # not the server, which stays up while the command marks its run stopped, then dies with it
-            start_new_session=True,
-        )
+        # the server's own messages go to a file of this command's, not the terminal: stopped while it still starts
+        # (a command that fails its checks within a second), uvicorn logs its interrupted start-up as errors.
+        # A server that dies on its own has its last lines printed when the command ends (`stop`).
+        home.mkdir(parents=True, exist_ok=True)
+        self.log = home / f"early-server-{os.getpid()}.log"
+        with open(self.log, "wb") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app",
+                 "--fd", str(listener.fileno()), "--log-level", "error", "--lifespan", "on"],
+                env=env, pass_fds=(listener.fileno(),), stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                preexec_fn=_dies_with_parent(),
+                # a session of its own: Ctrl-C in the terminal and `timeout`'s SIGTERM reach the command's process
+                # group, not the server, which stays up while the command marks its run stopped, then dies with it
+                start_new_session=True,
+            )
         listener.close()  # the server holds its copy
+        self.stopped = False
         atexit.register(self.stop)
 
     def stop(self, grace_s: float = 5.0) -> None:
-        if self.process.poll() is not None:
+        if self.stopped:   # once: at exit again, its code is our own SIGTERM's
             return
-        self.process.terminate()
-        try:
-            self.process.wait(timeout=grace_s)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
+        self.stopped = True
+        code = self.process.poll()
+        if code is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        elif code != 0:   # it died on its own: what it said is the reason the command's API calls failed
+            try:
+                tail = self.log.read_text(encoding="utf-8", errors="replace").splitlines()[-20:]
+            except OSError:
+                tail = []
+            print(f"the temporary Prefect server exited {code}" + (":\n" + "\n".join(tail) if tail else ""),
+                  file=sys.stderr)
+            return   # its log is kept for a closer look
+        self.log.unlink(missing_ok=True)
 
 
 def _dies_with_parent():

@@ -13,6 +13,7 @@ _EXPORTS = {
     "id_path_parts": ".ids",
     "make_utterance_id": ".ids",
     "normalize_utterance_id": ".ids",
+    "readable_path_parts": ".ids",
     "shard_of": ".ids",
     "split_utterance_id": ".ids",
     "utterance_id_from_path_parts": ".ids",

@@ -113,6 +113,19 @@ def id_path_parts(utterance_id: str) -> tuple[str, str]:
     return encode_path_part(speaker), encode_path_part(name)
 
 
+_NOT_IN_FILE_NAMES = re.compile(r'[%/\\:*?"<>|]')   # `%` too, so that the names stay reversible
+
+
+def readable_path_parts(utterance_id: str) -> tuple[str, str]:
+    """(speaker folder, name stem) of a valid utterance id for files a person opens (`--out` of animate and speak):
+    the id as it reads (`my voice/take 1`, `张三/一`), only the characters no common file system takes in a name, and
+    `%`, percent-encoded. Reversible like `id_path_parts`, and never longer in UTF-8 bytes than its parts (which
+    validation keeps to 200 characters)."""
+    speaker, name = split_utterance_id(utterance_id)
+    encode = lambda part: _NOT_IN_FILE_NAMES.sub(lambda m: quote(m.group(0), safe=""), part)  # noqa: E731
+    return encode(speaker), encode(name)
+
+
 def utterance_id_from_path_parts(speaker_part: str, name_part: str) -> str:
     """The utterance id whose store path parts are these (the inverse of `id_path_parts`)."""
     speaker = unquote(speaker_part, encoding="utf-8", errors="strict")

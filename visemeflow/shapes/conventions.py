@@ -228,7 +228,7 @@ def bind(character: Character, convention: str | None = None, mapping: str | Pat
         wanted = sorted({s for row in table.values() for s in row})
         found = _match_names(character.shape_names, wanted, where)
         if not found:
-            raise CharacterError(f"{where}: none of its shapes is a {convention} name "
+            raise CharacterError(f"{where}: none of its shapes has a name of the {convention} convention "
                                  f"(names found: {', '.join(character.shape_names[:40])})")
     renamed = {v: {found[s]: w for s, w in row.items() if s in found} for v, row in table.items()}
     matrix = table_matrix(renamed, character.shape_names)

@@ -41,7 +41,7 @@ from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.ingest.audio import AudioError, read_audio
-from visemeflow.schemas import C
+from visemeflow.schemas import C, readable_path_parts
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
@@ -195,9 +195,13 @@ def upload_file(store: Store, local: Path, folder: Path, target: Path) -> Path:
 
 
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
-    """The folder of one (utterance, character) package: under `out` if given, else in the store."""
+    """The folder of one (utterance, character) package: under `out` if given, named as the id reads
+    (`out/<character>/my voice/take 1/take 1.glb`), else in the store (ASCII, percent-encoded)."""
     folder = store.animation_dir(character, utterance_id)
-    return Path(out) / folder.relative_to(store.root / "animations") if out else folder
+    if not out:
+        return folder
+    speaker, name = readable_path_parts(utterance_id)
+    return Path(out) / folder.parent.parent.name / speaker / name
 
 
 def _step_log(name: str) -> StepLog:
