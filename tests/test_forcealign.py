@@ -93,6 +93,10 @@ def test_bad_transcripts_and_audio_are_errors_naming_the_source():
     bad[10] = math.nan
     with pytest.raises(AlignmentError, match="NaN"):
         align_transcript(bad, rate, "in being", source="x.lab")
+    # real speech with words its transcript does not say: said as such, not taken for silence or another language
+    with pytest.raises(AlignmentError, match=r"^x\.lab: pocketsphinx could not fit the transcript's 9 words to the "
+                                             r"audio: check that the transcript is what is said"):
+        align_transcript(audio, rate, "in being comparatively modern before friday and the market", source="x.lab")
 
 
 def test_the_alignment_writes_a_textgrid_praat_reads_back():

@@ -14,8 +14,9 @@ ALIGNER_HINT = ("these utterances have no alignment (phone timings): for English
                 "<name>.TextGrid beside its audio), or use `visemeflow speak` / `visemeflow predict`, which need no "
                 "alignment")
 TRANSCRIPT_HINT = ("English transcripts beside their audio (<name>.lab or <name>.txt) are aligned by ingest itself; "
-                   "these could not be: other languages need an aligner of their own, such as the Montreal Forced "
-                   "Aligner (`mfa align CORPUS MODEL DICTIONARY ALIGNED`, a TextGrid beside each audio), or "
+                   "these could not be: check that each transcript is what is said; speech the built-in aligner "
+                   "(pocketsphinx, English only) cannot follow needs an aligner of its own, such as the Montreal "
+                   "Forced Aligner (`mfa align CORPUS MODEL DICTIONARY ALIGNED`, a TextGrid beside each audio), or "
                    "`visemeflow speak` / `visemeflow predict`, which need no alignment")
 TRANSCRIPT_ERRORS = ("TranscriptNotEnglish", "TranscriptNotAligned")
 

@@ -14,6 +14,7 @@ left out of the phone spans (gaps between them) and of the words.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -141,14 +142,23 @@ def align_transcript(audio: np.ndarray, sample_rate: int, text: str, source: str
     except RuntimeError as exc:
         raise AlignmentError(f"{source}: pocketsphinx found no alignment of the transcript ({exc})") from None
     segments = decoder.seg()
-    if segments is None:                          # silence or noise: pocketsphinx has no hypothesis at all
-        raise AlignmentError(f"{source}: pocketsphinx heard none of the transcript's words in the audio (silence "
-                             "or noise?)")
+    if segments is None:                          # no path through the transcript's words reached the audio's end
+        level = 20 * math.log10(max(float(np.sqrt(np.mean(np.square(audio)))), 1e-10))
+        if level < -60:
+            raise AlignmentError(f"{source}: pocketsphinx heard none of the transcript's words in the audio: it is "
+                                 f"silent ({level:.0f} dBFS RMS)")
+        raise AlignmentError(f"{source}: pocketsphinx could not fit the transcript's {len(words)} words to the "
+                             "audio: check that the transcript is what is said (no word more or less)")
     spans = [(_word(seg.word), seg.start_frame, seg.end_frame + 1) for seg in segments
              if _word(seg.word) not in _SILENCE]
-    if [w for w, _, _ in spans] != words:
-        raise AlignmentError(f"{source}: the alignment's words {[w for w, _, _ in spans]} are not the "
-                             f"transcript's {words}")
+    heard = [w for w, _, _ in spans]
+    if heard != words:
+        if heard == words[: len(heard)]:   # the search stopped short of the transcript's end
+            last = spans[-1][2] * FRAME_S if spans else 0.0
+            raise AlignmentError(f"{source}: pocketsphinx placed {len(heard)} of the transcript's {len(words)} "
+                                 f"words and could not hear the rest ({' '.join(words[len(heard):])!r}, after "
+                                 f"{last:.2f} s): check that the transcript is what is said, to the end")
+        raise AlignmentError(f"{source}: the alignment's words {heard} are not the transcript's {words}")
     out_words = [WordInterval(w, a * FRAME_S, b * FRAME_S) for w, a, b in spans]
     try:
         decoder.set_alignment()
