@@ -239,6 +239,7 @@ def test_pipeline_and_ingest_take_one_audio_or_video_file_as_a_corpus_of_one(tmp
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stdout + done.stderr
     assert (f"{store} was ingested from {corpus}; {corpus / 'alice' / 'hello.wav'} lacks 1 of its utterances "
             f"(alice/other), which this ingest would drop") in done.stderr and "--replace" in done.stderr
+    assert "procedural" not in done.stdout + done.stderr, done.stdout + done.stderr   # the pipeline stopped there
     assert sorted(r["utterance_id"] for r in pq.read_table(store / "tables" / "utterances").to_pylist()) == [
         "alice/hello", "alice/other"]
     done = visemeflow(["ingest", str(corpus / "alice" / "hello.wav"), "--store", str(store), "--replace"],

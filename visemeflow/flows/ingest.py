@@ -108,7 +108,7 @@ def _would_drop(store: Store, before: str, now: str, entries: list[dict]) -> str
 def _no_corpus(message: str) -> State:
     """The Failed end of a run that found no corpus: nothing ingested, the message logged and raised to callers."""
     get_run_logger().error("ingest: %s", message)
-    summary = {"utterances": 0, "discovery_rejected": 0}
+    summary = {"utterances": 0, "discovery_rejected": 0, "refused": True}   # `refused`: the pipeline stops here
     return Failed(message=message, data=StageFailed(f"ingest: {message}", summary))
 
 

@@ -29,7 +29,8 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     videos; each stage a subflow with cached tasks.
 
     A stage that ends Failed does not stop the later ones (they work on what it did); the pipeline then ends
-    Failed with that stage's message and every stage's summary.
+    Failed with that stage's message and every stage's summary. An ingest that refused to run (no corpus at the
+    path, or a store of another corpus whose utterances it would drop) ends the pipeline there.
     """
     common = {"store": params.store, "n_shards": params.n_shards}
     result: dict[str, dict] = {}
@@ -44,6 +45,9 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
 
     run("ingest", lambda: ingest_flow(IngestParams(corpus=params.corpus, config=params.ingest, replace=params.replace,
                                                            **common)))
+    if result["ingest"].get("refused"):   # no corpus there, or one the store is not of: nothing for later stages
+        message = "pipeline: " + failures[0]
+        return Failed(message=message, data=StageFailed(message, result))
     run("procedural", lambda: procedural_flow(ProceduralParams(config=params.procedural, **common)))
     videos = Store(params.store).read_table("utterances").column(C.VIDEO_PATH).drop_null()
     if len(videos) and utterances_needing_landmarks(Store(params.store)):
