@@ -239,3 +239,15 @@ def test_a_convention_the_character_lacks_and_an_out_that_is_a_file_are_one_line
     done = runner.invoke(app, ["speak", str(audio), "--out", str(tmp_path / "taken.wav"), "--store", str(store)])
     assert done.exit_code == 2 and done.output.startswith(f"error: --out {tmp_path / 'taken.wav'}: is a file")
     assert not store.exists()
+
+
+def test_audio_files_that_are_not_audio_are_one_line_before_the_model_loads(tmp_path):
+    """`speak notaudio.wav` used to load the model, then print the reason four times (about a minute under load)."""
+    text = tmp_path / "notes.wav"
+    text.write_text("not a sound\n")
+    done = runner.invoke(app, ["speak", str(text), "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith(f"error: audio file {text}: neither soundfile nor FFmpeg reads it as audio")
+    done = runner.invoke(app, ["predict", str(text), str(text), "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and "(the other file too)" in done.output
+    assert not (tmp_path / "s").exists()

@@ -137,6 +137,26 @@ def _check_paths(value: Path | list[Path] | None, what: str, kind: str = "any") 
             _fail(f"{what} {path} is not a folder")
 
 
+AUDIO_CHECKED_UP_FRONT = 100
+"""Files whose headers `speak` and `predict` read before the flow; a larger batch is left to the flow's rejects."""
+
+
+def _check_audio_readable(paths: list[Path]) -> None:
+    """When no given audio file can be read (each judged on its header), one line and exit 2 before the model
+    loads; when some can, the flow rejects the others by name and does the rest."""
+    from visemeflow.ingest.audio import unreadable_reason
+
+    local = [p for p in paths if not is_url(str(p))]
+    if not local or len(local) != len(paths) or len(local) > AUDIO_CHECKED_UP_FRONT:
+        return
+    reasons = [(path, unreadable_reason(path)) for path in local]
+    if all(reason for _, reason in reasons):
+        path, reason = reasons[0]
+        others = len(reasons) - 1
+        more = "" if not others else " (the other file too)" if others == 1 else f" (the other {others} files too)"
+        _fail(f"audio file {path}: {reason}{more}")
+
+
 def _must_exist(what: str, kind: str = "any"):
     """A callback running `_check_paths` on a Path option/argument (or each of a repeated one) while parsing."""
     def check(ctx: typer.Context, value):
@@ -651,6 +671,7 @@ def predict(params: PredictParams) -> None:
     """
     _known_model(params.store, params.model)
     _check_paths(params.audio, "audio file", "file")
+    _check_audio_readable(params.audio)
     _device(params.device)
     from visemeflow.flows.predict import predict_flow
 
@@ -760,6 +781,7 @@ def speak(params: SpeakParams) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     _known_model(params.store, params.model)
     _check_paths(params.audio, "audio file", "file")
+    _check_audio_readable(params.audio)
     from visemeflow.flows.animate import speak_flow
 
     _unjoined_heartbeats()

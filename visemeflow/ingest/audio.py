@@ -17,6 +17,7 @@ cost a full decode for nothing).
 """
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,27 @@ def check_audio_file_finite(path: str | os.PathLike, info: "sf._SoundFileInfo | 
     if loud is not None:
         raise AudioAmplitudeError(str(path), reason=out_of_range_reason(*loud, info.samplerate))
     return True
+
+
+def unreadable_reason(path: str | os.PathLike) -> str | None:
+    """Why no sound can be read from `path`, judged on its header (nothing is decoded), or None when it can: what
+    `speak` and `predict` check before they start, so that a file that is no audio fails in a second, not after the
+    model is loaded."""
+    path_str = str(path)
+    if not is_video_file(path_str):
+        try:
+            sf.info(path_str)
+            return None
+        except (RuntimeError, OSError):   # not a format soundfile reads: FFmpeg's turn (an .m4a, a video's track)
+            pass
+    try:
+        import av
+
+        with av.open(path_str) as container:
+            return None if container.streams.audio else "it has no audio track"
+    except Exception as exc:  # noqa: BLE001 - PyAV raises many types for a file it cannot open
+        reason = re.sub(r"^\[Errno -?\d+\] ", "", str(exc)).split(": '", 1)[0]
+        return f"neither soundfile nor FFmpeg reads it as audio ({reason})"
 
 
 def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, int]:
