@@ -678,9 +678,9 @@ def predict(params: PredictParams) -> None:
     _unjoined_heartbeats()
     result = predict_flow(params)
     for r in result["predictions"]:
-        cached = ", cached" if r["cached"] else ""
+        speed = f"real-time factor {r['real_time_factor']:.2g}"
         typer.echo(f"{r['audio']}: {r['frames']} frames -> {r['utterance_id']} "
-                   f"(real-time factor {r['real_time_factor']:.4f}{cached})")
+                   + (f"(cached; computed at {speed})" if r["cached"] else f"({speed})"))
         for path in r["exports"]:
             typer.echo(f"wrote {path}")
     files = result["files"]
