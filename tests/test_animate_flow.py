@@ -129,6 +129,15 @@ def test_speak_turns_audio_into_a_talking_character_in_one_flow(tmp_path, charac
     again = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[AUDIO], characters=[characters[0]],
                                    out=out, config=AnimateConfig(formats=("glb", "livelink"))))
     assert again["cached"] == 1
+    # the same audio again with one format fewer: the folder then holds this package only (the old Live Link CSV
+    # would pass for this one's); a file of the user's own there is left alone
+    folder = Path(report["files"]["glb"]).parent
+    (folder / "notes.txt").write_text("mine")
+    fewer = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[AUDIO], characters=[characters[0]],
+                                   out=out, config=AnimateConfig(formats=("glb",))))
+    (report,) = fewer["packages_written"]
+    assert sorted(p.name for p in folder.iterdir() if not p.name.startswith(".")) == sorted(
+        [Path(report["files"]["glb"]).name, Path(report["files"]["audio"]).name, "notes.txt"])
 
 
 def test_rerun_animate_makes_one_utterance_again_with_the_last_settings(tmp_path, characters):

@@ -109,6 +109,22 @@ def export_paths(out_dir: Path, stem: str, formats: tuple[str, ...] | list[str],
     return {fmt: Path(out_dir) / f"{stem}{suffix(fmt)}" for fmt in formats}
 
 
+def package_file_names(stem: str) -> set[str]:
+    """Every file name a package of `stem` can hold: each format's (blendshape and bone modes), the audio and the
+    preview. What a new package of that stem did not write is an earlier one's, left over (`stale_package_files`)."""
+    from visemeflow.animation.bones import BONE_SUFFIXES
+
+    suffixes = {e.suffix for e in EXPORTERS.values()} | {e.bone_suffix for e in EXPORTERS.values() if e.bone_suffix}
+    return {f"{stem}{s}" for s in suffixes | set(BONE_SUFFIXES.values()) | {".wav", ".mp4"}}
+
+
+def stale_package_files(folder: Path, stem: str, written: list[str]) -> list[Path]:
+    """Files of an earlier package of `stem` in `folder` that this one (`written`) did not replace: a format or a
+    preview no longer asked for. Only names a package can have; anything else in the folder is not ours."""
+    kept = {Path(p).name for p in written}
+    return sorted(Path(folder) / n for n in package_file_names(stem) - kept if (Path(folder) / n).is_file())
+
+
 _RIGS: dict[str, object] = {}
 _RIG_LOCKS: dict[str, threading.Lock] = {}
 _RIGS_GUARD = threading.Lock()

@@ -36,7 +36,14 @@ from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.load import load_character
 from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
-from visemeflow.animation.package import AnimateConfig, ExportWriteError, bone_rig, export_animation, export_paths
+from visemeflow.animation.package import (
+    AnimateConfig,
+    ExportWriteError,
+    bone_rig,
+    export_animation,
+    export_paths,
+    stale_package_files,
+)
 from visemeflow.atomic import atomic_path
 from visemeflow.animation.lips import closure_report
 from visemeflow.hashing import file_hash, stable_hash
@@ -268,6 +275,9 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
                                progress=_step_log(f"animate[{utterance_id}]"))
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
+    if folder == target:   # an earlier package's format or preview that this one does not have: it would pass for this one's
+        for stale in stale_package_files(target, stem, list(files.values())):
+            stale.unlink(missing_ok=True)
     if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
         uploaded = {str(p): str(upload_file(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
         files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
