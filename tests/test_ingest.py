@@ -231,7 +231,14 @@ def test_broken_textgrid(tmp_path):
         ingest_utterance(entry, CONFIG)
     assert_names(info.value, "s/cut", tg.resolve())
     assert info.value.error_type == "TextGridError"
-    assert "ends early" in str(info.value)
+    assert "ends early" in str(info.value) and "not a number" not in str(info.value)
+    # a value the format skips (`xmin = oops`) just before the cut: named, since it is why the values ran out
+    rows = tg.read_text().splitlines()
+    line = max(n for n, row in enumerate(rows, 1) if row.strip().startswith("xmin = "))
+    rows[line - 1] = rows[line - 1].split("=")[0] + "= oops"
+    tg.write_text("\n".join(rows) + "\n")
+    with pytest.raises(IngestError, match=rf"ends early, expected .* \(line {line}, 'xmin = oops': not a number"):
+        ingest_utterance(entry_of(tmp_path, "s/cut"), CONFIG)
 
 
 def test_missing_phone_tier(tmp_path):

@@ -109,6 +109,8 @@ def _tokens(text: str) -> tuple[list[object], list[int]]:
     return out, starts
 
 
+_ASSIGNMENT = re.compile(r"^\s*[A-Za-z]+\s*=\s*(\S.*)$")
+_VALUE = re.compile(r'-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|".*"|<\w+>')
 _SWALLOWED = re.compile(r"\n\s*(?:xmin|xmax|text|number|mark|intervals|points)\s*[=\[]")
 
 
@@ -127,10 +129,19 @@ class _Cursor:
 
     def _next(self, expected: str) -> object:
         if self.pos >= len(self.tokens):
-            raise TextGridError(f"{self.source}: file ends early, expected {expected}")
+            raise TextGridError(f"{self.source}: file ends early, expected {expected}{self._unread_value()}")
         tok = self.tokens[self.pos]
         self.pos += 1
         return tok
+
+    def _unread_value(self) -> str:
+        """Where a value the format skips (`xmax = oops`: neither a number nor a quoted string) shifted the values
+        after it, so that the file seemed to end early; empty when there is none."""
+        for number, line in enumerate(self.text.splitlines(), 1):
+            m = _ASSIGNMENT.match(line)
+            if m and not _VALUE.fullmatch(m.group(1).strip()):
+                return f" (line {number}, {line.strip()!r}: not a number or a quoted string)"
+        return ""
 
     def _line(self, offset: int) -> int:
         return self.text.count("\n", 0, offset) + 1
