@@ -36,20 +36,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
+from visemeflow.render.raster import vertex_normals
+
 # trimesh's default schedule (stiffness alpha, landmark weight beta, normal weight, iterations): stiff to loose
 DEFAULT_STEPS: tuple[tuple[float, float, float, int], ...] = (
     (0.01, 10, 0.5, 10), (0.02, 5, 0.5, 10), (0.03, 2.5, 0.5, 10), (0.01, 0, 0.0, 10))
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit normals: the sum of the adjacent triangles' area-weighted normals (zero where a vertex has none)."""
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_n)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
 
 def _block_order(n_vertices: int, edges: np.ndarray) -> np.ndarray:
