@@ -166,9 +166,13 @@ class EarlyServer:
         # the server's own messages go to a file of this command's, not the terminal: stopped while it still starts
         # (a command that fails its checks within a second), uvicorn logs its interrupted start-up as errors.
         # A server that dies on its own has its last lines printed when the command ends (`stop`).
-        home.mkdir(parents=True, exist_ok=True)
         self.log = home / f"early-server-{os.getpid()}.log"
-        with open(self.log, "wb") as log:
+        try:
+            home.mkdir(parents=True, exist_ok=True)
+            log = open(self.log, "wb")   # noqa: SIM115 - closed below, once the server holds its copy
+        except OSError:   # a home we cannot write to: the server's messages are dropped, as Prefect's own would be
+            log = open(os.devnull, "wb")   # noqa: SIM115
+        with log:
             self.process = subprocess.Popen(
                 [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app",
                  "--fd", str(listener.fileno()), "--log-level", "error", "--lifespan", "on"],
