@@ -10,6 +10,7 @@ from pathlib import Path
 
 from visemeflow.rig.character import Character, CharacterError, load_character_folder, load_character_npz
 from visemeflow.animation.gltf import read_character_glb
+from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
 
 
 def load_character(path: str | os.PathLike, name: str | None = None, meshes=None, extra_names=None) -> Character:
@@ -32,3 +33,12 @@ def load_character(path: str | os.PathLike, name: str | None = None, meshes=None
     if suffix == ".npz":
         return load_character_npz(path, name)
     raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .npz or a folder of meshes")
+
+
+def load_bound_character(path: str | os.PathLike, convention: str | None = None, mapping: str | os.PathLike | None = None,
+                         meshes=None) -> tuple[Character, Binding]:
+    """The character of `path` bound to the 16 visemes: by the mapping CSV (whose shape names count as usable in a
+    glTF scene), else by `convention` (detected when None). CharacterError naming the file for either step."""
+    extra = sorted({s for row in load_mapping_csv(mapping).values() for s in row}) if mapping else None
+    character = load_character(path, meshes=meshes or None, extra_names=extra)
+    return character, bind(character, convention, mapping)

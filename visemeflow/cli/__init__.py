@@ -277,13 +277,16 @@ def _check_characters(characters: list[Path] | None, meshes: list[str] | None, c
     checked = [Path(path) for path in characters or [demo]] if binding else named
     if not checked:
         return
+    from visemeflow.animation.load import load_bound_character, load_character
     from visemeflow.rig.character import CharacterError
-    from visemeflow.tasks.animate import bound_character
 
     for path in checked:
+        own_meshes = meshes or None if path.resolve() != demo else None
         try:
-            bound_character(str(path), "", convention, str(mapping) if mapping else None, None,
-                            tuple(meshes or ()) if path.resolve() != demo else ())
+            if binding:
+                load_bound_character(path, convention, mapping, own_meshes)
+            else:
+                load_character(path, meshes=own_meshes)
         except (CharacterError, OSError, ValueError) as exc:
             _fail(f"character {path}: {exc}")
 
@@ -781,13 +784,13 @@ def speak(params: SpeakParams) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     _known_model(params.store, params.model)
     _check_paths(params.audio, "audio file", "file")
+    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
+    _check_out_folder(params.out)
     _check_audio_readable(params.audio)
     from visemeflow.flows.animate import speak_flow
 
     _unjoined_heartbeats()
 
-    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
-    _check_out_folder(params.out)
     result = dict(speak_flow(params))
     audio_rejects = result.pop("rejects")
     _print_packages(result, "speak")

@@ -34,8 +34,8 @@ from prefect.context import TaskRunContext
 from visemeflow.animation.apply import CurvesError
 from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
-from visemeflow.animation.load import load_character
-from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
+from visemeflow.animation.load import load_bound_character
+from visemeflow.shapes.conventions import Binding
 from visemeflow.animation.package import (
     AnimateConfig,
     ExportWriteError,
@@ -115,9 +115,7 @@ def bound_character(path: str, character_hash: str, convention: str | None, mapp
 
     `meshes`: the meshes of a glTF scene to drive (default: chosen by their target names, a mapping CSV's shapes
     counting as usable names)."""
-    extra = sorted({s for row in load_mapping_csv(mapping).values() for s in row}) if mapping else None
-    character = load_character(path, meshes=meshes or None, extra_names=extra)
-    return character, bind(character, convention, mapping)
+    return load_bound_character(path, convention, mapping, meshes)
 
 
 def curves_and_fps(store: Store, utterance_id: str, source: str, variant: str) -> tuple[np.ndarray, float, str]:
