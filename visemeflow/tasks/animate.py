@@ -202,11 +202,11 @@ def upload_file(store: Store, local: Path, folder: Path, target: Path) -> Path:
 def package_dir(store: Store, out: str | None, character: str, utterance_id: str) -> Path:
     """The folder of one (utterance, character) package: under `out` if given, named as the id reads
     (`out/<character>/my voice/take 1/take 1.glb`), else in the store (ASCII, percent-encoded)."""
-    folder = store.animation_dir(character, utterance_id)
+    folder = store.animation_dir(character, utterance_id)   # checks the character name too
     if not out:
         return folder
     speaker, name = readable_path_parts(utterance_id)
-    return Path(out) / folder.parent.parent.name / speaker / name
+    return Path(out) / character / speaker / name
 
 
 def _step_log(name: str) -> StepLog:
@@ -273,10 +273,10 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
                                progress=_step_log(f"animate[{utterance_id}]"))
         warnings += [f"the preview's video panel: {shown.video_problem}"] if shown.video_problem else []
         files["preview"] = str(path)
-    if folder == target:   # an earlier package's format or preview that this one does not have: it would pass for this one's
+    if folder == target:   # an earlier package's format or preview that this one lacks would pass for this one's
         for stale in stale_package_files(target, stem, list(files.values())):
             stale.unlink(missing_ok=True)
-    if folder != target:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
+    else:   # every file the export wrote (a glTF's buffers, a USD's layers too), one PUT each
         uploaded = {str(p): str(upload_file(store, p, folder, target)) for p in sorted(folder.rglob("*")) if p.is_file()}
         files = {kind: uploaded.get(str(Path(local)), local) for kind, local in files.items()}
     seconds = time.perf_counter() - started
