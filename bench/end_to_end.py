@@ -3,7 +3,7 @@ fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare] [--joint N]
                                             [--compare-flow PRESET:ROI] [--compare-config JSON] [--compare-storage]
-                                            [--compare-mesh JSON]
+                                            [--compare-mesh JSON] [--compare-overheads]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -37,6 +37,11 @@ calls), so the split is of exactly the code the pipeline runs:
   flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
+--compare-overheads: "before" runs three pieces as they were until 2026-11-30, kept below as references: FaceMesh's
+landmarks read by Python's loop over the message, the backward flow's forward-backward mask made for every pair
+(the fast solver never reads it; here forced right after the flow, from the stored flows, which adds their float16
+-> float32 conversion, about 0.1 ms a frame on the talking heads), and the flow sampled by three index arrays;
+"after" the product's code. The curves must be identical (the largest difference is printed).
 --compare also runs every clip with the fast solver's other method, TrackingConfig(fast_method="lm")
 (Levenberg-Marquardt, issue 29), as "after", beside the default Adam with cosine decay (50 pose + 200 joint
 steps, "before"); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
@@ -75,6 +80,7 @@ torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import visemeflow.tracking.facemesh as facemesh_mod  # noqa: E402
 import visemeflow.tracking.optical_flow as optical_flow  # noqa: E402
 import visemeflow.tracking.utterance as utterance_mod  # noqa: E402
 import visemeflow.tracking.video as video_mod  # noqa: E402
@@ -180,6 +186,51 @@ def install_profile() -> None:
     for owner, name, wrapper, step in patches:
         if hasattr(owner, name):
             setattr(owner, name, wrapper(getattr(owner, name), step))
+
+
+# ---- the pieces as they were, for --compare-overheads ------------------------------------------------------------
+
+def landmark_xyz_loop(face) -> np.ndarray:
+    """FaceMesh's landmarks as read until 2026-11-30: Python's loop over the message."""
+    return np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64).reshape(-1, 3)
+
+
+def sample_flows_indexed(flows: np.ndarray, valid, pts: np.ndarray):
+    """`optical_flow._sample_flows` until 2026-11-30: the four neighbours read by three index arrays."""
+    p, n = pts.shape[:2]
+    h, w = flows.shape[1:3]
+    out = np.zeros((p, n, 2), dtype=np.float32)
+    ok = np.isfinite(pts).all(axis=2)
+    ok &= (pts[..., 0] >= 0) & (pts[..., 0] <= w - 1) & (pts[..., 1] >= 0) & (pts[..., 1] <= h - 1)
+    pair, idx = np.nonzero(ok)
+    if len(idx) == 0:
+        return out, ok
+    x, y = pts[pair, idx, 0], pts[pair, idx, 1]
+    x0 = np.minimum(np.floor(x).astype(np.intp), w - 1)
+    y0 = np.minimum(np.floor(y).astype(np.intp), h - 1)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    f00 = flows[pair, y0, x0].astype(np.float64)
+    f01 = flows[pair, y0, x1].astype(np.float64)
+    f10 = flows[pair, y1, x0].astype(np.float64)
+    f11 = flows[pair, y1, x1].astype(np.float64)
+    val = (1 - ay) * ((1 - ax) * f00 + ax * f01) + ay * ((1 - ax) * f10 + ax * f11)
+    good = np.isfinite(val).all(axis=1)
+    if valid is not None:
+        good &= valid[pair, y0, x0] & valid[pair, y0, x1] & valid[pair, y1, x0] & valid[pair, y1, x1]
+    ok[pair, idx] = good
+    out[pair[good], idx[good]] = val[good].astype(np.float32)
+    return out, ok
+
+
+def with_backward_masks(estimate):
+    """`estimate_optical_flow` that makes every backward mask at once, as it did until 2026-11-30."""
+    @functools.wraps(estimate)
+    def eager(*args, **kwargs):
+        field = estimate(*args, **kwargs)
+        field.backward_valid
+        return field
+    return eager
 
 
 # ---- clips --------------------------------------------------------------------------------------------------------
@@ -394,11 +445,15 @@ def main() -> int:
     parser.add_argument("--compare-storage", action="store_true",
                         help="instead of --compare's solvers: the flows converted to float16 by NumPy as before "
                              "(until 2026-11-28), by OpenCV's vectorised conversion as after (the same values)")
+    parser.add_argument("--compare-overheads", action="store_true",
+                        help="instead of --compare's solvers: FaceMesh's landmarks read by a loop, every backward "
+                             "flow mask made and the flow sampled by index arrays, as before (until 2026-11-30); "
+                             "the product's code as after (the same curves)")
     parser.add_argument("--joint", type=int, default=None, metavar="N",
                         help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
                              "runs it (landmarks per clip; a group's time shared over its clips by frames)")
     args = parser.parse_args()
-    if args.compare_flow or args.compare_config or args.compare_storage or args.compare_mesh:
+    if args.compare_flow or args.compare_config or args.compare_storage or args.compare_mesh or args.compare_overheads:
         args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
@@ -428,6 +483,9 @@ def main() -> int:
     if args.compare_storage:
         configs = {"before": config, "after": config}
         label = "before (flows to float16 by NumPy) -> after (by OpenCV)"
+    if args.compare_overheads:
+        configs = {"before": config, "after": config}
+        label = "before (landmarks by a loop, every backward mask, flows sampled by index arrays) -> after"
     meshes = {"before": mesh, "after": mesh}
     if args.compare_mesh:
         import json
@@ -438,9 +496,13 @@ def main() -> int:
     if not args.compare:
         configs = {"after": config}          # the default alone (not --compare's other method)
     vectorised = optical_flow._CONVERT_FP16
+    current = (facemesh_mod._landmark_xyz, optical_flow._sample_flows, utterance_mod.estimate_optical_flow)
+    previous = (landmark_xyz_loop, sample_flows_indexed, with_backward_masks(utterance_mod.estimate_optical_flow))
 
     def storage(path: str) -> None:
         optical_flow._CONVERT_FP16 = None if args.compare_storage and path == "before" else vectorised
+        pieces = previous if args.compare_overheads and path == "before" else current
+        facemesh_mod._landmark_xyz, optical_flow._sample_flows, utterance_mod.estimate_optical_flow = pieces
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)

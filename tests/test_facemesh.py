@@ -21,6 +21,7 @@ from visemeflow.tracking.facemesh import (
     LIP_IDS,
     FaceMeshConfig,
     FaceMeshError,
+    _landmark_xyz,
     choose_face,
     detect_clip,
     detect_frames,
@@ -289,3 +290,28 @@ def test_without_refinement_the_iris_cells_are_empty_and_the_file_still_reads(tm
     assert cells["x_467"] and cells["x_468"] == cells["y_477"] == cells["z_470"] == ""
     lm = read_landmarks(out)
     assert lm.valid.all()
+
+
+def test_landmarks_read_from_the_message_bytes_equal_the_loop_over_the_message_and_odd_messages_fall_back():
+    from mediapipe.framework.formats import landmark_pb2
+
+    rng = np.random.default_rng(3)
+    values = rng.uniform(-1.0, 2.0, (478, 3)).astype(np.float32)
+    values[5] = (1e-30, -3.4e38, 7.0)                    # tiny, huge: any float32 survives
+    face = landmark_pb2.NormalizedLandmarkList()
+    for x, y, z in values:
+        face.landmark.add(x=x, y=y, z=z)
+    assert len(face.SerializeToString()) == 17 * 478     # the fast path's layout
+    fast = _landmark_xyz(face)
+    assert fast.dtype == np.float64 and fast.shape == (478, 3)
+    np.testing.assert_array_equal(fast, values.astype(np.float64))
+    loop = np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64)
+    np.testing.assert_array_equal(fast, loop)
+
+    face.landmark[7].x = 0.0                             # proto3 leaves a 0.0 out: 16 bytes for that landmark
+    face.landmark[9].visibility = 0.5                    # an extra field
+    odd = _landmark_xyz(face)
+    expected = values.astype(np.float64)
+    expected[7, 0] = 0.0
+    np.testing.assert_array_equal(odd, expected)
+    assert _landmark_xyz(landmark_pb2.NormalizedLandmarkList()).shape == (0, 3)

