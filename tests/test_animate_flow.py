@@ -357,7 +357,8 @@ def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, charac
                                     "--character", str(characters[0]), "--format", "glb", "--out",
                                     str(tmp_path / "out")])
     assert done.exit_code == 1, done.output
-    assert "speak: packages 1, written 0, cached 1, rejected 0" in done.output and "audio_rejected 1" in done.output
+    assert ("speak: 2 audio files on 1 character (model tiny): 0 animations written, 1 reused from the store "
+            "(cached), 1 audio file rejected; " in done.output), done.output
     assert f"rejected {text}: " in done.output
 
     # a click too short for one frame of curves alone: a reject in one line, the run failed, no traceback

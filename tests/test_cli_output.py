@@ -213,3 +213,21 @@ def test_a_task_rejecting_bad_input_is_one_warning_line_and_a_bug_keeps_its_trac
     assert (level1, level2) == ("WARNING", "WARNING")
     assert "Traceback" not in text1 and len(text1.splitlines()) == 1 and "no face found" in text1
     assert level3 == level4 == "ERROR" and "Traceback" in text3 and "KeyError" in text3
+
+
+def test_the_animate_and_speak_summaries_say_what_was_animated_in_words():
+    from visemeflow.cli import _animations_line
+
+    animate = {"packages": 3, "written": 2, "cached": 1, "rejected": 0, "frames": 870, "source": "tracked",
+               "variant": "guided-fast", "characters": 1}
+    assert _animations_line("animate", animate) == (
+        "animate: 3 animations of tracked/guided-fast curves on 1 character: 2 animations written, 1 reused from "
+        "the store (cached); 870 frames")
+    both = {**animate, "variants": "guided-fast: 2, unguided-fast: 1", "characters": 2, "cached": 0, "rejected": 1}
+    assert _animations_line("animate", both) == (
+        "animate: 3 animations of tracked/guided-fast: 2, unguided-fast: 1 curves on 2 characters: 2 animations "
+        "written, 1 rejected; 870 frames")
+    speak = {"packages": 1, "written": 1, "cached": 0, "rejected": 0, "frames": 290, "source": "predicted",
+             "variant": "default", "characters": 1, "audio_files": 1, "audio_rejected": 0}
+    assert _animations_line("speak", speak) == (
+        "speak: 1 audio file on 1 character (model default): 1 animation written; 290 frames")

@@ -693,11 +693,36 @@ def predict(params: PredictParams) -> None:
 
 
 
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def _animations_line(title: str, result: dict) -> str:
+    """The summary line of animate and speak in words: what was animated, what was written, reused, rejected.
+    `speak: 2 audio files on 1 character (model default): 1 animation written, 1 reused from the store, 1 audio
+    file rejected; 580 frames`."""
+    done = [f"{_plural(result.get('written', 0), 'animation')} written"]
+    if result.get("cached"):
+        done.append(f"{result['cached']} reused from the store (cached)")
+    if result.get("rejected"):
+        done.append(f"{result['rejected']} rejected")
+    if result.get("audio_rejected"):
+        done.append(f"{_plural(result['audio_rejected'], 'audio file')} rejected")
+    characters = result.get("characters")
+    on = f" on {_plural(characters, 'character')}" if characters else ""
+    if "audio_files" in result:
+        what = f"{_plural(result['audio_files'], 'audio file')}{on} (model {result.get('variant')})"
+    else:
+        curves = f"{result.get('source')}/{result.get('variants') or result.get('variant')} curves"
+        what = f"{_plural(result.get('packages', 0), 'animation')} of {curves}{on}"
+    return f"{title}: {what}: " + ", ".join(done) + f"; {_plural(result.get('frames', 0), 'frame')}"
+
+
 def _print_packages(result: dict, title: str = "animate") -> None:
     packages = result.pop("packages_written", [])
     for choice in result.pop("character_choices", []):
         typer.echo(choice)
-    _print_summary(title, result)
+    typer.echo(_animations_line(title, result))
     for report in packages:
         cached = " (cached)" if report.get("cached") else ""
         typer.echo(f"{report['utterance_id']} -> {report['character']} [{report['convention']}], "

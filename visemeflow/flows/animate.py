@@ -171,6 +171,7 @@ def animate_flow(params: AnimateParams):
                       title=f"animate ({params.source}/{label})",
                       extra={"source": params.source, "variant": label, "characters": len(params.characters)},
                       result={**summary, "source": params.source, "variant": label, **used,
+                              "characters": len(params.characters),
                               "packages_written": reports, "character_choices": choices})
 
 
