@@ -353,6 +353,10 @@ _SUMMARY_LABELS: dict[str, tuple[str, str]] = {
 }
 
 
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 def _summary_value(key: str, value: object) -> str | None:
     """A summary value as a person reads it: floats rounded (to what the measure can tell), the unit named, None
     and NaN omitted (None is the absence of a figure, not a figure): then None."""
@@ -629,7 +633,7 @@ def _print_evaluation(result: dict) -> None:
         rows.append(cells)
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     n = result["validation_utterances"]
-    typer.echo(f"Validation L1 x 100 on {n} utterance{'' if n == 1 else 's'} ({result['source']}/"
+    typer.echo(f"Validation L1 x 100 on {_plural(n, 'utterance')} ({result['source']}/"
                f"{result['variant']}), lower is better; in brackets: ratio to validation")
     for row in rows:
         typer.echo("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
@@ -687,14 +691,10 @@ def predict(params: PredictParams) -> None:
         for path in r["exports"]:
             typer.echo(f"wrote {path}")
     files = result["files"]
-    typer.echo(f"predict: {files} file{'' if files == 1 else 's'}, {result['predicted']} predicted, "
+    typer.echo(f"predict: {_plural(files, 'file')}, {result['predicted']} predicted, "
                f"{result['cached']} cached, {result['rejected']} rejected")
     _print_stage_rejects(result["rejects"], params.store, "predict")
 
-
-
-def _plural(n: int, word: str) -> str:
-    return f"{n} {word}" if n == 1 else f"{n} {word}s"
 
 
 def _animations_line(title: str, result: dict) -> str:
