@@ -369,8 +369,8 @@ class FlowField:
 
     ``backward_mask`` None: the backward masks are made on first use, by the forward-backward check on the stored
     flows (threshold ``fb_threshold_px`` in array pixels). Only the faithful solver's backward pass asks for them;
-    the fast solver follows the forward flow alone, so tracking does not pay for a check it never reads (0.8 ms a
-    frame on the talking heads' lower face, 4% of the track stage).
+    the fast solver follows the forward flow alone, so tracking does not pay for a check it never reads (the mask
+    step on the talking heads' lower face: 1.66 -> 0.68 ms a frame).
     """
 
     forward: np.ndarray
