@@ -223,6 +223,7 @@ def test_a_character_that_does_not_load_is_one_line_before_any_flow(tmp_path):
     audio.write_bytes(b"RIFF")   # never read: the character is checked first
     done = runner.invoke(app, ["speak", str(audio), "--character", str(empty), "--store", str(tmp_path / "s")])
     assert done.exit_code == 2 and done.output.startswith(f"error: character {empty}: "), done.output
+    assert done.output.count(str(empty)) == 1 and done.output.count("\n") == 1, done.output   # named once
     assert not (tmp_path / "s").exists()
 
 

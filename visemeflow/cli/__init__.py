@@ -288,7 +288,10 @@ def _check_characters(characters: list[Path] | None, meshes: list[str] | None, c
             else:
                 load_character(path, meshes=own_meshes)
         except (CharacterError, OSError, ValueError) as exc:
-            _fail(f"character {path}: {exc}")
+            reason = str(exc)
+            for named_as in (f"{path}: ", f"{path.resolve()}: "):   # the file is named once, as the user gave it
+                reason = reason.removeprefix(named_as)
+            _fail(f"character {path}: {reason}")
 
 
 def _check_out_folder(out: Path | None) -> None:
