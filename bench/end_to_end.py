@@ -37,7 +37,7 @@ calls), so the split is of exactly the code the pipeline runs:
   flow             `flow_term`: DIS optical flow both ways and the forward-backward masks on the face region
   solver           `solve_fast`: pose initialisation and the Adam iterations
   other            the rest (checks, interpolation onto the curve grid of a variable-rate clip, ...)
---compare-overheads: "before" runs three pieces as they were until 2026-11-30, kept below as references: FaceMesh's
+--compare-overheads: "before" runs three pieces as they were until 2026-11-29, kept below as references: FaceMesh's
 landmarks read by Python's loop over the message, the backward flow's forward-backward mask made for every pair
 (the fast solver never reads it; here forced right after the flow, from the stored flows, which adds their float16
 -> float32 conversion, about 0.1 ms a frame on the talking heads), and the flow sampled by three index arrays;
@@ -191,12 +191,12 @@ def install_profile() -> None:
 # ---- the pieces as they were, for --compare-overheads ------------------------------------------------------------
 
 def landmark_xyz_loop(face) -> np.ndarray:
-    """FaceMesh's landmarks as read until 2026-11-30: Python's loop over the message."""
+    """FaceMesh's landmarks as read until 2026-11-29: Python's loop over the message."""
     return np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64).reshape(-1, 3)
 
 
 def sample_flows_indexed(flows: np.ndarray, valid, pts: np.ndarray):
-    """`optical_flow._sample_flows` until 2026-11-30: the four neighbours read by three index arrays."""
+    """`optical_flow._sample_flows` until 2026-11-29: the four neighbours read by three index arrays."""
     p, n = pts.shape[:2]
     h, w = flows.shape[1:3]
     out = np.zeros((p, n, 2), dtype=np.float32)
@@ -224,7 +224,7 @@ def sample_flows_indexed(flows: np.ndarray, valid, pts: np.ndarray):
 
 
 def with_backward_masks(estimate):
-    """`estimate_optical_flow` that makes every backward mask at once, as it did until 2026-11-30."""
+    """`estimate_optical_flow` that makes every backward mask at once, as it did until 2026-11-29."""
     @functools.wraps(estimate)
     def eager(*args, **kwargs):
         field = estimate(*args, **kwargs)
@@ -447,7 +447,7 @@ def main() -> int:
                              "(until 2026-11-28), by OpenCV's vectorised conversion as after (the same values)")
     parser.add_argument("--compare-overheads", action="store_true",
                         help="instead of --compare's solvers: FaceMesh's landmarks read by a loop, every backward "
-                             "flow mask made and the flow sampled by index arrays, as before (until 2026-11-30); "
+                             "flow mask made and the flow sampled by index arrays, as before (until 2026-11-29); "
                              "the product's code as after (the same curves)")
     parser.add_argument("--joint", type=int, default=None, metavar="N",
                         help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
