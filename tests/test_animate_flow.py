@@ -105,7 +105,7 @@ def test_bad_characters_and_curves_are_rejects_naming_the_file_and_the_rest_goes
     curve_reject = by_type["CurvesError"]
     assert curve_reject[C.UTTERANCE_ID] == "spk/u1" and "FFF is 1.5000 at frame 7" in curve_reject[C.MESSAGE]
     assert curve_reject[C.PATH].endswith("u1.parquet")
-    with pytest.raises(StageFailed, match="all 1 utterances failed"):  # nothing could be done: the run is Failed
+    with pytest.raises(StageFailed, match="its one utterance failed"):  # nothing could be done: the run is Failed
         animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth",
                                    utterances=["spk/u0"], mapping=mapping))
     message = store.read_table("rejects", "animate").to_pylist()[0][C.MESSAGE]

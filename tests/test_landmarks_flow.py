@@ -111,7 +111,7 @@ def test_landmarks_flow_ends_failed_when_no_video_has_a_face(corpus, tmp_path, p
         shutil.copyfile(corpus / "s" / f"noise{ext}", only_noise / "s" / f"noise{ext}")
     ingest_flow(IngestParams(corpus=only_noise, store=tmp_path / "store", n_shards=1))
     state = landmarks_flow(LandmarksParams(store=tmp_path / "store", n_shards=1), return_state=True)
-    assert state.is_failed() and state.message == "landmarks: all 1 utterances failed (see the rejects table)"
+    assert state.is_failed() and state.message == "landmarks: its one utterance failed (see the rejects table)"
     with pytest.raises(StageFailed):
         state.result()
 

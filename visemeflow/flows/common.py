@@ -81,13 +81,14 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
         message = (f"{stage}: {unexpected} of {total} utterances failed with an unexpected error (tracebacks in the "
                    f"run's logs; reasons in the rejects table); {failed} failed in all")
         return Failed(message=message, data=StageFailed(message, summary))
+    every = "its one utterance" if total == 1 else f"all {total} utterances"
     if total and failed >= total:
-        message = f"{stage}: all {total} utterances failed (see the rejects table)"
+        message = f"{stage}: {every} failed (see the rejects table)"
         return Failed(message=message, data=StageFailed(message, summary))
     if failed:
         message = f"{stage}: {failed} of {total} utterances failed (see the rejects table); the others are done"
     else:
-        message = f"{stage}: all {total} utterances done"
+        message = f"{stage}: {every} done"
     return Completed(message=message, data=summary)
 
 
