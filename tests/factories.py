@@ -478,3 +478,28 @@ def start_serve(args: list[str], env: dict, cwd: Path, log: Path, timeout_s: flo
             raise AssertionError(log.read_text())
         time.sleep(0.5)
     return serve
+
+
+def two_frames_apart(path: Path, gap_s: float) -> Path:
+    """A 64x64 MJPEG .mkv of two grey frames, the second stamped `gap_s` after the first, with 1 s of silence."""
+    import av
+    from fractions import Fraction
+
+    with av.open(str(path), "w", format="matroska") as c:
+        vs = c.add_stream("mjpeg", rate=25)
+        vs.width = vs.height = 64
+        vs.pix_fmt = "yuvj420p"
+        vs.codec_context.time_base = Fraction(1, 25)
+        audio = c.add_stream("pcm_s16le", rate=16000, layout="mono")
+        for pts in (0, int(round(gap_s * 25))):
+            frame = av.VideoFrame.from_ndarray(np.full((64, 64, 3), 128, np.uint8), format="rgb24")
+            frame.pts = pts
+            for packet in vs.encode(frame):
+                c.mux(packet)
+        for packet in vs.encode(None):
+            c.mux(packet)
+        silence = av.AudioFrame.from_ndarray(np.zeros((1, 16000), np.int16), format="s16", layout="mono")
+        silence.sample_rate, silence.pts, silence.time_base = 16000, 0, Fraction(1, 16000)
+        for packet in [*audio.encode(silence), *audio.encode(None)]:
+            c.mux(packet)
+    return path

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from factories import make_corpus, textgrid_long, textgrid_short, write_wav
+from factories import make_corpus, textgrid_long, textgrid_short, two_frames_apart, write_wav
 from visemeflow.ingest import CorpusEntry, DiscoveryReject, IngestConfig, IngestError, discover_corpus, ingest_utterance
 from visemeflow.phonetics.textgrid import decode_textgrid_bytes, parse_textgrid
 from visemeflow.schemas import PHONES, UTTERANCES, C, table_from_rows
@@ -820,4 +820,22 @@ def test_audio_whose_header_lies_about_its_length_is_refused_before_anything_is_
     with pytest.raises(IngestError, match=r"the header gives 32000 samples, but sample 32000 cannot be read") as info:
         ingest_utterance(entries["s/double"], IngestConfig())
     assert info.value.error_type == "TruncatedAudio" and info.value.path.endswith("double.flac")
+    assert ingest_utterance(entries["s/good"], IngestConfig()).utterance["duration_s"] == pytest.approx(1.0)
+
+
+def test_a_video_stamped_to_span_days_is_rejected_and_the_rest_of_the_corpus_is_ingested(tmp_path):
+    """A 34 KB .mkv whose second frame is shown 10**8 s after its first sized a 2.5-billion-frame curve grid."""
+    root = make_corpus(tmp_path / "corpus", {"s/good": HELLO})
+    grid = (root / "s" / "good.TextGrid").read_text()
+    for name, gap in (("days", 1e8), ("honest", 0.96)):
+        two_frames_apart(root / "s" / f"{name}.mkv", gap)
+        (root / "s" / f"{name}.TextGrid").write_text(grid)
+    entries = {e.utterance_id: e for e in discover_corpus(root).entries}
+    assert entries["s/days"].video_path.endswith("days.mkv")
+    honest = ingest_utterance(entries["s/honest"], IngestConfig()).utterance
+    assert (honest["fps"], honest["n_frames"]) == (25.0, 25)
+    with pytest.raises(IngestError, match=r"s/days: .*days\.mkv: the container's header gives 1e\+08 s, more than "
+                                          r"the 24 h a clip may span") as info:
+        ingest_utterance(entries["s/days"], IngestConfig())
+    assert info.value.error_type == "VideoTooLong"
     assert ingest_utterance(entries["s/good"], IngestConfig()).utterance["duration_s"] == pytest.approx(1.0)

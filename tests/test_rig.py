@@ -669,3 +669,26 @@ def test_obj_reader_names_the_bad_line_and_reads_tabs_crlf_and_mixed_vertex_widt
         path.write_text(text)
         with pytest.raises(RigError, match=r"m\.obj: " + said):
             read_obj(path)
+
+
+def test_an_obj_gz_that_unpacks_far_beyond_its_size_is_refused_before_it_is_unpacked(tmp_path, monkeypatch):
+    """Two 400 KB .obj.gz of a character unpacked to 400 MB each (47 s, 845 MiB); OBJ text packs 3-5 times."""
+    import visemeflow.rig.io as rig_io
+
+    bomb = tmp_path / "neutral.obj.gz"
+    bomb.write_bytes(gzip.compress(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n" + b"#" * (40 << 20), 9))
+    assert bomb.stat().st_size < 100_000
+    with pytest.raises(RigError, match=r"neutral\.obj\.gz: unpacks to more than 16777216 bytes of OBJ \(from \d+ "
+                                       r"packed\): more than 100 times its size"):
+        read_obj(bomb)
+    fine = tmp_path / "fine.obj.gz"          # packs 1000 times but unpacks to less than 16 MiB: read
+    fine.write_bytes(gzip.compress(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n" + b"#" * (4 << 20), 9))
+    assert read_obj(fine).faces.tolist() == [[0, 1, 2]]
+    monkeypatch.setattr(rig_io, "MAX_OBJ_BYTES", 1000)
+    plain = tmp_path / "big.obj"
+    plain.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n" + b"#" * 1000)
+    with pytest.raises(RigError, match=r"big\.obj: 1032 bytes of OBJ, more than the 1000 an OBJ may have"):
+        read_obj(plain)
+    with pytest.raises(RigError, match=r"fine\.obj\.gz: unpacks to more than 1000 bytes of OBJ \(from \d+ packed\): "
+                                       r"more than the 1000 an OBJ may have"):
+        read_obj(fine)

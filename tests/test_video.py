@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from factories import SHARED_DATA
+from factories import SHARED_DATA, two_frames_apart
 from visemeflow.tracking.video import (
     VideoError,
     choose_audio_codec,
@@ -212,3 +212,118 @@ def test_write_video_rejects_bad_input(tmp_path):
         write_video(tmp_path / "e.mp4", frames, fps=25, audio=np.zeros(100, np.float32))
     assert not (tmp_path / "b.mp4").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# bounds on hostile or damaged files: refused before anything is sized by them, naming the file
+
+
+def test_a_clip_stamped_to_span_days_is_refused_before_anything_is_sized_by_it(tmp_path):
+    """34 KB whose second frame is shown 10**6 s after the first gave 25 million grid frames (149 GiB of curves)."""
+    import pickle
+
+    from visemeflow.tracking.facemesh import FaceMeshError, detect_video
+    from visemeflow.tracking.video import MAX_MEDIA_S, VideoTooLong, iter_timed_frames
+
+    honest = probe_video(two_frames_apart(tmp_path / "honest.mkv", 10.0))
+    assert honest.last_frame_s == pytest.approx(10.0) and honest.grid_frames == 251
+    days = two_frames_apart(tmp_path / "days.mkv", 1e6)
+    assert days.stat().st_size < 50_000 and 1e6 > MAX_MEDIA_S
+    with pytest.raises(VideoTooLong, match=r"days\.mkv: the container's header gives 1e\+06 s, more than the 24 h a "
+                                           r"clip may span: split the recording") as info:
+        probe_video(days)
+    assert info.value.error_type == "VideoTooLong" and isinstance(info.value, VideoError)
+    assert str(pickle.loads(pickle.dumps(info.value))) == str(info.value)
+    frames = iter_timed_frames(days)        # no header read here: the frame's own time stamp is checked
+    assert next(frames)[1] == 0.0
+    with pytest.raises(VideoTooLong, match=r"days\.mkv: frame 1 is shown at 1e\+06 s"):
+        next(frames)
+    with pytest.raises(FaceMeshError, match=r"days\.mkv: frame 1 is shown at 1e\+06 s") as info:
+        detect_video(days)
+    assert info.value.error_type == "VideoTooLong"
+
+
+def test_frames_over_the_pixel_bound_are_refused_before_they_are_converted(tmp_path, monkeypatch):
+    """An 8192 x 8192 H.264 clip of 198 KB decoded to 192 MiB a frame; the bound is lowered here to 48 x 48 so that a
+    64 x 64 clip shows it."""
+    from visemeflow.tracking import video
+    from visemeflow.tracking.video import VideoTooLarge, iter_timed_frames
+
+    clip = two_frames_apart(tmp_path / "wide.mkv", 0.04)
+    assert read_video_frames(clip).shape == (2, 64, 64, 3)
+    monkeypatch.setattr(video, "MAX_FRAME_PIXELS", 48 * 48)
+    for read in (probe_video, read_video_frames, lambda p: list(iter_video_frames(p)),
+                 lambda p: list(iter_timed_frames(p))):
+        with pytest.raises(VideoTooLarge, match=r"wide\.mkv: frames of 64x64 pixels, more than the 2,304 a frame may "
+                                                r"have") as info:
+            read(clip)
+        assert info.value.error_type == "VideoTooLarge"
+    assert read_video_audio(clip)[0].shape == (16000,)     # the sound track is still read
+    with pytest.raises(VideoTooLarge):                    # per decoded frame too: a header may not say the size
+        list(video._decode_video(_FakeContainer(), None, clip))
+
+
+class _FakeContainer:
+    """Decodes one frame of 64 x 64 whatever the header said."""
+
+    @staticmethod
+    def decode(_stream):
+        import av
+
+        yield av.VideoFrame(64, 64, "rgb24")
+
+
+def _stereo_ts(path: Path, seconds: int, rate: int = 16000) -> Path:
+    """AAC in MPEG-TS, stereo, samples beyond full scale (-1.3..1.3)."""
+    import av
+
+    rng = np.random.default_rng(0)
+    with av.open(str(path), "w", format="mpegts") as c:
+        stream = c.add_stream("aac", rate=rate, layout="stereo")
+        for k in range(seconds):
+            frame = av.AudioFrame.from_ndarray(rng.uniform(-1.3, 1.3, (2, rate)).astype(np.float32), format="fltp",
+                                               layout="stereo")
+            frame.sample_rate, frame.pts, frame.time_base = rate, k * rate, Fraction(1, rate)
+            for packet in stream.encode(frame):
+                c.mux(packet)
+        for packet in stream.encode(None):
+            c.mux(packet)
+    return path
+
+
+def test_an_audio_track_decoded_whole_stops_at_its_bound_whatever_its_header_says(tmp_path, monkeypatch):
+    from visemeflow.ingest import CorpusEntry, IngestError
+    from visemeflow.ingest.audio import AudioError, read_audio
+    from visemeflow.ingest.utterance import read_audio_info
+    from visemeflow.tracking import video
+    from visemeflow.tracking.video import AudioTrackTooLong
+
+    part = _stereo_ts(tmp_path / "part.ts", 3)
+    both, rate = read_video_audio(part, mono=False)
+    mono, _ = read_video_audio(part)
+    assert both.shape[1] == 2 and np.abs(both).max() == 1.0      # clipped to full scale
+    np.testing.assert_array_equal(mono, both.mean(axis=1, dtype=np.float32))   # clipped, then the channels' mean
+    with pytest.raises(AudioTrackTooLong, match=r"part\.ts: its header gives 3\.07 s of audio, more than the 2 s a "
+                                                r"track is decoded for: split the recording, or convert it to WAV"):
+        read_video_audio(part, max_seconds=2.0)
+    # three files joined: the header still says 3 s (the first one's time stamps), the track holds 9
+    joined = tmp_path / "joined.ts"
+    joined.write_bytes(part.read_bytes() * 3)
+    assert len(read_video_audio(joined)[0]) / rate > 9.0
+    with pytest.raises(AudioTrackTooLong, match=r"joined\.ts: more than 5 s of audio decoded \(\d+ samples at 16000 "
+                                                r"Hz\)") as info:
+        read_video_audio(joined, max_seconds=5.0)
+    assert info.value.error_type == "AudioTooLong"
+    # read_audio (predict, speak) and ingest's length of a format soundfile cannot read say AudioTooLong
+    monkeypatch.setattr(video, "MAX_DECODED_AUDIO_S", 5.0)
+    aac = tmp_path / "joined.aac"
+    aac.write_bytes(joined.read_bytes())                  # not a video suffix: soundfile first, then PyAV
+    for path in (joined, aac):
+        with pytest.raises(AudioError, match=r"more than 5 s of audio decoded") as info:
+            read_audio(path)
+        assert info.value.error_type == "AudioTooLong"
+    with pytest.raises(IngestError) as info:
+        read_audio_info(CorpusEntry("s/joined", str(aac), ""))
+    assert info.value.error_type == "AudioTooLong" and info.value.utterance_id == "s/joined"
+    assert read_audio_info(CorpusEntry("s/part", str(part.rename(tmp_path / "part.aac")), ""))[1] == \
+        pytest.approx(3.0, abs=0.1)

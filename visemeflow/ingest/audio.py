@@ -175,25 +175,31 @@ def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, 
 
     Samples are (frames,) when `mono` (mean of the channels), else (frames, channels). Files with a video
     suffix are decoded by PyAV; others by soundfile, then by PyAV when soundfile cannot read them (an .m4a).
-    Raises AudioError when nothing can read the file, NonFiniteAudioError when a sample is NaN or infinite,
-    AudioAmplitudeError when one is beyond MAX_FLOAT_AMPLITUDE.
+    A track PyAV decodes is decoded whole, so it may hold at most ``tracking.video.MAX_DECODED_AUDIO_S`` (AudioError
+    ``AudioTooLong`` beyond, found as it decodes). Raises AudioError when nothing can read the file,
+    NonFiniteAudioError when a sample is NaN or infinite, AudioAmplitudeError when one is beyond
+    MAX_FLOAT_AMPLITUDE.
     """
-    from visemeflow.tracking.video import VideoError, read_video_audio
+    from visemeflow.tracking.video import AudioTrackTooLong, VideoError, read_video_audio
 
     path_str = str(path)
     if is_video_file(path_str):
         try:
-            samples, rate = read_video_audio(path_str, mono=False)
+            samples, rate = read_video_audio(path_str, mono=mono)
         except VideoError as exc:
-            raise AudioError(path_str, "UnreadableAudio", str(exc).removeprefix(f"{path_str}: ")) from exc
+            raise AudioError(path_str, exc.error_type if isinstance(exc, AudioTrackTooLong) else "UnreadableAudio",
+                             str(exc).removeprefix(f"{path_str}: ")) from exc
     else:
         try:
             samples, rate = sf.read(path_str, dtype="float32", always_2d=True)
         except (RuntimeError, OSError) as exc:  # soundfile's LibsndfileError is a RuntimeError
             try:
-                samples, rate = read_video_audio(path_str, mono=False)
+                samples, rate = read_video_audio(path_str, mono=mono)
+            except AudioTrackTooLong as exc2:
+                raise AudioError(path_str, exc2.error_type, str(exc2).removeprefix(f"{path_str}: ")) from exc2
             except (VideoError, OSError) as exc2:
                 raise AudioError(path_str, "UnreadableAudio", f"cannot read audio: {exc}; as a video: {exc2}") from exc
+    samples = samples.reshape(len(samples), -1)   # PyAV's mono track: one column
     check_finite(samples, rate, path_str)
     if mono:
         samples = samples.mean(axis=1, dtype=np.float32) if samples.shape[1] > 1 else samples[:, 0].copy()

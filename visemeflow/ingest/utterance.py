@@ -41,7 +41,7 @@ from visemeflow.phonetics.wordalign import (
 from visemeflow.schemas import C
 from visemeflow.schemas.tables import NO_ALIGNMENT
 from visemeflow.timebase import frame_count
-from visemeflow.tracking.video import VideoError, VideoInfo, probe_video
+from visemeflow.tracking.video import MAX_MEDIA_S, VideoError, VideoInfo, probe_video
 
 LANGUAGE_OF_INVENTORY: dict[str, str | None] = {"arpabet": "en", "ipa": "en", "xsampa": None, "pinyin": "zh"}
 """The language an utterance gets from its inventory when neither the manifest nor the config names one
@@ -50,9 +50,9 @@ FILE_END_FORMATS = frozenset({"textgrid", "word_align"})
 """Formats that say where the file ends (a TextGrid's xmax; the last word of an .align): such an alignment must
 end with the audio. Label files (HTK, MLF) and XRA only say where their last label ends: they may stop before the
 audio ends (the rest is silence) but not run past it."""
-MAX_AUDIO_S = 24 * 3600.0
-"""Audio whose header claims more is refused before anything is sized by it (a 132-byte FLAC may declare 49 days):
-longer recordings are split into utterances first."""
+MAX_AUDIO_S = MAX_MEDIA_S
+"""Audio whose header claims more (24 h) is refused before anything is sized by it (a 132-byte FLAC may declare 49
+days): longer recordings are split into utterances first. Video is held to the same span (``probe_video``)."""
 MIN_AUDIO_RATE = 4000
 """Audio whose header gives fewer samples a second is refused (no speech fits; a 1-Hz header stretches a second into
 four hours)."""
@@ -316,7 +316,8 @@ def read_video_info(entry: CorpusEntry) -> VideoInfo:
     try:
         return probe_video(entry.video_path)
     except VideoError as exc:
-        raise IngestError(entry.utterance_id, entry.video_path, "UnreadableVideo", str(exc).removeprefix(f"{entry.video_path}: ")) from exc
+        raise IngestError(entry.utterance_id, entry.video_path, exc.error_type,
+                          str(exc).removeprefix(f"{entry.video_path}: ")) from exc
 
 
 def map_phones(entry: CorpusEntry, alignment: Alignment, config: IngestConfig) -> tuple[str, list[dict[str, object]]]:

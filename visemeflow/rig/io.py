@@ -12,6 +12,7 @@ import json
 import re
 import warnings
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,17 +79,39 @@ def _numbers(rows: list[str], dtype, path: Path, what: str) -> tuple[np.ndarray,
     return flat, counts
 
 
+MAX_OBJ_BYTES = 256 << 20
+"""The most bytes of OBJ text read (a mesh of a few million vertices; the ICT face's is 3 MB)."""
+MAX_OBJ_GZ_RATIO = 100
+"""The most an .obj.gz may unpack to beyond 16 MiB, as a multiple of its packed size (OBJ text packs 3-5 times; a
+400 KB file that unpacks to 400 MB is a bomb)."""
+
+
+def _read_obj_text(path: Path) -> str:
+    """The OBJ's text (universal newlines, undecodable bytes replaced); RigError past ``MAX_OBJ_BYTES`` or, packed,
+    past ``MAX_OBJ_GZ_RATIO`` times the packed size, found before more than that is unpacked."""
+    packed = path.name.lower().endswith(".gz")
+    try:
+        size = path.stat().st_size
+        limit = min(MAX_OBJ_BYTES, max(MAX_OBJ_GZ_RATIO * size, 16 << 20)) if packed else MAX_OBJ_BYTES
+        if not packed and size > limit:
+            raise RigError(f"{path}: {size} bytes of OBJ, more than the {MAX_OBJ_BYTES} an OBJ may have")
+        with (gzip.open if packed else open)(path, "rb") as handle:
+            data = handle.read(limit + 1)
+    except (OSError, EOFError, zlib.error) as error:
+        raise RigError(f"{path}: cannot read OBJ: {error}") from None
+    if len(data) > limit:
+        raise RigError(f"{path}: unpacks to more than {limit} bytes of OBJ (from {size} packed): more than "
+                       + (f"{MAX_OBJ_GZ_RATIO} times its size, which no mesh packs to" if limit < MAX_OBJ_BYTES
+                          else f"the {MAX_OBJ_BYTES} an OBJ may have"))
+    return data.decode("utf-8", errors="replace").replace("\r\n", "\n").replace("\r", "\n")
+
+
 def read_obj(path: Path | str) -> MeshData:
     """Wavefront OBJ (optionally gzip-compressed): `v` lines (with optional r g b), polygons split into fans, both in
     the file's order. Parsed with regular expressions and numpy's text reader (the ICT face's 26,719 vertices and
     26,384 quads in 0.05 s rather than 0.5 s line by line)."""
     path = Path(path)
-    opener = gzip.open if path.name.lower().endswith(".gz") else open
-    try:
-        with opener(path, "rt", encoding="utf-8", errors="replace") as handle:
-            text = handle.read()
-    except OSError as error:
-        raise RigError(f"{path}: cannot read OBJ: {error}") from None
+    text = _read_obj_text(path)
     vertex_rows = _OBJ_VERTEX.findall(text)
     if not vertex_rows:
         raise RigError(f"{path}: OBJ has no vertices ('v' lines)")

@@ -25,9 +25,9 @@ linked over frames by the overlap (IoU) of their boxes, and the linked face with
 that is largest and most central over the clip, the same person on every frame.
 
 Bad input raises :class:`FaceMeshError` naming the clip, with a short ``error_type``: ``UnreadableVideo``,
-``NoFrames``, ``NoFace`` (no face on any frame), ``FaceMostlyLost`` (a face on fewer than ``min_detected_share``
-of the frames; the message gives the share), ``DetectorError`` (MediaPipe raised on a frame),
-``MediaPipeUnavailable``.
+``VideoTooLarge``, ``VideoTooLong`` (:mod:`visemeflow.tracking.video`'s bounds), ``NoFrames``, ``NoFace`` (no face
+on any frame), ``FaceMostlyLost`` (a face on fewer than ``min_detected_share`` of the frames; the message gives the
+share), ``DetectorError`` (MediaPipe raised on a frame), ``MediaPipeUnavailable``.
 """
 
 from __future__ import annotations
@@ -416,7 +416,7 @@ def detect_video(video: str | os.PathLike, config: FaceMeshConfig | None = None)
     try:
         track = _detect(_VideoFrames(path), str(path), config, None)
     except VideoError as exc:
-        raise FaceMeshError(str(path), "UnreadableVideo", str(exc).removeprefix(f"{path}: ")) from exc
+        raise FaceMeshError(str(path), exc.error_type, str(exc).removeprefix(f"{path}: ")) from exc
     # the rate of the frames' grid (1 / median interval; a variable-rate clip's times are the truth)
     return replace(track, fps=grid_rate(track.times))
 

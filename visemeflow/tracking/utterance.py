@@ -472,7 +472,7 @@ def _prepare(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, c
         if config.use_rgb:
             photo = PhotoTerm(rig, camera, frames, track.points)
     except VideoError as exc:
-        raise TrackingInputError(video.video_path, "UnreadableVideo",
+        raise TrackingInputError(video.video_path, exc.error_type,
                                  str(exc).removeprefix(f"{Path(video.video_path)}: ")) from exc
     problem = TrackingProblem(rig, camera, track.points, track.valid, prior, flow=flow, rgb=photo)
     try:

@@ -8,6 +8,12 @@ report 0), so :func:`probe_video` trusts the stored count only when it agrees wi
 otherwise counts by decoding. fps is the stream's average frame rate (GRID: 25; its "base" rate r_frame_rate is
 50, the field rate, and must not be used).
 
+Bounds (hostile or damaged files): a frame of more than :data:`MAX_FRAME_PIXELS` pixels is refused before it is
+converted (:class:`VideoTooLarge`), a clip whose header, stored frame count or frame time stamps span more than
+:data:`MAX_MEDIA_S` is refused before anything is sized by it (:class:`VideoTooLong`: a 34 KB file may stamp its
+second frame 10**8 s after its first), and an audio track decoded whole stops past :data:`MAX_DECODED_AUDIO_S`
+(:class:`AudioTrackTooLong`). Each error names the file.
+
 Frame times: frame ``i`` is shown at :func:`frame_times` ``[i]``, from its presentation time stamp, on the audio's
 clock (0 = the first audio sample :func:`read_video_audio` returns). For constant-rate video starting with its
 audio this is ``i / fps`` (GRID, the demo corpus); for variable-rate video it is not: ``talking_heads/1.mp4`` has
@@ -36,8 +42,55 @@ AVI_AUDIO_CODECS = ("pcm_s16le",)
 _CONTAINERS = {".mp4": "mp4", ".m4v": "mp4", ".mov": "mov", ".avi": "avi", ".mkv": "matroska"}
 
 
+MAX_MEDIA_S = 24 * 3600.0
+"""The longest clip accepted: longer recordings are split into utterances first (``ingest.utterance.MAX_AUDIO_S``
+is the same bound for audio files)."""
+MAX_FRAME_PIXELS = 4096 * 4096
+"""The most pixels a decoded frame may have (4K DCI, 4096 x 2160, fits; an 8192 x 8192 frame is 192 MiB of RGB and
+a 198 KB file can hold ten): downscale larger video first; the face tracker works on a region of a few hundred
+pixels."""
+MAX_DECODED_AUDIO_S = 4 * 3600.0
+"""The longest audio track decoded whole (a video's sound, .m4a, .aac: formats soundfile cannot seek in), about 2.6
+GiB of mono float32 at 48 kHz; WAV and FLAC are read by range at any length up to ``MAX_MEDIA_S``."""
+MAX_GRID_FRAMES = int(MAX_MEDIA_S * 240)
+"""The most frames a clip's curve grid may have (24 h at 240 fps)."""
+
+
 class VideoError(ValueError):
-    """A video that cannot be read or written; the message names the file."""
+    """A video that cannot be read or written; the message names the file. ``error_type`` is the short name the
+    rejects table gets."""
+
+    error_type = "UnreadableVideo"
+
+
+class VideoTooLong(VideoError):
+    """A clip whose header or time stamps span more than :data:`MAX_MEDIA_S`."""
+
+    error_type = "VideoTooLong"
+
+
+class VideoTooLarge(VideoError):
+    """A frame of more than :data:`MAX_FRAME_PIXELS` pixels."""
+
+    error_type = "VideoTooLarge"
+
+
+class AudioTrackTooLong(VideoError):
+    """An audio track that holds, or whose header claims, more than the seconds asked for."""
+
+    error_type = "AudioTooLong"
+
+
+def _check_frame_size(width: int, height: int, path: Path) -> None:
+    if width * height > MAX_FRAME_PIXELS:
+        raise VideoTooLarge(f"{path}: frames of {width}x{height} pixels, more than the {MAX_FRAME_PIXELS:,} a frame "
+                            "may have (4096 x 4096): downscale the video first")
+
+
+def _check_span(seconds: float | None, what: str, path: Path) -> None:
+    if seconds is not None and not abs(seconds) <= MAX_MEDIA_S:    # NaN fails too
+        raise VideoTooLong(f"{path}: {what} {seconds:.6g} s, more than the {_span_words(MAX_MEDIA_S)} a clip may "
+                           "span: split the recording into utterances (or its header or time stamps are damaged)")
 
 
 @dataclass(frozen=True)
@@ -101,6 +154,7 @@ def _video_stream(container, path: Path):
     stream = container.streams.video[0]
     if stream.codec_context is None or not stream.codec_context.name:
         raise VideoError(f"{path}: video stream has no decodable codec")
+    _check_frame_size(int(stream.codec_context.width or 0), int(stream.codec_context.height or 0), path)
     return stream
 
 
@@ -112,8 +166,12 @@ def _stream_fps(stream) -> float | None:
 
 
 def _decode_video(container, stream, path: Path) -> Iterator[av.VideoFrame]:
+    """Decoded frames; :class:`VideoTooLarge` at the first frame over :data:`MAX_FRAME_PIXELS` (a header may say
+    nothing of the size, or a stream change it), before it is converted."""
     try:
-        yield from container.decode(stream)
+        for frame in container.decode(stream):
+            _check_frame_size(frame.width, frame.height, path)
+            yield frame
     except av.error.FFmpegError as exc:
         raise VideoError(f"{path}: video decoding failed ({exc})") from exc
 
@@ -153,18 +211,26 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         audio_codec = None if audio is None else audio.codec_context.name
     if n_frames == 0:
         raise VideoError(f"{path}: no decodable video frames")
+    _check_span(container_dur, "the container's header gives", path)
+    _check_span(n_frames / fps, f"{n_frames} frames at {fps:g} fps span", path)
     times = _packet_times(path)
     if len(times) == n_frames:
         times = times - (times[0] if audio_start is None else audio_start)
     else:                                # packets without time stamps, or not one frame each: decode
         times = frame_times(path)
-    return VideoInfo(
+    _check_span(float(times[0]), "the first frame is shown at", path)
+    _check_span(float(times[-1]), "the last frame is shown at", path)
+    info = VideoInfo(
         path=path, width=int(width), height=int(height), fps=fps, n_frames=n_frames,
         duration_s=n_frames / fps, has_audio=audio is not None, audio_rate=audio_rate,
         audio_channels=audio_channels, video_codec=video_codec, audio_codec=audio_codec,
         container_duration_s=container_dur, first_frame_s=float(times[0]), last_frame_s=float(times[-1]),
         grid_fps=grid_rate(times, rates),
     )
+    if info.grid_frames > MAX_GRID_FRAMES:
+        raise VideoTooLong(f"{path}: its frames sit on a {info.nominal_fps:g} fps grid of {info.grid_frames} frames, "
+                           f"more than the {MAX_GRID_FRAMES} a clip may have")
+    return info
 
 
 def _packet_times(path: Path) -> np.ndarray:
@@ -270,6 +336,7 @@ def _iter_timed(path: Path, images: bool) -> Iterator[tuple[np.ndarray | None, f
             if offset is None:
                 offset = t
             previous = t
+            _check_span(t - offset, f"frame {i} is shown at", path)
             yield (frame.to_ndarray(format="rgb24") if images else None), t - offset
         if i < 0:
             raise VideoError(f"{path}: no decodable video frames")
@@ -308,17 +375,29 @@ def read_video_frames(path: str | os.PathLike, start: int = 0, count: int | None
     return np.stack(out)
 
 
-def read_video_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, int]:
-    """The first audio track as float32 in [-1, 1] and its sample rate: (samples,) when ``mono`` (channel mean),
-    else (samples, channels). :class:`VideoError` if there is no audio track."""
+def read_video_audio(path: str | os.PathLike, mono: bool = True,
+                     max_seconds: float | None = None) -> tuple[np.ndarray, int]:
+    """The first audio track as float32 in [-1, 1] and its sample rate: (samples,) when ``mono`` (channel mean,
+    taken as the track is decoded), else (samples, channels). :class:`VideoError` if there is no audio track;
+    :class:`AudioTrackTooLong` when its header claims, or its decoding reaches, more than ``max_seconds`` (default
+    :data:`MAX_DECODED_AUDIO_S`; checked as it decodes: memory stays bounded whatever the header says)."""
     path = Path(path)
+    max_seconds = MAX_DECODED_AUDIO_S if max_seconds is None else float(max_seconds)
     chunks: list[np.ndarray] = []
     with _open(path) as container:
         if not container.streams.audio:
             raise VideoError(f"{path}: no audio stream")
         stream = container.streams.audio[0]
         rate = int(stream.codec_context.sample_rate)
+        claims = [float(stream.duration * stream.time_base)
+                  if stream.duration is not None and stream.time_base is not None else None,
+                  None if container.duration is None else container.duration / av.time_base]
+        for seconds in claims:
+            if seconds is not None and seconds > max_seconds:
+                raise AudioTrackTooLong(f"{path}: its header gives {_span_words(seconds)} of audio, more than the "
+                                        f"{_span_words(max_seconds)} a track is decoded for: {_too_long_advice()}")
         resampler = None
+        held = 0
         try:
             for frame in container.decode(stream):
                 if resampler is None:
@@ -326,19 +405,40 @@ def read_video_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.nda
                     resampler = av.AudioResampler(format="fltp", layout=frame.layout.name, rate=frame.sample_rate)
                     rate = int(frame.sample_rate)
                 for out in resampler.resample(frame):
-                    chunks.append(out.to_ndarray())
+                    held += _keep_chunk(chunks, out.to_ndarray(), mono)
+                if held > max_seconds * rate:
+                    raise AudioTrackTooLong(f"{path}: more than {_span_words(max_seconds)} of audio decoded "
+                                            f"({held} samples at {rate} Hz), the most a track is decoded for: "
+                                            f"{_too_long_advice()}")
             if resampler is not None:
                 for out in resampler.resample(None):
-                    chunks.append(out.to_ndarray())
+                    held += _keep_chunk(chunks, out.to_ndarray(), mono)
         except av.error.FFmpegError as exc:
             raise VideoError(f"{path}: audio decoding failed ({exc})") from exc
     if not chunks:
         raise VideoError(f"{path}: audio stream holds no samples")
-    audio = np.concatenate(chunks, axis=1).astype(np.float32).T   # (samples, channels)
-    np.clip(audio, -1.0, 1.0, out=audio)
-    if mono:
-        audio = audio.mean(axis=1, dtype=np.float32)
+    audio = np.concatenate(chunks) if mono else np.concatenate(chunks, axis=1).T   # (samples[, channels])
     return audio, rate
+
+
+def _keep_chunk(chunks: list[np.ndarray], block: np.ndarray, mono: bool) -> int:
+    """Append a decoded (channels, samples) block, clipped to [-1, 1] (then its channel mean when ``mono``); the
+    samples it holds."""
+    block = np.clip(block.astype(np.float32, copy=False), -1.0, 1.0)
+    chunks.append(block.mean(axis=0, dtype=np.float32) if mono else block)
+    return block.shape[1]
+
+
+def _span_words(seconds: float) -> str:
+    """``90 s``, ``2.5 min``, ``4 h``."""
+    if seconds < 120:
+        return f"{seconds:.3g} s"
+    return f"{seconds / 60:.3g} min" if seconds < 7200 else f"{seconds / 3600:.3g} h"
+
+
+def _too_long_advice() -> str:
+    return (f"split the recording, or convert it to WAV or FLAC, which are read by range (up to "
+            f"{_span_words(MAX_MEDIA_S)}); or the header is damaged")
 
 
 def _encoder_available(name: str) -> bool:
