@@ -218,6 +218,9 @@ def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_o
     strict = runner.invoke(app, ["ingest", str(corpus), "--store", store, "--strict"])
     assert strict.exit_code == 1 and "1 rejected:" in strict.output and "--strict: 1 rejected" in strict.output
     assert runner.invoke(app, ["procedural", "--store", store, "--strict"]).exit_code == 0
+    mistyped = runner.invoke(app, ["rerun", "s/c", "--stage", "ingest", "--store", store])
+    assert mistyped.exit_code == 2 and mistyped.output == f"error: s/c is not in the corpus {corpus}: no files for " \
+                                                          "it\n"       # one line, before any flow
     again = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
     assert again.exit_code == 1, again.output
     assert f"rejected s/b: {corpus / 's' / 'b.TextGrid'}: file ends early" in again.output

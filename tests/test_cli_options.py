@@ -5,6 +5,7 @@ and a new stage's command is one decorated function."""
 import typing
 from pathlib import Path
 
+import numpy as np
 import pytest
 import typer
 from pydantic import BaseModel, Field
@@ -17,6 +18,7 @@ from visemeflow.cli import app
 from visemeflow.cli.options import FROM_FIELD, Opt, field_at, stage_command
 from visemeflow.flows import landmarks, pipeline, sweep, track
 from visemeflow.flows.params import DEFAULT_STORE, TrackParams, TrainParams
+from visemeflow.schemas import curves_table
 
 runner = CliRunner()
 BINDERS = (landmarks, pipeline, sweep, track)
@@ -127,7 +129,7 @@ def test_an_option_filling_two_fields_and_a_list_option(monkeypatch, tmp_path):
     monkeypatch.setattr("visemeflow.flows.train.train_flow", lambda params: seen.setdefault("params", params) and {})
     monkeypatch.setattr("visemeflow.flows.runners.run_on_runner",
                         lambda flow, params: seen.setdefault("params", params) and {"points": [], "plot": "p"})
-    store = make_curve_store(tmp_path / "s", n=1)   # the commands check the store has curves to learn first
+    store = make_curve_store(tmp_path / "s", n=3)   # the commands check the store has curves to learn first
     result = runner.invoke(app, ["train", "--store", str(store.root), "--train-augment", "0.25", "--name", "m1",
                                  "--preset", "mean-curve", "--device", "cpu", "--source", "ground_truth"])
     assert result.exit_code == 0, result.output
@@ -200,6 +202,10 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and done.output.startswith("error: --preset: unknown preset 'bogus'")
     done = runner.invoke(app, ["train", "--store", str(store.root), "--source", "ground_truth", "--tune-layers", "2"])
     assert done.exit_code == 2 and done.output.startswith("error: --tune-layers: preset 'fbank-blstm' has no Whisper")
+    done = runner.invoke(app, ["train", "--store", str(store.root), "--source", "ground_truth"])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output    # was a Prefect traceback first
+    assert done.output.startswith(f"error: no utterance in {store.root} has ground_truth curves of variant 'cm' in "
+                                  "the train split: the 1 utterance that has them is in the `val` split")
     done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no utterance spk/nope" in done.output
     for stage in ("track", "landmarks"):   # an audio-only utterance: one line, no flow (and no Prefect traceback)
@@ -208,6 +214,25 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
         assert done.output.startswith("error: spk/u0 has no video") and f"the {stage} stage works on video" in done.output
     done = runner.invoke(app, ["rerun", "spk/u0", "--store", str(tmp_path / "mistyped")])
     assert done.exit_code == 2 and done.output.startswith(f"error: no store at {tmp_path / 'mistyped'}")
+    # a mistyped utterance: one line before any flow, with the stored ids nearest it (was a Prefect traceback, or
+    # an animate reject naming the id twice)
+    done = runner.invoke(app, ["preview", "spk/u", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith("error: no procedural, tracked, predicted or ground_truth curves of spk/u in the "
+                                  f"store {store.root}; did you mean spk/u0?")
+    done = runner.invoke(app, ["animate", "spk/u0", "nope/x", "--source", "ground_truth", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith("error: no ground_truth curves of nope/x in the store") and \
+        "it has such curves of 1 utterance (spk/u0)" in done.output
+    store.write_curves(curves_table("predict/take", "predicted", "tiny", np.zeros((5, 16), np.float32), 30.0),
+                       fps=30.0)
+    for stage in ("animate", "ingest"):     # speak's output is no corpus utterance: say how it is made again
+        done = runner.invoke(app, ["rerun", "predict/take", "--stage", stage, "--store", str(store.root)])
+        assert done.exit_code == 2 and done.output.startswith("error: predict/take was made by `visemeflow predict` "
+                                                              "or `speak` from an audio file"), done.output
+    done = runner.invoke(app, ["rerun", "spk/u0", "--stage", "ingest", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output == f"error: {store.root} has no ingest run to repeat; run " \
+                                                  "`visemeflow ingest CORPUS` first\n"
     done = runner.invoke(app, ["evaluate", "--models", "nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no model 'nope'" in done.output
     done = runner.invoke(app, ["speak", str(tmp_path / "x.wav")])

@@ -96,6 +96,42 @@ def test_the_heartbeat_says_a_long_task_is_alive_before_anything_finishes(monkey
     assert out.getvalue().splitlines()[-1].startswith("track: 1/1 utterances, 130 of 130 frames")
 
 
+def test_a_tasks_step_lines_reach_stderr_where_prefect_hides_info_and_quiet_the_heartbeat(monkeypatch, capsys):
+    """`speak --preview` of 2 minutes said only `animate: 0/1 packages, 4 min elapsed, ETA after the first finishes`:
+    the preview's frame count went to Prefect's INFO lines, which a command on the temporary server hides."""
+    import logging
+
+    from visemeflow.tasks.progress import step_log
+
+    monkeypatch.setenv(ENV, "0")
+    shown = logging.getLogger("visemeflow.test.shown")
+    shown.setLevel(logging.INFO)
+    records: list[str] = []
+    monkeypatch.setattr(shown, "info", records.append)
+    step_log("animate[a]", shown)("preview", 5, 10)
+    assert records == ["animate[a]: preview 5/10 frames, " + records[0].split(", ", 1)[1]]
+    assert capsys.readouterr().err == ""                  # on the run's logger only: terminal and UI
+    hidden = logging.getLogger("visemeflow.test.hidden")
+    hidden.setLevel(logging.WARNING)                      # PREFECT_LOGGING_LEVEL=WARNING
+    steps = step_log("animate[a]", hidden)
+    steps("preview", 0, 10)
+    steps("preview", 4, 10)
+    assert re.fullmatch(r"animate\[a\]: preview 4/10 frames, \d+/s, about \d+ s left\n", capsys.readouterr().err)
+    out = io.StringIO()                                   # the stage's heartbeat: quiet while a step line is newer
+    monkeypatch.setenv(ENV, "0.3")
+    with Progress("animate", 1, stream=out, unit="packages") as line:
+        deadline = time.monotonic() + 1.2
+        while time.monotonic() < deadline:
+            steps("preview", 5, 10)
+            time.sleep(0.05)
+        assert out.getvalue() == ""
+        deadline = time.monotonic() + 20
+        while "\n" not in out.getvalue() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        line.advance()
+    assert re.match(r"animate: 0/1 packages, \d+ s elapsed, ETA after the first finishes\n", out.getvalue())
+
+
 def test_durations_read_at_a_glance():
     assert [duration(s) for s in (0.4, 59.6, 61, 3599, 3720)] == ["0 s", "1 min 00 s", "1 min 01 s",
                                                                  "59 min 59 s", "1 h 02 min"]

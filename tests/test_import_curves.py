@@ -3,6 +3,7 @@ Link Face CSV, channel CSV, NPY + names), their errors, and the `import_curves` 
 real FACEGOOD takes in `../shared/data/facegood_audio2face` (those tests fail, not skip, without the data)."""
 
 import csv
+import re
 import shutil
 import time
 
@@ -438,3 +439,34 @@ def test_the_facegood_takes_import_as_curves_of_real_speech(tmp_path):
     assert 0.02 < shares["jaw_open_share"] < 0.5
     assert np.median(residual) < 0.05 and residual.mean() < 0.2
     assert set(VISEMES) == set(shares["top_share"])
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_one_capture_file_is_a_take_of_one_and_a_file_that_is_no_manifest_is_one_line(tmp_path):
+    """`import-curves take.livelink.csv` (what its help names) read the file as a manifest: two tracebacks."""
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+
+    synthetic_takes(tmp_path / "takes")
+    one = discover_takes(tmp_path / "takes" / "spk" / "good.livelink.csv")
+    assert [t.utterance_id for t in one.takes] == ["spk/good"] and not one.rejects
+    assert one.takes[0].audio_path == str((tmp_path / "takes" / "spk" / "good.wav").resolve())
+    assert one.takes[0].format == "livelink" and one.takes[0].content_hash
+    alone = tmp_path / "alone" / "x.livelink.csv"
+    alone.parent.mkdir()
+    shutil.copy(tmp_path / "takes" / "spk" / "good.livelink.csv", alone)
+    found = discover_takes(alone)
+    assert not found.takes and [r.error_type for r in found.rejects] == ["MissingAudio"]
+    runner = CliRunner()
+    done = runner.invoke(app, ["import-curves", str(tmp_path / "takes" / "spk" / "good.livelink.csv"),
+                               "--store", str(tmp_path / "store")])
+    assert done.exit_code == 0, done.output
+    assert "takes 1, imported 1" in done.output and "residual_mean " in done.output
+    assert not re.search(r"\d\.\d{6}", done.output), done.output      # figures rounded, not 0.00012544308265205473
+    assert Store(tmp_path / "store").has_curves("captured", "arkit-nnls", "spk/good")
+    bad = write_rows(tmp_path / "bad.csv", ["a", "b"], [["1", "2"]])
+    done = runner.invoke(app, ["import-curves", str(bad), "--store", str(tmp_path / "store")])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith(f"error: manifest {bad}: missing column(s) ['audio', 'capture', 'utterance_id']")
+    assert "or give one take, `<speaker>/<name>.livelink.csv" in done.output

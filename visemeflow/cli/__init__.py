@@ -349,6 +349,28 @@ def _check_curves(store: Path, source: str, variant: str | None, several: bool =
         _fail(str(exc))
 
 
+def _check_utterance_curves(store: Path, utterance_ids: list[str], sources: list[str]) -> None:
+    """Each of `utterance_ids` has curves of one of `sources` (any variant) in the store: else one line naming those
+    that have none, with the stored ids nearest the first, and exit 2 (not a flow that fails or a reject)."""
+    from difflib import get_close_matches
+
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    missing = [u for u in utterance_ids if not any(s.curve_variants(source, u) for source in sources)]
+    if not missing:
+        return
+    known = sorted({uid for source in sources for variant in s.curve_variants(source)
+                    for uid in s.curve_ids(source, variant)})
+    near = get_close_matches(missing[0], known, n=3, cutoff=0.6)
+    kinds = sources[0] if len(sources) == 1 else f"{', '.join(sources[:-1])} or {sources[-1]}"
+    hint = (f"did you mean {' or '.join(near)}?" if near
+            else f"it has such curves of {_plural(len(known), 'utterance')}"
+            + (f" ({', '.join(known[:3])}{', ...' if len(known) > 3 else ''})" if known else ""))
+    _fail(f"no {kinds} curves of {', '.join(missing)} in the store {store}; {hint} (`visemeflow rejects` says why "
+          "an utterance was left out)")
+
+
 # summary keys printed under a clearer label, and the unit their value is in
 _SUMMARY_LABELS: dict[str, tuple[str, str]] = {
     "mean_mouth_error_px": ("mean_mouth_error", "px"), "val_l1_x100": ("validation L1 x 100", ""),
@@ -375,7 +397,8 @@ def _summary_value(key: str, value: object) -> str | None:
             if key.endswith(suffix) and isinstance(value, (int, float)):
                 label, unit = key[: -len(suffix)], suffix[1:]
     if isinstance(value, float):
-        text = f"{value:.0f}" if abs(value) >= 100 else f"{value:.2f}" if abs(value) >= 1 else f"{value:.3f}"
+        text = (f"{value:.0f}" if abs(value) >= 100 else f"{value:.2f}" if abs(value) >= 1
+                else f"{value:.3f}" if abs(value) >= 0.001 or value == 0 else f"{value:.2g}")   # 0.00013, not 0.000
     else:
         text = str(value)
     return f"{label} {text}" + (f" {unit}" if unit else "")
@@ -575,7 +598,13 @@ def train(params: TrainParams) -> None:
     _device(params.device, params.precision)
     _check_preset(params.config.preset, params.config.whisper_tune_layers)
     _check_curves(params.store, params.source, params.variant)
-    from visemeflow.flows.train import train_flow
+    from visemeflow.flows.train import no_training_reason, resolve_variant, train_flow
+    from visemeflow.storage import Store
+
+    store = Store(params.store)
+    reason = no_training_reason(store, params.source, resolve_variant(store, params.source, params.variant))
+    if reason:
+        _fail(reason)
 
     report = train_flow(params)
     # `train`/`val` count utterances; the model file goes last, on its own line, as what to use next
@@ -754,12 +783,18 @@ def import_curves(params: ImportCurvesParams, strict: bool) -> None:
     is an utterance (no alignment) with its audio, ready for `visemeflow train --source captured`.
     """
     from visemeflow.flows.import_curves import import_curves_flow
+    from visemeflow.ingest.captured import check_takes
 
+    try:
+        check_takes(params.takes)
+    except ValueError as exc:
+        _fail(str(exc))
     result = dict(import_curves_flow(params))
     reports = result.pop("takes_report", [])
     _print_summary("import-curves", result)
     for r in reports[:20]:
-        typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(f"{k} {v}" for k, v in r.items() if k != "utterance_id"))
+        parts = (_summary_value(k, v) for k, v in r.items() if k != "utterance_id")
+        typer.echo(f"  {r.get('utterance_id')}: " + ", ".join(p for p in parts if p is not None))
     _print_rejects_hint(params.store, "import_curves", strict=strict)
 
 
@@ -797,6 +832,8 @@ def animate(params: AnimateParams, strict: bool) -> None:
     _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
     _check_out_folder(params.out)
     _check_curves(params.store, params.source, params.variant, several=True)
+    if params.utterances:
+        _check_utterance_curves(params.store, list(params.utterances), [params.source])
     from visemeflow.flows.animate import animate_flow
 
     _print_packages(dict(animate_flow(params)))
@@ -839,6 +876,8 @@ def preview_command(params: PreviewParams) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
     from visemeflow.flows.animate import preview_flow
 
+    _existing_store(params.store)
+    _check_utterance_curves(params.store, [params.utterance_id], list(params.sources))
     _check_characters([params.character], params.meshes)
     result = preview_flow(params)
     typer.echo(result["character"])
@@ -896,15 +935,29 @@ def export_model(
 def rerun(params: RerunParams) -> None:
     """Rerun one utterance through one stage, with the settings that stage last ran with."""
     _existing_store(params.store)   # every stage reruns what a run wrote into a store
-    if params.stage != "ingest":   # an utterance ingest rejected can be ingested again, once its files are fixed
+    from visemeflow.flows.errors import RerunError
+    from visemeflow.storage import Store
+
+    uid, store = params.utterance_id, Store(params.store)
+    predicted = (f"{uid} was made by `visemeflow predict` or `speak` from an audio file, not ingested from a corpus: "
+                 "run that command on the audio again (its curves come back from the store's cache)"
+                 if uid.startswith("predict/") and store.curve_variants("predicted", uid) else None)
+    if params.stage == "ingest":   # an utterance ingest rejected can be ingested again, once its files are fixed
+        from visemeflow.flows.common import last_settings
+        from visemeflow.flows.ingest import rerun_entry
+
+        try:
+            rerun_entry(store, uid, last_settings(store, "ingest"))
+        except RerunError as exc:
+            _fail(predicted or str(exc))
+    else:
         from visemeflow.flows.stages import stage_named
         from visemeflow.schemas import C
-        from visemeflow.storage import Store
 
-        row = Store(params.store).read_table("utterances", utterance_ids=[params.utterance_id])
+        row = store.read_table("utterances", utterance_ids=[uid])
         if row.num_rows == 0:
-            _fail(f"no utterance {params.utterance_id} in the store {params.store} (`visemeflow rejects` says why an "
-                  f"utterance was left out; `rerun {params.utterance_id} --stage ingest` reads it again)")
+            _fail(predicted or f"no utterance {uid} in the store {params.store} (`visemeflow rejects` says why an "
+                               f"utterance was left out; `rerun {uid} --stage ingest` reads it again)")
         if stage_named(params.stage).needs_video and not row.column(C.VIDEO_PATH)[0].as_py():
             _fail(f"{params.utterance_id} has no video (its corpus gave audio only): the {params.stage} stage works on "
                   "video; its curves come from the procedural stage (`--stage procedural`)")

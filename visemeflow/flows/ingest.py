@@ -1,5 +1,6 @@
 """The `ingest` flow: corpus to the `utterances`, `phones` and `rejects` tables."""
 
+from dataclasses import asdict
 from pathlib import Path
 
 import pyarrow as pa
@@ -9,6 +10,7 @@ from prefect.states import Failed, State
 from visemeflow.flows.common import StageRun, collect, group_by_shard, last_settings, totals
 from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.params import IngestParams, IngestSettings
+from visemeflow.ingest import discover_corpus
 from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
 from visemeflow.ingest.hints import reject_advice, reject_lines
 from visemeflow.location import as_text, is_url
@@ -112,13 +114,21 @@ def _no_corpus(message: str) -> State:
     return Failed(message=message, data=StageFailed(f"ingest: {message}", summary))
 
 
-def rerun_one(store: Store, uid: str, last: IngestSettings | None, force: bool) -> dict:
-    """Ingest one utterance of the last ingest run's corpus again, with its settings (`visemeflow rerun`)."""
+def rerun_entry(store: Store, uid: str, last: IngestSettings | None) -> dict:
+    """`uid`'s entry (a dict) in the corpus of the last ingest run (`last`, its settings) for `visemeflow rerun
+    --stage ingest`; RerunError when the store was never ingested or its corpus has no such utterance (what the CLI
+    checks before any flow starts)."""
     if last is None:
         raise RerunError(f"{store.root} has no ingest run to repeat; run `visemeflow ingest CORPUS` first")
-    found = discover_corpus_task(last.corpus, only=uid)
-    if not found["entries"]:
-        reasons = "; ".join(r["message"] for r in found["rejects"]) or "no files for it"
+    found = discover_corpus(last.corpus, only=uid)
+    if not found.entries:
+        reasons = "; ".join(r.message for r in found.rejects) or "no files for it"
         raise RerunError(f"{uid} is not in the corpus {last.corpus}: {reasons}")
+    return asdict(found.entries[0])
+
+
+def rerun_one(store: Store, uid: str, last: IngestSettings | None, force: bool) -> dict:
+    """Ingest one utterance of the last ingest run's corpus again, with its settings (`visemeflow rerun`)."""
+    entry = rerun_entry(store, uid, last)
     task = ingest_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
-    return task(str(store.root), shard_of(uid, last.n_shards), found["entries"][0], last.config)
+    return task(str(store.root), shard_of(uid, last.n_shards), entry, last.config)

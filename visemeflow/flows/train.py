@@ -32,6 +32,34 @@ def training_rows(store: Store, source: str, variant: str) -> tuple[list[dict], 
     return train, val, lineage
 
 
+def no_training_reason(store: Store, source: str, variant: str) -> str | None:
+    """Why `train` has nothing to learn from (no utterance in the train split has these curves), with what to do;
+    None when it has. Only the listing of curve files is read (the CLI checks this before any flow starts)."""
+    rows = store.read_table("utterances").select([C.UTTERANCE_ID, C.SPLIT]).to_pylist()
+    held = [r for r in rows if store.has_curves(source, variant, r[C.UTTERANCE_ID])]
+    if any(r[C.SPLIT] != "val" for r in held):
+        return None
+    why = (f"the {_count(len(held), 'utterance')} that {'has' if len(held) == 1 else 'have'} them "
+           f"{'is' if len(held) == 1 else 'are'} in the `val` split (ingest puts about 10% of the ids there by a hash "
+           "of each id; a manifest's `split` column chooses)" if held else "none has them")
+    others = [f"--source {other} ({_count(n, 'utterance')})" for other in ("procedural", "tracked", "ground_truth")
+              if other != source and (n := _trainable(store, other, rows))]
+    return (f"no utterance in {store.root} has {source} curves of variant {variant!r} in the train split: {why}"
+            + (f"; train on other curves: {', '.join(others)}" if others else ""))
+
+
+def _trainable(store: Store, source: str, rows: list[dict]) -> int:
+    """Utterances of the train split with curves of `source` of its one variant (0 with none or several)."""
+    variants = store.curve_variants(source)
+    if len(variants) != 1:
+        return 0
+    return sum(r[C.SPLIT] != "val" and store.has_curves(source, variants[0], r[C.UTTERANCE_ID]) for r in rows)
+
+
+def _count(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 def resolve_variant(store: Store, source: str, variant: str | None) -> str:
     if variant:
         return variant
@@ -50,7 +78,7 @@ def train_flow(params: TrainParams) -> dict:
     variant = resolve_variant(store, params.source, params.variant)
     train, val, lineage = training_rows(store, params.source, variant)
     if not train:
-        raise LookupError(f"no utterance in {store.root} has {params.source} curves of variant {variant!r} in the train split")
+        raise LookupError(no_training_reason(store, params.source, variant))
     name = params.model_name or f"{params.config.preset}-{stable_hash(params.config, lineage, size=4)}"
     lineage = {**lineage, "config": params.config.model_dump(mode="json")}
     report = training_task_for(store, name)(

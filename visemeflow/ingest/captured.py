@@ -408,13 +408,15 @@ def _hashed(take: Take) -> Take:
 def discover_takes(root: str | Path, *, channel_table: str | Path | None = None, names: str | Path | None = None,
                    fps: float | None = None) -> TakeDiscovery:
     """Takes of a manifest CSV (or a folder holding `takes.csv`), else of a folder `<speaker>/<name>.<audio>` +
-    `<name>.livelink.csv | .capture.csv | .capture.npy`. `channel_table`, `names` and `fps` are the defaults of
-    takes that give none. Bad rows are rejects naming the file; nothing outside the manifest's folder is read."""
+    `<name>.livelink.csv | .capture.csv | .capture.npy`, or the one take of such a capture file (`<speaker>/<name>`,
+    its audio beside it). `channel_table`, `names` and `fps` are the defaults of takes that give none. Bad rows are
+    rejects naming the file; nothing outside the manifest's folder is read."""
     root = Path(root)
-    if not root.exists():
-        raise FileNotFoundError(f"takes {root} do not exist")
+    check_takes(root)
     defaults = {"table_path": str(Path(channel_table).resolve()) if channel_table else None,
                 "names_path": str(Path(names).resolve()) if names else None, "fps": fps}
+    if root.is_file() and _capture_suffix(root.name):
+        return _takes_from_folder(root.parent.parent, defaults, only=root)
     if root.is_file():
         return _takes_from_manifest(root, defaults)
     if (root / TAKE_MANIFEST).is_file():
@@ -422,10 +424,38 @@ def discover_takes(root: str | Path, *, channel_table: str | Path | None = None,
     return _takes_from_folder(root, defaults)
 
 
-def _takes_from_folder(root: Path, defaults: dict) -> TakeDiscovery:
+def check_takes(root: str | Path) -> None:
+    """What can be told of `takes` without reading a take (the CLI asks before any flow starts): ValueError
+    (FileNotFoundError) naming it when it is missing, or a manifest without the columns a manifest needs."""
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"takes {root} do not exist")
+    manifest = root / TAKE_MANIFEST if root.is_dir() else root
+    if not manifest.is_file() or _capture_suffix(manifest.name):
+        return
+    try:
+        with open(manifest, encoding="utf-8-sig", newline="") as fh:
+            fields = {f.strip() for f in next(csv.reader(fh), [])}
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"manifest {manifest}: cannot read ({exc})") from None
+    missing = {"utterance_id", "audio", "capture"} - fields
+    if missing:
+        raise ValueError(f"manifest {manifest}: missing column(s) {sorted(missing)}; expected {MANIFEST_COLUMNS} (or "
+                         f"give one take, `<speaker>/<name>{'|'.join(CAPTURE_SUFFIXES)}` with its audio beside it, or "
+                         "a folder of them)")
+
+
+def _capture_suffix(name: str) -> str | None:
+    return next((s for s in CAPTURE_SUFFIXES if name.endswith(s)), None)
+
+
+def _takes_from_folder(root: Path, defaults: dict, only: Path | None = None) -> TakeDiscovery:
+    """The takes of the speaker folders in `root`; `only`: that one capture file's take (its folder the speaker)."""
     takes, rejects = [], []
     real_root = root.resolve()
-    for speaker_dir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    speakers = [only.parent] if only is not None else sorted(
+        p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    for speaker_dir in speakers:
         files = sorted(p for p in speaker_dir.iterdir() if p.is_file() and not p.name.startswith("."))
         audio: dict[str, Path] = {}
         for ext in reversed(AUDIO_EXTS + VIDEO_EXTS):  # the first extension of each list wins
@@ -433,8 +463,8 @@ def _takes_from_folder(root: Path, defaults: dict) -> TakeDiscovery:
                 if p.name.endswith(ext):
                     audio[p.name[: -len(ext)]] = p
         for p in files:
-            suffix = next((s for s in CAPTURE_SUFFIXES if p.name.endswith(s)), None)
-            if suffix is None:
+            suffix = _capture_suffix(p.name)
+            if suffix is None or (only is not None and p.name != only.name):
                 continue
             stem = p.name[: -len(suffix)]
             try:
@@ -466,9 +496,7 @@ def _takes_from_manifest(manifest: Path, defaults: dict) -> TakeDiscovery:
     reader = csv.DictReader(io.StringIO(text, newline=""))
     fields = [f.strip() for f in reader.fieldnames or []]
     reader.fieldnames = fields
-    missing = {"utterance_id", "audio", "capture"} - set(fields)
-    if missing:
-        raise ValueError(f"manifest {manifest}: missing column(s) {sorted(missing)}; expected {MANIFEST_COLUMNS}")
+    # its columns were checked by `check_takes`
     for line, row in enumerate(reader, start=2):
         where = f"{manifest}:{line}"
         try:

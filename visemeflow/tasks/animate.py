@@ -52,7 +52,7 @@ from visemeflow.schemas import C, readable_path_parts
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CODE, RESULT_SERIALIZER, DataOnlyCache
-from visemeflow.tasks.progress import StepLog
+from visemeflow.tasks.progress import StepLog, step_log
 
 STAGE = "animate"
 INPUTS_FILE = ".inputs.json"
@@ -210,14 +210,15 @@ def package_dir(store: Store, out: str | None, character: str, utterance_id: str
 
 
 def _step_log(name: str) -> StepLog:
-    """Progress lines of one long step: on the run's logger in a Prefect run (terminal and UI), else this module's."""
+    """Progress lines of one long step: on the run's logger in a Prefect run (terminal and UI), else this module's
+    (`tasks.progress.step_log`: on stderr where the logger hides them)."""
     from prefect.exceptions import MissingContextError
 
     try:
-        log = get_run_logger().info
+        logger = get_run_logger()
     except MissingContextError:
-        log = logging.getLogger(__name__).info
-    return StepLog(name, log)
+        logger = logging.getLogger(__name__)
+    return step_log(name, logger)
 
 
 def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
@@ -234,7 +235,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     try:
         curves, fps, curve_file = curves_and_fps(store, utterance_id, source, variant)
     except LookupError as exc:
-        raise AnimateError(utterance_id, None, "NoCurves", str(exc)) from exc
+        raise AnimateError(utterance_id, None, "NoCurves", str(exc).removeprefix(f"{utterance_id}: ")) from exc
     audio = None
     if audio_path and config.audio:
         try:

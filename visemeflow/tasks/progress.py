@@ -11,6 +11,7 @@ finished futures), so they reach the terminal whether the tasks run in Prefect's
 update; `off` writes none).
 """
 
+import logging
 import math
 import os
 import sys
@@ -149,8 +150,14 @@ class Progress:
         while not self._stop.wait(min(self.interval, 1.0)):
             with self._lock:
                 now = self.clock()
-                if self.done < self.total and now - self.last >= self.interval:
+                stepped = time.monotonic() - _STEP_LINE_AT[0] < self.interval   # a task said where it is meanwhile
+                if self.done < self.total and now - self.last >= self.interval and not stepped:
                     self._write(now)
+
+
+_STEP_LINE_AT = [-math.inf]
+"""When (time.monotonic) a task's step line was last written to this process's stderr: `Progress`'s heartbeat
+("0/1 packages, 3 s elapsed") is left out while a step line newer than its interval says more."""
 
 
 class StepLog:
@@ -179,3 +186,22 @@ class StepLog:
         unit = "frames" if phase in ("optical flow", "preview") else "steps"
         left = f", about {duration((total - done) / rate)} left" if total > done and rate > 0 else ""
         self.log(f"{self.name}: {phase} {done}/{total} {unit}, {rate:.0f}/s{left}")
+
+
+def step_log(name: str, logger) -> StepLog:
+    """`StepLog` lines on `logger` (a run's logger: the terminal and the UI) where it shows INFO lines; else on stderr
+    at a terminal's pace: a command on Prefect's temporary server hides INFO lines (`ops.connect`), and a 4-minute
+    preview or a long clip's tracking then said nothing but "0/1 packages, 3 min elapsed"."""
+    if logger.isEnabledFor(logging.INFO):
+        return StepLog(name, logger.info)
+
+    def to_stderr(line: str) -> None:
+        _STEP_LINE_AT[0] = time.monotonic()
+        try:
+            sys.stderr.write(line + "\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):  # a closed pipe must not fail the task
+            pass
+
+    interval = interval_seconds(sys.stderr)
+    return StepLog(name, to_stderr, math.inf if interval is None else interval)

@@ -36,7 +36,7 @@ from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
 from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, results_of
-from visemeflow.tasks.progress import StepLog
+from visemeflow.tasks.progress import step_log
 from visemeflow.tracking.solver import TrackingConfig
 from visemeflow.tracking.identity import SpeakerIdentity, fit_speaker_identity
 from visemeflow.tracking.landmarks import LandmarkError, read_landmarks
@@ -223,7 +223,7 @@ def track_utterance(
     the speaker's identity: `SpeakerIdentity.to_dict`, None to fit one to this clip)."""
     rig = load_rig(rig_path)
     logger = get_run_logger()
-    steps = StepLog(f"track[{utterance[C.UTTERANCE_ID]}]", logger.info)   # a long clip says where it is
+    steps = step_log(f"track[{utterance[C.UTTERANCE_ID]}]", logger)   # a long clip says where it is
     report = track_one(Store(store_root), utterance, procedural_variant, rig, config, steps,
                        None if identity is None else SpeakerIdentity.from_dict(identity))
     error = report["mouth_error_px"]  # None where no frame had a mouth to measure
@@ -243,7 +243,7 @@ def track_jointly(store_root: str, label: str, utterances: list[dict], procedura
     in its own task, which rejects it with the whole message). `device`: where the joint solve runs (the results do
     not depend on it beyond float rounding, so it is not part of any cache key)."""
     logger = get_run_logger()
-    steps = StepLog(f"track-joint[{label}]", logger.info)
+    steps = step_log(f"track-joint[{label}]", logger)
     done = track_many(Store(store_root), utterances, procedural_variant, load_rig(rig_path), config,
                       [None if i is None else SpeakerIdentity.from_dict(i) for i in identities],
                       lambda index, phase, k, n: steps(phase, k, n), resolve_device(device))
