@@ -7,6 +7,7 @@
 #   nodejs, npm     Node for the Khronos glTF validator (npm `gltf-validator`) of the animation stages
 #   klettres-data   real syllables spoken in 16 languages (KDE's KLettres, GPL-2+, read where installed, never
 #                   copied): tests/test_syllables.py and bench/syllables.py judge the default model's lips on them
+#   curl            the README's raw-HTTP lines to `visemeflow serve`, run as written by tests/test_security.py
 #
 # All present: exit 0 at once, no apt call. Missing, as root: apt-get update + install, then check again.
 # Missing, not root: one line on stderr naming the packages and the command that installs them, exit 1.
@@ -31,6 +32,7 @@ check() {
     have node || { need nodejs; need npm; }
     have npm || need npm
     [ -f /usr/share/klettres/fr/sounds.xml ] || need klettres-data
+    have curl || need curl
 }
 
 check

@@ -73,7 +73,9 @@ def test_a_wrong_corpus_path_is_one_line_and_exit_2_before_prefect(tmp_path, com
 def test_a_bad_audio_path_is_one_line_and_exit_2_before_prefect(tmp_path, command):
     good = tmp_path / "good.wav"
     good.write_bytes(b"RIFF")  # never read: the check comes first
-    for bad, why in ((tmp_path / "missing.wav", "does not exist"), (tmp_path, "is not a file")):
+    for bad, why in ((tmp_path / "missing.wav", "does not exist"),
+                     (tmp_path, f"is a folder: give the files in it ({tmp_path / '*.wav'}, or the shell's other "
+                                "patterns)")):
         done = run_cli(command, str(good), str(bad), "--store", str(tmp_path / "store"))
         assert done.returncode == 2, done.stdout + done.stderr
         assert said(done) == [f"error: audio file {bad} {why}"]

@@ -276,4 +276,8 @@ def test_audio_files_that_are_not_audio_are_one_line_before_the_model_loads(tmp_
     assert done.output.startswith(f"error: audio file {text}: neither soundfile nor FFmpeg reads it as audio")
     done = runner.invoke(app, ["predict", str(text), str(text), "--store", str(tmp_path / "s")])
     assert done.exit_code == 2 and "(the other file too)" in done.output
+    empty = tmp_path / "empty.wav"
+    empty.write_bytes(b"")
+    done = runner.invoke(app, ["speak", str(empty), "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and done.output == f"error: audio file {empty}: the file is empty (0 bytes)\n"
     assert not (tmp_path / "s").exists()

@@ -339,6 +339,19 @@ def test_serve_refuses_a_cross_origin_post_without_the_auth_string(_served, _ser
 
 
 @pytest.mark.server
+def test_the_readmes_curl_lines_reach_the_served_api_as_written(_served):
+    """README: raw HTTP with the auth string alone got `Missing CSRF token`; its lines fetch a token and POST."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    start = readme.index('AUTH="$(cat my_store/')
+    snippet = readme[start:readme.index("```", start)]
+    snippet = snippet.replace("my_store/", f"{_served.store}/").replace("http://127.0.0.1:4200/api", _served.api_url)
+    done = subprocess.run(["bash", "-ec", snippet], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    names = [d["name"] for d in json.loads(done.stdout)]
+    assert len(names) >= 14 and set(names) == {"served"}, done.stdout[:500]    # one deployment per stage
+
+
+@pytest.mark.server
 def test_serve_refuses_a_flow_run_whose_store_is_outside_its_roots(_served, _serve_client):
     """Even with the auth string, a run names only paths under the folders serve was started with."""
     from prefect.states import StateType

@@ -61,7 +61,17 @@ def test_train_flow_writes_model_metrics_and_is_cached_then_predicts(tmp_path):
     assert predicted.num_rows == round(1.73 * 25)
     values = np.stack([predicted.column(v).to_numpy() for v in ("AAA", "MBP")])
     assert np.isfinite(values).all() and values.min() >= 0 and values.max() <= 1
-    assert (tmp_path / "pred" / "SSB16240001.csv").exists()
+    assert (tmp_path / "pred" / "SSB16240001.csv").exists() and "the curves are in the store" not in result.output
+    # without --out: where the curves are, and the command that writes them out, which works as printed
+    result = CliRunner().invoke(app, ["predict", str(DEMO_CORPUS / "SSB1624" / "SSB16240001.wav"), "--model", "tiny",
+                                      "--store", str(store), "--fps", "25"])
+    assert result.exit_code == 0 and "(cached;" in result.output, result.output
+    said = result.output.splitlines()[-1]
+    assert said.startswith(f"the curves are in the store {store} (source predicted, variant tiny): `visemeflow "), said
+    command = said.split("`")[1].replace("FILE.csv", str(tmp_path / "out.csv")).split()
+    exported = CliRunner().invoke(app, command[1:])
+    assert exported.exit_code == 0, exported.output
+    assert (tmp_path / "out.csv").read_text() == (tmp_path / "pred" / "SSB16240001.csv").read_text()
 
 
 def test_sweep_subsets_are_nested_and_disjoint_from_validation():

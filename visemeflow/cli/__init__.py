@@ -131,6 +131,8 @@ def _check_paths(value: Path | list[Path] | None, what: str, kind: str = "any") 
     for path in value if isinstance(value, (list, tuple)) else [] if value is None else [value]:
         if not path.exists():
             _fail(f"{what} {path} does not exist")
+        if kind == "file" and path.is_dir():
+            _fail(f"{what} {path} is a folder: give the files in it ({path / '*.wav'}, or the shell's other patterns)")
         if kind == "file" and not path.is_file():
             _fail(f"{what} {path} is not a file")
         if kind == "dir" and not path.is_dir():
@@ -725,6 +727,12 @@ def predict(params: PredictParams) -> None:
     files = result["files"]
     typer.echo(f"predict: {_plural(files, 'file')}, {result['predicted']} predicted, "
                f"{result['cached']} cached, {result['rejected']} rejected")
+    done = [r for r in result["predictions"] if not r["exports"]]
+    if done:   # no --out: say where the curves are and how to get them out
+        typer.echo(f"the curves are in the store {params.store} (source predicted, variant {params.model}): "
+                   f"`visemeflow curves export {done[0]['utterance_id']} --source predicted --variant {params.model} "
+                   f"--store {params.store} --out FILE.csv`, or predict with --out DIR (CSV and JSON), or `visemeflow "
+                   "speak` for a character")
     _print_stage_rejects(result["rejects"], params.store, "predict")
 
 

@@ -154,6 +154,11 @@ def unreadable_reason(path: str | os.PathLike) -> str | None:
     `speak` and `predict` check before they start, so that a file that is no audio fails in a second, not after the
     model is loaded."""
     path_str = str(path)
+    try:
+        if os.path.getsize(path_str) == 0:
+            return "the file is empty (0 bytes)"
+    except OSError:
+        pass   # not there: said by the checks before this one, or by the decoders below
     if not is_video_file(path_str):
         try:
             sf.info(path_str)

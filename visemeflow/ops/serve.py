@@ -29,6 +29,7 @@ import stat
 import subprocess
 import sys
 import threading
+import warnings
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager
@@ -674,4 +675,8 @@ def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CR
         echo(f"for `prefect deployment run` in another shell: export PREFECT_API_URL={api.url}{auth}  "
              "(docs/serve.md lists every deployment's parameters)")
         echo("stop with Ctrl-C")
+        # Prefect's runner answers SIGTERM (systemd's stop) by calling its async `stop` from a sync handler without
+        # awaiting it: "RuntimeWarning: coroutine 'Runner.astop' was never awaited" and a tracemalloc hint, on a
+        # shutdown that otherwise goes well (the deployments are paused, the process exits 0)
+        warnings.filterwarnings("ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning)
         serve(*deployments, print_starting_message=True)

@@ -91,7 +91,7 @@ def import_take_task(store_root: str, n_shards: int, take: dict, config: Capture
     except BAD_INPUT_ERRORS as exc:
         _forget(store, shard, obj, config.variant, keep_row=ingested_audio is not None)
         message = f"{uid}: {exc}" if not str(exc).startswith(f"{uid}: ") else str(exc)
-        get_run_logger().warning("rejected %s", message)
+        get_run_logger().info("rejected %s", message)
         return {**report, "rejected": 1, "reject": reject_row(uid, STAGE, exc.error_type, message, exc.path)}
     store.save_curves(Curves(imported.curves, imported.fps, uid, SOURCE, config.variant,
                              provenance(obj, config, solver_digest)))

@@ -89,7 +89,7 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
                       metadata={CONFIG_KEY: config_hash.encode()})
     logger = get_run_logger()
     for r in rejects:
-        logger.warning("rejected %s", r[C.MESSAGE])
+        logger.info("rejected %s", r[C.MESSAGE])
     report = {"shard": shard, "utterances": len(objs), "ingested": len(utterances) - reused,
               "reused": reused, "rejected": len(rejects), "unaligned": unaligned}
     logger.info("shard %02d: %d utterances, %d ingested, %d reused, %d rejected; %d videos without an alignment "
@@ -109,7 +109,7 @@ def ingest_one(store_root: str, shard: int, entry: dict, config: IngestConfig) -
     store.replace_utterance_rows("rejects", shard, uid, table_from_rows(rejects, REJECTS), stage=STAGE)
     store.replace_utterance_rows("utterances", shard, uid, table_from_rows(utterances, UTTERANCES))
     if rejects:
-        get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
+        get_run_logger().info("rejected %s", rejects[0][C.MESSAGE])
     return {"shard": shard, "utterances": 1, "ingested": len(utterances), "reused": 0, "rejected": len(rejects),
             "unaligned": sum(not has_alignment(u) for u in utterances)}
 

@@ -114,7 +114,7 @@ def procedural_shard(
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
     logger = get_run_logger()
     for r in rejects:
-        logger.warning("rejected %s", r[C.MESSAGE])
+        logger.info("rejected %s", r[C.MESSAGE])
     logger.info("shard %02d: %d generated, %d reused, %d rejected", shard, generated, reused, len(rejects))
     return {"shard": shard, "utterances": len(utterances), "generated": generated, "reused": reused,
             "rejected": len(rejects)}
@@ -131,5 +131,5 @@ def procedural_one(
     uid = utterance[C.UTTERANCE_ID]
     store.replace_utterance_rows("rejects", shard, uid, table_from_rows(rejects, REJECTS), stage=STAGE)
     if rejects:
-        get_run_logger().warning("rejected %s", rejects[0][C.MESSAGE])
+        get_run_logger().info("rejected %s", rejects[0][C.MESSAGE])
     return {"shard": shard, "utterances": 1, "generated": generated, "reused": 0, "rejected": len(rejects)}
