@@ -220,6 +220,8 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
     assert done.output.startswith("error: no procedural, tracked, predicted or ground_truth curves of spk/u in the "
                                   f"store {store.root}; did you mean spk/u0?")
+    done = runner.invoke(app, ["preview", "spk/u", "--sources", "ground_truth:cm", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output.startswith("error: no ground_truth curves of spk/u in the store ")
     done = runner.invoke(app, ["animate", "spk/u0", "nope/x", "--source", "ground_truth", "--store", str(store.root)])
     assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
     assert done.output.startswith("error: no ground_truth curves of nope/x in the store") and \

@@ -442,7 +442,7 @@ def test_the_facegood_takes_import_as_curves_of_real_speech(tmp_path):
 
 
 @pytest.mark.usefixtures("prefect_harness")
-def test_one_capture_file_is_a_take_of_one_and_a_file_that_is_no_manifest_is_one_line(tmp_path):
+def test_one_capture_file_is_a_take_of_one_and_a_file_that_is_no_manifest_is_one_line(tmp_path, monkeypatch):
     """`import-curves take.livelink.csv` (what its help names) read the file as a manifest: two tracebacks."""
     from typer.testing import CliRunner
 
@@ -453,6 +453,8 @@ def test_one_capture_file_is_a_take_of_one_and_a_file_that_is_no_manifest_is_one
     assert [t.utterance_id for t in one.takes] == ["spk/good"] and not one.rejects
     assert one.takes[0].audio_path == str((tmp_path / "takes" / "spk" / "good.wav").resolve())
     assert one.takes[0].format == "livelink" and one.takes[0].content_hash
+    monkeypatch.chdir(tmp_path / "takes" / "spk")      # the file named in its own folder: its folder is the speaker
+    assert [t.utterance_id for t in discover_takes("good.livelink.csv").takes] == ["spk/good"]
     alone = tmp_path / "alone" / "x.livelink.csv"
     alone.parent.mkdir()
     shutil.copy(tmp_path / "takes" / "spk" / "good.livelink.csv", alone)

@@ -885,7 +885,8 @@ def preview_command(params: PreviewParams) -> None:
     from visemeflow.flows.animate import preview_flow
 
     _existing_store(params.store)
-    _check_utterance_curves(params.store, [params.utterance_id], list(params.sources))
+    _check_utterance_curves(params.store, [params.utterance_id],   # a source may name its variant: tracked:guided-fast
+                            list(dict.fromkeys(spec.partition(":")[0] for spec in params.sources)))
     _check_characters([params.character], params.meshes)
     result = preview_flow(params)
     typer.echo(result["character"])

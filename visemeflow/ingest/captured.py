@@ -415,8 +415,8 @@ def discover_takes(root: str | Path, *, channel_table: str | Path | None = None,
     check_takes(root)
     defaults = {"table_path": str(Path(channel_table).resolve()) if channel_table else None,
                 "names_path": str(Path(names).resolve()) if names else None, "fps": fps}
-    if root.is_file() and _capture_suffix(root.name):
-        return _takes_from_folder(root.parent.parent, defaults, only=root)
+    if root.is_file() and _capture_suffix(root.name):   # absolute: `take.livelink.csv` in its own folder has one
+        return _takes_from_folder(root.absolute().parent.parent, defaults, only=root.absolute())
     if root.is_file():
         return _takes_from_manifest(root, defaults)
     if (root / TAKE_MANIFEST).is_file():
