@@ -63,6 +63,8 @@ demo: system-deps venv
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --model demo-fbank-blstm --store $(OUT)/store --mode bones --bones 32 --format glb,usd,pose-csv --preview --out $(OUT)/speak-bones
 	$(BIN)/visemeflow speak examples/corpus/LJ/LJ001-0002.wav --model phones --store $(OUT)/store --format glb,json --preview --out $(OUT)/speak-phones
 	$(BIN)/visemeflow speak examples/corpus/SSB1624/SSB16240001.wav --store $(OUT)/store --format glb,usd,json --preview --out $(OUT)/speak-default
+	$(BIN)/python examples/build_arkit_character.py --out $(OUT)/characters/ict_arkit.glb
+	$(BIN)/visemeflow speak examples/corpus/LJ/LJ001-0002.wav --character $(OUT)/characters/ict_arkit.glb --store $(OUT)/store --format glb,livelink --out $(OUT)/speak-arkit
 	$(BIN)/visemeflow dashboard --store $(OUT)/store --out $(OUT)/dashboard
 	@echo ""
 	@echo "Open these:"
@@ -71,6 +73,7 @@ demo: system-deps venv
 	@find $(OUT)/store/animations $(OUT)/speak* -name '*.mp4' 2>/dev/null | sort | sed 's/^/    /'
 	@echo "  the character speaking, for Blender / three.js (GLB) and Omniverse / Maya (USD):"
 	@find $(OUT)/speak* \( -name '*.glb' -o -name '*.usd' -o -name '*.usda' -o -name '*.usdc' \) 2>/dev/null | sort | sed 's/^/    /'
+	@echo "  $(OUT)/characters/ict_arkit.glb    an ARKit-named head (ICT Face Model, MIT) to try --character with"
 	@echo "  $(OUT)/store    the store (Parquet tables, curves, models, reports/robustness.md)"
 
 # The JS clients of tests/test_gltf.py (Khronos glTF validator, three.js), pinned in tools/js/package-lock.json.

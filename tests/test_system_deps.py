@@ -18,7 +18,7 @@ SCRIPT = REPO / "scripts" / "system-deps.sh"
 SH = shutil.which("sh") or "/bin/sh"
 LN = shutil.which("ln")
 ESPEAK_LINE = "\tlibespeak-ng.so.1 (libc6,x86-64) => /lib/x86_64-linux-gnu/libespeak-ng.so.1"
-ALL = "espeak-ng chromium nodejs npm"
+ALL = "espeak-ng chromium nodejs npm curl"
 
 
 class FakeSystem:
@@ -33,8 +33,8 @@ class FakeSystem:
         self._tool("id", f"echo {uid}")
         # ldconfig -p lists the cache: here the lines of ldconfig.txt (shell builtins only, PATH has no cat)
         self._tool("ldconfig", f'while IFS= read -r line; do echo "$line"; done < "{self.libs}"')
-        for name in ("chromium", "node", "npm"):
-            if {"chromium": "chromium", "node": "nodejs", "npm": "npm"}[name] in installed:
+        for name in ("chromium", "node", "npm", "curl"):
+            if {"chromium": "chromium", "node": "nodejs", "npm": "npm", "curl": "curl"}[name] in installed:
                 self._provide(name)
         # apt-get records each call (arguments and DEBIAN_FRONTEND); `install` provides what it is asked for
         provide = ""
@@ -45,6 +45,7 @@ class FakeSystem:
                 f'  chromium) {LN} -sf /bin/true "{self.bin}/chromium";;\n'
                 f'  nodejs) {LN} -sf /bin/true "{self.bin}/node";;\n'
                 f'  npm) {LN} -sf /bin/true "{self.bin}/npm";;\n'
+                f'  curl) {LN} -sf /bin/true "{self.bin}/curl";;\n'
                 "esac; done"
             )
         self._tool("apt-get", f'echo "DEBIAN_FRONTEND=${{DEBIAN_FRONTEND:-}} $*" >> "{self.calls}"\n{provide}')
@@ -67,7 +68,7 @@ class FakeSystem:
 
 @pytest.mark.parametrize("uid", [0, 1000])
 def test_nothing_missing_exits_at_once_without_apt(tmp_path, uid):
-    system = FakeSystem(tmp_path, uid, {"espeak-ng", "chromium", "nodejs", "npm"})
+    system = FakeSystem(tmp_path, uid, {"espeak-ng", "chromium", "nodejs", "npm", "curl"})
     done = system.run()
     assert (done.returncode, done.stdout, done.stderr) == (0, "", "")
     assert system.apt_calls() == []
@@ -87,10 +88,11 @@ def test_missing_as_a_normal_user_is_one_line_with_the_install_command(tmp_path)
 
 
 @pytest.mark.parametrize(("installed", "missing"), [
-    ({"chromium", "nodejs", "npm"}, "espeak-ng"),
-    ({"espeak-ng", "nodejs", "npm"}, "chromium"),
-    ({"espeak-ng", "chromium", "nodejs"}, "npm"),
-    ({"espeak-ng", "chromium"}, "nodejs npm"),
+    ({"chromium", "nodejs", "npm", "curl"}, "espeak-ng"),
+    ({"espeak-ng", "nodejs", "npm", "curl"}, "chromium"),
+    ({"espeak-ng", "chromium", "nodejs", "curl"}, "npm"),
+    ({"espeak-ng", "chromium", "curl"}, "nodejs npm"),
+    ({"espeak-ng", "chromium", "nodejs", "npm"}, "curl"),
 ])
 def test_the_line_names_only_what_is_missing(tmp_path, installed, missing):
     system = FakeSystem(tmp_path, 1000, installed)
@@ -102,7 +104,7 @@ def test_the_line_names_only_what_is_missing(tmp_path, installed, missing):
 
 
 def test_missing_as_root_installs_with_apt_then_checks_again(tmp_path):
-    system = FakeSystem(tmp_path, 0, {"nodejs", "npm"})
+    system = FakeSystem(tmp_path, 0, {"nodejs", "npm", "curl"})
     done = system.run()
     assert done.returncode == 0, done.stderr
     assert system.apt_calls() == ["DEBIAN_FRONTEND= update -qq",
@@ -112,7 +114,7 @@ def test_missing_as_root_installs_with_apt_then_checks_again(tmp_path):
 
 
 def test_root_fails_when_apt_does_not_provide_the_package(tmp_path):
-    system = FakeSystem(tmp_path, 0, {"espeak-ng", "nodejs", "npm"}, apt_installs=False)
+    system = FakeSystem(tmp_path, 0, {"espeak-ng", "nodejs", "npm", "curl"}, apt_installs=False)
     done = system.run()
     assert done.returncode == 1
     assert done.stderr.splitlines()[-1] == \

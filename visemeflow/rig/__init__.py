@@ -6,6 +6,8 @@
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 from visemeflow.rig.gltf import GltfMesh, linear_to_srgb, read_gltf_mesh, srgb_to_linear
 from visemeflow.rig.io import (
     MeshData,
@@ -59,6 +61,29 @@ def load_demo_rig() -> VisemeRig:
     return load_rig_npz(path)
 
 
+def load_demo_arkit_shapes() -> tuple[list[str], np.ndarray]:
+    """(ARKit names, (S, V, 3) float32 offsets on the demo rig's vertices): the ICT Face Model's 32 ARKit-style
+    mouth, jaw, cheek and nose shapes, shipped as `data/ict_arkit.npz` (float16, the vertices they move), so that
+    `examples/build_arkit_character.py` makes an ARKit-named head without the raw kit. RigError naming the file when
+    it is missing or does not fit the demo rig."""
+    path = rig_data_path("ict_arkit.npz")
+    n_vertices = load_demo_rig().n_vertices
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            names = [str(n) for n in data["names"]]
+            vertices, deltas = data["vertices"].astype(np.int64), data["deltas"].astype(np.float32)
+    except (OSError, KeyError, ValueError) as exc:
+        raise RigError(f"{path}: cannot read the demo ARKit shapes ({exc}); rebuild them with "
+                       "examples/build_arkit_character.py --write-shapes") from None
+    if deltas.shape != (len(names), len(vertices), 3) or (len(vertices) and not
+                                                           (0 <= vertices.min() and vertices.max() < n_vertices)):
+        raise RigError(f"{path}: shapes {deltas.shape} of {len(names)} names on {len(vertices)} vertex ids do not fit "
+                       f"the demo rig's {n_vertices} vertices")
+    full = np.zeros((len(names), n_vertices, 3), np.float32)
+    full[:, vertices] = deltas
+    return names, full
+
+
 __all__ = [
     "N_LANDMARKS",
     "GltfMesh",
@@ -71,6 +96,7 @@ __all__ = [
     "demo_rig_path",
     "evaluate_rig",
     "linear_to_srgb",
+    "load_demo_arkit_shapes",
     "load_demo_rig",
     "load_ict_recipes",
     "load_rig",
