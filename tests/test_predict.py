@@ -317,11 +317,12 @@ def test_a_cached_predict_command_is_still_tracked_and_prints_and_stores_the_sam
     stored = (curves.read_bytes(), curves.stat().st_mtime_ns, sorted(p.name for p in store.root.rglob("*")))
     second = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert second.returncode == 0, second.stderr
-    line, summary = first.stdout.splitlines()
+    line, summary, where = first.stdout.splitlines()
     assert line.endswith(")") and summary == "predict: 1 file, 1 predicted, 0 cached, 0 rejected"
+    assert where.startswith(f"the curves are in the store {store.root} (source predicted, variant tiny): ")
     head, speed = line[:-1].split(" (real-time factor ")   # the cached line names the speed it was computed at
     assert second.stdout.splitlines() == [f"{head} (cached; computed at real-time factor {speed})",
-                                          "predict: 1 file, 0 predicted, 1 cached, 0 rejected"]
+                                          "predict: 1 file, 0 predicted, 1 cached, 0 rejected", where]
     assert (curves.read_bytes(), curves.stat().st_mtime_ns, sorted(p.name for p in store.root.rglob("*"))) == stored
 
     params = PredictParams(store=store.root, model="tiny", audio=[AUDIO], device="cpu")
