@@ -206,6 +206,9 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
     assert done.exit_code == 2 and done.output.count("\n") == 1, done.output    # was a Prefect traceback first
     assert done.output.startswith(f"error: no utterance in {store.root} has ground_truth curves of variant 'cm' in "
                                   "the train split: the 1 utterance that has them is in the `val` split")
+    done = runner.invoke(app, ["sweep", "--store", str(store.root), "--source", "ground_truth"])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert "in the train split: the 1 utterance that has them is in the `val` split" in done.output
     done = runner.invoke(app, ["rerun", "spk/nope", "--store", str(store.root)])
     assert done.exit_code == 2 and "no utterance spk/nope" in done.output
     for stage in ("track", "landmarks"):   # an audio-only utterance: one line, no flow (and no Prefect traceback)

@@ -267,3 +267,24 @@ def test_the_animate_and_speak_summaries_say_what_was_animated_in_words():
              "variant": "default", "characters": 1, "audio_files": 1, "audio_rejected": 0}
     assert _animations_line("speak", speak) == (
         "speak: 1 audio file on 1 character (model default): 1 animation written; 290 frames")
+
+
+def test_speak_names_the_file_of_each_take_whose_id_has_a_hash(capsys):
+    """Two files of one name (a/take.wav, b/take.wav) become predict/take-<hash> each: which one is which."""
+    from visemeflow.cli import _print_packages
+
+    def package(uid):
+        return {"utterance_id": uid, "character": "head", "convention": "arkit52", "frames": 30, "fps": 30.0,
+                "files": {"glb": f"out/{uid}.glb"}}
+
+    speak = {"packages": 3, "written": 3, "frames": 90, "source": "predicted", "variant": "default",
+             "characters": 1, "audio_files": 3, "audio_rejected": 0,
+             "packages_written": [package("predict/take-1afb83b6"), package("predict/take-8f514164"),
+                                  package("predict/hello")],
+             "audio_of": {"predict/take-1afb83b6": "a/take.wav", "predict/take-8f514164": "b/take.wav",
+                          "predict/hello": "c/hello.wav"}}
+    _print_packages(speak, "speak")
+    lines = [x for x in capsys.readouterr().out.splitlines() if " -> " in x]
+    assert lines == ["predict/take-1afb83b6 (a/take.wav) -> head [arkit52], 30 frames at 30 fps:",
+                     "predict/take-8f514164 (b/take.wav) -> head [arkit52], 30 frames at 30 fps:",
+                     "predict/hello -> head [arkit52], 30 frames at 30 fps:"]   # its own name: said by the id

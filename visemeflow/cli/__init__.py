@@ -351,6 +351,18 @@ def _check_curves(store: Path, source: str, variant: str | None, several: bool =
         _fail(str(exc))
 
 
+def _check_training_rows(store: Path, source: str, variant: str | None) -> None:
+    """Some utterance of the train split has the curves `train` or `sweep` learns from: else one line saying where
+    they are (the val split) and which curves could be trained on, exit 2 (it was a Prefect traceback)."""
+    from visemeflow.flows.train import no_training_reason, resolve_variant
+    from visemeflow.storage import Store
+
+    s = Store(store)
+    reason = no_training_reason(s, source, resolve_variant(s, source, variant))
+    if reason:
+        _fail(reason)
+
+
 def _check_utterance_curves(store: Path, utterance_ids: list[str], sources: list[str]) -> None:
     """Each of `utterance_ids` has curves of one of `sources` (any variant) in the store: else one line naming those
     that have none, with the stored ids nearest the first, and exit 2 (not a flow that fails or a reject)."""
@@ -600,13 +612,8 @@ def train(params: TrainParams) -> None:
     _device(params.device, params.precision)
     _check_preset(params.config.preset, params.config.whisper_tune_layers)
     _check_curves(params.store, params.source, params.variant)
-    from visemeflow.flows.train import no_training_reason, resolve_variant, train_flow
-    from visemeflow.storage import Store
-
-    store = Store(params.store)
-    reason = no_training_reason(store, params.source, resolve_variant(store, params.source, params.variant))
-    if reason:
-        _fail(reason)
+    _check_training_rows(params.store, params.source, params.variant)
+    from visemeflow.flows.train import train_flow
 
     report = train_flow(params)
     # `train`/`val` count utterances; the model file goes last, on its own line, as what to use next
@@ -630,6 +637,7 @@ def sweep(params: SweepParams) -> None:
     _device(params.device, params.precision)
     _check_preset(params.config.preset)
     _check_curves(params.store, params.source, params.variant)
+    _check_training_rows(params.store, params.source, params.variant)
     from visemeflow.flows.runners import run_on_runner
     from visemeflow.flows.sweep import sweep_flow
 
@@ -760,12 +768,16 @@ def _animations_line(title: str, result: dict) -> str:
 
 def _print_packages(result: dict, title: str = "animate") -> None:
     packages = result.pop("packages_written", [])
+    audio_of = result.pop("audio_of", {})   # speak: the file each take came from
     for choice in result.pop("character_choices", []):
         typer.echo(choice)
     typer.echo(_animations_line(title, result))
     for report in packages:
         cached = " (cached)" if report.get("cached") else ""
-        typer.echo(f"{report['utterance_id']} -> {report['character']} [{report['convention']}], "
+        uid, audio = report["utterance_id"], audio_of.get(report["utterance_id"])
+        # files of one name get ids with a hash (predict/take-1afb83b6): say which file each is
+        source = f" ({audio})" if audio and uid != f"predict/{Path(audio).stem}" else ""
+        typer.echo(f"{uid}{source} -> {report['character']} [{report['convention']}], "
                    f"{report['frames']} frames at {report['fps']:g} fps{cached}:")
         for path in report["files"].values():
             typer.echo(f"  {path}")

@@ -193,7 +193,7 @@ def speak_flow(params: SpeakParams):
         utterances=[r["utterance_id"] for r in rows], audio={r["utterance_id"]: Path(r["audio"]) for r in rows},
         mapping=params.mapping, config=params.config, out=params.out))
     return {**animated, "audio_files": predicted["files"], "audio_rejected": predicted["rejected"],
-            "rejects": predicted["rejects"]}
+            "rejects": predicted["rejects"], "audio_of": {r["utterance_id"]: r["audio"] for r in rows}}
 
 
 def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: str) -> str:
