@@ -225,6 +225,10 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
                                   f"store {store.root}; did you mean spk/u0?")
     done = runner.invoke(app, ["preview", "spk/u", "--sources", "ground_truth:cm", "--store", str(store.root)])
     assert done.exit_code == 2 and done.output.startswith("error: no ground_truth curves of spk/u in the store ")
+    store.write_curves(curves_table("spk/u0", "ground_truth", "other", np.zeros((5, 16), np.float32), 30.0), fps=30.0)
+    done = runner.invoke(app, ["preview", "spk/u0", "--sources", "ground_truth", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output == (      # was "none of the sources has curves", after a traceback
+        "error: spk/u0: no source to preview: ground_truth: 2 variants (cm, other); name one as ground_truth:VARIANT\n")
     done = runner.invoke(app, ["animate", "spk/u0", "nope/x", "--source", "ground_truth", "--store", str(store.root)])
     assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
     assert done.output.startswith("error: no ground_truth curves of nope/x in the store") and \

@@ -899,6 +899,12 @@ def preview_command(params: PreviewParams) -> None:
     _existing_store(params.store)
     _check_utterance_curves(params.store, [params.utterance_id],   # a source may name its variant: tracked:guided-fast
                             list(dict.fromkeys(spec.partition(":")[0] for spec in params.sources)))
+    from visemeflow.flows.animate import preview_sources
+    from visemeflow.storage import Store
+
+    found, skipped = preview_sources(Store(params.store), params.utterance_id, params.sources)
+    if not found:   # curves there, but none the preview can choose (several variants, none named)
+        _fail(f"{params.utterance_id}: no source to preview: {'; '.join(skipped)}")
     _check_characters([params.character], params.meshes)
     result = preview_flow(params)
     typer.echo(result["character"])

@@ -196,6 +196,19 @@ def speak_flow(params: SpeakParams):
             "rejects": predicted["rejects"], "audio_of": {r["utterance_id"]: r["audio"] for r in rows}}
 
 
+def preview_sources(store: Store, uid: str, sources) -> tuple[list[tuple[str, str, str]], list[str]]:
+    """((spec, source, variant) of each of `sources` whose curves `uid` has, why each other one is left out): what
+    the preview draws, found before it renders (the CLI asks first, so that an ambiguous variant is one line)."""
+    found, skipped = [], []
+    for spec in sources:
+        source, _, variant = spec.partition(":")
+        try:
+            found.append((spec, source, _variant_of_utterance(store, source, variant or None, uid)))
+        except LookupError as exc:
+            skipped.append(f"{spec}: {exc}")
+    return found, skipped
+
+
 def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: str) -> str:
     """The variant of one utterance's `source` curves: as given, its only one, or the one the stage last wrote."""
     variants = store.curve_variants(source, uid)
@@ -232,11 +245,10 @@ def preview_flow(params: PreviewParams) -> dict:
     mapping = str(params.mapping.resolve()) if params.mapping else None
     character, binding = bound_character(path, character_hash, None, mapping,
                                          file_hash(mapping) if mapping else None, tuple(params.meshes))
-    panels, skipped, rate, tracked = {}, [], None, False
-    for spec in params.sources:
-        source, _, variant = spec.partition(":")
+    found, skipped = preview_sources(store, uid, params.sources)
+    panels, rate, tracked = {}, None, False
+    for spec, source, variant in found:
         try:
-            variant = _variant_of_utterance(store, source, variant or None, uid)
             curves, fps, curve_file = curves_and_fps(store, uid, source, variant)
         except LookupError as exc:
             skipped.append(f"{spec}: {exc}")
@@ -253,7 +265,8 @@ def preview_flow(params: PreviewParams) -> dict:
             rig = bone_rig(character, binding, params.bones)
             panels[f"{source.replace('_', ' ')}, {params.bones} bones"] = BoneSource(rig, curves)
     if not panels:
-        raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root}")
+        raise LookupError(f"{uid}: none of the sources {', '.join(params.sources)} has curves in {store.root} "
+                      f"({'; '.join(skipped)})")
     rows = store.read_table("utterances", utterance_ids=[uid]).select(
         [C.UTTERANCE_ID, C.AUDIO_PATH, C.VIDEO_PATH, C.LANDMARK_PATH, C.FPS]).to_pylist()
     audio = read_audio(local_input(rows[0][C.AUDIO_PATH])) if rows and rows[0][C.AUDIO_PATH] else None
