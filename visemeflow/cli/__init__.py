@@ -313,6 +313,20 @@ def _check_store_has(store: Path, what: str, hint: str) -> None:
 INGEST_FIRST = "run `visemeflow ingest CORPUS` or `visemeflow pipeline CORPUS` first"
 
 
+def _check_corpus_change(store: Path | str, corpus: Path | str, replace: bool) -> None:
+    """An ingest of another corpus than the store's, which would drop the store's utterances, is one line and exit 2
+    before any flow starts (it was a Prefect ERROR log, a summary and `failed:` with the same sentence)."""
+    if replace:
+        return
+    from visemeflow.flows.ingest import corpus_change_refusal
+    from visemeflow.location import as_text
+    from visemeflow.storage import Store
+
+    problem = corpus_change_refusal(Store(store), as_text(corpus))
+    if problem:
+        _fail(problem)
+
+
 def _check_preset(preset: str, tune_layers: int = 0) -> None:
     from visemeflow.learning.presets import get_preset
 
@@ -437,6 +451,7 @@ def _print_summary(title: str, summary: dict) -> None:
 ])
 def ingest(params: IngestParams, strict: bool) -> None:
     """Read alignments and audio into the `utterances` and `phones` tables."""
+    _check_corpus_change(params.store, params.corpus, params.replace)
     from visemeflow.flows.ingest import ingest_flow
 
     _print_summary("ingest", ingest_flow(params))
@@ -520,6 +535,7 @@ def pipeline(params: PipelineParams, strict: bool) -> None:
     from visemeflow.flows.pipeline import pipeline_flow
 
     _check_characters(params.characters, list(params.animate.meshes), params.animate.convention)
+    _check_corpus_change(params.store, params.corpus, params.replace)
     for stage, summary in pipeline_flow(params).items():
         if stage == "animate":
             _print_packages(dict(summary))

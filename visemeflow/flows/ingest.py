@@ -46,7 +46,7 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     if not found["entries"] and not found["rejects"]:
         return _no_corpus(f"no utterances found in {params.corpus}; {CORPUS_LAYOUT}")
     if last is not None and not params.replace:
-        problem = _would_drop(before, last.corpus, as_text(params.corpus), found["entries"])
+        problem = would_drop(before, last.corpus, as_text(params.corpus), found["entries"])
         if problem is not None:
             return _no_corpus(problem)
     run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,
@@ -90,7 +90,7 @@ def _same_place(a: str, b: str) -> bool:
     return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
 
 
-def _would_drop(store: Store, before: str, now: str, entries: list[dict]) -> str | None:
+def would_drop(store: Store, before: str, now: str, entries: list[dict]) -> str | None:
     """Why this ingest must not run: the store was last ingested from another corpus, and this one lacks utterances
     the store holds (the store mirrors its corpus, so they would go from its tables); None when it may run. The
     same corpus losing files, and captured takes (kept by any ingest), drop nothing here."""
@@ -112,6 +112,17 @@ def _no_corpus(message: str) -> State:
     get_run_logger().error("ingest: %s", message)
     summary = {"utterances": 0, "discovery_rejected": 0, "refused": True}   # `refused`: the pipeline stops here
     return Failed(message=message, data=StageFailed(f"ingest: {message}", summary))
+
+
+def corpus_change_refusal(store: Store, corpus: str) -> str | None:
+    """What `would_drop` says of ingesting `corpus` into `store` (None when it may run), for the command to check
+    before any flow starts; discovery runs only when the store was last ingested from elsewhere (its file hashes
+    are memoised, so the flow's own discovery then costs little)."""
+    last = last_settings(store, STAGE)
+    if last is None or _same_place(last.corpus, corpus):
+        return None
+    found = discover_corpus(corpus)
+    return would_drop(store, last.corpus, corpus, [asdict(e) for e in found.entries])
 
 
 def rerun_entry(store: Store, uid: str, last: IngestSettings | None) -> dict:
