@@ -8,7 +8,7 @@ OUT ?= visemeflow-out
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export PREFECT_LOGGING_LEVEL ?= WARNING
 
-.PHONY: system-deps venv js-deps demo test bench clean
+.PHONY: system-deps venv js-deps blender-deps demo test bench clean
 
 # System packages (espeak-ng, chromium, nodejs/npm, klettres-data): installed when missing as root; otherwise one line that
 # names them and the install command, and make stops. Fast when everything is there (no apt call).
@@ -84,6 +84,18 @@ $(JS_STAMP): tools/js/package.json tools/js/package-lock.json | system-deps
 	npm ci --prefix tools/js --no-audit --no-fund
 	touch $(JS_STAMP)
 
+# Blender 5.0 as a Python module (PyPI bpy, 374 MB) for tests/test_blender.py, which opens our GLB and USD files with
+# Blender's own importers and measures what it plays. A venv of its own: bpy pins NumPy 1.26, ours is NumPy 2.
+BPY ?= bpy==5.0.1
+BLENDER_VENV ?= .venv-blender
+BLENDER_STAMP := $(BLENDER_VENV)/.installed
+blender-deps: $(BLENDER_STAMP)
+
+$(BLENDER_STAMP):
+	$(PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/python -m pip install --quiet '$(BPY)'
+	touch $(BLENDER_STAMP)
+
 # ruff first (pyflakes' rules, [tool.ruff.lint] in pyproject.toml): an undefined name in a bench or an example fails
 # here, in seconds, rather than at its next run.
 # pytest exits 5 when it collects no test: that is not a failure of the suite; any other non-zero is.
@@ -92,7 +104,7 @@ $(JS_STAMP): tools/js/package.json tools/js/package-lock.json | system-deps
 # other (the suite took 16.5 min with them, 11.2 min without; measured 2026-11-23 on the 2-core machine).
 # --durations: the 25 slowest tests are listed at the end of every run, so CI's time can be kept in check.
 LINTED := visemeflow tests bench examples tools
-test: system-deps venv js-deps
+test: system-deps venv js-deps blender-deps
 	$(BIN)/ruff check $(LINTED)
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadfile --durations=25; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
 
@@ -100,4 +112,4 @@ bench: venv
 	$(BIN)/python bench/ingest_procedural.py
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis
+	rm -rf $(VENV) $(BLENDER_VENV) $(OUT) .pytest_cache .hypothesis

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,8 @@ def build_character(ict: Path | None = None) -> Character:
     else:
         names, basis = arkit_basis(ict)
         deltas, source = basis.reshape(len(names), rig.n_vertices, 3), ict
-    return make_character("ict_arkit", rig.neutral, rig.faces, names, deltas, source, rig.vertex_colors)
+    character = make_character("ict_arkit", rig.neutral, rig.faces, names, deltas, source, rig.vertex_colors)
+    return replace(character, mm_per_unit=10.0)   # the ICT rig's centimetres: the GLB is written in metres
 
 
 def write_shapes(ict: Path, path: Path) -> None:

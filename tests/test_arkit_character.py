@@ -65,6 +65,10 @@ def test_animating_the_arkit_character_writes_files_the_validator_and_usd_accept
     names, weights, fps = read_usd_weights(report["files"]["usd"])
     character = load_character(arkit_glb)
     assert names == character.shape_names and fps == 30.0
+    # a glTF character is in metres, and its USD says so (it said 0.01 for every character: a head 2 mm wide)
+    from pxr import Usd, UsdGeom
+
+    assert UsdGeom.GetStageMetersPerUnit(Usd.Stage.Open(report["files"]["usd"])) == 1.0
     np.testing.assert_allclose(weights, bind(character).weights(curves), atol=1e-6)
 
 
@@ -81,5 +85,8 @@ def test_the_shipped_arkit_shapes_are_the_kits_and_make_the_character_without_it
     assert main(["--out", str(tmp_path / "c" / "ict_arkit.glb")]) == 0
     character = load_character(tmp_path / "c" / "ict_arkit.glb")
     assert detect_convention(character) == "arkit52" and character.n_shapes == 32
+    width = float(np.ptp(character.neutral[:, 0]))   # the ICT rig's centimetres written as glTF's metres
+    assert 0.15 < width < 0.25 and character.mm_per_unit == 1000.0, width
+    np.testing.assert_allclose(character.neutral, shipped.neutral * 0.01, rtol=1e-6, atol=1e-7)
     issues = validate(tmp_path / "c" / "ict_arkit.glb")["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]

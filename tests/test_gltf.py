@@ -199,9 +199,13 @@ def test_demo_rig_round_trips_exactly(tmp_path, demo):
     dense = write_glb(tmp_path / "dense.glb", demo, w, 30.0, name="minute", sparse=False)
     print(f"\ndemo rig, 1 min at 30 fps: {size / 1e6:.3f} MB (targets dense: {dense.stat().st_size / 1e6:.3f} MB)")
     back = read_character_glb(path)
-    assert_same_character(back, demo)
-    assert back.name == demo.name
-    assert_same_character(read_character_glb(dense), demo)
+    # glTF's unit is the metre: the demo rig's centimetres are written scaled, so a tool shows a head 18 cm wide
+    # (it was 18 m), and reading the file back gives the same character in metres, bit for bit
+    assert_same_character(back, demo.in_metres())
+    assert back.name == demo.name and back.mm_per_unit == 1000.0 and demo.mm_per_unit == 10.0
+    width, height, _ = np.ptp(back.neutral, axis=0)
+    assert 0.15 < width < 0.25 and 0.2 < height < 0.4, (width, height)
+    assert_same_character(read_character_glb(dense), demo.in_metres())
     g, read = glb_arrays(path)
     assert g.animations[0].name == "minute"
     assert g.accessors[g.meshes[0].primitives[0].indices].componentType == gl.UNSIGNED_SHORT   # 21,984 vertices
@@ -581,6 +585,7 @@ def test_three_js_plays_the_animation_we_wrote(tmp_path, served, browser, demo, 
     fps, n = (24.0, 30) if which == "small" else (30.0, 60)
     w = random_weights(n, character.n_shapes, seed=7)
     path = write_glb(tmp_path / f"{which}.glb", character, w, fps, name=f"clip {which}")
+    character = character.in_metres()   # what the file holds: glTF's metres (the demo rig is in centimetres)
     frame_times = (np.arange(n) / fps).astype(np.float32)
     times = sorted({0.0, float(frame_times[1]), float(frame_times[-1]), float(frame_times[-2]),
                     *[(k + 0.5) / fps for k in range(0, n - 1, 3)], *[(k + 0.25) / fps for k in (1, n // 2, n - 2)],

@@ -71,6 +71,8 @@ def expected_pose(q: np.ndarray, t: np.ndarray, times32: np.ndarray, time: float
 def test_skinned_glb_layout(tmp_path, bones, demo):
     curves = speech_like_curves(20)
     path = write_skinned_glb(tmp_path / "face.glb", bones, curves, FPS, name="clip")
+    assert bones.mm_per_unit == 10.0   # the demo rig's centimetres: the file holds metres, glTF's unit
+    bones, demo = bones.in_metres(), demo.in_metres()
     g, read = glb_arrays(path)
     assert g.scene == 0 and g.scenes[0].nodes == [0, 1]
     mesh_node, root = g.nodes[0], g.nodes[1]
@@ -197,6 +199,7 @@ def test_three_js_plays_our_skinning(tmp_path, served, browser, bones, demo):
     n = 45
     curves = speech_like_curves(n, seed=4)
     path = write_skinned_glb(tmp_path / "bones.glb", bones, curves, FPS, name="speech")
+    bones, demo = bones.in_metres(), demo.in_metres()   # what the file holds: glTF's metres
     root, base = served
     (root / path.name).write_bytes(path.read_bytes())
     state = browser.load(f"{base}/index.html")

@@ -164,7 +164,7 @@ def test_make_test_stops_when_ruff_finds_something(tmp_path):
         tool.chmod(0o755)
     (venv / ".installed").touch()
     os.utime(venv / ".installed", (2**31, 2**31))
-    done = make("test", f"VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
+    done = make("test", f"VENV={venv}", f"BLENDER_VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
     assert done.returncode != 0
     assert [line.split()[0] for line in log.read_text().splitlines()] == ["system-deps", "ruff"]
 
@@ -183,7 +183,7 @@ def test_make_test_passes_on_no_tests_collected_and_fails_on_any_other_error(tmp
     ruff.chmod(0o755)
     (venv / ".installed").touch()       # newer than pyproject.toml: no venv build
     os.utime(venv / ".installed", (2**31, 2**31))
-    done = make("test", f"VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
+    done = make("test", f"VENV={venv}", f"BLENDER_VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
     assert log.read_text().splitlines() == ["system-deps", "ruff check visemeflow tests bench examples tools",
                                             "pytest -m pytest -q -n auto --dist loadfile --durations=25"]
     assert (done.returncode == 0) is ok, done.stdout + done.stderr

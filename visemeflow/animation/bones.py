@@ -30,7 +30,7 @@ only names the bone formats loads neither).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -91,8 +91,20 @@ class BoneRig:
     """CPU seconds of this process during the solve (Dem Bones' threads included: set OMP_NUM_THREADS=1 for one
     core)."""
     vertex_colors: np.ndarray | None = None
+    mm_per_unit: float = 1000.0
+    """Millimetres per unit of the positions and translations: the character's (10 for the demo rig's centimetres)."""
 
     ROOT = "root"
+
+    def in_metres(self) -> BoneRig:
+        """The same rig in metres (glTF's unit; itself when already so): skinning is linear, so scaling the bind
+        pose, the bone heads and the pose translations scales every skinned vertex, rotations unchanged."""
+        if self.mm_per_unit == 1000.0:
+            return self
+        s = self.mm_per_unit / 1000.0
+        return replace(self, neutral=(self.neutral * np.float32(s)).astype(np.float32),
+                       bind_translations=self.bind_translations * s, translations=self.translations * s,
+                       fit_rms=self.fit_rms * s, mm_per_unit=1000.0)
 
     @property
     def n_bones(self) -> int:
@@ -243,7 +255,8 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
                   bone_names=tuple(names), bind_translations=centres,
                   joints=joints.astype(np.int64), weights=w4, rotations=q, translations=d,
                   fit_rms=np.zeros(len(poses)), bind_error=float(np.abs(transforms[0] - np.eye(4)).max()),
-                  solve_seconds=seconds, solve_cpu_seconds=cpu, vertex_colors=character.vertex_colors)
+                  solve_seconds=seconds, solve_cpu_seconds=cpu, vertex_colors=character.vertex_colors,
+                  mm_per_unit=character.mm_per_unit)
     fitted = skin_vertices(rig, *blend_poses(rig, np.eye(len(poses), dtype=np.float32)))
     object.__setattr__(rig, "fit_rms", np.sqrt(((fitted - poses) ** 2).sum(axis=2).mean(axis=1)))
     return rig

@@ -3,7 +3,8 @@
 Both directions go through pygltflib's typed model (`GLTF2`, `Accessor`, `BufferView`, ...); this module lays out
 the one binary buffer and computes what the specification asks of it, pygltflib writes and reads the container.
 
-Writing (`write_glb`): one scene, one node, one mesh with one triangle primitive:
+Writing (`write_glb`): one scene, one node, one mesh with one triangle primitive, in metres as glTF defines its
+unit (`Character.in_metres`: the demo rig's centimetres are scaled by 0.01):
 
 - `POSITION` (float32 VEC3, min/max), `NORMAL` (unit, area-weighted vertex normals of the neutral; a vertex on no
   triangle or only on degenerate ones gets +Z) and `indices` (uint16, or uint32 when the mesh has 65,535 vertices
@@ -192,6 +193,7 @@ def write_glb(path: str | os.PathLike, character: Character, weights, fps: float
         raise ValueError(f"{character.where()}: no triangles; a glTF mesh needs at least one")
     times, w = _check_animation(character, weights, fps)
     label = name or character.name
+    character = character.in_metres()   # glTF's unit (the demo rig is in centimetres)
     gltf = gl.GLTF2(asset=gl.Asset(generator=f"visemeflow (pygltflib {gl.__version__})", version="2.0"))
     layout = _Layout(gltf)
 

@@ -1,6 +1,7 @@
 """Skinned glTF 2.0: a character's SSDR bones (`bones.BoneRig`) and their per-frame blended poses as a GLB.
 
-Layout (glTF 2.0, sections 3.7.3 skins and 3.11 animations), through pygltflib and the morph-target writer's buffer
+Positions and translations are in metres, glTF's unit (`BoneRig.in_metres`). Layout (glTF 2.0, sections 3.7.3 skins
+and 3.11 animations), through pygltflib and the morph-target writer's buffer
 layout (`gltf._Layout`: one buffer view per array, 4-byte aligned):
 
 - node 0 "<name>": the mesh and the skin, at the scene root with no transform (a skinned mesh's own transform is
@@ -50,6 +51,7 @@ def write_skinned_glb(path: str | os.PathLike, rig: BoneRig, curves, fps: float,
                       ) -> Path:
     """Write `rig` animated by (T, 16) `curves` (frame k at k / fps) as a skinned GLB at `path` (atomically)."""
     path = Path(path)
+    rig = rig.in_metres()   # glTF's unit (the demo rig is in centimetres)
     rotations, translations = blend_poses(rig, curves)        # (T, B, 4) w, x, y, z; (T, B, 3)
     times = frame_times(len(rotations), fps)
     label = name or rig.name

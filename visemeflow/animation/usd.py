@@ -25,7 +25,8 @@ targets as BlendShapes and its own `skel:blendShapes` order, all bound to the on
 `blendShapes` (the union of the names) drives every part by name.
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
-Stage: upAxis Y, `metersPerUnit` as given (0.01: the demo rig is in centimetres).
+Stage: upAxis Y, `metersPerUnit` the character's own unit (`Character.mm_per_unit` / 1000: 0.01 for the demo rig's
+centimetres, 1 for a glTF character's metres; a USD of an avatar in metres said 0.01 before, a head 2 mm tall).
 
 Names: USD prim names must be identifiers ([A-Za-z_][A-Za-z0-9_]*); a shape whose name is not one gets a prim
 name made valid (other characters -> "_", a leading digit prefixed by "_", made unique with a suffix), while the
@@ -140,9 +141,12 @@ def _extent(character: Character) -> Vt.Vec3fArray:
 
 @one_at_a_time
 def build_stage(character: Character, weights, fps: float, *, name: str | None = None,
-                meters_per_unit: float = 0.01) -> Usd.Stage:
-    """The in-memory stage `write_usd` saves (see the module doc for its layout)."""
+                meters_per_unit: float | None = None) -> Usd.Stage:
+    """The in-memory stage `write_usd` saves (see the module doc for its layout); `meters_per_unit` defaults to the
+    character's unit."""
     where = character.where()
+    if meters_per_unit is None:
+        meters_per_unit = character.mm_per_unit / 1000.0
     w = _check_weights(weights, character.n_shapes, fps, where)
     if not (np.isfinite(meters_per_unit) and meters_per_unit > 0):
         raise ValueError(f"{where}: meters_per_unit must be a positive number, got {meters_per_unit!r}")
@@ -245,7 +249,7 @@ def timed_stage(fps: float, n_frames: int, meters_per_unit: float, documentation
 
 @one_at_a_time
 def write_usd(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None,
-              meters_per_unit: float = 0.01) -> Path:
+              meters_per_unit: float | None = None) -> Path:
     """Write `character` animated by `weights` ((T, S) in [0, 1], columns in `character.shape_names` order, frame
     k at time k / fps) as a UsdSkel stage: `.usda` (text), `.usd` or `.usdc` (binary crate). `name` names the
     SkelRoot (default: the character's name, made a valid prim name). Atomic; returns `path`."""

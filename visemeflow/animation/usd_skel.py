@@ -12,8 +12,8 @@
 
 Each time sample is our blended pose of that frame (`bones.blend_poses`), so UsdSkel's skinning (linear blend, as
 `UsdSkel.BakeSkinning` computes it) reproduces our vertices. Time, units and suffixes as `usd.py`: frame k is time
-code k, timeCodesPerSecond = framesPerSecond = fps, upAxis Y, metersPerUnit 0.01 by default (the demo rig is in
-centimetres); `.usda` text, `.usd`/`.usdc` binary crate.
+code k, timeCodesPerSecond = framesPerSecond = fps, upAxis Y, metersPerUnit the rig's unit by default (0.01 for the
+demo rig's centimetres, 1 for a glTF character's metres); `.usda` text, `.usd`/`.usdc` binary crate.
 """
 
 from __future__ import annotations
@@ -42,8 +42,11 @@ def _translate(v) -> Gf.Matrix4d:
 
 @one_at_a_time
 def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = None,
-                     meters_per_unit: float = 0.01) -> Usd.Stage:
-    """The in-memory stage `write_usd_skel` saves (see the module doc)."""
+                     meters_per_unit: float | None = None) -> Usd.Stage:
+    """The in-memory stage `write_usd_skel` saves (see the module doc); `meters_per_unit` defaults to the rig's unit
+    (its character's)."""
+    if meters_per_unit is None:
+        meters_per_unit = rig.mm_per_unit / 1000.0
     if not (isinstance(fps, (int, float, np.integer, np.floating)) and np.isfinite(fps) and fps > 0):
         raise ValueError(f"bones of {rig.name!r}: fps must be a positive number, got {fps!r}")
     if not (np.isfinite(meters_per_unit) and meters_per_unit > 0):
@@ -112,7 +115,7 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
 
 @one_at_a_time
 def write_usd_skel(path: str | os.PathLike, rig: BoneRig, curves, fps: float, *, name: str | None = None,
-                   meters_per_unit: float = 0.01) -> Path:
+                   meters_per_unit: float | None = None) -> Path:
     """Write the bone animation of (T, 16) `curves` (frame k at time code k) as a UsdSkel stage; atomic."""
     path = Path(path)
     args = _format_args(path)

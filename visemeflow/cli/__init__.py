@@ -93,7 +93,7 @@ def _fail(message: str) -> None:
 # the command chooses the Prefect API, through the environment, before it imports Prefect.
 _AS_COMMAND = False
 # Commands that run no flow: they neither need a Prefect API nor look one up. `serve` finds or starts its own.
-_NO_FLOW = frozenset({"serve", "rejects", "clean", "dashboard", "show", "export", "export-model", "transfer",
+_NO_FLOW = frozenset({"blender", "serve", "rejects", "clean", "dashboard", "show", "export", "export-model", "transfer",
                       "espeak-corpus"})
 
 
@@ -929,6 +929,30 @@ def preview_command(params: PreviewParams) -> None:
     typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "
                f"{', '.join(result['sources'])}; rendered at {result['frames_per_second']:.1f} frames/s)")
 
+
+
+@app.command("blender")
+def blender_command(
+    animation: Annotated[Path, typer.Argument(help="A GLB or USD that `animate` or `speak` wrote; the .wav of the same "
+                                                   "name beside it is its sound.")],
+    save: Annotated[Optional[Path], typer.Option("--save", help="Write the scene as this .blend, without Blender's "
+                                                                "window.")] = None,
+    wav: Annotated[Optional[Path], typer.Option("--wav", help="The sound, when not the .wav beside the file.")] = None,
+    blender: Annotated[Optional[str], typer.Option("--blender", help="The Blender program, or a Python with the bpy "
+                                                                     "module (default: $VISEMEFLOW_BLENDER, else "
+                                                                     "`blender` on PATH).")] = None,
+) -> None:
+    """Open an animation in Blender ready to play: the file's frame rate and frame range, its sound in the sequencer."""
+    from visemeflow.animation.blender import BlenderError, open_in_blender
+
+    try:
+        run = open_in_blender(animation, save=save, wav=wav, blender=blender)
+    except BlenderError as exc:
+        _fail(str(exc))
+    r = run.report
+    if r.get("saved"):
+        typer.echo(f"wrote {r['saved']}: {', '.join(r['objects'])}; {r['fps']:g} fps, frames {r['frame_start']}-"
+                   f"{r['frame_end']}; " + (f"sound {r['sound']}" if r["sound"] else "no sound (no .wav beside it)"))
 
 
 @app.command("export-model")

@@ -96,6 +96,15 @@ class Character:
     def n_shapes(self) -> int:
         return len(self.shape_names)
 
+    def in_metres(self) -> Character:
+        """This character with its positions and shapes in metres (glTF's unit; itself when already so): what a
+        new GLB of it holds, so that a tool opening it sees a head a head's size (the demo rig's centimetres
+        written as they are made it 100 times too large in Blender, Unity and three.js)."""
+        if self.mm_per_unit == 1000.0:
+            return self
+        s = np.float32(self.mm_per_unit / 1000.0)
+        return replace(self, neutral=self.neutral * s, deltas=self.deltas * s, mm_per_unit=1000.0)
+
     def shape_index(self, name: str) -> int:
         return self.shape_names.index(name)
 

@@ -1,0 +1,55 @@
+"""Run by Blender's Python (the bpy venv of `make blender-deps`), never by pytest: open a file as a Blender user
+does and report what Blender shows. argv[1] is a JSON request:
+
+- "path": a GLB / USD, imported with Blender's own importer as File > Import does (default options) into an empty
+  scene whose frame rate is "fps" (null: Blender's default), or a .blend, opened as it was saved;
+- "frames": the frames at which every mesh's evaluated vertices (world space, after shape keys and armatures) are
+  written to "out" (.npz, one (frames, V, 3) array per mesh object, by name).
+
+Prints one line `probe: {json}`: the scene's frame rate, frame range, sync mode, objects (name, type, parent), the
+shape key names of each mesh, and the sound strips (name, start frame, length in frames, file).
+"""
+
+import json
+import sys
+
+import bpy
+import numpy as np
+
+request = json.loads(sys.argv[1])
+path = request["path"]
+if path.endswith(".blend"):
+    bpy.ops.wm.open_mainfile(filepath=path)
+else:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if request.get("fps"):
+        bpy.context.scene.render.fps, bpy.context.scene.render.fps_base = int(request["fps"]), 1.0
+    if path.endswith(".glb"):
+        bpy.ops.import_scene.gltf(filepath=path)
+    else:
+        bpy.ops.wm.usd_import(filepath=path)
+scene = bpy.context.scene
+meshes = [o for o in scene.objects if o.type == "MESH"]
+positions = {o.name: [] for o in meshes}
+for frame in request["frames"]:
+    scene.frame_set(frame)
+    graph = bpy.context.evaluated_depsgraph_get()
+    for o in meshes:
+        evaluated = o.evaluated_get(graph)
+        mesh = evaluated.to_mesh()
+        co = np.empty(3 * len(mesh.vertices), np.float64)
+        mesh.vertices.foreach_get("co", co)
+        m = np.array(evaluated.matrix_world)
+        positions[o.name].append(co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
+        evaluated.to_mesh_clear()
+np.savez(request["out"], **{name: np.array(p) for name, p in positions.items()})
+editor = scene.sequence_editor
+strips = [] if editor is None else list(editor.strips if hasattr(editor, "strips") else editor.sequences)
+print("probe: " + json.dumps({
+    "fps": scene.render.fps / scene.render.fps_base, "frame_start": scene.frame_start, "frame_end": scene.frame_end,
+    "sync_mode": scene.sync_mode,
+    "objects": [[o.name, o.type, o.parent.name if o.parent else None] for o in scene.objects],
+    "shape_keys": {o.name: [k.name for k in o.data.shape_keys.key_blocks] for o in meshes if o.data.shape_keys},
+    "sounds": [[s.name, s.frame_start, s.frame_final_duration, bpy.path.abspath(s.sound.filepath)] for s in strips
+               if s.type == "SOUND"],
+}), flush=True)

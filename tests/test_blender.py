@@ -1,0 +1,153 @@
+"""Blender opens what we write and shows what we made: the demo face's blendshape GLB, its skinned (SSDR bones) GLB
+and both as USD, imported by Blender's own importers (Blender 5.0 as the PyPI `bpy` module, in the venv of its own
+that `make blender-deps` builds, a prerequisite of `make test`; without it these tests fail with that command, never
+skip). Every mesh vertex Blender evaluates at frame times (shape keys, armature) is compared with ours, in metres
+after Blender's axis conversion (glTF and USD are +Y up, Blender +Z up), and the lips are measured in millimetres
+where the curves close them. Then `visemeflow blender FILE --save scene.blend`: the saved scene plays the file at
+its own frame rate, over its frames, with its wav in the sequencer at frame 0.
+"""
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+from factories import REPO
+
+from visemeflow.animation.bones import blend_poses, skin_vertices, solve_bones
+from visemeflow.animation.gltf import write_glb
+from visemeflow.animation.lips import character_gap_mm, inner_lip_pairs, pair_gap_mm
+from visemeflow.animation.skinned_gltf import write_skinned_glb
+from visemeflow.animation.usd import write_usd
+from visemeflow.animation.usd_skel import write_usd_skel
+from visemeflow.articulation import CLOSED_MM
+from visemeflow.rig import load_demo_rig
+from visemeflow.rig.character import character_from_rig
+from visemeflow.visemes import VISEMES
+
+BPY_PYTHON = REPO / ".venv-blender" / "bin" / "python"
+PROBE = Path(__file__).with_name("blender_probe.py")
+FPS = 30.0
+N = 40
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])   # (x, y, z) -> (x, -z, y)
+
+
+def bpy_python() -> Path:
+    if not BPY_PYTHON.is_file():
+        pytest.fail(f"{BPY_PYTHON} missing: `make blender-deps` builds it (Blender as the PyPI bpy module)")
+    return BPY_PYTHON
+
+
+def probe(path: Path, frames: list[int], out: Path, fps: float | None = FPS) -> tuple[dict, dict[str, np.ndarray]]:
+    """What Blender shows of `path` (see tests/blender_probe.py): its report and each mesh's world vertices."""
+    request = {"path": str(path), "frames": frames, "out": str(out), "fps": fps}
+    done = subprocess.run([str(bpy_python()), str(PROBE), json.dumps(request)], capture_output=True, text=True,
+                          timeout=300)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
+    assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
+    with np.load(out) as arrays:
+        return json.loads(lines[-1].removeprefix("probe: ")), {k: arrays[k] for k in arrays.files}
+
+
+def speech_curves(n: int) -> np.ndarray:
+    """Curves that move every viseme, with the lips shut (MBP 1, nothing else) at frames 10-12 and 30."""
+    rng = np.random.default_rng(3)
+    t = np.arange(n)[:, None] / FPS
+    c = np.clip(np.sin(2 * np.pi * rng.uniform(1, 4, 16) * t + rng.uniform(0, 6, 16)), 0, 1) ** 2
+    c = (c * rng.uniform(0.3, 0.9, 16)).astype(np.float32)
+    c[[10, 11, 12, 30]] = 0.0
+    c[[10, 11, 12, 30], VISEMES.index("MBP")] = 1.0
+    return c
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return character_from_rig(load_demo_rig())
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, demo):
+    """The four files of one animation, and the vertices we computed for them (the demo rig's centimetres)."""
+    root = tmp_path_factory.mktemp("blender")
+    curves = speech_curves(N)
+    bones = solve_bones(demo, 8, iterations=5)
+    ours = {"morph": demo.neutral[None] + np.einsum("fs,svc->fvc", curves, demo.deltas),
+            "bones": skin_vertices(bones, *blend_poses(bones, curves))}
+    written = {
+        "morph.glb": (write_glb(root / "morph.glb", demo, curves, FPS, name="speech"), "morph"),
+        "bones.glb": (write_skinned_glb(root / "bones.glb", bones, curves, FPS, name="speech"), "bones"),
+        "morph.usda": (write_usd(root / "morph.usda", demo, curves, FPS, name="speech"), "morph"),
+        "bones.usda": (write_usd_skel(root / "bones.usda", bones, curves, FPS, name="speech"), "bones"),
+    }
+    return root, curves, ours, written
+
+
+@pytest.mark.parametrize("name", ["morph.glb", "bones.glb", "morph.usda", "bones.usda"])
+def test_blender_imports_each_file_and_plays_our_vertices_in_metres(files, demo, name):
+    root, curves, ours, written = files
+    path, kind = written[name]
+    frames = [0, 5, 11, 17, 30, N - 1]
+    report, meshes = probe(path, frames, root / f"{name}.npz")
+    (face,) = [m for m in meshes.values() if m.shape[1] == demo.n_vertices]   # (a skinned GLB adds a bone shape)
+    expected = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, ours[kind][frames].astype(np.float64) * 0.01)   # cm -> m
+    worst = float(np.abs(face - expected).max())
+    width = float(np.ptp(face[0][:, 0]))
+    print(f"\n{name}: {report['objects']}; worst vertex difference {worst * 1e3:.4f} mm; head width {width:.3f} m")
+    assert worst < 1e-5, worst                         # 0.01 mm: float32 positions of a 30-cm head
+    assert 0.15 < width < 0.25                          # a head's size in the user's scene (it was 18 m in a GLB)
+    moved = float(np.abs(expected - expected[:1]).max())
+    assert moved > 1e-3                                 # the check can fail: the face moves by millimetres
+    if kind == "morph":
+        assert report["shape_keys"] and [k for k in next(iter(report["shape_keys"].values()))][1:] == list(VISEMES)
+    # the lips: where the curves shut them, Blender's mesh has them shut, measured in millimetres as our preview does
+    pairs = inner_lip_pairs(demo)
+    gaps = pair_gap_mm(face[:, pairs.ravel()].reshape(len(frames), 3, 2, 3), 1000.0)
+    if kind == "morph":
+        np.testing.assert_allclose(gaps, character_gap_mm(demo, curves[frames]), atol=0.01)
+    closed = [i for i, f in enumerate(frames) if f in (11, 30)]
+    assert (gaps[closed] < CLOSED_MM).all() and (np.delete(gaps, closed) > CLOSED_MM).any(), gaps
+
+
+def test_visemeflow_blender_saves_a_scene_that_plays_the_file_with_its_sound(tmp_path, files, demo):
+    root, curves, ours, written = files
+    for name in ("morph.glb", "bones.usda"):
+        src, kind = written[name]
+        path = tmp_path / name
+        path.write_bytes(src.read_bytes())
+        sf.write(tmp_path / f"{path.stem}.wav", np.zeros(int(16000 * N / FPS), np.float32), 16000, subtype="PCM_16")
+        done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(path), "--save",
+                               str(tmp_path / f"{path.stem}.blend"), "--blender", str(bpy_python())],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert done.stdout.startswith(f"wrote {tmp_path / path.stem}.blend: ") and f"30 fps, frames 0-{N - 1}" in \
+            done.stdout, done.stdout
+        # the .blend as saved: no fps given to the probe, the scene's own
+        report, meshes = probe(tmp_path / f"{path.stem}.blend", [0, 11, N - 1], tmp_path / "saved.npz", fps=None)
+        assert report["fps"] == FPS and (report["frame_start"], report["frame_end"]) == (0, N - 1), report
+        assert report["sync_mode"] == "AUDIO_SYNC"
+        ((sound, start, length, file),) = report["sounds"]
+        assert (start, length, Path(file)) == (0, N, tmp_path / f"{path.stem}.wav")
+        (face,) = [m for m in meshes.values() if m.shape[1] == demo.n_vertices]
+        expected = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, ours[kind][[0, 11, N - 1]].astype(np.float64) * 0.01)
+        assert np.abs(face - expected).max() < 1e-5
+
+
+def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, files):
+    root, curves, ours, written = files
+    path = written["morph.glb"][0]
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(path)], capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert done.returncode == 2 and done.stdout == ""
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("error: no Blender found: install Blender") and "--blender" in line and \
+        "blender_open.py -- FILE" in line
+    done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(path), "--blender",
+                           str(bpy_python())], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "has no window: give --save FILE.blend" in done.stderr
+    (tmp_path / "curves.csv").write_text("frame\n")
+    done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(tmp_path / "curves.csv"),
+                           "--blender", str(bpy_python())], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "not a GLB, glTF or USD file" in done.stderr
