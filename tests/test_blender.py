@@ -151,3 +151,33 @@ def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, file
     done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(tmp_path / "curves.csv"),
                            "--blender", str(bpy_python())], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "not a GLB, glTF or USD file" in done.stderr
+
+
+def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp_path):
+    """A Ready-Player-Me-like avatar (head skinned and textured, teeth, two eyes, a body, and an `idle` clip of its own,
+    tests/test_multimesh.py): our clip comes first in the file, so Blender's importer makes it the active one (with it
+    last, Blender muted it in the NLA and the face did not move); head and teeth play our weights, in place."""
+    from test_multimesh import make_avatar
+
+    from visemeflow.animation.gltf_asset import write_character_glb
+    from visemeflow.animation.load import load_character
+
+    source = tmp_path / "avatar.glb"
+    make_avatar(source)
+    character = load_character(source)
+    weights = np.random.default_rng(5).random((N, character.n_shapes)).astype(np.float32)
+    out = write_character_glb(tmp_path / "spoken.glb", character, weights, FPS, name="speech")
+    frames = [0, 6, 12, N - 1]
+    report, meshes = probe(out, frames, tmp_path / "avatar.npz")
+    ours = character.neutral[None] + np.einsum("fs,svc->fvc", weights[frames], character.deltas)
+    ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, ours.astype(np.float64))    # metres, as the avatar's file is
+    for part in character.parts:
+        expected = ours[:, part.start:part.stop]
+        # the Blender object holding this part: the mesh of its size nearest it at frame 0
+        name = min((n for n, m in meshes.items() if m.shape[1] == part.n_vertices),
+                   key=lambda n: np.abs(meshes[n][0] - expected[0]).max())
+        worst = float(np.abs(meshes[name] - expected).max())
+        print(f"\n{part.name} -> Blender {name}: worst {worst * 1e3:.4f} mm")
+        assert worst < 1e-5, (part.name, name, worst)
+    head = next(p for p in character.parts if p.name == "Wolf3D_Head")
+    assert np.abs(ours[1:, head.start:head.stop] - ours[0, head.start:head.stop]).max() > 1e-3   # it moves: mm

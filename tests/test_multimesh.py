@@ -277,7 +277,7 @@ def assert_whole_asset_kept(source: Path, written: Path) -> tuple[dict, bytes]:
     n_views, n_accessors = len(before["bufferViews"]), len(before["accessors"])
     assert after["bufferViews"][:n_views] == before["bufferViews"]
     assert after["accessors"][:n_accessors] == before["accessors"]
-    assert after["animations"][:-1] == before["animations"]
+    assert after["animations"][1:] == before["animations"]    # ours first: the one Blender makes active
     for view in before["bufferViews"]:
         start, stop = view.get("byteOffset", 0), view.get("byteOffset", 0) + view["byteLength"]
         assert after_bin[start:stop] == before_bin[start:stop]
@@ -291,7 +291,7 @@ def test_the_glb_export_is_the_whole_asset_with_one_clip_added_that_the_validato
     w = _weights(c)
     out = write_character_glb(tmp_path / "spoken.glb", c, w, 30.0, name="hello")
     after, after_bin = assert_whole_asset_kept(path, out)
-    clip = after["animations"][-1]
+    clip = after["animations"][0]
     assert clip["name"] == "hello" and len(after["animations"]) == 2
     assert [ch["target"] for ch in clip["channels"]] == [{"node": n, "path": "weights"} for n in (3, 4, 6, 7)]
     accessors = after["accessors"]
@@ -397,7 +397,7 @@ def test_three_js_plays_the_new_clip_on_every_driven_mesh(tmp_path, avatar, serv
     result = browser.send("Runtime.evaluate", {"expression": call, "awaitPromise": True, "returnByValue": True})
     assert "exceptionDetails" not in result, result["exceptionDetails"]
     got = result["result"]["value"]
-    assert got["clips"] == ["idle", "speech"]
+    assert got["clips"] == ["speech", "idle"]
     assert got["skinned"] == ["HeadNode"] and got["textured"] == ["HeadNode"]
     frame_times = np.arange(n) / fps
     nodes = {"HeadNode": c.parts[0], "TeethNode": c.parts[1], "EyeLeftNode": c.parts[2], "EyeRightNode": c.parts[3]}
@@ -423,7 +423,7 @@ def test_the_animate_flow_writes_the_whole_avatar_and_says_what_it_drives(tmp_pa
     (report,) = result["packages_written"]
     assert report["meshes"] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
     after, _ = assert_whole_asset_kept(path, Path(report["files"]["glb"]))
-    assert [a["name"] for a in after["animations"]] == ["idle", Path(report["files"]["glb"]).stem]
+    assert [a["name"] for a in after["animations"]] == [Path(report["files"]["glb"]).stem, "idle"]
     assert validate(Path(report["files"]["glb"]))["issues"]["numErrors"] == 0
 
     chosen = animate_flow(AnimateParams(store=store.root, characters=[path], source="ground_truth",
@@ -431,7 +431,7 @@ def test_the_animate_flow_writes_the_whole_avatar_and_says_what_it_drives(tmp_pa
                                                              meshes=("Wolf3D_Head",)), out=tmp_path / "head"))
     (report,) = chosen["packages_written"]
     assert report["meshes"] == ["Wolf3D_Head"]
-    channels = glb_parts(Path(report["files"]["glb"]))[0]["animations"][-1]["channels"]
+    channels = glb_parts(Path(report["files"]["glb"]))[0]["animations"][0]["channels"]
     assert [ch["target"]["node"] for ch in channels] == [3]
 
 

@@ -2,16 +2,17 @@
 
 A character read from a .glb / .gltf scene (`gltf.read_character_glb`, `Character.parts`) is exported as that whole
 scene: every mesh, material, texture, image, skin, camera, light, extension, node of the hierarchy and existing
-animation stays, byte for byte and JSON value for JSON value, and one new animation is appended, named by the
-utterance, with one `weights` channel per node that instances a driven mesh (nodes sharing a mesh share its
+animation stays, byte for byte and JSON value for JSON value, and one new animation is added first (index 0: the
+one Blender's importer makes active and model-viewer's autoplay plays; the file's own follow in their order, and no
+other part of glTF refers to an animation by index), named by the utterance, with one `weights` channel per node that instances a driven mesh (nodes sharing a mesh share its
 sampler). Each sampler is LINEAR; its input is the frame times k / fps (float32, with the min/max the specification
 asks), its output the frames' weights of that mesh's own targets in that mesh's own order (a teeth mesh with 12
 targets gets 12 columns, whatever the head has).
 
 How: the document is edited as plain JSON (not through a typed model, which could drop or reorder what it does not
 know), the new binary data (frame times, weights, 4-byte aligned) is appended to the end of buffer 0, the GLB's
-binary chunk, and `buffers[0].byteLength` is updated; new buffer views, accessors and the animation are appended to
-their arrays, so every existing index stays valid. Only the buffer entry (its new length) changes.
+binary chunk, and `buffers[0].byteLength` is updated; new buffer views and accessors are appended to their
+arrays, so every existing index of them stays valid. Only the buffer entry (its new length) changes.
 
 A `.gltf` (JSON) input, or a GLB whose buffers live in other files, is written as a self-contained GLB: the buffers
 are concatenated into the binary chunk (each 16-byte aligned; buffer views re-pointed with their offsets shifted),
@@ -220,8 +221,10 @@ def write_asset_glb(path: str | os.PathLike, character: Character, weights, fps:
         samplers.append({"input": frame_times, "output": output, "interpolation": _LINEAR})
         channels += [{"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
                      for node in part.nodes]
-    document.setdefault("animations", []).append({"name": name or character.name, "samplers": samplers,
-                                                  "channels": channels})
+    # first: Blender's importer makes only the first animation active (the others go into muted NLA tracks: with an
+    # avatar's idle clip first, our face did not move), and model-viewer's autoplay plays the first
+    document.setdefault("animations", []).insert(0, {"name": name or character.name, "samplers": samplers,
+                                                     "channels": channels})
     document.setdefault("buffers", [{}])
     if not document["buffers"]:
         document["buffers"].append({})
