@@ -73,6 +73,7 @@ demo: system-deps venv
 	@find $(OUT)/store/animations $(OUT)/speak* -name '*.mp4' 2>/dev/null | sort | sed 's/^/    /'
 	@echo "  the character speaking, for Blender / three.js (GLB) and Omniverse / Maya (USD):"
 	@find $(OUT)/speak* \( -name '*.glb' -o -name '*.usd' -o -name '*.usda' -o -name '*.usdc' \) 2>/dev/null | sort | sed 's/^/    /'
+	@echo "  with Blender installed: $(BIN)/visemeflow blender ONE_OF_THE.glb    opens it ready to play (fps, frame range, sound)"
 	@echo "  $(OUT)/characters/ict_arkit.glb    an ARKit-named head (ICT Face Model, MIT) to try --character with"
 	@echo "  $(OUT)/store    the store (Parquet tables, curves, models, reports/robustness.md)"
 
