@@ -545,6 +545,42 @@ def test_the_preview_command_puts_the_tracked_videos_face_first_and_leaves_it_ou
 
 @pytest.mark.flow
 @pytest.mark.usefixtures("prefect_harness")
+def test_the_preview_command_keeps_an_mp4_made_from_the_same_inputs_and_renders_again_when_one_changes(tmp_path):
+    """A second `visemeflow preview` with the same curves, character and settings keeps the MP4 (it re-rendered every
+    call); other settings, curves rewritten from other inputs, or --force render it again."""
+    from typer.testing import CliRunner
+
+    from factories import make_curve_store
+    from visemeflow.cli import app
+    from visemeflow.schemas import curves_array, curves_table
+
+    store = make_curve_store(tmp_path / "store", n=1)
+    out = tmp_path / "u0.mp4"
+
+    def preview(*extra: str) -> tuple[str, int]:
+        result = CliRunner().invoke(app, ["preview", "spk/u0", "--store", str(store.root), "--sources", "ground_truth",
+                                          "--size", str(SIZE), "--out", str(out), *extra])
+        assert result.exit_code == 0, result.output
+        return result.output, out.stat().st_mtime_ns
+
+    output, made = preview()
+    assert f"wrote {out} (" in output
+    output, again = preview()
+    assert f"kept {out} (" in output and "--force renders it again" in output and again == made
+    for extra in (["--size", str(SIZE + 16)], ["--force"]):
+        output, again = preview(*extra)
+        assert f"wrote {out} (" in output and again != made, extra
+        made = again
+    output, _ = preview()   # the record is of the last render (--force, at the first size)
+    assert "kept" in output
+    curves = curves_array(store.read_curves("spk/u0", "ground_truth", "cm"))
+    store.write_curves(curves_table("spk/u0", "ground_truth", "cm", curves[::-1].copy(), 25.0), provenance="other")
+    output, again = preview()
+    assert f"wrote {out} (" in output and again != made
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
 def test_animate_preview_shows_the_utterances_video_beside_the_character_and_the_character_alone_otherwise(
         tmp_path):
     """`animate --preview`: the package MP4 of an utterance with a video has the video's face crop as its first

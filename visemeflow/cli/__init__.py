@@ -906,7 +906,7 @@ def speak(params: SpeakParams) -> None:
 @stage_command(app, PreviewParams, [
     Opt("utterance_id", argument=True), Opt("character", callback=_character), Opt("sources"), STORE,
     Opt("mapping", callback=_file), Opt("size"), Opt("out"), Opt("mode"), Opt("bones"), Opt("closure_rule"),
-    Opt("meshes", "--mesh", repeat=True),
+    Opt("meshes", "--mesh", repeat=True), Opt("force"),
 ], name="preview")
 def preview_command(params: PreviewParams) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
@@ -926,6 +926,11 @@ def preview_command(params: PreviewParams) -> None:
     typer.echo(result["character"])
     for skipped in result["skipped"]:
         typer.echo(f"left out {skipped}")
+    if result.get("reused"):
+        typer.echo(f"kept {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "
+                   f"{', '.join(result['sources'])}): made from the same curves, character and settings; --force "
+                   "renders it again")
+        return
     typer.echo(f"wrote {result['path']} ({result['frames']} frames at {result['fps']:g} fps; "
                f"{', '.join(result['sources'])}; rendered at {result['frames_per_second']:.1f} frames/s)")
 

@@ -9,6 +9,7 @@ and the rest of the batch goes on.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -22,7 +23,8 @@ from visemeflow.dashboards.records import record_packages
 from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.common import StageRun, collect_utterance_results, replace_stage_rejects
 from visemeflow.flows.runners import cpu_thread_pool
-from visemeflow.hashing import file_hash
+from visemeflow.atomic import atomic_path
+from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.schemas import C, CurveSource, validate_name
 from visemeflow.storage import Store
 from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
@@ -243,9 +245,17 @@ def preview_flow(params: PreviewParams) -> dict:
     path = str(params.character.resolve())
     character_hash = content_hash(path)
     mapping = str(params.mapping.resolve()) if params.mapping else None
+    found, skipped = preview_sources(store, uid, params.sources)
+    folder = package_dir(store, None, character_key(path), uid)
+    out = params.out or folder / f"{folder.name}.preview.mp4"
+    record = None if store.remote and not params.out else _preview_record(Path(out))
+    inputs = _preview_inputs(store, params, character_hash, file_hash(mapping) if mapping else None, found) \
+        if record else None
+    if record and not params.force and Path(out).is_file() and record.get("inputs") == inputs:
+        get_run_logger().info("preview %s: %s kept (made from the same inputs)", uid, out)
+        return {**record["result"], "reused": True}
     character, binding = bound_character(path, character_hash, None, mapping,
                                          file_hash(mapping) if mapping else None, tuple(params.meshes))
-    found, skipped = preview_sources(store, uid, params.sources)
     panels, rate, tracked = {}, None, False
     for spec, source, variant in found:
         try:
@@ -274,8 +284,6 @@ def preview_flow(params: PreviewParams) -> dict:
     video = video_source(local_input(rows[0][C.VIDEO_PATH]), landmark_file(store, rows[0]), rows[0][C.FPS]) \
         if tracked and rows and rows[0][C.VIDEO_PATH] else None
     phones = _phones(store, [uid]).get(uid)
-    folder = package_dir(store, None, character_key(path), uid)
-    out = params.out or folder / f"{folder.name}.preview.mp4"
     # a store on object storage: rendered into a local work folder, then uploaded in one PUT
     work = fresh_work_dir(store, folder) if store.remote and not params.out else None
     report = render_preview(work / out.name if work else out, character, panels, rate, audio=audio, phones=phones,
@@ -284,10 +292,46 @@ def preview_flow(params: PreviewParams) -> dict:
         out = upload_file(store, work / out.name, work, folder)
     get_run_logger().info("preview %s: %s (%d frames, %s); left out: %s", uid, out, report.frames,
                           ", ".join(panels), "; ".join(skipped) or "nothing")
-    return {"utterance_id": uid, "path": str(out), "sources": (["video"] if video is not None else []) + list(panels),
-            "skipped": skipped,
-            "character": character.describe(),
-            "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}
+    result = {"utterance_id": uid, "path": str(out), "sources": (["video"] if video is not None else []) + list(panels),
+              "skipped": skipped, "character": character.describe(),
+              "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}
+    if not (store.remote and not params.out):   # the record beside a local MP4: the next call with these inputs keeps it
+        inputs = _preview_inputs(store, params, character_hash, file_hash(mapping) if mapping else None, found)
+        with atomic_path(_preview_record_path(Path(out))) as tmp:
+            tmp.write_text(json.dumps({"inputs": inputs, "result": result}, sort_keys=True), encoding="utf-8")
+    return result
+
+
+def _preview_record_path(out: Path) -> Path:
+    """Where `visemeflow preview` records what an MP4 was made from: a hidden file beside it."""
+    return out.with_name(f".{out.name}.inputs.json")
+
+
+def _preview_record(out: Path) -> dict | None:
+    """The record beside a preview MP4 (`_preview_record_path`), {} when there is none or it is unreadable."""
+    try:
+        return json.loads(_preview_record_path(out).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def _preview_inputs(store: Store, params: PreviewParams, character_hash: str, mapping_hash: str | None,
+                    found: list[tuple[str, str, str]]) -> dict:
+    """What decides a preview MP4: each source's curves (their provenance), the utterance's files (its content hash:
+    audio, alignment, video and the landmark file beside it), its phones, the landmarks the `landmarks` stage stored,
+    the character and mapping files, the settings and the code that renders."""
+    from visemeflow.tasks.code_version import code_digest
+
+    rows = store.read_table("utterances", utterance_ids=[params.utterance_id]).select([C.CONTENT_HASH]).to_pylist()
+    landmarks = (file_hash(str(store.local_file(store.landmark_path(params.utterance_id))))
+                 if store.has_landmarks(params.utterance_id) else None)
+    return {"utterance": params.utterance_id, "content": rows[0][C.CONTENT_HASH] if rows else None,
+            "sources": [[spec, source, variant, store.curves_provenance(source, variant, params.utterance_id)]
+                        for spec, source, variant in found],
+            "phones": stable_hash(_phones(store, [params.utterance_id]).get(params.utterance_id)),
+            "landmarks": landmarks, "character": character_hash, "mapping": mapping_hash,
+            "settings": stable_hash([params.size, params.mode, params.bones, list(params.meshes), params.closure_rule]),
+            "code": code_digest("visemeflow.animation.preview")}
 
 
 def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:

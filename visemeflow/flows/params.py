@@ -314,6 +314,7 @@ class PreviewParams(BaseModel):
                                               "mesh whose morph targets match.")
     closure_rule: bool = Field(True, description="Apply the lip rules (visemeflow.articulation) as the exports do: "
                                                  "lips close at b/p/m and touch the teeth at f/v, bounded opening.")
+    force: bool = Field(False, description="Render again even when the MP4 there was made from the same inputs.")
 
     @field_validator("utterance_id")
     @classmethod
