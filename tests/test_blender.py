@@ -153,10 +153,12 @@ def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, file
     assert done.returncode == 2 and "not a GLB, glTF or USD file" in done.stderr
 
 
-def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp_path):
+@pytest.mark.parametrize("suffix", [".glb", ".usda"])
+def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp_path, suffix):
     """A Ready-Player-Me-like avatar (head skinned and textured, teeth, two eyes, a body, and an `idle` clip of its own,
-    tests/test_multimesh.py): our clip comes first in the file, so Blender's importer makes it the active one (with it
-    last, Blender muted it in the NLA and the face did not move); head and teeth play our weights, in place."""
+    tests/test_multimesh.py): in the GLB our clip comes first, so Blender's importer makes it the active one (with it
+    last, Blender muted it in the NLA and the face did not move); head and teeth play our weights, in place, in
+    metres. The USD (one Mesh per part, metersPerUnit 1 for a glTF character: it said 0.01) the same."""
     from test_multimesh import make_avatar
 
     from visemeflow.animation.gltf_asset import write_character_glb
@@ -166,7 +168,10 @@ def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp
     make_avatar(source)
     character = load_character(source)
     weights = np.random.default_rng(5).random((N, character.n_shapes)).astype(np.float32)
-    out = write_character_glb(tmp_path / "spoken.glb", character, weights, FPS, name="speech")
+    if suffix == ".glb":
+        out = write_character_glb(tmp_path / "spoken.glb", character, weights, FPS, name="speech")
+    else:
+        out = write_usd(tmp_path / "spoken.usda", character, weights, FPS, name="speech")
     frames = [0, 6, 12, N - 1]
     report, meshes = probe(out, frames, tmp_path / "avatar.npz")
     ours = character.neutral[None] + np.einsum("fs,svc->fvc", weights[frames], character.deltas)
