@@ -186,3 +186,19 @@ def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp
         assert worst < 1e-5, (part.name, name, worst)
     head = next(p for p in character.parts if p.name == "Wolf3D_Head")
     assert np.abs(ours[1:, head.start:head.stop] - ours[0, head.start:head.stop]).max() > 1e-3   # it moves: mm
+
+
+def test_the_script_alone_in_blender_reads_the_rate_of_a_glb_or_a_text_usd(tmp_path, files):
+    """Run by hand inside Blender (`python blender_open.py FILE --save S.blend` with bpy), without --fps: the rate
+    comes from the glTF's key times or the .usda header (Blender's default is 24)."""
+    from visemeflow.animation.blender import SCRIPT
+
+    root, curves, ours, written = files
+    for name in ("bones.glb", "morph.usda"):
+        blend = tmp_path / f"{name}.blend"
+        done = subprocess.run([str(bpy_python()), str(SCRIPT), str(written[name][0]), "--save", str(blend)],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, (done.stdout + done.stderr)[-2000:]
+        report, _ = probe(blend, [0], tmp_path / "one.npz", fps=None)
+        assert report["fps"] == FPS and (report["frame_start"], report["frame_end"]) == (0, N - 1), (name, report)
+        assert report["sounds"] == []   # no wav beside these files

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import struct
 import sys
 from pathlib import Path
@@ -46,10 +47,25 @@ def gltf_fps(path: Path) -> float | None:
     return None
 
 
+def usda_fps(path: Path) -> float | None:
+    """A text USD's rate from its layer header (`timeCodesPerSecond`, else `framesPerSecond`); None for a binary
+    crate or a header without either (give --fps; `visemeflow blender` reads any USD's with usd-core)."""
+    with open(path, "rb") as fh:
+        head = fh.read(8192)
+    if not head.startswith(b"#usda"):
+        return None
+    for key in (rb"timeCodesPerSecond", rb"framesPerSecond"):
+        found = re.search(key + rb"\s*=\s*([0-9.]+)", head)
+        if found:
+            return float(found.group(1))
+    return None
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="blender_open.py", description=__doc__.splitlines()[0])
     parser.add_argument("animation", type=Path, help="A GLB/glTF or USD file visemeflow wrote.")
-    parser.add_argument("--fps", type=float, help="The file's frame rate (default: a glTF's own; USD needs it).")
+    parser.add_argument("--fps", type=float, help="The file's frame rate (default: a glTF's key times, a text USD's "
+                                                  "header; a binary USD needs it).")
     parser.add_argument("--wav", type=Path, help="The sound (default: the .wav of the same name beside the file).")
     parser.add_argument("--save", type=Path, help="Save the scene as this .blend (then Blender may run --background).")
     parser.add_argument("--empty", action="store_true", help="Start from an empty scene (the default with --save).")
@@ -72,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.empty or args.save:
         bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    fps = args.fps or (gltf_fps(path) if suffix in GLTF_SUFFIXES else None)
+    fps = args.fps or (gltf_fps(path) if suffix in GLTF_SUFFIXES else usda_fps(path))
     if fps:
         scene.render.fps = max(1, round(fps))
         scene.render.fps_base = scene.render.fps / fps       # 29.97 fps: 30 / 1.001
