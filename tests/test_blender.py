@@ -112,23 +112,25 @@ def test_blender_imports_each_file_and_plays_our_vertices_in_metres(files, demo,
 
 def test_visemeflow_blender_saves_a_scene_that_plays_the_file_with_its_sound(tmp_path, files, demo):
     root, curves, ours, written = files
-    for name in ("morph.glb", "bones.usda"):
+    # the names the exports write: NAME.glb / NAME.usd beside NAME.wav, and the bone exports NAME.bones.glb beside it
+    for name, file_name, stem in (("morph.glb", "take.glb", "take"), ("bones.usda", "usd.usda", "usd"),
+                                  ("bones.glb", "voice.bones.glb", "voice")):
         src, kind = written[name]
-        path = tmp_path / name
+        path = tmp_path / file_name
         path.write_bytes(src.read_bytes())
-        sf.write(tmp_path / f"{path.stem}.wav", np.zeros(int(16000 * N / FPS), np.float32), 16000, subtype="PCM_16")
+        sf.write(tmp_path / f"{stem}.wav", np.zeros(int(16000 * N / FPS), np.float32), 16000, subtype="PCM_16")
         done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(path), "--save",
-                               str(tmp_path / f"{path.stem}.blend"), "--blender", str(bpy_python())],
+                               str(tmp_path / f"{file_name}.blend"), "--blender", str(bpy_python())],
                               capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, done.stdout + done.stderr
-        assert done.stdout.startswith(f"wrote {tmp_path / path.stem}.blend: ") and f"30 fps, frames 0-{N - 1}" in \
-            done.stdout, done.stdout
+        assert done.stdout.startswith(f"wrote {tmp_path / file_name}.blend: ") and f"30 fps, frames 0-{N - 1}" in \
+            done.stdout and f"sound {tmp_path / stem}.wav" in done.stdout, done.stdout
         # the .blend as saved: no fps given to the probe, the scene's own
-        report, meshes = probe(tmp_path / f"{path.stem}.blend", [0, 11, N - 1], tmp_path / "saved.npz", fps=None)
+        report, meshes = probe(tmp_path / f"{file_name}.blend", [0, 11, N - 1], tmp_path / "saved.npz", fps=None)
         assert report["fps"] == FPS and (report["frame_start"], report["frame_end"]) == (0, N - 1), report
         assert report["sync_mode"] == "AUDIO_SYNC"
         ((sound, start, length, file),) = report["sounds"]
-        assert (start, length, Path(file)) == (0, N, tmp_path / f"{path.stem}.wav")
+        assert (start, length, Path(file)) == (0, N, tmp_path / f"{stem}.wav")
         (face,) = [m for m in meshes.values() if m.shape[1] == demo.n_vertices]
         expected = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, ours[kind][[0, 11, N - 1]].astype(np.float64) * 0.01)
         assert np.abs(face - expected).max() < 1e-5

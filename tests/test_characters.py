@@ -15,7 +15,7 @@ from visemeflow.animation.apply import CurvesError, check_curves, deform, deform
     resampled_frame_count
 from visemeflow.rig.character import CharacterError, character_from_rig, make_character, save_character_npz
 from visemeflow.animation.load import load_character
-from visemeflow.shapes.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind, builtin_table, \
+from visemeflow.shapes.conventions import ARKIT_52, CONVENTIONS, OCULUS_15, arkit_weights, bind, builtin_table, \
     detect_convention, normalize_shape_name
 from visemeflow.rig import load_demo_rig, read_obj
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
@@ -100,6 +100,44 @@ def test_oculus_names_are_detected_and_mbp_closes_pp():
     assert weights[1, character.shape_index("viseme_PP")] == pytest.approx(0.7)
     assert weights[0].sum() == 0 and "eyeBlink" not in binding.driven
     assert binding.unmapped == ()
+
+
+def test_ovrlipsync_and_vrm_names_are_detected_and_drive_their_shapes():
+    """OVRLipSync's own names (sil, PP .. ih, oh, ou: Ready Player Me writes viseme_PP .. viseme_I, O, U), VRoid's
+    Fcl_MTH_A .. O and VRM 1.0's aa ih ou ee oh were "no known convention" (a new user's report)."""
+    plain = ["sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "ih", "oh", "ou", "blink"]
+    binding = bind(tiny(plain))
+    assert binding.convention == "oculus15" and binding.unmapped == () and binding.warnings() == []
+    curves = np.zeros((1, N_VISEMES), np.float32)
+    curves[0, viseme_index("MBP")], curves[0, viseme_index("UUU")] = 0.7, 0.4
+    weights = dict(zip(plain, binding.weights(curves)[0]))
+    assert weights["PP"] == pytest.approx(0.7) and weights["ou"] == pytest.approx(0.4) and weights["blink"] == 0
+    vroid = ["Fcl_ALL_Joy", "Fcl_MTH_Close", "Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O",
+             "Fcl_EYE_Close"]
+    for names in (vroid, ["aa", "ih", "ou", "ee", "oh", "blink", "happy"], ["A", "I", "U", "E", "O"]):
+        character = tiny(names)
+        binding = bind(character)
+        assert binding.convention == "vrm5" and binding.warnings() == [], names
+        curves = np.zeros((3, N_VISEMES), np.float32)
+        curves[0, viseme_index("AAA")], curves[1, viseme_index("IEE")], curves[2, viseme_index("MBP")] = 1, 1, 1
+        w = binding.weights(curves)
+        assert w[0, character.shape_index(names[0] if names[0] != "Fcl_ALL_Joy" else "Fcl_MTH_A")] == 1.0
+        assert w[2].sum() == 0      # b/p/m: a VRM avatar's rest mouth is closed
+    assert "vrm5" in CONVENTIONS and set(builtin_table("vrm5")) == set(VISEMES)
+
+
+def test_a_rig_lacking_the_shapes_that_close_the_lips_is_warned_about():
+    """A partial ARKit rig without mouthPress (which carries 1.2 of MBP's 1.47 in the table): its b/p/m would open
+    the jaw a little instead of closing the lips; the binding says so and what to do. A full rig says nothing."""
+    few = ["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft", "mouthSmileRight",
+           "mouthRollLower", "mouthUpperUpLeft", "mouthUpperUpRight", "eyeBlinkLeft"]
+    (warning,) = bind(tiny(few)).warnings()
+    assert "the lips will not close at b/p/m" in warning and "mouthPressLeft, mouthPressRight" in warning
+    assert "82%" in warning and "--mapping" in warning
+    assert bind(tiny(list(ARKIT_52))).warnings() == []
+    (mbp, fff) = bind(tiny(["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft",
+                            "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight"])).warnings()
+    assert "b/p/m" in mbp and "f/v" in fff and "mouthRollLower" in fff
 
 
 def test_names_match_across_case_namespaces_and_side_suffixes():

@@ -290,3 +290,37 @@ def test_audio_files_that_are_not_audio_are_one_line_before_the_model_loads(tmp_
     done = runner.invoke(app, ["speak", str(empty), "--store", str(tmp_path / "s")])
     assert done.exit_code == 2 and done.output == f"error: audio file {empty}: the file is empty (0 bytes)\n"
     assert not (tmp_path / "s").exists()
+
+
+def test_a_character_whose_names_follow_no_convention_is_one_line_before_any_flow_and_a_vrm_is_a_glb(tmp_path):
+    """A GLB whose morph targets have names no convention knows ran the predictions, then failed with Prefect's
+    traceback (a new user's report); now one line naming the file and what to give, before any flow. A VRoid avatar
+    (.vrm, Fcl_MTH_* names) loads as the glTF scene it is, and its GLB is its whole asset with our clip."""
+    from visemeflow.animation.gltf import write_glb
+    from visemeflow.animation.gltf_asset import write_character_glb
+    from visemeflow.animation.load import load_bound_character
+    from visemeflow.rig.character import make_character
+
+    grid = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32) * 0.1
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+
+    def glb(path: Path, names: list[str]) -> Path:
+        deltas = np.random.default_rng(0).normal(0, 0.01, (len(names), 4, 3)).astype(np.float32)
+        character = make_character("face", grid, faces, names, deltas)
+        return write_glb(path, character, np.zeros((1, len(names)), np.float32), 30.0, name="rest")
+
+    odd = glb(tmp_path / "odd.glb", ["smile", "frown", "blink"])
+    audio = tmp_path / "a.wav"
+    write_wav(audio, 0.5)
+    done = runner.invoke(app, ["speak", str(audio), "--character", str(odd), "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert done.output.startswith(f"error: character {odd}: ") and "follow no known convention" in done.output
+    assert "--mapping" in done.output and "--convention" in done.output and not (tmp_path / "s").exists()
+
+    vrm = glb(tmp_path / "avatar.glb", ["Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O"])
+    vrm = vrm.rename(tmp_path / "avatar.vrm")
+    character, binding = load_bound_character(vrm)
+    assert binding.convention == "vrm5" and character.parts
+    out = write_character_glb(tmp_path / "spoken.glb", character, np.ones((3, 5), np.float32) * 0.5, 30.0,
+                              name="speech")
+    assert out.read_bytes()[:4] == b"glTF" and b'"speech"' in out.read_bytes() and b'"rest"' in out.read_bytes()

@@ -61,6 +61,12 @@ def usda_fps(path: Path) -> float | None:
     return None
 
 
+def sound_beside(path: Path) -> Path:
+    """The wav an export wrote beside `path`: NAME.wav for NAME.glb, and for the bone exports NAME.bones.glb too."""
+    stem = path.stem.removesuffix(".bones")
+    return path.with_name(f"{stem}.wav")
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="blender_open.py", description=__doc__.splitlines()[0])
     parser.add_argument("animation", type=Path, help="A GLB/glTF or USD file visemeflow wrote.")
@@ -101,7 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
     if ranges:
         scene.frame_start = 0                                 # time 0 of the file
         scene.frame_end = max(0, int(round(max(r[1] for r in ranges))))
-    wav = args.wav or path.with_suffix(".wav")
+    wav = args.wav or sound_beside(path)
     sound = None
     if wav.is_file():
         editor = scene.sequence_editor_create()

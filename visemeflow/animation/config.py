@@ -21,7 +21,7 @@ class AnimateConfig(BaseModel):
     formats: tuple[str, ...] = Field(DEFAULT_FORMATS, min_length=1, description=FORMATS_HELP)
     fps: float | None = Field(None, gt=0, le=1000, description="Frame rate of the exports; none: the curves' own "
                                                                  "(other rates are resampled, never stretched).")
-    convention: str | None = Field(None, description="arkit52, oculus15 or visemeflow16; none: detected from the "
+    convention: str | None = Field(None, description="arkit52, oculus15, vrm5 or visemeflow16; none: detected from the "
                                                       "character's shape names.")
     audio: bool = Field(True, description="Write the utterance's audio beside the exports as <stem>.wav.")
     preview: bool = Field(False, description="Also render <stem>.mp4: the character driven by these curves, with "

@@ -13,14 +13,18 @@ from visemeflow.animation.gltf import read_character_glb
 from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
 
 
+GLTF_SUFFIXES = (".glb", ".gltf", ".vrm")
+"""glTF scenes: a .vrm (VRoid and other VRM avatars) is a GLB with VRM's extensions, read as one."""
+
+
 def load_character(path: str | os.PathLike, name: str | None = None, meshes=None, extra_names=None) -> Character:
-    """Read a character from a .glb/.gltf, a .npz (ours or a viseme rig) or a folder of meshes; validated.
+    """Read a character from a .glb/.gltf/.vrm, a .npz (ours or a viseme rig) or a folder of meshes; validated.
 
     For a glTF scene, `meshes` names the meshes to drive (default: chosen by their target names) and `extra_names`
     are shape names that count as usable besides the known conventions' (a mapping CSV's); see
     `gltf.read_character_glb`. `meshes` on another kind of character is an error."""
     path = Path(path)
-    glb = path.suffix.lower() in (".glb", ".gltf") and not path.is_dir()
+    glb = path.suffix.lower() in GLTF_SUFFIXES and not path.is_dir()
     if meshes and not glb:
         raise CharacterError(f"{path}: --mesh chooses meshes of a .glb/.gltf scene; this character is one mesh")
     if path.is_dir():
@@ -32,7 +36,8 @@ def load_character(path: str | os.PathLike, name: str | None = None, meshes=None
         return read_character_glb(path, name=name, meshes=meshes, extra_names=extra_names)
     if suffix == ".npz":
         return load_character_npz(path, name)
-    raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .npz or a folder of meshes")
+    raise CharacterError(f"{path}: unknown character format {suffix!r}; use .glb, .gltf, .vrm, .npz or a folder of "
+                         "meshes")
 
 
 def load_bound_character(path: str | os.PathLike, convention: str | None = None, mapping: str | os.PathLike | None = None,

@@ -275,20 +275,18 @@ def _check_characters(characters: list[Path] | None, meshes: list[str] | None, c
     named = [path for path in characters or [] if Path(path).resolve() != demo]
     if meshes and not named:
         _fail("--mesh chooses meshes of a .glb/.gltf --character")
+    # a character's own names are bound too: names no convention knows were a traceback after the predictions
     binding = convention is not None or mapping is not None
     checked = [Path(path) for path in characters or [demo]] if binding else named
     if not checked:
         return
-    from visemeflow.animation.load import load_bound_character, load_character
+    from visemeflow.animation.load import load_bound_character
     from visemeflow.rig.character import CharacterError
 
     for path in checked:
         own_meshes = meshes or None if path.resolve() != demo else None
         try:
-            if binding:
-                load_bound_character(path, convention, mapping, own_meshes)
-            else:
-                load_character(path, meshes=own_meshes)
+            load_bound_character(path, convention, mapping, own_meshes)
         except (CharacterError, OSError, ValueError) as exc:
             reason = str(exc)
             for named_as in (f"{path}: ", f"{path.resolve()}: "):   # the file is named once, as the user gave it

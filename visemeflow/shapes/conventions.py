@@ -2,7 +2,10 @@
 
 - `visemeflow16`: one shape per viseme, named as `visemes.VISEMES` (our rigs).
 - `arkit52`: Apple ARKit's 52 face blendshapes (MetaHuman, VRoid, iPhone-captured rigs, most web avatars).
-- `oculus15`: the Oculus / Meta Lipsync visemes (`viseme_sil` .. `viseme_U`; Ready Player Me, TalkingHead).
+- `oculus15`: the Oculus / Meta Lipsync visemes (`viseme_sil` .. `viseme_U`; Ready Player Me, TalkingHead; also
+  OVRLipSync's own names `sil`, `PP`, ... `ih`, `oh`, `ou`).
+- `vrm5`: the five vowel mouths of VRM avatars (VRoid's `Fcl_MTH_A` .. `Fcl_MTH_O`, VRM 1.0's `aa ih ou ee oh`, VRM
+  0.x's `A I U E O`); the rest mouth is closed, so b/p/m drive nothing.
 - `mapping`: any other naming, through a user's CSV `viseme,shape,weight`.
 """
 
@@ -42,18 +45,34 @@ OCULUS_15: tuple[str, ...] = (
 )
 """The 15 Oculus / Meta Lipsync visemes."""
 
+VRM_5: tuple[str, ...] = ("Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O")
+"""VRoid Studio's five vowel mouths (VRM's lip-sync presets); a VRM avatar's rest mouth is closed."""
+
+ALIASES: dict[str, tuple[str, ...]] = {
+    # OVRLipSync's own names (Ready Player Me prefixes them with viseme_ and writes I, O, U for ih, oh, ou)
+    **{f"viseme_{n}": (n,) for n in ("sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E")},
+    "viseme_I": ("ih",), "viseme_O": ("oh",), "viseme_U": ("ou",),
+    # VRM 1.0 expression presets and VRM 0.x blend shape presets, as morph target names
+    "Fcl_MTH_A": ("aa", "A"), "Fcl_MTH_I": ("ih", "I"), "Fcl_MTH_U": ("ou", "U"), "Fcl_MTH_E": ("ee", "E"),
+    "Fcl_MTH_O": ("oh", "O"),
+}
+"""Other names a rig may give a convention's shape (matched after the name itself)."""
+
 
 Table = dict[str, dict[str, float]]
 """viseme -> {target shape name: weight}: curves @ table drive the target shapes."""
 
-CONVENTIONS: tuple[str, ...] = ("visemeflow16", "arkit52", "oculus15")
+CONVENTIONS: tuple[str, ...] = ("visemeflow16", "arkit52", "oculus15", "vrm5")
 """The conventions detected from shape names; `mapping` (a user's CSV) is chosen by giving the CSV."""
 
-CONVENTION_NAMES: dict[str, tuple[str, ...]] = {"visemeflow16": VISEMES, "arkit52": ARKIT_52, "oculus15": OCULUS_15}
-_TABLE_FILES = {"arkit52": "arkit_visemes.csv", "oculus15": "oculus_visemes.csv"}
+CONVENTION_NAMES: dict[str, tuple[str, ...]] = {"visemeflow16": VISEMES, "arkit52": ARKIT_52, "oculus15": OCULUS_15,
+                                                "vrm5": VRM_5}
+_TABLE_FILES = {"arkit52": "arkit_visemes.csv", "oculus15": "oculus_visemes.csv", "vrm5": "vrm_visemes.csv"}
 # How many of a convention's names a character must have to be taken for that convention: every viseme of ours,
-# most Oculus visemes, and a useful set of ARKit mouth shapes (rigs often carry a subset of the 52).
-_MIN_MATCHES = {"visemeflow16": 16, "oculus15": 10, "arkit52": 8}
+# most Oculus visemes, a useful set of ARKit mouth shapes (rigs often carry a subset of the 52), the five vowels.
+_MIN_MATCHES = {"visemeflow16": 16, "oculus15": 10, "arkit52": 8, "vrm5": 5}
+# What a viseme that a character cannot make costs the viewer (`Binding.warnings`)
+_CONTACTS = {"MBP": "the lips will not close at b/p/m", "FFF": "the lower lip will not touch the teeth at f/v"}
 
 
 def normalize_shape_name(name: str) -> str:
@@ -146,15 +165,19 @@ def _match_names(names: tuple[str, ...], wanted: tuple[str, ...] | list[str], wh
         by_key.setdefault(normalize_shape_name(n), []).append(n)
     found = {}
     for w in wanted:
-        if w in exact:
-            found[w] = w
+        spellings = (w, *ALIASES.get(w, ()))
+        same = [s for s in spellings if s in exact]
+        if same:
+            found[w] = same[0]
             continue
-        hits = by_key.get(normalize_shape_name(w), [])
-        if len(hits) > 1:
-            raise CharacterError(f"{where}: shapes {', '.join(map(repr, hits))} all read as {w!r}; rename one or "
-                                 "give a mapping CSV")
-        if hits:
-            found[w] = hits[0]
+        for spelling in spellings:
+            hits = by_key.get(normalize_shape_name(spelling), [])
+            if len(hits) > 1:
+                raise CharacterError(f"{where}: shapes {', '.join(map(repr, hits))} all read as {w!r}; rename one "
+                                     "or give a mapping CSV")
+            if hits:
+                found[w] = hits[0]
+                break
     return found
 
 
@@ -170,8 +193,11 @@ def detect_convention(character: Character) -> str:
         raise CharacterError(
             f"{character.where()}: its {character.n_shapes} shape names follow no known convention "
             f"(names found: {shown}); known conventions: visemeflow16 (our 16 visemes: {', '.join(VISEMES)}), "
-            f"arkit52 (ARKit blendshapes such as jawOpen, mouthFunnel), oculus15 (viseme_sil .. viseme_U); "
-            "or give a mapping CSV (viseme,shape,weight)" + (f"; {character.describe()}" if character.parts else ""))
+            f"arkit52 (ARKit blendshapes such as jawOpen, mouthFunnel), oculus15 (viseme_sil .. viseme_U, or sil, PP "
+            f".. ou), vrm5 (Fcl_MTH_A .. Fcl_MTH_O, or aa ih ou ee oh); give a mapping CSV (--mapping FILE.csv, rows "
+            "viseme,shape,weight), or --convention NAME for a rig with fewer of a convention's shapes than "
+            "detection asks"
+            + (f"; {character.describe()}" if character.parts else ""))
     return max(scores, key=lambda c: (scores[c], -CONVENTIONS.index(c)))
 
 
@@ -193,6 +219,20 @@ class Binding:
     """Shapes the table names that the character lacks (their share of the motion is lost)."""
     unmapped: tuple[str, ...]
     """Visemes that move no shape of this character."""
+    lost: dict[str, tuple[float, tuple[str, ...]]] = field(default_factory=dict, repr=False)
+    """viseme -> (the share of its table weight on shapes the character lacks, those shapes), where any is lacking."""
+
+    def warnings(self) -> list[str]:
+        """What the viewer will miss: a b/p/m closure or an f/v contact whose shapes the character mostly lacks (half
+        or more of the table's weight for it), with what to do."""
+        out = []
+        for viseme, consequence in _CONTACTS.items():
+            share, shapes = self.lost.get(viseme, (0.0, ()))
+            if share >= 0.5:
+                out.append(f"{self.character}: {consequence}: it lacks {', '.join(shapes)}, {share:.0%} of what the "
+                           f"{self.convention} table drives for {viseme}; give --mapping FILE.csv with a shape of "
+                           f"yours that does it (a row `{viseme},YOUR_SHAPE,1.0`)")
+        return out
 
     def weights(self, curves: np.ndarray) -> np.ndarray:
         """(T, 16) curves -> (T, S) float32 shape weights in [0, 1]."""
@@ -234,5 +274,11 @@ def bind(character: Character, convention: str | None = None, mapping: str | Pat
     matrix = table_matrix(renamed, character.shape_names)
     driven = tuple(n for i, n in enumerate(character.shape_names) if matrix[:, i].any())
     unmapped = tuple(v for i, v in enumerate(VISEMES) if not matrix[i].any())
+    lost = {}
+    for viseme, row in table.items():
+        total = sum(row.values())
+        gone = [s for s, w in row.items() if s not in found and w > 0]
+        if gone and total > 0:
+            lost[viseme] = (sum(row[s] for s in gone) / total, tuple(gone))
     return Binding(character.name, convention, source, tuple(character.shape_names), matrix, driven,
-                   tuple(s for s in wanted if s not in found), unmapped)
+                   tuple(s for s in wanted if s not in found), unmapped, lost)

@@ -137,7 +137,7 @@ def content_hash(path: str | Path) -> str:
 def character_key(path: str | Path) -> str:
     """The folder name of a character's packages: its file's stem with characters a store name cannot hold as `_`."""
     stem = Path(path).name
-    for suffix in (".glb", ".gltf", ".npz"):
+    for suffix in (".glb", ".gltf", ".vrm", ".npz"):
         stem = stem.removesuffix(suffix)
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).lstrip(".") or "character"
 
@@ -258,7 +258,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     files = dict(package.files)
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
-    warnings = []
+    warnings = binding.warnings()   # a closure or contact the character's shapes cannot make
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 
