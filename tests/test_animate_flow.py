@@ -108,8 +108,16 @@ def test_bad_characters_and_curves_are_rejects_naming_the_file_and_the_rest_goes
     with pytest.raises(StageFailed, match="its one utterance failed"):  # nothing could be done: the run is Failed
         animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth",
                                    utterances=["spk/u0"], mapping=mapping))
-    message = store.read_table("rejects", "animate").to_pylist()[0][C.MESSAGE]
+    rows = store.read_table("rejects", "animate").to_pylist()
+    (message,) = [r[C.MESSAGE] for r in rows if r[C.ERROR_TYPE] == "CharacterError"]
     assert "map.csv" in message and "NoSuchShape" in message and "viseme_PP" in message
+    # a run of some utterances keeps the other utterances' rejects (speak wiped them: a new user's report) ...
+    assert [r[C.UTTERANCE_ID] for r in rows if r[C.ERROR_TYPE] == "CurvesError"] == ["spk/u1"]
+    # ... until those utterances are animated again
+    store.write_curves(curves_table("spk/u1", "ground_truth", "cm", np.clip(loud, 0, 1), 25.0))
+    animate_flow(AnimateParams(store=store.root, characters=[characters[1]], source="ground_truth",
+                               utterances=["spk/u1"]))
+    assert store.read_table("rejects", "animate").num_rows == 0
 
 
 def test_speak_turns_audio_into_a_talking_character_in_one_flow(tmp_path, characters):

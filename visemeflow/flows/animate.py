@@ -157,7 +157,13 @@ def animate_flow(params: AnimateParams):
     rejects += package_rejects
     if out:  # packages outside the store: recorded in it, so the dashboard can list them
         record_packages(store, reports, {uid: audio for uid, (audio, _, _) in per_utterance.items()})
-    replace_stage_rejects(store, STAGE, rejects, params.n_shards)
+    with store.locked("animate-rejects"):   # two runs at once (speak batches): neither loses the other's rejects
+        kept = []
+        if params.utterances:   # a run of some utterances (speak, `animate ID`): the others' rejects stay until theirs
+            covered = set(ids)
+            kept = [r for r in store.read_table("rejects", STAGE).to_pylist()
+                    if r[C.UTTERANCE_ID] is not None and r[C.UTTERANCE_ID] not in covered]
+        replace_stage_rejects(store, STAGE, rejects + kept, params.n_shards)
     summary = {"packages": len(futures), "written": sum(not r["cached"] for r in reports),
                "cached": sum(r["cached"] for r in reports), "rejected": len(rejects),
                "frames": sum(r["frames"] for r in reports)}
