@@ -161,7 +161,7 @@ def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp
     tests/test_multimesh.py): in the GLB our clip comes first, so Blender's importer makes it the active one (with it
     last, Blender muted it in the NLA and the face did not move); head and teeth play our weights, in place, in
     metres. The USD (one Mesh per part, metersPerUnit 1 for a glTF character: it said 0.01) the same."""
-    from test_multimesh import make_avatar
+    from avatar_glb import make_avatar
 
     from visemeflow.animation.gltf_asset import write_character_glb
     from visemeflow.animation.load import load_character
