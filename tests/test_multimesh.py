@@ -49,10 +49,12 @@ def test_the_loader_drives_head_teeth_and_eyes_in_place_and_names_the_body(avata
     path, arrays = avatar
     c = load_character(path)
     assert [p.name for p in c.parts] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
-    assert c.left_out == ("Wolf3D_Body (no targets)",)
+    # the object names Blender shows (the nodes') first, where the meshes' differ
+    assert c.left_out == ("BodyNode (mesh Wolf3D_Body; no targets)",)
     assert c.name == "avatar" and c.shape_names == tuple(HEAD_TARGETS + ["tongueOut"])
-    assert c.describe() == ("character avatar.glb: driving Wolf3D_Head (30 v), Wolf3D_Teeth (6 v), EyeLeft (4 v), "
-                            "EyeRight (4 v): 1 shared target (17 in all); not driven: Wolf3D_Body (no targets)")
+    assert c.describe() == ("character avatar.glb: driving HeadNode (mesh Wolf3D_Head, 30 v), TeethNode (mesh "
+                            "Wolf3D_Teeth, 6 v), EyeLeftNode (mesh EyeLeft, 4 v), EyeRightNode (mesh EyeRight, 4 v): 1 "
+                            "shared target (17 in all); not driven: BodyNode (mesh Wolf3D_Body; no targets)")
     head, teeth, left, right = c.parts
     assert (head.start, head.stop, teeth.stop, left.stop, right.stop) == (0, 30, 36, 40, 44) == (0, 30, 36, 40,
                                                                                                    c.n_vertices)
@@ -79,7 +81,8 @@ def test_mesh_option_chooses_meshes_and_an_unknown_one_lists_them(avatar):
     c = load_character(path, meshes=["Wolf3D_Teeth", "Wolf3D_Head"])
     assert [p.name for p in c.parts] == ["Wolf3D_Teeth", "Wolf3D_Head"]
     assert c.shape_names[:4] == tuple(TEETH_TARGETS) and c.n_vertices == 36
-    assert "EyeLeft (not asked for)" in c.left_out and "Wolf3D_Body (not asked for)" in c.left_out
+    assert "EyeLeftNode (mesh EyeLeft; not asked for)" in c.left_out and \
+        "BodyNode (mesh Wolf3D_Body; not asked for)" in c.left_out
     by_node = load_character(path, meshes=["EyeRightNode"])          # a node's name finds the mesh it instances
     assert [p.name for p in by_node.parts] == ["EyeRight"] and by_node.parts[0].nodes == (7,)
     with pytest.raises(CharacterError) as info:
@@ -96,7 +99,7 @@ def test_a_body_with_other_targets_is_named_and_a_scene_with_nothing_usable_name
     make_avatar(path, body_targets=["breathe"])
     c = load_character(path)
     assert [p.name for p in c.parts] == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
-    assert c.left_out == ("Wolf3D_Body (targets breathe: none usable)",)
+    assert c.left_out == ("BodyNode (mesh Wolf3D_Body; targets breathe: none usable)",)
 
     d = gl.GLTF2.load(str(path))
     for mesh in d.meshes:                  # every name made unusable: a head with "a0".. and a body with "breathe"

@@ -270,7 +270,7 @@ def _choose_meshes(path: Path, infos: list[GltfMeshInfo], meshes, extra_names) -
                                          "names (mesh.extras.targetNames or the primitive's extras.targetNames)")
                 if info not in chosen:
                     chosen.append(info)
-        return chosen, [f"{i.label} (not asked for)" for i in infos if i not in chosen]
+        return chosen, [_left_out(i, "not asked for") for i in infos if i not in chosen]
     keys = _CONVENTION_KEYS | {normalize_shape_name(n) for n in extra_names or ()}
     named = [i for i in infos if i.n_targets and i.target_names is not None]
     if any(i.nodes for i in named):
@@ -308,8 +308,21 @@ def _choose_meshes(path: Path, infos: list[GltfMeshInfo], meshes, extra_names) -
         else:
             shown = ", ".join(i.target_names[:4]) + (" ..." if i.n_targets > 4 else "")
             why = f"targets {shown}: none usable"
-        left_out.append(f"{i.label} ({why})")
+        left_out.append(_left_out(i, why))
     return chosen, left_out
+
+
+def _left_out(info: GltfMeshInfo, why: str) -> str:
+    """`Body (mesh Wolf3D_Body; no targets)`: the object's name first when the mesh's is another, then why."""
+    node = _node_name(info)
+    return f"{node} (mesh {info.label}; {why})" if node else f"{info.label} ({why})"
+
+
+def _node_name(info: GltfMeshInfo) -> str:
+    """The name of the mesh's first node (the object Blender and the engines show) when it differs from the mesh's,
+    else ""."""
+    node = info.node_names[0] if info.node_names else ""
+    return node if node != info.label else ""
 
 
 def _check_sizes(path: Path, chosen: list[GltfMeshInfo]) -> None:
@@ -381,7 +394,7 @@ def read_character_glb(path: str | os.PathLike, name: str | None = None, meshes=
         faces.append(mesh.faces + start)
         colors.append(mesh.colors)
         parts.append(CharacterPart(mesh=info.index, nodes=info.nodes, name=info.label, start=start, stop=stop,
-                                   target_names=tuple(mesh.target_names), placement=how))
+                                   target_names=tuple(mesh.target_names), placement=how, node_name=_node_name(info)))
         start = stop
     rgb = None
     if any(c is not None for c in colors):

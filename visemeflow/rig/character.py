@@ -49,6 +49,14 @@ class CharacterPart:
     """Its own morph target names, in its own order."""
     placement: str = ""
     """How its vertices were put in the scene's space (node transform, skin rest pose)."""
+    node_name: str = ""
+    """The name people know it by when that is not `name`: its first node's, the object Blender and the engines
+    show (`Head` for the mesh `HeadMesh`); "" when the two are the same."""
+
+    def summary(self) -> str:
+        """`Head (mesh HeadMesh, 4,418 v)`, or `Head (4,418 v)` when node and mesh share the name."""
+        return (f"{self.node_name} (mesh {self.name}, {self.n_vertices:,} v)" if self.node_name
+                else f"{self.name} ({self.n_vertices:,} v)")
 
     @property
     def n_vertices(self) -> int:
@@ -123,7 +131,7 @@ class Character:
         label = Path(self.source).name if self.source else self.name
         if not self.parts:
             return f"character {label}: {self.n_vertices:,} vertices, {self.n_shapes} shapes"
-        driving = ", ".join(f"{p.name} ({p.n_vertices:,} v)" for p in self.parts)
+        driving = ", ".join(p.summary() for p in self.parts)
         shared = set(self.parts[0].target_names).intersection(*(p.target_names for p in self.parts[1:]))
         text = f"character {label}: driving {driving}: "
         text += (f"{len(shared)} shared target{'s' if len(shared) != 1 else ''}" if len(self.parts) > 1
