@@ -577,6 +577,13 @@ def test_the_preview_command_keeps_an_mp4_made_from_the_same_inputs_and_renders_
     store.write_curves(curves_table("spk/u0", "ground_truth", "cm", curves[::-1].copy(), 25.0), provenance="other")
     output, again = preview()
     assert f"wrote {out} (" in output and again != made
+    # curves written again without a provenance (as these were at first): their bytes decide
+    store.write_curves(curves_table("spk/u0", "ground_truth", "cm", curves, 25.0))
+    output, made = preview()
+    assert f"wrote {out} (" in output
+    store.write_curves(curves_table("spk/u0", "ground_truth", "cm", curves * 0.5, 25.0))
+    output, again = preview()
+    assert f"wrote {out} (" in output and again != made
 
 
 @pytest.mark.flow

@@ -328,13 +328,17 @@ def _preview_inputs(store: Store, params: PreviewParams, character_hash: str, ma
     the character and mapping files, the settings and the code that renders."""
     from visemeflow.tasks.code_version import code_digest
 
-    rows = store.read_table("utterances", utterance_ids=[params.utterance_id]).select([C.CONTENT_HASH]).to_pylist()
-    landmarks = (file_hash(str(store.local_file(store.landmark_path(params.utterance_id))))
-                 if store.has_landmarks(params.utterance_id) else None)
-    return {"utterance": params.utterance_id, "content": rows[0][C.CONTENT_HASH] if rows else None,
-            "sources": [[spec, source, variant, store.curves_provenance(source, variant, params.utterance_id)]
-                        for spec, source, variant in found],
-            "phones": stable_hash(_phones(store, [params.utterance_id]).get(params.utterance_id)),
+    uid = params.utterance_id
+    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.CONTENT_HASH]).to_pylist()
+    landmarks = file_hash(store.local_file(store.landmark_path(uid))) if store.has_landmarks(uid) else None
+
+    def curves(source: str, variant: str) -> str:   # what made them, else (written without one) their bytes
+        return store.curves_provenance(source, variant, uid) or \
+            file_hash(store.local_file(store.curve_path(source, variant, uid)))
+
+    return {"utterance": uid, "content": rows[0][C.CONTENT_HASH] if rows else None,
+            "sources": [[spec, source, variant, curves(source, variant)] for spec, source, variant in found],
+            "phones": stable_hash(_phones(store, [uid]).get(uid)),
             "landmarks": landmarks, "character": character_hash, "mapping": mapping_hash,
             "settings": stable_hash([params.size, params.mode, params.bones, list(params.meshes), params.closure_rule]),
             "code": code_digest("visemeflow.animation.preview")}
