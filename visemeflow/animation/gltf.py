@@ -54,7 +54,10 @@ from visemeflow.rig import RigError
 from visemeflow.rig.gltf import MAX_MORPH_VALUES, MAX_VERTICES, GltfMeshInfo, GltfScene, read_gltf_mesh, \
     srgb_to_linear
 
-__all__ = ["read_character_glb", "vertex_normals", "write_glb"]
+__all__ = ["GLTF_SUFFIXES", "read_character_glb", "vertex_normals", "write_glb"]
+
+GLTF_SUFFIXES = (".glb", ".gltf", ".vrm")
+"""Characters read as glTF scenes: a .vrm (VRoid and other VRM avatars) is a GLB with VRM's extensions."""
 
 _ALIGN = 4
 _MATERIAL = "skin"

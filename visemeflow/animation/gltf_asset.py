@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from visemeflow.rig.character import Character, CharacterError
-from visemeflow.animation.gltf import _check_animation, write_glb
+from visemeflow.animation.gltf import GLTF_SUFFIXES, _check_animation, write_glb
 from visemeflow.atomic import atomic_path
 from visemeflow.rig.gltf import MAX_FILE_BYTES, read_gltf_uri
 
@@ -55,7 +55,7 @@ def write_character_glb(path: str | os.PathLike, character: Character, weights, 
                         name: str | None = None) -> Path:
     """The GLB of `character` playing (T, S) `weights` at `fps`: its own asset with the clip added when it was read
     from a glTF scene (`write_asset_glb`), else a new single-mesh GLB (`gltf.write_glb`)."""
-    if character.parts and Path(character.source).suffix.lower() in (".glb", ".gltf", ".vrm"):
+    if character.parts and Path(character.source).suffix.lower() in GLTF_SUFFIXES:
         return write_asset_glb(path, character, weights, fps, name=name)
     return write_glb(path, character, weights, fps, name=name)
 

@@ -9,12 +9,8 @@ import os
 from pathlib import Path
 
 from visemeflow.rig.character import Character, CharacterError, load_character_folder, load_character_npz
-from visemeflow.animation.gltf import read_character_glb
+from visemeflow.animation.gltf import GLTF_SUFFIXES, read_character_glb
 from visemeflow.shapes.conventions import Binding, bind, load_mapping_csv
-
-
-GLTF_SUFFIXES = (".glb", ".gltf", ".vrm")
-"""glTF scenes: a .vrm (VRoid and other VRM avatars) is a GLB with VRM's extensions, read as one."""
 
 
 def load_character(path: str | os.PathLike, name: str | None = None, meshes=None, extra_names=None) -> Character:

@@ -254,10 +254,11 @@ def preview_flow(params: PreviewParams) -> dict:
     found, skipped = preview_sources(store, uid, params.sources)
     folder = package_dir(store, None, character_key(path), uid)
     out = params.out or folder / f"{folder.name}.preview.mp4"
-    record = None if store.remote and not params.out else _preview_record(Path(out))
+    recorded = not (store.remote and not params.out)   # a local MP4 gets a record of what it was made from
     inputs = _preview_inputs(store, params, character_hash, file_hash(mapping) if mapping else None, found) \
-        if record else None
-    if record and not params.force and Path(out).is_file() and record.get("inputs") == inputs:
+        if recorded else None
+    record = _preview_record(Path(out)) if recorded and not params.force else {}
+    if record and Path(out).is_file() and record.get("inputs") == inputs:
         get_run_logger().info("preview %s: %s kept (made from the same inputs)", uid, out)
         return {**record["result"], "reused": True}
     character, binding = bound_character(path, character_hash, None, mapping,
@@ -301,8 +302,7 @@ def preview_flow(params: PreviewParams) -> dict:
     result = {"utterance_id": uid, "path": str(out), "sources": (["video"] if video is not None else []) + list(panels),
               "skipped": skipped, "character": character.describe(),
               "frames": report.frames, "fps": rate, "frames_per_second": report.frames_per_second}
-    if not (store.remote and not params.out):   # the record beside a local MP4: the next call with these inputs keeps it
-        inputs = _preview_inputs(store, params, character_hash, file_hash(mapping) if mapping else None, found)
+    if recorded:   # the next call with these inputs keeps the MP4
         with atomic_path(_preview_record_path(Path(out))) as tmp:
             tmp.write_text(json.dumps({"inputs": inputs, "result": result}, sort_keys=True), encoding="utf-8")
     return result
@@ -313,7 +313,7 @@ def _preview_record_path(out: Path) -> Path:
     return out.with_name(f".{out.name}.inputs.json")
 
 
-def _preview_record(out: Path) -> dict | None:
+def _preview_record(out: Path) -> dict:
     """The record beside a preview MP4 (`_preview_record_path`), {} when there is none or it is unreadable."""
     try:
         return json.loads(_preview_record_path(out).read_text(encoding="utf-8"))

@@ -34,6 +34,7 @@ from prefect.context import TaskRunContext
 from visemeflow.animation.apply import CurvesError
 from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
+from visemeflow.animation.gltf import GLTF_SUFFIXES
 from visemeflow.animation.load import load_bound_character
 from visemeflow.shapes.conventions import Binding
 from visemeflow.animation.package import (
@@ -137,7 +138,7 @@ def content_hash(path: str | Path) -> str:
 def character_key(path: str | Path) -> str:
     """The folder name of a character's packages: its file's stem with characters a store name cannot hold as `_`."""
     stem = Path(path).name
-    for suffix in (".glb", ".gltf", ".vrm", ".npz"):
+    for suffix in (*GLTF_SUFFIXES, ".npz"):
         stem = stem.removesuffix(suffix)
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).lstrip(".") or "character"
 
