@@ -4,10 +4,12 @@ does and report what Blender shows. argv[1] is a JSON request:
 - "path": a GLB / USD, imported with Blender's own importer as File > Import does (default options) into an empty
   scene whose frame rate is "fps" (null: Blender's default), or a .blend, opened as it was saved;
 - "frames": the frames at which every mesh's evaluated vertices (world space, after shape keys and armatures) are
-  written to "out" (.npz, one (frames, V, 3) array per mesh object, by name).
+  written to "out" (.npz, one (frames, V, 3) array per mesh object, by name, and `NAME.uv`, (V, 2) per vertex, for
+  a mesh with a UV map).
 
 Prints one line `probe: {json}`: the scene's frame rate, frame range, sync mode, objects (name, type, parent), the
-shape key names of each mesh, and the sound strips (name, start frame, length in frames, file).
+shape key names of each mesh, each mesh's
+materials with their image textures (name, size, first pixel), and the sound strips (name, start frame, length in frames, file).
 """
 
 import json
@@ -42,7 +44,31 @@ for frame in request["frames"]:
         m = np.array(evaluated.matrix_world)
         positions[o.name].append(co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
         evaluated.to_mesh_clear()
-np.savez(request["out"], **{name: np.array(p) for name, p in positions.items()})
+uvs = {}
+for o in meshes:            # per vertex, from the first UV map's loops (a vertex's loops agree on a seamless mesh)
+    if o.data.uv_layers:
+        loops = np.empty(len(o.data.loops), np.int64)
+        o.data.loops.foreach_get("vertex_index", loops)
+        uv = np.empty(2 * len(o.data.loops), np.float64)
+        o.data.uv_layers[0].data.foreach_get("uv", uv)
+        per_vertex = np.full((len(o.data.vertices), 2), np.nan)
+        per_vertex[loops] = uv.reshape(-1, 2)
+        uvs[f"{o.name}.uv"] = per_vertex
+np.savez(request["out"], **{name: np.array(p) for name, p in positions.items()}, **uvs)
+
+
+def images(material) -> list:
+    """[name, width, height, the first pixel's RGBA] of each image texture node of `material`."""
+    if material is None or not material.use_nodes:
+        return []
+    out = []
+    for node in material.node_tree.nodes:
+        if node.type == "TEX_IMAGE" and node.image is not None:
+            image = node.image
+            pixel = list(image.pixels[:4]) if image.size[0] else []
+            out.append([image.name, image.size[0], image.size[1], pixel])
+    return out
+
 editor = scene.sequence_editor
 strips = [] if editor is None else list(editor.strips if hasattr(editor, "strips") else editor.sequences)
 print("probe: " + json.dumps({
@@ -50,6 +76,7 @@ print("probe: " + json.dumps({
     "sync_mode": scene.sync_mode,
     "objects": [[o.name, o.type, o.parent.name if o.parent else None] for o in scene.objects],
     "shape_keys": {o.name: [k.name for k in o.data.shape_keys.key_blocks] for o in meshes if o.data.shape_keys},
+    "materials": {o.name: [[m.name, images(m)] for m in o.data.materials if m is not None] for o in meshes},
     "sounds": [[s.name, s.frame_start, s.frame_final_duration, bpy.path.abspath(s.sound.filepath)] for s in strips
                if s.type == "SOUND"],
 }), flush=True)

@@ -20,7 +20,7 @@ from visemeflow.animation.bones import blend_poses, skin_vertices, solve_bones
 from visemeflow.animation.gltf import write_glb
 from visemeflow.animation.lips import character_gap_mm, inner_lip_pairs, pair_gap_mm
 from visemeflow.animation.skinned_gltf import write_skinned_glb
-from visemeflow.animation.usd import write_usd
+from visemeflow.animation.usd import write_usd, write_usdz
 from visemeflow.animation.usd_skel import write_usd_skel
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.rig import load_demo_rig
@@ -47,8 +47,10 @@ def probe(path: Path, frames: list[int], out: Path, fps: float | None = FPS) -> 
                           timeout=300)
     lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
     assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
-    with np.load(out) as arrays:
-        return json.loads(lines[-1].removeprefix("probe: ")), {k: arrays[k] for k in arrays.files}
+    report = json.loads(lines[-1].removeprefix("probe: "))
+    with np.load(out) as arrays:          # each mesh's vertices; its UVs per vertex go in the report, under "uv"
+        report["uv"] = {k.removesuffix(".uv"): arrays[k] for k in arrays.files if k.endswith(".uv")}
+        return report, {k: arrays[k] for k in arrays.files if not k.endswith(".uv")}
 
 
 def speech_curves(n: int) -> np.ndarray:
@@ -69,7 +71,7 @@ def demo():
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory, demo):
-    """The four files of one animation, and the vertices we computed for them (the demo rig's centimetres)."""
+    """The five files of one animation, and the vertices we computed for them (the demo rig's centimetres)."""
     root = tmp_path_factory.mktemp("blender")
     curves = speech_curves(N)
     bones = solve_bones(demo, 8, iterations=5)
@@ -79,12 +81,13 @@ def files(tmp_path_factory, demo):
         "morph.glb": (write_glb(root / "morph.glb", demo, curves, FPS, name="speech"), "morph"),
         "bones.glb": (write_skinned_glb(root / "bones.glb", bones, curves, FPS, name="speech"), "bones"),
         "morph.usda": (write_usd(root / "morph.usda", demo, curves, FPS, name="speech"), "morph"),
+        "morph.usdz": (write_usdz(root / "morph.usdz", demo, curves, FPS, name="speech"), "morph"),
         "bones.usda": (write_usd_skel(root / "bones.usda", bones, curves, FPS, name="speech"), "bones"),
     }
     return root, curves, ours, written
 
 
-@pytest.mark.parametrize("name", ["morph.glb", "bones.glb", "morph.usda", "bones.usda"])
+@pytest.mark.parametrize("name", ["morph.glb", "bones.glb", "morph.usda", "morph.usdz", "bones.usda"])
 def test_blender_imports_each_file_and_plays_our_vertices_in_metres(files, demo, name):
     root, curves, ours, written = files
     path, kind = written[name]
@@ -114,7 +117,7 @@ def test_visemeflow_blender_saves_a_scene_that_plays_the_file_with_its_sound(tmp
     root, curves, ours, written = files
     # the names the exports write: NAME.glb / NAME.usd beside NAME.wav, and the bone exports NAME.bones.glb beside it
     for name, file_name, stem in (("morph.glb", "take.glb", "take"), ("bones.usda", "usd.usda", "usd"),
-                                  ("bones.glb", "voice.bones.glb", "voice")):
+                                  ("bones.glb", "voice.bones.glb", "voice"), ("morph.usdz", "pack.usdz", "pack")):
         src, kind = written[name]
         path = tmp_path / file_name
         path.write_bytes(src.read_bytes())
@@ -155,16 +158,21 @@ def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, file
     assert done.returncode == 2 and "not a GLB, glTF or USD file" in done.stderr
 
 
-@pytest.mark.parametrize("suffix", [".glb", ".usda"])
+@pytest.mark.parametrize("suffix", [".glb", ".usda", ".usdz"])
 def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp_path, suffix):
     """A Ready-Player-Me-like avatar (head skinned and textured, teeth, two eyes, a body, and an `idle` clip of its own,
     tests/test_multimesh.py): in the GLB our clip comes first, so Blender's importer makes it the active one (with it
     last, Blender muted it in the NLA and the face did not move); head and teeth play our weights, in place, in
-    metres. The USD (one Mesh per part, metersPerUnit 1 for a glTF character: it said 0.01) the same."""
+    metres. The USD (one Mesh per part, metersPerUnit 1 for a glTF character: it said 0.01) the same. Every file
+    is the whole avatar as Blender shows it: the body too, in place, the head's UVs as Blender's glTF importer gives
+    them, and, in the GLB and the USDZ, the head's material with its texture (the USD held the driven meshes alone,
+    untextured, until the USD writer carried the scene: `animation.usd_scene`)."""
     from avatar_glb import make_avatar
+    from PIL import Image
 
     from visemeflow.animation.gltf_asset import write_character_glb
     from visemeflow.animation.load import load_character
+    from visemeflow.rig.gltf import GltfScene
 
     source = tmp_path / "avatar.glb"
     make_avatar(source)
@@ -172,8 +180,10 @@ def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp
     weights = np.random.default_rng(5).random((N, character.n_shapes)).astype(np.float32)
     if suffix == ".glb":
         out = write_character_glb(tmp_path / "spoken.glb", character, weights, FPS, name="speech")
-    else:
+    elif suffix == ".usda":
         out = write_usd(tmp_path / "spoken.usda", character, weights, FPS, name="speech")
+    else:
+        out = write_usdz(tmp_path / "spoken.usdz", character, weights, FPS, name="speech")
     frames = [0, 6, 12, N - 1]
     report, meshes = probe(out, frames, tmp_path / "avatar.npz")
     ours = character.neutral[None] + np.einsum("fs,svc->fvc", weights[frames], character.deltas)
@@ -188,6 +198,26 @@ def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp
         assert worst < 1e-5, (part.name, name, worst)
     head = next(p for p in character.parts if p.name == "Wolf3D_Head")
     assert np.abs(ours[1:, head.start:head.stop] - ours[0, head.start:head.stop]).max() > 1e-3   # it moves: mm
+    # the body, which no target moves, is in the scene where the file puts it
+    scene = GltfScene(source)
+    body_info = next(i for i in scene.meshes if i.label == "Wolf3D_Body")
+    _, body_at, _, _ = scene.placed_mesh(body_info.index)
+    body = Y_UP_TO_Z_UP @ body_at.astype(np.float64).T
+    found = [n for n, m in meshes.items() if m.shape[1] == len(body_at) and np.abs(m[0] - body.T).max() < 1e-5]
+    assert found, (suffix, report["objects"])
+    # the head's texture coordinates: glTF's (u, v) from the top left, Blender's UV map (u, 1 - v) from the bottom
+    head_name = next(n for n, m in meshes.items() if m.shape[1] == head.n_vertices
+                     and np.abs(m[0] - ours[0, head.start:head.stop]).max() < 1e-5)
+    uv = scene.placed_mesh(head.mesh)[0].uvs
+    np.testing.assert_allclose(report["uv"][head_name], np.c_[uv[:, 0], 1 - uv[:, 1]], atol=1e-6)
+    textures = [image for _, images in report["materials"][head_name] for image in images]
+    if suffix == ".usda":     # one file holds no image: its materials carry the factors alone
+        assert not textures and report["materials"][head_name], report["materials"]
+    else:                     # the avatar's 2x2 skin, whose bottom-left pixel Blender stores first
+        (name, width, height, pixel), = textures
+        png = np.asarray(Image.open(__import__("io").BytesIO(scene.image(0)[0])).convert("RGBA"), np.float64)
+        assert (width, height) == (2, 2)
+        np.testing.assert_allclose(pixel, png[-1, 0] / 255, atol=1 / 255)
 
 
 def test_the_script_alone_in_blender_reads_the_rate_of_a_glb_or_a_text_usd(tmp_path, files):

@@ -328,7 +328,10 @@ def test_usd_has_one_mesh_per_part_with_its_own_shapes_that_usdskel_deforms(tmp_
     stage = Usd.Stage.Open(str(out))
     assert validation_errors(stage) == []
     meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
-    assert list(meshes) == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight"]
+    # the driven parts (by mesh), then the body no target moves (static, as the scene places it, by its node's name:
+    # `animation.usd_scene`)
+    assert list(meshes) == ["Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight", "BodyNode"]
+    assert not UsdSkel.BindingAPI(meshes["BodyNode"].GetPrim()).GetSkeletonRel().GetTargets()
     for part in c.parts:
         tokens = UsdSkel.BindingAPI(meshes[part.name].GetPrim()).GetBlendShapesAttr().Get()
         assert tuple(tokens) == part.target_names

@@ -96,7 +96,7 @@ def open_in_blender(animation: str | os.PathLike, *, save: str | os.PathLike | N
         raise BlenderError(f"{animation}: no such file")
     if path.suffix.lower() not in blender_open.GLTF_SUFFIXES + blender_open.USD_SUFFIXES:
         raise BlenderError(f"{animation}: not a GLB, glTF or USD file (what `animate` and `speak` write with "
-                           "--format glb or usd)")
+                           "--format glb, usd or usdz)")
     if wav is not None and not Path(wav).is_file():
         raise BlenderError(f"--wav {wav}: no such file")
     executable = find_blender(blender)

@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 GLTF_SUFFIXES = (".glb", ".gltf")
-USD_SUFFIXES = (".usd", ".usda", ".usdc")
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
 def gltf_fps(path: Path) -> float | None:

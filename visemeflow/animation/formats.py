@@ -54,6 +54,12 @@ def _usd(t: ExportTarget) -> None:
     write_usd(t.path, t.character, t.weights, t.fps, name=t.stem)
 
 
+def _usdz(t: ExportTarget) -> None:
+    from visemeflow.animation.usd import write_usdz
+
+    write_usdz(t.path, t.character, t.weights, t.fps, name=t.stem)
+
+
 def _livelink(t: ExportTarget) -> None:
     from visemeflow.shapes.conventions import arkit_weights
     from visemeflow.shapes.livelink import write_livelink_csv
@@ -96,6 +102,7 @@ def register_exporter(exporter: Exporter) -> Exporter:
 
 
 for _e in (Exporter("glb", ".glb", _glb, ".bones.glb"), Exporter("usd", ".usd", _usd, ".bones.usd"),
+           Exporter("usdz", ".usdz", _usdz),
            Exporter("livelink", ".livelink.csv", _livelink), Exporter("json", ".web.json", _web_json),
            Exporter("curves-csv", ".curves.csv", _curve_table("csv")),
            Exporter("curves-json", ".curves.json", _curve_table("json")),

@@ -51,7 +51,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 from visemeflow.rig.character import Character
 from visemeflow.atomic import atomic_path
 
-__all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd"]
+__all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd", "write_usdz"]
 
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
 ROOT_JOINT = "root"
@@ -141,9 +141,10 @@ def _extent(character: Character) -> Vt.Vec3fArray:
 
 @one_at_a_time
 def build_stage(character: Character, weights, fps: float, *, name: str | None = None,
-                meters_per_unit: float | None = None) -> Usd.Stage:
+                meters_per_unit: float | None = None, textures: Path | None = None) -> Usd.Stage:
     """The in-memory stage `write_usd` saves (see the module doc for its layout); `meters_per_unit` defaults to the
-    character's unit."""
+    character's unit. For a glTF character, `textures` is the folder its materials' images are written to (and
+    referenced from as `./textures/...`, relative to a layer saved beside it); None: materials without images."""
     where = character.where()
     if meters_per_unit is None:
         meters_per_unit = character.mm_per_unit / 1000.0
@@ -185,17 +186,42 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     skel_binding = UsdSkel.BindingAPI.Apply(skeleton.GetPrim())
     skel_binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
 
+    part_prims = []
     if len(character.parts) > 1:
         for prim, part in zip(_unique_prim_names(p.name for p in character.parts), character.parts):
             columns = part.columns(character.shape_names)
             inside = (character.faces >= part.start).all(axis=1) & (character.faces < part.stop).all(axis=1)
-            _define_mesh(stage, root_path.AppendChild(prim), skeleton, character.neutral[part.start:part.stop],
+            part_prims.append(root_path.AppendChild(prim))
+            _define_mesh(stage, part_prims[-1], skeleton, character.neutral[part.start:part.stop],
                          character.faces[inside] - part.start, part.target_names,
                          character.deltas[columns, part.start:part.stop])
     else:
-        _define_mesh(stage, root_path.AppendChild(MESH), skeleton, character.neutral, character.faces,
+        part_prims.append(root_path.AppendChild(MESH))
+        _define_mesh(stage, part_prims[-1], skeleton, character.neutral, character.faces,
                      character.shape_names, character.deltas)
+    if character.parts:          # read from a glTF scene: its materials and other meshes too (`usd_scene`)
+        from visemeflow.animation.usd_scene import dress_gltf_scene
+
+        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, _static_mesh(stage))
+        if notes:
+            stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     return stage
+
+
+def _static_mesh(stage: Usd.Stage):
+    """`define(path, points, faces)`: a Mesh prim that no skeleton moves (a glTF scene's undriven meshes)."""
+    def define(path: Sdf.Path, points: np.ndarray, faces: np.ndarray) -> UsdGeom.Mesh:
+        mesh = UsdGeom.Mesh.Define(stage, path)
+        points = np.ascontiguousarray(points, dtype=np.float32)
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
+        faces = np.ascontiguousarray(faces, dtype=np.int32)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, points.min(axis=0))),
+                                             Gf.Vec3f(*map(float, points.max(axis=0)))]))
+        return mesh
+    return define
 
 
 def _define_mesh(stage: Usd.Stage, path: Sdf.Path, skeleton: UsdSkel.Skeleton, neutral: np.ndarray,
@@ -259,6 +285,31 @@ def write_usd(path: str | os.PathLike, character: Character, weights, fps: float
     with atomic_path(path, keep_suffix=True) as tmp:
         if not stage.GetRootLayer().Export(str(tmp), "", args):
             raise OSError(f"{path}: USD could not write the stage")
+    return path
+
+
+@one_at_a_time
+def write_usdz(path: str | os.PathLike, character: Character, weights, fps: float, *, name: str | None = None,
+               meters_per_unit: float | None = None) -> Path:
+    """`write_usd`'s stage and its textures in one USDZ package (a zip archive that USD, Omniverse, Blender and
+    Apple's Quick Look read as one file): the stage as a binary crate, a glTF character's material images beside it
+    under `textures/`. Atomic; returns `path`."""
+    import tempfile
+
+    from pxr import UsdUtils
+
+    path = Path(path)
+    if path.suffix.lower() != ".usdz":
+        raise ValueError(f"{path}: a USDZ package's name ends in .usdz")
+    with tempfile.TemporaryDirectory(prefix="visemeflow-usdz-") as folder:
+        layer = Path(folder) / f"{path.stem}.usdc"
+        stage = build_stage(character, weights, fps, name=name, meters_per_unit=meters_per_unit,
+                            textures=Path(folder) / "textures")
+        if not stage.GetRootLayer().Export(str(layer)):
+            raise OSError(f"{path}: USD could not write the stage")
+        with atomic_path(path, keep_suffix=True) as tmp:
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(tmp)):
+                raise OSError(f"{path}: USD could not write the USDZ package")
     return path
 
 

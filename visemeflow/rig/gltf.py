@@ -188,6 +188,12 @@ class GltfMesh:
     has them, else None."""
     weights: np.ndarray | None = None
     """(V, 4) float32 WEIGHTS_0 (dequantized, each row scaled to sum 1), alongside `joints`."""
+    uvs: np.ndarray | None = None
+    """(V, 2) float32 TEXCOORD_0 as stored (glTF's origin top left), or None when no primitive has it (zeros for
+    a primitive without it). Primitives sharing their positions share the first one's."""
+    surfaces: tuple[tuple[int | None, int], ...] = ()
+    """Per primitive, in order: (its material index or None, its triangle count); the triangles of `faces` follow
+    the same order."""
 
 
 # ---- accessors -------------------------------------------------------------------------------------------------
@@ -321,6 +327,19 @@ class _Reader:
             raise self.fail(f"{what} (accessor {index}): colours must be float or normalized unsigned byte/short, "
                             f"got {'normalized ' if self.gltf.accessors[index].normalized else ''}{values.dtype}")
         return np.clip(rgb, 0.0, 1.0)
+
+    def texcoords(self, index: int, what: str) -> np.ndarray:
+        """TEXCOORD_n as (count, 2) float32: float, or normalized unsigned byte/short (glTF 2.0 3.7.2.1)."""
+        values = self.accessor(index, what, ("VEC2",))
+        if values.dtype.kind == "f":
+            uv = np.asarray(values, dtype=np.float32)
+            if not np.isfinite(uv).all():
+                raise self.fail(f"{what} (accessor {index}): NaN or infinite texture coordinates")
+            return uv
+        if values.dtype.kind == "u" and self.gltf.accessors[index].normalized:
+            return _dequantize(values)
+        raise self.fail(f"{what} (accessor {index}): texture coordinates must be float or normalized unsigned "
+                        f"byte/short, got {values.dtype}")
 
     def skin_influences(self, joints_index: int, weights_index: int, what: str) -> tuple[np.ndarray, np.ndarray]:
         """JOINTS_0 as (count, 4) int64 and WEIGHTS_0 as (count, 4) float32, each row scaled to sum 1 (a row of
@@ -510,6 +529,8 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         positions: list[np.ndarray] = []
         deltas: list[np.ndarray] = []
         colors: list[np.ndarray | None] = []
+        uvs: list[np.ndarray | None] = []
+        surfaces: list[tuple[int | None, int]] = []
         faces: list[np.ndarray] = []
         skins: list[tuple[np.ndarray, np.ndarray] | None] = []
         # (POSITION, COLOR_0, target POSITIONs, JOINTS_0, WEIGHTS_0) -> (first vertex, count)
@@ -528,6 +549,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
             if position_index is None:
                 raise RigError(f"{path}: {what} has no POSITION attribute")
             color_index = _attribute(primitive.attributes, "COLOR_0")
+            uv_index = _attribute(primitive.attributes, "TEXCOORD_0")
             target_ids = tuple(_attribute(t, "POSITION") for t in targets)
             skin_ids = (_attribute(primitive.attributes, "JOINTS_0"), _attribute(primitive.attributes, "WEIGHTS_0")) \
                 if skin else (None, None)
@@ -564,9 +586,16 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                     if len(influences[0]) != count:
                         raise RigError(f"{path}: {what} JOINTS_0/WEIGHTS_0 have {len(influences[0])} elements, "
                                        f"the primitive {count} positions")
+                uv = None
+                if uv_index is not None:
+                    uv = reader.texcoords(uv_index, f"{what} TEXCOORD_0")
+                    if len(uv) != count:
+                        raise RigError(f"{path}: {what} TEXCOORD_0 has {len(uv)} coordinates, the primitive {count} "
+                                       "positions")
                 first = n_vertices
                 shared[key] = (first, count)
                 skins.append(influences)
+                uvs.append(uv)
                 positions.append(vertices)
                 deltas.append(block)
                 colors.append(rgb)
@@ -577,6 +606,8 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                 raise RigError(f"{path}: {where} has more than {MAX_TRIANGLES} triangles ({n_triangles} up to {what}), "
                                "the most visemeflow reads in one mesh")
             faces.append(reader.indices(primitive.indices, count, what) + first)
+            material = primitive.material if isinstance(primitive.material, int) else None
+            surfaces.append((material, len(faces[-1])))
     except RigError:
         raise
     except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
@@ -586,6 +617,9 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         linear = np.concatenate([np.ones((len(p), 3), np.float32) if c is None else c
                                  for p, c in zip(positions, colors)])
         rgb = linear_to_srgb(linear)
+    uv_all = None
+    if any(u is not None for u in uvs):
+        uv_all = np.concatenate([np.zeros((len(p), 2), np.float32) if u is None else u for p, u in zip(positions, uvs)])
     joints = weights = None
     if skins and all(k is not None for k in skins):
         joints = np.concatenate([k[0] for k in skins])
@@ -594,7 +628,8 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                     neutral=np.concatenate(positions).astype(np.float32, copy=False),
                     faces=np.concatenate(faces).astype(np.int32),
                     target_names=tuple(names), deltas=np.concatenate(deltas, axis=1), colors=rgb,
-                    extras=mesh.extras if isinstance(mesh.extras, dict) else {}, joints=joints, weights=weights)
+                    extras=mesh.extras if isinstance(mesh.extras, dict) else {}, joints=joints, weights=weights,
+                    uvs=uv_all, surfaces=tuple(surfaces))
 
 
 # ---- the scene -------------------------------------------------------------------------------------------------
@@ -703,9 +738,11 @@ class GltfScene:
                     self._world[k] = base
         return self._world[node]
 
-    def placed_mesh(self, index: int) -> tuple[GltfMesh, np.ndarray, np.ndarray, str]:
-        """Mesh `index` read (targets, colours, skin attributes) and placed in the scene as its first node shows
-        it: (mesh, neutral (V, 3) float32, deltas (S, V, 3) float32, how it was placed).
+    def placed_mesh(self, index: int, node: int | None = None, *, morph_targets: bool = True
+                    ) -> tuple[GltfMesh, np.ndarray, np.ndarray, str]:
+        """Mesh `index` read (targets unless `morph_targets` is false, colours, skin attributes) and placed in the
+        scene as its first node (or `node`, one of the nodes that instance it) shows it: (mesh, neutral (V, 3)
+        float32, deltas (S, V, 3) float32, how it was placed).
 
         A skinned node (glTF ignores its own transform) is put in its rest pose: each vertex moved by the blend,
         by WEIGHTS_0, of world(joint) @ inverseBindMatrix over its JOINTS_0 (linear blend skinning, what a viewer
@@ -713,10 +750,13 @@ class GltfScene:
         skinning). Another node's world transform moves the neutral, its linear part the deltas. A mesh no node
         uses stays as stored."""
         info = next(i for i in self.meshes if i.index == index)
-        mesh = _read_mesh(self.reader, index, skin=info.skin is not None)
+        mesh = _read_mesh(self.reader, index, skin=info.skin is not None, morph_targets=morph_targets)
         if not info.nodes:
             return mesh, mesh.neutral, mesh.deltas, "as stored (no node)"
-        node = info.nodes[0]
+        if node is None:
+            node = info.nodes[0]
+        elif node not in info.nodes:
+            raise RigError(f"{self.path}: node {node} does not instance mesh {index}")
         if info.skin is not None and mesh.joints is not None:
             blend = self._skin_blend(info.skin, mesh)
             unweighted = mesh.weights.sum(axis=1) == 0      # no influence: left where its node puts it
@@ -729,6 +769,36 @@ class GltfScene:
         neutral = np.einsum("vij,vj->vi", linear, mesh.neutral.astype(np.float64)) + blend[:, :3, 3]
         deltas = np.einsum("vij,svj->svi", linear, mesh.deltas.astype(np.float64))
         return mesh, neutral.astype(np.float32), deltas.astype(np.float32), how
+
+    def image(self, index: int) -> tuple[bytes, str]:
+        """Image `index`'s bytes and its file suffix (`.png`, `.jpg`, or what its MIME type or URI says), from its
+        buffer view or its URI (checked at load as the buffers are). RigError when it cannot be read."""
+        images = self.gltf.images or []
+        if not isinstance(index, int) or not 0 <= index < len(images):
+            raise RigError(f"{self.path}: image {index} does not exist")
+        image = images[index]
+        try:
+            if isinstance(image.bufferView, int):
+                if not 0 <= image.bufferView < len(self.gltf.bufferViews):
+                    raise RigError(f"{self.path}: image {index}: buffer view {image.bufferView} does not exist")
+                view = self.gltf.bufferViews[image.bufferView]
+                data = self.reader.buffer(view.buffer)
+                start, length = view.byteOffset or 0, view.byteLength
+                if not isinstance(length, int) or start + length > len(data):
+                    raise RigError(f"{self.path}: image {index} lies outside its buffer")
+                blob = bytes(data[start:start + length])
+            elif isinstance(image.uri, str):
+                blob = read_gltf_uri(self.path, image.uri)
+            else:
+                raise RigError(f"{self.path}: image {index} has neither a buffer view nor a URI")
+        except (OSError, ValueError) as exc:
+            raise RigError(f"{self.path}: image {index} cannot be read ({exc})") from None
+        if blob.startswith(b"\x89PNG\r\n\x1a\n"):
+            return blob, ".png"
+        if blob.startswith(b"\xff\xd8\xff"):
+            return blob, ".jpg"
+        kind = (image.mimeType or "").rpartition("/")[2] or Path(str(image.uri or "")).suffix.lstrip(".")
+        return blob, f".{kind.lower()}" if kind else ".bin"
 
     def _skin_blend(self, skin_index: int, mesh: GltfMesh) -> np.ndarray:
         """(V, 4, 4): per vertex, sum_k weight_k * world(joint_k) @ inverseBindMatrix_k."""

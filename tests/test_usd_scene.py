@@ -1,0 +1,182 @@
+"""A glTF character's USD is the user's whole scene (visemeflow/animation/usd_scene.py), read back through usd-core:
+texture coordinates, materials bound per primitive (GeomSubsets), the material's inputs as the glTF states them,
+textures inside the USDZ package, the meshes no target moves placed as the scene shows them, and what cannot be
+carried named in the layer. Blender's own import of the avatar's USD and USDZ is in tests/test_blender.py."""
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pygltflib as gl
+import pytest
+from factories import usd_validation_errors
+from PIL import Image
+from pxr import Usd, UsdGeom, UsdShade
+
+from visemeflow.animation.load import load_character
+from visemeflow.animation.usd import write_usd, write_usdz
+
+TARGETS = ["jawOpen", "mouthClose", "mouthPressLeft", "mouthPressRight", "mouthFunnel"]
+EYE_AT = ([-0.03, 1.6, 0.1], [0.03, 1.6, 0.1])
+
+
+def _image(kind: str, rgb) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(np.full((4, 4, 3), rgb, np.uint8)).save(out, format=kind)
+    return out.getvalue()
+
+
+def make_scene(path: Path) -> dict:
+    """A head of two primitives with two materials (a textured, masked skin with a normal map and a WebP emissive
+    map; a plain double-sided one) and an eye mesh without targets that two nodes instance."""
+    g = gl.GLTF2(asset=gl.Asset(version="2.0"))
+    blob = bytearray()
+
+    def view(data: bytes) -> int:
+        blob.extend(bytes(-len(blob) % 4))
+        g.bufferViews.append(gl.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data)))
+        blob.extend(data)
+        return len(g.bufferViews) - 1
+
+    def accessor(array: np.ndarray, kind: str) -> int:
+        array = np.ascontiguousarray(array)
+        component = gl.FLOAT if array.dtype == np.float32 else gl.UNSIGNED_SHORT
+        flat = array.reshape(len(array), -1)
+        g.accessors.append(gl.Accessor(bufferView=view(array.tobytes()), componentType=component, count=len(array),
+                                       type=kind, min=flat.min(0).tolist() if kind == gl.VEC3 else None,
+                                       max=flat.max(0).tolist() if kind == gl.VEC3 else None))
+        return len(g.accessors) - 1
+
+    rng = np.random.default_rng(2)
+    head = rng.normal(0, 0.05, (8, 3)).astype(np.float32) + np.float32([0, 1.5, 0])
+    uv = rng.uniform(0, 1, (8, 2)).astype(np.float32)
+    deltas = rng.normal(0, 0.005, (len(TARGETS), 8, 3)).astype(np.float32)
+    front = np.array([[0, 1, 2], [2, 3, 0], [1, 2, 3]], np.uint16)     # three triangles: the skin
+    back = np.array([[4, 5, 6], [6, 7, 4]], np.uint16)                 # two: the plain material
+    position, texcoord = accessor(head, gl.VEC3), accessor(uv, gl.VEC2)
+    targets = [{"POSITION": accessor(d, gl.VEC3)} for d in deltas]
+    primitives = [gl.Primitive(attributes=gl.Attributes(POSITION=position, TEXCOORD_0=texcoord), targets=targets,
+                               indices=accessor(f.ravel(), gl.SCALAR), material=m) for f, m in ((front, 0), (back, 1))]
+    g.meshes.append(gl.Mesh(name="Head", primitives=primitives, extras={"targetNames": TARGETS}))
+    eye = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float32)
+    g.meshes.append(gl.Mesh(name="Eye", primitives=[gl.Primitive(
+        attributes=gl.Attributes(POSITION=accessor(eye, gl.VEC3)), indices=accessor(np.arange(3, dtype=np.uint16),
+                                                                                   gl.SCALAR), material=1)]))
+    g.images = [gl.Image(name="skin", mimeType="image/png", bufferView=view(_image("PNG", (200, 150, 120)))),
+                gl.Image(name="normals", mimeType="image/jpeg", bufferView=view(_image("JPEG", (128, 128, 255)))),
+                gl.Image(name="glow", mimeType="image/webp", bufferView=view(_image("WEBP", (9, 9, 9))))]
+    g.samplers = [gl.Sampler(wrapS=gl.CLAMP_TO_EDGE, wrapT=gl.MIRRORED_REPEAT)]
+    g.textures = [gl.Texture(source=0, sampler=0), gl.Texture(source=1), gl.Texture(source=2)]
+    g.materials = [
+        gl.Material(name="skin", alphaMode=gl.MASK, alphaCutoff=0.3, normalTexture=gl.NormalMaterialTexture(
+                        index=1, scale=0.5), emissiveTexture=gl.TextureInfo(index=2), emissiveFactor=[1, 1, 1],
+                    pbrMetallicRoughness=gl.PbrMetallicRoughness(baseColorTexture=gl.TextureInfo(index=0),
+                                                                 baseColorFactor=[1, 0.9, 0.8, 1],
+                                                                 metallicFactor=0.0, roughnessFactor=0.6)),
+        gl.Material(name="plain", doubleSided=True, pbrMetallicRoughness=gl.PbrMetallicRoughness(
+            baseColorFactor=[0.2, 0.3, 0.4, 1.0], metallicFactor=0.1, roughnessFactor=0.9))]
+    g.nodes = [gl.Node(name="HeadNode", mesh=0), gl.Node(name="EyeL", mesh=1, translation=EYE_AT[0]),
+               gl.Node(name="EyeR", mesh=1, translation=EYE_AT[1])]
+    g.scenes, g.scene = [gl.Scene(nodes=[0, 1, 2])], 0
+    g.buffers = [gl.Buffer(byteLength=len(blob))]
+    g.set_binary_blob(bytes(blob))
+    g.save_binary(str(path))
+    return {"uv": uv, "eye": eye}
+
+
+@pytest.fixture()
+def scene(tmp_path):
+    arrays = make_scene(tmp_path / "scene.glb")
+    character = load_character(tmp_path / "scene.glb")
+    weights = np.random.default_rng(0).random((6, character.n_shapes)).astype(np.float32)
+    return character, weights, arrays
+
+
+def surface_inputs(material: UsdShade.Material) -> dict:
+    """The UsdPreviewSurface's inputs: a value, or `(shader id, output, its inputs)` where one is connected."""
+    surface = material.ComputeSurfaceSource()[0]
+    out = {}
+    for put in surface.GetInputs():
+        if put.HasConnectedSource():
+            source, output, _ = put.GetConnectedSource()
+            shader = UsdShade.Shader(source.GetPrim())
+            out[put.GetBaseName()] = (shader.GetIdAttr().Get(), output,
+                                      {i.GetBaseName(): i.Get() for i in shader.GetInputs()})
+        else:
+            out[put.GetBaseName()] = put.Get()
+    return out
+
+
+def test_the_usdz_holds_the_whole_scene_with_its_textures(tmp_path, scene):
+    character, weights, arrays = scene
+    path = write_usdz(tmp_path / "take.usdz", character, weights, 30.0, name="take")
+    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/0_skin.png", "textures/1_normals.jpg"]
+    stage = Usd.Stage.Open(str(path))
+    assert usd_validation_errors(stage) == []
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+    assert sorted(meshes) == ["EyeL", "EyeR", "Mesh"]     # the eye once per node that instances it, by node
+    for k, name in enumerate(("EyeL", "EyeR")):
+        points = np.asarray(meshes[name].GetPointsAttr().Get())
+        np.testing.assert_allclose(points, arrays["eye"] + np.float32(EYE_AT[k]), atol=1e-6)
+        assert UsdShade.MaterialBindingAPI(meshes[name]).ComputeBoundMaterial()[0].GetPath().name == "plain"
+    head = meshes["Mesh"]                                         # a single driven mesh is `Mesh`, as ever
+    st = np.asarray(UsdGeom.PrimvarsAPI(head).GetPrimvar("st").Get())
+    np.testing.assert_allclose(st, np.c_[arrays["uv"][:, 0], 1 - arrays["uv"][:, 1]], atol=1e-7)
+    assert head.GetDoubleSidedAttr().Get()                       # one of its materials is double-sided
+    subsets = {UsdShade.MaterialBindingAPI(s.GetPrim()).ComputeBoundMaterial()[0].GetPath().name:
+               list(s.GetIndicesAttr().Get()) for s in UsdShade.MaterialBindingAPI(head).GetMaterialBindSubsets()}
+    assert subsets == {"skin": [0, 1, 2], "plain": [3, 4]}      # each primitive's triangles, in the file's order
+    materials = {m.GetPath().name: UsdShade.Material(m) for m in stage.Traverse() if m.IsA(UsdShade.Material)}
+    skin = surface_inputs(materials["skin"])
+    kind, output, texture = skin["diffuseColor"]
+    assert (kind, output, texture["sourceColorSpace"]) == ("UsdUVTexture", "rgb", "sRGB")
+    assert texture["file"].path == "./textures/0_skin.png" and tuple(texture["scale"]) == pytest.approx((1, .9, .8, 1))
+    assert (texture["wrapS"], texture["wrapT"]) == ("clamp", "mirror")
+    assert skin["opacity"][1] == "a" and skin["opacityThreshold"] == pytest.approx(0.3)      # MASK, alphaCutoff
+    kind, output, normal = skin["normal"]
+    assert normal["sourceColorSpace"] == "raw" and normal["file"].path == "./textures/1_normals.jpg"
+    assert tuple(normal["scale"]) == (1, 1, 2, 1) and tuple(normal["bias"]) == (-0.5, -0.5, -1, 0)   # its scale 0.5
+    assert skin["metallic"] == 0 and skin["roughness"] == pytest.approx(0.6)
+    assert "emissiveColor" not in skin                          # its image is WebP: left out, and said so
+    assert "image 2 is WEBP" in stage.GetRootLayer().documentation
+    plain = surface_inputs(materials["plain"])
+    assert tuple(plain["diffuseColor"]) == pytest.approx((0.2, 0.3, 0.4))
+    assert "opacity" not in plain and plain["metallic"] == pytest.approx(0.1)
+    # the driven head still plays our weights: UsdSkel's own blend of its shapes (the eyes stay where they are)
+    from pxr import Gf, UsdSkel
+
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, 5))
+    for k in (0, 5):
+        expected = character.neutral + np.einsum("s,svc->vc", weights[k], character.deltas)
+        np.testing.assert_allclose(np.asarray(head.GetPointsAttr().Get(k)), expected, atol=1e-6)
+
+
+def test_a_plain_usd_carries_the_materials_without_images(tmp_path, scene):
+    """A .usd is one file: no image in it, so the materials keep their factors, and the texture coordinates and
+    the undriven meshes are there as in the USDZ."""
+    character, weights, _ = scene
+    path = write_usd(tmp_path / "take.usda", character, weights, 30.0, name="take")
+    stage = Usd.Stage.Open(str(path))
+    assert usd_validation_errors(stage) == []
+    assert not [p for p in stage.Traverse() if p.IsA(UsdShade.Shader) and
+                UsdShade.Shader(p).GetIdAttr().Get() == "UsdUVTexture"]
+    skin = surface_inputs(UsdShade.Material(stage.GetPrimAtPath("/take/Materials/skin")))
+    assert tuple(skin["diffuseColor"]) == pytest.approx((1, 0.9, 0.8)) and skin["opacity"] == 1
+    assert sorted(p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)) == ["EyeL", "EyeR", "Mesh"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.glb", "take.usda"]    # nothing written beside it
+
+
+def test_a_character_not_from_gltf_makes_a_usdz_of_its_stage_alone(tmp_path):
+    from visemeflow.rig import load_demo_rig
+    from visemeflow.rig.character import character_from_rig
+
+    demo_character = character_from_rig(load_demo_rig())
+    weights = np.zeros((3, demo_character.n_shapes), np.float32)
+    path = write_usdz(tmp_path / "demo.usdz", demo_character, weights, 30.0)
+    assert zipfile.ZipFile(path).namelist() == ["demo.usdc"]
+    stage = Usd.Stage.Open(str(path))
+    assert usd_validation_errors(stage) == []
+    assert [p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)] == ["Mesh"]
+    with pytest.raises(ValueError, match="ends in .usdz"):
+        write_usdz(tmp_path / "demo.usd", demo_character, weights, 30.0)
