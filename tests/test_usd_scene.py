@@ -180,3 +180,25 @@ def test_a_character_not_from_gltf_makes_a_usdz_of_its_stage_alone(tmp_path):
     assert [p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)] == ["Mesh"]
     with pytest.raises(ValueError, match="ends in .usdz"):
         write_usdz(tmp_path / "demo.usd", demo_character, weights, 30.0)
+
+
+def test_an_image_that_cannot_be_read_costs_its_texture_not_the_animation(tmp_path):
+    """A .gltf whose texture file is missing beside it: the USDZ is written with that texture left out and named."""
+    import json
+
+    make_scene(tmp_path / "scene.glb")
+    g = gl.GLTF2().load(str(tmp_path / "scene.glb"))
+    g.convert_buffers(gl.BufferFormat.DATAURI)
+    g.images[0].bufferView, g.images[0].uri = None, "skin.png"      # an external image that is not there
+    text = json.loads(g.to_json())
+    (tmp_path / "scene.gltf").write_text(json.dumps(text))
+    character = load_character(tmp_path / "scene.gltf")
+    path = write_usdz(tmp_path / "take.usdz", character, np.zeros((3, character.n_shapes), np.float32), 30.0,
+                      name="take")
+    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/1_normals.jpg"]
+    stage = Usd.Stage.Open(str(path))
+    assert usd_validation_errors(stage) == []
+    note = stage.GetRootLayer().documentation
+    assert "image 0 cannot be read" in note and "skin.png" in note, note
+    skin = surface_inputs(UsdShade.Material(stage.GetPrimAtPath("/take/Materials/skin")))
+    assert tuple(skin["diffuseColor"]) == pytest.approx((1, 0.9, 0.8))      # the factor alone

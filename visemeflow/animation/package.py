@@ -5,13 +5,15 @@ bound to the character's shapes and written in every requested format into one f
 |---------------|-----------------------|--------------------------------------------------------------|
 | `glb`         | `<stem>.glb`          | Blender, three.js / web, Unity (glTFast, UniVRM), Godot       |
 | `usd`         | `<stem>.usd`          | Omniverse, Maya USD, Houdini (UsdSkel, as Audio2Face exports) |
+| `usdz`        | `<stem>.usdz`         | the same stage with a glTF character's textures packed in      |
 | `livelink`    | `<stem>.livelink.csv` | Unreal / MetaHuman (Live Link Face CSV, ARKit 52)             |
 | `json`        | `<stem>.web.json`     | web avatars (TalkingHead's `dt`/`vs` animation layout)        |
 | `curves-csv`  | `<stem>.curves.csv`   | the 16 viseme curves, one row per frame                      |
 | `curves-json` | `<stem>.curves.json`  | the 16 viseme curves, one list per viseme                    |
 
 The `glb` of a character read from a glTF scene is that whole scene with the clip added (`gltf_asset`); of other
-characters, a new single-mesh GLB (`gltf.write_glb`).
+characters, a new single-mesh GLB (`gltf.write_glb`). Its `usd` / `usdz` carry the scene's other meshes, UVs and
+materials as well (`usd_scene`).
 
 Bone mode (`AnimateConfig.mode = "bones"`, `visemeflow animate --mode bones --bones N`): the character's visemes become
 N SSDR bones (`visemeflow.animation.bones`, solved once per character, binding and bone count in a process and

@@ -22,7 +22,9 @@ through the skeleton that `skel:skeleton` names, so a blendshape-only character 
 A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.parts`) gets one Mesh prim per part
 (named by the part, made a valid prim name) in place of `Mesh`, placed as in the scene, each with only its own
 targets as BlendShapes and its own `skel:blendShapes` order, all bound to the one Skeleton: the SkelAnimation's
-`blendShapes` (the union of the names) drives every part by name.
+`blendShapes` (the union of the names) drives every part by name. A character read from a glTF scene (one mesh
+or several) also gets the scene's texture coordinates, materials and undriven meshes (`usd_scene`); `write_usdz`
+packs the stage with the materials' images into one `.usdz`.
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
 Stage: upAxis Y, `metersPerUnit` the character's own unit (`Character.mm_per_unit` / 1000: 0.01 for the demo rig's

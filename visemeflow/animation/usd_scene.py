@@ -33,6 +33,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from visemeflow.rig.character import Character
 from visemeflow.rig.gltf import GltfMesh, GltfScene
+from visemeflow.rig.model import RigError
 
 __all__ = ["MATERIALS", "TEXTURES", "dress_gltf_scene"]
 
@@ -82,7 +83,12 @@ class _Materials:
             return None
         source = textures[texture_index].source
         if source not in self.images:
-            blob, suffix = self.scene.image(source)
+            try:
+                blob, suffix = self.scene.image(source)
+            except RigError as exc:      # a missing or broken image costs its texture, not the animation
+                self.notes.append(f"{what}: {exc}: left out")
+                self.images[source] = None
+                return None
             if suffix not in _USDZ_IMAGES:
                 self.notes.append(f"{what}: image {source} is {suffix.lstrip('.').upper()}, which USD packages do "
                                   "not carry (PNG or JPEG only): left out")
