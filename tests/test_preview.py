@@ -667,3 +667,42 @@ def test_a_long_preview_reports_each_frame_written_and_its_log_lines_count_frame
         log(phase, k, n)
     assert lines == ["animate[s/x]: preview 10/20 frames, 2/s, about 4 s left",   # the phase began at frame 1
                      "animate[s/x]: preview 20/20 frames, 2/s"]
+
+
+def test_a_gltf_avatar_shows_its_skin_texture_in_the_preview(tmp_path, monkeypatch, caplog):
+    """The avatar of tests/avatar_glb.py (a head textured by a 2x2 skin PNG, teeth and eyes with a plain material):
+    the preview shows the head in the skin's colours (red over green over blue, as every texel of it), where it was
+    grey; an image too large to decode is left out with a warning naming it, and the head falls back to its base
+    colour."""
+    import io
+
+    from avatar_glb import make_avatar
+    from PIL import Image
+
+    import visemeflow.animation.surface as surface
+    from visemeflow.animation.load import load_character
+    from visemeflow.rig.gltf import GltfScene
+
+    make_avatar(tmp_path / "avatar.glb")
+    ch = load_character(tmp_path / "avatar.glb")
+    texture, notes = surface.character_texture(ch)
+    png = np.asarray(Image.open(io.BytesIO(GltfScene(tmp_path / "avatar.glb").image(0)[0])).convert("RGB"))
+    assert notes == [] and len(texture.images) == 1 and np.array_equal(texture.images[0], png)
+    head = next(p for p in ch.parts if p.name == "Wolf3D_Head")
+    on_head = (ch.faces >= head.start).all(axis=1) & (ch.faces < head.stop).all(axis=1)
+    assert (texture.face_image[on_head] == 0).all() and (texture.face_image[~on_head] == -1).all()
+
+    weights = np.zeros((2, ch.n_shapes), np.float32)
+
+    def skin_share(frames: PreviewFrames) -> float:
+        panel = next(iter(frames))[frames.panel_box(0)].reshape(-1, 3).astype(int)
+        covered = panel[(panel != panel[0]).any(axis=1)]          # the corner is background
+        skin = (covered[:, 0] > covered[:, 1] + 10) & (covered[:, 1] > covered[:, 2])
+        return float(skin.mean()) if len(covered) else 0.0
+
+    assert skin_share(PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")) > 0.5
+    monkeypatch.setattr(surface, "MAX_IMAGE_PIXELS", 3)             # the 2x2 skin is now "too large"
+    with caplog.at_level("WARNING"):
+        plain = PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")
+    assert skin_share(plain) == 0.0
+    assert "image 0 is 2x2 pixels, more than the 3 a preview decodes" in caplog.text

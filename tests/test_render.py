@@ -12,6 +12,7 @@ from visemeflow.rig import evaluate_rig, load_demo_rig
 from visemeflow.render.raster import (
     DEFAULT_BACKGROUND,
     Camera,
+    MeshTexture,
     Pose,
     frontal_pose,
     project,
@@ -221,6 +222,32 @@ def test_vertex_colours_are_interpolated():
     reds = column[covered, 0].astype(int)
     assert reds[0] < 40 and reds[-1] > 215  # image top is blue, bottom red
     assert (np.diff(reds) >= 0).all()
+
+
+def test_a_texture_colours_each_fragment_by_its_texel_times_the_face_colour_and_the_light():
+    """A quad with UVs 0..1 (glTF's origin at the image's top left) over a 2x2 image: each quarter of the quad shows
+    its texel (bilinear, exact at texel centres), the second triangle's base colour halves green, and the light
+    scales it all; a face without an image shows its base colour."""
+    vertices, faces = quad(-4, 4, -3, 3, 0.0)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)     # bottom left vertex: the image's bottom left
+    texels = np.array([[[250, 0, 0], [0, 250, 0]], [[0, 0, 250], [250, 250, 250]]], np.uint8)   # top: red green
+    texture = MeshTexture(uv=uv, face_image=np.array([0, 0]), face_color=np.ones((2, 3)), images=(texels,))
+    image = render_mesh(vertices, faces, None, CAMERA, FRONT, light_dir=(0, 0, 1), ambient=1.0, texture=texture)
+    at = project(np.array([[-2, 1.5, 0], [2, 1.5, 0], [-2, -1.5, 0], [2, -1.5, 0]], np.float64), CAMERA, FRONT)
+    quarters = np.array([image[int(round(y)), int(round(x))] for x, y in at], np.float64)
+    # top left red, top right green, bottom left blue, bottom right white (the nearest pixel centre is within a
+    # fraction of a texel of the texel's centre: bilinear blends a little of the neighbours)
+    np.testing.assert_allclose(quarters, texels.reshape(4, 3), atol=25)
+    halved = MeshTexture(uv=uv, face_image=np.array([0, -1]), face_color=np.array([[1, 1, 1], [0.2, 0.4, 0.6]]),
+                         images=(texels,))
+    dim = render_mesh(vertices, faces, None, CAMERA, FRONT, light_dir=(0, 0, 1), ambient=0.5, texture=halved)
+    # the top left quarter lies on face 1 (vertices 0, 2, 3): its base colour alone, at ambient 0.5 + 0.5 lit
+    top_left, bottom_right = dim[int(round(at[0][1])), int(round(at[0][0]))], dim[int(round(at[3][1])),
+                                                                                   int(round(at[3][0]))]
+    assert top_left.tolist() == [51, 102, 153]
+    np.testing.assert_allclose(bottom_right, [250, 250, 250], atol=25)
+    grey = render_mesh(vertices, faces, None, CAMERA, FRONT, light_dir=(0, 0, 1), ambient=1.0)
+    assert grey[int(round(at[0][1])), int(round(at[0][0]))].tolist() == [191, 191, 191]   # untextured: as before
 
 
 def test_vertex_normals_of_a_sphere_point_outward():

@@ -16,7 +16,8 @@ The lip band shows the gap between the inner lips of the mesh as rendered (the t
 when the phone under way is a bilabial (b, p, m) and the lips are not closed, so a failed closure shows at a glance.
 
 Panels are rendered by the synthetic corpus's numpy rasteriser (`visemeflow.render.raster.render_mesh`, Lambert +
-ambient shading, grey skin) from one fixed camera and pose per character, so only the blendshape motion changes.
+ambient shading; the character's vertex colours, or grey; a glTF character's material colours and base-colour
+textures, `animation.surface`) from one fixed camera and pose per character, so only the blendshape motion changes.
 The default `framing="mouth"` frames the vertices that the shapes move (for a face rig: the lower face, lips, jaw
 and chin); `framing="face"` frames the whole neutral mesh.
 
@@ -25,7 +26,7 @@ Memory stays bounded for long takes: vertices are made `chunk_frames` frames at 
 encoder at once; no list of frames is ever held. A panel whose weights equal its previous frame's (a held last
 frame, a still stretch) or another panel's in the same frame is copied, not rendered again.
 
-Text (title, labels, phones). With Pillow (installed with matplotlib; not a declared dependency) text is drawn
+Text (title, labels, phones). With Pillow (a declared dependency) text is drawn
 with a TrueType font: DejaVu Sans from the system (or matplotlib's bundled copy), which covers Latin, IPA and
 pinyin with tone marks, and a CJK font when one of the usual ones is installed (Noto Sans CJK, WenQuanYi, Droid
 Sans Fallback, ...). A character that no available font has (e.g. Chinese on a machine without a CJK font, which
@@ -77,6 +78,7 @@ import numpy as np
 
 from visemeflow.rig.character import Character
 from visemeflow.animation.lips import inner_lip_pairs, is_bilabial, pair_gap_mm
+from visemeflow.animation.surface import character_texture
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
 from visemeflow.render.raster import Camera, Pose, frontal_pose, render_mesh
@@ -660,6 +662,10 @@ class PreviewFrames:
             raise ValueError(f"title must be text, got {title!r}")
         self.size, self.chunk_frames, self.title = int(size), int(chunk_frames), title
         self.camera, self.pose = preview_camera(character, self.size, framing)
+        # a glTF character's materials and base-colour textures (its skin, not a grey head)
+        self.texture, notes = character_texture(character)
+        for note in notes:
+            log.warning("preview of %s: %s", character.label, note)
         self.frames = max(int(n_frames), max(panel.rows.shape[0] for panel in self.sources))
 
         # layout: [title band] label band, panels, [caption band]; every band an even number of rows
@@ -751,7 +757,8 @@ class PreviewFrames:
                         canvas[box] = canvas[self.panel_box(twin + off)]
                     else:
                         canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces,
-                                                  self.character.vertex_colors, self.camera, self.pose)
+                                                  self.character.vertex_colors, self.camera, self.pose,
+                                                  texture=self.texture)
                     shown[k] = row
                 if self.lip_height:
                     phone = self.phone_at(i)

@@ -16,7 +16,8 @@ Conventions
 Rasterisation samples pixel centres: a pixel belongs to a triangle when its centre lies inside (edges included);
 the nearest fragment wins (depth compared as 1/d, which is affine in screen space, so the z-buffer is exact for
 planar triangles). Colours are per-vertex, shaded per vertex (Lambert + ambient from area-weighted vertex normals)
-and interpolated linearly in screen space (Gouraud). Triangles with a vertex closer than `near` are dropped, not
+and interpolated linearly in screen space (Gouraud); a textured mesh (`MeshTexture`) multiplies that interpolated
+light by its face's base colour and bilinearly sampled texel. Triangles with a vertex closer than `near` are dropped, not
 clipped. The fast path enumerates every triangle's bounding-box pixels at once in numpy; `rasterize_reference` is
 the plain per-triangle loop it is tested and benchmarked against.
 """
@@ -335,6 +336,51 @@ def rasterize(vertices: np.ndarray, faces: np.ndarray, camera: Camera, pose: Pos
     return Raster(ids.reshape(shape), bary.reshape(shape + (3,)), depth.reshape(shape))
 
 
+@dataclass(frozen=True, eq=False)
+class MeshTexture:
+    """What colours a textured mesh: per vertex texture coordinates, per face a base colour and which image (if any)
+    multiplies it. Images are sampled bilinearly, wrapping (glTF's default sampler), at the fragment's coordinates
+    interpolated in screen space."""
+
+    uv: np.ndarray
+    """(V, 2) float32 texture coordinates, origin at the image's top left (glTF's): column u * W, row v * H."""
+    face_image: np.ndarray
+    """(F,) int64 index into `images`, -1 for a face without one."""
+    face_color: np.ndarray
+    """(F, 3) float RGB in [0, 1] (display values, as vertex colours): the face's base colour."""
+    images: tuple[np.ndarray, ...] = ()
+    """(H, W, 3) uint8 RGB images (display values)."""
+
+    def sample(self, triangle: np.ndarray, corners: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 colours in [0, 1] of fragments of faces `triangle` with vertices `corners` (N, 3) and
+        barycentrics `w` (N, 3)."""
+        rgb = np.asarray(self.face_color, np.float32)[triangle]
+        which = np.asarray(self.face_image, np.int64)[triangle]
+        uv = np.einsum("nk,nkc->nc", w.astype(np.float32), np.asarray(self.uv, np.float32)[corners])
+        for k, image in enumerate(self.images):
+            mine = np.flatnonzero(which == k)
+            if mine.size:
+                rgb[mine] *= _bilinear(image, uv[mine])
+        return rgb
+
+
+def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 in [0, 1]: `image` (H, W, 3) uint8 at texture coordinates `uv` (N, 2), bilinear, wrapping at
+    the edges (OpenCV's remap: texel centres at (i + 0.5) / W)."""
+    import cv2
+
+    h, w = image.shape[:2]
+    n = len(uv)
+    columns = 1024                              # remap's maps: rows of at most this many points
+    rows = -(-n // columns)
+    maps = np.zeros((2, rows * columns), np.float32)
+    maps[0, :n] = uv[:, 0] * w - 0.5
+    maps[1, :n] = uv[:, 1] * h - 0.5
+    maps = maps.reshape(2, rows, columns)
+    texels = cv2.remap(np.ascontiguousarray(image), maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return texels.reshape(-1, 3)[:n].astype(np.float32) / np.float32(255.0)
+
+
 def render_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -346,21 +392,31 @@ def render_mesh(
     background=DEFAULT_BACKGROUND,
     cull_backfaces: bool = True,
     reference: bool = False,
+    texture: MeshTexture | None = None,
 ) -> np.ndarray:
     """(H, W, 3) uint8 RGB image of the mesh (vertices (V, 3), faces (F, 3), colors (V, 3) in [0, 1] or None = grey).
 
     `light_dir` is in camera coordinates (x right, y up, z toward the viewer); `reference=True` rasterises with the
-    slow per-triangle loop (for checks and benchmarks).
+    slow per-triangle loop (for checks and benchmarks). With `texture`, each fragment's colour is its face's base
+    colour times its image's texel (times the vertex colours, when given), lit by the shading interpolated from the
+    vertices.
     """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
-    if colors is None:
-        colors = np.full((len(vertices), 3), 0.75)
     image = np.empty((camera.height * camera.width, 3), np.uint8)
     image[:] = np.asarray(background, np.uint8)
     raster = rasterize_reference if reference else rasterize_fragments
     fragments = raster(vertices, faces, camera, pose, cull_backfaces)
-    if fragments.pixel.size:
+    if fragments.pixel.size and texture is not None:
+        light = shade_vertices(to_camera(vertices, pose), faces, np.ones((len(vertices), 3)) if colors is None
+                               else colors, light_dir, ambient)
+        corners = faces[fragments.triangle]
+        w = fragments.barycentric
+        rgb = np.einsum("nk,nkc->nc", w, light[corners]) * texture.sample(fragments.triangle, corners, w)
+        image[fragments.pixel] = np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    elif fragments.pixel.size:
+        if colors is None:
+            colors = np.full((len(vertices), 3), 0.75)
         shaded = shade_vertices(to_camera(vertices, pose), faces, colors, light_dir, ambient)
         corners = faces[fragments.triangle]
         w = fragments.barycentric
