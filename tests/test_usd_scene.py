@@ -202,3 +202,23 @@ def test_an_image_that_cannot_be_read_costs_its_texture_not_the_animation(tmp_pa
     assert "image 0 cannot be read" in note and "skin.png" in note, note
     skin = surface_inputs(UsdShade.Material(stage.GetPrimAtPath("/take/Materials/skin")))
     assert tuple(skin["diffuseColor"]) == pytest.approx((1, 0.9, 0.8))      # the factor alone
+
+
+def test_broken_texture_coordinates_cost_the_texture_not_the_character(tmp_path):
+    """NaN in TEXCOORD_0: the character loads and speaks as before (texture coordinates only colour it); the USD has
+    no st on that mesh and says why."""
+    make_scene(tmp_path / "scene.glb")
+    g = gl.GLTF2().load(str(tmp_path / "scene.glb"))
+    uv = g.accessors[g.meshes[0].primitives[0].attributes.TEXCOORD_0]
+    blob = bytearray(g.binary_blob())
+    view = g.bufferViews[uv.bufferView]
+    blob[view.byteOffset:view.byteOffset + 4] = np.float32(np.nan).tobytes()
+    g.set_binary_blob(bytes(blob))
+    g.save_binary(str(tmp_path / "broken.glb"))
+    character = load_character(tmp_path / "broken.glb")
+    assert character.n_vertices == 8
+    path = write_usd(tmp_path / "take.usda", character, np.zeros((2, character.n_shapes), np.float32), 30.0,
+                     name="take")
+    stage = Usd.Stage.Open(str(path))
+    assert not UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/take/Mesh")).GetPrimvar("st").IsDefined()
+    assert "NaN or infinite texture coordinates" in stage.GetRootLayer().documentation

@@ -73,6 +73,7 @@ def character_texture(character: Character) -> tuple[MeshTexture | None, list[st
         if len(mesh.neutral) != part.n_vertices or row + n_faces > len(face_image):
             return None, [f"{part.name}: the file's mesh no longer matches the character: the preview shows no "
                           "materials"]
+        notes.extend(mesh.uv_problems)
         if mesh.uvs is not None:
             uv[part.start:part.stop] = mesh.uvs
         for material, count in mesh.surfaces:

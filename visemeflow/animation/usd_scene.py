@@ -205,6 +205,7 @@ class _Materials:
 
 def _dress_mesh(stage: Usd.Stage, mesh: UsdGeom.Mesh, source: GltfMesh, materials: _Materials) -> None:
     """`source`'s texture coordinates and materials on the Mesh prim made from it (same vertices, same faces)."""
+    materials.notes.extend(source.uv_problems)
     if source.uvs is not None:
         st = np.c_[source.uvs[:, 0], 1.0 - source.uvs[:, 1]].astype(np.float32)
         UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,

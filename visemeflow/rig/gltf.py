@@ -194,6 +194,9 @@ class GltfMesh:
     surfaces: tuple[tuple[int | None, int], ...] = ()
     """Per primitive, in order: (its material index or None, its triangle count); the triangles of `faces` follow
     the same order."""
+    uv_problems: tuple[str, ...] = ()
+    """Why a primitive's TEXCOORD_0 was not read (NaN, a wrong count, a broken accessor): texture coordinates
+    only colour the mesh, so the mesh is read without them (zeros) and the exports say so."""
 
 
 # ---- accessors -------------------------------------------------------------------------------------------------
@@ -329,17 +332,17 @@ class _Reader:
         return np.clip(rgb, 0.0, 1.0)
 
     def texcoords(self, index: int, what: str) -> np.ndarray:
-        """TEXCOORD_n as (count, 2) float32: float, or normalized unsigned byte/short (glTF 2.0 3.7.2.1)."""
+        """TEXCOORD_n as (count, 2) float32: float, normalized integers dequantized (glTF 2.0 3.7.2.1), other
+        integers as they are (KHR_mesh_quantization)."""
         values = self.accessor(index, what, ("VEC2",))
         if values.dtype.kind == "f":
             uv = np.asarray(values, dtype=np.float32)
             if not np.isfinite(uv).all():
                 raise self.fail(f"{what} (accessor {index}): NaN or infinite texture coordinates")
             return uv
-        if values.dtype.kind == "u" and self.gltf.accessors[index].normalized:
+        if self.gltf.accessors[index].normalized:
             return _dequantize(values)
-        raise self.fail(f"{what} (accessor {index}): texture coordinates must be float or normalized unsigned "
-                        f"byte/short, got {values.dtype}")
+        return values.astype(np.float32)
 
     def skin_influences(self, joints_index: int, weights_index: int, what: str) -> tuple[np.ndarray, np.ndarray]:
         """JOINTS_0 as (count, 4) int64 and WEIGHTS_0 as (count, 4) float32, each row scaled to sum 1 (a row of
@@ -530,6 +533,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         deltas: list[np.ndarray] = []
         colors: list[np.ndarray | None] = []
         uvs: list[np.ndarray | None] = []
+        uv_problems: list[str] = []
         surfaces: list[tuple[int | None, int]] = []
         faces: list[np.ndarray] = []
         skins: list[tuple[np.ndarray, np.ndarray] | None] = []
@@ -587,11 +591,15 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                         raise RigError(f"{path}: {what} JOINTS_0/WEIGHTS_0 have {len(influences[0])} elements, "
                                        f"the primitive {count} positions")
                 uv = None
-                if uv_index is not None:
-                    uv = reader.texcoords(uv_index, f"{what} TEXCOORD_0")
-                    if len(uv) != count:
-                        raise RigError(f"{path}: {what} TEXCOORD_0 has {len(uv)} coordinates, the primitive {count} "
-                                       "positions")
+                if uv_index is not None:     # how it looks, not how it moves: a broken one is noted, not refused
+                    try:
+                        uv = reader.texcoords(uv_index, f"{what} TEXCOORD_0")
+                        if len(uv) != count:
+                            raise RigError(f"{path}: {what} TEXCOORD_0 has {len(uv)} coordinates, the primitive "
+                                           f"{count} positions")
+                    except RigError as exc:
+                        uv = None
+                        uv_problems.append(str(exc))
                 first = n_vertices
                 shared[key] = (first, count)
                 skins.append(influences)
@@ -629,7 +637,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                     faces=np.concatenate(faces).astype(np.int32),
                     target_names=tuple(names), deltas=np.concatenate(deltas, axis=1), colors=rgb,
                     extras=mesh.extras if isinstance(mesh.extras, dict) else {}, joints=joints, weights=weights,
-                    uvs=uv_all, surfaces=tuple(surfaces))
+                    uvs=uv_all, surfaces=tuple(surfaces), uv_problems=tuple(uv_problems))
 
 
 # ---- the scene -------------------------------------------------------------------------------------------------
