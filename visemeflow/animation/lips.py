@@ -5,7 +5,8 @@ A curve table can say "MBP = 1" while the rendered mouth stands 12-22 mm open (o
 closures are judged here, on the deformed mesh:
 
 - **gap**: the mean distance of the three inner-lip landmark pairs of the 68-point layout (61-67, 62-66, 63-65: the
-  upper and lower inner lip at the quarter points and the middle). On the ICT demo character: neutral 1.1 mm, MBP
+  upper and lower inner lip at the quarter points and the middle); a character without landmarks (a user's GLB) uses
+  the three pairs `lipfinder` finds in its geometry, where it finds a mouth. On the ICT demo character: neutral 1.1 mm, MBP
   alone 1.1 mm, AHH alone 29.5 mm. A bilabial is *closed* below `CLOSED_MM` (1.5 mm).
 - **teeth**: the shortest distance from the lower lip's midline (lip vertices within 8 mm of the mouth's middle that
   AHH carries down by a fifth of its largest drop or more) to the upper incisors (teeth vertices within 15 mm of the middle that AHH does not move). On the
@@ -152,10 +153,13 @@ def is_bilabial(label: str) -> bool:
 
 
 def inner_lip_pairs(character) -> np.ndarray | None:
-    """(3, 2) vertex ids of a `Character`'s inner-lip landmark pairs (upper, lower), or None when it lacks them."""
+    """(3, 2) vertex ids of a `Character`'s inner-lip pairs (upper, lower): its landmark pairs, else the pairs
+    `lipfinder` finds in its geometry (a user's own head), else None."""
     ids = character.landmark_ids
     if ids is None or len(ids) < 68:
-        return None
+        from visemeflow.animation.lipfinder import found_inner_lips
+
+        return found_inner_lips(character)
     pairs = np.asarray([[ids[a], ids[b]] for a, b in _INNER_LIP_PAIRS], np.int64)
     return pairs if (pairs >= 0).all() and (pairs < character.n_vertices).all() else None
 
