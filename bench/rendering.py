@@ -12,7 +12,9 @@ Threads are pinned to one (OMP/MKL/OpenBLAS env set before numpy is imported, to
      reference  `render_mesh(..., reference=True)`: the plain per-triangle loop with a running z-buffer (same
                 pixels; it is the faithful path the fast one is tested against), on a few frames only.
    Split of the fast path: rasterisation (`rasterize_fragments`) and shading (vertex normals + Lambert) alone.
-   Also 640x480 and a close-up (landmark span = 90% of the height), where more pixels are covered.
+   Also 640x480 and a close-up (landmark span = 90% of the height), where more pixels are covered, and the same
+   frames textured (`MeshTexture`: UVs projected from the front, a 1024-px image, as previews of a glTF avatar draw
+   it) against vertex colours.
 2. Rig evaluation for 1,000 frames of weights: the 68 landmark vertices (`evaluate_rig(rig, w, rig.landmark_ids)`,
    what a tracker's landmark loss needs per iteration) against the full mesh; best of repeats, the tensors cache
    warm; the cold first call (which builds the cached torch tensors) is shown apart.
@@ -38,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from visemeflow.rig import evaluate_rig, load_demo_rig  # noqa: E402
 from visemeflow.rig.model import VisemeRig  # noqa: E402
 from visemeflow.render.raster import (  # noqa: E402
+    MeshTexture,
     Camera,
     frontal_pose,
     rasterize_fragments,
@@ -108,6 +111,18 @@ def main(argv: list[str] | None = None) -> int:
     add("  of which rasterisation (ms/frame)", f"{raster * 1e3:.1f}")
     add("  of which vertex normals + shading (ms/frame)", f"{shade * 1e3:.1f}")
     add("  face pixels covered", f"{covered} ({covered / (camera.width * camera.height):.0%})")
+    # a textured mesh (`MeshTexture`, what previews of a glTF avatar draw): UVs projected from the front, a 1024-px
+    # image (the preview's largest), against the same frames in vertex colours
+    lo, hi = rig.neutral[:, :2].min(axis=0), rig.neutral[:, :2].max(axis=0)
+    uv = ((rig.neutral[:, :2] - lo) / (hi - lo)).astype(np.float32)
+    uv[:, 1] = 1 - uv[:, 1]
+    image = rng.integers(0, 256, (1024, 1024, 3), dtype=np.uint8)
+    texture = MeshTexture(uv=uv, face_image=np.zeros(len(rig.faces), np.int64),
+                          face_color=np.ones((len(rig.faces), 3)), images=(image,))
+    textured = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, camera, pose, texture=texture),
+                         meshes)
+    add("render 360x288, textured 1024-px image (frames/s)", f"{1 / textured:.1f}")
+    add("  textured / vertex colours, time", f"{textured / fast:.2f}x")
     for label in ("640x480", "360x288 close-up"):
         cam, view = views[label]
         seconds = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, cam, view), meshes[:30])
