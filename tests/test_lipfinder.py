@@ -101,3 +101,20 @@ def test_the_package_report_counts_the_closures_of_a_users_head(arkit):
                             [(0.02, 0.06, "b"), (0.12, 0.16, "p")])
     assert report["bilabials"] == 2 and report["closed"] == 1 and "warning" not in report, report
     assert report["mbp_shape_gap_mm"] < CLOSED_MM
+
+
+def test_a_mesh_packed_into_millimetres_costs_bounded_work():
+    """30,000 vertices within 3 mm of each other (a head in the wrong unit, or a hostile file) whose half moves 10 mm:
+    every vertex is within the search radius of every other, yet each looks at its nearest 48 only, and the answer
+    comes back (there is no lip slit in a random cloud)."""
+    import time
+
+    rng = np.random.default_rng(1)
+    points = rng.uniform(0, 0.3, (30_000, 3))                  # centimetres: a 3-mm cube
+    faces = rng.integers(0, len(points), (60_000, 3))
+    opening = np.zeros_like(points)
+    opening[points[:, 1] < 0.15, 1] = -1.0                     # 10 mm down
+    started = time.process_time()
+    found = find_inner_lips(points, faces, opening, 10.0)
+    print(f"\n{time.process_time() - started:.1f} s CPU")
+    assert found is None or found.shape == (3, 2)

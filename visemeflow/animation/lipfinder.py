@@ -11,12 +11,13 @@ the opening. So, with the character's own shapes bound to the visemes (its conve
    connected mesh piece (the teeth, a separate piece, never pair with the lips) within `RADII_MM` of it at rest
    (4 mm, then 8 and 12 for a mouth that rests open), such that AHH pulls them apart by more than half its largest
    displacement and the mesh joins them by no path of fewer than `hops` edges (`hops` spans three times the radius in
-   the mesh's median edge length, at least 3): i's nearest such j. The one that AHH moves less is the upper lip;
+   the mesh's median edge length, at least 3, at most 48): i's nearest such j among its 48 nearest vertices. The one that AHH moves less is the upper lip;
 3. the slit's lateral axis is the principal axis of the pairs' midpoints; at its centre and at 40% of its half
    width to either side (where the 68-point layout's inner-lip landmarks 61-67, 62-66 and 63-65 sit), the pair
    with the smallest gap at rest within a window of 12% of the half width: the inner lip line, not the outer lip.
 
-Accepted only when it looks like a mouth: at least `MIN_PAIRS` slit pairs, and the three pairs' mean gap under AHH at
+The searches for "joined nearby" expand at most `_VISITS` vertices in all; a mesh that needs more (no mouth has
+such neighbourhoods: a random cloud, a hostile file) has no lip measure. Accepted only when it looks like a mouth: at least `MIN_PAIRS` slit pairs, and the three pairs' mean gap under AHH at
 least `MIN_OPENING_MM` more than at rest. Otherwise None: the character has no lip measure, as before (a sealed
 mouth, a mesh with no opening shape, names no convention binds).
 
@@ -44,6 +45,9 @@ _MOVES = 0.3            # share of AHH's largest displacement that makes a verte
 _SEPARATES = 0.5        # share of it by which a slit pair must come apart
 _CENTRES = (-0.4, 0.0, 0.4)
 _WINDOW = 0.12
+_NEIGHBOURS = 48        # partners looked at per candidate (nearest first)
+_MAX_HOPS = 48          # the "joined nearby" search stops this many edges out
+_VISITS = 200_000       # vertices those searches may expand in all (the ICT head's lips take about 8,000)
 
 
 def _adjacency(faces: np.ndarray, n: int):
@@ -55,7 +59,16 @@ def _adjacency(faces: np.ndarray, n: int):
     return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n, n)).tocsr()
 
 
-def _within_hops(adj, source: int, limit: int) -> set[int]:
+class _Budget:
+    """Vertices the "joined nearby" searches may visit in all (`_VISITS`): a mesh whose neighbourhoods are huge (a
+    random cloud, a hostile file) is given up on, not searched for minutes."""
+
+    def __init__(self, visits: int):
+        self.left = visits
+
+
+def _within_hops(adj, source: int, limit: int, budget: _Budget) -> set[int] | None:
+    """The vertices at most `limit` edges from `source`; None when the budget runs out."""
     seen, todo = {source: 0}, deque([source])
     while todo:
         u = todo.popleft()
@@ -65,6 +78,9 @@ def _within_hops(adj, source: int, limit: int) -> set[int]:
             if w not in seen:
                 seen[int(w)] = seen[u] + 1
                 todo.append(int(w))
+        budget.left -= 1
+        if budget.left <= 0:
+            return None
     return set(seen)
 
 
@@ -88,13 +104,18 @@ def find_inner_lips(neutral: np.ndarray, faces: np.ndarray, opening: np.ndarray,
     edge = float(np.median(edges)) or 1e-9
     candidates = np.flatnonzero(moved > _MOVES * top)
     tree = cKDTree(rest)
+    budget = _Budget(_VISITS)
     for radius_mm in RADII_MM:
         radius = radius_mm / mm_per_unit
-        hops = max(3, int(np.ceil(3 * radius / edge)))
+        hops = min(_MAX_HOPS, max(3, int(np.ceil(3 * radius / edge))))
         pairs = set()
-        found = tree.query_ball_point(rest[candidates], radius)
-        lone = np.repeat(candidates, [len(n) for n in found])          # every (candidate, neighbour) at once
-        near = np.fromiter((j for n in found for j in n), np.int64, len(lone))
+        # each candidate's nearest `_NEIGHBOURS` within the radius, all at once (bounded: a mesh packed into a few
+        # millimetres asks no more than this of each vertex)
+        distance, found = tree.query(rest[candidates], k=min(_NEIGHBOURS, len(rest)), distance_upper_bound=radius)
+        distance, found = distance.reshape(len(candidates), -1), found.reshape(len(candidates), -1)
+        within = np.isfinite(distance)
+        lone = np.repeat(candidates, within.sum(axis=1))
+        near = found[within].astype(np.int64)
         apart = np.linalg.norm(opened[near] - opened[lone], axis=1) - np.linalg.norm(rest[near] - rest[lone], axis=1)
         keep = (near != lone) & (piece[near] == piece[lone]) & (apart > _SEPARATES * top)
         lone, near = lone[keep], near[keep]
@@ -103,7 +124,9 @@ def find_inner_lips(neutral: np.ndarray, faces: np.ndarray, opening: np.ndarray,
         starts = np.flatnonzero(np.r_[True, lone[1:] != lone[:-1]]) if len(lone) else np.zeros(0, np.int64)
         for first, stop in zip(starts, np.r_[starts[1:], len(lone)]):
             i = int(lone[first])
-            joined = _within_hops(adj, i, hops)
+            joined = _within_hops(adj, i, hops, budget)
+            if joined is None:
+                return None
             j = next((int(j) for j in near[first:stop] if int(j) not in joined), None)   # the nearest not joined
             if j is not None:
                 pairs.add((j, i) if moved[j] < moved[i] else (i, j))
