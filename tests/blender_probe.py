@@ -5,11 +5,11 @@ does and report what Blender shows. argv[1] is a JSON request:
   scene whose frame rate is "fps" (null: Blender's default), or a .blend, opened as it was saved;
 - "frames": the frames at which every mesh's evaluated vertices (world space, after shape keys and armatures) are
   written to "out" (.npz, one (frames, V, 3) array per mesh object, by name, and `NAME.uv`, (V, 2) per vertex, for
-  a mesh with a UV map).
+  a mesh with a UV map, and `NAME.color`, (V, 3) linear RGB, for one with a per-vertex colour attribute).
 
 Prints one line `probe: {json}`: the scene's frame rate, frame range, sync mode, objects (name, type, parent), the
 shape key names of each mesh, each mesh's
-materials with their image textures (name, size, first pixel), and the sound strips (name, start frame, length in frames, file).
+materials with their image textures (name, size, first pixel) and what feeds their Base Color, and the sound strips (name, start frame, length in frames, file).
 """
 
 import json
@@ -54,7 +54,21 @@ for o in meshes:            # per vertex, from the first UV map's loops (a verte
         per_vertex = np.full((len(o.data.vertices), 2), np.nan)
         per_vertex[loops] = uv.reshape(-1, 2)
         uvs[f"{o.name}.uv"] = per_vertex
+    colors = [a for a in o.data.color_attributes if a.domain == "POINT"]
+    if colors:               # the first per-vertex colour attribute, RGB as Blender stores it (linear floats)
+        rgba = np.empty(4 * len(o.data.vertices), np.float64)
+        colors[0].data.foreach_get("color", rgba)
+        uvs[f"{o.name}.color"] = rgba.reshape(-1, 4)[:, :3]
 np.savez(request["out"], **{name: np.array(p) for name, p in positions.items()}, **uvs)
+
+
+def base_colour_source(material) -> list | None:
+    """[node type, its attribute name] of what feeds the material's Principled BSDF's Base Color, or None."""
+    if material is None or not material.use_nodes:
+        return None
+    bsdf = next((n for n in material.node_tree.nodes if n.type == "BSDF_PRINCIPLED"), None)
+    links = bsdf.inputs["Base Color"].links if bsdf is not None else ()
+    return [links[0].from_node.bl_idname, getattr(links[0].from_node, "attribute_name", None)] if links else None
 
 
 def images(material) -> list:
@@ -77,6 +91,7 @@ print("probe: " + json.dumps({
     "objects": [[o.name, o.type, o.parent.name if o.parent else None] for o in scene.objects],
     "shape_keys": {o.name: [k.name for k in o.data.shape_keys.key_blocks] for o in meshes if o.data.shape_keys},
     "materials": {o.name: [[m.name, images(m)] for m in o.data.materials if m is not None] for o in meshes},
+    "base_colour": {o.name: [base_colour_source(m) for m in o.data.materials if m is not None] for o in meshes},
     "sounds": [[s.name, s.frame_start, s.frame_final_duration, bpy.path.abspath(s.sound.filepath)] for s in strips
                if s.type == "SOUND"],
 }), flush=True)

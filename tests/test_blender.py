@@ -25,6 +25,7 @@ from visemeflow.animation.usd_skel import write_usd_skel
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.rig import load_demo_rig
 from visemeflow.rig.character import character_from_rig
+from visemeflow.rig.gltf import srgb_to_linear
 from visemeflow.visemes import VISEMES
 
 BPY_PYTHON = REPO / ".venv-blender" / "bin" / "python"
@@ -48,9 +49,10 @@ def probe(path: Path, frames: list[int], out: Path, fps: float | None = FPS) -> 
     lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
     assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
     report = json.loads(lines[-1].removeprefix("probe: "))
-    with np.load(out) as arrays:          # each mesh's vertices; its UVs per vertex go in the report, under "uv"
+    with np.load(out) as arrays:          # each mesh's vertices; its UVs and colours go in the report
         report["uv"] = {k.removesuffix(".uv"): arrays[k] for k in arrays.files if k.endswith(".uv")}
-        return report, {k: arrays[k] for k in arrays.files if not k.endswith(".uv")}
+        report["color"] = {k.removesuffix(".color"): arrays[k] for k in arrays.files if k.endswith(".color")}
+        return report, {k: arrays[k] for k in arrays.files if not k.endswith((".uv", ".color"))}
 
 
 def speech_curves(n: int) -> np.ndarray:
@@ -104,6 +106,11 @@ def test_blender_imports_each_file_and_plays_our_vertices_in_metres(files, demo,
     assert moved > 1e-3                                 # the check can fail: the face moves by millimetres
     if kind == "morph":
         assert report["shape_keys"] and [k for k in next(iter(report["shape_keys"].values()))][1:] == list(VISEMES)
+    if name.startswith("morph.usd"):
+        # the demo head's skin colours: USD's displayColor (linear), wired by Blender's importer to Base Color
+        (mesh_name,) = [n for n, m in meshes.items() if m.shape[1] == demo.n_vertices]
+        np.testing.assert_allclose(report["color"][mesh_name], srgb_to_linear(demo.vertex_colors), atol=1e-5)
+        assert report["base_colour"][mesh_name] == [["ShaderNodeAttribute", "displayColor"]], report["base_colour"]
     # the lips: where the curves shut them, Blender's mesh has them shut, measured in millimetres as our preview does
     pairs = inner_lip_pairs(demo)
     gaps = pair_gap_mm(face[:, pairs.ravel()].reshape(len(frames), 3, 2, 3), 1000.0)

@@ -6,11 +6,12 @@ own deformation (BakeSkinning: blend shapes applied by UsdSkel itself) and the U
 import numpy as np
 import pytest
 from factories import usd_validation_errors as validation_errors
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel
 
 from visemeflow.rig.character import character_from_rig, make_character
 from visemeflow.animation.usd import prim_name, read_usd_weights, write_usd
 from visemeflow.rig import load_demo_rig
+from visemeflow.rig.gltf import srgb_to_linear
 
 AWKWARD = ("jaw.open", "2nd shape", "jaw_open", "viseme_PP", "mouth-smile L", "jaw.open!")
 
@@ -138,6 +139,13 @@ def test_demo_rig_as_binary_crate(tmp_path, demo_character, suffix):
         np.testing.assert_array_equal(stored_offsets(shape, demo_character.n_vertices), demo_character.deltas[s])
 
     assert validation_errors(stage) == []
+    # its skin colours: displayColor (linear), read by the material bound to it
+    colours = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("displayColor")
+    assert colours.GetInterpolation() == UsdGeom.Tokens.vertex
+    np.testing.assert_allclose(np.asarray(colours.Get()), srgb_to_linear(demo_character.vertex_colors), atol=1e-7)
+    material = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()[0]
+    diffuse = material.ComputeSurfaceSource()[0].GetInput("diffuseColor").GetConnectedSource()[0]
+    assert UsdShade.Shader(diffuse.GetPrim()).GetInput("varname").Get() == "displayColor"
     assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(45, 45))
     expected = demo_character.neutral + np.einsum("s,svc->vc", weights[45], demo_character.deltas)
     np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get(45)), expected, atol=1e-4)

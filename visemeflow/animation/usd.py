@@ -24,7 +24,9 @@ A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.par
 targets as BlendShapes and its own `skel:blendShapes` order, all bound to the one Skeleton: the SkelAnimation's
 `blendShapes` (the union of the names) drives every part by name. A character read from a glTF scene (one mesh
 or several) also gets the scene's texture coordinates, materials and undriven meshes (`usd_scene`); `write_usdz`
-packs the stage with the materials' images into one `.usdz`.
+packs the stage with the materials' images into one `.usdz`. A character with vertex colours (the demo head, a glTF's
+COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes without a material of their own a
+`Materials/VertexColours` UsdPreviewSurface whose diffuse colour reads them (Blender wires it to Base Color).
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
 Stage: upAxis Y, `metersPerUnit` the character's own unit (`Character.mm_per_unit` / 1000: 0.01 for the demo rig's
@@ -48,9 +50,11 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
+from visemeflow.animation.usd_scene import MATERIALS
 from visemeflow.rig.character import Character
+from visemeflow.rig.gltf import srgb_to_linear
 from visemeflow.atomic import atomic_path
 
 __all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd", "write_usdz"]
@@ -60,6 +64,7 @@ ROOT_JOINT = "root"
 SKELETON = "Skeleton"
 ANIMATION = "Animation"
 MESH = "Mesh"
+VERTEX_COLOURS = "VertexColours"
 # USD (usd-core) from several Python threads at once can deadlock for good: its first use builds singletons (the
 # asset resolver, the file-format registry) under C++ static-init guards while one thread holds the GIL and the
 # other, inside the guard, waits for the GIL (`animate`'s threads writing two packages' .usd files hung CI; a
@@ -188,6 +193,8 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     skel_binding = UsdSkel.BindingAPI.Apply(skeleton.GetPrim())
     skel_binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
 
+    # vertex colours (sRGB display values) as USD's displayColor, which is linear
+    colors = None if character.vertex_colors is None else srgb_to_linear(character.vertex_colors)
     part_prims = []
     if len(character.parts) > 1:
         for prim, part in zip(_unique_prim_names(p.name for p in character.parts), character.parts):
@@ -196,18 +203,46 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
             part_prims.append(root_path.AppendChild(prim))
             _define_mesh(stage, part_prims[-1], skeleton, character.neutral[part.start:part.stop],
                          character.faces[inside] - part.start, part.target_names,
-                         character.deltas[columns, part.start:part.stop])
+                         character.deltas[columns, part.start:part.stop],
+                         None if colors is None else colors[part.start:part.stop])
     else:
         part_prims.append(root_path.AppendChild(MESH))
         _define_mesh(stage, part_prims[-1], skeleton, character.neutral, character.faces,
-                     character.shape_names, character.deltas)
+                     character.shape_names, character.deltas, colors)
     if character.parts:          # read from a glTF scene: its materials and other meshes too (`usd_scene`)
         from visemeflow.animation.usd_scene import dress_gltf_scene
 
         notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, _static_mesh(stage))
         if notes:
             stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
+    if colors is not None:
+        _bind_vertex_colours(stage, root_path, part_prims)
     return stage
+
+
+def _bind_vertex_colours(stage: Usd.Stage, root: Sdf.Path, meshes: list[Sdf.Path]) -> None:
+    """Bind `VERTEX_COLOURS` (a UsdPreviewSurface whose diffuse colour reads `displayColor`) to the meshes that carry
+    vertex colours and have no material of their own: Blender, Omniverse and Quick Look then show the character's
+    colours (a mesh without a material is shown in its displayColor by some viewers, grey by others)."""
+    unbound = [path for path in meshes
+               if not UsdShade.MaterialBindingAPI(stage.GetPrimAtPath(path)).GetDirectBindingRel().GetTargets()]
+    if not unbound:
+        return
+    folder = root.AppendChild(MATERIALS)
+    if not stage.GetPrimAtPath(folder):
+        UsdGeom.Scope.Define(stage, folder)
+    material = UsdShade.Material.Define(stage, folder.AppendChild(VERTEX_COLOURS))
+    surface = UsdShade.Shader.Define(stage, material.GetPath().AppendChild("Surface"))
+    surface.CreateIdAttr("UsdPreviewSurface")
+    reader = UsdShade.Shader.Define(stage, material.GetPath().AppendChild("displayColor"))
+    reader.CreateIdAttr("UsdPrimvarReader_float3")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("displayColor")
+    reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(reader.ConnectableAPI(), "result")
+    surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    for path in unbound:
+        UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath(path)).Bind(material)
 
 
 def _static_mesh(stage: Usd.Stage):
@@ -227,10 +262,15 @@ def _static_mesh(stage: Usd.Stage):
 
 
 def _define_mesh(stage: Usd.Stage, path: Sdf.Path, skeleton: UsdSkel.Skeleton, neutral: np.ndarray,
-                 faces: np.ndarray, shape_names, deltas: np.ndarray) -> UsdGeom.Mesh:
-    """A Mesh prim bound rigidly to the skeleton's root joint, with one BlendShape child per shape (see the module)."""
+                 faces: np.ndarray, shape_names, deltas: np.ndarray, colors: np.ndarray | None = None) -> UsdGeom.Mesh:
+    """A Mesh prim bound rigidly to the skeleton's root joint, with one BlendShape child per shape (see the module),
+    and `colors` (linear RGB per vertex) as its displayColor."""
     identity = Gf.Matrix4d(1.0)
     mesh = UsdGeom.Mesh.Define(stage, path)
+    if colors is not None:
+        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
+                                                UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(colors, dtype=np.float32)))
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(neutral, dtype=np.float32)))
     faces = np.ascontiguousarray(faces, dtype=np.int32)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
