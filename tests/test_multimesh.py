@@ -378,3 +378,33 @@ def test_a_full_disk_while_writing_an_export_names_the_output_file(tmp_path, ava
     assert str(caught.value).startswith(f"spk/u0: {failed}: "), str(caught.value)
     assert "No space left on device" in str(caught.value) and str(path) not in str(caught.value)
     assert not failed.exists() and not [p for p in failed.parent.iterdir() if p.name.startswith(".")]
+
+
+def test_a_gltf_whose_texture_file_is_missing_still_speaks_and_says_what_it_left_out(tmp_path, avatar):
+    """The avatar as a .gltf whose skin.png was not copied beside it (a user's usual slip): the package is written,
+    the GLB holds a grey stand-in for the skin (the Khronos validator accepts it), the USDZ leaves the skin out, and
+    the report's warnings say so, naming the file; before, the run failed after the predictions with three tracebacks."""
+    import zipfile
+
+    from visemeflow.tasks.animate import animate, content_hash
+
+    source, _ = avatar
+    g = gl.GLTF2().load(str(source))
+    g.convert_buffers(gl.BufferFormat.DATAURI)
+    g.images[0].bufferView, g.images[0].uri = None, "skin.png"
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (folder / "avatar.gltf").write_text(json.dumps(json.loads(g.to_json())))
+    path = folder / "avatar.gltf"
+    store = make_curve_store(tmp_path / "store", n=1)
+    config = AnimateConfig(formats=("glb", "usdz"), fps=30.0)
+    audio = store.read_table("utterances").column("audio_path")[0].as_py()
+    report = animate(store, "spk/u0", "ground_truth", "cm", str(path), content_hash(path), None, None, config, audio,
+                     str(tmp_path / "out"))
+    (note,) = [w for w in report["warnings"] if "skin.png" in w]
+    assert "is not beside avatar.gltf: the GLB holds a grey 1-pixel stand-in" in note, report["warnings"]
+    glb = Path(report["files"]["glb"])
+    document, _ = glb_parts(glb)
+    assert document["images"][0]["mimeType"] == "image/png" and "missing" in document["images"][0]["name"]
+    assert validate(glb)["issues"]["numErrors"] == 0
+    assert not [n for n in zipfile.ZipFile(report["files"]["usdz"]).namelist() if n.startswith("textures/")]

@@ -680,6 +680,7 @@ def test_a_gltf_avatar_shows_its_skin_texture_in_the_preview(tmp_path, monkeypat
     from PIL import Image
 
     import visemeflow.animation.surface as surface
+    import visemeflow.animation.textures as textures
     from visemeflow.animation.load import load_character
     from visemeflow.rig.gltf import GltfScene
 
@@ -701,8 +702,8 @@ def test_a_gltf_avatar_shows_its_skin_texture_in_the_preview(tmp_path, monkeypat
         return float(skin.mean()) if len(covered) else 0.0
 
     assert skin_share(PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")) > 0.5
-    monkeypatch.setattr(surface, "MAX_IMAGE_PIXELS", 3)             # the 2x2 skin is now "too large"
+    monkeypatch.setattr(textures, "MAX_IMAGE_PIXELS", 3)            # the 2x2 skin is now "too large"
     with caplog.at_level("WARNING"):
         plain = PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")
     assert skin_share(plain) == 0.0
-    assert "image 0 is 2x2 pixels, more than the 3 a preview decodes" in caplog.text
+    assert "image 0 is 2x2 pixels, more than the 3 decoded pixels visemeflow reads" in caplog.text

@@ -28,8 +28,9 @@ def _image(kind: str, rgb) -> bytes:
 
 
 def make_scene(path: Path) -> dict:
-    """A head of two primitives with two materials (a textured, masked skin with a normal map and a WebP emissive
-    map; a plain double-sided one) and an eye mesh without targets that two nodes instance."""
+    """A head of two primitives with two materials (a textured, masked skin with a normal map, a WebP emissive map
+    and an occlusion map whose KTX2 image nobody here decodes; a plain double-sided one) and an eye mesh without
+    targets that two nodes instance."""
     g = gl.GLTF2(asset=gl.Asset(version="2.0"))
     blob = bytearray()
 
@@ -65,12 +66,16 @@ def make_scene(path: Path) -> dict:
                                                                                    gl.SCALAR), material=1)]))
     g.images = [gl.Image(name="skin", mimeType="image/png", bufferView=view(_image("PNG", (200, 150, 120)))),
                 gl.Image(name="normals", mimeType="image/jpeg", bufferView=view(_image("JPEG", (128, 128, 255)))),
-                gl.Image(name="glow", mimeType="image/webp", bufferView=view(_image("WEBP", (9, 9, 9))))]
+                gl.Image(name="glow", mimeType="image/webp", bufferView=view(_image("WEBP", (9, 9, 9)))),
+                gl.Image(name="dark", mimeType="image/ktx2", bufferView=view(b"\xabKTX 20\xbb\r\n\x1a\n" + bytes(60)))]
     g.samplers = [gl.Sampler(wrapS=gl.CLAMP_TO_EDGE, wrapT=gl.MIRRORED_REPEAT)]
-    g.textures = [gl.Texture(source=0, sampler=0), gl.Texture(source=1), gl.Texture(source=2)]
+    g.textures = [gl.Texture(source=0, sampler=0), gl.Texture(source=1),
+                  gl.Texture(extensions={"EXT_texture_webp": {"source": 2}}),   # as RPM writes WebP: no plain source
+                  gl.Texture(source=3)]
     g.materials = [
         gl.Material(name="skin", alphaMode=gl.MASK, alphaCutoff=0.3, normalTexture=gl.NormalMaterialTexture(
                         index=1, scale=0.5), emissiveTexture=gl.TextureInfo(index=2), emissiveFactor=[1, 1, 1],
+                    occlusionTexture=gl.OcclusionTextureInfo(index=3),
                     pbrMetallicRoughness=gl.PbrMetallicRoughness(baseColorTexture=gl.TextureInfo(index=0),
                                                                  baseColorFactor=[1, 0.9, 0.8, 1],
                                                                  metallicFactor=0.0, roughnessFactor=0.6)),
@@ -111,7 +116,10 @@ def surface_inputs(material: UsdShade.Material) -> dict:
 def test_the_usdz_holds_the_whole_scene_with_its_textures(tmp_path, scene):
     character, weights, arrays = scene
     path = write_usdz(tmp_path / "take.usdz", character, weights, 30.0, name="take")
-    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/0_skin.png", "textures/1_normals.jpg"]
+    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/0_skin.png", "textures/1_normals.jpg",
+                                                        "textures/2_glow.png"]     # the WebP, as PNG
+    glow = Image.open(io.BytesIO(zipfile.ZipFile(path).read("textures/2_glow.png")))
+    assert glow.format == "PNG" and glow.getpixel((1, 1)) == (9, 9, 9)
     stage = Usd.Stage.Open(str(path))
     assert usd_validation_errors(stage) == []
     meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
@@ -138,8 +146,9 @@ def test_the_usdz_holds_the_whole_scene_with_its_textures(tmp_path, scene):
     assert normal["sourceColorSpace"] == "raw" and normal["file"].path == "./textures/1_normals.jpg"
     assert tuple(normal["scale"]) == (1, 1, 2, 1) and tuple(normal["bias"]) == (-0.5, -0.5, -1, 0)   # its scale 0.5
     assert skin["metallic"] == 0 and skin["roughness"] == pytest.approx(0.6)
-    assert "emissiveColor" not in skin                          # its image is WebP: left out, and said so
-    assert "image 2 is WEBP" in stage.GetRootLayer().documentation
+    assert skin["emissiveColor"][2]["file"].path == "./textures/2_glow.png"
+    assert "occlusion" not in skin                              # its KTX2 image: left out, and said so
+    assert "image 3 (KTX2) cannot be decoded" in stage.GetRootLayer().documentation
     plain = surface_inputs(materials["plain"])
     assert tuple(plain["diffuseColor"]) == pytest.approx((0.2, 0.3, 0.4))
     assert "opacity" not in plain and plain["metallic"] == pytest.approx(0.1)
@@ -195,7 +204,7 @@ def test_an_image_that_cannot_be_read_costs_its_texture_not_the_animation(tmp_pa
     character = load_character(tmp_path / "scene.gltf")
     path = write_usdz(tmp_path / "take.usdz", character, np.zeros((3, character.n_shapes), np.float32), 30.0,
                       name="take")
-    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/1_normals.jpg"]
+    assert sorted(zipfile.ZipFile(path).namelist()) == ["take.usdc", "textures/1_normals.jpg", "textures/2_glow.png"]
     stage = Usd.Stage.Open(str(path))
     assert usd_validation_errors(stage) == []
     note = stage.GetRootLayer().documentation

@@ -27,6 +27,7 @@ Characters that are not glTF scenes (npz, mesh folders, our rigs, characters bui
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import struct
@@ -104,6 +105,16 @@ def _external(source: Path, uri, what: str) -> bytes:
         raise CharacterError(f"{source}: {what} ({uri}) cannot be read: {exc.strerror or exc}") from None
 
 
+def _stand_in_png() -> bytes:
+    """A 1x1 mid-grey PNG: what the GLB holds for a texture file that was missing beside the .gltf
+    (`textures.appearance_notes` tells the user)."""
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.new("RGB", (1, 1), (128, 128, 128)).save(out, format="PNG")
+    return out.getvalue()
+
+
 def _fits(source: Path, blob: bytearray, adding: int, what: str) -> None:
     if len(blob) + adding > MAX_FILE_BYTES:
         raise CharacterError(f"{source}: with {what} the exported GLB would hold more than {MAX_FILE_BYTES} bytes")
@@ -141,9 +152,15 @@ def _one_buffer(source: Path, document: dict, binary: bytes | None) -> bytearray
         uri = image.get("uri") if isinstance(image, dict) else None
         if uri is None or (isinstance(uri, str) and uri.startswith("data:")):
             continue
-        data = _external(source, uri, f"image {k}")
+        try:
+            data = read_gltf_uri(source, uri) if isinstance(uri, str) else _external(source, uri, f"image {k}")
+            mime = image.get("mimeType") or _MIME.get(Path(urllib.parse.unquote(uri)).suffix.lower())
+        except OSError:     # a texture file not copied beside the .gltf: the animation is still wanted
+            data, mime = _stand_in_png(), "image/png"
+            image["name"] = f"{image.get('name') or uri} (missing: a grey stand-in)"
+        except ValueError as exc:
+            raise CharacterError(f"{source}: image {k}: {exc}") from None
         _fits(source, blob, len(data) + 3, f"image {k}")
-        mime = image.get("mimeType") or _MIME.get(Path(urllib.parse.unquote(uri)).suffix.lower())
         if mime is None:
             raise CharacterError(f"{source}: image {k} ({uri}): unknown image type; expected "
                                  f"{', '.join(_MIME)}")

@@ -2,48 +2,25 @@
 (read through TEXCOORD_0) as a `render.raster.MeshTexture`, so the preview shows the user's avatar with its skin,
 not a grey head.
 
-Images are decoded once per preview with Pillow and reduced (area filter) to at most `MAX_TEXTURE_PX` on a side: a
-preview panel is a few hundred pixels, and the avatar's 2048-px textures would cost 12 MB each for nothing. An
-image larger than `MAX_IMAGE_PIXELS` when decoded (a decompression bomb is a small file), one Pillow cannot read
-(KTX2), a texture read through TEXCOORD_1, and a file that cannot be read again are left out, each with a note; the
-face then keeps its base colour. A character not read from a glTF scene, or a scene without materials, has no
+Images are decoded once per preview with Pillow and reduced (area filter) to at most `textures.MAX_TEXTURE_PX` on a
+side: a preview panel is a few hundred pixels, and the avatar's 2048-px textures would cost 12 MB each for nothing.
+An image larger than `textures.MAX_IMAGE_PIXELS` when decoded (a decompression bomb is a small file), one Pillow
+cannot read (KTX2, corrupt data), a texture read through TEXCOORD_1, and a file that cannot be read again are left
+out, each with a note; the face then keeps its base colour. WebP textures (`EXT_texture_webp`) are drawn. A character not read from a glTF scene, or a scene without materials, has no
 texture (None): the preview keeps its vertex colours or grey.
 """
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 
+from visemeflow.animation.textures import TextureError, image_pixels, texture_image
 from visemeflow.render.raster import MeshTexture
 from visemeflow.rig.character import Character
 from visemeflow.rig.gltf import GltfScene, linear_to_srgb
 from visemeflow.rig.model import RigError
 
-__all__ = ["MAX_IMAGE_PIXELS", "MAX_TEXTURE_PX", "character_texture"]
-
-MAX_TEXTURE_PX = 1024
-MAX_IMAGE_PIXELS = 1 << 26     # 8192 x 8192
-
-
-def _decode(blob: bytes, what: str, notes: list[str]) -> np.ndarray | None:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(io.BytesIO(blob)) as image:
-            width, height = image.size
-            if width * height > MAX_IMAGE_PIXELS:
-                notes.append(f"{what} is {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS} a preview decodes: "
-                             "left out")
-                return None
-            image.draft("RGB", (MAX_TEXTURE_PX, MAX_TEXTURE_PX))        # JPEG: decoded at a reduced scale
-            rgb = image.convert("RGB")
-            rgb.thumbnail((MAX_TEXTURE_PX, MAX_TEXTURE_PX), Image.Resampling.BOX)
-            return np.asarray(rgb, np.uint8)
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
-        notes.append(f"{what} cannot be decoded ({type(exc).__name__}: {exc}): left out")
-        return None
+__all__ = ["character_texture"]
 
 
 def character_texture(character: Character) -> tuple[MeshTexture | None, list[str]]:
@@ -92,20 +69,17 @@ def character_texture(character: Character) -> tuple[MeshTexture | None, list[st
             if (info.texCoord or 0) != 0:
                 notes.append(f"{what}: reads TEXCOORD_{info.texCoord}, which previews do not: left out")
                 continue
-            textures = scene.gltf.textures or []
-            source = textures[info.index].source if 0 <= info.index < len(textures) else None
-            if not isinstance(source, int):
+            source = texture_image(scene.gltf, info.index)
+            if source is None:
+                notes.append(f"{what}: texture {info.index} names no image visemeflow can read: left out")
                 continue
             if source not in slot:
                 try:
-                    blob, _ = scene.image(source)
-                    decoded = _decode(blob, f"{what} image {source}", notes)
-                except RigError as exc:
+                    images.append(image_pixels(scene, source))
+                    slot[source] = len(images) - 1
+                except TextureError as exc:
                     notes.append(f"{what}: {exc}: left out")
-                    decoded = None
-                slot[source] = -1 if decoded is None else len(images)
-                if decoded is not None:
-                    images.append(decoded)
+                    slot[source] = -1
             face_image[rows] = slot[source]
     if row != len(face_image):
         return None, ["the file's faces no longer match the character: the preview shows no materials"]

@@ -17,10 +17,12 @@ not drive, so that Omniverse, Blender or Quick Look show the user's avatar, not 
   y), emissive, occlusion; `doubleSided` on meshes whose material is.
 
 Textures: with `texture_dir` (the `usdz` export: `usd.write_usdz` packs them into the one file) each image the
-materials use is written there once, as `textures/<index>_<name>.png|.jpg`, and referenced by a UsdUVTexture;
-without it (the plain `.usd`), materials carry their factors only, since a `.usd` is one file and holds no image.
-Images other than PNG or JPEG (WebP, KTX2), textures read through TEXCOORD_1 and KHR_texture_transform are not
-carried; `dress_gltf_scene` returns a note for each, which the writer puts in the layer's documentation.
+materials use is written there once, as `textures/<index>_<name>.png|.jpg` (checked to decode; WebP and other
+formats Pillow reads converted to PNG, `textures.package_image`), and referenced by a UsdUVTexture; without it (the
+plain `.usd`), materials carry their factors only, since a `.usd` is one file and holds no image. Images that cannot
+be read or decoded (a missing file, corrupt data, KTX2), textures read through TEXCOORD_1 and KHR_texture_transform
+are not carried; `dress_gltf_scene` returns a note for each, which the writer puts in the layer's documentation (and
+`textures.appearance_notes` among the package's warnings).
 """
 
 from __future__ import annotations
@@ -32,14 +34,13 @@ import pygltflib as gl
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from visemeflow.rig.character import Character
+from visemeflow.animation.textures import TextureError, package_image, texture_image
 from visemeflow.rig.gltf import GltfMesh, GltfScene
-from visemeflow.rig.model import RigError
 
 __all__ = ["MATERIALS", "TEXTURES", "dress_gltf_scene"]
 
 MATERIALS = "Materials"
 TEXTURES = "textures"
-_USDZ_IMAGES = (".png", ".jpg")
 _WRAP = {gl.REPEAT: "repeat", gl.CLAMP_TO_EDGE: "clamp", gl.MIRRORED_REPEAT: "mirror"}
 
 
@@ -75,31 +76,24 @@ class _Materials:
         return isinstance(index, int) and 0 <= index < len(materials) and bool(materials[index].doubleSided)
 
     def _image(self, texture_index: int, what: str) -> str | None:
-        """The asset path of the texture's image in `texture_dir`, written on first use; None (with a note) when
-        it cannot be carried."""
-        textures = self.scene.gltf.textures or []
-        if not 0 <= texture_index < len(textures) or not isinstance(textures[texture_index].source, int):
-            self.notes.append(f"{what}: texture {texture_index} has no image (or only an extension's): left out")
+        """The asset path of the texture's image in `texture_dir`, written on first use (PNG or JPEG: others are
+        converted, `textures.package_image`); None (with a note) when it cannot be carried."""
+        source = texture_image(self.scene.gltf, texture_index)
+        if source is None:
+            self.notes.append(f"{what}: texture {texture_index} names no image visemeflow can read: left out")
             return None
-        source = textures[texture_index].source
         if source not in self.images:
             try:
-                blob, suffix = self.scene.image(source)
-            except RigError as exc:      # a missing or broken image costs its texture, not the animation
+                blob, suffix = package_image(self.scene, source)
+            except TextureError as exc:      # a missing or broken image costs its texture, not the animation
                 self.notes.append(f"{what}: {exc}: left out")
                 self.images[source] = None
                 return None
-            if suffix not in _USDZ_IMAGES:
-                self.notes.append(f"{what}: image {source} is {suffix.lstrip('.').upper()}, which USD packages do "
-                                  "not carry (PNG or JPEG only): left out")
-                self.images[source] = None
-            else:
-                image = (self.scene.gltf.images or [])[source]
-                stem = self.prim_name(image.name or "image")
-                name = f"{source}_{stem}{suffix}"
-                self.texture_dir.mkdir(parents=True, exist_ok=True)
-                (self.texture_dir / name).write_bytes(blob)
-                self.images[source] = f"./{TEXTURES}/{name}"
+            image = (self.scene.gltf.images or [])[source]
+            name = f"{source}_{self.prim_name(image.name or 'image')}{suffix}"
+            self.texture_dir.mkdir(parents=True, exist_ok=True)
+            (self.texture_dir / name).write_bytes(blob)
+            self.images[source] = f"./{TEXTURES}/{name}"
         return self.images[source]
 
     def _texture(self, path: Sdf.Path, info, what: str, color_space: str, scale, bias=None) -> UsdShade.Shader | None:

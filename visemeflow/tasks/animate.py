@@ -260,6 +260,10 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
     warnings = binding.warnings()   # a closure or contact the character's shapes cannot make
+    if config.preview or {"glb", "usd", "usdz"} & set(config.formats):   # what its exports cannot show as its file
+        from visemeflow.animation.textures import appearance_notes
+
+        warnings += list(appearance_notes(character))
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 
