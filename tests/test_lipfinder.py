@@ -118,3 +118,16 @@ def test_a_mesh_packed_into_millimetres_costs_bounded_work():
     found = find_inner_lips(points, faces, opening, 10.0)
     print(f"\n{time.process_time() - started:.1f} s CPU")
     assert found is None or found.shape == (3, 2)
+
+
+def test_a_flat_shaded_export_with_every_triangle_its_own_vertices_finds_the_same_lips(arkit):
+    """Blender's glTF exporter splits every vertex of a flat-shaded mesh per triangle (no two triangles share one):
+    the copies are welded first, and the pairs found sit where the smooth head's are."""
+    one = np.zeros((1, N_VISEMES), np.float32)
+    one[0, viseme_index("AHH")] = 1
+    opening = np.tensordot(bind(arkit).weights(one)[0], arkit.deltas, axes=1)
+    corners = arkit.faces.ravel()
+    split = find_inner_lips(arkit.neutral[corners], np.arange(len(corners)).reshape(-1, 3), opening[corners],
+                            arkit.mm_per_unit)
+    assert split is not None
+    np.testing.assert_array_equal(arkit.neutral[corners][split], arkit.neutral[inner_lip_pairs(arkit)])

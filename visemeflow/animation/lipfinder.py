@@ -17,7 +17,9 @@ the opening. So, with the character's own shapes bound to the visemes (its conve
    with the smallest gap at rest within a window of 12% of the half width: the inner lip line, not the outer lip.
 
 The searches for "joined nearby" expand at most `_VISITS` vertices in all; a mesh that needs more (no mouth has
-such neighbourhoods: a random cloud, a hostile file) has no lip measure. Accepted only when it looks like a mouth: at least `MIN_PAIRS` slit pairs, and the three pairs' mean gap under AHH at
+such neighbourhoods: a random cloud, a hostile file) has no lip measure. Copies of a vertex (an exporter splits vertices along flat-shaded edges and UV seams: a flat-shaded head
+exported by Blender has 3.8 times the vertices, every triangle its own) are welded first, where they sit within
+`_WELD_MM` of each other both at rest and opened. Accepted only when it looks like a mouth: at least `MIN_PAIRS` slit pairs, and the three pairs' mean gap under AHH at
 least `MIN_OPENING_MM` more than at rest. Otherwise None: the character has no lip measure, as before (a sealed
 mouth, a mesh with no opening shape, names no convention binds).
 
@@ -47,6 +49,7 @@ _CENTRES = (-0.4, 0.0, 0.4)
 _WINDOW = 0.12
 _NEIGHBOURS = 48        # partners looked at per candidate (nearest first)
 _MAX_HOPS = 48          # the "joined nearby" search stops this many edges out
+_WELD_MM = 1e-3         # copies of a vertex closer than this (at rest and opened) are one
 _VISITS = 200_000       # vertices those searches may expand in all (the ICT head's lips take about 8,000)
 
 
@@ -88,15 +91,29 @@ def find_inner_lips(neutral: np.ndarray, faces: np.ndarray, opening: np.ndarray,
                     ) -> np.ndarray | None:
     """(3, 2) vertex ids (upper, lower) of the inner lips at the quarter points and the middle, or None (see the
     module doc). `opening` (V, 3): the displacement of the widest open mouth (AHH) in the mesh's units."""
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
 
     rest = np.asarray(neutral, np.float64)
     opened = rest + np.asarray(opening, np.float64)
+    faces = np.asarray(faces, np.int64)
+    if not len(rest) or not len(faces):
+        return None
+    # weld the copies an exporter makes of a vertex (flat shading, UV seams: the same place, moved the same way by
+    # the opening), so that the surface's connections are the surface's; lips that touch at rest stay apart, since
+    # the opening moves them differently
+    key = np.round(np.concatenate([rest, opened], axis=1) * (mm_per_unit / _WELD_MM))
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    found = _find(rest[first], opened[first], inverse[faces], mm_per_unit)
+    return None if found is None else first[found]
+
+
+def _find(rest: np.ndarray, opened: np.ndarray, faces: np.ndarray, mm_per_unit: float) -> np.ndarray | None:
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     moved = np.linalg.norm(opened - rest, axis=1)
     top = float(moved.max()) if len(moved) else 0.0
-    faces = np.asarray(faces, np.int64)
-    if top * mm_per_unit < MIN_OPENING_MM or not len(faces):
+    if top * mm_per_unit < MIN_OPENING_MM:
         return None
     adj = _adjacency(faces, len(rest))
     _, piece = connected_components(adj, directed=False)
@@ -138,6 +155,7 @@ def find_inner_lips(neutral: np.ndarray, faces: np.ndarray, opening: np.ndarray,
     middle = (rest[pairs[:, 0]] + rest[pairs[:, 1]]) / 2
     centred = middle - middle.mean(axis=0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis     # a sign of its own, not the solver's
     along = centred @ axis
     centre, half = (along.min() + along.max()) / 2, (along.max() - along.min()) / 2
     if half <= 0:

@@ -683,6 +683,9 @@ class PreviewFrames:
         self.label_height = band
         self.caption_height = band if phones is not None else 0
         self.lip_pairs = inner_lip_pairs(character)
+        if self.lip_pairs is None:
+            log.warning("preview of %s: no lip gap under the panels: it has no landmarks and no mouth was found in its "
+                        "mesh (a slit its widest viseme opens); check a b/p/m frame by eye", character.label)
         self.lip_height = band if self.lip_pairs is not None else 0
         self.panel_top = self.title_height + self.label_height
         self.caption_top = self.panel_top + self.size
