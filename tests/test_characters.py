@@ -138,6 +138,11 @@ def test_a_rig_lacking_the_shapes_that_close_the_lips_is_warned_about():
     (mbp, fff) = bind(tiny(["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft",
                             "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight"])).warnings()
     assert "b/p/m" in mbp and "f/v" in fff and "mouthRollLower" in fff
+    # a rig without the shapes that open the mouth (a user's probe: the mouth barely moved and nothing said why)
+    (ahh,) = bind(tiny(["mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft", "mouthSmileRight",
+                        "mouthPressLeft", "mouthPressRight", "mouthRollLower", "mouthStretchLeft",
+                        "mouthStretchRight"])).warnings()
+    assert "the mouth will hardly open at open vowels" in ahh and "jawOpen" in ahh and "AHH,YOUR_SHAPE" in ahh
 
 
 def test_names_match_across_case_namespaces_and_side_suffixes():

@@ -72,7 +72,8 @@ _TABLE_FILES = {"arkit52": "arkit_visemes.csv", "oculus15": "oculus_visemes.csv"
 # most Oculus visemes, a useful set of ARKit mouth shapes (rigs often carry a subset of the 52), the five vowels.
 _MIN_MATCHES = {"visemeflow16": 16, "oculus15": 10, "arkit52": 8, "vrm5": 5}
 # What a viseme that a character cannot make costs the viewer (`Binding.warnings`)
-_CONTACTS = {"MBP": "the lips will not close at b/p/m", "FFF": "the lower lip will not touch the teeth at f/v"}
+_CONTACTS = {"MBP": "the lips will not close at b/p/m", "FFF": "the lower lip will not touch the teeth at f/v",
+             "AHH": "the mouth will hardly open at open vowels (a, ah)"}
 
 
 def normalize_shape_name(name: str) -> str:
