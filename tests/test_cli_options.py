@@ -324,3 +324,34 @@ def test_a_character_whose_names_follow_no_convention_is_one_line_before_any_flo
     out = write_character_glb(tmp_path / "spoken.glb", character, np.ones((3, 5), np.float32) * 0.5, 30.0,
                               name="speech")
     assert out.read_bytes()[:4] == b"glTF" and b'"speech"' in out.read_bytes() and b'"rest"' in out.read_bytes()
+
+
+def test_an_avatar_whose_driven_meshes_no_node_shows_is_one_line_before_any_flow(tmp_path):
+    """A GLB whose face meshes are in the file but on no node (a user's export that left the head out of its scene,
+    found by a probe): the GLB's clip has no node to play on; that failed after the predictions with a 150-line log.
+    Now one line before any flow, saying what to do."""
+    import pygltflib as gl
+
+    from visemeflow.animation.gltf import write_glb
+    from visemeflow.rig.character import make_character
+
+    grid = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32) * 0.1
+    names = ["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmileLeft", "mouthSmileRight",
+             "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft", "mouthLowerDownRight"]
+    deltas = np.random.default_rng(0).normal(0, 0.01, (len(names), 4, 3)).astype(np.float32)
+    face = make_character("face", grid, np.array([[0, 1, 2], [1, 3, 2]]), names, deltas)
+    path = write_glb(tmp_path / "face.glb", face, np.zeros((1, len(names)), np.float32), 30.0, name="rest")
+    g = gl.GLTF2().load(str(path))
+    g.nodes.append(gl.Node(name="Body"))                    # the scene shows a node without the face mesh
+    g.scenes[0].nodes = [len(g.nodes) - 1]
+    for node in g.nodes[:-1]:
+        node.mesh = None
+    g.animations = []
+    g.save_binary(str(tmp_path / "headless.glb"))
+    audio = tmp_path / "a.wav"
+    write_wav(audio, 0.5)
+    done = runner.invoke(app, ["speak", str(audio), "--character", str(tmp_path / "headless.glb"),
+                               "--store", str(tmp_path / "s")])
+    assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
+    assert "no node of its scene shows the meshes it would drive (face)" in done.output and "--format" in done.output
+    assert not (tmp_path / "s").exists()

@@ -265,7 +265,7 @@ TRAIN_AUGMENT = Opt(None, "--train-augment", type=float, default=0.0,
 
 
 def _check_characters(characters: list[Path] | None, meshes: list[str] | None, convention: str | None = None,
-                      mapping: Path | None = None) -> None:
+                      mapping: Path | None = None, formats: tuple[str, ...] = ()) -> None:
     """Each character the user named loads (and, with --mesh, holds those meshes; with --convention or --mapping,
     binds to the visemes that way): else one line naming the file and why, exit 2, before any flow starts (an empty
     glTF or a convention the character does not use would otherwise fail every package after the predictions)."""
@@ -286,12 +286,18 @@ def _check_characters(characters: list[Path] | None, meshes: list[str] | None, c
     for path in checked:
         own_meshes = meshes or None if path.resolve() != demo else None
         try:
-            load_bound_character(path, convention, mapping, own_meshes)
+            character, _ = load_bound_character(path, convention, mapping, own_meshes)
         except (CharacterError, OSError, ValueError) as exc:
             reason = str(exc)
             for named_as in (f"{path}: ", f"{path.resolve()}: "):   # the file is named once, as the user gave it
                 reason = reason.removeprefix(named_as)
             _fail(f"character {path}: {reason}")
+        if "glb" in formats and character.parts and not any(part.nodes for part in character.parts):
+            # the GLB's clip plays on the nodes that show the meshes: this failed after the predictions
+            _fail(f"character {path}: no node of its scene shows the meshes it would drive "
+                  f"({', '.join(part.name for part in character.parts)}), and a GLB's animation plays on nodes; "
+                  "export the avatar with its scene, choose meshes a node shows with --mesh, or leave glb out of "
+                  "--format")
 
 
 def _check_out_folder(out: Path | None) -> None:
@@ -532,7 +538,8 @@ def pipeline(params: PipelineParams, strict: bool) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.pipeline import pipeline_flow
 
-    _check_characters(params.characters, list(params.animate.meshes), params.animate.convention)
+    _check_characters(params.characters, list(params.animate.meshes), params.animate.convention,
+                      formats=params.animate.formats)
     _check_corpus_change(params.store, params.corpus, params.replace)
     for stage, summary in pipeline_flow(params).items():
         if stage == "animate":
@@ -863,7 +870,8 @@ def animate(params: AnimateParams, strict: bool) -> None:
 
     Runs the `animate` flow: one cached task per (utterance, character); bad input becomes rejects.
     """
-    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
+    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping,
+                      formats=params.config.formats)
     _check_out_folder(params.out)
     _check_curves(params.store, params.source, params.variant, several=True)
     if params.utterances:
@@ -883,7 +891,8 @@ def speak(params: SpeakParams) -> None:
     """From audio to talking characters in one command: predict the curves, then animate them (the `speak` flow)."""
     _known_model(params.store, params.model)
     _check_paths(params.audio, "audio file", "file")
-    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping)
+    _check_characters(params.characters, list(params.config.meshes), params.config.convention, params.mapping,
+                      formats=params.config.formats)
     _check_out_folder(params.out)
     _check_audio_readable(params.audio)
     from visemeflow.flows.animate import speak_flow
