@@ -27,7 +27,7 @@ def _image(kind: str, rgb) -> bytes:
     return out.getvalue()
 
 
-def make_scene(path: Path) -> dict:
+def make_scene(path: Path, eye_targets: bool = False) -> dict:
     """A head of two primitives with two materials (a textured, masked skin with a normal map, a WebP emissive map
     and an occlusion map whose KTX2 image nobody here decodes; a plain double-sided one) and an eye mesh without
     targets that two nodes instance."""
@@ -61,9 +61,11 @@ def make_scene(path: Path) -> dict:
                                indices=accessor(f.ravel(), gl.SCALAR), material=m) for f, m in ((front, 0), (back, 1))]
     g.meshes.append(gl.Mesh(name="Head", primitives=primitives, extras={"targetNames": TARGETS}))
     eye = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float32)
+    eye_delta = [{"POSITION": accessor(np.full((3, 3), 0.002, np.float32), gl.VEC3)}] if eye_targets else None
     g.meshes.append(gl.Mesh(name="Eye", primitives=[gl.Primitive(
         attributes=gl.Attributes(POSITION=accessor(eye, gl.VEC3)), indices=accessor(np.arange(3, dtype=np.uint16),
-                                                                                   gl.SCALAR), material=1)]))
+                                                                                   gl.SCALAR), material=1,
+        targets=eye_delta)], extras={"targetNames": ["jawOpen"]} if eye_targets else None))
     g.images = [gl.Image(name="skin", mimeType="image/png", bufferView=view(_image("PNG", (200, 150, 120)))),
                 gl.Image(name="normals", mimeType="image/jpeg", bufferView=view(_image("JPEG", (128, 128, 255)))),
                 gl.Image(name="glow", mimeType="image/webp", bufferView=view(_image("WEBP", (9, 9, 9)))),
@@ -231,3 +233,28 @@ def test_broken_texture_coordinates_cost_the_texture_not_the_character(tmp_path)
     stage = Usd.Stage.Open(str(path))
     assert not UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/take/Mesh")).GetPrimvar("st").IsDefined()
     assert "NaN or infinite texture coordinates" in stage.GetRootLayer().documentation
+
+
+def test_a_driven_mesh_that_two_nodes_show_is_driven_at_both(tmp_path):
+    """One eye mesh (with a jawOpen target, so it is driven) shown by two nodes: the USD has a driven Mesh for each
+    node, placed by it, that UsdSkel deforms by the same weights (the preview draws the first; the package says so)."""
+    from pxr import Gf, UsdSkel
+
+    from visemeflow.animation.textures import appearance_notes
+
+    arrays = make_scene(tmp_path / "eyes.glb", eye_targets=True)
+    character = load_character(tmp_path / "eyes.glb")
+    eye_part = next(p for p in character.parts if p.name == "Eye")
+    assert len(eye_part.nodes) == 2
+    weights = np.random.default_rng(0).random((4, character.n_shapes)).astype(np.float32)
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "take.usda", character, weights, 30.0, name="take")))
+    assert usd_validation_errors(stage) == []
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+    assert sorted(meshes) == ["Eye", "EyeR", "Head"]
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, 3))
+    jaw = character.shape_names.index("jawOpen")
+    for name, at in (("Eye", EYE_AT[0]), ("EyeR", EYE_AT[1])):
+        for k in (0, 3):
+            expected = arrays["eye"] + np.float32(at) + weights[k, jaw] * 0.002
+            np.testing.assert_allclose(np.asarray(meshes[name].GetPointsAttr().Get(k)), expected, atol=1e-6)
+    assert any("shown by 2 nodes; the preview draws it at the first only" in n for n in appearance_notes(character))

@@ -11,7 +11,7 @@ the ones that cannot be carried.
   an image larger than `MAX_IMAGE_PIXELS` decoded is refused before it is decoded (a decompression bomb is a small
   file).
 - `appearance_notes(character)`: one line per image, texture coordinate set or mesh instance that the USD, the USDZ
-  and the preview cannot show as the file does; `animate`/`speak` put them among the package's warnings, so a user
+  or the preview cannot show as the file does; `animate`/`speak` put them among the package's warnings, so a user
   who wanted the whole avatar textured learns why a part is not.
 """
 
@@ -180,6 +180,6 @@ def appearance_notes(character) -> tuple[str, ...]:
                     notes.append(f"{what} {label}: {exc}: left out of the USD and the preview")
     for part in character.parts:
         if len(part.nodes) > 1:
-            notes.append(f"{part.name}: instanced by {len(part.nodes)} nodes; the USD and the preview show it at the "
-                         "first only (the GLB animates every one)")
+            notes.append(f"{part.name}: shown by {len(part.nodes)} nodes; the preview draws it at the first only (the "
+                         "GLB and the USD show every one)")
     return tuple(notes)

@@ -212,7 +212,11 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     if character.parts:          # read from a glTF scene: its materials and other meshes too (`usd_scene`)
         from visemeflow.animation.usd_scene import dress_gltf_scene
 
-        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, _static_mesh(stage))
+        def driven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas: np.ndarray) -> UsdGeom.Mesh:
+            return _define_mesh(stage, path, skeleton, points, faces, names, deltas)
+
+        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, _static_mesh(stage),
+                                 driven)
         if notes:
             stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if colors is not None:

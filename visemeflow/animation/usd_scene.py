@@ -7,6 +7,8 @@ not drive, so that Omniverse, Blender or Quick Look show the user's avatar, not 
 - on every driven mesh: `primvars:st` (TEXCOORD_0, vertex interpolation, v flipped: glTF's texture origin is the
   top left, USD's the bottom left) and its material binding (one GeomSubset per primitive's material, family
   `materialBind`, where a mesh's primitives use several);
+- a driven mesh that several nodes show (one eye mesh for both eyes): a driven Mesh prim for each further node, placed
+  by it, with the same blend shapes;
 - every other mesh of the scene (a body, hair, eyes that share no target) as a static Mesh prim under the SkelRoot,
   placed as the scene shows it (node world transform, or a skinned mesh's rest pose: `GltfScene.placed_mesh`; one prim
   per node that instances a mesh without a skin), named by its node (else its mesh), in the character's unit, with
@@ -227,15 +229,27 @@ def _dress_mesh(stage: Usd.Stage, mesh: UsdGeom.Mesh, source: GltfMesh, material
 
 
 def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, part_prims: list[Sdf.Path],
-                     texture_dir: Path | None, prim_name, define_static) -> list[str]:
+                     texture_dir: Path | None, prim_name, define_static, define_driven) -> list[str]:
     """Add to `stage` what the glTF scene `character.source` holds beside the driven meshes (see the module doc):
     `part_prims[k]` is the Mesh prim of `character.parts[k]`; `define_static(path, points, faces)` makes a static
-    Mesh prim. Returns notes on what could not be carried."""
+    Mesh prim, `define_driven(path, points, faces, shape names, deltas)` one the SkelAnimation drives (a driven mesh's
+    other instances: a mesh two nodes show, such as one eye mesh for both eyes). Returns notes on what could not be
+    carried."""
     notes: list[str] = []
     scene = GltfScene(character.source)
     materials = _Materials(stage, root, scene, texture_dir, prim_name, notes)
-    scale = 1000.0 / float(character.mm_per_unit)    # the scene's metres in the character's unit
+    scale = np.float32(1000.0 / float(character.mm_per_unit))    # the scene's metres in the character's unit
     driven = {part.mesh for part in character.parts}
+    taken = {child.GetName() for child in stage.GetPrimAtPath(root).GetChildren()}
+
+    def free(label: str) -> Sdf.Path:
+        name = base = prim_name(label)
+        k = 1
+        while name in taken:
+            name, k = f"{base}_{k}", k + 1
+        taken.add(name)
+        return root.AppendChild(name)
+
     for part, path in zip(character.parts, part_prims):
         source = scene.placed_mesh(part.mesh)[0]     # with its targets: primitives share vertices as they did
         if len(source.neutral) != part.n_vertices:   # not the mesh the character was read from: leave it as is
@@ -243,19 +257,20 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
                          f"{part.n_vertices}: no materials")
             continue
         _dress_mesh(stage, UsdGeom.Mesh(stage.GetPrimAtPath(path)), source, materials)
-    taken = {child.GetName() for child in stage.GetPrimAtPath(root).GetChildren()}
+        info = next(i for i in scene.meshes if i.index == part.mesh)
+        if info.skin is None:      # the other nodes that show it (a skinned mesh is posed by its skin, not its node)
+            for node in part.nodes[1:]:
+                _, neutral, deltas, _ = scene.placed_mesh(part.mesh, node)
+                mesh = define_driven(free(scene.gltf.nodes[node].name or part.name), neutral * scale, source.faces,
+                                     part.target_names, deltas * scale)
+                _dress_mesh(stage, mesh, source, materials)
     for info in scene.meshes:
         if info.index in driven or not info.nodes:
             continue
         nodes = info.nodes[:1] if info.skin is not None else info.nodes
         for node in nodes:
             source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
-            label = scene.gltf.nodes[node].name or info.label      # the object's name in Blender and the engines
-            name, k = prim_name(label), 1
-            base = name
-            while name in taken:
-                name, k = f"{base}_{k}", k + 1
-            taken.add(name)
-            mesh = define_static(root.AppendChild(name), neutral * np.float32(scale), source.faces)
+            # named as the object is in Blender and the engines: its node
+            mesh = define_static(free(scene.gltf.nodes[node].name or info.label), neutral * scale, source.faces)
             _dress_mesh(stage, mesh, source, materials)
     return notes
