@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from visemeflow.animation.textures import TextureError, image_pixels, texture_image
+from visemeflow.animation.textures import TextureError, image_of, image_pixels
 from visemeflow.render.raster import MeshTexture
 from visemeflow.rig.character import Character
 from visemeflow.rig.gltf import GltfScene, linear_to_srgb
@@ -66,12 +66,9 @@ def character_texture(character: Character) -> tuple[MeshTexture | None, list[st
             if info is None or not isinstance(info.index, int) or mesh.uvs is None:
                 continue
             what = f"material {material} ({m.name or 'unnamed'}) base colour"
-            if (info.texCoord or 0) != 0:
-                notes.append(f"{what}: reads TEXCOORD_{info.texCoord}, which previews do not: left out")
-                continue
-            source = texture_image(scene.gltf, info.index)
-            if source is None:
-                notes.append(f"{what}: texture {info.index} names no image visemeflow can read: left out")
+            source = image_of(scene.gltf, info)
+            if isinstance(source, str):
+                notes.append(f"{what}: {source}: left out")
                 continue
             if source not in slot:
                 try:

@@ -25,8 +25,8 @@ import numpy as np
 from visemeflow.rig.gltf import GltfScene
 from visemeflow.rig.model import RigError
 
-__all__ = ["MAX_IMAGE_PIXELS", "MAX_TEXTURE_PX", "TextureError", "appearance_notes", "image_pixels", "package_image",
-           "texture_image"]
+__all__ = ["MAX_IMAGE_PIXELS", "MAX_TEXTURE_PX", "TextureError", "appearance_notes", "image_of", "image_pixels",
+           "package_image", "texture_image"]
 
 MAX_TEXTURE_PX = 1024
 MAX_IMAGE_PIXELS = 1 << 26     # 8192 x 8192
@@ -54,6 +54,15 @@ def texture_image(gltf, texture: int) -> int | None:
         if isinstance(source, int):
             return source
     return None
+
+
+def image_of(gltf, info) -> int | str:
+    """The image a material's texture info (`baseColorTexture`, ...) shows, or why none can be: it reads a second UV
+    set (only TEXCOORD_0 is read) or its texture names no image."""
+    if (info.texCoord or 0) != 0:
+        return f"reads TEXCOORD_{info.texCoord}; only TEXCOORD_0 is carried"
+    image = texture_image(gltf, info.index)
+    return image if image is not None else f"texture {info.index} names no image visemeflow can read"
 
 
 def _open(scene: GltfScene, image: int):
@@ -159,12 +168,9 @@ def appearance_notes(character) -> tuple[str, ...]:
         m = materials[index]
         what = f"material {m.name or index!r} ({mesh_label})"
         for label, info in _texture_infos(m):
-            if (info.texCoord or 0) != 0:
-                notes.append(f"{what} {label}: reads TEXCOORD_{info.texCoord}; only TEXCOORD_0 is carried")
-                continue
-            image = texture_image(scene.gltf, info.index)
-            if image is None:
-                notes.append(f"{what} {label}: texture {info.index} names no image visemeflow can read")
+            image = image_of(scene.gltf, info)
+            if isinstance(image, str):
+                notes.append(f"{what} {label}: {image}")
                 continue
             if image in seen:
                 continue

@@ -36,7 +36,7 @@ import pygltflib as gl
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from visemeflow.rig.character import Character
-from visemeflow.animation.textures import TextureError, package_image, texture_image
+from visemeflow.animation.textures import TextureError, image_of, package_image
 from visemeflow.rig.gltf import GltfMesh, GltfScene
 
 __all__ = ["MATERIALS", "TEXTURES", "dress_gltf_scene"]
@@ -77,12 +77,12 @@ class _Materials:
         materials = self.scene.gltf.materials or []
         return isinstance(index, int) and 0 <= index < len(materials) and bool(materials[index].doubleSided)
 
-    def _image(self, texture_index: int, what: str) -> str | None:
-        """The asset path of the texture's image in `texture_dir`, written on first use (PNG or JPEG: others are
-        converted, `textures.package_image`); None (with a note) when it cannot be carried."""
-        source = texture_image(self.scene.gltf, texture_index)
-        if source is None:
-            self.notes.append(f"{what}: texture {texture_index} names no image visemeflow can read: left out")
+    def _image(self, info, what: str) -> str | None:
+        """The asset path of the image of texture info `info` in `texture_dir`, written on first use (PNG or JPEG:
+        others are converted, `textures.package_image`); None (with a note) when it cannot be carried."""
+        source = image_of(self.scene.gltf, info)
+        if isinstance(source, str):
+            self.notes.append(f"{what}: {source}: left out")
             return None
         if source not in self.images:
             try:
@@ -102,12 +102,9 @@ class _Materials:
         """A UsdUVTexture for glTF texture info `info`, reading `st`; None when there is none to carry."""
         if info is None or not isinstance(getattr(info, "index", None), int) or self.texture_dir is None:
             return None
-        if (info.texCoord or 0) != 0:
-            self.notes.append(f"{what}: reads TEXCOORD_{info.texCoord}; only TEXCOORD_0 is carried: left out")
-            return None
         if (info.extensions or {}).get("KHR_texture_transform"):
             self.notes.append(f"{what}: KHR_texture_transform is not carried (the texture is placed untransformed)")
-        asset = self._image(info.index, what)
+        asset = self._image(info, what)
         if asset is None:
             return None
         reader_path = path.GetParentPath().AppendChild("st")
