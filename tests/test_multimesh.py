@@ -53,8 +53,8 @@ def test_the_loader_drives_head_teeth_and_eyes_in_place_and_names_the_body(avata
     assert c.left_out == ("BodyNode (mesh Wolf3D_Body; no targets)",)
     assert c.name == "avatar" and c.shape_names == tuple(HEAD_TARGETS + ["tongueOut"])
     assert c.describe() == ("character avatar.glb: driving HeadNode (mesh Wolf3D_Head, 30 v), TeethNode (mesh "
-                            "Wolf3D_Teeth, 6 v), EyeLeftNode (mesh EyeLeft, 4 v), EyeRightNode (mesh EyeRight, 4 v): 1 "
-                            "shared target (17 in all); not driven: BodyNode (mesh Wolf3D_Body; no targets)")
+                            "Wolf3D_Teeth, 6 v), EyeLeftNode (mesh EyeLeft, 4 v), EyeRightNode (mesh EyeRight, 4 v): 17 "
+                            "targets, 1 of them on every mesh; not driven: BodyNode (mesh Wolf3D_Body; no targets)")
     head, teeth, left, right = c.parts
     assert (head.start, head.stop, teeth.stop, left.stop, right.stop) == (0, 30, 36, 40, 44) == (0, 30, 36, 40,
                                                                                                    c.n_vertices)

@@ -134,10 +134,10 @@ class Character:
         driving = ", ".join(p.summary() for p in self.parts)
         shared = set(self.parts[0].target_names).intersection(*(p.target_names for p in self.parts[1:]))
         text = f"character {label}: driving {driving}: "
-        text += (f"{len(shared)} shared target{'s' if len(shared) != 1 else ''}" if len(self.parts) > 1
-                 else f"{self.n_shapes} targets")
-        if len(shared) != self.n_shapes and len(self.parts) > 1:
-            text += f" ({self.n_shapes} in all)"
+        if len(self.parts) == 1 or len(shared) == self.n_shapes:
+            text += f"{self.n_shapes} targets" + (" on every mesh" if len(self.parts) > 1 else "")
+        else:   # "3 shared targets (34 in all)" read as 3 driven: a user's probe
+            text += f"{self.n_shapes} targets, {len(shared)} of them on every mesh"
         return text + (f"; not driven: {', '.join(self.left_out)}" if self.left_out else "")
 
 
