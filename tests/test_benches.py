@@ -44,6 +44,7 @@ QUICK = {
                     "--threads", "1"],
     "lips.py": ["--quick", "--threads", "1"],
     "memory.py": ["--minutes", "0.1"],
+    "pauses.py": ["--quick"],
     "memory_tracking.py": ["--seconds", "0.2", "--side", "360"],
     "onnx.py": ["--presets", "fbank-blstm", "--repeats", "1"],
     "rendering.py": ["--frames", "2", "--reference-frames", "1"],
