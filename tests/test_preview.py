@@ -703,7 +703,8 @@ def test_a_gltf_avatar_shows_its_skin_texture_in_the_preview(tmp_path, monkeypat
 
     assert skin_share(PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")) > 0.5
     monkeypatch.setattr(textures, "MAX_IMAGE_PIXELS", 3)            # the 2x2 skin is now "too large"
+    fresh = load_character(tmp_path / "avatar.glb")     # the texture is made once per character object
     with caplog.at_level("WARNING"):
-        plain = PreviewFrames(ch, {"speech": weights}, FPS, size=96, framing="face")
+        plain = PreviewFrames(fresh, {"speech": weights}, FPS, size=96, framing="face")
     assert skin_share(plain) == 0.0
     assert "image 0 is 2x2 pixels, more than the 3 decoded pixels visemeflow reads" in caplog.text

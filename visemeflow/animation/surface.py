@@ -12,6 +12,8 @@ texture (None): the preview keeps its vertex colours or grey.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from visemeflow.animation.textures import TextureError, image_of, image_pixels
@@ -23,8 +25,10 @@ from visemeflow.rig.model import RigError
 __all__ = ["character_texture"]
 
 
+@functools.lru_cache(maxsize=8)
 def character_texture(character: Character) -> tuple[MeshTexture | None, list[str]]:
-    """The MeshTexture of `character`'s faces (see the module doc) and notes on what was left out."""
+    """The MeshTexture of `character`'s faces (see the module doc) and notes on what was left out; made once per
+    character object (`animate` previews every utterance of a run on the same one)."""
     notes: list[str] = []
     if not character.parts or not character.source:
         return None, notes

@@ -84,13 +84,12 @@ def _open(scene: GltfScene, image: int):
     return blob, suffix, opened
 
 
-@functools.lru_cache(maxsize=64)
-def _package_image(path: str, mtime: float, image: int) -> tuple[bytes, str] | str:
+def package_image(scene: GltfScene, image: int) -> tuple[bytes, str]:
+    """PNG or JPEG bytes and their suffix for a USD package (see the module doc); TextureError otherwise."""
     from PIL import Image
 
-    scene = GltfScene(path)
+    blob, suffix, opened = _open(scene, image)
     try:
-        blob, suffix, opened = _open(scene, image)
         with opened:
             kind = opened.format
             if kind in ("PNG", "JPEG"):
@@ -99,18 +98,8 @@ def _package_image(path: str, mtime: float, image: int) -> tuple[bytes, str] | s
             out = io.BytesIO()
             opened.convert("RGBA" if "A" in opened.getbands() else "RGB").save(out, format="PNG")
             return out.getvalue(), ".png"
-    except TextureError as exc:
-        return str(exc)
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
-        return f"image {image} cannot be decoded ({type(exc).__name__}: {exc})"
-
-
-def package_image(scene: GltfScene, image: int) -> tuple[bytes, str]:
-    """PNG or JPEG bytes and their suffix for a USD package (see the module doc); TextureError otherwise."""
-    found = _package_image(str(scene.path), scene.path.stat().st_mtime, image)
-    if isinstance(found, str):
-        raise TextureError(found)
-    return found
+        raise TextureError(f"image {image} cannot be decoded ({type(exc).__name__}: {exc})") from None
 
 
 def image_pixels(scene: GltfScene, image: int) -> np.ndarray:
