@@ -3,7 +3,7 @@ fit, optical flow and the solver, per clip, with the share of each step.
 
 Run:  .venv/bin/python bench/end_to_end.py [--repeats R] [--clips N] [--no-pin] [--compare] [--joint N]
                                             [--compare-flow PRESET:ROI] [--compare-config JSON] [--compare-storage]
-                                            [--compare-mesh JSON] [--compare-overheads]
+                                            [--compare-mesh JSON] [--compare-overheads] [--compare-times]
 
 Prints tables and never asserts; the exit status is 0 whatever the figures are. Threads are pinned to one
 (OMP/MKL/OpenBLAS env set before numpy and torch are imported, torch.set_num_threads(1)) and the process to one
@@ -42,6 +42,11 @@ landmarks read by Python's loop over the message, the backward flow's forward-ba
 (the fast solver never reads it; here forced right after the flow, from the stored flows, which adds their float16
 -> float32 conversion, about 0.1 ms a frame on the talking heads), and the flow sampled by three index arrays;
 "after" the product's code. The curves must be identical (the largest difference is printed).
+--compare-times: "before" has the track stage decode the clip for its frame times (`frame_times`), as it did until
+2026-12-05; "after" reads them from the packets (`video.packet_frame_times`) and checks them against the flow's own
+decoding. The curves must be identical.
+Frames: a clip's frames are its curve grid's; a variable-rate clip (talking_heads/1.mp4: 135 frames on a 184-frame
+grid) holds fewer, and the frames/s of the frames the videos hold is printed beside it.
 --compare also runs every clip with the fast solver's other method, TrackingConfig(fast_method="lm")
 (Levenberg-Marquardt, issue 29), as "after", beside the default Adam with cosine decay (50 pose + 200 joint
 steps, "before"); same code otherwise. Before and after alternate clip by clip in the same run. Their accuracy is printed
@@ -71,6 +76,7 @@ from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+import pyarrow.parquet as pq  # noqa: E402
 
 from cpu import pin_one_core  # noqa: E402  (bench/, this script's folder)
 import torch  # noqa: E402
@@ -173,6 +179,9 @@ def install_profile() -> None:
         (video_mod, "frame_times", _wrap, "decode"),
         (video_mod, "read_timed_frames", _wrap, "decode"),
         (video_mod, "iter_video_frames", _wrap_iter, "decode"),
+        (video_mod, "iter_timed_frames", _wrap_iter, "decode"),      # the landmarks stage's (imported when run)
+        (utterance_mod, "iter_timed_frames", _wrap_iter, "decode"),  # the flow's
+        (utterance_mod, "packet_frame_times", _wrap, "decode"),
         # detection: the landmarks stage's detect_video (decode inside it is subtracted)
         (landmarks_task, "detect_video", _wrap, "detection"),
         (landmarks_task, "mediapipe478_table", _wrap, "landmark I/O"),
@@ -242,6 +251,7 @@ class Clip:
     procedural: np.ndarray | None
     alignment_end_s: float | None
     mbp_times: list[float] = field(default_factory=list)    # midpoints of the MBP phones, seconds
+    video_frames: int = 0    # frames the video holds (its landmark rows); a variable-rate clip's grid has more
     runs: dict[str, list[tuple[float, float, dict]]] = field(default_factory=dict)   # path: (wall, cpu, steps)
 
     @property
@@ -332,6 +342,7 @@ def run_clip(clip: Clip, store: Store, rig, config: TrackingConfig, mesh: FaceMe
     tracked = track_video(video, clip.procedural, rig, config, identity=identity)
     PROFILE.leave("other")
     wall, cpu = time.perf_counter() - wall + share[0], time.process_time() - cpu + share[1]
+    clip.video_frames = pq.read_metadata(store.landmark_path(clip.uid)).num_rows
     PROFILE.seconds["identity"] += share[0]
     PROFILE.cpu["identity"] += share[1]
     steps = dict(PROFILE.seconds)
@@ -359,6 +370,8 @@ def run_group(clips: list[Clip], store: Store, rig, config: TrackingConfig, mesh
     tracked = track_videos(videos, rig, config, [identities.get(c.uid) for c in clips])
     PROFILE.leave("other")
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    for clip in clips:
+        clip.video_frames = pq.read_metadata(store.landmark_path(clip.uid)).num_rows
     frames = sum(c.frames for c in clips)
     out = []
     for clip, result in zip(clips, tracked):
@@ -402,6 +415,10 @@ def print_set(name: str, clips: list[Clip], path: str) -> dict[str, float]:
               f"{c:>8.3f}{100 * c / cpu:>7.1f}%{rate(c)}")
     print(f"  {'total':<14}{wall:>8.3f}{100.0:>7.1f}%{rate(wall)}{1000 * wall / frames:>10.2f}   "
           f"{cpu:>8.3f}{100.0:>7.1f}%{rate(cpu)}")
+    video_frames = sum(c.video_frames for c in clips)
+    if video_frames != frames:
+        print(f"  the videos hold {video_frames} frames (a variable-rate clip's grid has frames its video lacks): "
+              f"{video_frames / wall:.1f} video frames/s wall, {video_frames / cpu:.1f} CPU")
     print(f"  spread of a clip's total over its runs: median {100 * float(np.median(spreads)):.1f}%, "
           f"max {100 * max(spreads):.1f}%")
     return {"frames": frames, "wall": wall, "cpu": cpu, **steps}
@@ -449,11 +466,16 @@ def main() -> int:
                         help="instead of --compare's solvers: FaceMesh's landmarks read by a loop, every backward "
                              "flow mask made and the flow sampled by index arrays, as before (until 2026-11-29); "
                              "the product's code as after (the same curves)")
+    parser.add_argument("--compare-times", action="store_true",
+                        help="instead of --compare's solvers: the track stage's frame times decoded from the video "
+                             "as before (until 2026-12-05), read from its packets and checked by the flow's pass as "
+                             "after (the same curves)")
     parser.add_argument("--joint", type=int, default=None, metavar="N",
                         help="the track stage on groups of N clips of a set in one joint solve, as the pipeline "
                              "runs it (landmarks per clip; a group's time shared over its clips by frames)")
     args = parser.parse_args()
-    if args.compare_flow or args.compare_config or args.compare_storage or args.compare_mesh or args.compare_overheads:
+    if (args.compare_flow or args.compare_config or args.compare_storage or args.compare_mesh or args.compare_overheads
+            or args.compare_times):
         args.compare = True
     if not (GRID / "video").is_dir():
         print(f"missing benchmark data: {GRID}")
@@ -486,6 +508,9 @@ def main() -> int:
     if args.compare_overheads:
         configs = {"before": config, "after": config}
         label = "before (landmarks by a loop, every backward mask, flows sampled by index arrays) -> after"
+    if args.compare_times:
+        configs = {"before": config, "after": config}
+        label = "before (frame times decoded) -> after (read from the packets, checked by the flow's decoding)"
     meshes = {"before": mesh, "after": mesh}
     if args.compare_mesh:
         import json
@@ -496,6 +521,11 @@ def main() -> int:
     if not args.compare:
         configs = {"after": config}          # the default alone (not --compare's other method)
     vectorised = optical_flow._CONVERT_FP16
+    packet_times: list = []
+
+    def no_packet_times(path) -> None:     # before: the track stage decodes the clip for its frame times
+        return None
+
     current = (facemesh_mod._landmark_xyz, optical_flow._sample_flows, utterance_mod.estimate_optical_flow)
     previous = (landmark_xyz_loop, sample_flows_indexed, with_backward_masks(utterance_mod.estimate_optical_flow))
 
@@ -503,10 +533,13 @@ def main() -> int:
         optical_flow._CONVERT_FP16 = None if args.compare_storage and path == "before" else vectorised
         pieces = previous if args.compare_overheads and path == "before" else current
         facemesh_mod._landmark_xyz, optical_flow._sample_flows, utterance_mod.estimate_optical_flow = pieces
+        utterance_mod.packet_frame_times = (no_packet_times if args.compare_times and path == "before"
+                                            else packet_times[0])
     with tempfile.TemporaryDirectory(prefix="visemeflow-e2e-") as tmp_name:
         tmp = Path(tmp_name)
         clips = build_corpus(tmp, args.clips)
         install_profile()
+        packet_times = [utterance_mod.packet_frame_times]      # timed as decoding
         store = Store(tmp / "store")
         run_clip(clips[0], store, rig, config, mesh)            # warm-up: MediaPipe's and torch's first-use costs
         fitted = {path: fit_identities(clips, store, rig, configs[path], meshes[path], args.repeats) for path in paths}

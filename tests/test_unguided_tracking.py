@@ -331,3 +331,47 @@ def test_the_flow_settings_of_the_tracking_config_reach_dis(monkeypatch, rig):
     face, lower = (utterance.flow_roi(track, 360, 288, region) for region in ("face", "lower"))
     assert [(roi, scale_roi) for _, roi, scale_roi in seen] == [(lower, face), (face, face)]
     assert clip_roi(lower, 360, 288) == lower and lower[2] < face[2] and lower[3] < face[3]
+
+
+def _track_4(rig, monkeypatch, quick):
+    """talking_heads/4.mp4 tracked unguided on its reference landmarks (few solver steps), with the track stage's
+    packet times replaced by `quick(real)`; (curves, the decoded frame_times calls, decoding passes)."""
+    import visemeflow.tracking.utterance as utterance
+
+    _need(TALKING / "4.mp4", TALKING / "4.mediapipe478.csv")
+    real = utterance.packet_frame_times
+    calls, passes = [], []
+    monkeypatch.setattr(utterance, "packet_frame_times", lambda p: quick(real(p)))
+    times = utterance.frame_times
+    monkeypatch.setattr(utterance, "frame_times", lambda p: calls.append(p) or times(p))
+    frames = utterance.iter_timed_frames
+    monkeypatch.setattr(utterance, "iter_timed_frames", lambda p: passes.append(p) or frames(p))
+    config = TrackingConfig(fast_iterations=4, pose_iterations=4)
+    tracked = track_video(VideoInput(str(TALKING / "4.mp4"), str(TALKING / "4.mediapipe478.csv"), 30.0, 199),
+                          None, rig, config)
+    return tracked.result.curves, len(calls), len(passes)
+
+
+def test_a_clip_whose_packets_give_its_frame_times_is_decoded_once_with_the_same_curves(rig, monkeypatch):
+    """The track stage decoded a clip twice, once for its frame times and once for the flow (1.2 ms a 700x700 frame
+    on talking_heads/4.mp4). The times now come from the packets, checked by the flow's one decoding pass; the curves
+    are those of decoded times, bit for bit."""
+    quick, n_times, n_passes = _track_4(rig, monkeypatch, lambda t: t)
+    decoded, n_times_before, n_passes_before = _track_4(rig, monkeypatch, lambda t: None)
+    assert (n_times, n_passes) == (0, 1) and (n_times_before, n_passes_before) == (1, 1)
+    assert np.array_equal(quick, decoded)
+
+
+@pytest.mark.parametrize("lie", ["later", "short", "long"])
+def test_packet_times_that_the_decoded_frames_contradict_are_not_used(rig, monkeypatch, lie):
+    """A container whose packets say other than its frames (a time off by a microsecond, a frame more or fewer than
+    it decodes): the clip is prepared again on its decoded times, with the curves decoding gives."""
+    def wrong(times):
+        if lie == "later":
+            return np.concatenate([times[:-1], times[-1:] + 1e-6])
+        return times[:-1] if lie == "short" else np.append(times, times[-1] + 1 / 30)
+
+    curves, n_times, n_passes = _track_4(rig, monkeypatch, wrong)
+    decoded, _, _ = _track_4(rig, monkeypatch, lambda t: None)
+    assert n_times == 1 and n_passes == 2
+    assert np.array_equal(curves, decoded)

@@ -14,6 +14,7 @@ from visemeflow.tracking.video import (
     frame_times,
     grid_rate,
     iter_timed_frames,
+    packet_frame_times,
     probe_video,
     read_timed_frames,
     read_video_frames,
@@ -178,3 +179,21 @@ def test_iter_timed_frames_on_a_file_without_frames_is_an_error_naming_it(tmp_pa
     path = zeroed_video(tmp_path / "zeroed.mp4")
     with pytest.raises(VideoError, match=r"zeroed\.mp4: video decoding failed"):
         list(iter_timed_frames(path))
+
+
+def test_packet_frame_times_are_the_decoded_times_to_the_bit(tmp_path):
+    """Read from the packets without decoding where the container vouches for them: the variable-rate and the
+    constant-rate clips and our own writer's MP4 with audio; exactly frame_times."""
+    assert VFR_CLIP.is_file() and CFR_CLIP.is_file(), "missing test data under ../shared/data"
+    frames = [np.full((48, 64, 3), 10 * k, np.uint8) for k in range(12)]
+    ours = write_video(tmp_path / "cfr.mp4", frames, 25, audio=np.zeros(16000, np.float32), audio_rate=16000)
+    for clip in (VFR_CLIP, CFR_CLIP, ours):
+        quick = packet_frame_times(clip)
+        assert quick is not None and np.array_equal(quick, frame_times(clip)), clip
+
+
+def test_packet_frame_times_are_none_where_the_container_stores_no_frame_count(tmp_path):
+    """GRID's MPEG-1 program stream and a Matroska file store no frame count: their times must be decoded."""
+    assert GRID_CLIP.is_file(), f"missing test data {GRID_CLIP}"
+    assert packet_frame_times(GRID_CLIP) is None
+    assert packet_frame_times(_write_timed(tmp_path / "vfr.mkv", [2, 3, 5, 6, 7, 10])) is None

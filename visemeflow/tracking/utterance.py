@@ -59,6 +59,7 @@ from visemeflow.tracking.video import (
     VideoInfo,
     frame_times,
     iter_timed_frames,
+    packet_frame_times,
     probe_video,
     read_timed_frames,
 )
@@ -447,9 +448,67 @@ def _prepare(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, c
         # one probe for the audio check and the camera (probing decodes a clip whose container stores no frame count)
         info = probe_video(video.video_path) if _audio_is_video(video) else None
         check_audio(video, info)
+        # Frame times from the packets, without decoding, where the container vouches for them and the flow's pass
+        # decodes every frame anyway to check them; anything else (no such times, a time that differs, an error on
+        # the way) prepares again from decoded times, exactly as without them.
+        quick = packet_frame_times(video.video_path) if config.use_flow and not config.use_rgb else None
+    except VideoError as exc:
+        raise TrackingInputError(video.video_path, exc.error_type,
+                                 str(exc).removeprefix(f"{Path(video.video_path)}: ")) from exc
+    if quick is not None:
+        try:
+            return _prepare_on(video, procedural, rig, config, on_step, identity, info, quick)
+        except (_TimesDisagree, TrackingInputError):
+            pass
+    return _prepare_on(video, procedural, rig, config, on_step, identity, info, None)
+
+
+class _TimesDisagree(Exception):
+    """Frame times read from the packets that the decoded frames do not bear out."""
+
+
+class _CheckedFrames:
+    """The decoded (frame, time) pairs of a video, each time compared with `times` (read from its packets)."""
+
+    def __init__(self, pairs: Iterable[tuple[np.ndarray, float]], times: np.ndarray):
+        self.pairs, self.times, self.seen = iter(pairs), times, 0
+
+    def _check(self, t: float) -> None:
+        k, self.seen = self.seen, self.seen + 1
+        if k >= len(self.times) or t != self.times[k]:
+            raise _TimesDisagree(f"frame {k}")
+
+    def first(self, n: int) -> Iterator[np.ndarray]:
+        """The first `n` frames (_TimesDisagree at a frame whose time differs, or when the video ends first)."""
+        while self.seen < n:
+            frame, t = next(self.pairs, (None, None))
+            if frame is None:
+                raise _TimesDisagree(f"{self.seen} frames decoded, {len(self.times)} time stamps")
+            self._check(t)
+            yield frame
+
+    def finish(self) -> None:
+        """Decode the rest and check it: as many frames as times, each at its time."""
+        for _, t in self.pairs:
+            self._check(t)
+        if self.seen != len(self.times):
+            raise _TimesDisagree(f"{self.seen} frames decoded, {len(self.times)} time stamps")
+
+
+def _prepare_on(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, config: TrackingConfig,
+                on_step: Callable[[str, int, int], None] | None, identity: SpeakerIdentity | None,
+                info: VideoInfo | None, quick: np.ndarray | None) -> _Prepared:
+    """`_prepare` on the frame times `quick` (read from the packets; checked against the flow's decoded frames,
+    _TimesDisagree where they differ), or on times decoded here when None."""
+    n_grid = video.n_frames
+    guided = procedural is not None
+    try:
         # The clip is held whole only for the photometric term; flow decodes it again frame by frame and keeps the
         # face crops, so a 4K clip never sits in memory (bench/memory_tracking.py).
-        frames, times = read_timed_frames(video.video_path) if config.use_rgb else (None, frame_times(video.video_path))
+        if config.use_rgb:
+            frames, times = read_timed_frames(video.video_path)
+        else:
+            frames, times = None, frame_times(video.video_path) if quick is None else quick
         timeline = FrameTimeline(times, float(video.fps), n_grid)
         check_coverage(video, times)
         if timeline.uniform:            # the frames are the grid: as tracked before frame times were read
@@ -463,12 +522,19 @@ def _prepare(video: VideoInput, procedural: np.ndarray | None, rig: VisemeRig, c
         track = load_track(video.landmark_path, video.fps, n_frames, video.video_path)
         rig, camera, camera_info = rig_and_camera(video.video_path, rig, track, info, identity)
         flow = flow_valid = photo = None
+        checked = None if quick is None else _CheckedFrames(iter_timed_frames(video.video_path), quick)
         if config.use_flow and n_frames > 1:
-            decoded = frames if frames is not None else (
-                f for f, _ in itertools.islice(iter_timed_frames(video.video_path), n_frames))
+            if frames is not None:
+                decoded = frames
+            elif checked is not None:
+                decoded = checked.first(n_frames)
+            else:
+                decoded = (f for f, _ in itertools.islice(iter_timed_frames(video.video_path), n_frames))
             if on_step is not None:
                 decoded = _counted(decoded, lambda k: on_step("optical flow", k, n_frames))
             flow, flow_valid = flow_term(decoded, rig, track, flow_config_of(config), config.flow_region)
+        if checked is not None:
+            checked.finish()
         if config.use_rgb:
             photo = PhotoTerm(rig, camera, frames, track.points)
     except VideoError as exc:
