@@ -136,6 +136,8 @@ class Profile:
 
 
 PROFILE = Profile()
+PAPER_FRAMES = 16 * 3600 * 25
+"""The paper's corpus: 16 hours of 25-fps video."""
 
 
 def _wrap(fn, step: str):
@@ -419,6 +421,8 @@ def print_set(name: str, clips: list[Clip], path: str) -> dict[str, float]:
     if video_frames != frames:
         print(f"  the videos hold {video_frames} frames (a variable-rate clip's grid has frames its video lacks): "
               f"{video_frames / wall:.1f} video frames/s wall, {video_frames / cpu:.1f} CPU")
+    print(f"  the paper's 16 h of video (1.44 M frames) at this rate: {PAPER_FRAMES / (video_frames / wall) / 3600:.1f} "
+          "core-hours")
     print(f"  spread of a clip's total over its runs: median {100 * float(np.median(spreads)):.1f}%, "
           f"max {100 * max(spreads):.1f}%")
     return {"frames": frames, "wall": wall, "cpu": cpu, **steps}
