@@ -75,8 +75,13 @@ def _mesh(b: _Blob, name: str, vertices, faces, names: list[str], deltas, extra:
     return len(b.g.meshes) - 1
 
 
-def make_avatar(path: Path, body_targets: list[str] | None = None) -> dict:
-    """Write the multi-mesh avatar GLB (see the module doc); returns the arrays it holds, by mesh name."""
+HAIR_COLOR = [0.05, 0.1, 0.8, 1.0]             # linear; blue, so that a test can tell it from the skin
+HAIR_AT = np.array([0.0, 1.75, -0.05])          # behind the head, under the root node
+
+
+def make_avatar(path: Path, body_targets: list[str] | None = None, hair: bool = False) -> dict:
+    """Write the multi-mesh avatar GLB (see the module doc); returns the arrays it holds, by mesh name. `hair`: a
+    static "Wolf3D_Hair" plane (no targets, a blue material) behind the head, larger than it."""
     rng = np.random.default_rng(3)
     g = gl.GLTF2(asset=gl.Asset(version="2.0", generator="test avatar"))
     b = _Blob(g)
@@ -110,6 +115,11 @@ def make_avatar(path: Path, body_targets: list[str] | None = None) -> dict:
     _mesh(b, "EyeRight", eye, eye_faces, EYE_TARGETS, np.zeros((len(EYE_TARGETS), len(eye), 3)))
     _mesh(b, "Wolf3D_Body", body, body_faces, body_names,
           rng.normal(0, 0.01, (len(body_names), len(body), 3)))
+    if hair:
+        g.materials.append(gl.Material(name="hair", pbrMetallicRoughness=gl.PbrMetallicRoughness(
+            baseColorFactor=HAIR_COLOR, metallicFactor=0.0)))
+        hair_plane, hair_faces = _grid(4, 4, 0.25)
+        _mesh(b, "Wolf3D_Hair", hair_plane, hair_faces, [], [], material=2)
 
     hips_world = np.eye(4)
     hips_world[:3, 3] = AVATAR_AT
@@ -129,6 +139,9 @@ def make_avatar(path: Path, body_targets: list[str] | None = None) -> dict:
         gl.Node(name="EyeRightNode", mesh=3, translation=[0.03, 0.0, 0.0]),                         # 7
         gl.Node(name="BodyNode", mesh=4),                                                           # 8
     ]
+    if hair:
+        g.nodes.append(gl.Node(name="HairNode", mesh=5, translation=HAIR_AT.tolist()))             # 9
+        g.nodes[0].children.append(9)
     g.skins.append(gl.Skin(name="Armature", joints=[1, 2], skeleton=1,
                            inverseBindMatrices=b.accessor(ibm.reshape(2, 16), gl.MAT4)))
     times = np.array([0.0, 1.0], np.float32)

@@ -708,3 +708,54 @@ def test_a_gltf_avatar_shows_its_skin_texture_in_the_preview(tmp_path, monkeypat
         plain = PreviewFrames(fresh, {"speech": weights}, FPS, size=96, framing="face")
     assert skin_share(plain) == 0.0
     assert "image 0 is 2x2 pixels, more than the 3 decoded pixels visemeflow reads" in caplog.text
+
+
+def test_the_preview_draws_the_avatars_other_meshes_behind_and_around_its_driven_ones(tmp_path):
+    """The preview drew the driven meshes alone (a Ready Player Me head without its hair). The avatar's hair, a mesh
+    no target moves, is now drawn as the file places it, in its material's colour, and the driven eye in front of it
+    stays in front; the same avatar without hair shows no hair colour."""
+    from avatar_glb import make_avatar
+
+    from visemeflow.animation.load import load_character
+    from visemeflow.render.raster import project
+
+    def panel_of(path):
+        ch = load_character(path)
+        frames = PreviewFrames(ch, {"speech": np.zeros((1, ch.n_shapes), np.float32)}, FPS, size=240, framing="face")
+        return ch, frames, next(iter(frames))[frames.panel_box(0)].astype(int)
+
+    def blue(pixels):
+        return (pixels[..., 2] > pixels[..., 0] + 40) & (pixels[..., 2] > pixels[..., 1] + 40)
+
+    make_avatar(tmp_path / "hair.glb", hair=True)
+    make_avatar(tmp_path / "bald.glb")
+    ch, frames, panel = panel_of(tmp_path / "hair.glb")
+    _, _, bald = panel_of(tmp_path / "bald.glb")
+    assert blue(panel).mean() > 0.05 and blue(bald).sum() == 0
+    eye = next(p for p in ch.parts if p.name == "EyeLeft")
+    u, v = np.round(project(ch.neutral[eye.start:eye.stop].mean(axis=0, keepdims=True), frames.camera,
+                            frames.pose)[0]).astype(int)
+    assert not blue(panel[v, u]) and blue(panel[v - 8, u])      # the eye over the hair, the hair around it
+
+
+def test_a_driven_mesh_that_two_nodes_show_is_drawn_at_both_and_moves_at_both(tmp_path):
+    """One eye mesh (a jawOpen target) that two nodes show: the preview drew it at the first node only. Its second
+    instance now follows the same curves, placed by its own node."""
+    from test_usd_scene import EYE_AT, make_scene
+
+    from visemeflow.animation.load import load_character
+    from visemeflow.animation.surface import preview_scene
+
+    arrays = make_scene(tmp_path / "eyes.glb", eye_targets=True)
+    ch = load_character(tmp_path / "eyes.glb")
+    scene, notes = preview_scene(ch)
+    eye = next(p for p in ch.parts if p.name == "Eye")
+    jaw = ch.shape_names.index("jawOpen")
+    for weight in (0.0, 0.7):
+        driven = ch.neutral + weight * ch.deltas[jaw]
+        rows = scene.vertices(driven)
+        assert np.array_equal(rows[:ch.n_vertices], driven)
+        np.testing.assert_allclose(rows[ch.n_vertices:], arrays["eye"] + np.float32(EYE_AT[1]) + weight * 0.002,
+                                   atol=1e-6)
+    assert len(scene.faces) == len(ch.faces) + 1 and scene.faces[-1].tolist() == [ch.n_vertices + k for k in range(3)]
+    assert scene.texture.face_image.shape == (len(scene.faces),) and eye.n_vertices == 3

@@ -19,6 +19,7 @@ from visemeflow.render.raster import (
     rasterize,
     rasterize_fragments,
     rasterize_reference,
+    render_backdrop,
     render_mesh,
     vertex_normals,
 )
@@ -299,3 +300,35 @@ def test_batched_rasterisation_equals_one_batch(demo, monkeypatch):
     np.testing.assert_array_equal(batched.triangle_id, whole.triangle_id)
     np.testing.assert_array_equal(batched.depth, whole.depth)
     np.testing.assert_allclose(batched.barycentric, whole.barycentric, atol=1e-6)
+
+
+@pytest.mark.parametrize("textured", [False, True])
+def test_a_mesh_over_a_backdrop_equals_both_drawn_as_one(demo, textured):
+    """Previews draw a scene's static meshes once (`render_backdrop`) and the moving ones over them each frame. That
+    must be the image of both drawn as one mesh, the moving faces first: here the demo head over a plane that cuts
+    through it (the plane in front of the jaw, behind the nose), and the same plane in front of everything."""
+    camera, pose = demo_view(demo, 180, 144)
+    head = evaluate_rig(demo, np.eye(16, dtype=np.float32)[viseme_index("AHH")]).numpy().astype(np.float64)
+    low, high = head.min(axis=0), head.max(axis=0)
+    for z in (0.5 * (low[2] + high[2]) + 0.3 * (high[2] - low[2]), high[2] + 1.0):
+        plane = quad(low[0] - 1, high[0] + 1, low[1] - 1, 0.5 * (low[1] + high[1]), z)
+        vertices, faces = scene((head, demo.faces), plane)
+        colors = np.concatenate([demo.vertex_colors, np.full((4, 3), 0.3)])
+        texture = None
+        if textured:
+            rng = np.random.default_rng(0)
+            uv = rng.random((len(vertices), 2)).astype(np.float32)
+            texture = MeshTexture(uv=uv, face_image=np.where(np.arange(len(faces)) % 3 == 0, 0, -1),
+                                  face_color=rng.random((len(faces), 3)),
+                                  images=(rng.integers(0, 255, (8, 8, 3), dtype=np.uint8),))
+        whole = render_mesh(vertices, faces, colors, camera, pose, texture=texture)
+        n, f = len(head), len(demo.faces)
+        backdrop = render_backdrop(plane[0], plane[1], colors[n:], camera, pose, texture=None if texture is None else
+                                   MeshTexture(texture.uv[n:], texture.face_image[f:], texture.face_color[f:],
+                                               texture.images))
+        front = render_mesh(head, demo.faces, colors[:n], camera, pose, backdrop=backdrop, texture=None
+                            if texture is None else MeshTexture(texture.uv[:n], texture.face_image[:f],
+                                                                texture.face_color[:f], texture.images))
+        np.testing.assert_array_equal(front, whole)
+        assert (backdrop.depth < np.inf).any() and not np.array_equal(whole, render_mesh(head, demo.faces, colors[:n],
+                                                                                        camera, pose))

@@ -78,10 +78,10 @@ import numpy as np
 
 from visemeflow.rig.character import Character
 from visemeflow.animation.lips import inner_lip_pairs, is_bilabial, pair_gap_mm
-from visemeflow.animation.surface import character_texture
+from visemeflow.animation.surface import preview_scene
 from visemeflow.articulation import CLOSED_MM
 from visemeflow.atomic import atomic_path
-from visemeflow.render.raster import Camera, Pose, frontal_pose, render_mesh
+from visemeflow.render.raster import Camera, Pose, frontal_pose, render_backdrop, render_mesh
 from visemeflow.timebase import frame_count
 from visemeflow.tracking.landmarks import LandmarkError, LandmarkTrack, mouth_keypoint_ids, read_landmarks
 from visemeflow.tracking.video import VideoError, iter_timed_frames
@@ -662,8 +662,12 @@ class PreviewFrames:
             raise ValueError(f"title must be text, got {title!r}")
         self.size, self.chunk_frames, self.title = int(size), int(chunk_frames), title
         self.camera, self.pose = preview_camera(character, self.size, framing)
-        # a glTF character's materials and base-colour textures (its skin, not a grey head)
-        self.texture, notes = character_texture(character)
+        # a glTF character's whole scene: its other meshes, their materials and base-colour textures (its skin and
+        # hair, not a grey head alone)
+        self.scene, notes = preview_scene(character)
+        static = self.scene.static
+        self.backdrop = None if static is None else render_backdrop(static.vertices, static.faces, None, self.camera,
+                                                                    self.pose, texture=static.texture)
         for note in notes:
             log.warning("preview of %s: %s", character.label, note)
         self.frames = max(int(n_frames), max(panel.rows.shape[0] for panel in self.sources))
@@ -736,7 +740,6 @@ class PreviewFrames:
             video = self.video.frames(self.rate, self.frames)
         deltas = np.ascontiguousarray(character.deltas, np.float32).reshape(character.n_shapes, -1)
         neutral = np.ascontiguousarray(character.neutral, np.float32).reshape(1, -1)
-        faces = np.asarray(character.faces, np.int64)
         shown: list[np.ndarray | None] = [None] * n  # the weights row each panel shows now
         readouts: list[tuple | None] = [None] * n     # the lip text and colour each panel shows now
         caption = None
@@ -759,9 +762,10 @@ class PreviewFrames:
                     if twin is not None:
                         canvas[box] = canvas[self.panel_box(twin + off)]
                     else:
-                        canvas[box] = render_mesh(vertices[k][i - start].reshape(-1, 3), faces,
-                                                  self.character.vertex_colors, self.camera, self.pose,
-                                                  texture=self.texture)
+                        scene = self.scene
+                        canvas[box] = render_mesh(scene.vertices(vertices[k][i - start].reshape(-1, 3)),
+                                                  scene.faces, scene.colors, self.camera, self.pose,
+                                                  texture=scene.texture, backdrop=self.backdrop)
                     shown[k] = row
                 if self.lip_height:
                     phone = self.phone_at(i)

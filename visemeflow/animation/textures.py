@@ -173,8 +173,4 @@ def appearance_notes(character) -> tuple[str, ...]:
                                  "holds a grey 1-pixel stand-in, the USD and the preview leave it out")
                 else:
                     notes.append(f"{what} {label}: {exc}: left out of the USD and the preview")
-    for part in character.parts:
-        if len(part.nodes) > 1:
-            notes.append(f"{part.name}: shown by {len(part.nodes)} nodes; the preview draws it at the first only (the "
-                         "GLB and the USD show every one)")
     return tuple(notes)

@@ -381,6 +381,27 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return texels.reshape(-1, 3)[:n].astype(np.float32) / np.float32(255.0)
 
 
+@dataclass(frozen=True, eq=False)
+class Backdrop:
+    """Fixed geometry rendered once (`render_backdrop`): its image and depth, for meshes drawn in front of it frame
+    after frame (`render_mesh(..., backdrop=)`) at the cost of the moving mesh alone."""
+
+    image: np.ndarray
+    """(H * W, 3) uint8 RGB."""
+    depth: np.ndarray
+    """(H * W,) float64 distance along the view axis, inf where nothing is."""
+
+
+def render_backdrop(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, camera: Camera, pose: Pose,
+                    texture: MeshTexture | None = None, **options) -> Backdrop:
+    """The Backdrop of a mesh that does not move (arguments as `render_mesh`). Drawing a mesh M over it equals
+    drawing M and this mesh as one, M's faces first (equal depths go to M), as long as the two share no vertex:
+    each shades with its own normals."""
+    depth = np.full(camera.width * camera.height, np.inf)
+    image = render_mesh(vertices, faces, colors, camera, pose, texture=texture, _depth=depth, **options)
+    return Backdrop(image.reshape(-1, 3), depth)
+
+
 def render_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -393,20 +414,29 @@ def render_mesh(
     cull_backfaces: bool = True,
     reference: bool = False,
     texture: MeshTexture | None = None,
+    backdrop: Backdrop | None = None,
+    _depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W, 3) uint8 RGB image of the mesh (vertices (V, 3), faces (F, 3), colors (V, 3) in [0, 1] or None = grey).
 
     `light_dir` is in camera coordinates (x right, y up, z toward the viewer); `reference=True` rasterises with the
     slow per-triangle loop (for checks and benchmarks). With `texture`, each fragment's colour is its face's base
     colour times its image's texel (times the vertex colours, when given), lit by the shading interpolated from the
-    vertices.
+    vertices. With `backdrop` (`render_backdrop`, same camera and pose), the mesh is drawn over it where it is at
+    least as near (`background` is then the backdrop's).
     """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     image = np.empty((camera.height * camera.width, 3), np.uint8)
-    image[:] = np.asarray(background, np.uint8)
+    image[:] = np.asarray(background, np.uint8) if backdrop is None else backdrop.image
     raster = rasterize_reference if reference else rasterize_fragments
     fragments = raster(vertices, faces, camera, pose, cull_backfaces)
+    if backdrop is not None:
+        front = fragments.depth <= backdrop.depth[fragments.pixel]
+        fragments = Fragments(fragments.pixel[front], fragments.triangle[front], fragments.barycentric[front],
+                              fragments.depth[front])
+    if _depth is not None:
+        _depth[fragments.pixel] = fragments.depth
     if fragments.pixel.size and texture is not None:
         light = shade_vertices(to_camera(vertices, pose), faces, np.ones((len(vertices), 3)) if colors is None
                                else colors, light_dir, ambient)
