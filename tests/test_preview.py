@@ -759,3 +759,31 @@ def test_a_driven_mesh_that_two_nodes_show_is_drawn_at_both_and_moves_at_both(tm
                                    atol=1e-6)
     assert len(scene.faces) == len(ch.faces) + 1 and scene.faces[-1].tolist() == [ch.n_vertices + k for k in range(3)]
     assert scene.texture.face_image.shape == (len(scene.faces),) and eye.n_vertices == 3
+
+
+def test_a_scene_showing_more_vertices_than_the_bound_leaves_meshes_out_and_says_so(tmp_path, monkeypatch):
+    """A small file can make a million nodes show one large mesh: what the preview and the USD place besides the
+    driven meshes stops at `MAX_SCENE_VERTICES`, and the rest is named. Here the bound (set to 10) lets the avatar's
+    body (9 vertices) in and leaves its hair (16) out."""
+    from avatar_glb import make_avatar
+    from pxr import Usd, UsdGeom
+
+    import visemeflow.rig.gltf as gltf
+    from visemeflow.animation.load import load_character
+    from visemeflow.animation.surface import preview_scene
+    from visemeflow.animation.usd import write_usd
+
+    make_avatar(tmp_path / "hair.glb", hair=True)
+    whole = preview_scene(load_character(tmp_path / "hair.glb"))[0]
+    assert len(whole.static.vertices) == 9 + 16
+    monkeypatch.setattr(gltf, "MAX_SCENE_VERTICES", 10)
+    ch = load_character(tmp_path / "hair.glb")
+    scene, notes = preview_scene(ch)
+    assert len(scene.static.vertices) == 9
+    assert notes == ("the preview: 1 mesh placement left out (Wolf3D_Hair): the scene shows more than 10 vertices "
+                     "besides the driven meshes",)
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "take.usda", ch, np.zeros((2, ch.n_shapes), np.float32), 30.0,
+                                         name="take")))
+    names = {p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+    assert "BodyNode" in names and "HairNode" not in names
+    assert "1 mesh placement left out (Wolf3D_Hair)" in stage.GetRootLayer().documentation

@@ -154,32 +154,32 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
                 return _own(character), (f"{part.name}: the file's mesh no longer matches the character: the preview "
                                          "shows no materials and no other meshes",)
             looks.add(mesh)
-        for part in character.parts:
-            info = next(i for i in scene.meshes if i.index == part.mesh)
-            if info.skin is not None:      # a skinned mesh is posed by its skin, not by the nodes that show it
-                continue
-            mesh = scene.placed_mesh(part.mesh)[0]
-            first = scene.world_matrix(part.nodes[0])
-            for node in part.nodes[1:]:
-                move = scene.world_matrix(node) @ np.linalg.inv(first)
+        parts = {part.mesh: part for part in character.parts}
+        placements, left_out = scene.other_placements(parts)
+        if left_out:
+            notes.append(f"the preview: {left_out}")
+        moving = None
+        static, static_faces, n_static = [], [], 0
+        for info, node in placements:
+            part = parts.get(info.index)
+            if part is not None:           # another node showing a driven mesh: moved with it
+                mesh = scene.placed_mesh(part.mesh)[0]
+                move = scene.world_matrix(node) @ np.linalg.inv(scene.world_matrix(part.nodes[0]))
                 instances.append((part.start, part.stop, move[:3, :3].copy(), move[:3, 3] * scale))
                 faces.append(mesh.faces.astype(np.int64) + n_rows)
                 if colors:
                     colors.append(character.vertex_colors[part.start:part.stop])
                 n_rows += part.n_vertices
                 looks.add(mesh)
-        moving = len(looks.uv)
-        static, static_faces, n_static = [], [], 0
-        driven = {part.mesh for part in character.parts}
-        for info in scene.meshes:
-            if info.index in driven or not info.nodes:
                 continue
-            for node in info.nodes[:1] if info.skin is not None else info.nodes:
-                mesh, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
-                static.append(neutral * np.float32(scale))
-                static_faces.append(mesh.faces.astype(np.int64) + n_static)
-                n_static += len(neutral)
-                looks.add(mesh)
+            if moving is None:
+                moving = len(looks.uv)
+            mesh, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
+            static.append(neutral * np.float32(scale))
+            static_faces.append(mesh.faces.astype(np.int64) + n_static)
+            n_static += len(neutral)
+            looks.add(mesh)
+        moving = len(looks.uv) if moving is None else moving
     except RigError as exc:
         return _own(character), (f"{exc}: the preview shows no materials and no other meshes",)
     others = StaticMeshes(np.concatenate(static).astype(np.float32), np.concatenate(static_faces),

@@ -247,6 +247,7 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
         taken.add(name)
         return root.AppendChild(name)
 
+    sources = {}
     for part, path in zip(character.parts, part_prims):
         source = scene.placed_mesh(part.mesh)[0]     # with its targets: primitives share vertices as they did
         if len(source.neutral) != part.n_vertices:   # not the mesh the character was read from: leave it as is
@@ -254,20 +255,21 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
                          f"{part.n_vertices}: no materials")
             continue
         _dress_mesh(stage, UsdGeom.Mesh(stage.GetPrimAtPath(path)), source, materials)
-        info = next(i for i in scene.meshes if i.index == part.mesh)
-        if info.skin is None:      # the other nodes that show it (a skinned mesh is posed by its skin, not its node)
-            for node in part.nodes[1:]:
-                _, neutral, deltas, _ = scene.placed_mesh(part.mesh, node)
-                mesh = define_driven(free(scene.gltf.nodes[node].name or part.name), neutral * scale, source.faces,
-                                     part.target_names, deltas * scale)
-                _dress_mesh(stage, mesh, source, materials)
-    for info in scene.meshes:
-        if info.index in driven or not info.nodes:
-            continue
-        nodes = info.nodes[:1] if info.skin is not None else info.nodes
-        for node in nodes:
+        sources[part.mesh] = (part, source)
+    placements, left_out = scene.other_placements(driven)
+    if left_out:
+        notes.append(left_out)
+    for info, node in placements:
+        if info.index in driven:       # another node showing a driven mesh: a Mesh the same weights drive
+            if info.index not in sources:
+                continue
+            part, source = sources[info.index]
+            _, neutral, deltas, _ = scene.placed_mesh(part.mesh, node)
+            mesh = define_driven(free(scene.gltf.nodes[node].name or part.name), neutral * scale, source.faces,
+                                 part.target_names, deltas * scale)
+        else:
             source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
             # named as the object is in Blender and the engines: its node
             mesh = define_static(free(scene.gltf.nodes[node].name or info.label), neutral * scale, source.faces)
-            _dress_mesh(stage, mesh, source, materials)
+        _dress_mesh(stage, mesh, source, materials)
     return notes

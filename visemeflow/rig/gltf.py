@@ -44,6 +44,7 @@ import os
 import struct
 import urllib.parse
 import warnings
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,7 +53,8 @@ import pygltflib as gl
 
 from visemeflow.rig.model import RigError
 
-__all__ = ["COMPRESSION_EXTENSIONS", "MAX_ACCESSOR_VALUES", "MAX_FILE_BYTES", "MAX_MORPH_VALUES", "MAX_TRIANGLES",
+__all__ = ["COMPRESSION_EXTENSIONS", "MAX_ACCESSOR_VALUES", "MAX_FILE_BYTES", "MAX_MORPH_VALUES", "MAX_SCENE_VERTICES",
+           "MAX_TRIANGLES",
            "MAX_VERTICES", "GltfMesh", "GltfMeshInfo", "GltfScene", "linear_to_srgb", "read_gltf_mesh",
            "read_gltf_uri", "resolve_gltf_uri", "srgb_to_linear"]
 
@@ -69,6 +71,10 @@ MAX_VERTICES = 1 << 21
 blends a 4 x 4 matrix per vertex and influence, 512 bytes a vertex)."""
 MAX_TRIANGLES = 1 << 22
 """The most triangles of one mesh (primitives joined)."""
+MAX_SCENE_VERTICES = 1 << 23
+"""The most vertices a preview or a USD places besides the driven meshes: the meshes no target moves and a driven
+mesh's other instances, counted once per node that shows them (8,388,608; a file of a few hundred kB can make a
+million nodes show one large mesh). Meshes past it are left out, with a note."""
 MAX_MORPH_VALUES = 1 << 27
 """The most morph target values (targets x vertices x 3) of one mesh or character: 134M, 512 MiB as float32
 (800 targets on a 50,000-vertex face is 120M)."""
@@ -745,6 +751,31 @@ class GltfScene:
                     base = base @ _local_matrix(nodes[k])
                     self._world[k] = base
         return self._world[node]
+
+    def other_placements(self, driven: Collection[int]) -> tuple[list[tuple[GltfMeshInfo, int]], str | None]:
+        """Where the scene shows meshes besides each driven mesh (index in `driven`) at its first node: (mesh, node)
+        for each other node of a driven mesh without a skin (a skinned mesh is posed by its skin, not by the nodes
+        that show it), then for each mesh not driven every node that shows it (its first only when skinned), in
+        scene order, up to `MAX_SCENE_VERTICES` vertices in all; and a note naming what was left out past that (None
+        when nothing was)."""
+        found, total, left_out = [], 0, []
+        infos = [i for i in self.meshes if i.index in driven] + [i for i in self.meshes if i.index not in driven]
+        for info in infos:
+            if info.index in driven:
+                nodes = () if info.skin is not None else info.nodes[1:]
+            else:
+                nodes = info.nodes[:1] if info.skin is not None else info.nodes
+            for node in nodes:
+                if total + info.n_vertices > MAX_SCENE_VERTICES:
+                    left_out.append(info.label)
+                    continue
+                total += info.n_vertices
+                found.append((info, node))
+        if not left_out:
+            return found, None
+        named = ", ".join(dict.fromkeys(left_out[:5])) + (", ..." if len(left_out) > 5 else "")
+        return found, (f"{len(left_out)} mesh placement{'s' if len(left_out) > 1 else ''} left out ({named}): the "
+                       f"scene shows more than {MAX_SCENE_VERTICES:,} vertices besides the driven meshes")
 
     def placed_mesh(self, index: int, node: int | None = None, *, morph_targets: bool = True
                     ) -> tuple[GltfMesh, np.ndarray, np.ndarray, str]:
