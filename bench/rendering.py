@@ -14,7 +14,9 @@ Threads are pinned to one (OMP/MKL/OpenBLAS env set before numpy is imported, to
    Split of the fast path: rasterisation (`rasterize_fragments`) and shading (vertex normals + Lambert) alone.
    Also 640x480 and a close-up (landmark span = 90% of the height), where more pixels are covered, and the same
    frames textured (`MeshTexture`: UVs projected from the front, a 1024-px image, as previews of a glTF avatar draw
-   it) against vertex colours.
+   it) against vertex colours. And the head in front of a static 20,000-triangle sheet (a body, hair): drawn as one
+   mesh every frame against drawn over the sheet's backdrop, rendered once (`render_backdrop`, as previews draw a
+   glTF avatar's meshes no target moves); the images must be identical.
 2. Rig evaluation for 1,000 frames of weights: the 68 landmark vertices (`evaluate_rig(rig, w, rig.landmark_ids)`,
    what a tracker's landmark loss needs per iteration) against the full mesh; best of repeats, the tensors cache
    warm; the cold first call (which builds the cached torch tensors) is shown apart.
@@ -44,6 +46,7 @@ from visemeflow.render.raster import (  # noqa: E402
     Camera,
     frontal_pose,
     rasterize_fragments,
+    render_backdrop,
     render_mesh,
     shade_vertices,
     to_camera,
@@ -123,6 +126,28 @@ def main(argv: list[str] | None = None) -> int:
                          meshes)
     add("render 360x288, textured 1024-px image (frames/s)", f"{1 / textured:.1f}")
     add("  textured / vertex colours, time", f"{textured / fast:.2f}x")
+    # a scene's static meshes (a body, hair: here a 20,000-triangle sheet through the back of the head) drawn once as a
+    # backdrop (`render_backdrop`, what previews of a glTF avatar do) against drawing them with the head every frame
+    lo3, hi3 = rig.neutral.min(axis=0), rig.neutral.max(axis=0)
+    xs, ys = np.meshgrid(np.linspace(lo3[0] - 5, hi3[0] + 5, 101), np.linspace(lo3[1] - 8, hi3[1] + 3, 101))
+    sheet = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, lo3[2] + 0.3 * (hi3[2] - lo3[2]))], 1)
+    cells = np.arange(100 * 100).reshape(100, 100)
+    corner = (cells // 100) * 101 + cells % 100
+    quads = np.stack([corner, corner + 1, corner + 102, corner + 101], -1).reshape(-1, 4)
+    sheet_faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    both_faces = np.concatenate([rig.faces, sheet_faces + len(rig.neutral)])
+    both_colors = np.concatenate([rig.vertex_colors, np.full((len(sheet), 3), 0.4)])
+    one_mesh = per_frame(lambda m: render_mesh(np.concatenate([m, sheet]), both_faces, both_colors, camera, pose),
+                         meshes)
+    backdrop = render_backdrop(sheet, sheet_faces, both_colors[len(rig.neutral):], camera, pose)
+    layered = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, camera, pose, backdrop=backdrop),
+                        meshes)
+    same = all(np.array_equal(render_mesh(np.concatenate([m, sheet]), both_faces, both_colors, camera, pose),
+                              render_mesh(m, rig.faces, rig.vertex_colors, camera, pose, backdrop=backdrop))
+               for m in meshes[:5])
+    add("render 360x288, head + 20,000-triangle static sheet as one mesh (frames/s)", f"{1 / one_mesh:.1f}")
+    add("render 360x288, head over the sheet's backdrop (frames/s)", f"{1 / layered:.1f}")
+    add("  one mesh / backdrop, time", f"{one_mesh / layered:.2f}x; images {'identical' if same else 'DIFFER'}")
     for label in ("640x480", "360x288 close-up"):
         cam, view = views[label]
         seconds = per_frame(lambda m: render_mesh(m, rig.faces, rig.vertex_colors, cam, view), meshes[:30])
