@@ -787,3 +787,30 @@ def test_a_scene_showing_more_vertices_than_the_bound_leaves_meshes_out_and_says
     names = {p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
     assert "BodyNode" in names and "HairNode" not in names
     assert "1 mesh placement left out (Wolf3D_Hair)" in stage.GetRootLayer().documentation
+
+
+def test_a_mesh_of_lines_in_the_scene_is_left_out_of_the_preview_and_the_usd_not_the_rest(tmp_path):
+    """A scene mesh the reader refuses (here the hair drawn as LINES, as a helper or a rig display may be) failed the
+    USD export with a RigError and took every material out of the preview. It is now left out of both, named."""
+    import pygltflib as gl
+    from avatar_glb import make_avatar
+    from pxr import Usd, UsdGeom
+
+    from visemeflow.animation.load import load_character
+    from visemeflow.animation.surface import preview_scene
+    from visemeflow.animation.usd import write_usd
+
+    make_avatar(tmp_path / "hair.glb", hair=True)
+    g = gl.GLTF2().load(str(tmp_path / "hair.glb"))
+    g.meshes[5].primitives[0].mode = gl.LINES
+    g.save_binary(str(tmp_path / "lines.glb"))
+    ch = load_character(tmp_path / "lines.glb")
+    scene, notes = preview_scene(ch)
+    assert len(scene.static.vertices) == 9 and len(scene.texture.images) == 1        # the body, the skin
+    assert len(notes) == 1 and "'Wolf3D_Hair') primitive 0 draws LINES" in notes[0]
+    assert notes[0].endswith("left out of the preview")
+    stage = Usd.Stage.Open(str(write_usd(tmp_path / "take.usda", ch, np.zeros((2, ch.n_shapes), np.float32), 30.0,
+                                         name="take")))
+    names = {p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+    assert "BodyNode" in names and "HairNode" not in names
+    assert "draws LINES; only TRIANGLES are read: left out" in stage.GetRootLayer().documentation

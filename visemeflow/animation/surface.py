@@ -174,7 +174,11 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
                 continue
             if moving is None:
                 moving = len(looks.uv)
-            mesh, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
+            try:
+                mesh, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
+            except RigError as exc:     # a mesh we cannot read (lines, points, strips): the rest of the scene stays
+                notes.append(f"{exc}: left out of the preview")
+                continue
             static.append(neutral * np.float32(scale))
             static_faces.append(mesh.faces.astype(np.int64) + n_static)
             n_static += len(neutral)

@@ -38,6 +38,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 from visemeflow.rig.character import Character
 from visemeflow.animation.textures import TextureError, image_of, package_image
 from visemeflow.rig.gltf import GltfMesh, GltfScene
+from visemeflow.rig.model import RigError
 
 __all__ = ["MATERIALS", "TEXTURES", "dress_gltf_scene"]
 
@@ -268,7 +269,11 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
             mesh = define_driven(free(scene.gltf.nodes[node].name or part.name), neutral * scale, source.faces,
                                  part.target_names, deltas * scale)
         else:
-            source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
+            try:
+                source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
+            except RigError as exc:     # a mesh we cannot read (lines, points, strips): the rest of the scene stays
+                notes.append(f"{exc}: left out")
+                continue
             # named as the object is in Blender and the engines: its node
             mesh = define_static(free(scene.gltf.nodes[node].name or info.label), neutral * scale, source.faces)
         _dress_mesh(stage, mesh, source, materials)
