@@ -149,3 +149,29 @@ def test_utterance_ids_in_the_store_are_valid(tmp_path):
     ids = Store(store).read_table("utterances").column(C.UTTERANCE_ID).to_pylist()
     assert all(validate_utterance_id(i) == i for i in ids)
     assert isinstance(Store(store).scan_curves(), pa.Table)
+
+
+def test_an_input_changed_and_changed_back_is_processed_again(tmp_path):
+    """A TextGrid edited, then restored (A, B, A): the cache records of the first run matched the third, and the
+    store kept the edit's phones and curves (a new user's report). A shard's output now records the inputs it was
+    made from, and a cached shard whose files say otherwise runs again: the store ends as after the first run."""
+    corpus = make_lj_corpus(tmp_path / "corpus")
+    store = tmp_path / "store"
+    run_pipeline(corpus, store)
+    uid = "spk1/LJ001-0003"
+    first_phones = Store(store).read_table("phones", utterance_ids=[uid]).to_pylist()
+    first_curves = Store(store).read_curves(uid, "procedural").to_pylist()
+
+    grid = corpus / "spk1" / "LJ001-0003.TextGrid"
+    text = grid.read_text()
+    grid.write_text(text.replace('"AH0"', '"IY1"', 1) if '"AH0"' in text else text.replace('"IH0"', '"AA1"', 1))
+    edited = run_pipeline(corpus, store)
+    assert edited["ingest"]["ingested"] == 1 and edited["procedural"]["generated"] == 1
+    assert Store(store).read_table("phones", utterance_ids=[uid]).to_pylist() != first_phones
+
+    grid.write_text(text)
+    restored = run_pipeline(corpus, store)
+    assert restored["ingest"]["ingested"] == 1 and restored["procedural"]["generated"] == 1
+    assert restored["ingest"]["cached_shards"] == restored["ingest"]["shards"] - 1
+    assert Store(store).read_table("phones", utterance_ids=[uid]).to_pylist() == first_phones
+    assert Store(store).read_curves(uid, "procedural").to_pylist() == first_curves

@@ -25,7 +25,7 @@ from visemeflow.tasks.ingest import (
     ingest_shard,
     is_captured,
     remove_stale_shards,
-    shard_files_present,
+    shard_current,
 )
 
 DISCOVER_STAGE = "discover"
@@ -55,7 +55,8 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)
     futures = [
         ingest_shard.with_options(
-            result_storage=result_storage(store.root), refresh_cache=not shard_files_present(store, shard),
+            result_storage=result_storage(store.root),
+            refresh_cache=not shard_current(store, shard, entries, params.config),
         ).submit(str(store.root), shard, entries, params.config)
         for shard, entries in shards.items()
     ]

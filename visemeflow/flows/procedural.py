@@ -8,15 +8,25 @@ from visemeflow.flows.params import ProceduralParams, ProceduralSettings
 from visemeflow.schemas import C, shard_of
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
-from visemeflow.tasks.common import result_storage
-from visemeflow.tasks.procedural import SOURCE, STAGE, default_variant, procedural_one, procedural_shard
+from visemeflow.procedural import ProceduralConfig
+from visemeflow.tasks.common import made_from, result_storage
+from visemeflow.tasks.procedural import (
+    SOURCE,
+    STAGE,
+    default_variant,
+    procedural_one,
+    procedural_shard,
+    shard_digest,
+)
 
 UTTERANCE_FIELDS = [C.UTTERANCE_ID, C.CONTENT_HASH, C.DURATION_S, C.FPS, C.N_FRAMES, C.ALIGNMENT_PATH]
 
 
-def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, rejected: set[str]) -> bool:
-    """Whether the shard's curve files and rejects file exist, so a cached result still describes the store."""
-    if not store.has_shard("rejects", shard, STAGE):
+def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, rejected: set[str],
+                     config: ProceduralConfig) -> bool:
+    """Whether the shard's curve files and rejects file exist and the rejects file was written from these rows
+    (`common.made_from`), so a cached result still describes the store."""
+    if not made_from(store, "rejects", shard, STAGE, shard_digest(items, config, variant)):
         return False
     ids = [u[C.UTTERANCE_ID] for u in items if u[C.UTTERANCE_ID] not in rejected]
     return len(store.curves_present(SOURCE, variant, ids)) == len(set(ids))
@@ -43,7 +53,7 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     futures = [
         procedural_shard.with_options(
             result_storage=result_storage(store.root),
-            refresh_cache=not _outputs_present(store, shard, items, variant, rejected),
+            refresh_cache=not _outputs_present(store, shard, items, variant, rejected, params.config),
         ).submit(str(store.root), shard, items, params.config, variant)
         for shard, items in shards.items()
     ]

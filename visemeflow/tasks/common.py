@@ -15,6 +15,7 @@ from prefect.cache_policies import INPUTS, TASK_SOURCE, CachePolicy
 from prefect.context import TaskRunContext
 from prefect.filesystems import LocalFileSystem, RemoteFileSystem
 
+from visemeflow.hashing import stable_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.storage.store import RESULTS_DIR, cap_message
@@ -131,6 +132,24 @@ CODE = CodeDigest()
 
 # Deterministic tasks are keyed on their inputs (content hashes, configs, ids) and the code they run.
 CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE + CODE)
+
+
+MADE_FROM_KEY = b"visemeflow.made_from"
+"""File metadata of a shard's output: the digest of the task inputs that wrote it (`inputs_digest`)."""
+
+
+def inputs_digest(*inputs: Any) -> str:
+    """A digest of what a shard task was given (its rows with their content hashes, its config, the code's digest):
+    what its output file records under `MADE_FROM_KEY`."""
+    return stable_hash(*inputs)
+
+
+def made_from(store: Store, table: str, shard: int, stage: str | None, digest: str) -> bool:
+    """Whether a shard's output file was written from the inputs of `digest`. A task's cache record says what a
+    call once returned, not what the store holds now: after an input changes and changes back (A, B, A) the record
+    of A is found while the files hold B's output, so a flow runs a cached shard again unless this holds."""
+    metadata = store.shard_metadata(table, shard, stage)
+    return metadata is not None and metadata.get(MADE_FROM_KEY, b"").decode() == digest
 
 
 def result_storage(store_root: str | Path) -> Any:

@@ -17,7 +17,14 @@ from visemeflow.schemas import C, PHONES, REJECTS, UTTERANCES, CurveSource, tabl
 from visemeflow.schemas.tables import NO_ALIGNMENT, has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
-from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
+from visemeflow.tasks.common import (
+    CACHE_POLICY,
+    MADE_FROM_KEY,
+    RESULT_SERIALIZER,
+    inputs_digest,
+    made_from,
+    reject_row,
+)
 
 STAGE = "ingest"
 CONFIG_KEY = b"visemeflow.ingest_config"
@@ -73,20 +80,38 @@ def _previous_rows(store: Store, shard: int, config_hash: str) -> dict[str, tupl
     return {u[C.UTTERANCE_ID]: (u[C.CONTENT_HASH], u, by_id.get(u[C.UTTERANCE_ID], [])) for u in utts}
 
 
+def _config_hash(config: IngestConfig) -> str:
+    return stable_hash(config, code_digest(__name__))  # rows made by other code are made again
+
+
+def shard_digest(entries: list[dict], config: IngestConfig) -> str:
+    """What an ingest shard's `utterances` file records it was made from (`common.made_from`): its entries (with
+    their files' content hashes) and the config."""
+    return inputs_digest(entries, _config_hash(config))
+
+
+def shard_current(store: Store, shard: int, entries: list[dict], config: IngestConfig) -> bool:
+    """Whether all outputs of an ingest shard are in the store and were made from these entries (else its cache
+    record, if any, is stale: the files changed since, or changed and changed back)."""
+    return shard_files_present(store, shard) and made_from(store, "utterances", shard, None,
+                                                            shard_digest(entries, config))
+
+
 @task(cache_policy=CACHE_POLICY, persist_result=True, result_serializer=RESULT_SERIALIZER,
       task_run_name="ingest[shard-{shard:02d}]")
 def ingest_shard(store_root: str, shard: int, entries: list[dict], config: IngestConfig) -> dict[str, int]:
     """Ingest one shard of the corpus into the `utterances`, `phones` and `rejects` tables."""
     store = Store(store_root)
-    config_hash = stable_hash(config, code_digest(__name__))  # rows made by other code are made again
+    config_hash = _config_hash(config)
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
     unaligned = sum(not has_alignment(u) for u in utterances)
     utterances += captured_rows(store, shard, {o.utterance_id for o in objs})
     store.write_shard("phones", shard, table_from_rows(phones, PHONES))
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
-    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),
-                      metadata={CONFIG_KEY: config_hash.encode()})
+    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),   # last: it stamps the shard
+                      metadata={CONFIG_KEY: config_hash.encode(),
+                                MADE_FROM_KEY: inputs_digest(entries, config_hash).encode()})
     logger = get_run_logger()
     for r in rejects:
         logger.info("rejected %s", r[C.MESSAGE])

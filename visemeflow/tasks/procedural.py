@@ -13,7 +13,7 @@ from visemeflow.schemas import C, REJECTS, CurveSource, Curves, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
-from visemeflow.tasks.common import CACHE_POLICY, RESULT_SERIALIZER, reject_row
+from visemeflow.tasks.common import CACHE_POLICY, MADE_FROM_KEY, RESULT_SERIALIZER, inputs_digest, reject_row
 from visemeflow.timebase import frame_count
 
 STAGE = "procedural"
@@ -37,6 +37,12 @@ def segments_from_phones(phones: pa.Table) -> list[VisemeSegment]:
         VisemeSegment(r[C.VISEME], r[C.START_S], r[C.END_S], r[C.WORD_INDEX], r[C.PHONEME] or "")
         for r in rows if r[C.VISEME] is not None
     ]
+
+
+def shard_digest(utterances: list[dict], config: ProceduralConfig, variant: str) -> str:
+    """What a procedural shard's rejects file records it was made from (`common.made_from`): its utterance rows
+    (with their content hashes), the config, the variant and the code."""
+    return inputs_digest(utterances, config, variant, code_digest(__name__))
 
 
 def provenance(content_hash: str, config: ProceduralConfig) -> str:
@@ -111,7 +117,8 @@ def procedural_shard(
     """Procedural curves for one shard; utterances whose stored curves match are left as they are."""
     store = Store(store_root)
     generated, reused, rejects = _generate_many(store, shard, utterances, config, variant, force=False)
-    store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
+    store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE,     # last: the shard's stamp
+                      metadata={MADE_FROM_KEY: shard_digest(utterances, config, variant).encode()})
     logger = get_run_logger()
     for r in rejects:
         logger.info("rejected %s", r[C.MESSAGE])
