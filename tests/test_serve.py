@@ -589,3 +589,30 @@ def test_the_prefect_cli_runs_served_deployments_with_flat_or_partial_parameters
         assert run.state.is_completed() and run.parameters["store"] == str(store), (run.name, run.parameters)
     assert Store(store).has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
     assert not (work / "visemeflow-out").exists()  # nothing ran on the default store
+
+
+def test_prefects_scheduler_makes_runs_of_the_served_schedule(tmp_path, prefect_harness):
+    """`serve --cron` registered the pipeline's schedule, but no scheduled run was ever made: Prefect 3.8's scheduler
+    fails on SQLAlchemy 2.1 ("Can't evaluate bulk DML statement", logged by the server every loop), so the nightly
+    pipeline never ran (a new user's report). SQLAlchemy is pinned below 2.1 (pyproject.toml). Here the scheduler's
+    own pass runs on the served pipeline deployment and makes its runs."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
+    from prefect.server.services.scheduler import schedule_deployments
+
+    corpus, store = tmp_path / "corpus", tmp_path / "store"
+    corpus.mkdir()
+    pipeline = next(d for d in build_deployments(store, corpus, "*/5 * * * *") if d.full_name == "pipeline/served")
+    deployment_id = pipeline.apply()
+
+    async def scheduled():
+        await schedule_deployments()
+        async with get_client() as client:
+            runs = await client.read_flow_runs(deployment_filter=DeploymentFilter(
+                id=DeploymentFilterId(any_=[deployment_id])))
+        return [r.state_name for r in runs]
+
+    states = asyncio.run(scheduled())
+    assert len(states) >= 3 and set(states) == {"Scheduled"}
