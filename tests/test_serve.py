@@ -275,7 +275,7 @@ def test_a_pool_deployment_run_with_param_keeps_the_store_prefect_yaml_names(tmp
         run_flow(flow, flow_run=run)
         run = client.read_flow_run(run_id)
     assert run.state.is_completed(), run.state
-    assert run.name == "rerun[spk/a:procedural]"
+    assert run.name == "rerun(spk/a:procedural)"
     assert Store(store).has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
 
 
@@ -495,7 +495,7 @@ def test_served_forms_are_flat_each_field_a_parameter_with_its_type_default_and_
     assert form["properties"]["force"]["default"] is True
     assert form["properties"]["utterance_id"]["description"] == RerunParams.model_fields["utterance_id"].description
     assert set(form["properties"]["stage"]["enum"]) == {"ingest", "procedural", "landmarks", "track", "animate"}
-    assert rerun.flow_run_name == "rerun[{utterance_id}:{stage}]"  # the stage's template, on flat parameters
+    assert rerun.flow_run_name == "rerun({utterance_id}:{stage})"  # the stage's template, on flat parameters
     assert rerun.validate_parameters({"utterance_id": "spk/a", "store": "/s"}) == {
         "utterance_id": "spk/a", "stage": "procedural", "store": serve_module.Path("/s"), "force": True}
     pipeline = serve_module.served_flow("pipeline_flow")
@@ -584,7 +584,7 @@ def test_the_prefect_cli_runs_served_deployments_with_flat_or_partial_parameters
                 runs = [r for r in client.read_flow_runs() if r.deployment_id == rerun.id]
     finally:
         stop_process(serve)
-    assert sorted(r.name for r in runs) == ["rerun[spk/a:ingest]", "rerun[spk/a:procedural]"]
+    assert sorted(r.name for r in runs) == ["rerun(spk/a:ingest)", "rerun(spk/a:procedural)"]
     for run in runs:
         assert run.state.is_completed() and run.parameters["store"] == str(store), (run.name, run.parameters)
     assert Store(store).has_curves("procedural", default_variant(ProceduralConfig()), "spk/a")
@@ -616,3 +616,22 @@ def test_prefects_scheduler_makes_runs_of_the_served_schedule(tmp_path, prefect_
 
     states = asyncio.run(scheduled())
     assert len(states) >= 3 and set(states) == {"Scheduled"}
+
+
+def test_flow_run_names_print_in_prefects_cli():
+    """The docs send users to `prefect flow-run ls`; a run named `procedural[/tmp/store]` crashed it (rich reads
+    `[/tmp/store]` as a closing markup tag: MarkupError). Every stage's run name, with a path in it, prints whole."""
+    import io
+
+    from rich.console import Console
+    from rich.table import Table
+
+    for stage in STAGES:
+        flow = flow_of(f"visemeflow.flows.{'animate' if stage in ('speak', 'preview') else stage}:{stage}_flow")
+        name = re.sub(r"\{[^}]*\}", "/tmp/my store", flow.flow_run_name)
+        table = Table()
+        table.add_column("name")
+        table.add_row(name)
+        out = io.StringIO()
+        Console(file=out, width=200).print(table)
+        assert name in out.getvalue(), (stage, name)

@@ -101,7 +101,7 @@ def _markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-@flow(name="animate", flow_run_name="animate[{params.source}]", task_runner=cpu_thread_pool())
+@flow(name="animate", flow_run_name="animate({params.source})", task_runner=cpu_thread_pool())
 def animate_flow(params: AnimateParams):
     """Export every (utterance, character) of the chosen curves; bad input becomes rejects, the rest goes on."""
     plan = variant_plan(Store(params.store), params.source, params.variant, params.utterances)
@@ -183,7 +183,7 @@ def animate_flow(params: AnimateParams):
                               "packages_written": reports, "character_choices": choices})
 
 
-@flow(name="speak", flow_run_name="speak[{params.model}]")
+@flow(name="speak", flow_run_name="speak({params.model})")
 def speak_flow(params: SpeakParams):
     """Audio to talking characters: the `predict` flow, then the `animate` flow on its curves (both cached). An
     audio file `predict` rejects is left out (`audio_rejected`, `rejects`); the others are animated."""
@@ -234,7 +234,7 @@ def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: s
         raise LookupError(f"{len(variants)} variants ({', '.join(variants)}); name one as {source}:VARIANT") from None
 
 
-@flow(name="preview", flow_run_name="preview[{params.utterance_id}]")
+@flow(name="preview", flow_run_name="preview({params.utterance_id})")
 def preview_flow(params: PreviewParams) -> dict:
     """Render one utterance's preview MP4: the character driven by each source side by side, labelled, the phone
     under way written under them, the audio muxed (H.264 + AAC)."""

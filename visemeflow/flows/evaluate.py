@@ -108,7 +108,7 @@ def _warn_phones_language(store: Store, val: list[dict], logger) -> None:
                        "are in %s: its scores there measure the wrong language's phones", RECOGNISED_MODEL, n,
                        ", ".join(other))
 
-@flow(name="evaluate", flow_run_name="evaluate[{params.models}]")
+@flow(name="evaluate", flow_run_name="evaluate({params.models})")
 def evaluate_flow(params: EvaluateParams) -> State:
     """L1 x 100 of each model on validation and on each augmented condition; metrics, a table artifact and files.
     A model that cannot be evaluated is a reject and the others are judged."""

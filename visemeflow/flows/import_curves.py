@@ -41,7 +41,7 @@ def _markdown(rows: list[dict], summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-@flow(name="import_curves", flow_run_name="import_curves[{params.takes}]")
+@flow(name="import_curves", flow_run_name="import_curves({params.takes})")
 def import_curves_flow(params: ImportCurvesParams):
     """Import every take as an utterance with `captured` curves; unchanged takes are cache hits."""
     config = params.config

@@ -31,7 +31,7 @@ from visemeflow.tasks.ingest import (
 DISCOVER_STAGE = "discover"
 
 
-@flow(name="ingest", flow_run_name="ingest[{params.corpus}]")
+@flow(name="ingest", flow_run_name="ingest({params.corpus})")
 def ingest_flow(params: IngestParams) -> dict[str, int]:
     """Discover the corpus and ingest it shard by shard; unchanged shards are cache hits.
 

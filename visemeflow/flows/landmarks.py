@@ -25,7 +25,7 @@ def utterances_needing_landmarks(store: Store) -> list[dict]:
     return rows
 
 
-@flow(name="landmarks", flow_run_name="landmarks[{params.store}]", task_runner=cpu_thread_pool())
+@flow(name="landmarks", flow_run_name="landmarks({params.store})", task_runner=cpu_thread_pool())
 def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
     """Detect the landmarks of every utterance with a video but no landmark file; a video without a usable face
     (none, or found on too few frames) or a detector failure becomes a reject and the rest goes on."""

@@ -23,7 +23,7 @@ from visemeflow.schemas import C, CurveSource
 from visemeflow.storage import Store
 
 
-@flow(name="pipeline", flow_run_name="pipeline[{params.corpus}]")
+@flow(name="pipeline", flow_run_name="pipeline({params.corpus})")
 def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
     """Ingest the corpus, generate procedural curves, detect landmarks on videos without a landmark file, track the
     videos; each stage a subflow with cached tasks.

@@ -214,7 +214,7 @@ def _predict_file(store: Store, params: PredictParams, digest: str, audio: Path,
             "exports": exports}
 
 
-@flow(name="predict", flow_run_name="predict[{params.model}]")
+@flow(name="predict", flow_run_name="predict({params.model})")
 def predict_flow(params: PredictParams) -> State:
     """Predict the curves of each audio file with one model; curves to the store, optional CSV/JSON copies; a bad
     file is a reject and the others go on."""

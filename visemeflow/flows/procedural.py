@@ -32,7 +32,7 @@ def _outputs_present(store: Store, shard: int, items: list[dict], variant: str, 
     return len(store.curves_present(SOURCE, variant, ids)) == len(set(ids))
 
 
-@flow(name="procedural", flow_run_name="procedural[{params.store}]")
+@flow(name="procedural", flow_run_name="procedural({params.store})")
 def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     """Generate procedural curves shard by shard; utterances whose inputs and config are unchanged are skipped."""
     variant = params.variant or default_variant(params.config)

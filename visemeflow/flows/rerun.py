@@ -13,7 +13,7 @@ from visemeflow.flows.stages import stage_named
 from visemeflow.storage import Store
 
 
-@flow(name="rerun", flow_run_name="rerun[{params.utterance_id}:{params.stage}]")
+@flow(name="rerun", flow_run_name="rerun({params.utterance_id}:{params.stage})")
 def rerun_flow(params: RerunParams) -> dict[str, int]:
     """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
     store = Store(params.store)

@@ -49,7 +49,7 @@ def plot_sweep(points: list[tuple[int, float]], path: Path, title: str) -> Path:
     return atomic_write(path, lambda tmp: tmp.write_bytes(png), keep_suffix=True)
 
 
-@flow(name="sweep", flow_run_name="sweep[{params.config.preset}]", task_runner=cpu_thread_pool())
+@flow(name="sweep", flow_run_name="sweep({params.config.preset})", task_runner=cpu_thread_pool())
 def sweep_flow(params: SweepParams) -> dict:
     """Train the preset on each nested subset (in parallel tasks) at an equal budget of steps; plot L1 x 100 by size.
 

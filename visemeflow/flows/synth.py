@@ -19,7 +19,7 @@ from visemeflow.tasks.synth import SOURCE, synth_utterance, truth_variant
 STAGE = "synth"
 
 
-@flow(name="synth", flow_run_name="synth[{params.corpus}]")
+@flow(name="synth", flow_run_name="synth({params.corpus})")
 def synth_flow(params: SynthParams) -> dict[str, object]:
     """Render every utterance of the source corpus (one cached task each) into `params.out`."""
     store = Store(params.store)

@@ -237,7 +237,7 @@ def track_in_groups(store: Store, calls: list, present: dict[str, bool], frames_
     return reports + more, rejects, unexpected, jointly
 
 
-@flow(name="track", flow_run_name="track[{params.store}]", task_runner=cpu_thread_pool())
+@flow(name="track", flow_run_name="track({params.store})", task_runner=cpu_thread_pool())
 def track_flow(params: TrackParams) -> dict[str, object]:
     """Track every utterance that has a video; failures become rejects and the rest goes on."""
     if not on_requested_runner(params):  # e.g. a deployment run asking for Dask: run on it as a subflow

@@ -70,7 +70,7 @@ def resolve_variant(store: Store, source: str, variant: str | None) -> str:
     return variants[0]
 
 
-@flow(name="train", flow_run_name="train[{params.config.preset}]")
+@flow(name="train", flow_run_name="train({params.config.preset})")
 def train_flow(params: TrainParams) -> dict:
     """Train one preset on the store's curves; a killed run resumes from its last epoch checkpoint."""
     check_device_here(params.device, params.precision)

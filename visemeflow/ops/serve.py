@@ -233,7 +233,7 @@ def params_model(fn: Callable) -> type[BaseModel]:
 
 
 def served_run_name(template: object) -> object:
-    """The stage's run name template on flat parameters: `rerun[{params.utterance_id}]` -> `rerun[{utterance_id}]`."""
+    """The stage's run name template on flat parameters: `rerun({params.utterance_id})` -> `rerun({utterance_id})`."""
     return template.replace("{params.", "{") if isinstance(template, str) else template
 
 
