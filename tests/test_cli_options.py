@@ -215,6 +215,10 @@ def test_a_stage_with_nothing_to_read_says_what_to_run_first_before_any_flow(tmp
         done = runner.invoke(app, ["rerun", "spk/u0", "--stage", stage, "--store", str(store.root)])
         assert done.exit_code == 2 and done.output.count("\n") == 1, done.output
         assert done.output.startswith("error: spk/u0 has no video") and f"the {stage} stage works on video" in done.output
+    # no animate run to repeat: one line (was 20 lines of Prefect traceback before it)
+    done = runner.invoke(app, ["rerun", "spk/u0", "--stage", "animate", "--store", str(store.root)])
+    assert done.exit_code == 2 and done.output == (f"error: {store.root} has no animate run to repeat; run "
+                                                   "`visemeflow animate` first\n"), done.output
     done = runner.invoke(app, ["rerun", "spk/u0", "--store", str(tmp_path / "mistyped")])
     assert done.exit_code == 2 and done.output.startswith(f"error: no store at {tmp_path / 'mistyped'}")
     # a mistyped utterance: one line before any flow, with the stored ids nearest it (was a Prefect traceback, or

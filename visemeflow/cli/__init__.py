@@ -1040,6 +1040,14 @@ def rerun(params: RerunParams) -> None:
         if stage_named(params.stage).needs_video and not row.column(C.VIDEO_PATH)[0].as_py():
             _fail(f"{params.utterance_id} has no video (its corpus gave audio only): the {params.stage} stage works on "
                   "video; its curves come from the procedural stage (`--stage procedural`)")
+        if params.stage == "animate":   # asked here: raised inside the flow, Prefect logs it with its traceback
+            from visemeflow.flows.animate import rerun_variant
+            from visemeflow.flows.common import last_settings
+
+            try:
+                rerun_variant(store, uid, last_settings(store, "animate"))
+            except RerunError as exc:
+                _fail(str(exc))
     from visemeflow.flows.rerun import rerun_flow
 
     _unjoined_heartbeats()

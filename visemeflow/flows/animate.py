@@ -344,10 +344,9 @@ def _preview_inputs(store: Store, params: PreviewParams, character_hash: str, ma
             "code": code_digest("visemeflow.animation.preview")}
 
 
-def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:
-    """Every character of the last animate run, for one utterance; AnimateError for bad input."""
-    from visemeflow.tasks.animate import character_keys
-
+def rerun_variant(store: Store, uid: str, last: AnimateSettings | None) -> str:
+    """The curve variant a rerun of `uid` animates; RerunError (one line) when there is no animate run to repeat or
+    the utterance has no such curves. The command asks before it starts the flow."""
     if last is None:
         raise RerunError(f"{store.root} has no animate run to repeat; run `visemeflow animate` first")
     variants = list(dict.fromkeys([last.variant, *last.variants]))
@@ -355,6 +354,14 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
     if variant is None:
         raise RerunError(f"{uid} has no {last.source} curves of variant {' or '.join(map(repr, variants))} "
                          f"in {store.root}")
+    return variant
+
+
+def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:
+    """Every character of the last animate run, for one utterance; AnimateError for bad input."""
+    from visemeflow.tasks.animate import character_keys
+
+    variant = rerun_variant(store, uid, last)
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
     audio = rows[0][C.AUDIO_PATH] if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
     mapping = last.mapping
