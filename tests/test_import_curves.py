@@ -331,6 +331,37 @@ def test_import_flow_stores_captured_curves_rejects_bad_takes_and_caches(tmp_pat
 
 
 @pytest.mark.usefixtures("prefect_harness")
+def test_when_every_take_is_rejected_the_run_says_why(tmp_path, monkeypatch):
+    """Every take rejected: the command printed only its counts and "see the rejects table" (a new user's report);
+    ingest said why in the same case. The run now logs each reject's reason and hints before it ends Failed."""
+    import visemeflow.flows.import_curves as module
+    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
+
+    manifest, _ = synthetic_takes(tmp_path / "takes")
+    rows = manifest.read_text().splitlines()
+    manifest.write_text("\n".join([rows[0]] + [r for r in rows if r.startswith("csv/odd,")]) + "\n")
+    said = []
+
+    class Logger:
+        def __getattr__(self, level):
+            return lambda message, *args: said.append((level, message % args if args else message))
+
+    real = module.StageRun
+
+    class Run(real):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.logger = Logger()
+
+    monkeypatch.setattr(module, "StageRun", Run)
+    state = import_curves_flow(ImportCurvesParams(takes=manifest, store=tmp_path / "store"), return_state=True)
+    assert state.is_failed() and state.message == "import_curves: its one utterance failed (see the rejects table)"
+    (warning,) = [m for level, m in said if level == "warning"]
+    assert warning.startswith("import_curves: 1 rejected:\n") and "UnknownChannel" in warning
+    assert "csv/odd" in warning and "'jaw_drop'" in warning
+
+
+@pytest.mark.usefixtures("prefect_harness")
 def test_a_take_of_an_ingested_utterance_adds_curves_and_keeps_its_row(tmp_path):
     from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
     from visemeflow.flows.ingest import ingest_flow

@@ -1316,7 +1316,8 @@ def main() -> None:
                 typer.echo(f"error: {exc.strerror if isinstance(exc, StoreError) else exc}", err=True)
                 raise SystemExit(2) from None
             if isinstance(exc, StageFailed):  # the flow ran to its end; its run is Failed in the UI, same message
-                for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [("summary", exc.summary)]:
+                own = str(exc).split(":", 1)[0].strip() or "summary"    # "import_curves: its one utterance failed"
+                for stage, summary in exc.summary.items() if _is_per_stage(exc.summary) else [(own, exc.summary)]:
                     _print_summary(stage, summary)
                 typer.echo(f"failed: {exc}", err=True)
                 raise SystemExit(1) from None

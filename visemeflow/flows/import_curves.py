@@ -19,6 +19,7 @@ from visemeflow.flows.params import DEFAULT_STORE, ImportCurvesParams, ImportCur
 from visemeflow.shapes.capture import load_arkit_to_visemes
 from visemeflow.flows.common import StageRun, finished, replace_stage_rejects
 from visemeflow.ingest.captured import discover_takes
+from visemeflow.ingest.hints import reject_advice, reject_lines
 from visemeflow.tasks.progress import Progress
 from visemeflow.tasks.common import reject_row
 from visemeflow.tasks.import_curves import SOURCE, STAGE, ingested_rows, take_task_for
@@ -97,4 +98,8 @@ def import_curves_flow(params: ImportCurvesParams):
                              description="captured takes imported as curves")
     logger.info("import_curves: %d takes, %d imported, %d cached, %d rejected", summary["takes"], summary["imported"],
                 summary["cached"], summary["rejected"])
+    if rejects and (unexpected or len(rejects) >= summary["takes"]):
+        # a run that ends Failed: the command prints no list of its own, so the reasons and hints are logged here
+        logger.warning("import_curves: %d rejected:\n%s", len(rejects),
+                       "\n".join(reject_lines(rejects) + [f"hint: {a}" for a in reject_advice(rejects)]))
     return finished(STAGE, summary, len(rejects), summary["takes"], unexpected)
