@@ -370,3 +370,28 @@ def test_upper_case_extensions_are_found_as_recorders_and_windows_tools_write_th
     assert by_id["spk/TAKE01"].alignment_format == "textgrid" and by_id["spk/take02"].alignment_format == "htk"
     assert [p["label"] for p in ingest_utterance(by_id["spk/TAKE01"], IngestConfig()).phones] == [p[0] for p in PHONES]
     assert by_id["spk/take02"].audio_path.endswith("take02.Wav")
+
+
+def test_media_a_folder_too_deep_is_a_reject_naming_the_folder_and_appledouble_files_are_not_media(tmp_path):
+    """A studio folder of speakers inside the corpus (corpus/studioA/dave/d1.wav) was left out without a word, and
+    the `._take.wav` metadata files macOS writes on foreign disks were each an InvalidId reject (a new user's
+    report). The deep folder is now one NestedFolder reject saying what a corpus is; AppleDouble files are skipped."""
+    corpus = tmp_path / "corpus"
+    grid = textgrid_long([(s, e, lab) for lab, s, e in PHONES], 0.6)
+    write_wav(corpus / "spk" / "a.wav", 0.6)
+    (corpus / "spk" / "a.TextGrid").write_text(grid, encoding="utf-8")
+    (corpus / "spk" / "._a.wav").write_bytes(b"\x00\x05\x16\x07" + bytes(60))       # AppleDouble
+    for name in ("dave", "erin"):
+        write_wav(corpus / "studioA" / name / f"{name}1.wav", 0.6)
+        (corpus / "studioA" / name / f"{name}1.TextGrid").write_text(grid, encoding="utf-8")
+    (corpus / "spk" / "notes").mkdir()
+    (corpus / "spk" / "notes" / "readme.txt").write_text("no media here", encoding="utf-8")
+    found = discover_corpus(corpus)
+    assert [e.utterance_id for e in found.entries] == ["spk/a"]
+    assert [(r.error_type, Path(r.path).name) for r in found.rejects] == [("NestedFolder", "dave"),
+                                                                          ("NestedFolder", "erin")]
+    assert found.rejects[0].message == (
+        f"{corpus / 'studioA' / 'dave'}: 1 audio or video file two folders deep, left out (e.g. dave1.wav); a corpus "
+        f"is SPEAKER/UTTERANCE files: point visemeflow at {corpus / 'studioA'} if its folders are the speakers, or "
+        "move the files up a level")
+    assert [e.utterance_id for e in discover_corpus(corpus, only="spk/a").entries] == ["spk/a"]

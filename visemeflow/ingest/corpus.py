@@ -405,7 +405,11 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         # compared NFC-normalised: a folder name may be stored decomposed (macOS) yet is the same speaker
         speaker_dirs = [p for p in speaker_dirs if _nfc(p.name) == speaker]
     for speaker_dir in speaker_dirs:
-        files = {p.name: p for p in speaker_dir.iterdir() if p.is_file()}
+        # macOS leaves `._NAME` (AppleDouble metadata) beside each file it copies to a foreign disk: not media
+        listing = [p for p in speaker_dir.iterdir() if not p.name.startswith("._")]
+        files = {p.name: p for p in listing if p.is_file()}
+        if only is None:
+            rejects.extend(_nested_media(speaker_dir, listing))
         mlfs = _mlf_indexes([p for n, p in files.items() if n.lower().endswith(MLF_EXT)], real_root, rejects) \
             + root_mlfs
         if only is not None:
@@ -413,6 +417,25 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         _discover_speaker(speaker_dir.name, speaker_dir.name, files, mlfs, real_root, only,
                           entries, rejects, spellings)
     return _without_id_collisions(entries, rejects, spellings)
+
+
+def _nested_media(speaker_dir: Path, listing: list[Path]) -> list["DiscoveryReject"]:
+    """A reject for each folder inside a speaker folder that holds audio or video: a corpus is SPEAKER/UTTERANCE
+    files, and files a level deeper (studio/speaker/take.wav) were left out without a word. Only that one level is
+    looked at."""
+    out = []
+    for sub in sorted(p for p in listing if p.is_dir() and not p.name.startswith(".")):
+        try:
+            media = [p for p in sub.iterdir() if p.is_file() and not p.name.startswith(".") and _media_ext(p.name)]
+        except OSError:
+            continue
+        if media:
+            out.append(DiscoveryReject(
+                None, "NestedFolder",
+                f"{sub}: {len(media)} audio or video file{'s' if len(media) > 1 else ''} two folders deep, left out "
+                f"(e.g. {media[0].name}); a corpus is SPEAKER/UTTERANCE files: point visemeflow at {speaker_dir} "
+                "if its folders are the speakers, or move the files up a level", str(sub)))
+    return out
 
 
 def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: list[tuple[Path, MlfIndex]],
