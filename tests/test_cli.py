@@ -259,3 +259,29 @@ def test_the_evaluation_table_explains_its_lip_column_only_when_it_has_one(capsy
     assert any(line.startswith("b/p/m lips closed: of the validation set's b/p/m phones") for line in out)
     _print_evaluation({**result, "table": [row]})
     assert "b/p/m lips closed" not in capsys.readouterr().out
+
+
+def test_curves_of_an_utterance_the_store_no_longer_holds_come_with_a_warning(store):
+    """An utterance rejected by a later ingest kept its curves, and `curves show/export` gave them without a word
+    while `train` left them out (a new user's report). They still come (nothing stored is lost) with one warning
+    line saying why, and `curves list` counts them apart."""
+    from visemeflow.schemas import UTTERANCES
+
+    row = {name: None for name in UTTERANCES.names}
+    row.update({C.UTTERANCE_ID: "spk/utt-2", C.SPEAKER: "spk", C.CONTENT_HASH: "x", C.N_FRAMES: 5, C.FPS: 30.0,
+                C.DURATION_S: 0.2, C.AUDIO_PATH: "a.wav", C.ALIGNMENT_PATH: "", C.ALIGNMENT_FORMAT: "none",
+                C.VIDEO_PATH: "", C.SPLIT: "train", C.LANGUAGE: "en", C.SAMPLE_RATE: 16000})
+    store.write_shard("utterances", 0, table_from_rows([row], UTTERANCES))
+    store.write_shard("rejects", 0, table_from_rows([reject_row(UID, "ingest", "AlignmentAudioMismatch",
+                                                                f"{UID}: labels run 0.3 s past the audio", "a.wav")],
+                                                     REJECTS), stage="ingest")
+    done = runner.invoke(app, ["curves", "show", UID, "--store", str(store.root)])
+    assert done.exit_code == 0 and done.stderr == (f"warning: {UID} is no longer in the store's utterances (rejected "
+                                                   f"since: {UID}: labels run 0.3 s past the audio); these curves are "
+                                                   "from an earlier run\n")
+    assert "31 frames" in done.stdout
+    done = runner.invoke(app, ["curves", "export", UID, "--store", str(store.root)])
+    assert done.exit_code == 0 and done.stderr.startswith(f"warning: {UID} is no longer") and "MBP" in done.stdout
+    done = runner.invoke(app, ["curves", "list", "--store", str(store.root)])
+    assert done.output == (f"procedural   jali                    1 utterance (1 of them no longer in the store's "
+                           f"utterances, e.g. {UID}: rejected or gone from the corpus since; `visemeflow rejects`)\n")

@@ -1149,9 +1149,32 @@ def curves_list(store: StoreOpt = DEFAULT_STORE) -> None:
     sets = s.curve_sets()
     if not sets:
         typer.echo(f"no curves in {store}")
+    current = set(s.read_table("utterances").column("utterance_id").to_pylist()) if sets else set()
     for source, variant in sets:
-        n = len(s.curve_files(source, variant))
-        typer.echo(f"{source:<13}{variant:<24}{n} utterance{'s' if n != 1 else ''}")
+        ids = s.curve_ids(source, variant)
+        stale = [u for u in ids if current and u not in current and not u.startswith("predict/")]
+        n = len(ids)
+        typer.echo(f"{source:<13}{variant:<24}{n} utterance{'s' if n != 1 else ''}"
+                   + (f" ({len(stale)} of them no longer in the store's utterances, e.g. {stale[0]}: rejected or "
+                      "gone from the corpus since; `visemeflow rejects`)" if stale else ""))
+
+
+def _stale_curves_warning(store: Path, utterance_id: str) -> None:
+    """A warning on stderr when `utterance_id` has curves but is no longer in the store's utterances (a later ingest
+    rejected it, or its files left the corpus): its curves are an earlier run's."""
+    from visemeflow.schemas import C
+    from visemeflow.storage import Store
+
+    if utterance_id.startswith("predict/"):      # `predict` on an audio file: never in the corpus tables
+        return
+    s = Store(store)
+    ids = s.read_table("utterances").column(C.UTTERANCE_ID).to_pylist()
+    if not ids or utterance_id in ids:           # no corpus ingested (curves written or imported as they are)
+        return
+    reasons = [r[C.MESSAGE] for r in s.read_table("rejects").to_pylist() if r[C.UTTERANCE_ID] == utterance_id]
+    why = f"rejected since: {reasons[0].splitlines()[0]}" if reasons else "gone from the corpus since"
+    typer.echo(f"warning: {utterance_id} is no longer in the store's utterances ({why}); these curves are from an "
+               "earlier run", err=True)
 
 
 @curves_app.command("show")
@@ -1168,6 +1191,7 @@ def curves_show(
     from visemeflow.visemes import VISEMES
 
     table = _load_curves(utterance_id, store, source, variant)
+    _stale_curves_warning(store, utterance_id)
     curves = curves_array(table)
     times = table.column(C.TIME_S).to_numpy()
     variant_name = table.column(C.VARIANT)[0].as_py()
@@ -1197,6 +1221,7 @@ def curves_export(
         typer.echo(f"error: unknown format {format!r}; use csv or json", err=True)
         raise typer.Exit(2)
     table = _load_curves(utterance_id, store, source, variant)
+    _stale_curves_warning(store, utterance_id)
     track = CurveTrack(utterance_id, source, table.column(C.VARIANT)[0].as_py(), curves_array(table),
                        table.column(C.TIME_S).to_numpy(), table.column(C.FRAME).to_numpy())
     if out is None:
