@@ -122,6 +122,25 @@ def test_a_number_that_may_be_none_takes_the_word_none_and_the_pipeline_takes_th
     tracking = seen.pop().tracking
     assert (tracking.flow_region, tracking.flow_preset, tracking.flow_max_roi_px, tracking.speaker_identity,
             tracking.use_flow) == ("face", "fast", None, True, True)
+    # the ingest and track settings a corpus may need (a new user's report: `ingest --tolerance 0.5` then
+    # `pipeline` could not keep it, and rejected what the ingest had accepted)
+    result = runner.invoke(app, ["pipeline", str(tmp_path / "corpus"), "--store", str(tmp_path / "p"),
+                                 "--tolerance", "0.5", "--fps", "25", "--solver", "faithful", "--joint-frames", "0",
+                                 "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    params = seen.pop()
+    assert (params.ingest.alignment_tolerance_s, params.ingest.fps, params.tracking.solver, params.joint_frames,
+            params.device) == (0.5, 25, "faithful", 0, "cpu")
+
+
+def test_an_ingest_with_other_settings_than_the_last_says_which():
+    from visemeflow.flows.ingest import settings_changed
+    from visemeflow.ingest import IngestConfig
+
+    assert settings_changed(None, IngestConfig()) == ""
+    assert settings_changed(IngestConfig(), IngestConfig()) == ""
+    assert settings_changed(IngestConfig(alignment_tolerance_s=0.5), IngestConfig()) == \
+        "alignment_tolerance_s 0.5 -> 0.1"
 
 
 def test_an_option_filling_two_fields_and_a_list_option(monkeypatch, tmp_path):

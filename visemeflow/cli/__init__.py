@@ -528,9 +528,11 @@ def landmarks(params: LandmarksParams, video: Path | None, out: Path | None, str
 
 @stage_command(app, PipelineParams, [
     Opt("corpus", argument=True, callback=_corpus), STORE, SHARDS, Opt("replace"), Opt("ingest.inventory"),
-    Opt("ingest.phone_tiers", "--phone-tier", repeat=True), *RUNNER,
-    Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"), Opt("tracking.flow_max_roi_px"),
-    Opt("tracking.flow_region"), Opt("tracking.speaker_identity"),
+    Opt("ingest.phone_tiers", "--phone-tier", repeat=True), Opt("ingest.alignment_tolerance_s", "--tolerance"),
+    Opt("ingest.fps"), *RUNNER,
+    Opt("tracking.solver"), Opt("tracking.use_flow", "--flow"), Opt("tracking.flow_preset"),
+    Opt("tracking.flow_max_roi_px"), Opt("tracking.flow_region"), Opt("tracking.speaker_identity"),
+    Opt("joint_frames"), Opt("device"),
     Opt("characters", "--character", repeat=True, callback=_character), Opt("animate.formats", "--format"),
     Opt("animate.meshes", "--mesh", repeat=True), STRICT,
 ])
@@ -538,6 +540,7 @@ def pipeline(params: PipelineParams, strict: bool) -> None:
     """Run every stage on a corpus: ingest, procedural curves, tracking of the videos (and animation with --character)."""
     from visemeflow.flows.pipeline import pipeline_flow
 
+    _device(params.device)
     _check_characters(params.characters, list(params.animate.meshes), params.animate.convention,
                       formats=params.animate.formats)
     _check_corpus_change(params.store, params.corpus, params.replace)

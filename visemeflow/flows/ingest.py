@@ -10,7 +10,7 @@ from prefect.states import Failed, State
 from visemeflow.flows.common import StageRun, collect, group_by_shard, last_settings, totals
 from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.params import IngestParams, IngestSettings
-from visemeflow.ingest import discover_corpus
+from visemeflow.ingest import IngestConfig, discover_corpus
 from visemeflow.ingest.corpus import CORPUS_LAYOUT, check_corpus
 from visemeflow.ingest.hints import reject_advice, reject_lines
 from visemeflow.location import as_text, is_url
@@ -52,6 +52,10 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     run = StageRun(STAGE, params.store, IngestSettings(corpus=as_text(params.corpus), n_shards=params.n_shards,
                                                        config=params.config))
     store = run.store
+    changed = settings_changed(last.config if last is not None else None, params.config)
+    if changed:   # `pipeline` without `--tolerance` after `ingest --tolerance 0.5` is the default again: say so
+        run.logger.warning("ingest: settings changed since the last ingest of this store (%s): every utterance is "
+                           "read again with them", changed)
     shards = group_by_shard(found["entries"], "utterance_id", params.n_shards)
     futures = [
         ingest_shard.with_options(
@@ -83,6 +87,15 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
     return run.finish(summary, rejected.num_rows, total, rejects=rejected)
+
+
+def settings_changed(before: IngestConfig | None, now: IngestConfig) -> str:
+    """`alignment_tolerance_s 0.5 -> 0.1, ...`: the config fields that differ from the last run's; "" when none (or
+    no run before)."""
+    if before is None:
+        return ""
+    old, new = before.model_dump(), now.model_dump()
+    return ", ".join(f"{k} {old[k]!r} -> {new[k]!r}" for k in new if old.get(k) != new[k])
 
 
 def _same_place(a: str, b: str) -> bool:

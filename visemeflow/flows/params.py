@@ -133,6 +133,11 @@ class PipelineParams(StoreParams):
     landmarks: FaceMeshConfig = Field(default_factory=FaceMeshConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     rig: Path | None = Field(None, description="Viseme rig for tracking; default: the shipped ICT demo rig.")
+    joint_frames: int = Field(
+        400, ge=0, le=100_000,
+        description="Utterances to track are solved together in groups of about this many frames (as `track "
+                    "--joint-frames`); 0: one utterance per task.")
+    device: DeviceWord = Field("cpu", description="Where tracking's joint solves run (as `track --device`).")
     runner: RunnerConfig = RunnerField
     characters: list[Path] = Field([], description="Characters to animate with the tracked curves (procedural when "
                                                    "no utterance has a video); none: no animate stage.")

@@ -54,7 +54,8 @@ def pipeline_flow(params: PipelineParams) -> dict[str, dict]:
         marks = LandmarksParams(config=params.landmarks, runner=params.runner, **common)
         run("landmarks", lambda: run_on_runner(landmarks_flow, marks))
     if len(videos):
-        track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner, **common)
+        track = TrackParams(config=params.tracking, rig=params.rig, runner=params.runner,
+                            joint_frames=params.joint_frames, device=params.device, **common)
         run("track", lambda: run_on_runner(track_flow, track))
     if params.characters:
         from visemeflow.flows.animate import AnimateParams, animate_flow
