@@ -228,6 +228,11 @@ def test_rerun_of_a_still_broken_utterance_prints_why_and_exits_1_and_a_mended_o
     mended = runner.invoke(app, ["rerun", "s/b", "--stage", "ingest", "--store", store])
     assert mended.exit_code == 0 and "ingested 1" in mended.output, mended.output
     assert Store(store).read_table("rejects", "ingest").num_rows == 0
+    # its curves come from the next stage, which the rerun of ingest does not run: it says so (audio only here)
+    assert mended.output.splitlines()[-1] == f"next, for its later stages: visemeflow rerun s/b --stage procedural " \
+                                             f"--store {Store(store).root}"
+    later = runner.invoke(app, ["rerun", "s/b", "--stage", "procedural", "--store", store])
+    assert later.exit_code == 0 and "next, for" not in later.output, later.output     # no video: nothing to track
 
 
 def test_curves_list_names_every_source_and_variant_with_its_count(store, tmp_path):

@@ -1057,6 +1057,8 @@ def rerun(params: RerunParams) -> None:
 
     report = rerun_flow(params)
     _print_summary(f"rerun {params.stage} {params.utterance_id}", report)
+    if not report.get("rejected"):
+        _print_next_reruns(store, uid, params.stage)
     if report.get("rejected"):   # still bad input: its reason, and exit 1 (the utterance was not made)
         from visemeflow.schemas import C
         from visemeflow.storage import Store
@@ -1140,6 +1142,26 @@ def _load_curves(utterance_id: str, store: Path, source: str, variant: str | Non
     except LookupError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
+
+
+_LATER_STAGES = {"ingest": ("procedural", "landmarks", "track"), "procedural": ("track",), "landmarks": ("track",)}
+"""What a rerun of a stage leaves as it was: the stages that read its output (landmarks and track: videos only)."""
+
+
+def _print_next_reruns(store, uid: str, stage: str) -> None:
+    """After a rerun, the later stages that still hold what the earlier output made (`rerun --stage ingest` alone
+    left the utterance without curves, and nothing said so)."""
+    from visemeflow.schemas import C
+
+    later = _LATER_STAGES.get(stage, ())
+    if not later:
+        return
+    rows = store.read_table("utterances", utterance_ids=[uid]).select([C.VIDEO_PATH]).to_pylist()
+    video = bool(rows and rows[0][C.VIDEO_PATH])
+    stages = [s for s in later if video or s == "procedural"]
+    if stages:
+        typer.echo("next, for its later stages: " + "; ".join(
+            f"visemeflow rerun {uid} --stage {s} --store {store.root}" for s in stages))
 
 
 @curves_app.command("list")
