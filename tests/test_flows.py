@@ -113,6 +113,8 @@ def test_bad_inputs_are_rejected_and_the_rest_goes_on(tmp_path):
     state = ingest_flow(IngestParams(corpus=corpus, store=store, n_shards=4), return_state=True)
     assert state.is_completed() and state.message.startswith(f"ingest: 2 of {len(LJ_NAMES) + 1} utterances failed")
     assert state.result()["utterances"] == len(LJ_NAMES) + 1
+    # every shard a cache hit: the summary still counts the 2 rejects the store holds (it said 0, beside "2 of N")
+    assert state.result()["cached_shards"] == state.result()["shards"] and state.result()["rejected"] == 2
 
     # Fixing the file and rerunning that one utterance by hand clears its reject.
     broken.write_text(good_text)

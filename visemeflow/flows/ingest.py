@@ -70,8 +70,11 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
         reject_row(r["utterance_id"], DISCOVER_STAGE, r["error_type"], r["message"], r["path"]) for r in found["rejects"]
     ]
     store.write_shard("rejects", 0, table_from_rows(discovery_rejects, REJECTS), stage=DISCOVER_STAGE)
-    summary = {**totals(reports), "discovery_rejected": len(discovery_rejects), "stale_shards_removed": removed}
-    rejected = pa.concat_tables([store.read_table("rejects", DISCOVER_STAGE), store.read_table("rejects", STAGE)])
+    ingest_rejects = store.read_table("rejects", STAGE)
+    # the rejects the store holds now, cached shards' too (a shard's own count is of the shards that ran)
+    summary = {**totals(reports), "rejected": ingest_rejects.num_rows, "discovery_rejected": len(discovery_rejects),
+               "stale_shards_removed": removed}
+    rejected = pa.concat_tables([store.read_table("rejects", DISCOVER_STAGE), ingest_rejects])
     total = len(found["entries"]) + len(discovery_rejects)
     if rejected.num_rows and (errors or rejected.num_rows >= total):
         # a run that ends Failed: the command prints no list of its own, so the reasons and hints are logged here

@@ -59,10 +59,11 @@ def procedural_flow(params: ProceduralParams) -> dict[str, int]:
     ]
     reports, errors = collect(futures, STAGE, unit="shards")
     store.delete_shards_except("rejects", set(shards), STAGE)
-    summary = {**totals(reports), "skipped_unaligned": len(unaligned)}
     if errors:
         raise RuntimeError(f"procedural: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
     rejected = store.read_table("rejects", STAGE)
+    # the rejects the store holds now, cached shards' too (a shard's own count is of the shards that ran)
+    summary = {**totals(reports), "rejected": rejected.num_rows, "skipped_unaligned": len(unaligned)}
     return run.finish(summary, rejected.num_rows, sum(len(items) for items in shards.values()),
                       extra={"variant": variant}, rejects=rejected, title=f"procedural ({variant})")
 
