@@ -275,6 +275,18 @@ def test_corrupt_audio(tmp_path):
     assert info.value.error_type == "UnreadableAudio"
 
 
+def test_empty_audio_says_the_file_is_empty(tmp_path):
+    """A 0-byte wav (a recorder stopped before writing, a failed copy) gave two decoders' errors ("Format not
+    recognised.; as a video: ... [Errno 1094995529] Invalid data ..."); it says the file is empty."""
+    make_corpus(tmp_path, {"s/empty": HELLO})
+    wav = tmp_path / "s" / "empty.wav"
+    wav.write_bytes(b"")
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/empty"), CONFIG)
+    assert_names(info.value, "s/empty", wav.resolve())
+    assert info.value.error_type == "EmptyAudio" and "the file is empty (0 bytes)" in str(info.value)
+
+
 def test_nan_time(tmp_path):
     make_corpus(tmp_path, {"s/nan": HELLO})
     tg = tmp_path / "s" / "nan.TextGrid"

@@ -188,6 +188,12 @@ def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, 
     from visemeflow.tracking.video import AudioTrackTooLong, VideoError, read_video_audio
 
     path_str = str(path)
+    try:
+        empty = os.path.getsize(path_str) == 0
+    except OSError:
+        empty = False           # a missing file: the readers below name it
+    if empty:   # a recorder stopped before writing, a failed copy: say that, not two decoders' errors
+        raise AudioError(path_str, "EmptyAudio", "the file is empty (0 bytes): record or copy it again")
     if is_video_file(path_str):
         try:
             samples, rate = read_video_audio(path_str, mono=mono)
