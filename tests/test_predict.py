@@ -327,7 +327,7 @@ def test_a_cached_predict_command_is_still_tracked_and_prints_and_stores_the_sam
 
     params = PredictParams(store=store.root, model="tiny", audio=[AUDIO], device="cpu")
     with get_client(sync_client=True) as client:
-        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["predict[tiny]"])),
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["predict(tiny)"])),
                                      sort=FlowRunSort.START_TIME_DESC)
         runs = [r for r in runs if r.parameters["params"]["store"] == str(store.root)]
         assert len(runs) == 2

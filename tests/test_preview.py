@@ -741,7 +741,7 @@ def test_the_preview_draws_the_avatars_other_meshes_behind_and_around_its_driven
 def test_a_driven_mesh_that_two_nodes_show_is_drawn_at_both_and_moves_at_both(tmp_path):
     """One eye mesh (a jawOpen target) that two nodes show: the preview drew it at the first node only. Its second
     instance now follows the same curves, placed by its own node."""
-    from test_usd_scene import EYE_AT, make_scene
+    from scene_glb import EYE_AT, make_scene
 
     from visemeflow.animation.load import load_character
     from visemeflow.animation.surface import preview_scene

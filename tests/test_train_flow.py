@@ -244,6 +244,6 @@ def test_sigterm_ends_a_training_command_at_once_and_marks_its_run(tmp_path, pre
     assert proc.returncode == 143 and err.splitlines()[-1] == "terminated", err[-2000:]
     assert time.monotonic() - stopped < 60   # a bound, not a timing: without the fix it runs 100000 epochs
     with get_client(sync_client=True) as client:
-        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["train[fbank-blstm]"])))
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["train(fbank-blstm)"])))
     ours = [r for r in runs if r.parameters.get("params", {}).get("store") == str(store.root)]
     assert len(ours) == 1 and ours[0].state.name == "Crashed", [(r.parameters, r.state) for r in runs]
