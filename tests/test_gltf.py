@@ -429,7 +429,7 @@ def test_bad_files_raise_character_errors_that_name_the_file(tmp_path):
         _glb_with(tmp_path, "empty-name.glb", _set_names(["a", " ", "c"])).name: "has no name",
         _glb_with(tmp_path, "nan.glb", _nan_vertex).name: "NaN",
         _glb_with(tmp_path, "lines.glb", lambda g, b: setattr(g.meshes[0].primitives[0], "mode", gl.LINES)).name:
-            "draws LINES; only TRIANGLES",
+            "draws LINES; only triangles (TRIANGLES, TRIANGLE_STRIP, TRIANGLE_FAN) are read",
         _glb_with(tmp_path, "bad-index.glb",
                   lambda g, b: setattr(g.meshes[0].primitives[0], "indices", 99)).name: "accessor 99 does not exist",
     }
@@ -632,3 +632,35 @@ def test_three_js_plays_the_animation_we_wrote(tmp_path, served, browser, demo, 
     before = w[[int(np.floor(times[i] * fps)) for i in mid]]
     assert len(mid) >= 10 and np.abs(influences[mid] - before).max() > 0.1
     assert np.abs(influences[mid] - w[[int(np.floor(times[i] * fps)) + 1 for i in mid]]).max() > 0.1
+
+
+@pytest.mark.parametrize("mode", ["strip", "fan", "strip-unindexed"])
+def test_triangle_strips_and_fans_are_read_as_their_triangles(tmp_path, mode):
+    """glTF allows TRIANGLE_STRIP and TRIANGLE_FAN (3.7.2.1); they were refused ("only TRIANGLES are read"), and a
+    scene mesh drawn so was left out of the USD and the preview. They are read as the triangles they draw, in the
+    specification's winding; a strip's degenerate joining triangles are dropped."""
+    d = Doc()
+    from visemeflow.rig.gltf import read_gltf_mesh
+
+    fifth = [0, 2, 0] if mode == "strip-unindexed" else [2, 0, 0]      # the strip zigzags on, or joins back
+    quad = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], fifth], np.float32)
+    deltas = np.zeros_like(quad)
+    deltas[3, 2] = 0.5
+    if mode == "fan":
+        indices, expected = [0, 1, 3, 2], [(1, 3, 0), (3, 2, 0)]
+    elif mode == "strip":      # two triangles, then a degenerate pair joining a third
+        indices, expected = [0, 1, 2, 3, 3, 1, 1, 4, 3], [(0, 1, 2), (1, 3, 2), (1, 4, 3)]
+    else:                      # the vertices in order: 0 1 2 3 4
+        indices, expected = None, [(0, 1, 2), (1, 3, 2), (2, 3, 4)]
+    primitive = gl.Primitive(attributes=gl.Attributes(POSITION=d.accessor(quad)),
+                             indices=None if indices is None else d.accessor(np.array(indices, np.uint16),
+                                                                             gl.SCALAR),
+                             mode=gl.TRIANGLE_FAN if mode == "fan" else gl.TRIANGLE_STRIP,
+                             targets=[{"POSITION": d.accessor(deltas)}])
+    d.mesh([primitive], names=["jawOpen"])
+    path = d.save(tmp_path / f"{mode}.glb", nodes=[0])
+    mesh = read_gltf_mesh(path)
+    assert [tuple(f) for f in mesh.faces] == expected
+    assert mesh.surfaces == ((None, len(expected)),)
+    normals = np.cross(quad[mesh.faces[:, 1]] - quad[mesh.faces[:, 0]], quad[mesh.faces[:, 2]] - quad[mesh.faces[:, 0]])
+    assert (normals[:, 2] > 0).all()       # every triangle faces +z, as a strip's alternating winding intends

@@ -813,4 +813,5 @@ def test_a_mesh_of_lines_in_the_scene_is_left_out_of_the_preview_and_the_usd_not
                                          name="take")))
     names = {p.GetName() for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
     assert "BodyNode" in names and "HairNode" not in names
-    assert "draws LINES; only TRIANGLES are read: left out" in stage.GetRootLayer().documentation
+    assert "draws LINES; only triangles (TRIANGLES, TRIANGLE_STRIP, TRIANGLE_FAN) are read: left out" in \
+        stage.GetRootLayer().documentation

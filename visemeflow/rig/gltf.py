@@ -10,7 +10,8 @@ tree depth first, then the other scenes, then nodes in no scene, then meshes no 
 that order with no targets (S = 0: the caller says why that is not enough); with `morph_targets=False`, the first
 mesh in that order, its targets not read.
 
-What is read: every primitive must be TRIANGLES and carry the same number of targets; primitives are joined into one
+What is read: every primitive must draw triangles (TRIANGLES, or TRIANGLE_STRIP and TRIANGLE_FAN, made into
+triangles) and carry the same number of targets; primitives are joined into one
 vertex array in primitive order (primitives that share their POSITION, COLOR_0 and target accessors share their
 vertices). Accessors may be strided, sparse, or integer (normalized or not, as KHR_mesh_quantization allows).
 Target names come from `mesh.extras.targetNames`, else the first primitive's. `read_gltf_mesh` applies no node
@@ -378,21 +379,34 @@ class _Reader:
             raise self.fail(f"{what} (accessor {index}): matrices must be float, got {values.dtype}")
         return np.asarray(values, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
 
-    def indices(self, index: int | None, n_vertices: int, what: str) -> np.ndarray:
-        if index is None:   # non-indexed: every three vertices are a triangle
-            if n_vertices % 3:
-                raise self.fail(f"{what}: {n_vertices} vertices without indices are not whole triangles")
-            return np.arange(n_vertices, dtype=np.int64).reshape(-1, 3)
-        values = self.accessor(index, f"{what} indices", ("SCALAR",))
-        if self.gltf.accessors[index].componentType not in _INDEX_TYPES:
-            raise self.fail(f"{what} indices (accessor {index}): component type "
-                            f"{self.gltf.accessors[index].componentType} is not an unsigned integer")
-        if len(values) % 3:
-            raise self.fail(f"{what}: {len(values)} indices are not whole triangles")
-        ids = values[:, 0].astype(np.int64)
-        if ids.size and int(ids.max()) >= n_vertices:
-            raise self.fail(f"{what}: index {int(ids.max())} outside its {n_vertices} vertices")
-        return ids.reshape(-1, 3)
+    def indices(self, index: int | None, n_vertices: int, what: str, mode: int = gl.TRIANGLES) -> np.ndarray:
+        """(F, 3) int64 triangles of a primitive drawn as TRIANGLES, TRIANGLE_STRIP or TRIANGLE_FAN (glTF 2.0
+        3.7.2.1: strip triangle i is v_i, v_{i+1+i%2}, v_{i+2-i%2}; fan triangle i is v_{i+1}, v_{i+2}, v_0), from
+        its indices or, without them, its vertices in order. A strip's or fan's degenerate triangles (two equal
+        corners, how strips are joined) are dropped."""
+        if index is None:   # non-indexed: the vertices in order
+            ids = np.arange(n_vertices, dtype=np.int64)
+        else:
+            values = self.accessor(index, f"{what} indices", ("SCALAR",))
+            if self.gltf.accessors[index].componentType not in _INDEX_TYPES:
+                raise self.fail(f"{what} indices (accessor {index}): component type "
+                                f"{self.gltf.accessors[index].componentType} is not an unsigned integer")
+            ids = values[:, 0].astype(np.int64)
+            if ids.size and int(ids.max()) >= n_vertices:
+                raise self.fail(f"{what}: index {int(ids.max())} outside its {n_vertices} vertices")
+        if mode == gl.TRIANGLES:
+            if len(ids) % 3:
+                raise self.fail(f"{what}: {len(ids)} {'indices' if index is not None else 'vertices without indices'}"
+                                " are not whole triangles")
+            return ids.reshape(-1, 3)
+        n = max(len(ids) - 2, 0)
+        i = np.arange(n)
+        if mode == gl.TRIANGLE_STRIP:
+            faces = np.stack([ids[i], ids[i + 1 + i % 2], ids[i + 2 - i % 2]], axis=1)
+        else:                                                   # TRIANGLE_FAN
+            faces = np.stack([ids[i + 1], ids[i + 2], np.full(n, ids[0] if len(ids) else 0)], axis=1)
+        keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+        return faces[keep].reshape(-1, 3)
 
 
 def _dequantize(values: np.ndarray) -> np.ndarray:
@@ -549,8 +563,9 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         for k, primitive in enumerate(mesh.primitives):
             what = f"{where} primitive {k}"
             mode = gl.TRIANGLES if primitive.mode is None else primitive.mode
-            if mode != gl.TRIANGLES:
-                raise RigError(f"{path}: {what} draws {_MODES.get(mode, mode)}; only TRIANGLES are read")
+            if mode not in (gl.TRIANGLES, gl.TRIANGLE_STRIP, gl.TRIANGLE_FAN):
+                raise RigError(f"{path}: {what} draws {_MODES.get(mode, mode)}; only triangles (TRIANGLES, "
+                               "TRIANGLE_STRIP, TRIANGLE_FAN) are read")
             targets = (primitive.targets or []) if morph_targets else []
             if len(targets) != n_targets:
                 raise RigError(f"{path}: {what} has {len(targets)} morph targets, the mesh's first has "
@@ -614,12 +629,13 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                 deltas.append(block)
                 colors.append(rgb)
                 n_vertices += count
-            n_triangles += (reader.declared_count(primitive.indices, f"{what} indices")
-                            if primitive.indices is not None else count) // 3
+            drawn = reader.declared_count(primitive.indices, f"{what} indices") if primitive.indices is not None \
+                else count
+            n_triangles += drawn // 3 if mode == gl.TRIANGLES else max(drawn - 2, 0)
             if n_triangles > MAX_TRIANGLES:
                 raise RigError(f"{path}: {where} has more than {MAX_TRIANGLES} triangles ({n_triangles} up to {what}), "
                                "the most visemeflow reads in one mesh")
-            faces.append(reader.indices(primitive.indices, count, what) + first)
+            faces.append(reader.indices(primitive.indices, count, what, mode) + first)
             material = primitive.material if isinstance(primitive.material, int) else None
             surfaces.append((material, len(faces[-1])))
     except RigError:
