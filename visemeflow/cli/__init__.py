@@ -1144,24 +1144,21 @@ def _load_curves(utterance_id: str, store: Path, source: str, variant: str | Non
         raise typer.Exit(2) from None
 
 
-_LATER_STAGES = {"ingest": ("procedural", "landmarks", "track"), "procedural": ("track",), "landmarks": ("track",)}
-"""What a rerun of a stage leaves as it was: the stages that read its output (landmarks and track: videos only)."""
-
-
 def _print_next_reruns(store, uid: str, stage: str) -> None:
     """After a rerun, the later stages that still hold what the earlier output made (`rerun --stage ingest` alone
-    left the utterance without curves, and nothing said so)."""
+    left the utterance without curves, and nothing said so); those on video only when it has one."""
+    from visemeflow.flows.stages import later_stages
     from visemeflow.schemas import C
 
-    later = _LATER_STAGES.get(stage, ())
+    later = later_stages(stage)
     if not later:
         return
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.VIDEO_PATH]).to_pylist()
     video = bool(rows and rows[0][C.VIDEO_PATH])
-    stages = [s for s in later if video or s == "procedural"]
-    if stages:
+    names = [s.name for s in later if video or not s.needs_video]
+    if names:
         typer.echo("next, for its later stages: " + "; ".join(
-            f"visemeflow rerun {uid} --stage {s} --store {store.root}" for s in stages))
+            f"visemeflow rerun {uid} --stage {s} --store {store.root}" for s in names))
 
 
 @curves_app.command("list")

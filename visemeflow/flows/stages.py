@@ -28,6 +28,7 @@ class Stage:
     scheduled: bool = False
     rerun: bool = False
     needs_video: bool = False   # its utterances are videos: one without has nothing for it (rerun refuses it up front)
+    reads: tuple[str, ...] = ()  # the corpus stages whose output it reads for an utterance (rerun says what follows)
 
     @property
     def entrypoint(self) -> str:
@@ -53,10 +54,10 @@ STAGES: tuple[Stage, ...] = (
     _stage("pipeline", "Every stage on the corpus; unchanged utterances are cache hits.", on_corpus=True,
            scheduled=True),
     _stage("ingest", on_corpus=True, rerun=True),
-    _stage("procedural", rerun=True),
+    _stage("procedural", rerun=True, reads=("ingest",)),
     _stage("landmarks", "MediaPipe FaceMesh landmarks of every video without a landmark file.", rerun=True,
-           needs_video=True),
-    _stage("track", rerun=True, needs_video=True),
+           needs_video=True, reads=("ingest",)),
+    _stage("track", rerun=True, needs_video=True, reads=("ingest", "procedural", "landmarks")),
     _stage("train"),
     _stage("sweep"),
     _stage("evaluate", "Models judged on validation and on volume/pitch/speed/noise copies (robustness table)."),
@@ -74,6 +75,12 @@ STAGES: tuple[Stage, ...] = (
 
 RERUNNABLE: tuple[str, ...] = tuple(stage.name for stage in STAGES if stage.rerun)
 """The stages `rerun` takes one utterance through (RerunParams.stage)."""
+
+
+def later_stages(name: str) -> tuple[Stage, ...]:
+    """The stages that read stage `name`'s output for an utterance, in table order: what a rerun of it leaves as it
+    was."""
+    return tuple(stage for stage in STAGES if name in stage.reads)
 
 
 def stage_named(name: str) -> Stage:
