@@ -27,7 +27,7 @@ from visemeflow.rig.character import Character
 from visemeflow.rig.gltf import GltfMesh, GltfScene, linear_to_srgb
 from visemeflow.rig.model import RigError
 
-__all__ = ["PreviewScene", "StaticMeshes", "character_texture", "preview_scene"]
+__all__ = ["PreviewScene", "StaticMeshes", "preview_scene"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,8 +125,8 @@ class _Looks:
                            face_color=np.concatenate(self.face_color[meshes]), images=tuple(self.images))
 
 
-def _own(character: Character, texture: MeshTexture | None = None) -> PreviewScene:
-    return PreviewScene(np.asarray(character.faces, np.int64), texture, character.vertex_colors)
+def _own(character: Character) -> PreviewScene:
+    return PreviewScene(np.asarray(character.faces, np.int64), None, character.vertex_colors)
 
 
 @functools.lru_cache(maxsize=8)
@@ -146,9 +146,10 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
     colors = [character.vertex_colors] if character.vertex_colors is not None else []
     n_rows = character.n_vertices
     instances = []
+    read: dict[int, GltfMesh] = {}       # the driven meshes, read once: their other instances look the same
     try:
         for part in character.parts:
-            mesh = scene.placed_mesh(part.mesh)[0]
+            mesh = read[part.mesh] = scene.placed_mesh(part.mesh)[0]
             if len(mesh.neutral) != part.n_vertices or len(mesh.faces) != int(
                     ((character.faces >= part.start) & (character.faces < part.stop)).all(axis=1).sum()):
                 return _own(character), (f"{part.name}: the file's mesh no longer matches the character: the preview "
@@ -163,7 +164,7 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
         for info, node in placements:
             part = parts.get(info.index)
             if part is not None:           # another node showing a driven mesh: moved with it
-                mesh = scene.placed_mesh(part.mesh)[0]
+                mesh = read[part.mesh]
                 move = scene.world_matrix(node) @ np.linalg.inv(scene.world_matrix(part.nodes[0]))
                 instances.append((part.start, part.stop, move[:3, :3].copy(), move[:3, 3] * scale))
                 faces.append(mesh.faces.astype(np.int64) + n_rows)
@@ -176,7 +177,7 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
                 moving = len(looks.uv)
             try:
                 mesh, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
-            except RigError as exc:     # a mesh we cannot read (lines, points, strips): the rest of the scene stays
+            except RigError as exc:     # a mesh we cannot read (lines, points): the rest of the scene stays
                 notes.append(f"{exc}: left out of the preview")
                 continue
             static.append(neutral * np.float32(scale))
@@ -191,15 +192,3 @@ def preview_scene(character: Character) -> tuple[PreviewScene, tuple[str, ...]]:
     return PreviewScene(np.concatenate(faces), looks.texture(slice(0, moving)),
                         None if not colors else np.concatenate(colors).astype(np.float32), tuple(instances),
                         others), tuple(notes)
-
-
-def character_texture(character: Character) -> tuple[MeshTexture | None, list[str]]:
-    """The MeshTexture of `character`'s own faces (the first rows of its `preview_scene`) and the notes on what was
-    left out."""
-    scene, notes = preview_scene(character)
-    texture = scene.texture
-    if texture is not None and len(texture.face_image) != len(character.faces):
-        n, v = len(character.faces), character.n_vertices
-        texture = MeshTexture(uv=texture.uv[:v], face_image=texture.face_image[:n], face_color=texture.face_color[:n],
-                              images=texture.images)
-    return texture, list(notes)

@@ -271,7 +271,7 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
         else:
             try:
                 source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
-            except RigError as exc:     # a mesh we cannot read (lines, points, strips): the rest of the scene stays
+            except RigError as exc:     # a mesh we cannot read (lines, points): the rest of the scene stays
                 notes.append(f"{exc}: left out")
                 continue
             # named as the object is in Blender and the engines: its node
