@@ -15,7 +15,6 @@ from prefect.cache_policies import INPUTS, TASK_SOURCE, CachePolicy
 from prefect.context import TaskRunContext
 from prefect.filesystems import LocalFileSystem, RemoteFileSystem
 
-from visemeflow.hashing import stable_hash
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.storage.store import RESULTS_DIR, cap_message
@@ -135,13 +134,7 @@ CACHE_POLICY = DataOnlyCache(policy=INPUTS + TASK_SOURCE + CODE)
 
 
 MADE_FROM_KEY = b"visemeflow.made_from"
-"""File metadata of a shard's output: the digest of the task inputs that wrote it (`inputs_digest`)."""
-
-
-def inputs_digest(*inputs: Any) -> str:
-    """A digest of what a shard task was given (its rows with their content hashes, its config, the code's digest):
-    what its output file records under `MADE_FROM_KEY`."""
-    return stable_hash(*inputs)
+"""File metadata of a shard's output: a digest (`hashing.stable_hash`) of the task inputs that wrote it."""
 
 
 def made_from(store: Store, table: str, shard: int, stage: str | None, digest: str) -> bool:

@@ -21,7 +21,6 @@ from visemeflow.tasks.common import (
     CACHE_POLICY,
     MADE_FROM_KEY,
     RESULT_SERIALIZER,
-    inputs_digest,
     made_from,
     reject_row,
 )
@@ -87,7 +86,7 @@ def _config_hash(config: IngestConfig) -> str:
 def shard_digest(entries: list[dict], config: IngestConfig) -> str:
     """What an ingest shard's `utterances` file records it was made from (`common.made_from`): its entries (with
     their files' content hashes) and the config."""
-    return inputs_digest(entries, _config_hash(config))
+    return stable_hash(entries, _config_hash(config))
 
 
 def shard_current(store: Store, shard: int, entries: list[dict], config: IngestConfig) -> bool:
@@ -111,7 +110,7 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
     store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),   # last: it stamps the shard
                       metadata={CONFIG_KEY: config_hash.encode(),
-                                MADE_FROM_KEY: inputs_digest(entries, config_hash).encode()})
+                                MADE_FROM_KEY: shard_digest(entries, config).encode()})
     logger = get_run_logger()
     for r in rejects:
         logger.info("rejected %s", r[C.MESSAGE])

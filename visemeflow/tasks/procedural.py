@@ -13,7 +13,7 @@ from visemeflow.schemas import C, REJECTS, CurveSource, Curves, table_from_rows
 from visemeflow.schemas.tables import has_alignment
 from visemeflow.storage import Store
 from visemeflow.tasks.code_version import code_digest
-from visemeflow.tasks.common import CACHE_POLICY, MADE_FROM_KEY, RESULT_SERIALIZER, inputs_digest, reject_row
+from visemeflow.tasks.common import CACHE_POLICY, MADE_FROM_KEY, RESULT_SERIALIZER, reject_row
 from visemeflow.timebase import frame_count
 
 STAGE = "procedural"
@@ -42,7 +42,7 @@ def segments_from_phones(phones: pa.Table) -> list[VisemeSegment]:
 def shard_digest(utterances: list[dict], config: ProceduralConfig, variant: str) -> str:
     """What a procedural shard's rejects file records it was made from (`common.made_from`): its utterance rows
     (with their content hashes), the config, the variant and the code."""
-    return inputs_digest(utterances, config, variant, code_digest(__name__))
+    return stable_hash(utterances, config, variant, code_digest(__name__))
 
 
 def provenance(content_hash: str, config: ProceduralConfig) -> str:
