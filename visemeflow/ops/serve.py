@@ -28,6 +28,7 @@ import socket
 import stat
 import subprocess
 import sys
+import _thread
 import threading
 import warnings
 import time
@@ -679,4 +680,34 @@ def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CR
         # awaiting it: "RuntimeWarning: coroutine 'Runner.astop' was never awaited" and a tracemalloc hint, on a
         # shutdown that otherwise goes well (the deployments are paused, the process exits 0)
         warnings.filterwarnings("ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning)
-        serve(*deployments, print_starting_message=True)
+        with _sigterm_until_gone():
+            serve(*deployments, print_starting_message=True)
+
+
+@contextmanager
+def _sigterm_until_gone(every_s: float = 3.0):
+    """Prefect's runner leaves on SIGTERM by `sys.exit(0)` in its handler; when the signal lands while Python runs
+    an object's `__del__` (an asyncio transport's, often), that SystemExit is "ignored" and `serve` ran on: systemd's
+    stop hung until its SIGKILL (tests/test_serve.py, about one stop in three once the scheduler made runs). So a
+    first SIGTERM starts a thread that sends it again every `every_s` seconds until the process has left."""
+    from prefect.runner import Runner
+
+    original = Runner.handle_sigterm
+    started = threading.Event()
+
+    def again() -> None:
+        while True:
+            time.sleep(every_s)
+            _thread.interrupt_main(signal.SIGTERM)     # Python's handler again, in the main thread
+
+    def handle_sigterm(self, *args, **kwargs):
+        if not started.is_set():
+            started.set()
+            threading.Thread(target=again, name="sigterm-again", daemon=True).start()
+        original(self, *args, **kwargs)
+
+    Runner.handle_sigterm = handle_sigterm
+    try:
+        yield
+    finally:
+        Runner.handle_sigterm = original
