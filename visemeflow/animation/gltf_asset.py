@@ -175,19 +175,37 @@ def _one_buffer(source: Path, document: dict, binary: bytes | None) -> bytearray
     return blob
 
 
-def _append(document: dict, blob: bytearray, values: np.ndarray, bounds: bool = False) -> int:
-    """Append float32 SCALAR `values` as a buffer view (4-byte aligned) and an accessor; its index."""
-    data = np.ascontiguousarray(values, dtype="<f4").ravel()
+_COMPONENTS = {np.dtype("float32"): 5126, np.dtype("uint8"): 5121, np.dtype("uint16"): 5123}
+_TYPES = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
+
+
+def _append_array(document: dict, blob: bytearray, values: np.ndarray, bounds: bool = False,
+                  target: int | None = None) -> int:
+    """Append (count, k) `values` (float32, uint8 or uint16; k 1, 3, 4 or 16: SCALAR, VEC3, VEC4, MAT4 as stored, a
+    matrix column-major) as a buffer view (4-byte aligned, with `target` when given) and an accessor; its index."""
+    data = np.ascontiguousarray(values)
+    data = data.astype(data.dtype.newbyteorder("<"), copy=False)
+    width = 1 if data.ndim == 1 else data.shape[1]
     blob += bytes(-len(blob) % 4)
     views = document.setdefault("bufferViews", [])
-    views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": data.nbytes})
+    view = {"buffer": 0, "byteOffset": len(blob), "byteLength": data.nbytes}
+    if target is not None:
+        view["target"] = target
+    views.append(view)
     blob += data.tobytes()
-    accessor = {"bufferView": len(views) - 1, "componentType": _FLOAT, "count": int(data.size), "type": "SCALAR"}
+    accessor = {"bufferView": len(views) - 1, "componentType": _COMPONENTS[data.dtype.newbyteorder("=")],
+                "count": int(len(data)), "type": _TYPES[width]}
     if bounds:
-        accessor["min"], accessor["max"] = [float(data.min())], [float(data.max())]
+        flat = data.reshape(len(data), -1)
+        accessor["min"], accessor["max"] = flat.min(axis=0).tolist(), flat.max(axis=0).tolist()
     accessors = document.setdefault("accessors", [])
     accessors.append(accessor)
     return len(accessors) - 1
+
+
+def _append(document: dict, blob: bytearray, values: np.ndarray, bounds: bool = False) -> int:
+    """Append float32 SCALAR `values` as a buffer view (4-byte aligned) and an accessor; its index."""
+    return _append_array(document, blob, np.asarray(values, np.float32).ravel(), bounds)
 
 
 def _target_names(mesh: dict) -> list | None:

@@ -216,9 +216,13 @@ def export_bone_animation(character: Character, curves, fps: float, formats, out
         path = out_dir / f"{stem}{BONE_SUFFIXES[fmt]}"
         with _writing(path, fmt):
             if fmt == "glb":
+                from visemeflow.animation.skinned_asset import is_gltf_asset, write_asset_bones_glb
                 from visemeflow.animation.skinned_gltf import write_skinned_glb
 
-                write_skinned_glb(path, rig, curves, fps, name=stem)
+                if is_gltf_asset(character):     # the user's whole avatar, the face bones in its skeleton
+                    write_asset_bones_glb(path, character, rig, curves, fps, name=stem)
+                else:
+                    write_skinned_glb(path, rig, curves, fps, name=stem)
             elif fmt == "usd":
                 from visemeflow.animation.usd_skel import write_usd_skel
 

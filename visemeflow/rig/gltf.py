@@ -201,6 +201,9 @@ class GltfMesh:
     surfaces: tuple[tuple[int | None, int], ...] = ()
     """Per primitive, in order: (its material index or None, its triangle count); the triangles of `faces` follow
     the same order."""
+    primitive_starts: tuple[int, ...] = ()
+    """Per primitive, in order: its first vertex in the joined arrays (primitives sharing their POSITION, COLOR_0,
+    target and skin accessors share one block of vertices, hence one start)."""
     uv_problems: tuple[str, ...] = ()
     """Why a primitive's TEXCOORD_0 was not read (NaN, a wrong count, a broken accessor): texture coordinates
     only colour the mesh, so the mesh is read without them (zeros) and the exports say so."""
@@ -555,6 +558,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
         uvs: list[np.ndarray | None] = []
         uv_problems: list[str] = []
         surfaces: list[tuple[int | None, int]] = []
+        starts: list[int] = []
         faces: list[np.ndarray] = []
         skins: list[tuple[np.ndarray, np.ndarray] | None] = []
         # (POSITION, COLOR_0, target POSITIONs, JOINTS_0, WEIGHTS_0) -> (first vertex, count)
@@ -638,6 +642,7 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
             faces.append(reader.indices(primitive.indices, count, what, mode) + first)
             material = primitive.material if isinstance(primitive.material, int) else None
             surfaces.append((material, len(faces[-1])))
+            starts.append(first)
     except RigError:
         raise
     except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
@@ -659,7 +664,8 @@ def _read_mesh(reader: _Reader, index: int, *, morph_targets: bool = True, skin:
                     faces=np.concatenate(faces).astype(np.int32),
                     target_names=tuple(names), deltas=np.concatenate(deltas, axis=1), colors=rgb,
                     extras=mesh.extras if isinstance(mesh.extras, dict) else {}, joints=joints, weights=weights,
-                    uvs=uv_all, surfaces=tuple(surfaces), uv_problems=tuple(uv_problems))
+                    uvs=uv_all, surfaces=tuple(surfaces), primitive_starts=tuple(starts),
+                    uv_problems=tuple(uv_problems))
 
 
 # ---- the scene -------------------------------------------------------------------------------------------------

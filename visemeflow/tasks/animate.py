@@ -264,6 +264,10 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         from visemeflow.animation.textures import appearance_notes
 
         warnings += list(appearance_notes(character))
+    if config.mode == "bones" and "glb" in config.formats:   # what the face bones in the avatar's skeleton leave out
+        from visemeflow.animation.skinned_asset import asset_bone_notes
+
+        warnings += list(asset_bone_notes(character, bone_rig(character, binding, config.bones)))
     if config.preview:
         from visemeflow.animation.preview import BoneSource, render_preview
 

@@ -1,0 +1,328 @@
+"""Bone mode on the user's own glTF avatar (visemeflow/animation/skinned_asset.py): the `.bones.glb` is the whole
+avatar with the SSDR face bones added to its skeleton, checked by the programs that read it: the Khronos validator,
+three.js (the skinned vertices it computes, with our clip alone and with the avatar's own clip turning the neck at
+the same time) and Blender's importer (its evaluated mesh), with the lips measured in millimetres where the curves
+close them.
+
+Avatars: tests/skinned_head_glb.py (the demo head on a Mixamo-like skeleton: armature turned and scaled 0.01, the
+neck blending into `Neck`, the chin shared with a `Jaw`, a body on `Spine`, an `idle` clip) and tests/avatar_glb.py
+(Ready Player Me's layout: teeth on a node without a skin, eyes the visemes do not move, a texture)."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pygltflib as gl
+import pytest
+from avatar_glb import make_avatar
+from browser import serve_folder
+from factories import NODE_MODULES, REPO, node_or_fail, validate
+from skinned_head_glb import JOINTS, joint_worlds, make_skinned_head, neck_turn
+
+from visemeflow.animation.bones import bone_animation, solve_bones
+from visemeflow.animation.lips import inner_lip_pairs, pair_gap_mm
+from visemeflow.animation.load import load_bound_character
+from visemeflow.animation.skinned_asset import asset_bone_notes, write_asset_bones_glb
+from visemeflow.articulation import CLOSED_MM
+from visemeflow.rig.character import CharacterError
+from visemeflow.rig.gltf import GltfScene
+from visemeflow.visemes import VISEMES
+
+FPS = 30.0
+N = 24
+HEAD_NODE, BODY_NODE = 6, 7   # tests/skinned_head_glb.py's mesh nodes
+SHUT = [10, 11, 12]          # MBP alone
+OPEN = [4, 20]               # AHH high
+
+
+def talk() -> np.ndarray:
+    c = np.zeros((N, 16), np.float32)
+    c[:, VISEMES.index("AHH")] = 0.5 + 0.5 * np.sin(np.arange(N) / 3.0)
+    c[:, VISEMES.index("OHH")] = 0.3 * np.clip(np.cos(np.arange(N) / 2.0), 0, 1)
+    c[SHUT] = 0.0
+    c[SHUT, VISEMES.index("MBP")] = 1.0
+    c[OPEN] = 0.0
+    c[OPEN, VISEMES.index("AHH")] = 1.0
+    return c
+
+
+@pytest.fixture(scope="module")
+def head(tmp_path_factory):
+    """The skinned head, its character, bones (8, 5 iterations) and bone GLB of `talk()`."""
+    root = tmp_path_factory.mktemp("bone-asset")
+    arrays = make_skinned_head(root / "head.glb")
+    character, binding = load_bound_character(root / "head.glb")
+    rig = solve_bones(character, 8, binding=binding, iterations=5)
+    out = write_asset_bones_glb(root / "head.bones.glb", character, rig, talk(), FPS, name="speech")
+    return root, arrays, character, rig, out
+
+
+def head_only(arrays) -> np.ndarray:
+    """The head's vertices that its skin puts wholly on `Head` and the `Jaw` (posed as `Head`): the face bones carry
+    the whole viseme motion of these."""
+    w = arrays["weights"]
+    return np.flatnonzero(w["Head"] + w["Jaw"] > 1 - 1e-6)
+
+
+# ---- the file --------------------------------------------------------------------------------------------------
+def test_the_bone_glb_is_the_whole_avatar_with_face_bones_under_the_head_that_the_validator_accepts(head):
+    root, arrays, character, rig, out = head
+    report = validate(out)
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
+    before, after = gl.GLTF2.load(str(root / "head.glb")), gl.GLTF2.load(str(out))
+    assert [m.name for m in after.meshes] == ["HeadMesh", "BodyMesh"]
+    assert [a.name for a in after.animations] == ["speech", "idle"]          # ours first: Blender plays it
+    assert after.animations[1].to_dict() == before.animations[0].to_dict()
+    names = [n.name for n in after.nodes]
+    assert names[:len(before.nodes)] == [n.name for n in before.nodes]
+    head_joint = names.index("Head")                   # the joint, not the mesh node of the same name
+    added = list(range(len(before.nodes), len(after.nodes)))
+    assert sorted(after.nodes[head_joint].children) == sorted([names.index("Jaw")] + added)
+    assert [names[i] for i in added] == [f"Head_{b}" for b in rig.bone_names if f"Head_{b}" in names[len(before.nodes):]]
+    skin = after.skins[0]
+    assert skin.joints == before.skins[0].joints + added
+    # the body keeps its skinning; the head's moving vertices are now on the face bones
+    assert after.meshes[1].primitives[0].attributes.JOINTS_0 == before.meshes[1].primitives[0].attributes.JOINTS_0
+    channels = {(c.target.node, c.target.path) for c in after.animations[0].channels}
+    assert channels and {node for node, _ in channels} <= set(added)
+    notes = asset_bone_notes(character, rig)
+    assert any("moving vertices of HeadMesh are shared by Head with other joints" in n for n in notes), notes
+
+
+def test_at_rest_the_bone_glb_places_every_mesh_where_the_avatar_had_it(head):
+    root, arrays, character, rig, out = head
+    before, after = GltfScene(root / "head.glb"), GltfScene(out)
+    for info in before.meshes:
+        np.testing.assert_allclose(after.placed_mesh(info.index, morph_targets=False)[1],
+                                   before.placed_mesh(info.index, morph_targets=False)[1], atol=1e-6)
+
+
+def test_a_parent_scaled_unevenly_is_refused_naming_it(tmp_path, head):
+    root, arrays, character, rig, out = head
+    g = gl.GLTF2.load(str(root / "head.glb"))
+    g.nodes[0].scale = [0.01, 0.02, 0.01]
+    g.save_binary(str(tmp_path / "stretched.glb"))
+    stretched, binding = load_bound_character(tmp_path / "stretched.glb")
+    with pytest.raises(CharacterError, match=r"stretched.glb: node \d+ \(Head\) is scaled unevenly"):
+        write_asset_bones_glb(tmp_path / "out.glb", stretched, rig, talk(), FPS)
+    assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_second_set_of_influences_is_refused_naming_the_mesh(tmp_path, head):
+    root, arrays, character, rig, out = head
+    g = gl.GLTF2.load(str(root / "head.glb"))
+    attributes = g.meshes[0].primitives[0].attributes
+    attributes.JOINTS_1, attributes.WEIGHTS_1 = attributes.JOINTS_0, attributes.WEIGHTS_0
+    g.save_binary(str(tmp_path / "eight.glb"))
+    eight, _ = load_bound_character(tmp_path / "eight.glb")
+    with pytest.raises(CharacterError, match=r"eight.glb: mesh HeadMesh has a second set of skin influences"):
+        write_asset_bones_glb(tmp_path / "out.glb", eight, rig, talk(), FPS)
+
+
+# ---- three.js ---------------------------------------------------------------------------------------------------
+PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>bone asset check</title><link rel="icon" href="data:,">
+<script type="importmap">
+{"imports": {"three": "/node_modules/three/build/three.module.js",
+             "three/addons/": "/node_modules/three/examples/jsm/"}}
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+
+// Load `url`, play the clips named `clips` together and read, at each of `times`, the vertices three.js shows of
+// the mesh of each node in `wanted` ({node index: vertex ids}): skinned (getVertexPosition) or placed by its node.
+window.play = async (url, clips, times, wanted) => {
+  const gltf = await new GLTFLoader().loadAsync(url);
+  const meshes = {};
+  gltf.scene.traverse((o) => {
+    const found = gltf.parser.associations.get(o);
+    if (o.isMesh && found && found.nodes !== undefined) meshes[found.nodes] = o;
+  });
+  const mixer = new THREE.AnimationMixer(gltf.scene);
+  const actions = clips.map((n) => mixer.clipAction(THREE.AnimationClip.findByName(gltf.animations, n)));
+  const out = {};
+  for (const name of Object.keys(wanted)) out[name] = [];
+  const v = new THREE.Vector3();
+  for (const t of times) {
+    for (const a of actions) { a.reset(); a.setLoop(THREE.LoopOnce, 1); a.clampWhenFinished = true; a.play(); }
+    mixer.setTime(t);
+    gltf.scene.updateMatrixWorld(true);
+    for (const [name, ids] of Object.entries(wanted)) {
+      const mesh = meshes[name];
+      out[name].push(ids.map((i) => {
+        mesh.getVertexPosition(i, v);
+        if (!mesh.isSkinnedMesh) v.applyMatrix4(mesh.matrixWorld);
+        return [v.x, v.y, v.z];
+      }));
+    }
+  }
+  return {meshes: Object.keys(meshes).map(Number),
+          skinned: Object.keys(meshes).filter((k) => meshes[k].isSkinnedMesh).map(Number),
+          clips: gltf.animations.map((c) => c.name), positions: out};
+};
+</script></head><body></body></html>
+"""
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    node_or_fail()
+    root = tmp_path_factory.mktemp("served-bone-asset")
+    with serve_folder(root, PAGE, NODE_MODULES) as address:
+        yield root, address
+
+
+def play(browser, served, path: Path, clips: list[str], times: list[float], wanted: dict) -> dict:
+    root, base = served
+    (root / path.name).write_bytes(path.read_bytes())
+    state = browser.load(f"{base}/index.html")
+    assert state["errors"] == [], state
+    call = f"window.play({json.dumps('/' + path.name)}, {json.dumps(clips)}, {json.dumps(times)}, {json.dumps(wanted)})"
+    result = browser.send("Runtime.evaluate", {"expression": call, "awaitPromise": True, "returnByValue": True})
+    assert "exceptionDetails" not in result, result["exceptionDetails"]
+    got = result["result"]["value"]
+    got["positions"] = {k: np.array(v) for k, v in got["positions"].items()}
+    return got
+
+
+def _rotation(q_xyzw) -> np.ndarray:
+    x, y, z, w = q_xyzw
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    return m
+
+
+def test_three_js_plays_the_bones_on_the_avatar_and_shuts_its_lips_also_while_its_own_clip_turns_the_neck(
+        head, served, browser):
+    root, arrays, character, rig, out = head
+    curves = talk()
+    ours = bone_animation(rig, curves)                                   # (N, V, 3) the rig, scene metres
+    frames = [0, *OPEN, *SHUT, N - 1]
+    times = [f / FPS for f in frames]
+    pairs = inner_lip_pairs(character)
+    assert pairs is not None                                             # lipfinder found the head's lips
+    whole = head_only(arrays)
+    assert np.isin(pairs.ravel(), whole).all()
+    moving = np.linalg.norm(ours - character.neutral[None], axis=2).max(axis=0)
+    ids = sorted({*pairs.ravel().tolist(), *whole[np.argsort(-moving[whole])[:20]].tolist(),
+                  *np.random.default_rng(0).choice(whole, 30, replace=False).tolist()})
+    got = play(browser, served, out, ["speech"], times, {HEAD_NODE: ids, BODY_NODE: list(range(8))})
+    assert got["clips"] == ["speech", "idle"] and sorted(got["skinned"]) == [HEAD_NODE, BODY_NODE]
+    three = got["positions"][str(HEAD_NODE)]
+    face = float(np.ptp(character.neutral, axis=0).max())
+    worst = float(np.abs(three - ours[frames][:, ids]).max())
+    print(f"\nthree.js, our clip: worst {worst * 1e3:.4f} mm over {len(ids)} vertices x {len(frames)} frames")
+    assert worst < 1e-5 * face * 10                                      # float32 of a 30-cm head: < 0.03 mm
+    assert np.abs(ours[frames][:, ids] - character.neutral[ids]).max() > 2e-3   # the face moves: millimetres
+    lips = {f: three[k][[ids.index(i) for i in pairs.ravel()]].reshape(3, 2, 3) for k, f in enumerate(frames)}
+    gaps = {f: float(pair_gap_mm(lips[f], 1000.0)) for f in frames}
+    print("lip gaps mm:", {f: round(g, 2) for f, g in gaps.items()})
+    assert all(gaps[f] < CLOSED_MM for f in SHUT) and all(gaps[f] > 3 * CLOSED_MM for f in OPEN), gaps
+    body = GltfScene(root / "head.glb").placed_mesh(1, morph_targets=False)[1]
+    np.testing.assert_allclose(got["positions"][str(BODY_NODE)][0], body, atol=1e-6)
+
+    # the avatar's idle clip turns the neck while ours speaks: the face follows the head, lips still shut
+    both = play(browser, served, out, ["speech", "idle"], times, {HEAD_NODE: ids})["positions"][str(HEAD_NODE)]
+    neck = joint_worlds()["Neck"]
+    turned = neck @ _rotation(neck_turn()) @ np.linalg.inv(neck)
+    expected = np.einsum("ij,fvj->fvi", turned[:3, :3], ours[frames][:, ids]) + turned[:3, 3]
+    worst = float(np.abs(both - expected).max())
+    print(f"three.js, ours with idle: worst {worst * 1e3:.4f} mm")
+    assert worst < 1e-4 * face
+    assert np.abs(expected - ours[frames][:, ids]).max() > 0.01          # the turn moves the face by centimetres
+    shut = [pair_gap_mm(both[k][[ids.index(i) for i in pairs.ravel()]].reshape(3, 2, 3), 1000.0)
+            for k, f in enumerate(frames) if f in SHUT]
+    assert max(shut) < CLOSED_MM, shut
+    assert set(JOINTS) <= set(n.name for n in gl.GLTF2.load(str(out)).nodes)
+
+
+def test_three_js_plays_teeth_that_had_no_skin_and_leaves_the_eyes_and_texture_as_they_were(tmp_path, served, browser):
+    """Ready Player Me's layout: the teeth on a node without a skin move to a root node of that name, skinned by
+    bones under the old node (renamed `TeethNode_FaceBones`, keeping its transform); the eyes, which the visemes do
+    not move, and the textured material stay as they were."""
+    make_avatar(tmp_path / "avatar.glb")
+    character, binding = load_bound_character(tmp_path / "avatar.glb")
+    rig = solve_bones(character, 6, binding=binding, iterations=5)
+    curves = np.random.default_rng(2).random((N, 16)).astype(np.float32) * 0.6
+    out = write_asset_bones_glb(tmp_path / "avatar.bones.glb", character, rig, curves, FPS, name="speech")
+    report = validate(out)
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
+    g, before = gl.GLTF2.load(str(out)), gl.GLTF2.load(str(tmp_path / "avatar.glb"))
+    names = [n.name for n in g.nodes]
+    teeth_node = names.index("TeethNode")
+    assert g.nodes[teeth_node].mesh == 1 and g.nodes[teeth_node].skin is not None and teeth_node in g.scenes[0].nodes
+    old = names.index("TeethNode_FaceBones")
+    assert g.nodes[old].mesh is None and g.nodes[old].translation == before.nodes[old].translation
+    assert set(g.skins[g.nodes[teeth_node].skin].joints) == set(g.nodes[old].children)
+    for eye in ("EyeLeftNode", "EyeRightNode"):
+        assert g.nodes[names.index(eye)].to_dict() == before.nodes[names.index(eye)].to_dict()
+    assert g.materials[0].to_dict() == before.materials[0].to_dict() and len(g.images) == 1
+    teeth = next(p for p in character.parts if p.name == "Wolf3D_Teeth")
+    ours = bone_animation(rig, curves)[:, teeth.start:teeth.stop]
+    frames = [0, 7, 15, N - 1]
+    got = play(browser, served, out, ["speech"], [f / FPS for f in frames],
+               {teeth_node: list(range(teeth.n_vertices))})
+    worst = float(np.abs(got["positions"][str(teeth_node)] - ours[frames]).max())
+    print(f"\nthree.js, teeth: worst {worst * 1e3:.4f} mm")
+    assert worst < 1e-5
+    assert np.abs(ours[frames] - character.neutral[teeth.start:teeth.stop]).max() > 1e-3
+
+
+# ---- Blender ----------------------------------------------------------------------------------------------------
+BPY_PYTHON = REPO / ".venv-blender" / "bin" / "python"
+PROBE = Path(__file__).with_name("blender_probe.py")
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def test_blender_imports_the_avatar_with_its_face_on_bones_and_shuts_the_lips(head):
+    root, arrays, character, rig, out = head
+    if not BPY_PYTHON.is_file():
+        pytest.fail(f"{BPY_PYTHON} missing: `make blender-deps` builds it (Blender as the PyPI bpy module)")
+    frames = [0, *OPEN, *SHUT, N - 1]
+    request = {"path": str(out), "frames": frames, "out": str(root / "blender.npz"), "fps": FPS}
+    done = subprocess.run([str(BPY_PYTHON), str(PROBE), json.dumps(request)], capture_output=True, text=True,
+                          timeout=300)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
+    assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
+    with np.load(root / "blender.npz") as arrays_:
+        meshes = {k: arrays_[k] for k in arrays_.files if not k.endswith((".uv", ".color"))}
+    ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, bone_animation(rig, talk())[frames])
+    (name,) = [n for n, m in meshes.items() if m.shape[1] == character.n_vertices]
+    whole = head_only(arrays)
+    worst = float(np.abs(meshes[name][:, whole] - ours[:, whole]).max())
+    print(f"\nBlender: {sorted(meshes)}; head worst {worst * 1e3:.4f} mm")
+    assert worst < 1e-4                                                   # 0.1 mm
+    assert any(m.shape[1] == 8 for m in meshes.values())                  # the body came along
+    pairs = inner_lip_pairs(character)
+    gaps = pair_gap_mm(meshes[name][:, pairs.ravel()].reshape(len(frames), 3, 2, 3), 1000.0)
+    shut = [k for k, f in enumerate(frames) if f in SHUT]
+    assert (gaps[shut] < CLOSED_MM).all() and (np.delete(gaps, shut) > CLOSED_MM).any(), gaps
+
+
+# ---- the flow ---------------------------------------------------------------------------------------------------
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_animate_in_bone_mode_writes_the_whole_avatar_and_says_what_the_bones_leave_out(tmp_path):
+    from factories import make_curve_store
+
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.flows.animate import AnimateParams, animate_flow
+
+    make_avatar(tmp_path / "avatar.glb")
+    store = make_curve_store(tmp_path / "store", n=1)
+    result = animate_flow(AnimateParams(store=store.root, characters=[tmp_path / "avatar.glb"], source="ground_truth",
+                                        config=AnimateConfig(formats=("glb",), mode="bones", bones=6, fps=30.0)))
+    (report,) = result["packages_written"]
+    path = Path(report["files"]["glb"])
+    assert path.name.endswith(".bones.glb")
+    assert validate(path)["issues"]["numErrors"] == 0
+    g = gl.GLTF2.load(str(path))
+    assert {m.name for m in g.meshes} == {"Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight", "Wolf3D_Body"}
+    assert [a.name for a in g.animations] == [path.name.removesuffix(".bones.glb"), "idle"]
+    assert g.images and g.skins[0].joints[:2] == [1, 2] and len(g.skins[0].joints) > 2
+    # the test avatar's head blends the hips into the head joint vertex by vertex: said, not hidden
+    assert any("moving vertices of Wolf3D_Head are shared by" in w for w in report["warnings"]), report["warnings"]
