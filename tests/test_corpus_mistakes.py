@@ -395,3 +395,36 @@ def test_media_a_folder_too_deep_is_a_reject_naming_the_folder_and_appledouble_f
         f"is SPEAKER/UTTERANCE files: point visemeflow at {corpus / 'studioA'} if its folders are the speakers, or "
         "move the files up a level")
     assert [e.utterance_id for e in discover_corpus(corpus, only="spk/a").entries] == ["spk/a"]
+
+
+def test_two_audio_files_of_one_name_are_read_by_rank_and_the_one_left_out_is_named(tmp_path, caplog):
+    """`take.wav` beside `take.flac` (a re-export, or another take): the wav ranks higher and is read, as before;
+    now the flac left out is named in a discovery note that the ingest run logs as a warning (it was silent). So
+    is an HTK .lab beside a TextGrid. A file the user names (`ingest take.flac`) is that utterance's audio, no note."""
+    from visemeflow.tasks.ingest import discover_corpus_task
+
+    corpus = tmp_path / "corpus"
+    grid = textgrid_long([(s, e, lab) for lab, s, e in PHONES], 0.6)
+    write_wav(corpus / "spk" / "take.wav", 0.6)
+    write_wav(corpus / "spk" / "take.flac", 0.6)
+    (corpus / "spk" / "take.TextGrid").write_text(grid, encoding="utf-8")
+    write_wav(corpus / "spk" / "other.wav", 0.6)
+    (corpus / "spk" / "other.TextGrid").write_text(grid, encoding="utf-8")
+    (corpus / "spk" / "other.lab").write_text("0 1000000 sil\n1000000 6000000 AA1\n", encoding="utf-8")
+    write_wav(corpus / "spk" / "alone.wav", 0.6)
+    (corpus / "spk" / "alone.TextGrid").write_text(grid, encoding="utf-8")
+    found = discover_corpus(corpus)
+    by_id = {e.utterance_id: e for e in found.entries}
+    assert sorted(by_id) == ["spk/alone", "spk/other", "spk/take"] and found.rejects == ()
+    assert by_id["spk/take"].audio_path.endswith("take.wav") and by_id["spk/other"].alignment_format == "textgrid"
+    assert found.notes == (
+        "spk/other: other.TextGrid is its alignment; other.lab beside it left out (an alignment file of the same "
+        "name ranks lower: rename it if it is another take)",
+        "spk/take: take.wav is its audio; take.flac beside it left out (an audio file of the same name ranks lower: "
+        "rename it if it is another take)")
+    with caplog.at_level("WARNING"):
+        returned = discover_corpus_task.fn(str(corpus))
+    assert returned["notes"] == list(found.notes)
+    assert "discover: spk/take: take.wav is its audio; take.flac beside it left out" in caplog.text
+    assert discover_corpus(corpus / "spk" / "take.flac").notes == ()
+    assert discover_corpus(corpus / "spk" / "take.flac").entries[0].audio_path.endswith("take.flac")

@@ -120,6 +120,9 @@ class DiscoveryReject:
 class Discovery:
     entries: tuple[CorpusEntry, ...]
     rejects: tuple[DiscoveryReject, ...] = field(default_factory=tuple)
+    notes: tuple[str, ...] = ()
+    """What was chosen where a folder offered more than one file of a kind for one utterance (`take.wav` beside
+    `take.flac`): one line each, naming the file used and the ones left out."""
 
 
 CORPUS_LAYOUT = ("a corpus is a folder of speaker folders, CORPUS/<speaker>/<name>.wav (or .flac, .mp3, ..., or a "
@@ -397,6 +400,7 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
     rejects: list[DiscoveryReject] = []
     spellings: dict[str, list[list[Path]]] = {}  # id -> the files of each (folder, stem) spelling it
     real_root = root.resolve()
+    notes: list[str] = []
     speaker_dirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     root_mlfs = _mlf_indexes([p for p in root.iterdir() if p.is_file() and p.name.lower().endswith(MLF_EXT)],
                              real_root, rejects)
@@ -415,8 +419,8 @@ def _discover_folder(root: Path, only: str | None = None) -> Discovery:
         if only is not None:
             files = {n: p for n, p in files.items() if _nfc(n).startswith(name + ".")}
         _discover_speaker(speaker_dir.name, speaker_dir.name, files, mlfs, real_root, only,
-                          entries, rejects, spellings)
-    return _without_id_collisions(entries, rejects, spellings)
+                          entries, rejects, spellings, notes=notes)
+    return _without_id_collisions(entries, rejects, spellings, notes)
 
 
 def _nested_media(speaker_dir: Path, listing: list[Path]) -> list["DiscoveryReject"]:
@@ -440,12 +444,15 @@ def _nested_media(speaker_dir: Path, listing: list[Path]) -> list["DiscoveryReje
 
 def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: list[tuple[Path, MlfIndex]],
                       real_root: Path, only: str | None, entries: list[CorpusEntry], rejects: list[DiscoveryReject],
-                      spellings: dict[str, list[list[Path]]], pinned: tuple[str, str, Path] | None = None) -> None:
+                      spellings: dict[str, list[list[Path]]], pinned: tuple[str, str, Path] | None = None,
+                      notes: list[str] | None = None) -> None:
     """The entries and rejects of the files of one speaker folder (`files`: name -> path), added to `entries`,
     `rejects` and `spellings`. `speaker` is the id's first part, `folder` the folder's own name (what an MLF entry
     is found by). `pinned` (stem, kind, path): the file a user named, which is that utterance's audio or video
-    whatever else of its kind lies beside it; then only that stem is read."""
+    whatever else of its kind lies beside it; then only that stem is read. `notes` gets a line for each utterance
+    whose folder holds two files of one kind (the priority below chooses)."""
     stems: dict[str, dict[str, Path]] = {}
+    passed_over: dict[tuple[str, str], list[Path]] = {}   # (stem, kind) -> files of that kind another outranked
     transcripts: dict[str, Path] = {}
     # Sorted by extension priority, highest last, so the choice does not depend on listing order:
     # a TextGrid wins over an .align, a .wav over a .flac, and so on.
@@ -459,7 +466,10 @@ def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: l
                     if ext == ".lab" and not looks_like_htk_label(path):
                         transcripts[filename[: -len(ext)]] = path  # a transcript, not an alignment
                         continue
-                    stems.setdefault(filename[: -len(ext)], {})[kind] = path
+                    found = stems.setdefault(filename[: -len(ext)], {})
+                    if kind in found and found[kind] != path:
+                        passed_over.setdefault((filename[: -len(ext)], kind), []).append(found[kind])
+                    found[kind] = path
         for suffix in LANDMARK_SUFFIXES:
             if lower.endswith(suffix):
                 stems.setdefault(filename[: -len(suffix)], {})["landmarks"] = path
@@ -530,6 +540,13 @@ def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: l
                                            f"{utterance_id}: no {'/'.join(AUDIO_EXTS)} file next to {kinds['alignment']}",
                                            str(kinds["alignment"])))
             continue
+        if notes is not None:
+            for what, chosen in kinds.items():
+                left = passed_over.get((stem, what))
+                if left and pinned is None:
+                    notes.append(f"{utterance_id}: {chosen.name} is its {what}; "
+                                 f"{', '.join(p.name for p in left)} beside it left out (an {what} file of the "
+                                 "same name ranks lower: rename it if it is another take)")
         entries.append(_with_hash(CorpusEntry(
             utterance_id, str(kinds["audio"].resolve()),
             str(kinds["alignment"].resolve()) if "alignment" in kinds else "",
@@ -591,13 +608,13 @@ def _discover_file(path: Path, only: str | None = None) -> Discovery:
 
 
 def _without_id_collisions(entries: list[CorpusEntry], rejects: list[DiscoveryReject],
-                           spellings: dict[str, list[list[Path]]]) -> Discovery:
+                           spellings: dict[str, list[list[Path]]], notes: list[str] | None = None) -> Discovery:
     """The discovery with every id that several spellings give (`café` composed and decomposed, in one folder or in
     two speaker folders) refused: one reject per spelling, naming all their files. Keeping either would be a guess,
     and keeping both would give two utterances one id, whose rows and phones then merge."""
     collided = {uid: groups for uid, groups in spellings.items() if len(groups) > 1}
     if not collided:
-        return Discovery(tuple(entries), tuple(rejects))
+        return Discovery(tuple(entries), tuple(rejects), tuple(notes or ()))
     rejects = [r for r in rejects if r.utterance_id not in collided]
     for uid, groups in collided.items():
         files = ", ".join(str(p) for group in groups for p in group)
@@ -606,7 +623,8 @@ def _without_id_collisions(entries: list[CorpusEntry], rejects: list[DiscoveryRe
                 uid, "IdCollision",
                 f"{uid}: {len(groups)} spellings of one name give this id (names equal after Unicode NFC "
                 f"normalisation): {files}; rename the files so each utterance is spelled one way", str(group[0])))
-    return Discovery(tuple(e for e in entries if e.utterance_id not in collided), tuple(rejects))
+    return Discovery(tuple(e for e in entries if e.utterance_id not in collided), tuple(rejects),
+                     tuple(n for n in notes or () if n.split(":")[0] not in collided))
 
 
 def _check_split_and_language(where: str, utterance_id: str, split: str | None, language: str | None,

@@ -1,5 +1,6 @@
 """Ingestion tasks: discover the corpus, ingest one shard of utterances, or one utterance."""
 
+import logging
 from dataclasses import asdict
 
 from prefect import get_run_logger, task
@@ -31,11 +32,24 @@ CONFIG_KEY = b"visemeflow.ingest_config"
 
 @task(cache_policy=NONE, task_run_name="discover[{corpus}]")
 def discover_corpus_task(corpus: str, only: str | None = None) -> dict[str, list[dict]]:
-    """Entries and discovery rejects of a corpus, as plain dicts (hashes of the current files)."""
+    """Entries and discovery rejects of a corpus, as plain dicts (hashes of the current files), and the notes of
+    what discovery chose (logged as warnings: a `take.flac` beside `take.wav` is not read)."""
     found = discover_corpus(corpus, only)
+    if found.notes:
+        from prefect.exceptions import MissingContextError
+
+        try:
+            logger = get_run_logger()
+        except MissingContextError:      # called outside a flow run (`discover_corpus_task.fn`)
+            logger = logging.getLogger(__name__)
+        for note in found.notes[:20]:
+            logger.warning("discover: %s", note)
+        if len(found.notes) > 20:
+            logger.warning("discover: %d more utterances with two files of one kind", len(found.notes) - 20)
     return {
         "entries": [asdict(e) for e in found.entries],
         "rejects": [asdict(r) for r in found.rejects],
+        "notes": list(found.notes),
     }
 
 
