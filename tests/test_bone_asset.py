@@ -272,6 +272,43 @@ def test_three_js_plays_teeth_that_had_no_skin_and_leaves_the_eyes_and_texture_a
     assert np.abs(ours[frames] - character.neutral[teeth.start:teeth.stop]).max() > 1e-3
 
 
+# ---- USD ----------------------------------------------------------------------------------------------------------
+def test_the_bone_usd_of_an_avatar_is_its_whole_scene_that_usdskel_skins_as_we_do(tmp_path):
+    """`.bones.usd` of a glTF avatar: one skinned Mesh per driven mesh (head, teeth, eyes), the body placed as the
+    file places it, the head's material and texture coordinates; UsdSkel's baked skinning equals our bones; the
+    validators find no error."""
+    from pxr import Gf, Usd, UsdGeom, UsdShade, UsdSkel, UsdValidation
+
+    from visemeflow.animation.usd_skel import write_usd_skel
+
+    make_avatar(tmp_path / "avatar.glb")
+    character, binding = load_bound_character(tmp_path / "avatar.glb")
+    rig = solve_bones(character, 6, binding=binding, iterations=5)
+    curves = np.random.default_rng(4).random((N, 16)).astype(np.float32) * 0.6
+    path = write_usd_skel(tmp_path / "avatar.bones.usda", rig, curves, FPS, name="speech", character=character)
+    stage = Usd.Stage.Open(str(path))
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    errors = [e.GetMessage() for e in UsdValidation.ValidationContext(validators).Validate(stage)
+              if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert errors == []
+    root = stage.GetDefaultPrim()
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+    assert {"Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight", "BodyNode"} <= set(meshes), sorted(meshes)
+    body = GltfScene(tmp_path / "avatar.glb").placed_mesh(4, morph_targets=False)[1]
+    np.testing.assert_allclose(np.asarray(meshes["BodyNode"].GetPointsAttr().Get()), body, atol=1e-6)
+    head_material = UsdShade.MaterialBindingAPI(meshes["Wolf3D_Head"]).ComputeBoundMaterial()[0]
+    assert head_material and UsdGeom.PrimvarsAPI(meshes["Wolf3D_Head"]).GetPrimvar("st").HasValue()
+    ours = bone_animation(rig, curves)
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(root), Gf.Interval(0, N - 1))
+    for part in character.parts:
+        mesh = meshes[part.name]
+        for k in (0, 9, N - 1):
+            np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get(k)), ours[k, part.start:part.stop],
+                                       atol=1e-6, err_msg=part.name)
+    head = next(p for p in character.parts if p.name == "Wolf3D_Head")
+    assert np.abs(ours[9, head.start:head.stop] - character.neutral[head.start:head.stop]).max() > 1e-3
+
+
 # ---- Blender ----------------------------------------------------------------------------------------------------
 BPY_PYTHON = REPO / ".venv-blender" / "bin" / "python"
 PROBE = Path(__file__).with_name("blender_probe.py")

@@ -226,7 +226,10 @@ def export_bone_animation(character: Character, curves, fps: float, formats, out
             elif fmt == "usd":
                 from visemeflow.animation.usd_skel import write_usd_skel
 
-                write_usd_skel(path, rig, curves, fps, name=stem)
+                from visemeflow.animation.skinned_asset import is_gltf_asset
+
+                write_usd_skel(path, rig, curves, fps, name=stem,
+                               character=character if is_gltf_asset(character) else None)
             else:
                 write_pose_table(path, rig, fmt.removeprefix("pose-"))
         written.append(path)
