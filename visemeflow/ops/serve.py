@@ -689,15 +689,15 @@ def _sigterm_until_gone(every_s: float = 3.0):
     """Prefect's runner leaves on SIGTERM by `sys.exit(0)` in its handler; when the signal lands while Python runs
     an object's `__del__` (an asyncio transport's, often), that SystemExit is "ignored" and `serve` ran on: systemd's
     stop hung until its SIGKILL (tests/test_serve.py, about one stop in three once the scheduler made runs). So a
-    first SIGTERM starts a thread that sends it again every `every_s` seconds until the process has left."""
+    first SIGTERM starts a thread that sends it again every `every_s` seconds until `serve` has returned; the
+    server's own stop after it then runs to its end whatever SIGTERM comes."""
     from prefect.runner import Runner
 
     original = Runner.handle_sigterm
-    started = threading.Event()
+    started, done = threading.Event(), threading.Event()
 
     def again() -> None:
-        while True:
-            time.sleep(every_s)
+        while not done.wait(every_s):
             _thread.interrupt_main(signal.SIGTERM)     # Python's handler again, in the main thread
 
     def handle_sigterm(self, *args, **kwargs):
@@ -710,4 +710,9 @@ def _sigterm_until_gone(every_s: float = 3.0):
     try:
         yield
     finally:
+        # leaving: a SIGTERM sent again now would land in the server's stop below (Prefect's handler then called its
+        # runner's stop on a closed loop and the process exited 1), so from here SIGTERM waits for the stop to end
+        if started.is_set() and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, lambda signum, frame: None)
+        done.set()
         Runner.handle_sigterm = original
