@@ -11,6 +11,11 @@ x 10), over the rig's "face" and "lips" regions (and all vertices, eyes, teeth a
     OMP_NUM_THREADS=1 .venv/bin/python bench/bones.py [--bones 8 16 32 64] [--iterations 5] [--init-iterations 20]
         [--utterances 24] [--no-lock]
 
+Each bone count is measured twice from one SSDR solve, side by side: SSDR's fit as it is (`lip_share=0`), and after
+the refit that puts `--lip-share` of the fit's weight on the mouth (`bones.refine_for_lips`, the default of
+`solve_bones`); the ratio columns are refit / SSDR, and the MBP column is the inner lips' gap at MBP's full weight
+(the blendshape's in the header).
+
 The eyes, teeth and mouth interior are printed per region too: with the default locked parts (`solve_bones`'s
 `lock_parts`) the eyes and the teeth get bones of their own; `--no-lock` is plain SSDR over every vertex.
 
@@ -30,7 +35,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from realspeech import read_corpus  # noqa: E402
 
-from visemeflow.animation.bones import bone_animation, solve_bones, viseme_meshes
+from visemeflow.animation.bones import LIP_SHARE, bone_animation, lip_emphasis, refine_for_lips, solve_bones, \
+    viseme_meshes
+from visemeflow.animation.lips import inner_lip_pairs, pair_gap_mm
 from visemeflow.rig.character import character_from_rig
 from visemeflow.rig import load_demo_rig
 from visemeflow.visemes import VISEMES
@@ -56,6 +63,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=5)
     parser.add_argument("--init-iterations", type=int, default=20, help="Dem Bones' bone-initialisation iterations")
     parser.add_argument("--utterances", type=int, default=24)
+    parser.add_argument("--lip-share", type=float, default=LIP_SHARE, help="the mouth's share of the refit")
     parser.add_argument("--no-lock", action="store_true",
                         help="plain SSDR over every vertex (no static / rigid bones for the eyes and teeth)")
     args = parser.parse_args()
@@ -81,52 +89,71 @@ def main() -> None:
     print(f"for scale, the visemes' own motion (neutral held): face {still['face']:.2f}, lips {still['lips']:.2f} "
           f"mm RMS at full weight\n")
 
+    lips_ids = inner_lip_pairs(character).ravel()
+    mbp = VISEMES.index("MBP")
+
+    def mbp_gap(vertices: np.ndarray) -> float:
+        return float(pair_gap_mm(vertices[mbp, lips_ids].reshape(3, 2, 3), character.mm_per_unit))
+
+    print(f"MBP's inner-lip gap with the blendshapes: {mbp_gap(targets):.2f} mm\n")
+    emphasis = lip_emphasis(character, args.lip_share)
     summary = []
     per_viseme = {}
     for n_bones in args.bones:
-        bones = solve_bones(character, n_bones, iterations=args.iterations, init_iterations=args.init_iterations,
-                            lock_parts=not args.no_lock)
-        full = squared_errors(bone_animation(bones, np.eye(16)), targets)            # (16, V)
-        per_viseme[n_bones] = {k: np.sqrt(full[:, regions[k]].mean(axis=1)) for k in ("face", "lips")}
-        sums = {k: 0.0 for k in regions}
-        worst_lips = 0.0
-        for curves in sequences.values():
-            c = np.asarray(curves, np.float64)
-            blend = character.neutral[None] + (c @ deltas.reshape(len(deltas), -1)).reshape(len(c), -1, 3)
-            e = squared_errors(bone_animation(bones, c), blend)
-            for k, ids in regions.items():
-                sums[k] += float(e[:, ids].mean(axis=1).sum())
-            worst_lips = max(worst_lips, float(np.sqrt(e[:, regions["lips"]].mean(axis=1)).max()))
-        seq = {k: np.sqrt(v / total) for k, v in sums.items()}
-        full_regions = {k: float(np.sqrt(full[:, ids].mean())) for k, ids in regions.items()}
-        print(f"{n_bones} bones ({', '.join(n for n in bones.bone_names if not n.startswith('bone_')) or 'none locked'}"
-              f"): full weight mm RMS by region: "
-              + ", ".join(f"{k} {v:.3f}" for k, v in full_regions.items()), flush=True)
-        row = dict(bones=bones.n_bones, wall=bones.solve_seconds, cpu=bones.solve_cpu_seconds,
-                   full_face=float(np.sqrt(full[:, regions["face"]].mean())),
-                   full_lips=float(np.sqrt(full[:, regions["lips"]].mean())),
-                   full_all=float(np.sqrt(full.mean())), seq_face=seq["face"], seq_lips=seq["lips"],
-                   seq_all=seq["all"], worst_lips=worst_lips)
-        summary.append(row)
-        print(f"{n_bones} bones: SSDR {row['wall']:.1f} s wall, {row['cpu']:.1f} s CPU; full weight face "
-              f"{row['full_face']:.3f} lips {row['full_lips']:.3f}; sequences face {row['seq_face']:.3f} lips "
-              f"{row['seq_lips']:.3f} (worst frame lips {worst_lips:.3f}) mm RMS", flush=True)
+        plain = solve_bones(character, n_bones, iterations=args.iterations, init_iterations=args.init_iterations,
+                            lock_parts=not args.no_lock, lip_share=0.0)
+        started, cpu = time.perf_counter(), time.process_time()
+        free = np.array([n.startswith("bone_") for n in plain.bone_names])
+        refit = refine_for_lips(plain, targets, emphasis, free)
+        refit_wall, refit_cpu = time.perf_counter() - started, time.process_time() - cpu
+        for label, bones in (("SSDR", plain), ("refit", refit)):
+            posed = bone_animation(bones, np.eye(16))
+            full = squared_errors(posed, targets)            # (16, V)
+            per_viseme[(n_bones, label)] = {k: np.sqrt(full[:, regions[k]].mean(axis=1)) for k in ("face", "lips")}
+            sums = {k: 0.0 for k in regions}
+            worst_lips = 0.0
+            for curves in sequences.values():
+                c = np.asarray(curves, np.float64)
+                blend = character.neutral[None] + (c @ deltas.reshape(len(deltas), -1)).reshape(len(c), -1, 3)
+                e = squared_errors(bone_animation(bones, c), blend)
+                for k, ids in regions.items():
+                    sums[k] += float(e[:, ids].mean(axis=1).sum())
+                worst_lips = max(worst_lips, float(np.sqrt(e[:, regions["lips"]].mean(axis=1)).max()))
+            seq = {k: np.sqrt(v / total) for k, v in sums.items()}
+            full_regions = {k: float(np.sqrt(full[:, ids].mean())) for k, ids in regions.items()}
+            print(f"{n_bones} bones, {label} ({', '.join(n for n in bones.bone_names if not n.startswith('bone_')) or 'none locked'}"
+                  f"): full weight mm RMS by region: "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in full_regions.items()), flush=True)
+            row = dict(bones=bones.n_bones, label=label, wall=plain.solve_seconds + (refit_wall if label == "refit" else 0),
+                       cpu=plain.solve_cpu_seconds + (refit_cpu if label == "refit" else 0),
+                       full_face=float(np.sqrt(full[:, regions["face"]].mean())),
+                       full_lips=float(np.sqrt(full[:, regions["lips"]].mean())),
+                       full_all=float(np.sqrt(full.mean())), seq_face=seq["face"], seq_lips=seq["lips"],
+                       seq_all=seq["all"], worst_lips=worst_lips, mbp=mbp_gap(posed))
+            summary.append(row)
+            print(f"{n_bones} bones, {label}: {row['wall']:.1f} s wall, {row['cpu']:.1f} s CPU; full weight face "
+                  f"{row['full_face']:.3f} lips {row['full_lips']:.3f}; sequences face {row['seq_face']:.3f} lips "
+                  f"{row['seq_lips']:.3f} (worst frame lips {worst_lips:.3f}) mm RMS; MBP gap {row['mbp']:.2f} mm",
+                  flush=True)
 
-    print("\n| bones | SSDR wall s | SSDR CPU s | full weight face | full weight lips | full weight all vertices | "
-          "sequences face | sequences lips | sequences all | worst frame lips |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for r in summary:
-        print(f"| {r['bones']} | {r['wall']:.1f} | {r['cpu']:.1f} | {r['full_face']:.3f} | {r['full_lips']:.3f} | "
-              f"{r['full_all']:.3f} | {r['seq_face']:.3f} | {r['seq_lips']:.3f} | {r['seq_all']:.3f} | "
-              f"{r['worst_lips']:.3f} |")
+    print("\n| bones | fit | wall s | CPU s | full weight face | full weight lips | full weight all vertices | "
+          "sequences face | sequences lips | sequences all | worst frame lips | MBP gap mm | lips refit / SSDR | "
+          "face refit / SSDR |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for k, r in enumerate(summary):
+        base = summary[k - 1] if r["label"] == "refit" else r
+        print(f"| {r['bones']} | {r['label']} | {r['wall']:.1f} | {r['cpu']:.1f} | {r['full_face']:.3f} | "
+              f"{r['full_lips']:.3f} | {r['full_all']:.3f} | {r['seq_face']:.3f} | {r['seq_lips']:.3f} | "
+              f"{r['seq_all']:.3f} | {r['worst_lips']:.3f} | {r['mbp']:.2f} | {r['seq_lips'] / base['seq_lips']:.2f} | "
+              f"{r['seq_face'] / base['seq_face']:.2f} |")
     print("\nper viseme at full weight, lips mm RMS:")
     print("| bones | " + " | ".join(VISEMES) + " |")
     print("|---" * (len(VISEMES) + 1) + "|")
-    for n_bones, figures in per_viseme.items():
-        print(f"| {n_bones} | " + " | ".join(f"{x:.2f}" for x in figures["lips"]) + " |")
+    for (n_bones, label), figures in per_viseme.items():
+        print(f"| {n_bones} {label} | " + " | ".join(f"{x:.2f}" for x in figures["lips"]) + " |")
     print("\nper viseme at full weight, face mm RMS:")
-    for n_bones, figures in per_viseme.items():
-        print(f"| {n_bones} | " + " | ".join(f"{x:.2f}" for x in figures["face"]) + " |")
+    for (n_bones, label), figures in per_viseme.items():
+        print(f"| {n_bones} {label} | " + " | ".join(f"{x:.2f}" for x in figures["face"]) + " |")
 
 
 if __name__ == "__main__":
