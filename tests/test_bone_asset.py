@@ -98,6 +98,25 @@ def test_at_rest_the_bone_glb_places_every_mesh_where_the_avatar_had_it(head):
                                    before.placed_mesh(info.index, morph_targets=False)[1], atol=1e-6)
 
 
+def test_the_package_says_whether_the_bones_close_the_lips(head):
+    """Bone mode's lip report: the gap of the bone mesh's MBP (what the viewer sees), and a warning where the bones
+    leave it open (here a rig whose MBP pose is its AHH pose)."""
+    from dataclasses import replace
+
+    from visemeflow.tasks.animate import _bone_closure
+
+    root, arrays, character, rig, out = head
+    lips: dict = {}
+    assert _bone_closure(character, rig, lips) == [] and lips["bones_mbp_gap_mm"] < CLOSED_MM
+    mbp, ahh = VISEMES.index("MBP"), VISEMES.index("AHH")
+    rotations, translations = rig.rotations.copy(), rig.translations.copy()
+    rotations[mbp], translations[mbp] = rig.rotations[ahh], rig.translations[ahh]
+    lips = {}
+    (warning,) = _bone_closure(character, replace(rig, rotations=rotations, translations=translations), lips)
+    assert lips["bones_mbp_gap_mm"] > 3 * CLOSED_MM
+    assert f"head.glb): its {rig.n_bones} bones leave MBP's lips " in warning and "--bones 64" in warning
+
+
 def test_a_parent_scaled_unevenly_is_refused_naming_it(tmp_path, head):
     root, arrays, character, rig, out = head
     g = gl.GLTF2.load(str(root / "head.glb"))

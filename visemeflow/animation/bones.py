@@ -37,7 +37,7 @@ import numpy as np
 from visemeflow.rig.character import Character, validate_character
 from visemeflow.visemes import VISEMES
 
-__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "lip_emphasis", "locked_parts",
+__all__ = ["BoneError", "BoneRig", "blend_poses", "bone_animation", "check_curves", "lip_emphasis", "locked_parts", "mbp_gap_mm",
            "refine_for_lips",
            "skin_vertices", "solve_bones", "viseme_meshes", "MAX_INFLUENCES", "MIN_VERTICES_PER_BONE"]
 
@@ -303,6 +303,20 @@ def lip_emphasis(character: Character, share: float = LIP_SHARE) -> np.ndarray |
         near = np.minimum(near, np.linalg.norm(rest - point, axis=1))
     mouth = np.exp(-(near / radius) ** 2)
     return 1.0 + share / (1 - share) * len(rest) / mouth.sum() * mouth
+
+
+def mbp_gap_mm(character: Character, rig: BoneRig) -> float | None:
+    """The inner lips' gap (mm) of the bone mesh at MBP's full weight (what a viewer sees of a closure in bone mode),
+    or None when no inner lips are found on the character (`lips.inner_lip_pairs`)."""
+    from visemeflow.animation.lips import inner_lip_pairs, pair_gap_mm
+
+    pairs = inner_lip_pairs(character)
+    if pairs is None or rig.n_vertices != character.n_vertices:
+        return None
+    one = np.zeros((1, rig.n_poses))
+    one[0, list(rig.pose_names).index("MBP")] = 1.0
+    lips = bone_animation(rig, one)[0][pairs.ravel()]
+    return float(pair_gap_mm(lips.reshape(3, 2, 3), rig.mm_per_unit))
 
 
 def _kabsch(u: np.ndarray, q: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

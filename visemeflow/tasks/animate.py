@@ -222,6 +222,22 @@ def _step_log(name: str) -> StepLog:
     return step_log(name, logger)
 
 
+def _bone_closure(character: Character, rig, lips: dict) -> list[str]:
+    """Puts the bone mesh's MBP lip gap in the package's lip report (`bones_mbp_gap_mm`); a warning when it stays
+    open."""
+    from visemeflow.animation.bones import mbp_gap_mm
+    from visemeflow.articulation import CLOSED_MM
+
+    gap = mbp_gap_mm(character, rig)
+    if gap is None:
+        return []
+    lips["bones_mbp_gap_mm"] = round(gap, 2)
+    if gap < CLOSED_MM:
+        return []
+    return [f"{character.where()}: its {rig.n_bones} bones leave MBP's lips {gap:.1f} mm apart (closed is below "
+            f"{CLOSED_MM} mm); more bones (--bones 64) or --mode blendshape close them"]
+
+
 def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
             mapping_path: str | None, mapping_hash: str | None, config: AnimateConfig, audio_path: str | None,
             out: str | None, phones: list[tuple[float, float, str]] | None = None,
@@ -260,6 +276,8 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
     warnings = binding.warnings()   # a closure or contact the character's shapes cannot make
+    if config.mode == "bones" and lips:   # the viewer sees the bones' mesh: do their MBP lips meet?
+        warnings += _bone_closure(character, bone_rig(character, binding, config.bones), lips)
     if config.preview or {"glb", "usd", "usdz"} & set(config.formats):   # what its exports cannot show as its file
         from visemeflow.animation.textures import appearance_notes
 
