@@ -94,7 +94,8 @@ def _continuous(q: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _Frame:
-    """A parent's rest transform split as world = T(translation) R(rotation) s: local poses under it are TRS."""
+    """A parent's rest transform split as world = T(translation) R(rotation) s (s uniform): the bones under it get
+    rigid local poses, its scale undone by their inverse bind matrices."""
 
     node: int
     translation: np.ndarray
@@ -111,7 +112,7 @@ class _Frame:
         if not scale > 0 or not np.allclose(linear.T @ linear, np.eye(3) * scale ** 2, rtol=1e-5,
                                             atol=1e-9 * max(scale ** 2, 1e-30)):
             raise CharacterError(f"{scene.path}: node {node} ({name}) is scaled unevenly or mirrored in the scene; "
-                                 "face bones under it cannot carry rigid poses (use --mode blendshapes for this "
+                                 "face bones under it cannot carry rigid poses (use --mode blendshape for this "
                                  "avatar)")
         rotation = linear / scale
         return cls(node, world[:3, 3].copy(), rotation, _quaternion(rotation), scale)
@@ -135,7 +136,6 @@ class _BoneSet:
     base: np.ndarray          # (4, 4) world(P) @ IBM_P at rest: skin space -> scene
     skin: int | None = None   # the existing skin extended, or None: a new skin for `mesh_node`
     mesh_node: int | None = None
-    first_joint: int = 0      # the set's first joint index in its skin
     nodes: list[int] = field(default_factory=list)
 
 
@@ -248,7 +248,7 @@ def _plan(character: Character, rig: BoneRig) -> tuple[GltfScene, _Plan]:
             raise CharacterError(str(exc)) from None
         if any(getattr(p.attributes, "JOINTS_1", None) is not None for p in scene.gltf.meshes[part.mesh].primitives):
             raise CharacterError(f"{source}: mesh {part.name} has a second set of skin influences (JOINTS_1); bone "
-                                 "mode writes 4 influences a vertex (use --mode blendshapes for this avatar)")
+                                 "mode writes 4 influences a vertex (use --mode blendshape for this avatar)")
         if info.skin is not None:
             if mesh.joints is None:
                 raise CharacterError(f"{source}: mesh {part.name} is on a node with skin {info.skin} but has no "
@@ -356,8 +356,7 @@ def _skin_plan(scene: GltfScene, rig: BoneRig, skin_index: int, members: list, m
     if dropped_most > 0:
         notes.append(f"bones: vertices of {names} with more than {MAX_INFLUENCES} influences kept their "
                      f"{MAX_INFLUENCES} largest (the largest left out weighed {dropped_most:.3f})")
-    face = _BoneSet(_Frame.of(scene, joint_nodes[parent]), joint_nodes[parent], bones, rest[parent], skin=skin_index,
-                    first_joint=first)
+    face = _BoneSet(_Frame.of(scene, joint_nodes[parent]), joint_nodes[parent], bones, rest[parent], skin=skin_index)
     return (face, prims), notes
 
 
