@@ -184,8 +184,8 @@ def test_64_bones_reproduce_the_blendshape_animation(demo, demo_rig):
 
 def test_parts_that_do_not_move_or_move_rigidly_get_their_own_bone(demo, demo_rig):
     """Locked parts: the eyes (which no viseme moves) stay exactly still and the lower teeth follow the jaw within
-    the rigid tolerance, where plain SSDR (`lock_parts=False`) lets the eyes drift and the teeth lag by millimetres;
-    the lips lose nothing at 32 bones."""
+    the rigid tolerance, where plain SSDR (`lock_parts=False`) lets the teeth lag by millimetres (it let the eyes
+    drift too, 1.9 mm, until the mesh was welded before SSDR); the lips lose nothing at 32 bones."""
     from visemeflow.animation.bones import RIGID_TOL
 
     target = viseme_meshes(demo)
@@ -203,7 +203,7 @@ def test_parts_that_do_not_move_or_move_rigidly_get_their_own_bone(demo, demo_ri
             teeth = demo_rig.regions["teeth"]
             assert np.linalg.norm(full[:, teeth] - target[:, teeth], axis=-1).max() < RIGID_TOL * size
     print(f"\n32 bones, mm RMS at full weight: locked {figures[True]}, plain SSDR {figures[False]}")
-    assert figures[True]["eyes"] < 1e-3 < 0.5 < figures[False]["eyes"]
+    assert figures[True]["eyes"] < 1e-3
     assert figures[True]["teeth"] < 0.5 < 2.0 < figures[False]["teeth"]
     assert figures[True]["lips"] < 1.05 * figures[False]["lips"]
 
@@ -307,3 +307,36 @@ def test_the_lips_weigh_more_in_the_refit_and_close_as_the_blendshapes_do(demo, 
     assert (np.diff(bones8.weights, axis=1) <= 0).all() and np.abs(bones8.weights.sum(axis=1) - 1).max() <= 2e-7
     static = bones8.bone_names.index("static")
     np.testing.assert_array_equal(bones8.rotations[:, static], np.tile([1.0, 0, 0, 0], (16, 1)))
+
+
+def test_a_mesh_split_at_every_triangle_gets_the_bones_of_the_welded_mesh(demo, bones8):
+    """glTF exports split vertices at UV seams and sharp edges; flat-shaded, a head is a soup of separate triangles.
+    SSDR seeds and smooths its bones along the triangles, and on such a head it gave most bones to scraps (a Ready
+    Player Me head's face got one bone: its lips did not move). `solve_bones` welds the vertices that coincide in every
+    viseme first: the demo head split into 130,179 triangle corners gets the split demo head's own rig, each corner
+    the weights of the vertex it was cut from."""
+    from visemeflow.animation.lips import inner_lip_pairs
+
+    from dataclasses import replace
+
+    corners = demo.faces.reshape(-1)
+    first_corner = np.full(demo.n_vertices, -1)
+    first_corner[corners[::-1]] = np.arange(len(corners))[::-1]
+    split = replace(demo, name="split", neutral=demo.neutral[corners], faces=np.arange(len(corners)).reshape(-1, 3),
+                    deltas=demo.deltas[:, corners], vertex_colors=demo.vertex_colors[corners],
+                    landmark_ids=np.where(demo.landmark_ids >= 0, first_corner[demo.landmark_ids], -1))
+    rig = solve_bones(split, 8, iterations=5)
+    assert rig.n_vertices == len(corners) and rig.n_bones == bones8.n_bones
+
+    def dense(joints, weights):            # (V, B): the order of two equal weights is no matter
+        out = np.zeros((len(joints), rig.n_bones))
+        np.add.at(out, (np.arange(len(joints))[:, None].repeat(MAX_INFLUENCES, 1), joints), weights)
+        return out
+
+    np.testing.assert_allclose(dense(rig.joints, rig.weights), dense(bones8.joints, bones8.weights)[corners],
+                               atol=1e-6)
+    np.testing.assert_allclose(rig.rotations, bones8.rotations, atol=1e-6)
+    lips = inner_lip_pairs(demo).ravel()
+    mbp = np.eye(16)[[VISEMES.index("MBP")]]
+    ours = skin_vertices(rig, *blend_poses(rig, mbp), chunk=1)[0]
+    np.testing.assert_allclose(ours[first_corner[lips]], bone_animation(bones8, mbp)[0, lips], atol=1e-5)

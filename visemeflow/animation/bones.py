@@ -59,6 +59,9 @@ LIP_SHARE = 0.25
 (`lip_emphasis`, `refine_for_lips`): SSDR weighs every vertex alike, and on a Ready Player Me head (24,320 vertices)
 its 32 bones left the lips of MBP 1.55 mm apart (the blendshape 0.27) and the lip vertices 3.4 mm RMS off, where the
 whole head was 0.70. 0: SSDR's fit as it is."""
+SMALL_PART = 0.02
+"""A connected part of the vertices SSDR would fit with fewer vertices than this share of the moving ones rides the
+bones of its nearest vertex (`_riders`) instead of taking bones of its own."""
 LIP_SWEEPS = 4
 """Rounds of the refit: each fits every bone's poses (weighted Procrustes), then every vertex's weights."""
 
@@ -180,10 +183,14 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
 
     from py_dem_bones import DemBones, solve_skinning
 
+    from visemeflow.animation.lips import inner_lip_pairs
+
     validate_character(character)
     where = character.where()
     if isinstance(bone_count, bool) or not isinstance(bone_count, (int, np.integer)) or bone_count < 1:
         raise BoneError(f"{where}: the bone count must be an integer >= 1, got {bone_count!r}")
+    if not (isinstance(lip_share, (int, float)) and 0 <= lip_share < 1):
+        raise BoneError(f"{where}: the lips' share of the bone fit must be in [0, 1), got {lip_share!r}")
     limit = max_bones(character.n_vertices)
     if bone_count > limit:
         raise BoneError(f"{where}: {bone_count} bones are more than its {character.n_vertices} vertices can "
@@ -193,11 +200,12 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     poses = viseme_meshes(character, binding)
     if not np.isfinite(poses).all():
         raise BoneError(f"{where}: the viseme meshes hold NaN or infinite coordinates")
-    rest = np.asarray(character.neutral, np.float64)
-    frames = np.concatenate([rest[None], poses])            # the neutral is frame 0: the bind pose is solved
+    rest_all = np.asarray(character.neutral, np.float64)
     start, cpu = time.perf_counter(), time.process_time()
     cpu_start = cpu
-    faces = np.asarray(character.faces, np.int64)
+    # the neutral is frame 0: the bind pose is solved; SSDR sees the mesh welded (`_welded`)
+    rest, frames, faces, first, inverse = _welded(rest_all, np.concatenate([rest_all[None], poses]),
+                                                  np.asarray(character.faces, np.int64))
     locked = locked_parts(rest, frames, faces) if lock_parts else []
     if len(locked) > int(bone_count) // 4:   # keep three quarters of the bones for SSDR: static first, then the
         order = sorted(range(len(locked)), key=lambda k: (locked[k][0] != "static", -len(locked[k][1])))
@@ -205,6 +213,8 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     free = np.ones(len(rest), bool)
     for _, ids, _ in locked:
         free[ids] = False
+    riders = _riders(rest, frames, faces, free)
+    free &= ~riders
     n_free = int(bone_count) - len(locked)
     if free.any() and n_free < 1:
         raise BoneError(f"{where}: {bone_count} bone(s) are too few: its parts that move rigidly or not at all take "
@@ -237,6 +247,14 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
         names.append(name)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     weights = np.concatenate(blocks_w)                       # (B, V)
+    if riders.any():       # each rides the bones of the nearest vertex that has some (rest positions)
+        from scipy.spatial import cKDTree
+
+        anchors = np.flatnonzero(weights.sum(axis=0) > 0)
+        if not len(anchors):
+            raise BoneError(f"{where}: every vertex that moves lies in a part too small for a bone of its own")
+        _, nearest = cKDTree(rest[anchors]).query(rest[riders])
+        weights[:, riders] = weights[:, anchors[nearest]]
     transforms = np.concatenate(blocks_m, axis=1)            # (F, B, 4, 4)
     n_bones = len(names)
 
@@ -265,21 +283,63 @@ def solve_bones(character: Character, bone_count: int = DEFAULT_BONES, *, bindin
     q = _unit_hemisphere(q)
     rot = quaternion_to_rotation_matrix(torch.from_numpy(q.reshape(-1, 4))).numpy().reshape(rot.shape)
     d = np.einsum("pbij,bj->pbi", rot, centres) + trans - centres[None]
-    rig = BoneRig(name=character.name, neutral=np.asarray(character.neutral, np.float32),
-                  faces=np.asarray(character.faces, np.int32), pose_names=VISEMES,
+    rig = BoneRig(name=character.name, neutral=rest.astype(np.float32), faces=faces.astype(np.int32),
+                  pose_names=VISEMES,
                   bone_names=tuple(names), bind_translations=centres,
                   joints=joints.astype(np.int64), weights=w4, rotations=q, translations=d,
                   fit_rms=np.zeros(len(poses)), bind_error=float(np.abs(transforms[0] - np.eye(4)).max()),
-                  solve_seconds=seconds, solve_cpu_seconds=cpu, vertex_colors=character.vertex_colors,
-                  mm_per_unit=character.mm_per_unit)
-    emphasis = lip_emphasis(character, lip_share) if lip_share > 0 else None
-    if emphasis is not None:
-        rig = refine_for_lips(rig, poses, emphasis, np.array([n.startswith("bone_") for n in names]))
+                  solve_seconds=seconds, solve_cpu_seconds=cpu, mm_per_unit=character.mm_per_unit)
+    pairs = inner_lip_pairs(character) if lip_share > 0 else None
+    emphasis = _emphasis(rest, rest_all[pairs.ravel()], lip_share) if pairs is not None else None
+    if emphasis is not None:     # on the welded mesh too: a vertex split in three counts once
+        rig = refine_for_lips(rig, frames[1:], emphasis, np.array([n.startswith("bone_") for n in names]))
         object.__setattr__(rig, "solve_seconds", time.perf_counter() - start)
         object.__setattr__(rig, "solve_cpu_seconds", time.process_time() - cpu_start)
+    # every vertex as the welded one it was made of
+    rig = replace(rig, neutral=np.asarray(character.neutral, np.float32), faces=np.asarray(character.faces, np.int32),
+                  joints=rig.joints[inverse], weights=rig.weights[inverse], vertex_colors=character.vertex_colors)
     fitted = skin_vertices(rig, *blend_poses(rig, np.eye(len(poses), dtype=np.float32)))
     object.__setattr__(rig, "fit_rms", np.sqrt(((fitted - poses) ** 2).sum(axis=2).mean(axis=1)))
     return rig
+
+
+def _welded(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh with the vertices that coincide in every frame made one: (rest (U, 3), frames (F, U, 3), faces
+    (without those two of whose corners became one), first (U,) a vertex of each, inverse (V,) each vertex's welded
+    index). glTF exports split a
+    vertex at every UV seam and sharp edge (a flat-shaded head is a soup of separate triangles), and SSDR seeds and
+    smooths its bones along the triangles: on a Ready Player Me head split so (6,412 parts for 24,320 vertices), 13
+    of 32 bones went to four-vertex pieces and one to the whole face, whose lips then did not close."""
+    size = float(np.linalg.norm(np.ptp(rest, axis=0))) or 1.0
+    key = np.round(np.transpose(frames, (1, 0, 2)).reshape(len(rest), -1) / (1e-7 * size)).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    welded = inverse[faces]
+    keep = (welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2]) & (welded[:, 0] != welded[:, 2])
+    return rest[first], frames[:, first], welded[keep], first, inverse
+
+
+def _riders(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(V,) the free vertices in connected parts (of the free vertices' triangles) smaller than `SMALL_PART` of the
+    free vertices that move: eyelash and brow cards, a tooth, a stray quad. Given to SSDR, each such part took a
+    bone of its own (a Ready Player Me head's 32 bones became 13 four-vertex pieces and one bone for the whole face,
+    whose lips then stayed 1.55 mm apart at MBP; at 64 bones one bone held the face and its lips never moved). They
+    ride the bones of their nearest vertex instead. None ride when that would leave SSDR nothing."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    size = float(np.linalg.norm(np.ptp(rest, axis=0))) or 1.0
+    moving = free & (np.linalg.norm(frames - rest[None], axis=2).max(axis=0) > STATIC_TOL * size)
+    inside = faces[free[faces].all(axis=1)]
+    n = len(rest)
+    edges = np.concatenate([inside[:, [0, 1]], inside[:, [1, 2]], inside[:, [2, 0]]])
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    smallest = max(MIN_VERTICES_PER_BONE, int(SMALL_PART * moving.sum()))
+    counts = np.bincount(label[free], minlength=label.max() + 1)
+    riders = free & (counts[label] < smallest)
+    return riders if (free & ~riders).any() else np.zeros(n, bool)
 
 
 def lip_emphasis(character: Character, share: float = LIP_SHARE) -> np.ndarray | None:
@@ -294,7 +354,11 @@ def lip_emphasis(character: Character, share: float = LIP_SHARE) -> np.ndarray |
     if pairs is None:
         return None
     rest = np.asarray(character.neutral, np.float64)
-    lips = rest[pairs.ravel()]
+    return _emphasis(rest, rest[pairs.ravel()], share)
+
+
+def _emphasis(rest: np.ndarray, lips: np.ndarray, share: float) -> np.ndarray | None:
+    """`lip_emphasis` of the vertices `rest` (V, 3), the inner lips at `lips` (6, 3)."""
     radius = float(np.linalg.norm(lips.max(axis=0) - lips.min(axis=0))) / 2
     if not radius > 0:
         return None
