@@ -114,7 +114,20 @@ def test_the_package_says_whether_the_bones_close_the_lips(head):
     lips = {}
     (warning,) = _bone_closure(character, replace(rig, rotations=rotations, translations=translations), lips)
     assert lips["bones_mbp_gap_mm"] > 3 * CLOSED_MM
-    assert f"head.glb): its {rig.n_bones} bones leave MBP's lips " in warning and "--bones 64" in warning
+    assert f"head.glb): its {rig.n_bones} bones leave MBP's lips " in warning
+    assert f"more bones (--bones {2 * rig.n_bones}) may close them; --mode blendshape does" in warning
+
+
+def test_default_morph_weights_of_the_driven_meshes_are_zero_in_the_bone_glb(tmp_path, head):
+    """A file storing 1.0 as every target's default weight: with the bones playing the visemes, those defaults would
+    add each shape on top of them in every viewer; the bone GLB sets them to 0."""
+    root, arrays, character, rig, out = head
+    g = gl.GLTF2.load(str(root / "head.glb"))
+    g.meshes[0].weights = [1.0] * len(g.meshes[0].weights)
+    g.save_binary(str(tmp_path / "defaults.glb"))
+    loaded, _ = load_bound_character(tmp_path / "defaults.glb")
+    written = gl.GLTF2.load(str(write_asset_bones_glb(tmp_path / "out.glb", loaded, rig, talk(), FPS)))
+    assert written.meshes[0].weights == [0.0] * 16
 
 
 def test_a_parent_scaled_unevenly_is_refused_naming_it(tmp_path, head):
@@ -123,7 +136,8 @@ def test_a_parent_scaled_unevenly_is_refused_naming_it(tmp_path, head):
     g.nodes[0].scale = [0.01, 0.02, 0.01]
     g.save_binary(str(tmp_path / "stretched.glb"))
     stretched, binding = load_bound_character(tmp_path / "stretched.glb")
-    with pytest.raises(CharacterError, match=r"stretched.glb: node \d+ \(Head\) is scaled unevenly"):
+    with pytest.raises(CharacterError, match=r"stretched.glb: node \d+ \(Head\) is scaled unevenly or mirrored in "
+                                             r"the scene, because its parent node 0 \(Armature\) is;"):
         write_asset_bones_glb(tmp_path / "out.glb", stretched, rig, talk(), FPS)
     assert not (tmp_path / "out.glb").exists()
 
@@ -382,3 +396,32 @@ def test_animate_in_bone_mode_writes_the_whole_avatar_and_says_what_the_bones_le
     assert g.images and g.skins[0].joints[:2] == [1, 2] and len(g.skins[0].joints) > 2
     # the test avatar's head blends the hips into the head joint vertex by vertex: said, not hidden
     assert any("moving vertices of Wolf3D_Head are shared by" in w for w in report["warnings"]), report["warnings"]
+
+
+@pytest.mark.flow
+@pytest.mark.usefixtures("prefect_harness")
+def test_an_avatar_its_bones_cannot_join_is_a_reject_naming_the_node_not_a_crash(tmp_path):
+    """A skeleton scaled unevenly (the armature at 1, 1.5, 0.8): bone mode refuses it, as one reject row per
+    utterance naming the file and the node at fault; the run goes on (it ended in a traceback)."""
+    from factories import make_curve_store
+
+    from visemeflow.animation.package import AnimateConfig
+    from visemeflow.flows.animate import AnimateParams, animate_flow
+
+    make_skinned_head(tmp_path / "head.glb")
+    g = gl.GLTF2.load(str(tmp_path / "head.glb"))
+    g.nodes[0].scale = [0.01, 0.015, 0.008]
+    g.save_binary(str(tmp_path / "stretched.glb"))
+    from visemeflow.flows.errors import StageFailed
+
+    store = make_curve_store(tmp_path / "store", n=2)
+    with pytest.raises(StageFailed, match="all 2 utterances failed"):      # nothing written: the run is Failed
+        animate_flow(AnimateParams(store=store.root, characters=[tmp_path / "stretched.glb"], source="ground_truth",
+                                   config=AnimateConfig(formats=("glb",), mode="bones", bones=8, fps=30.0)))
+    rows = store.read_table("rejects", "animate").to_pylist()
+    assert sorted(r["utterance_id"] for r in rows) == ["spk/u0", "spk/u1"]
+    assert {r["error_type"] for r in rows} == {"CharacterError"}
+    for row in rows:
+        assert row["message"].startswith(f"{row['utterance_id']}: {tmp_path / 'stretched.glb'}: node 4 (Head) is "
+                                         "scaled unevenly or mirrored in the scene, because its parent node 0 "
+                                         "(Armature) is;"), row["message"]

@@ -18,6 +18,10 @@ character's SSDR bones (`bones.BoneRig`, solved on the driven meshes as the scen
   node without a transform is read alike everywhere); the old node keeps its transform and children, named
   `<name>_FaceBones`, and a clip of the file that set its morph weights now sets the new node's.
 - A driven mesh the visemes do not move (an eye sharing the avatar's morph targets) stays as it is.
+- The driven meshes' default morph weights (`mesh.weights`, a node's `weights`) are set to 0: the bones play the
+  visemes, and a file that stores 1.0 for every target (some exporters do) showed every shape added on top of them
+  in Blender (lips 104-122 mm apart where the bones put them 0.8-9 mm). A clip of the file that animates morph
+  weights still does.
 
 Poses: bone b's SSDR transform at frame t is W_b(t) = [R_b(t) | c_b + d_b(t)] in the scene's space
 (`bones.blend_poses`), and the driven vertices were placed in that space by the parent P's rest pose. Its node's
@@ -108,12 +112,14 @@ class _Frame:
         world = scene.world_matrix(node)
         linear = world[:3, :3]
         scale = float(np.cbrt(np.linalg.det(linear)))
-        name = scene.gltf.nodes[node].name or f"node {node}"
-        if not scale > 0 or not np.allclose(linear.T @ linear, np.eye(3) * scale ** 2, rtol=1e-5,
-                                            atol=1e-9 * max(scale ** 2, 1e-30)):
-            raise CharacterError(f"{scene.path}: node {node} ({name}) is scaled unevenly or mirrored in the scene; "
-                                 "face bones under it cannot carry rigid poses (use --mode blendshape for this "
-                                 "avatar)")
+        name = scene.gltf.nodes[node].name or "unnamed"
+        if not _conformal(linear):
+            culprit = next((k for k in _ancestors(node, _parents(scene)) if not _conformal(_local(scene, k))), node)
+            whose = "" if culprit == node else \
+                f", because its parent node {culprit} ({scene.gltf.nodes[culprit].name or 'unnamed'}) is"
+            raise CharacterError(f"{scene.path}: node {node} ({name}) is scaled unevenly or mirrored in the scene"
+                                 f"{whose}; face bones under it cannot carry rigid poses (use --mode blendshape for "
+                                 "this avatar)")
         rotation = linear / scale
         return cls(node, world[:3, 3].copy(), rotation, _quaternion(rotation), scale)
 
@@ -124,6 +130,22 @@ class _Frame:
         q /= np.linalg.norm(q, axis=-1, keepdims=True)
         t = np.einsum("ji,...j->...i", self.rotation, translations - self.translation) / self.scale
         return q, t
+
+
+def _conformal(linear: np.ndarray) -> bool:
+    """Whether a 3x3 matrix is a rotation times a positive uniform scale."""
+    scale = float(np.cbrt(np.linalg.det(linear)))
+    return scale > 0 and np.allclose(linear.T @ linear, np.eye(3) * scale ** 2, rtol=1e-5,
+                                     atol=1e-9 * max(scale ** 2, 1e-30))
+
+
+def _local(scene: GltfScene, node: int) -> np.ndarray:
+    """A node's own 3x3 linear part (its parent's world removed)."""
+    parent = _parents(scene).get(node)
+    world = scene.world_matrix(node)
+    if parent is None:
+        return world[:3, :3]
+    return (np.linalg.inv(scene.world_matrix(parent)) @ world)[:3, :3]
 
 
 @dataclass
@@ -454,6 +476,13 @@ def write_asset_bones_glb(path: str | os.PathLike, character: Character, rig: Bo
                                _append_array(document, blob, weights, target=_ARRAY_BUFFER))
             attributes = primitive.setdefault("attributes", {})
             attributes["JOINTS_0"], attributes["WEIGHTS_0"] = made[start]
+    for part in character.parts:     # the bones stand for the morph targets: a default weight would add a shape twice
+        mesh = document["meshes"][part.mesh]
+        if isinstance(mesh.get("weights"), list):
+            mesh["weights"] = [0.0] * len(mesh["weights"])
+        for node in [*part.nodes, *(moved_meshes[n] for n in part.nodes if n in moved_meshes)]:
+            if isinstance(nodes[node].get("weights"), list):
+                nodes[node]["weights"] = [0.0] * len(nodes[node]["weights"])
     for animation in document.get("animations") or []:      # a clip that set a moved mesh's morph weights
         for channel in animation.get("channels") or []:
             target = channel.get("target") or {}

@@ -32,6 +32,7 @@ from prefect.cache_policies import TASK_SOURCE, CachePolicy, Inputs
 from prefect.context import TaskRunContext
 
 from visemeflow.animation.apply import CurvesError
+from visemeflow.animation.bones import BoneError
 from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.gltf import GLTF_SUFFIXES
@@ -234,8 +235,11 @@ def _bone_closure(character: Character, rig, lips: dict) -> list[str]:
     lips["bones_mbp_gap_mm"] = round(gap, 2)
     if gap < CLOSED_MM:
         return []
+    more = f"more bones (--bones {2 * rig.n_bones}) may close them" if rig.n_bones < 64 else \
+        "more bones will hardly close them"
+    blendshapes = "" if "warning" in lips else "; --mode blendshape does"   # its own MBP shape closes
     return [f"{character.where()}: its {rig.n_bones} bones leave MBP's lips {gap:.1f} mm apart (closed is below "
-            f"{CLOSED_MM} mm); more bones (--bones 64) or --mode blendshape close them"]
+            f"{CLOSED_MM} mm); {more}{blendshapes}"]
 
 
 def animate(store: Store, utterance_id: str, source: str, variant: str, character_path: str, character_hash: str,
@@ -272,6 +276,9 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     except ExportWriteError as exc:   # the output's disk, not the character, is at fault: name the output file
         raise AnimateError(utterance_id, exc.path, "ExportWriteError", str(exc).removeprefix(f"{exc.path}: ")) \
             from exc
+    except (CharacterError, BoneError) as exc:   # bones it cannot have (too many, a skeleton scaled unevenly)
+        raise AnimateError(utterance_id, character_path, type(exc).__name__,
+                           str(exc).removeprefix(f"{character.source}: ")) from exc
     files = dict(package.files)
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
@@ -291,8 +298,9 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
 
         panels = {f"{source} ({variant})": package.weights}
         if config.mode == "bones":   # what the bone exports play, beside the blendshapes they approximate
+            rig = bone_rig(character, binding, config.bones)    # its bones as made (Dem Bones may leave some empty)
             panels = {"blendshapes": panels[f"{source} ({variant})"],
-                      f"{config.bones} bones": BoneSource(bone_rig(character, binding, config.bones), played)}
+                      f"{rig.n_bones} bones": BoneSource(rig, played)}
         video, why = preview_video(store, utterance_id)   # the footage beside the character, when there is one
         warnings += [why] if why else []
         path = folder / f"{stem}.mp4"
