@@ -75,7 +75,10 @@ def _open(scene: GltfScene, image: int):
         raise TextureError(f"image {image}: {str(exc).removeprefix(f'{scene.path}: ')}") from None
     try:
         opened = Image.open(io.BytesIO(blob))
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
+    except UnidentifiedImageError:   # Pillow's message names its in-memory buffer (<_io.BytesIO object at 0x...>)
+        raise TextureError(f"image {image} ({suffix.lstrip('.').upper()}) cannot be decoded (not an image Pillow "
+                           f"knows; {len(blob)} bytes starting {blob[:8].hex(' ')})") from None
+    except (OSError, ValueError) as exc:
         raise TextureError(f"image {image} ({suffix.lstrip('.').upper()}) cannot be decoded ({exc})") from None
     width, height = opened.size
     if width * height > MAX_IMAGE_PIXELS:
