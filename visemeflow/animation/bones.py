@@ -56,9 +56,9 @@ a few hundredths of a millimetre either way."""
 
 LIP_SHARE = 0.25
 """After SSDR, the bone poses and skin weights are fitted again with this share of the fit's weight on the mouth
-(`lip_emphasis`, `refine_for_lips`): SSDR weighs every vertex alike, and on a Ready Player Me head (24,320 vertices)
-its 32 bones left the lips of MBP 1.55 mm apart (the blendshape 0.27) and the lip vertices 3.4 mm RMS off, where the
-whole head was 0.70. 0: SSDR's fit as it is."""
+(`lip_emphasis`, `refine_for_lips`): SSDR weighs every vertex alike, so the few vertices a viewer watches most are
+fitted no better than the scalp. Demo head, 32 bones, over 8 LJ sequences: lips 0.405 -> 0.246 mm RMS (bench/bones.py);
+a Ready Player Me head: lips 0.27 -> 0.05 mm RMS. 0: SSDR's fit as it is."""
 SMALL_PART = 0.02
 """A connected part of the vertices SSDR would fit with fewer vertices than this share of the moving ones rides the
 bones of its nearest vertex (`_riders`) instead of taking bones of its own."""
@@ -405,10 +405,8 @@ def refine_for_lips(rig: BoneRig, poses: np.ndarray, emphasis: np.ndarray, free:
     `free` (B,) posed anew by weighted Procrustes against what its vertices lack once the other bones have moved
     them, (2) each vertex's weights on its 4 bones solved anew (least squares, summing to 1, clipped at 0; the
     vertices wholly on a locked bone keep theirs). The joints of each vertex and the bind pose stay; so does every
-    pose of a locked bone. On the demo head at 8 bones the refit at `LIP_SHARE` took the inner lips from 1.81 to
-    1.15 mm RMS over the 16 visemes and the whole head from 0.97 to 0.89 (the weight update also mends SSDR's cut to
-    4 influences); on a Ready Player Me head at 32 bones, lips 3.42 -> 1.92 mm, MBP's gap 1.55 -> 0.77 mm, the whole
-    head 0.70 -> 0.95 mm (the mouth's gain paid for elsewhere)."""
+    pose of a locked bone. The weight update also mends SSDR's cut to 4 influences, so on the demo head the whole
+    face gains too (bench/bones.py prints both fits side by side)."""
     import torch
     from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
