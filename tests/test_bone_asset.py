@@ -425,3 +425,17 @@ def test_an_avatar_its_bones_cannot_join_is_a_reject_naming_the_node_not_a_crash
         assert row["message"].startswith(f"{row['utterance_id']}: {tmp_path / 'stretched.glb'}: node 4 (Head) is "
                                          "scaled unevenly or mirrored in the scene, because its parent node 0 "
                                          "(Armature) is;"), row["message"]
+
+
+def test_more_bones_than_a_small_mesh_supports_are_as_many_as_it_does_and_said_so(tmp_path):
+    """`--mesh Wolf3D_Teeth` at the default 32 bones: the teeth's 6 vertices support 2; bone mode makes those (it
+    stopped with an error) and the package says so."""
+    from visemeflow.animation.package import bone_count_note, bone_rig
+
+    make_avatar(tmp_path / "avatar.glb")
+    teeth, binding = load_bound_character(tmp_path / "avatar.glb", convention="arkit52", meshes=["Wolf3D_Teeth"])
+    rig = bone_rig(teeth, binding, 32)
+    assert 1 <= rig.n_bones <= 2 and rig.n_vertices == 6
+    assert bone_count_note(teeth, 32) == (f"{teeth.where()}: 32 bones asked, at most 2 made: its 6 vertices support "
+                                          "no more (each bone moves at least 3)")
+    assert bone_count_note(teeth, 2) is None

@@ -134,7 +134,12 @@ _RIGS_GUARD = threading.Lock()
 
 def bone_rig(character: Character, binding: Binding, bone_count: int):
     """The character's SSDR bone rig for this binding and bone count, solved once per process (tens of seconds) and
-    shared by every utterance animated in it; threads asking for the same rig wait for the one solve."""
+    shared by every utterance animated in it; threads asking for the same rig wait for the one solve. More bones than
+    the character's vertices support (`bones.max_bones`: 32, the default, for teeth of 48 vertices) are that many
+    (`bone_count_note` says so)."""
+    from visemeflow.animation.bones import max_bones
+
+    bone_count = min(int(bone_count), max(max_bones(character.n_vertices), 1))
     digest = hashlib.sha256()
     for part in (character.neutral, character.faces, character.deltas, binding.matrix):
         digest.update(np.ascontiguousarray(part).tobytes())
@@ -145,6 +150,17 @@ def bone_rig(character: Character, binding: Binding, bone_count: int):
         if key not in _RIGS:
             _RIGS[key] = solve_bones(character, bone_count, binding=binding)
         return _RIGS[key]
+
+
+def bone_count_note(character: Character, bone_count: int) -> str | None:
+    """A line when `bone_rig` makes fewer bones than asked because the character's vertices support no more."""
+    from visemeflow.animation.bones import max_bones
+
+    most = max(max_bones(character.n_vertices), 1)
+    if int(bone_count) <= most:
+        return None
+    return (f"{character.where()}: {bone_count} bones asked, at most {most} made: its {character.n_vertices} "
+            "vertices support no more (each bone moves at least 3)")
 
 
 def write_wav(path: Path, samples: np.ndarray, rate: int) -> Path:

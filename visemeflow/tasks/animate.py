@@ -283,8 +283,12 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
     played = package.curves   # the preview and the lip report show what the exports play
     lips = closure_report(character, binding, package.weights, package.fps, phones)
     warnings = binding.warnings()   # a closure or contact the character's shapes cannot make
-    if config.mode == "bones" and lips:   # the viewer sees the bones' mesh: do their MBP lips meet?
-        warnings += _bone_closure(character, bone_rig(character, binding, config.bones), lips)
+    if config.mode == "bones":
+        from visemeflow.animation.package import bone_count_note
+
+        warnings += [note] if (note := bone_count_note(character, config.bones)) else []
+        if lips:   # the viewer sees the bones' mesh: do their MBP lips meet?
+            warnings += _bone_closure(character, bone_rig(character, binding, config.bones), lips)
     if config.preview or {"glb", "usd", "usdz"} & set(config.formats):   # what its exports cannot show as its file
         from visemeflow.animation.textures import appearance_notes
 
