@@ -340,3 +340,30 @@ def test_a_mesh_split_at_every_triangle_gets_the_bones_of_the_welded_mesh(demo, 
     mbp = np.eye(16)[[VISEMES.index("MBP")]]
     ours = skin_vertices(rig, *blend_poses(rig, mbp), chunk=1)[0]
     np.testing.assert_allclose(ours[first_corner[lips]], bone_animation(bones8, mbp)[0, lips], atol=1e-5)
+
+
+def test_a_small_loose_part_rides_the_bones_of_its_nearest_vertex_and_takes_none(demo):
+    """A loose piece of a few vertices (an eyelash card, a stray quad) given to SSDR takes bones of its own; it rides
+    the bones of its nearest vertex instead: SSDR's fit of the rest is the same as without it, and the piece's
+    vertices carry the weights of the lip vertex they sit on."""
+    from dataclasses import replace
+
+    from visemeflow.animation.lips import inner_lip_pairs
+
+    lip = int(inner_lip_pairs(demo)[1, 1])                            # a lower inner-lip vertex
+    quad = demo.neutral[lip] + np.array([[0.01, 0.01, 0], [-0.01, 0.01, 0], [-0.01, -0.01, 0], [0.01, -0.01, 0]],
+                                        np.float32)                   # 0.1 mm around it (cm)
+    moves = demo.deltas[:, lip][:, None] * np.array([1.0, 0.5, 0.25, 1.0], np.float32)[None, :, None]
+    n = demo.n_vertices
+    loose = replace(demo, name="loose", neutral=np.concatenate([demo.neutral, quad]),
+                    faces=np.concatenate([demo.faces, np.array([[n, n + 1, n + 2], [n, n + 2, n + 3]], np.int32)]),
+                    deltas=np.concatenate([demo.deltas, moves], axis=1),
+                    vertex_colors=np.concatenate([demo.vertex_colors, np.ones((4, 3), np.float32)]))
+    plain = solve_bones(demo, 8, iterations=5, lip_share=0.0)
+    rig = solve_bones(loose, 8, iterations=5, lip_share=0.0)
+    assert rig.bone_names == plain.bone_names
+    np.testing.assert_allclose(rig.rotations, plain.rotations, atol=1e-9)
+    posed = bone_animation(rig, np.eye(16))            # the same poses (bone heads move with the piece's weight)
+    np.testing.assert_allclose(posed[:, :n], bone_animation(plain, np.eye(16)), atol=1e-5)
+    for v in range(n, n + 4):
+        assert dict(zip(rig.joints[v], rig.weights[v])) == dict(zip(plain.joints[lip], plain.weights[lip]))

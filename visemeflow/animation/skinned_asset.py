@@ -41,8 +41,9 @@ influences (JOINTS_1). Characters that are not glTF scenes are written by `skinn
 
 from __future__ import annotations
 
+import functools
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -158,7 +159,6 @@ class _BoneSet:
     base: np.ndarray          # (4, 4) world(P) @ IBM_P at rest: skin space -> scene
     skin: int | None = None   # the existing skin extended, or None: a new skin for `mesh_node`
     mesh_node: int | None = None
-    nodes: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -201,15 +201,6 @@ def _parents(scene: GltfScene) -> dict[int, int]:
     return parents
 
 
-def _depth(node: int, parents: dict[int, int]) -> int:
-    depth, seen = 0, {node}
-    while node in parents and parents[node] not in seen:
-        node = parents[node]
-        seen.add(node)
-        depth += 1
-    return depth
-
-
 def _ancestors(node: int, parents: dict[int, int]) -> list[int]:
     chain, seen = [node], {node}
     while node in parents and parents[node] not in seen:
@@ -239,7 +230,11 @@ def _pack(influences: list[list[tuple[int, float]]], n_joints: int) -> tuple[np.
     return joints, weights, dropped
 
 
+@functools.lru_cache(maxsize=4)
 def _plan(character: Character, rig: BoneRig) -> tuple[GltfScene, _Plan]:
+    """What bones go where and each driven primitive's new skin (see the module), for the export and for
+    `asset_bone_notes` alike: memoised on the two objects (compared by identity, as `animate` reuses one character and
+    one solved rig for every utterance), never changed by its users."""
     source = Path(character.source)
     try:
         scene = GltfScene(source)
@@ -333,7 +328,7 @@ def _skin_plan(scene: GltfScene, rig: BoneRig, skin_index: int, members: list, m
     if not candidates or total <= 0:
         names = ", ".join(p.name for p, _ in members)
         raise CharacterError(f"{source}: the moving vertices of {names} follow no joint of skin {skin_index}")
-    parent = max(candidates, key=lambda k: (_depth(joint_nodes[k], parents), -k))
+    parent = max(candidates, key=lambda k: (len(_ancestors(joint_nodes[k], parents)), -k))   # the deepest
     size = float(np.abs(rest[parent]).max()) or 1.0
     group = {parent} | {k for k, node in enumerate(joint_nodes)
                         if k != parent and joint_nodes[parent] in _ancestors(node, parents)[1:]
@@ -420,10 +415,11 @@ def write_asset_bones_glb(path: str | os.PathLike, character: Character, rig: Bo
         rest_q, rest_t = frame.local(np.tile([1.0, 0.0, 0.0, 0.0], (len(bone_set.bones), 1)),
                                      rig.bind_translations[bone_set.bones])
         stem = parent.get("name") or f"node{bone_set.parent}"
+        added: list[int] = []
         for k, b in enumerate(bone_set.bones):
             nodes.append({"name": f"{stem}_{rig.bone_names[b]}", "rotation": rest_q[k][[1, 2, 3, 0]].tolist(),
                           "translation": rest_t[k].tolist()})
-            bone_set.nodes.append(len(nodes) - 1)
+            added.append(len(nodes) - 1)
             if not moving[b]:
                 continue
             if (frame.node, int(b)) not in keyed:
@@ -439,7 +435,7 @@ def write_asset_bones_glb(path: str | os.PathLike, character: Character, rig: Bo
             channels.append({"sampler": rotation_sampler, "target": {"node": len(nodes) - 1, "path": "rotation"}})
             channels.append({"sampler": translation_sampler,
                              "target": {"node": len(nodes) - 1, "path": "translation"}})
-        parent.setdefault("children", []).extend(bone_set.nodes)
+        parent.setdefault("children", []).extend(added)
         shift = np.tile(np.eye(4) / frame.scale, (len(bone_set.bones), 1, 1))     # (world(P) @ local bind)^-1
         shift[:, :3, 3] = -rig.bind_translations[bone_set.bones] / frame.scale
         shift[:, 3, 3] = 1.0
@@ -451,9 +447,9 @@ def write_asset_bones_glb(path: str | os.PathLike, character: Character, rig: Bo
             before = np.tile(np.eye(4, dtype=np.float32).reshape(1, 16), (count, 1)) if old is None else \
                 scene.reader.matrices(old, "skin").transpose(0, 2, 1).reshape(-1, 16).astype(np.float32)
             skin["inverseBindMatrices"] = _append_array(document, blob, np.concatenate([before, ibm]))
-            skin["joints"] = list(skin.get("joints") or []) + bone_set.nodes
+            skin["joints"] = list(skin.get("joints") or []) + added
         else:
-            skins.append({"name": f"{stem} face bones", "joints": list(bone_set.nodes),
+            skins.append({"name": f"{stem} face bones", "joints": added,
                           "inverseBindMatrices": _append_array(document, blob, ibm)})
             old_node = nodes[bone_set.mesh_node]
             shown = {"name": old_node.get("name") or f"node{bone_set.mesh_node}", "mesh": old_node.pop("mesh"),
