@@ -135,6 +135,8 @@ def test_visemeflow_blender_saves_a_scene_that_plays_the_file_with_its_sound(tmp
         assert done.returncode == 0, done.stdout + done.stderr
         assert done.stdout.startswith(f"wrote {tmp_path / file_name}.blend: ") and f"30 fps, frames 0-{N - 1}" in \
             done.stdout and f"sound {tmp_path / stem}.wav" in done.stdout, done.stdout
+        # the objects listed are the file's: not the sphere Blender's glTF importer adds to draw a skin's joints
+        assert "Icosphere" not in done.stdout, done.stdout
         # the .blend as saved: no fps given to the probe, the scene's own
         report, meshes = probe(tmp_path / f"{file_name}.blend", [0, 11, N - 1], tmp_path / "saved.npz", fps=None)
         assert report["fps"] == FPS and (report["frame_start"], report["frame_end"]) == (0, N - 1), report

@@ -67,6 +67,14 @@ def sound_beside(path: Path) -> Path:
     return path.with_name(f"{stem}.wav")
 
 
+def scene_objects(scene) -> list:
+    """The scene's objects a user sees: without the shapes that only draw bones (the glTF importer adds an
+    "Icosphere" for the joints of a skin; it is a bone's custom shape, not part of the file)."""
+    shapes = {bone.custom_shape for o in scene.objects if o.type == "ARMATURE" and o.pose is not None
+              for bone in o.pose.bones if bone.custom_shape is not None}
+    return [o for o in scene.objects if o not in shapes]
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="blender_open.py", description=__doc__.splitlines()[0])
     parser.add_argument("animation", type=Path, help="A GLB/glTF or USD file visemeflow wrote.")
@@ -120,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.save:
         bpy.ops.wm.save_as_mainfile(filepath=str(args.save.resolve()))
     report = {"file": str(path), "fps": scene.render.fps / scene.render.fps_base, "frame_start": scene.frame_start,
-              "frame_end": scene.frame_end, "objects": sorted(o.name for o in scene.objects),
+              "frame_end": scene.frame_end, "objects": sorted(o.name for o in scene_objects(scene)),
               "sound": str(wav.resolve()) if sound is not None else None,
               "saved": str(args.save.resolve()) if args.save else None}
     print("blender_open: " + json.dumps(report), flush=True)
