@@ -356,6 +356,8 @@ def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, charac
     assert [r["audio"] for r in result["rejects"]] == [str(text)]
     (row,) = store.read_table("rejects", "predict").to_pylist()
     assert row[C.PATH] == str(text) and row[C.ERROR_TYPE] == "UnreadableAudio"
+    # the file named once, and each decoder's reason without its own copies of the path
+    assert row[C.MESSAGE].count(str(text)) == 1 and "neither soundfile nor FFmpeg" in row[C.MESSAGE], row[C.MESSAGE]
 
     from typer.testing import CliRunner
 

@@ -149,6 +149,18 @@ def check_audio_file_finite(path: str | os.PathLike, info: "sf._SoundFileInfo | 
     return True
 
 
+def decoder_reason(exc: BaseException, path: str) -> str:
+    """A decoder's error without the path it repeats (the AudioError names the file once): soundfile's
+    "Error opening '/x.wav': Format not recognised." is "Format not recognised", FFmpeg's "/x.wav: not a readable
+    video ([Errno 1094995529] Invalid data found when processing input: '/x.wav')" is "not a readable video (Invalid
+    data found when processing input)"."""
+    text = str(exc).removeprefix(f"{path}: ")
+    for quoted in (repr(path), f"'{path}'", f'"{path}"'):
+        text = text.replace(f"Error opening {quoted}: ", "").replace(f": {quoted}", "").replace(quoted, "the file")
+    text = re.sub(r"\[Errno -?\d+\] ", "", text)
+    return text.strip().rstrip(".") or type(exc).__name__
+
+
 def unreadable_reason(path: str | os.PathLike) -> str | None:
     """Why no sound can be read from `path`, judged on its header (nothing is decoded), or None when it can: what
     `speak` and `predict` check before they start, so that a file that is no audio fails in a second, not after the
@@ -209,7 +221,8 @@ def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, 
             except AudioTrackTooLong as exc2:
                 raise AudioError(path_str, exc2.error_type, str(exc2).removeprefix(f"{path_str}: ")) from exc2
             except (VideoError, OSError) as exc2:
-                raise AudioError(path_str, "UnreadableAudio", f"cannot read audio: {exc}; as a video: {exc2}") from exc
+                raise AudioError(path_str, "UnreadableAudio", "neither soundfile nor FFmpeg reads it as audio "
+                                 f"({decoder_reason(exc, path_str)}; {decoder_reason(exc2, path_str)})") from exc
     samples = samples.reshape(len(samples), -1)   # PyAV's mono track: one column
     check_finite(samples, rate, path_str)
     if mono:

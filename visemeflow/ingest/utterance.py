@@ -17,7 +17,7 @@ from pathlib import Path
 
 import soundfile as sf
 
-from visemeflow.ingest.audio import AudioError, check_audio_file_finite, read_audio
+from visemeflow.ingest.audio import AudioError, check_audio_file_finite, decoder_reason, read_audio
 from visemeflow.ingest.config import IngestConfig
 from visemeflow.ingest.corpus import TRANSCRIPT_FORMAT, CorpusEntry
 from visemeflow.location import is_url, local_input
@@ -293,7 +293,8 @@ def read_audio_info(entry: CorpusEntry) -> tuple[int, float]:
     except AudioError as exc:
         raise IngestError(entry.utterance_id, exc.path, exc.error_type, exc.reason) from exc
     except (RuntimeError, OSError) as exc:
-        raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio", f"cannot read audio: {exc}") from exc
+        raise IngestError(entry.utterance_id, entry.audio_path, "UnreadableAudio",
+                          f"soundfile cannot read it: {decoder_reason(exc, entry.audio_path)}") from exc
     return int(info.samplerate), seconds
 
 

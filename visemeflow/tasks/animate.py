@@ -252,7 +252,8 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         character, binding = bound_character(character_path, character_hash, config.convention, mapping_path,
                                              mapping_hash, config.meshes)
     except CharacterError as exc:
-        raise AnimateError(utterance_id, character_path, "CharacterError", str(exc)) from exc
+        raise AnimateError(utterance_id, character_path, "CharacterError",
+                           str(exc).removeprefix(f"{character_path}: ")) from exc
     try:
         curves, fps, curve_file = curves_and_fps(store, utterance_id, source, variant)
     except LookupError as exc:
@@ -262,7 +263,7 @@ def animate(store: Store, utterance_id: str, source: str, variant: str, characte
         try:
             audio = read_audio(local_input(audio_path))
         except AudioError as exc:
-            raise AnimateError(utterance_id, audio_path, "AudioError", str(exc)) from exc
+            raise AnimateError(utterance_id, audio_path, "AudioError", exc.reason) from exc
     target = package_dir(store, out, character_name or character_key(character_path), utterance_id)
     stem = target.name
     # a store on object storage: the package is written into a local work folder, then uploaded file by file
