@@ -30,7 +30,7 @@ from visemeflow.ingest.captured import (
     read_take,
     write_expression_csv,
 )
-from visemeflow.schemas import C, curves_array
+from visemeflow.schemas import C, UTTERANCES, curves_array, table_from_rows
 from visemeflow.storage import Store
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
 
@@ -407,6 +407,38 @@ def test_ingest_keeps_imported_takes_and_procedural_skips_them(tmp_path):
     assert result["utterances"] == 2
     assert sorted(store.curve_ids("procedural", result["variant"])) == ["spk/u1", "spk/u2"]
     assert store.curve_ids("captured", "arkit-nnls") == ["csv/a", "csv/b"]
+
+
+def test_a_take_imported_while_an_ingest_runs_is_kept(tmp_path, monkeypatch):
+    """An import that lands in a shard while an ingest of that shard runs (after the ingest read the shard, before
+    it wrote it) is kept: the ingest writes its shard under the shard's lock and keeps the captured rows stored
+    then, not those it saw at its start (it used to drop the take's row, and the take vanished from the store)."""
+    from visemeflow.flows.import_curves import ImportCurvesParams, import_curves_flow
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams
+
+    manifest, _ = synthetic_takes(tmp_path / "takes")
+    takes = Store(tmp_path / "takes_store")        # the import as it would land, made beside
+    import_curves_flow(ImportCurvesParams(takes=manifest, store=takes.root, n_shards=1), return_state=True)
+    (take_row,) = [r for r in takes.read_table("utterances").to_pylist() if r[C.UTTERANCE_ID] == "csv/a"]
+    corpus = make_corpus(tmp_path / "corpus", {"spk/u1": [("sil", 0.0, 0.2), ("AA1", 0.2, 1.0)]})
+    store = Store(tmp_path / "store")
+    write_shard, landed = Store.write_shard, []
+
+    def import_lands(self, table_name, shard, table, *args, **kwargs):
+        if table_name == "phones" and not landed:   # the ingest has read the shard and made its rows
+            landed.append(shard)
+            target = store.curve_path("captured", "arkit-nnls", "csv/a")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(takes.curve_path("captured", "arkit-nnls", "csv/a"), target)
+            store.replace_utterance_rows("utterances", shard, "csv/a", table_from_rows([take_row], UTTERANCES))
+        return write_shard(self, table_name, shard, table, *args, **kwargs)
+
+    monkeypatch.setattr(Store, "write_shard", import_lands)
+    ingest_flow(IngestParams(corpus=corpus, store=store.root, n_shards=1))
+    assert landed == [0]
+    assert sorted(store.read_table("utterances").column(C.UTTERANCE_ID).to_pylist()) == ["csv/a", "spk/u1"]
+    assert store.curve_ids("captured", "arkit-nnls") == ["csv/a"]
 
 
 # ---- the real FACEGOOD takes -------------------------------------------------------------------------------------

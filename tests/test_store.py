@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
@@ -322,6 +323,35 @@ def test_replace_utterance_rows_replaces_exactly_one_utterance(tmp_path):
     store.replace_utterance_rows("phones", 5, "s/z", phone_rows("s/z", 2))  # new shard file
     assert store.read_shard("phones", 5).num_rows == 2
     assert store.read_table("utterances").schema.equals(UTTERANCES)
+
+
+def test_a_whole_shard_write_waits_for_the_shards_lock_and_keeps_what_is_stored_then(tmp_path):
+    """`write_shard` takes the lock `replace_utterance_rows` takes, and `keep` chooses among the rows stored when it
+    holds it: an utterance replaced while a whole-shard writer was computing is not lost to it."""
+    import threading
+
+    store = Store(tmp_path)
+    store.write_shard("phones", 2, pa.concat_tables([phone_rows("s/a", 3), phone_rows("s/b", 2)]))
+    done = []
+
+    def keep_b(stored):
+        return stored.filter(pc.equal(stored.column(C.UTTERANCE_ID), "s/b"))
+
+    writer = threading.Thread(target=lambda: done.append(
+        store.write_shard("phones", 2, phone_rows("s/a", 1, tag="whole"), keep=keep_b)))
+    with store.locked("phones-all-0002"):
+        writer.start()
+        writer.join(0.5)
+        assert writer.is_alive() and not done        # it waits for the lock
+        # what a rerun holding the lock writes meanwhile (here: by hand, as the lock is ours)
+        pq.write_table(pa.concat_tables([phone_rows("s/a", 3), phone_rows("s/b", 4, tag="rerun")]),
+                       store.shard_path("phones", 2))
+    writer.join(30)
+    assert done
+    by_id = {}
+    for row in store.read_shard("phones", 2).to_pylist():
+        by_id.setdefault(row[C.UTTERANCE_ID], []).append(row[C.LABEL])
+    assert by_id == {"s/a": ["whole0"], "s/b": ["rerun0", "rerun1", "rerun2", "rerun3"]}
 
 
 # ---- no NaN or infinity is ever written ---------------------------------------------------------

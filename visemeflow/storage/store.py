@@ -470,16 +470,25 @@ class Store:
 
     def write_shard(
         self, table_name: str, shard: int, table: pa.Table, stage: str | None = None,
-        metadata: dict[bytes, bytes] | None = None,
+        metadata: dict[bytes, bytes] | None = None, keep: Callable[[pa.Table], pa.Table] | None = None,
     ) -> Path:
         """Replace one shard file of a table with `table` (cast to the table's schema) and file metadata; reject
-        messages are capped (`MAX_REJECT_MESSAGE_CHARS`)."""
-        table = table.cast(TABLE_SCHEMAS[table_name])
-        if table_name == "rejects":
-            table = _cap_messages(table)
-        if metadata:
-            table = table.replace_schema_metadata(metadata)
-        return self._write_atomic(table, self.shard_path(table_name, shard, stage))
+        messages are capped (`MAX_REJECT_MESSAGE_CHARS`).
+
+        Under the shard's lock, as `replace_utterance_rows` writes, so that one utterance's rows replaced by a rerun
+        or an import are never lost to a whole shard's write that read the shard before them: `keep(stored)`
+        gives the rows of the shard as stored *now* that the new file keeps besides `table` (read under the lock,
+        and on S3 written back only if unchanged since)."""
+        schema = TABLE_SCHEMAS[table_name]
+        table = table.cast(schema)
+
+        def new(stored: pa.Table) -> pa.Table:
+            out = table if keep is None else pa.concat_tables([table, keep(stored).cast(schema)])
+            if table_name == "rejects":
+                out = _cap_messages(out)
+            return out.replace_schema_metadata(metadata) if metadata else out
+
+        return self._rewrite(table_name, shard, stage, new, read=keep is not None)
 
     def write_curves(
         self, table: pa.Table, *, provenance: str = "", fps: float | None = None
@@ -726,8 +735,6 @@ class Store:
         On S3 the shard is also written back only if it is still the version read (`If-Match` its ETag, or
         `If-None-Match: *` where there was none), else read again: a writer whose lock was taken for a dead one's
         still loses no rows."""
-        lock = f"{table_name}-{stage or 'all'}-{shard:04d}"
-        path = self.shard_path(table_name, shard, stage)
         schema = TABLE_SCHEMAS[table_name]
 
         def merged(old: pa.Table) -> pa.Table:
@@ -738,7 +745,18 @@ class Store:
             # Keep the file's metadata (e.g. the config hash that lets later runs reuse these rows).
             return new.replace_schema_metadata(old.schema.metadata)
 
+        return self._rewrite(table_name, shard, stage, merged)
+
+    def _rewrite(self, table_name: str, shard: int, stage: str | None, merged: Callable[[pa.Table], pa.Table],
+                 read: bool = True) -> Path:
+        """Write `merged(stored)` over a shard file under the shard's lock (`stored`: the file as it is, or an empty
+        table; with `read` False nothing is read and a replaced S3 object is not compared either)."""
+        lock = f"{table_name}-{stage or 'all'}-{shard:04d}"
+        path = self.shard_path(table_name, shard, stage)
+        schema = TABLE_SCHEMAS[table_name]
         with self.locked(lock):
+            if not read:
+                return self._write_atomic(merged(schema.empty_table()), path)
             if not (self.remote and self.root.protocol in ("s3", "s3a")):
                 old = _read_whole(path) if path.exists() else schema.empty_table()
                 return self._write_atomic(merged(old), path)

@@ -3,6 +3,7 @@
 import logging
 from dataclasses import asdict
 
+import pyarrow as pa
 from prefect import get_run_logger, task
 from prefect.cache_policies import NONE
 
@@ -119,12 +120,15 @@ def ingest_shard(store_root: str, shard: int, entries: list[dict], config: Inges
     objs = [CorpusEntry(**e) for e in entries]
     utterances, phones, rejects, reused = ingest_entries(objs, config, _previous_rows(store, shard, config_hash))
     unaligned = sum(not has_alignment(u) for u in utterances)
-    utterances += captured_rows(store, shard, {o.utterance_id for o in objs})
+    corpus_ids = {o.utterance_id for o in objs}
     store.write_shard("phones", shard, table_from_rows(phones, PHONES))
     store.write_shard("rejects", shard, table_from_rows(rejects, REJECTS), stage=STAGE)
-    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),   # last: it stamps the shard
+    # last: it stamps the shard; the captured takes are those stored when it writes (an import during this run
+    # stays), read under the shard's lock
+    store.write_shard("utterances", shard, table_from_rows(utterances, UTTERANCES),
                       metadata={CONFIG_KEY: config_hash.encode(),
-                                MADE_FROM_KEY: shard_digest(entries, config).encode()})
+                                MADE_FROM_KEY: shard_digest(entries, config).encode()},
+                      keep=lambda stored: captured_of(store, stored, corpus_ids))
     logger = get_run_logger()
     for r in rejects:
         logger.info("rejected %s", r[C.MESSAGE])
@@ -162,11 +166,12 @@ def is_captured(store: Store, row: dict) -> bool:
     return row[C.ALIGNMENT_FORMAT] == NO_ALIGNMENT and bool(store.curve_variants(CAPTURED_SOURCE, row[C.UTTERANCE_ID]))
 
 
-def captured_rows(store: Store, shard: int, corpus_ids: set[str]) -> list[dict]:
-    """Rows of a shard that no corpus file made (captured takes, `visemeflow import-curves`: no alignment) and the
-    corpus does not hold now: an ingest keeps them."""
-    rows = store.read_shard("utterances", shard).to_pylist()
-    return [r for r in rows if r[C.UTTERANCE_ID] not in corpus_ids and is_captured(store, r)]
+def captured_of(store: Store, stored: pa.Table, corpus_ids: set[str]) -> pa.Table:
+    """The rows of an `utterances` shard (as read: `Store.write_shard`'s `keep`) that no corpus file made (captured
+    takes, `visemeflow import-curves`: no alignment) and the corpus does not hold now: an ingest keeps them."""
+    captured = [r[C.UTTERANCE_ID] not in corpus_ids and is_captured(store, r) for r in
+                stored.select([C.UTTERANCE_ID, C.ALIGNMENT_FORMAT]).to_pylist()]
+    return stored.filter(pa.array(captured, pa.bool_())) if stored.num_rows else stored
 
 
 def captured_shards(store: Store) -> set[int]:
