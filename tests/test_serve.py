@@ -400,6 +400,41 @@ def test_the_served_entrypoints_check_their_paths_before_the_stage_runs(tmp_path
     assert not outside.exists()
 
 
+def test_a_served_rerun_refuses_recorded_settings_that_name_paths_outside_the_roots(tmp_path, monkeypatch):
+    """A served rerun repeats the settings its stage last ran with, read from the store (configs/<stage>.json, which
+    a run from the command line, or anyone who can write into the store, wrote): a path in them outside serve's
+    folders is refused before the stage reads or writes it, as the run's own parameters are."""
+    from prefect.flows import load_flow_from_entrypoint
+
+    from visemeflow.storage import Store
+
+    root, elsewhere = tmp_path / "root", tmp_path / "elsewhere"
+    store = Store(root / "store")
+    monkeypatch.setenv(ROOTS_ENV, str(root))
+    rerun = load_flow_from_entrypoint("visemeflow.ops.serve.rerun_flow")
+
+    def run(stage):
+        return rerun.fn(**rerun.validate_parameters({"store": str(store.root), "utterance_id": "spk/a",
+                                                     "stage": stage}))
+
+    for stage, settings, name, path in (
+            ("animate", {"characters": [str(root / "good.glb"), str(elsewhere / "char.glb")], "source": "procedural",
+                         "variant": "v", "out": str(root / "out")}, r"characters\[1\]", elsewhere / "char.glb"),
+            ("animate", {"characters": [str(root / "good.glb")], "source": "procedural", "variant": "v",
+                         "out": str(elsewhere / "autostart")}, "out", elsewhere / "autostart"),
+            ("ingest", {"corpus": str(elsewhere / "corpus")}, "corpus", elsewhere / "corpus")):
+        store.write_run_config(stage, settings)
+        with pytest.raises(PathOutsideRootsError, match=rf"the settings {stage} last ran with \(configs/{stage}\.json "
+                                                        rf"in the store\), which this run repeats: {name} = "
+                                                        rf"{re.escape(str(path))} is outside the folders"):
+            run(stage)
+    assert not elsewhere.exists()
+    # inside the roots, the same rerun goes on to the stage (which finds no such corpus)
+    store.write_run_config("ingest", {"corpus": str(root / "corpus")})
+    with pytest.raises(FileNotFoundError, match=f"corpus {re.escape(str(root / 'corpus'))} does not exist"):
+        run("ingest")
+
+
 @pytest.mark.server
 def test_ensure_server_starts_a_local_server_registers_the_forms_and_stops(tmp_path, monkeypatch):
     from prefect.client.orchestration import get_client

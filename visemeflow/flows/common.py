@@ -2,7 +2,8 @@
 
 import traceback
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from contextvars import ContextVar
 
 from prefect import get_run_logger
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
@@ -168,10 +169,21 @@ def read_cached(stage: str, task, store_root, calls: list[tuple[str, tuple, bool
     return reports, left
 
 
+# Set while a served (confined) flow runs (`ops.serve.flat_flow`): it checks the paths in settings read from the
+# store (`last_settings`), which the served run's own parameters do not show, against serve's folders.
+recorded_settings_check: ContextVar[Callable[[str, StageSettings], None] | None] = ContextVar(
+    "visemeflow_recorded_settings_check", default=None)
+
+
 def last_settings(store, stage: str) -> StageSettings | None:
-    """What `stage` last ran with in `store` (typed: `flows.params.SETTINGS`), None when it never ran there."""
+    """What `stage` last ran with in `store` (typed: `flows.params.SETTINGS`), None when it never ran there; in a
+    served run, checked by `recorded_settings_check` (a rerun by hand writes where the stage last wrote)."""
     data = store.read_run_config(stage)
-    return None if data is None else SETTINGS[stage].model_validate(data)
+    settings = None if data is None else SETTINGS[stage].model_validate(data)
+    check = recorded_settings_check.get()
+    if settings is not None and check is not None:
+        check(stage, settings)
+    return settings
 
 
 class StageRun:

@@ -48,6 +48,7 @@ from pydantic import BaseModel
 from visemeflow.location import is_url, parse_root
 from visemeflow.ops.prefect_db import seed_home
 from visemeflow.flows.stages import STAGES, Stage
+from visemeflow.flows.common import recorded_settings_check
 from visemeflow.storage import Store
 
 DEFAULT_CRON = "0 3 * * *"
@@ -233,6 +234,30 @@ def params_model(fn: Callable) -> type[BaseModel]:
     return parameter.annotation
 
 
+# The fields of recorded stage settings (`flows.params.SETTINGS`) that name files or folders; `rig` may be a name.
+RECORDED_PATHS = frozenset({"corpus", "characters", "mapping", "out", "takes", "channel_table", "names", "rig"})
+
+
+def check_settings_within(stage: str, settings: BaseModel, roots: Sequence[Root]) -> None:
+    """PathOutsideRootsError for the first path of the settings `stage` last ran with (read from the store, as a
+    served `rerun` repeats them) outside `roots`: a store's `configs/<stage>.json` written by a run from the command
+    line, or by anyone who can write into the store, must not take a served run outside serve's folders."""
+    named: dict[str, object] = {}
+    for field in RECORDED_PATHS & set(type(settings).model_fields):
+        value = getattr(settings, field)
+        for i, text in enumerate(value if isinstance(value, list) else [value]):
+            if not isinstance(text, str) or not text or (field == "rig" and not _local_path(text)):
+                continue
+            where = f"{field}[{i}]" if isinstance(value, list) else field
+            named[where] = text if is_url(text) else Path(text).expanduser()
+    try:
+        check_paths_within(named, roots)
+    except PathOutsideRootsError as exc:
+        raise PathOutsideRootsError(
+            f"the settings {stage} last ran with (configs/{stage}.json in the store), which this run repeats: "
+            + str(exc).removeprefix("flow parameter ")) from None
+
+
 def served_run_name(template: object) -> object:
     """The stage's run name template on flat parameters: `rerun({params.utterance_id})` -> `rerun({utterance_id})`."""
     return template.replace("{params.", "{") if isinstance(template, str) else template
@@ -252,9 +277,14 @@ def flat_flow(flow: Flow, module: str, roots: Callable[[], Sequence[Root] | None
     def checked(**fields):
         params = model.model_validate(fields)
         allowed = roots()
-        if allowed is not None:
-            check_paths_within(dict(params), allowed)
-        return fn(params)
+        if allowed is None:
+            return fn(params)
+        check_paths_within(dict(params), allowed)
+        token = recorded_settings_check.set(lambda stage, settings: check_settings_within(stage, settings, allowed))
+        try:
+            return fn(params)
+        finally:
+            recorded_settings_check.reset(token)
 
     checked.__signature__ = flat_signature(model)  # Prefect's form, validation and CLI read this signature
     checked.__annotations__ = {}  # not the stage's `params: Model`, which `functools.wraps` copied
