@@ -165,6 +165,16 @@ def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, file
     done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(tmp_path / "curves.csv"),
                            "--blender", str(bpy_python())], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "not a GLB, glTF or USD file" in done.stderr
+    # a GLB cut short, a glTF whose animation names no accessor: one line naming the file, no traceback
+    (tmp_path / "cut.glb").write_bytes(path.read_bytes()[:12])
+    (tmp_path / "bad.gltf").write_text('{"asset": {"version": "2.0"}, "animations": [{"samplers": [{"input": 7}]}]}')
+    for name in ("cut.glb", "bad.gltf"):
+        done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(tmp_path / name),
+                               "--save", str(tmp_path / "x.blend"), "--blender", str(bpy_python())],
+                              capture_output=True, text=True, timeout=120)
+        (line,) = done.stderr.splitlines()
+        assert done.returncode == 2 and line.startswith(f"error: {tmp_path / name}: not a glTF whose animation"), \
+            done.stderr
 
 
 @pytest.mark.parametrize("suffix", [".glb", ".usda", ".usdz"])

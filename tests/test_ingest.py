@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from factories import make_corpus, textgrid_long, textgrid_short, two_frames_apart, write_wav
 from visemeflow.ingest import CorpusEntry, DiscoveryReject, IngestConfig, IngestError, discover_corpus, ingest_utterance
-from visemeflow.phonetics.textgrid import decode_textgrid_bytes, parse_textgrid
+from visemeflow.phonetics.textgrid import TextGridError, decode_textgrid_bytes, parse_textgrid
 from visemeflow.schemas import PHONES, UTTERANCES, C, table_from_rows
 from visemeflow.visemes import VISEMES
 
@@ -263,6 +263,29 @@ def test_unknown_phoneme(tmp_path):
     message = assert_names(info.value, "s/unk", tg.resolve())
     assert info.value.error_type == "UnknownPhoneme"
     assert "'QX7'" in message and "0.450" in message
+
+
+def test_an_alignment_file_too_large_to_be_one_is_refused_before_it_is_parsed(tmp_path, monkeypatch):
+    """An alignment bigger than `MAX_ALIGNMENT_BYTES` (parsing holds about 5 times a file) is a reject naming the
+    utterance and file, read no further; one below it ingests (the limit lowered here, so the files stay small)."""
+    import visemeflow.ingest.utterance as ingest_utterance_module
+    import visemeflow.phonetics.textgrid as textgrid_module
+    from visemeflow.phonetics.textgrid import read_textgrid
+
+    make_corpus(tmp_path, {"s/long": HELLO, "s/short": HELLO})
+    grid = tmp_path / "s" / "long.TextGrid"
+    limit = grid.stat().st_size + 10
+    monkeypatch.setattr(textgrid_module, "MAX_ALIGNMENT_BYTES", limit)
+    monkeypatch.setattr(ingest_utterance_module, "MAX_ALIGNMENT_BYTES", limit)
+    grid.write_bytes(grid.read_bytes() + b" " * 20)
+    with pytest.raises(IngestError) as info:
+        ingest_utterance(entry_of(tmp_path, "s/long"), CONFIG)
+    message = assert_names(info.value, "s/long", grid.resolve())
+    assert info.value.error_type == "AlignmentTooLarge" and f"more than the {limit} an alignment file may have" in \
+        message, message
+    ingest_utterance(entry_of(tmp_path, "s/short"), CONFIG)          # below the limit: read
+    with pytest.raises(TextGridError, match=rf"long\.TextGrid: {limit + 10} bytes, more than the {limit}"):
+        read_textgrid(grid)
 
 
 def test_corrupt_audio(tmp_path):

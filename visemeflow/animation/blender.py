@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import struct
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +56,12 @@ def animation_fps(path: Path) -> float:
     """The frame rate a file we wrote plays at: a glTF's key times, a USD stage's timeCodesPerSecond."""
     suffix = path.suffix.lower()
     if suffix in blender_open.GLTF_SUFFIXES:
-        fps = blender_open.gltf_fps(path)
+        try:
+            fps = blender_open.gltf_fps(path)
+        except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError, struct.error) as exc:
+            # not JSON, a GLB cut short, an animation sampler naming no accessor or one without min/max
+            raise BlenderError(f"{path}: not a glTF whose animation can be read ({type(exc).__name__}: {exc})") \
+                from None
         if fps is None:
             raise BlenderError(f"{path}: no animation in it (a glTF with at least two key times)")
         return fps

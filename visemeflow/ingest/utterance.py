@@ -10,6 +10,7 @@ videos; see `ingest.audio`): such audio is a reject naming the file and the bad 
 """
 
 import math
+import os
 import re
 import zlib
 from dataclasses import dataclass, replace
@@ -29,7 +30,9 @@ from visemeflow.phonetics.inventory import (
     map_phone,
     split_interval,
 )
-from visemeflow.phonetics.textgrid import TextGridError, parse_textgrid_bytes
+from visemeflow.phonetics.textgrid import (
+    MAX_ALIGNMENT_BYTES, TextGridError, alignment_size_error, parse_textgrid_bytes,
+)
 from visemeflow.phonetics.xra import XraError, parse_xra
 from visemeflow.phonetics.types import Alignment, PhoneInterval, WordInterval
 from visemeflow.phonetics.wordalign import (
@@ -157,7 +160,11 @@ def read_alignment(entry: CorpusEntry, config: IngestConfig) -> Alignment:
             grid = load_mlf(path).tiers(folder, stem)
             phones, words = grid.tiers
             return Alignment(_attach_words(phones.items, _words(words)), _words(words), grid.start_s, grid.end_s, path)
-        data = Path(path).read_bytes()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_ALIGNMENT_BYTES + 1)
+        if len(data) > MAX_ALIGNMENT_BYTES:
+            size = max(len(data), os.path.getsize(path))
+            raise IngestError(entry.utterance_id, path, "AlignmentTooLarge", str(alignment_size_error(path, size)))
     except OSError as exc:
         raise IngestError(entry.utterance_id, path, "UnreadableAlignment", f"cannot read: {exc.strerror}") from exc
     except LabelFileError as exc:
