@@ -299,6 +299,39 @@ def test_a_convention_the_character_lacks_and_an_out_that_is_a_file_are_one_line
     assert not store.exists()
 
 
+def test_an_out_folder_nothing_can_be_written_in_is_one_line_before_any_flow(tmp_path, monkeypatch):
+    """An --out on a read-only mount, or an immutable folder, failed each package after the predictions with 60
+    lines of Prefect's traceback ("its one utterance failed"); a root user passes every permission check, so the
+    folder is tried with a file. Here the file system's refusal is what `tempfile` raises."""
+    import errno
+    import os
+    import tempfile
+
+    audio = tmp_path / "a.wav"
+    write_wav(audio, 0.5)
+    store, locked = tmp_path / "s", tmp_path / "locked"
+    locked.mkdir()
+    real = tempfile.TemporaryFile
+
+    def refused(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir) == locked:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    for out in (locked, locked / "new" / "folder"):     # the folder, or one to be made inside it
+        done = runner.invoke(app, ["speak", str(audio), "--out", str(out), "--store", str(store)])
+        assert done.exit_code == 2 and done.output == \
+            f"error: --out {out}: cannot write there (read-only file system on {locked})\n", done.output
+    assert not store.exists() and list(locked.iterdir()) == []
+    access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode: not (Path(path) == locked and mode & os.W_OK)
+                        and access(path, mode))
+    done = runner.invoke(app, ["animate", "--out", str(locked), "--store", str(store)])
+    assert done.exit_code == 2 and f"--out {locked}: cannot write there (no write permission on {locked})" in \
+        done.output, done.output
+
+
 def test_audio_files_that_are_not_audio_are_one_line_before_the_model_loads(tmp_path):
     """`speak notaudio.wav` used to load the model, then print the reason four times (about a minute under load)."""
     text = tmp_path / "notes.wav"

@@ -3,6 +3,7 @@
 import contextlib
 import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -111,13 +112,11 @@ def _usable_store(ctx: typer.Context, store: Path | str) -> Path | str:
         if problem:
             _fail(problem)
     else:
-        probe = store
-        while not probe.exists() and probe != probe.parent:
-            probe = probe.parent
-        if probe.exists() and not probe.is_dir():
+        probe, problem = _unwritable(store)
+        if problem == "a file":
             _fail(f"cannot use {store} as a store: {probe} is a file, not a folder")
-        if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
-            _fail(f"cannot write the store {store}: no write permission on {probe}")
+        if problem:
+            _fail(f"cannot write the store {store}: {problem} on {probe}")
     if _AS_COMMAND and ctx.info_name not in _NO_FLOW and not ctx.resilient_parsing and "prefect" not in sys.modules:
         from visemeflow.ops.connect import use_running_api
 
@@ -300,10 +299,38 @@ def _check_characters(characters: list[Path] | None, meshes: list[str] | None, c
                   "--format")
 
 
+def _unwritable(folder: Path) -> tuple[Path, str | None]:
+    """(the nearest existing folder of `folder`, why nothing can be written there or None): "a file" where a file
+    stands in the way, else the reason a file cannot be made in it (tried: a root user passes every permission
+    check, yet not a read-only mount or an immutable folder)."""
+    probe = Path(folder)
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.exists():
+        return probe, None
+    if not probe.is_dir():
+        return probe, "a file"
+    if not os.access(probe, os.W_OK | os.X_OK):
+        return probe, "no write permission"
+    try:
+        with tempfile.TemporaryFile(dir=probe, prefix=".visemeflow-probe-"):
+            pass
+    except OSError as exc:
+        return probe, (exc.strerror or str(exc)).lower()
+    return probe, None
+
+
 def _check_out_folder(out: Path | None) -> None:
-    """--out names a folder (made when missing): a file there is one line, exit 2, before the work."""
-    if out is not None and not is_url(str(out)) and Path(out).exists() and not Path(out).is_dir():
-        _fail(f"--out {out}: is a file; give a folder for the output files (made when missing)")
+    """--out names a folder (made when missing) where files can be written: else one line, exit 2, before the
+    work."""
+    if out is None or is_url(str(out)):
+        return
+    probe, problem = _unwritable(Path(out))
+    if problem == "a file":
+        where = "" if probe == Path(out) else f" {probe}"
+        _fail(f"--out {out}:{where} is a file; give a folder for the output files (made when missing)")
+    if problem:
+        _fail(f"--out {out}: cannot write there ({problem} on {probe})")
 
 
 def _check_store_has(store: Path, what: str, hint: str) -> None:
