@@ -71,12 +71,15 @@ def totals(reports: list[dict]) -> dict[str, int]:
     return dict(out)
 
 
-def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int = 0) -> State:
+def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int = 0,
+             reasons: Iterable[str] = ()) -> State:
     """The flow's final state, with a message saying how many of the stage's utterances failed.
 
     Completed (the summary as its result) while failures are bad input of some utterances: each is a reject row
     with its reason and the rest of the corpus went on. Failed, raising `StageFailed` to a caller, when all of
-    `total` utterances failed or `unexpected` of them failed with an error that is not a known bad-input class.
+    `total` utterances failed or `unexpected` of them failed with an error that is not a known bad-input class;
+    when all failed, the message gives the first lines of the first three of `reasons` (this run's rejects), so
+    that a run of one file says why it failed, not only that it did.
     """
     if unexpected:
         message = (f"{stage}: {unexpected} of {total} utterances failed with an unexpected error (tracebacks in the "
@@ -84,7 +87,9 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
         return Failed(message=message, data=StageFailed(message, summary))
     every = "its one utterance" if total == 1 else f"all {total} utterances"
     if total and failed >= total:
-        message = f"{stage}: {every} failed (see the rejects table)"
+        reasons = [r.split("\n", 1)[0] for r in reasons if r]
+        why = "; ".join(reasons[:3]) + (f"; and {len(reasons) - 3} more" if len(reasons) > 3 else "")
+        message = f"{stage}: {every} failed" + (f": {why}" if why else "") + " (see the rejects table)"
         return Failed(message=message, data=StageFailed(message, summary))
     if failed:
         message = f"{stage}: {failed} of {total} utterances failed (see the rejects table); the others are done"
@@ -210,13 +215,19 @@ class StageRun:
         return set(self.store.read_table("rejects", self.stage).column(C.UTTERANCE_ID).to_pylist())
 
     def finish(self, summary: dict, failed: int, total: int, *, extra: dict | None = None, unexpected: int = 0,
-               rejects=None, result: dict | None = None, title: str | None = None) -> State:
+               rejects=None, result: dict | None = None, title: str | None = None,
+               reasons: Iterable[str] | None = None) -> State:
         """Publish `summary` (with `extra`, figures that are not counts) and the rejects (the stage's table unless
-        given), log them, and end the run: `finished` over `result` (default: summary and extra)."""
+        given), log them, and end the run: `finished` over `result` (default: summary and extra), with `reasons`
+        (default: the messages of the given `rejects`, this run's)."""
+        from visemeflow.schemas import C
+
         from visemeflow.dashboards.artifacts import publish_rejects, publish_stage_summary
 
         publish_stage_summary(self.stage, summary, extra)
         publish_rejects(self.stage, rejects if rejects is not None else self.store.read_table("rejects", self.stage))
         self.logger.info("%s: %s", title or self.stage, summary)
+        if reasons is None:
+            reasons = rejects.column(C.MESSAGE).to_pylist() if rejects is not None else ()
         return finished(self.stage, result if result is not None else {**summary, **(extra or {})}, failed, total,
-                        unexpected)
+                        unexpected, reasons)

@@ -59,7 +59,8 @@ def landmarks_flow(params: LandmarksParams) -> dict[str, object]:
         "frames_without_face": sum(r["frames"] - r["detected_frames"] for r in reports),
         "multi_face": sum(r["multi_face"] for r in reports),
     }
-    return run.finish(summary, len(rejects), len(rows), unexpected=unexpected)
+    return run.finish(summary, len(rejects), len(rows), unexpected=unexpected,
+                      reasons=[r[C.MESSAGE] for r in rejects])
 
 
 def rerun_one(store: Store, uid: str, last: LandmarksSettings | None, force: bool) -> dict:

@@ -297,7 +297,7 @@ def track_flow(params: TrackParams) -> dict[str, object]:
              "unguided_why": unguided_why(unguided),
              "mean_mouth_error_px": round(sum(errors) / len(errors), 3) if errors else None}
     return run.finish(summary, len(rejects), len(rows), extra=extra, unexpected=unexpected,
-                      title=f"track ({extra['variants'] or config.variant})")  # the modes used, not the one asked
+                      reasons=[r[C.MESSAGE] for r in rejects], title=f"track ({extra['variants'] or config.variant})")  # the modes used, not the one asked
 
 
 def rerun_one(store: Store, uid: str, last: TrackSettings | None, force: bool) -> dict:
