@@ -331,16 +331,25 @@ def test_a_cache_hit_never_serves_a_package_another_character_wrote(tmp_path, tw
     store = make_curve_store(tmp_path / "store", n=1)
     arkit, oculus = two_named_good
 
-    def run(character):
+    def run(character, out=None):
         (report,) = animate_flow(AnimateParams(store=store.root, characters=[character], source="ground_truth",
-                                               config=AnimateConfig(formats=("glb",))))["packages_written"]
+                                               config=AnimateConfig(formats=("glb",)), out=out))["packages_written"]
         return report
 
-    assert _glb_shapes(run(arkit)) == list(ARKIT_52)
-    assert _glb_shapes(run(oculus)) == list(OCULUS_15)   # same folder animations/good/...: replaced
+    first = run(arkit)
+    assert _glb_shapes(first) == list(ARKIT_52) and Path(first["folder"]).parts[-3] == "good"
+    # another file of that name, in a run of its own: a folder of its own (animations/good holds c1/good.glb's
+    # packages, as its .character says), so c1's package stays and is a cache hit again
+    other = run(oculus)
+    assert _glb_shapes(other) == list(OCULUS_15) and Path(other["folder"]).parts[-3].startswith("good-")
     again = run(arkit)
-    assert not again["cached"] and _glb_shapes(again) == list(ARKIT_52)
-    assert run(arkit)["cached"]
+    assert again["cached"] and again["folder"] == first["folder"] and _glb_shapes(again) == list(ARKIT_52)
+    assert run(oculus)["folder"] == other["folder"]
+    # the same under --out: each file's packages in a folder of its own, one run after the other
+    out = tmp_path / "out"
+    assert Path(run(oculus, out)["folder"]).parts[-3] == "good" and \
+        Path(run(arkit, out)["folder"]).parts[-3].startswith("good-")
+    assert (out / "good" / "spk" / "u0" / "u0.glb").is_file() and _glb_shapes(run(oculus, out)) == list(OCULUS_15)
 
 
 def test_speak_rejects_a_bad_audio_file_and_animates_the_others(tmp_path, characters, capfd):

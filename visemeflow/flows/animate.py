@@ -17,7 +17,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.states import Failed
 
 from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
-from visemeflow.location import input_digest, input_exists, local_input
+from visemeflow.location import input_digest, input_exists, is_url, local_input
 from visemeflow.rig.character import CharacterError
 from visemeflow.dashboards.records import record_packages
 from visemeflow.flows.errors import RerunError, StageFailed
@@ -27,8 +27,8 @@ from visemeflow.atomic import atomic_path
 from visemeflow.hashing import file_hash, stable_hash
 from visemeflow.schemas import C, CurveSource, validate_name
 from visemeflow.storage import Store
-from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, character_key, \
-    character_keys, content_hash, outputs_present, package_inputs
+from visemeflow.tasks.animate import STAGE, AnimateError, animate_one, bound_character, \
+    character_keys, claim_character_folder, content_hash, outputs_present, package_inputs
 from visemeflow.tasks.common import reject_row, result_storage
 
 
@@ -128,7 +128,8 @@ def animate_flow(params: AnimateParams):
     out = str(params.out) if params.out else None
     rejects, futures, choices = [], {}, []
     paths = [str(Path(character).resolve()) for character in params.characters]
-    for path, key in zip(paths, character_keys(paths)):
+    root = package_root(store, out)
+    for path, key in zip(paths, character_keys(paths, root)):
         try:
             if mapping and not params.mapping.is_file():
                 raise CharacterError(f"{params.mapping}: no such mapping CSV")
@@ -141,6 +142,8 @@ def animate_flow(params: AnimateParams):
             rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
             logger.warning("animate: %s", exc)
             continue
+        if root is not None:   # this character's folder now: a later run of another file of its name gets another
+            claim_character_folder(root, key, path)
         for uid in ids:
             audio, audio_hash, provenance = per_utterance[uid]
             variant = variant_of[uid]
@@ -176,7 +179,7 @@ def animate_flow(params: AnimateParams):
     # several variants (guided and unguided tracking): the summary line names them, with how many utterances each
     used = {"variants": ", ".join(f"{v}: {len(u)}" for v, u in plan)} if len(plan) > 1 else {}
     return run.finish(summary, failed, len(futures) + lost, unexpected=unexpected,
-                      title=f"animate ({params.source}/{label})",
+                      title=f"animate ({params.source}/{label})", reasons=[r[C.MESSAGE] for r in rejects],
                       extra={"source": params.source, "variant": label, "characters": len(params.characters)},
                       result={**summary, "source": params.source, "variant": label, **used,
                               "characters": len(params.characters),
@@ -252,7 +255,11 @@ def preview_flow(params: PreviewParams) -> dict:
     character_hash = content_hash(path)
     mapping = str(params.mapping.resolve()) if params.mapping else None
     found, skipped = preview_sources(store, uid, params.sources)
-    folder = package_dir(store, None, character_key(path), uid)
+    root = package_root(store, None)
+    (key,) = character_keys([path], root)
+    if root is not None and not params.out:
+        claim_character_folder(root, key, path)
+    folder = package_dir(store, None, key, uid)
     out = params.out or folder / f"{folder.name}.preview.mp4"
     recorded = not (store.remote and not params.out)   # a local MP4 gets a record of what it was made from
     inputs = _preview_inputs(store, params, character_hash, file_hash(mapping) if mapping else None, found) \
@@ -357,6 +364,14 @@ def rerun_variant(store: Store, uid: str, last: AnimateSettings | None) -> str:
     return variant
 
 
+def package_root(store: Store, out: str | None) -> Path | None:
+    """The local folder holding the character folders of packages (`--out`, else the store's `animations`), where
+    each records the file it holds (`tasks.animate.claim_character_folder`); None on object storage."""
+    if out:
+        return None if is_url(out) else Path(out)
+    return None if store.remote else store.root / "animations"
+
+
 def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:
     """Every character of the last animate run, for one utterance; AnimateError for bad input."""
     from visemeflow.tasks.animate import character_keys
@@ -370,5 +385,6 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
                      store.curves_provenance(last.source, variant, uid) or "", path, content_hash(path),
                      key, mapping, file_hash(mapping) if mapping else None, last.config, audio,
                      input_digest(audio) if audio else None, last.out)
-                for path, key in zip(last.characters, character_keys(last.characters)) if Path(path).exists()]
+                for path, key in zip(last.characters, character_keys(last.characters, package_root(store, last.out)))
+                if Path(path).exists()]
     return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}

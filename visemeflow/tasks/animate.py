@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import re
 import shutil
 from collections import defaultdict
@@ -33,6 +34,7 @@ from prefect.context import TaskRunContext
 
 from visemeflow.animation.apply import CurvesError
 from visemeflow.animation.bones import BoneError
+from visemeflow.atomic import atomic_write_text
 from visemeflow.location import local_input
 from visemeflow.rig.character import Character, CharacterError
 from visemeflow.animation.gltf import GLTF_SUFFIXES
@@ -144,17 +146,43 @@ def character_key(path: str | Path) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).lstrip(".") or "character"
 
 
-def character_keys(paths: list[str]) -> list[str]:
+CHARACTER_OWNER = ".character"   # in a character's package folder: the resolved path of the file it holds
+
+
+def character_keys(paths: list[str], root: str | os.PathLike | None = None) -> list[str]:
     """The package folder name of each character of one run: its `character_key`, unless different files (by
-    resolved path) share one, as `a/good.glb` and `b/good.glb`: then each of those gets `-<8 hex digits>` of its
-    resolved path, so neither overwrites the other's packages and the same list gets the same names again."""
+    resolved path) share one, as `a/good.glb` and `b/good.glb`, or (`root`: the local folder of the character
+    folders, `--out` or the store's `animations`) its folder there holds another file's packages, as its
+    `.character` says (`claim_character_folder`): then it gets `-<8 hex digits>` of its resolved path, so no run
+    overwrites another character's packages and the same file gets the same folder again."""
     keys = [character_key(p) for p in paths]
     resolved = [str(Path(p).resolve()) for p in paths]
     owners: dict[str, set[str]] = defaultdict(set)
     for key, where in zip(keys, resolved):
         owners[key].add(where)
-    return [f"{key}-{stable_hash(where, size=4)}" if len(owners[key]) > 1 else key
-            for key, where in zip(keys, resolved)]
+    out = []
+    for key, where in zip(keys, resolved):
+        owner = _folder_owner(Path(root) / key) if root is not None else None
+        out.append(f"{key}-{stable_hash(where, size=4)}" if len(owners[key]) > 1 or owner not in (None, where)
+                   else key)
+    return out
+
+
+def _folder_owner(folder: Path) -> str | None:
+    try:
+        return (folder / CHARACTER_OWNER).read_text(encoding="utf-8").strip() or None
+    except (OSError, UnicodeDecodeError):   # none yet (a folder of an earlier version, or a new one)
+        return None
+
+
+def claim_character_folder(root: str | os.PathLike, key: str, path: str) -> None:
+    """Record in `root/<key>/.character` that the folder holds the packages of the character file `path` (resolved),
+    unless it says so already (see `character_keys`)."""
+    folder = Path(root) / key
+    where = str(Path(path).resolve())
+    if _folder_owner(folder) != where:
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(folder / CHARACTER_OWNER, where + "\n")
 
 
 def package_inputs(utterance_id: str, source: str, variant: str, provenance: str, character_hash: str,
