@@ -298,6 +298,21 @@ def test_preview_and_bone_mode_packages_show_bones_beside_blendshapes(tmp_path, 
         PreviewParams(store=store.root, utterance_id="spk/u0", mode="skeleton")
 
 
+def test_the_lips_report_counts_the_closures_without_a_preview(tmp_path):
+    """The b/p/m closed on the mesh are counted wherever the utterance has phones, as the docs say; the phones were
+    read only for a preview, so `animate` without --preview never printed the count."""
+    from visemeflow.schemas import PHONES, table_from_rows
+
+    store = make_curve_store(tmp_path / "store", n=1)
+    rows = [{C.UTTERANCE_ID: "spk/u0", "index": i, "part": 0, "label": label, C.PHONEME: label, "viseme": viseme,
+             C.START_S: start, C.END_S: end} for i, (label, viseme, start, end) in
+            enumerate([("AA1", "AHH", 0.1, 0.4), ("B", "MBP", 0.4, 0.5), ("AA1", "AHH", 0.5, 0.9)])]
+    store.write_shard("phones", 0, table_from_rows(rows, PHONES))
+    (report,) = animate_flow(AnimateParams(store=store.root, source="ground_truth",
+                                           config=AnimateConfig(formats=("glb",))))["packages_written"]
+    assert report["lips"]["bilabials"] == 1 and 0 <= report["lips"]["closed"] <= 1, report["lips"]
+
+
 @pytest.fixture
 def two_named_good(tmp_path):
     """c1/good.glb (ARKit shapes) and c2/good.glb (Oculus shapes): one file name, two characters."""

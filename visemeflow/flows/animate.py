@@ -118,7 +118,7 @@ def animate_flow(params: AnimateParams):
     ids = list(variant_of)
     utterances = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances", utterance_ids=ids)
                   .select([C.UTTERANCE_ID, C.AUDIO_PATH]).to_pylist()} if ids else {}
-    phones = _phones(store, ids) if params.config.preview else {}
+    phones = _phones(store, ids)   # the lips report counts the b/p/m closed on the mesh (and the preview shows them)
     per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
     for uid in ids:
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
