@@ -177,6 +177,46 @@ def test_visemeflow_blender_without_a_blender_says_how_to_get_one(tmp_path, file
             done.stderr
 
 
+def test_visemeflow_blender_keeps_the_avatars_object_names(tmp_path):
+    """Blender's glTF importer splits an animated skinned node: an Empty takes its name (`Wolf3D_Head`) and the mesh
+    becomes `Wolf3D_Head.001`, so a user's script finding the head by name got an Empty. `visemeflow blender` removes
+    those empty nodes and gives the meshes their names back; the saved scene still plays our weights on them."""
+    from avatar_glb import make_avatar
+
+    from visemeflow.animation.gltf_asset import write_character_glb
+    from visemeflow.animation.load import load_character
+
+    import pygltflib as gl
+
+    source = tmp_path / "avatar.glb"
+    make_avatar(source)
+    avatar = gl.GLTF2().load(str(source))
+    avatar.nodes[3].name = avatar.meshes[avatar.nodes[3].mesh].name   # a skinned head node named as its mesh, as RPM's
+    avatar.save(str(source))
+    character = load_character(source)
+    weights = np.random.default_rng(7).random((N, character.n_shapes)).astype(np.float32)
+    out = write_character_glb(tmp_path / "spoken.glb", character, weights, FPS, name="speech")
+    blend = tmp_path / "spoken.blend"
+    done = subprocess.run([str(REPO / ".venv" / "bin" / "visemeflow"), "blender", str(out), "--save", str(blend),
+                           "--blender", str(bpy_python())], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    report, meshes = probe(blend, [0, 11], tmp_path / "names.npz", fps=None)
+    import re
+
+    from visemeflow.rig.gltf import GltfScene
+
+    kinds = {name: kind for name, kind, _ in report["objects"]}
+    assert not any(re.search(r"\.\d{3}$", name) for name in kinds), kinds      # no `TeethNode.001`
+    scene = GltfScene(source)
+    ours = character.neutral[None] + np.einsum("fs,svc->fvc", weights[[0, 11]], character.deltas)
+    ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, ours.astype(np.float64))
+    for part in character.parts:   # each driven mesh named as its node (or, where Blender split it, its mesh)
+        names = [node.name for node in scene.gltf.nodes if node.mesh == part.mesh] + [part.name]
+        shown = [n for n in names if kinds.get(n) == "MESH"]
+        assert shown, (part.name, names, kinds)
+        assert np.abs(meshes[shown[0]] - ours[:, part.start:part.stop]).max() < 1e-5, part.name
+
+
 @pytest.mark.parametrize("suffix", [".glb", ".usda", ".usdz"])
 def test_blender_plays_our_clip_on_a_users_whole_avatar_before_its_own_clips(tmp_path, suffix):
     """A Ready-Player-Me-like avatar (head skinned and textured, teeth, two eyes, a body, and an `idle` clip of its own,

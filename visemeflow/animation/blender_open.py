@@ -75,6 +75,32 @@ def scene_objects(scene) -> list:
     return [o for o in scene.objects if o not in shapes]
 
 
+def merge_split_nodes(bpy, objects) -> list[str]:
+    """Undo the glTF importer's split of an animated skinned node: it makes an Empty for the node and a mesh object
+    beside it, one of them named `NAME.001` where the node and its mesh share a name (Ready Player Me's
+    `Wolf3D_Head`), so a script that looks the head up by name may find an Empty. The Empty holds nothing (a
+    skinned mesh's node transform is not used; our clip drives the mesh's shape keys): it is removed and the mesh
+    takes the name. Returns the names given back."""
+    def base(name: str) -> str:
+        stem, dot, number = name.rpartition(".")
+        return stem if dot and number.isdigit() and len(number) == 3 else name
+
+    groups: dict[str, list] = {}
+    for o in objects:
+        groups.setdefault(base(o.name), []).append(o)
+    back = []
+    for name, group in groups.items():
+        meshes = [o for o in group if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)]
+        empties = [o for o in group if o.type == "EMPTY" and not o.children
+                   and not (o.animation_data and o.animation_data.action)]
+        if len(group) != 2 or len(meshes) != 1 or len(empties) != 1:
+            continue
+        bpy.data.objects.remove(empties[0])
+        meshes[0].name = name
+        back.append(name)
+    return back
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="blender_open.py", description=__doc__.splitlines()[0])
     parser.add_argument("animation", type=Path, help="A GLB/glTF or USD file visemeflow wrote.")
@@ -108,7 +134,9 @@ def main(argv: list[str] | None = None) -> dict:
         scene.render.fps_base = scene.render.fps / fps       # 29.97 fps: 30 / 1.001
     before = set(bpy.data.actions)
     if suffix in GLTF_SUFFIXES:
+        existing = set(bpy.data.objects)
         bpy.ops.import_scene.gltf(filepath=str(path))
+        merge_split_nodes(bpy, [o for o in bpy.data.objects if o not in existing])
     else:
         bpy.ops.wm.usd_import(filepath=str(path), set_frame_range=True)
     ranges = [action.frame_range for action in bpy.data.actions if action not in before]
