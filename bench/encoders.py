@@ -3,7 +3,7 @@
 
 Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
      [--espeak 200,100] [--threads 2] [--baseline] [--variants pitch:-3,speed:0.8] [--mbp-peaks 0.067,16]
-     [--grid-phones spread|aligned] [--rooms 4] [--esx nl,cs:200] [--save DIR]
+     [--grid-phones spread|aligned] [--rooms 4] [--esx nl,cs:200] [--extra DIR] [--mbp-others 6] [--save DIR]
 
 Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
 512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
@@ -31,6 +31,8 @@ Training data (all shippable; nothing of the judged speakers):
   in time and the targets and per-frame visemes stay as they are; level kept);
 - `ljrc`: the same rooms (the same draws) followed by a channel: a zero-phase band-pass (low edge 80-400 Hz, high
   edge 3-7.5 kHz: telephone to wide band), a spectral tilt of -3..+3 dB per octave and white noise 20-40 dB below;
+- `x`: an aligned corpus folder of your own (`--extra DIR`: wav + TextGrid per utterance, read as the product reads
+  a corpus), e.g. the Kokoro voices of bench/kokoro_voices.py; targets as `esx`'s;
 - `+cls` / `+clsW`: the auxiliary viseme-classification loss (`TrainConfig.viseme_loss_weight`, 0.5 or W) on the
   examples with an alignment (LJ, espeak; the FACEGOOD pieces have none and add only the curve loss).
 A part named twice is seen twice as often. `--losses`: the curve loss (bench/domain_gap.py's `l1`, `closure:W`, ...);
@@ -175,6 +177,7 @@ class Sets:
     lj_crops: list[Example] = field(default_factory=list)      # short pieces of them in silence (`ljw`)
     lj_utterances: list[Utterance] = field(default_factory=list)  # the LJ utterances of `lj` (phones for `ljw`)
     crop_s: tuple[float, float] = CROP_S                         # `ljw`: seconds of speech in a crop (low, high)
+    extra: list[Example] = field(default_factory=list)           # `x`: the aligned corpus of `--extra DIR`
 
 
 VARIANTS = "pitch:-3,pitch:3,speed:0.8,speed:1.25"
@@ -310,11 +313,12 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
         sets.lj_crops = short_crops(sets.lj_utterances, sets.lj, sets.crop_s)
     data = {"lj": sets.lj, "ljt": sets.lj_truth, "ljv": sets.lj_variants, "fg": sets.facegood,
             "es": sets.espeak, "esx": sets.espeak_langs, "ljr": sets.lj_rooms, "ljrc": sets.lj_channels,
-            "ljw": sets.lj_crops}
+            "ljw": sets.lj_crops, "x": sets.extra}
     unknown = [p for p in parts if p not in data or (p == "es" and not sets.espeak)
-               or (p == "esx" and not sets.espeak_langs)]
+               or (p == "esx" and not sets.espeak_langs) or (p == "x" and not sets.extra)]
     if unknown:
-        raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak, esx --esx)")
+        raise SystemExit(f"unknown recipe part(s) {unknown} in {recipe!r} (es needs --espeak, esx --esx, "
+                         "x --extra)")
     return [e for p in parts for e in data[p]]
 
 
@@ -396,6 +400,13 @@ def main() -> int:
                         help="write each trained model to DIR (for bench/thirdlang.py --models DIR/NAME.pt)")
     parser.add_argument("--mbp-peaks", default="0,0", metavar="SECONDS,POWER",
                         help="narrow each trained model's MBP channel to its peaks (learning.model.ClosurePeaks)")
+    parser.add_argument("--extra", type=Path, default=None, metavar="DIR",
+                        help="an aligned corpus folder (wav + TextGrid per utterance, read as the product reads one) "
+                             "for the recipe part `x`; targets: procedural curves with the closure rule and the "
+                             "--closure-ramps of the LJ targets")
+    parser.add_argument("--mbp-others", type=float, default=0.0, metavar="K",
+                        help="with --mbp-peaks: cap the other visemes at (1 - MBP) ** K where MBP leads (the "
+                             "shipped default's 6; `ClosurePeaks.others_power`); 0: no cap")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
     parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
@@ -408,8 +419,12 @@ def main() -> int:
     sets = load_sets(espeak, args.closure_ramps, args.variants, args.grid_phones, args.rooms,
                      args.esx if uses_esx else "")
     sets.crop_s = tuple(float(x) for x in args.crop_seconds.split(","))
+    if args.extra is not None:
+        onset, decay = args.closure_ramps if isinstance(args.closure_ramps, tuple) else (args.closure_ramps,) * 2
+        sets.extra = [labelled(u) for u in read_corpus(args.extra, procedural=ProceduralConfig(
+            closure_onset_s=onset, closure_decay_s=decay))]
     print(f"data in {time.perf_counter() - t0:.0f} s: LJ {len(sets.lj)}, FACEGOOD pieces {len(sets.facegood)}, "
-          f"espeak {len(sets.espeak)}, esx {len(sets.espeak_langs)}; held out: "
+          f"espeak {len(sets.espeak)}, esx {len(sets.espeak_langs)}, extra {len(sets.extra)}; held out: "
           + ", ".join(f"{k} {len(v)}" for k, v in sets.held_out.items()), flush=True)
     predict = CachedPredictor()
     rows = []
@@ -439,17 +454,19 @@ def main() -> int:
         config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers)
         model = train_model(train, [], config, encoder_cache=CACHE, loss=make_loss(loss)).model
         window_s, power = (float(x) for x in args.mbp_peaks.split(","))
-        model.closure_peaks = ClosurePeaks(window_s, power) if window_s > 0 else None
+        model.closure_peaks = ClosurePeaks(window_s, power, others_power=args.mbp_others) if window_s > 0 else None
         model.eval()
         secs = time.perf_counter() - started
         if args.save is not None:
             args.save.mkdir(parents=True, exist_ok=True)
-            peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power} if window_s > 0 else {}
+            peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
+                     "mbp_others_power": args.mbp_others} if window_s > 0 else {}
             saved = save_model(model, config.model_copy(update=peaks),
                                args.save / re.sub(r"[^\w.+-]", "_", f"{recipe}_{loss}_s{seed}_{layers}.pt"),
                                {"script": "bench/encoders.py", "recipe": recipe, "loss": loss, "seed": seed,
                                 "layers": layers, "steps": args.steps, "d_model": args.d_model,
                                 "closure_ramps_s": args.closure_ramps, "rooms": args.rooms, "esx": args.esx,
+                                "extra": str(args.extra) if args.extra else None,
                                 "mbp_peaks": [window_s, power]})
             print(f"saved {saved}", flush=True)
         rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
