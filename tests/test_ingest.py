@@ -779,6 +779,29 @@ def test_audio_loading_for_training_and_prediction_refuses_nan(tmp_path):
 
 @pytest.mark.flow
 @pytest.mark.usefixtures("prefect_harness")
+def test_procedural_curves_follow_a_new_frame_rate_of_the_ingest(tmp_path):
+    """`pipeline --fps 25` after a run at 30 re-read every utterance at 25 fps, but the procedural stage reused the
+    30-fps curves (their provenance held the files and the rules, not the clock): the store mixed frame rates."""
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, ProceduralParams
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.storage import Store
+
+    corpus = make_corpus(tmp_path / "corpus", {"s/a": HELLO, "s/b": HELLO})
+    store_root = tmp_path / "store"
+    store = Store(store_root)
+    for fps, generated in ((30.0, 2), (25.0, 2), (25.0, 0)):
+        ingest_flow(IngestParams(corpus=corpus, store=store_root, n_shards=1, config=IngestConfig(fps=fps)))
+        report = procedural_flow(ProceduralParams(store=store_root, n_shards=1))
+        assert report.get("generated", 0) == generated, (fps, report)   # the last: the shard cached
+        for uid in ("s/a", "s/b"):
+            table = store.read_curves(uid, "procedural", report["variant"])
+            (row,) = store.read_table("utterances", utterance_ids=[uid]).to_pylist()
+            assert table.num_rows == row[C.N_FRAMES] == round(row[C.DURATION_S] * fps), (fps, uid)
+            times = table.column(C.TIME_S).to_numpy()
+            assert abs(1.0 / (times[1] - times[0]) - fps) < 1e-6, (fps, uid)
+
+
 def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):
     """Speakers 'Speaker One', 'Sprecher_ü', '张三' ingest; their curves are written and read back by id; a NaN
     float WAV and a link leaving the corpus are rejects with clear messages while the rest goes on."""

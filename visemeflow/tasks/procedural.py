@@ -45,9 +45,12 @@ def shard_digest(utterances: list[dict], config: ProceduralConfig, variant: str)
     return stable_hash(utterances, config, variant, code_digest(__name__))
 
 
-def provenance(content_hash: str, config: ProceduralConfig) -> str:
-    """What made an utterance's curves: its input files' content hash, the config and the code."""
-    return f"procedural:{content_hash}:{stable_hash(config)}:{code_digest(__name__)}"
+def provenance(utterance: dict, config: ProceduralConfig) -> str:
+    """What made an utterance's curves: its input files' content hash, its clock (the frame rate and frame count
+    ingest gave it, which the curves follow unless `config.fps` is set: a pipeline run again with another --fps
+    makes them again), the config and the code."""
+    clock = stable_hash(float(utterance[C.FPS]), int(utterance[C.N_FRAMES]), float(utterance[C.DURATION_S]))
+    return f"procedural:{utterance[C.CONTENT_HASH]}:{stable_hash(config)}:{clock}:{code_digest(__name__)}"
 
 
 def generate_for_utterance(
@@ -61,7 +64,7 @@ def generate_for_utterance(
         fps, n_frames = config.fps, frame_count(utterance[C.DURATION_S], config.fps)
     curves = generate_procedural_curves(segments_from_phones(phones), n_frames, fps, config)
     # NaN or infinite curves are refused by the store (NonFiniteValueError, a reject of this utterance)
-    store.save_curves(Curves(curves, fps, uid, SOURCE, variant, provenance(utterance[C.CONTENT_HASH], config)))
+    store.save_curves(Curves(curves, fps, uid, SOURCE, variant, provenance(utterance, config)))
 
 
 def _read_phones(store: Store, shard: int, ids: list[str]) -> pa.Table:
@@ -95,7 +98,7 @@ def _generate_many(
             if not has_alignment(u):  # no phones (a video without an alignment, a captured take): nothing to make
                 get_run_logger().info("%s has no alignment: no procedural curves (it has no phones)", uid)
                 continue
-            if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u[C.CONTENT_HASH], config):
+            if not force and store.curves_provenance(SOURCE, variant, uid) == provenance(u, config):
                 reused += 1
                 continue
             s, e = bounds.get(uid, (0, 0))
