@@ -4,6 +4,7 @@ import csv
 import math
 import os
 import pickle
+import re
 import shutil
 from pathlib import Path
 
@@ -800,6 +801,33 @@ def test_procedural_curves_follow_a_new_frame_rate_of_the_ingest(tmp_path):
             assert table.num_rows == row[C.N_FRAMES] == round(row[C.DURATION_S] * fps), (fps, uid)
             times = table.column(C.TIME_S).to_numpy()
             assert abs(1.0 / (times[1] - times[0]) - fps) < 1e-6, (fps, uid)
+
+
+def test_a_curve_file_cut_short_is_made_again_and_named_when_read(tmp_path):
+    """A curve file cut to half (a copy or a full disk) passed the stage's check, which only caught empty files, so
+    the pipeline kept it and `curves show` died with Arrow's traceback: it is now remade, and read, a StoreError
+    naming the file and the command that remakes it."""
+    from visemeflow.flows.ingest import ingest_flow
+    from visemeflow.flows.params import IngestParams, ProceduralParams
+    from visemeflow.flows.procedural import procedural_flow
+    from visemeflow.storage import Store
+    from visemeflow.storage.store import StoreError
+
+    corpus = make_corpus(tmp_path / "corpus", {"s/a": HELLO, "s/b": HELLO})
+    store_root = tmp_path / "store"
+    store = Store(store_root)
+    ingest_flow(IngestParams(corpus=corpus, store=store_root, n_shards=1))
+    procedural_flow(ProceduralParams(store=store_root, n_shards=1))
+    path = store.curve_path("procedural", "jali", "s/a")
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) // 2])
+    assert not store.has_curves("procedural", "jali", "s/a") and store.has_curves("procedural", "jali", "s/b")
+    with pytest.raises(StoreError, match=rf"{re.escape(str(path))}: the procedural curves of s/a are damaged, not a "
+                                         r"whole Parquet file .*`visemeflow rerun s/a --stage procedural`"):
+        store.read_curves("s/a", "procedural", "jali")
+    report = procedural_flow(ProceduralParams(store=store_root, n_shards=1))
+    assert report["generated"] == 1 and report["reused"] == 1, report
+    assert store.read_curves("s/a", "procedural", "jali").num_rows == 30
 
 
 def test_unicode_corpus_through_ingest_and_procedural_flows(tmp_path):

@@ -109,6 +109,15 @@ class StoreError(OSError):
     """The store cannot be written or read; the message names the path and the reason."""
 
 
+def damaged_curves(path, utterance_id: str, source: str, exc: Exception) -> "StoreError":
+    """The error of a curve file that does not read as Parquet (cut short by a copy or a full disk)."""
+    again = {"procedural": "procedural", "tracked": "track"}.get(source)
+    how = (f"`visemeflow rerun {utterance_id} --stage {again}` (or the pipeline) makes it again" if again else
+           "make it again with the command that made it")
+    return StoreError(errno.EIO, f"{path}: the {source} curves of {utterance_id} are damaged, not a whole Parquet "
+                                 f"file ({str(exc).splitlines()[0]}); {how}")
+
+
 class NonFiniteValueError(ValueError):
     """Curves or metrics holding NaN or an infinite value: refused before anything is written."""
 
@@ -169,6 +178,21 @@ def _read_whole(path: Path) -> pa.Table:
         return pq.read_table(pa.BufferReader(path.fs.cat_file(path.path)))
     with pa.OSFile(str(path)) as fh:
         return pq.read_table(fh)
+
+
+def _parquet_tail_ok(path: Path) -> bool:
+    """A local file that ends as a whole Parquet file does: a footer length that fits, then the magic `PAR1`."""
+    try:
+        with open(path, "rb") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            if size < 12:
+                return False
+            fh.seek(size - 8)
+            tail = fh.read(8)
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError):   # a file where a folder would be, or none
+        return False
+    footer = int.from_bytes(tail[:4], "little")
+    return tail[4:] == b"PAR1" and 0 < footer <= size - 12
 
 
 def _read_schema(path: Path) -> pa.Schema:
@@ -1006,12 +1030,11 @@ class Store:
         return _read_whole(path).cast(TABLE_SCHEMAS[table_name]) if path.exists() else TABLE_SCHEMAS[table_name].empty_table()
 
     def has_curves(self, source: str, variant: str, utterance_id: str) -> bool:
-        """Whether the curve file is there and not empty (a file renamed inside `atomic.group_sync` can come back
-        empty after a power loss: one stat, so a stage's check of thousands stays cheap)."""
-        try:
-            return self.curve_path(source, variant, utterance_id).stat().st_size > 0
-        except (FileNotFoundError, NotADirectoryError):   # as Path.exists: a file where a folder would be
-            return False
+        """Whether the curve file is there and whole: not empty (a file renamed inside `atomic.group_sync` can come
+        back empty after a power loss) and ending as a Parquet file does, its footer's length then `PAR1` (a file
+        cut short, by a copy or a full disk, does not). One open and an 8-byte read, so a stage's check of thousands
+        stays cheap; a stage remakes a file that is not whole."""
+        return _parquet_tail_ok(self.curve_path(source, variant, utterance_id))
 
     def curves_present(self, source: str, variant: str, utterance_ids: list[str]) -> set[str]:
         """Those of `utterance_ids` whose curve file is there and not empty (`has_curves` of each). On object
@@ -1082,15 +1105,24 @@ class Store:
         return f"{utterance_id}: no {source} curves in {self.location}{hint}"
 
     def read_curves(self, utterance_id: str, source: str, variant: str | None = None) -> pa.Table:
-        """Curves of one utterance from one source; `variant` may be omitted when only one exists."""
-        return _read_whole(self._stored_curve_path(utterance_id, source, variant)).cast(CURVES)
+        """Curves of one utterance from one source; `variant` may be omitted when only one exists. A file that is
+        not a whole Parquet file is a StoreError naming it (`damaged_curves`)."""
+        path = self._stored_curve_path(utterance_id, source, variant)
+        try:
+            return _read_whole(path).cast(CURVES)
+        except pa.ArrowInvalid as exc:
+            raise damaged_curves(path, utterance_id, source, exc) from None
 
     def load_curves(self, utterance_id: str, source: str, variant: str | None = None,
                     default_fps: float = DEFAULT_FPS) -> Curves:
         """The stored curves of one utterance as a :class:`Curves` value, with the rate and provenance the writer
         recorded (``default_fps`` only for a one-frame file of a writer that recorded no rate)."""
         path = self._stored_curve_path(utterance_id, source, variant)
-        return Curves.from_table(_read_whole(path), default_fps)
+        try:
+            table = _read_whole(path)
+        except pa.ArrowInvalid as exc:
+            raise damaged_curves(path, utterance_id, source, exc) from None
+        return Curves.from_table(table, default_fps)
 
     def save_curves(self, curves: Curves) -> Path:
         """Write a :class:`Curves` value (its rate and provenance in the file's metadata), replacing what was there."""
