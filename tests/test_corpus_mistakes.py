@@ -88,6 +88,13 @@ def test_binary_and_headerless_manifests_are_one_line_errors_not_decode_dumps(tm
     headerless = tmp_path / "list.csv"
     headerless.write_text("spk/a,spk/a.wav,spk/a.TextGrid\n", encoding="utf-8")
     assert "has no utterance_id column" in check_corpus(headerless)
+    # an audio column misspelt: one line before any flow (it was 168 lines of tracebacks from inside the ingest run)
+    misspelt = tmp_path / "typo" / "manifest.csv"
+    misspelt.parent.mkdir()
+    misspelt.write_text("utterance_id,audo,alignment\nspk/a,a.wav,a.TextGrid\n", encoding="utf-8")
+    for given in (misspelt, misspelt.parent):
+        assert check_corpus(given).startswith(f"manifest {misspelt}: no audio or video column (its columns: "
+                                              "utterance_id, audo, alignment; expected utterance_id, audio")
 
     # text at first, bytes that are not UTF-8 further on: discovery's own error, never the bytes
     late = tmp_path / "late" / "manifest.csv"

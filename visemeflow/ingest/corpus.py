@@ -211,10 +211,13 @@ def _check_manifest_file(path: Path) -> str | None:
         what = "not a manifest CSV" if lower.endswith(".csv") else \
             f"neither an audio or video file ({', '.join(AUDIO_EXTS + VIDEO_EXTS)}) nor a manifest CSV"
         return f"{path} is {what} (it is not UTF-8 text): {CORPUS_LAYOUT}"
-    header = next(csv.reader([text.splitlines()[0] if text.strip() else ""]), [])
-    if "utterance_id" not in [h.strip() for h in header]:
+    header = [h.strip() for h in next(csv.reader([text.splitlines()[0] if text.strip() else ""]), [])]
+    if "utterance_id" not in header:
         return (f"{path} is not a manifest CSV: its first line has no utterance_id column (columns: "
                 f"{', '.join(MANIFEST_COLUMNS)}); {CORPUS_LAYOUT}")
+    if not {"audio", "video"} & set(header):   # what discovery would refuse after the flow has started
+        return (f"manifest {path}: no audio or video column (its columns: {', '.join(header)}; expected "
+                f"{', '.join(MANIFEST_COLUMNS)}, with audio or video); {CORPUS_LAYOUT}")
     return None
 
 
