@@ -10,7 +10,7 @@ import sys
 import httpx
 import pytest
 import yaml
-from factories import REPO, start_serve, stop_process
+from factories import REPO, make_corpus, start_serve, stop_process
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
 from visemeflow.ops import serve as serve_module
@@ -96,6 +96,37 @@ def test_the_pipeline_defaults_to_the_corpus_last_ingested_else_has_no_schedule(
     assert pipeline.schedules[0].schedule.timezone == "Europe/Paris"
     (unscheduled, *_) = build_deployments(store, None, None)
     assert not unscheduled.schedules
+
+
+def test_the_schedule_runs_with_the_settings_the_stages_last_ran_with(tmp_path):
+    """`pipeline --fps 25 --tolerance 0.5` then `serve`: the nightly run used the code's defaults (30 fps, 0.1 s),
+    read every utterance again and changed the store's frame rate. The pipeline's and the stages' deployments now
+    default to the configs recorded in the store (never a path), and those defaults validate as the forms' values."""
+    from visemeflow.flows.params import IngestSettings, ProceduralSettings
+    from visemeflow.ingest import IngestConfig
+    from visemeflow.procedural import ProceduralConfig
+    from visemeflow.storage import Store
+
+    store = tmp_path / "store"
+    make_corpus(tmp_path / "corpus", {"spk/a": [("AA1", 0.0, 0.5)]})
+    Store(store).write_run_config("ingest", IngestSettings(
+        corpus=str(tmp_path / "corpus"), n_shards=4,
+        config=IngestConfig(fps=25.0, alignment_tolerance_s=0.5)).model_dump(mode="json"))
+    Store(store).write_run_config("procedural", ProceduralSettings(
+        variant="mine", n_shards=4, config=ProceduralConfig(decay_s=0.08)).model_dump(mode="json"))
+    deployments = build_deployments(store, None)
+    pipeline, ingest, procedural = (next(d for d in deployments if d.flow_name == name)
+                                    for name in ("pipeline", "ingest", "procedural"))
+    assert pipeline.parameters["ingest"]["fps"] == 25.0 and pipeline.parameters["ingest"]["alignment_tolerance_s"] == 0.5
+    assert pipeline.parameters["procedural"]["decay_s"] == 0.08 and pipeline.parameters["n_shards"] == 4
+    assert ingest.parameters["config"]["fps"] == 25.0 and procedural.parameters["variant"] == "mine"
+    for deployment in (pipeline, ingest, procedural):   # what a run of the form gets: the stage's model, valid
+        served = flow_of(deployment.entrypoint)
+        model = serve_module.params_model(serve_module.stage_flow(deployment.entrypoint.rsplit(".", 1)[1]).fn)
+        params = model.model_validate(served.validate_parameters(deployment.parameters))
+        assert str(params.store) == str(store)
+    assert pipeline.parameters.keys() >= {"store", "corpus", "ingest", "procedural", "n_shards"}
+    assert "rig" not in pipeline.parameters and "characters" not in pipeline.parameters   # paths are never recorded defaults
 
 
 def test_the_rerun_form_asks_for_utterance_stage_and_force():

@@ -21,6 +21,7 @@ import fcntl
 import functools
 import importlib
 import inspect
+import logging
 import os
 import secrets
 import signal
@@ -97,6 +98,49 @@ def last_ingested_corpus(store: Path | str) -> Path | str | None:
     """The corpus the store's last ingest run read, if any (its URL where it lies on object storage)."""
     run = Store(store).read_run_config("ingest")
     return _location(run["corpus"]) if run and run.get("corpus") else None
+
+
+# The stages whose served deployments take the settings they last ran with (`configs/<stage>.json`) as their
+# defaults, and for the pipeline, which of its fields each stage's recorded config fills.
+RECORDED_DEFAULTS = ("ingest", "procedural", "landmarks", "track")
+PIPELINE_FIELDS = {"ingest": "ingest", "procedural": "procedural", "landmarks": "landmarks", "track": "tracking"}
+
+
+def recorded_settings(store: Root) -> dict[str, dict]:
+    """The settings of `RECORDED_DEFAULTS`' stages as the store records them ({} for a stage that never ran); a
+    store that cannot be read now gives {} with a warning (the deployments then have the code's defaults)."""
+    try:
+        read = Store(store).read_run_config
+        return {stage: settings for stage in RECORDED_DEFAULTS if (settings := read(stage))}
+    except Exception as exc:  # noqa: BLE001 - an object store's client raises its own types (no credentials, ...)
+        logging.getLogger(__name__).warning("the settings recorded in %s cannot be read (%s): the served "
+                                            "deployments get the code's defaults", store, exc)
+        return {}
+
+
+def recorded_defaults(recorded: dict[str, dict], stage: str) -> dict:
+    """The served deployment's defaults for `stage` from the settings the store's stages last ran with
+    (`recorded_settings`): their configs (and shard count, and the procedural variant), never a path. A schedule
+    made with the defaults of the code would run `pipeline --fps 25 --tolerance 0.5` of yesterday at 30 fps and
+    0.1 s: every utterance read again, and the curves of another rate. Nothing recorded: {} (the code's defaults)."""
+    def read(name: str) -> dict | None:
+        return recorded.get(name)
+
+    if stage == "pipeline":
+        out: dict = {}
+        for name, field in PIPELINE_FIELDS.items():
+            settings = read(name)
+            if settings and settings.get("config") is not None:
+                out[field] = settings["config"]
+        ingest = read("ingest")
+        if ingest and ingest.get("n_shards"):
+            out["n_shards"] = ingest["n_shards"]
+        return out
+    if stage not in RECORDED_DEFAULTS:
+        return {}
+    settings = read(stage) or {}
+    keys = ("config", "n_shards", "variant") if stage == "procedural" else ("config", "n_shards")
+    return {k: settings[k] for k in keys if settings.get(k) is not None}
 
 
 def serve_roots(store: Root, corpus: Root | None, extra: Sequence[Path] = ()) -> list[Root]:
@@ -342,7 +386,8 @@ def build_deployments(
     Each runs the stage confined to the folders `serve` allows (`confined`).
 
     Without `corpus`, the pipeline and ingest deployments default to the corpus the store last ingested; with
-    neither, they have no default corpus and the pipeline no schedule (a run would have nothing to read).
+    neither, they have no default corpus and the pipeline no schedule (a run would have nothing to read). The
+    pipeline and the stages it runs default to the settings the store's stages last ran with (`recorded_defaults`).
     """
     from prefect.schedules import Cron
 
@@ -350,11 +395,13 @@ def build_deployments(
     corpus = _location(corpus) if corpus else last_ingested_corpus(store)
     on_store = {"store": str(store)}
     on_corpus = {"store": str(store), "corpus": str(corpus)} if corpus else on_store
+    recorded = recorded_settings(store)
 
     def deployment(stage: Stage) -> RunnerDeployment:
         scheduled = stage.scheduled and corpus and cron
+        parameters = {**(on_corpus if stage.on_corpus else on_store), **recorded_defaults(recorded, stage.name)}
         return served_flow(stage.flow_attr).to_deployment(
-            DEPLOYMENT, parameters=on_corpus if stage.on_corpus else on_store, tags=TAGS,
+            DEPLOYMENT, parameters=parameters, tags=TAGS,
             entrypoint_type=EntrypointType.MODULE_PATH, description=stage.description or None,
             schedule=Cron(cron, timezone=timezone) if scheduled else None,
             concurrency_limit=1 if stage.scheduled else None,
