@@ -312,6 +312,22 @@ def test_unreadable_audio_is_noted_not_fatal(tmp_path):
     assert "audio unreadable" in page and "gone.wav" in page and 'id="no-rejects"' in page
 
 
+def test_a_rejected_utterance_whose_old_curves_stay_is_called_rejected_not_curve_only(tmp_path):
+    """An utterance an ingest rejected (its row gone) keeps the curves of an earlier run: the report called it a
+    curve-only utterance of predict or speak, "from a file the store does not record"."""
+    s = Store(tmp_path / "store")
+    s.write_shard("utterances", 0, table_from_rows(
+        [_utterance_row("spk/a", write_wav(tmp_path / "a.wav", 1.0), None, 1.0, 25.0, "train")], UTTERANCES))
+    for uid in ("spk/a", "spk/b", "predict/c"):
+        s.write_curves(curves_table(uid, "procedural", "jali", np.zeros((25, 16), np.float32), 25.0))
+    s.write_shard("rejects", 0, table_from_rows([_reject("spk/b", "ingest", "bad wav")], REJECTS), stage="ingest")
+    page = build_dashboard(s, tmp_path / "out").path.read_text()
+    text = html.unescape(re.sub(r"<[^>]+>", " ", page))
+    assert re.search(r"rejected utterances whose curves of an earlier run stay \(see Rejects\)\s+1", text), text[:3000]
+    assert re.search(r"curve-only utterances \(predict, speak: no row in the utterances table\)\s+1", text)
+    assert "rejected at its last run" in text and "these curves are of an earlier run" in text
+
+
 # ---- a real browser -------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):

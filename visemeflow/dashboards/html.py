@@ -329,9 +329,10 @@ def _l1_x100(reference: pa.Table, other: pa.Table) -> float:
 
 def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | None,
                        sources: dict[str, list[str]], phones: pa.Table, audio: CurveOnlyAudio | None = None,
-                       truth_of: pa.Table | None = None) -> None:
+                       truth_of: pa.Table | None = None, rejected: bool = False) -> None:
     """One utterance's chart and caption. A curve-only utterance is drawn over `audio` when found (and with the
-    phones of the utterance of the same audio file, and its error against that one's ground truth `truth_of`)."""
+    phones of the utterance of the same audio file, and its error against that one's ground truth `truth_of`);
+    `rejected`: one its last ingest rejected, whose curves of an earlier run the store keeps."""
     panels, tables = [], []
     for source in CURVE_SOURCES:
         for variant in sources.get(source, []):
@@ -367,6 +368,9 @@ def _utterance_section(page: _Page, store: Store, n: int, uid: str, row: dict | 
     elif audio.same_as:
         facts += [f"curves only (not in the utterances table), from {esc(audio.how)} <code>{esc(audio.same_as)}"
                   f"</code>: its audio and its {n_phones} phones"]
+    elif rejected:
+        facts.append('rejected at its last run (see <a href="#rejects">Rejects</a>): these curves are of an earlier '
+                     "run, kept until it is ingested again")
     elif audio.path:
         facts += [f"curves only (not in the utterances table); {esc(audio.how)}: <code>{esc(audio.path)}</code>"]
     else:
@@ -726,11 +730,15 @@ def build_dashboard(
                  "or rejects. Run <code>visemeflow pipeline CORPUS --store " + esc(store.root) + "</code> first.</p>")
 
     # -- store summary
-    curve_only = len(set(index) - set(rows_by_id))
+    rejected_ids = {u for u in rejects.column(C.UTTERANCE_ID).to_pylist() if u} if rejects.num_rows else set()
+    leftover = (set(index) - set(rows_by_id)) & rejected_ids   # rejected at their last run; older curves stay
+    curve_only = len(set(index) - set(rows_by_id) - leftover)
     page.add('<section id="store"><h2>Store</h2>')
     summary = [["utterances", len(rows_by_id)]]
     if curve_only:
         summary.append(["curve-only utterances (predict, speak: no row in the utterances table)", curve_only])
+    if leftover:
+        summary.append(["rejected utterances whose curves of an earlier run stay (see Rejects)", len(leftover)])
     summary += [[f"utterances in split {k}", v] for k, v in _count_by(utterances, C.SPLIT)]
     summary += [["speakers", len(set(utterances.column(C.SPEAKER).to_pylist()))]]
     for source in CURVE_SOURCES:
@@ -759,7 +767,8 @@ def build_dashboard(
                 with contextlib.suppress(LookupError, OSError, pa.ArrowException):
                     truth_of = store.read_curves(found.same_as, CurveSource.GROUND_TRUTH,
                                                  index[found.same_as][CurveSource.GROUND_TRUTH][0])
-            _utterance_section(page, store, n, uid, rows_by_id.get(uid), index.get(uid, {}), phones, found, truth_of)
+            _utterance_section(page, store, n, uid, rows_by_id.get(uid), index.get(uid, {}), phones, found, truth_of,
+                               rejected=uid in leftover)
     else:
         page.add('<p class="empty">No utterances yet.</p>')
     page.add("</section>")
