@@ -522,14 +522,14 @@ def test_round_trip_long_and_short(intervals, tier_name):
 
 def test_a_hand_edited_textgrid_error_names_the_line_and_what_stands_there():
     """A word where a number belongs is skipped by the format (as Praat skips labels), so the error used to quote
-    the next value ('B'); an open quote swallowed the lines after it and was quoted whole, newlines and all."""
+    the next value ('B', then 'HH' on the next line): it now names the word; an open quote swallowed the lines after it and was quoted whole, newlines and all."""
     good = textgrid_long(PHONES, 1.2)
     lines = good.splitlines()
     at = next(i for i, line in enumerate(lines) if line.strip().startswith("xmax = 0.31"))
     bad_number = "\n".join(lines[:at] + ["            xmax = abc "] + lines[at + 1:])
+    # the word is named as what is wrong: the value "found" after it is the next line's (it said: found 'HH')
     with pytest.raises(TextGridError, match=rf"^x\.TextGrid: expected a number for xmax of interval 2 in tier "
-                                            rf"'phones' at line {at + 1} \('xmax = abc'\), found 'HH' at line "
-                                            rf"{at + 2}$"):
+                                            rf"'phones' at line {at + 1} \('xmax = abc'\): 'abc' is not a number$"):
         parse_textgrid(bad_number, "x.TextGrid")
     text_line = at + 1
     assert lines[text_line].strip() == 'text = "HH"'

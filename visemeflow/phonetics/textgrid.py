@@ -158,6 +158,10 @@ class _Cursor:
             gap_from = self.starts[i] if gap_from < 0 or gap_from > self.starts[i] else gap_from + 1
         here = self.text[gap_from:self.starts[i]].strip().splitlines()
         where = f"line {self._line(gap_from)}" + (f" ({here[0].strip()!r})" if here and here[0].strip() else "")
+        assigned = _ASSIGNMENT.match(here[0]) if here else None
+        if assigned and assigned.group(1).strip() and not _VALUE.fullmatch(assigned.group(1).strip()):
+            # `xmax = 0.4OO`: the format skips what is not a value, so the value "found" is the next line's
+            return f"at {where}: {assigned.group(1).strip()!r} is not a number"
         if isinstance(tok, _Str) and "\n" in tok:
             shown = (f"a quoted string running over {tok.count(chr(10)) + 1} lines from line "
                      f"{self._line(self.starts[i])} (a quote left open?)")
