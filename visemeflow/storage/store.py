@@ -1033,8 +1033,15 @@ class Store:
         """Whether the curve file is there and whole: not empty (a file renamed inside `atomic.group_sync` can come
         back empty after a power loss) and ending as a Parquet file does, its footer's length then `PAR1` (a file
         cut short, by a copy or a full disk, does not). One open and an 8-byte read, so a stage's check of thousands
-        stays cheap; a stage remakes a file that is not whole."""
-        return _parquet_tail_ok(self.curve_path(source, variant, utterance_id))
+        stays cheap; a stage remakes a file that is not whole. On object storage, where a file is uploaded whole or
+        not at all, its size (one request)."""
+        path = self.curve_path(source, variant, utterance_id)
+        if self.remote:
+            try:
+                return path.stat().st_size > 0
+            except (FileNotFoundError, NotADirectoryError):
+                return False
+        return _parquet_tail_ok(path)
 
     def curves_present(self, source: str, variant: str, utterance_ids: list[str]) -> set[str]:
         """Those of `utterance_ids` whose curve file is there and not empty (`has_curves` of each). On object
