@@ -71,6 +71,10 @@ def totals(reports: list[dict]) -> dict[str, int]:
     return dict(out)
 
 
+def _shortened(text: str, limit: int = 300) -> str:
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int = 0,
              reasons: Iterable[str] = ()) -> State:
     """The flow's final state, with a message saying how many of the stage's utterances failed.
@@ -87,7 +91,7 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
         return Failed(message=message, data=StageFailed(message, summary))
     every = "its one utterance" if total == 1 else f"all {total} utterances"
     if total and failed >= total:
-        reasons = [r.split("\n", 1)[0] for r in reasons if r]
+        reasons = [_shortened(r.split("\n", 1)[0]) for r in reasons if r]
         why = "; ".join(reasons[:3]) + (f"; and {len(reasons) - 3} more" if len(reasons) > 3 else "")
         message = f"{stage}: {every} failed" + (f": {why}" if why else "") + " (see the rejects table)"
         return Failed(message=message, data=StageFailed(message, summary))

@@ -123,9 +123,7 @@ def recorded_defaults(recorded: dict[str, dict], stage: str) -> dict:
     (`recorded_settings`): their configs (and shard count, and the procedural variant), never a path. A schedule
     made with the defaults of the code would run `pipeline --fps 25 --tolerance 0.5` of yesterday at 30 fps and
     0.1 s: every utterance read again, and the curves of another rate. Nothing recorded: {} (the code's defaults)."""
-    def read(name: str) -> dict | None:
-        return recorded.get(name)
-
+    read = recorded.get
     if stage == "pipeline":
         out: dict = {}
         for name, field in PIPELINE_FIELDS.items():
