@@ -597,7 +597,7 @@ def test_track_flow_ends_failed_when_every_utterance_is_rejected(tracked_store):
     state = track_flow(TrackParams(store=store, n_shards=2), return_state=True)
     assert state.is_failed() and state.message.startswith("track: all 2 utterances failed: ") and \
         state.message.endswith(" (see the rejects table)"), state.message
-    assert "lj/bare: " in state.message and "; lj/good: " in state.message, state.message   # each one's reason
+    assert "failed: lj/bare: " in state.message and "; lj/good: " in state.message, state.message   # each reason
     with pytest.raises(StageFailed) as failed:
         state.result()
     assert failed.value.summary["rejected"] == 2

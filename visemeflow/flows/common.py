@@ -91,7 +91,7 @@ def finished(stage: str, summary: dict, failed: int, total: int, unexpected: int
         return Failed(message=message, data=StageFailed(message, summary))
     every = "its one utterance" if total == 1 else f"all {total} utterances"
     if total and failed >= total:
-        reasons = [_shortened(r.split("\n", 1)[0]) for r in reasons if r]
+        reasons = sorted(_shortened(r.split("\n", 1)[0]) for r in reasons if r)   # one order, whatever finished first
         why = "; ".join(reasons[:3]) + (f"; and {len(reasons) - 3} more" if len(reasons) > 3 else "")
         message = f"{stage}: {every} failed" + (f": {why}" if why else "") + " (see the rejects table)"
         return Failed(message=message, data=StageFailed(message, summary))
