@@ -183,8 +183,7 @@ def unreadable_reason(path: str | os.PathLike) -> str | None:
         with av.open(path_str) as container:
             return None if container.streams.audio else "it has no audio track"
     except Exception as exc:  # noqa: BLE001 - PyAV raises many types for a file it cannot open
-        reason = re.sub(r"^\[Errno -?\d+\] ", "", str(exc)).split(": '", 1)[0]
-        return f"neither soundfile nor FFmpeg reads it as audio ({reason})"
+        return f"neither soundfile nor FFmpeg reads it as audio ({decoder_reason(exc, path_str)})"
 
 
 def read_audio(path: str | os.PathLike, mono: bool = True) -> tuple[np.ndarray, int]:
