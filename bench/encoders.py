@@ -84,6 +84,7 @@ from visemeflow.shapes.conventions import ARKIT_52  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
 from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
 from visemeflow.learning.model import ClosurePeaks  # noqa: E402
+from visemeflow.learning.presets import PRESETS  # noqa: E402
 from visemeflow.learning.realspeech import frame_visemes  # noqa: E402
 from visemeflow.procedural import ProceduralConfig  # noqa: E402
 from visemeflow.learning.rooms import apply_room  # noqa: E402
@@ -323,12 +324,12 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
 
 
 def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0,
-                  layers: str | None = None) -> TrainConfig:
+                  layers: str | None = None, preset: str = "whisper-base-blstm") -> TrainConfig:
     """`+cls` adds the auxiliary viseme loss at weight 0.5, `+clsW` at weight W."""
     epochs = -(-steps // n_train)
     cls = [p for p in recipe.split("+") if p.startswith("cls")]
     weight = (float(cls[0][3:]) if cls[0][3:] else AUX_WEIGHT) if cls else 0.0
-    return TrainConfig(preset="whisper-base-blstm", d_model=d_model, epochs=epochs, seed=seed, lr=LR,
+    return TrainConfig(preset=preset, d_model=d_model, epochs=epochs, seed=seed, lr=LR,
                        max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight,
                        whisper_layers=layers)
 
@@ -411,7 +412,15 @@ def main() -> int:
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
     parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
                                                          "last, weighted (a learned sum of every layer): one row each")
+    parser.add_argument("--presets", default="whisper-base-blstm",
+                        help="whisper presets, comma-separated: the decoder under the frozen encoder (the paper's "
+                             "Table 2: whisper-base-blstm, -lstm, -tcn, -transformer): one row each")
     args = parser.parse_args()
+    presets = [p for p in args.presets.split(",") if p]
+    unknown = [p for p in presets if p not in PRESETS or PRESETS[p].feature != "whisper"]
+    if unknown:
+        raise SystemExit(f"--presets: {unknown} are not whisper presets (have: "
+                         f"{', '.join(k for k, v in PRESETS.items() if v.feature == 'whisper')})")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     espeak = tuple(int(x) for x in args.espeak.split(",")) if args.espeak else None
@@ -446,12 +455,13 @@ def main() -> int:
                 rows.append(row(f"shipped {path.name} ({cfg.preset})", judge(sets, lambda a, n, m=m: predict(m, a, n))))
         for r in rows:
             print(r, flush=True)
-    runs = [(r, loss, int(seed), layers) for r in args.recipes.split(",") if r for loss in args.losses.split(",")
-            for seed in args.seeds.split(",") for layers in args.layers.split(",")]
-    for recipe, loss, seed, layers in runs:
+    runs = [(r, loss, int(seed), layers, preset) for r in args.recipes.split(",") if r
+            for loss in args.losses.split(",") for seed in args.seeds.split(",") for layers in args.layers.split(",")
+            for preset in presets]
+    for recipe, loss, seed, layers, preset in runs:
         train = recipe_data(sets, recipe)
         started = time.perf_counter()
-        config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers)
+        config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers, preset)
         model = train_model(train, [], config, encoder_cache=CACHE, loss=make_loss(loss)).model
         window_s, power = (float(x) for x in args.mbp_peaks.split(","))
         model.closure_peaks = ClosurePeaks(window_s, power, others_power=args.mbp_others) if window_s > 0 else None
@@ -461,15 +471,16 @@ def main() -> int:
             args.save.mkdir(parents=True, exist_ok=True)
             peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
                      "mbp_others_power": args.mbp_others} if window_s > 0 else {}
+            decoder = "" if preset == "whisper-base-blstm" else f"{preset.removeprefix('whisper-base-')}_"
             saved = save_model(model, config.model_copy(update=peaks),
-                               args.save / re.sub(r"[^\w.+-]", "_", f"{recipe}_{loss}_s{seed}_{layers}.pt"),
-                               {"script": "bench/encoders.py", "recipe": recipe, "loss": loss, "seed": seed,
+                               args.save / re.sub(r"[^\w.+-]", "_", f"{decoder}{recipe}_{loss}_s{seed}_{layers}.pt"),
+                               {"script": "bench/encoders.py", "preset": preset, "recipe": recipe, "loss": loss, "seed": seed,
                                 "layers": layers, "steps": args.steps, "d_model": args.d_model,
                                 "closure_ramps_s": args.closure_ramps, "rooms": args.rooms, "esx": args.esx,
                                 "extra": str(args.extra) if args.extra else None,
                                 "mbp_peaks": [window_s, power]})
             print(f"saved {saved}", flush=True)
-        rows.append(row(f"whisper-base-blstm, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
+        rows.append(row(f"{preset}, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
                         f"{args.steps} steps, "
                         f"d {args.d_model})", judge(sets, lambda a, n, m=model: predict(m, a, n)), secs))
         print(rows[-1], flush=True)
