@@ -10,7 +10,7 @@ export PREFECT_LOGGING_LEVEL ?= WARNING
 
 .PHONY: system-deps venv js-deps blender-deps demo test bench clean
 
-# System packages (espeak-ng, chromium, nodejs/npm, klettres-data): installed when missing as root; otherwise one line that
+# System packages (espeak-ng, chromium, nodejs/npm, klettres-data, fonts-droid-fallback): installed when missing as root; otherwise one line that
 # names them and the install command, and make stops. Fast when everything is there (no apt call).
 SYSTEM_DEPS ?= sh scripts/system-deps.sh
 system-deps:

@@ -8,6 +8,8 @@
 #   klettres-data   real syllables spoken in 16 languages (KDE's KLettres, GPL-2+, read where installed, never
 #                   copied): tests/test_syllables.py and bench/syllables.py judge the default model's lips on them
 #   curl            the README's raw-HTTP lines to `visemeflow serve`, run as written by tests/test_security.py
+#   fonts-droid-fallback  a CJK font (Apache-2.0, 4 MB) for the dashboard's charts: a Mandarin utterance id is drawn
+#                   in characters, not boxes (visemeflow/dashboards/plots.py)
 #
 # All present: exit 0 at once, no apt call. Missing, as root: apt-get update + install, then check again.
 # Missing, not root: one line on stderr naming the packages and the command that installs them, exit 1.
@@ -33,6 +35,7 @@ check() {
     have npm || need npm
     [ -f /usr/share/klettres/fr/sounds.xml ] || need klettres-data
     have curl || need curl
+    [ -f /usr/share/fonts/truetype/droid/DroidSansFallbackFull.ttf ] || need fonts-droid-fallback
 }
 
 check

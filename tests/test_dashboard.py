@@ -686,3 +686,23 @@ def test_speak_with_out_records_its_packages_and_the_dashboard_lists_them(tmp_pa
     assert re.search(r'href="[^"]*SSB16240001\.glb"', page)
     caption = _utterance_captions(page)["predict/SSB16240001"]
     assert "audio unknown" not in caption and html.escape(str(DEMO_AUDIO.resolve())) in caption
+
+
+def test_a_chinese_utterance_id_is_drawn_in_a_cjk_font_not_as_boxes():
+    """The charts' titles are utterance ids; a Mandarin corpus names its files in characters. matplotlib's own font
+    has none of them, so they drew as empty boxes (with a warning per glyph); make installs a CJK font."""
+    import warnings
+
+    from visemeflow.dashboards import plots
+
+    assert len(plots.font_families()) > 1, "no CJK font found (scripts/system-deps.sh installs fonts-droid-fallback)"
+    t = np.arange(30) / 30.0
+    panel = plots.CurvePanel("procedural\ndefault", t, np.zeros((30, 16), np.float32))
+    phones = [plots.Phone(0.0, 0.5, "zh", False), plots.Phone(0.5, 1.0, "ong1", False)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        png = plots.utterance_figure("普通话/说话人0001", 1.0, None, "", phones, [panel])
+        plots.sweep_figure([(10, 0.5), (20, 0.4)], "扫描 of 普通话")
+    missing = [str(w.message) for w in caught if "missing from font" in str(w.message)]
+    assert not missing, missing
+    assert png.startswith(b"\x89PNG")

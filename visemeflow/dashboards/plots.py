@@ -2,13 +2,22 @@
 
 Figures are made with `matplotlib.figure.Figure` directly, never through pyplot: no global figure registry, no
 interactive backend, nothing to close, safe in worker threads. Every function returns PNG bytes.
+
+Text is set in matplotlib's DejaVu Sans, and each glyph it lacks (Chinese, Japanese, Korean: an utterance id such as
+`普通话/0001`) is taken from the first CJK font the machine has (`font_families`; `make` installs Debian's
+`fonts-droid-fallback`). Without one such glyphs draw as empty boxes, as matplotlib warns.
 """
 
+import functools
 import io
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
 
+import matplotlib
 import numpy as np
+from matplotlib import font_manager
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
@@ -26,6 +35,42 @@ _TAB20 = (
 VISEME_COLOURS = dict(zip(VISEMES, _TAB20))
 # Samples drawn per waveform: a min/max envelope over this many columns looks like the full signal.
 ENVELOPE_COLUMNS = 2400
+
+
+# CJK fonts by family name (as Windows, macOS and Linux desktops name theirs), then by file where Debian puts them
+# (a font installed after matplotlib built its font list is not in it: these are added by path)
+CJK_FAMILIES = ("Noto Sans CJK SC", "Noto Sans CJK JP", "Source Han Sans SC", "Microsoft YaHei", "PingFang SC",
+                "Hiragino Sans", "WenQuanYi Micro Hei", "WenQuanYi Zen Hei", "Droid Sans Fallback")
+CJK_FONT_FILES = ("/usr/share/fonts/truetype/droid/DroidSansFallbackFull.ttf",
+                  "/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc",
+                  "/usr/share/fonts/truetype/wqy/wqy-microhei.ttc",
+                  "/usr/share/fonts/truetype/wqy/wqy-zenhei.ttc")
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+@functools.cache
+def font_families() -> tuple[str, ...]:
+    """DejaVu Sans, then the CJK fonts found (`CJK_FAMILIES`, `CJK_FONT_FILES`): matplotlib draws each glyph in the
+    first of them that has it."""
+    known = {f.name for f in font_manager.fontManager.ttflist}
+    files = {f.fname for f in font_manager.fontManager.ttflist}
+    for path in CJK_FONT_FILES:
+        if path not in files and Path(path).is_file():
+            try:
+                font_manager.fontManager.addfont(path)
+            except (OSError, RuntimeError, ValueError):   # unreadable: that font is not used
+                continue
+            known = {f.name for f in font_manager.fontManager.ttflist}
+    return ("DejaVu Sans",) + tuple(name for name in CJK_FAMILIES if name in known)
+
+
+def _fonts(draw: _F) -> _F:
+    """Draw with `font_families()` (matplotlib's text takes its font when made, so the whole figure is inside)."""
+    @functools.wraps(draw)
+    def drawn(*args: Any, **kwargs: Any) -> Any:
+        with matplotlib.rc_context({"font.family": list(font_families())}):
+            return draw(*args, **kwargs)
+    return drawn  # type: ignore[return-value]
 
 
 def plain(text: object) -> str:
@@ -85,6 +130,7 @@ def envelope(samples: np.ndarray, columns: int = ENVELOPE_COLUMNS) -> tuple[np.n
     return edges[:-1].astype(np.float64), lo, hi
 
 
+@_fonts
 def utterance_figure(
     title: str,
     duration_s: float,
@@ -151,6 +197,7 @@ def utterance_figure(
     return _png(fig)
 
 
+@_fonts
 def histogram_figure(errors: dict[str, np.ndarray], xlabel: str) -> bytes:
     """Overlaid histograms (density) of one value per variant, on shared bins, with each median marked."""
     fig = Figure(figsize=(9.0, 3.6))
@@ -173,6 +220,7 @@ def histogram_figure(errors: dict[str, np.ndarray], xlabel: str) -> bytes:
     return _png(fig)
 
 
+@_fonts
 def training_figure(series: dict[str, tuple[np.ndarray, np.ndarray]]) -> bytes:
     """Validation L1 x 100 by epoch, one line per model."""
     fig = Figure(figsize=(9.0, 3.6))
@@ -188,6 +236,7 @@ def training_figure(series: dict[str, tuple[np.ndarray, np.ndarray]]) -> bytes:
     return _png(fig)
 
 
+@_fonts
 def sweep_figure(points: Sequence[tuple[int, float]], title: str) -> bytes:
     """Paper Fig. 5: validation L1 x 100 against the number of training utterances (log x axis), each point labelled."""
     fig = Figure(figsize=(7.2, 4.6))
