@@ -406,6 +406,9 @@ def test_invalid_utterance_id(tmp_path):
     assert reject.error_type == "InvalidId"
     assert "bad\\\\speaker/a" in reject.message and "backslash" in reject.message
     assert reject.path.startswith(str(bad)) and reject.path in reject.message
+    # both of its files are named: the wav is left out with the TextGrid, not silently
+    assert str(bad / "a.wav") in reject.message and str(bad / "a.TextGrid") in reject.message
+    assert "left out with it" in reject.message
     # in a manifest too
     manifest = write_manifest(tmp_path / "m.csv", [{"utterance_id": "a/b/c", "audio": "good/a.wav",
                                                      "alignment": "good/a.TextGrid"}])
