@@ -306,12 +306,12 @@ def test_ingest_reads_mp3_and_p2fa_and_prints_the_first_rejects_with_what_to_do(
     assert "hint: English transcripts beside their audio" in out and "Montreal Forced Aligner" in out
     assert "`visemeflow speak` / `visemeflow predict`" in out and f"visemeflow rejects --store {store}" in out
     # each reject on the terminal once, in the command's list at the end (its task's line is INFO, which the
-    # temporary server hides and the UI keeps); the flow only counts them (it lists them itself when the run ends
-    # Failed, below)
+    # temporary server hides and the UI keeps); the flow's count line goes to the UI only, since the command says
+    # the count itself (it lists them itself when the run ends Failed, below)
     both = done.stdout + done.stderr
     for name in ("t1", "t2"):
         assert both.count(str(corpus / "spk" / f"{name}.lab")) == 1, both
-    assert "ingest: 2 of 5 rejected" in both, both
+    assert "rejected 2" in done.stdout and "ingest: 2 of 5 rejected" not in both, both
 
     # every utterance rejected: the run fails, and the reasons and the hint are still on the terminal
     only = tmp_path / "only"

@@ -408,3 +408,32 @@ def test_a_gltf_whose_texture_file_is_missing_still_speaks_and_says_what_it_left
     assert document["images"][0]["mimeType"] == "image/png" and "missing" in document["images"][0]["name"]
     assert validate(glb)["issues"]["numErrors"] == 0
     assert not [n for n in zipfile.ZipFile(report["files"]["usdz"]).namelist() if n.startswith("textures/")]
+
+
+def test_animate_and_its_rerun_print_what_the_package_left_out(tmp_path, avatar):
+    """The missing texture above, through the commands: `animate` prints the package's warning, and so does
+    `rerun --stage animate` (whose summary held only counts; Prefect's console now leaves such lines to the
+    commands, so without it the rerun would say nothing of the stand-in)."""
+    from typer.testing import CliRunner
+
+    from visemeflow.cli import app
+
+    source, _ = avatar
+    g = gl.GLTF2().load(str(source))
+    g.convert_buffers(gl.BufferFormat.DATAURI)
+    g.images[0].bufferView, g.images[0].uri = None, "skin.png"
+    folder = tmp_path / "model"
+    folder.mkdir()
+    path = folder / "avatar.gltf"
+    path.write_text(json.dumps(json.loads(g.to_json())))
+    store = make_curve_store(tmp_path / "store", n=1)
+    runner = CliRunner()
+    done = runner.invoke(app, ["animate", "spk/u0", "--character", str(path), "--store", str(store.root),
+                               "--source", "ground_truth", "--variant", "cm", "--format", "glb"])
+    assert done.exit_code == 0, done.output
+    assert "warning: " in done.stderr and "(skin.png) is not beside avatar.gltf" in done.stderr, done.stderr
+    done = runner.invoke(app, ["rerun", "spk/u0", "--stage", "animate", "--force", "--store", str(store.root)])
+    assert done.exit_code == 0, done.output
+    (line,) = [x for x in done.stderr.splitlines() if "skin.png" in x]
+    assert line.startswith("warning: spk/u0 -> avatar: material 'skin'") and "is not beside avatar.gltf" in line, \
+        done.stderr

@@ -1082,8 +1082,11 @@ def rerun(params: RerunParams) -> None:
 
     _unjoined_heartbeats()
 
-    report = rerun_flow(params)
+    report = dict(rerun_flow(params))
+    warnings = report.pop("warnings", None) or ()   # animate's packages: what the viewer will miss
     _print_summary(f"rerun {params.stage} {params.utterance_id}", report)
+    for warning in warnings:
+        typer.echo(f"warning: {warning}", err=True)
     if not report.get("rejected"):
         _print_next_reruns(store, uid, params.stage)
     if report.get("rejected"):   # still bad input: its reason, and exit 1 (the utterance was not made)

@@ -29,6 +29,8 @@ from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
+from visemeflow.logs import summary_prints_them
+
 FROM_FIELD: Any = object()   # an Opt's type/default/help: the field's own
 
 
@@ -318,7 +320,8 @@ def stage_command(app: typer.Typer, model: type[BaseModel], options: Sequence[Op
 
         def command(**values: Any) -> Any:
             params = build_params(model, options, values)
-            return body(params, **{k: values[k] for k in own})
+            with summary_prints_them():   # each stage command prints its rejects and warnings itself, once
+                return body(params, **{k: values[k] for k in own})
 
         command.__signature__ = inspect.Signature([_typer_param(r) for r in resolved])  # type: ignore[attr-defined]
         command.__doc__ = body.__doc__

@@ -16,6 +16,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 from prefect.states import Failed
 
+from visemeflow.logs import SUMMARISED
 from visemeflow.flows.params import DEFAULT_STORE, SOURCES, AnimateParams, AnimateSettings, PreviewParams, SpeakParams  # noqa: F401 (re-exported)
 from visemeflow.location import input_digest, input_exists, is_url, local_input
 from visemeflow.rig.character import CharacterError
@@ -140,7 +141,7 @@ def animate_flow(params: AnimateParams):
             logger.info("animate: %s", choices[-1])
         except (CharacterError, OSError, MemoryError) as exc:  # the character is unusable: one reject, next one
             rejects.append(reject_row(None, STAGE, type(exc).__name__, str(exc), path))
-            logger.warning("animate: %s", exc)
+            logger.warning("animate: %s", exc, extra=SUMMARISED)
             continue
         if root is not None:   # this character's folder now: a later run of another file of its name gets another
             claim_character_folder(root, key, path)
@@ -387,4 +388,6 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
                      input_digest(audio) if audio else None, last.out)
                 for path, key in zip(last.characters, character_keys(last.characters, package_root(store, last.out)))
                 if Path(path).exists()]
-    return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages)}
+    # what the viewer will miss, as `animate` lists it (the command prints these; Prefect's console leaves them out)
+    warnings = [f"{uid} -> {p['character']}: {w}" for p in packages for w in p.get("warnings") or ()]
+    return {"packages": len(packages), "files": sum(len(p["files"]) for p in packages), "warnings": warnings}

@@ -22,6 +22,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 from prefect.states import Completed, Failed, State
 
+from visemeflow.logs import SUMMARISED
 from visemeflow.flows.common import replace_stage_rejects
 from visemeflow.flows.errors import StageFailed
 from visemeflow.flows.params import EvaluateParams
@@ -121,7 +122,7 @@ def evaluate_flow(params: EvaluateParams) -> State:
             lineages[model] = check_model(store, model)
         except MODEL_ERRORS as exc:
             rejects[model] = model_reject(store, model, exc)
-            logger.warning("evaluate: rejected %s", rejects[model][C.MESSAGE])
+            logger.warning("evaluate: rejected %s", rejects[model][C.MESSAGE], extra=SUMMARISED)
             continue
         usable.append(model)
     if not usable:

@@ -7,6 +7,7 @@ import pyarrow as pa
 from prefect import flow, get_run_logger
 from prefect.states import Failed, State
 
+from visemeflow.logs import SUMMARISED
 from visemeflow.flows.common import StageRun, collect, group_by_shard, last_settings, totals
 from visemeflow.flows.errors import RerunError, StageFailed
 from visemeflow.flows.params import IngestParams, IngestSettings
@@ -86,7 +87,7 @@ def ingest_flow(params: IngestParams) -> dict[str, int]:
         # with hints, at its end
         found_lines = reject_lines([r for r in rejected.to_pylist() if r["stage"] == DISCOVER_STAGE])
         run.logger.warning("ingest: %d of %d rejected (`visemeflow rejects --store %s`)%s", rejected.num_rows, total,
-                           store.root, "".join("\n" + line for line in found_lines))
+                           store.root, "".join("\n" + line for line in found_lines), extra=SUMMARISED)
     if errors:
         raise RuntimeError(f"ingest: {len(errors)} of {len(futures)} shards failed: " + "; ".join(errors[:3]))
     return run.finish(summary, rejected.num_rows, total, rejects=rejected)

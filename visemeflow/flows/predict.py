@@ -31,6 +31,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.states import Completed, Failed, State
 from pydantic import BaseModel
 
+from visemeflow.logs import SUMMARISED
 from visemeflow.flows.params import DEFAULT_STORE, PredictParams  # noqa: F401 (re-exported)
 from visemeflow.atomic import atomic_write_text
 from visemeflow.animation.export import CurveTrack, write_export
@@ -242,7 +243,7 @@ def predict_flow(params: PredictParams) -> State:
             rows.append(_predict_file(store, params, digest, audio, uid))
         except AudioError as exc:
             rejects.append(reject_row(uid, STAGE, exc.error_type, str(exc), str(audio)))
-            logger.warning("predict: rejected %s", exc)
+            logger.warning("predict: rejected %s", exc, extra=SUMMARISED)
         except Exception as exc:  # a bug met on one file: the others go on, the flow ends Failed
             trace = "".join(traceback.format_exception(exc))
             logger.error("predict[%s]: unexpected %s\n%s", audio, type(exc).__name__, trace)

@@ -14,7 +14,7 @@ from visemeflow.storage import Store
 
 
 @flow(name="rerun", flow_run_name="rerun({params.utterance_id}:{params.stage})")
-def rerun_flow(params: RerunParams) -> dict[str, int]:
+def rerun_flow(params: RerunParams) -> dict:
     """Rerun exactly one utterance through one stage with the settings that stage last ran with."""
     store = Store(params.store)
     uid = params.utterance_id

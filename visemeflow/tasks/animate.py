@@ -32,6 +32,7 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import TASK_SOURCE, CachePolicy, Inputs
 from prefect.context import TaskRunContext
 
+from visemeflow.logs import SUMMARISED
 from visemeflow.animation.apply import CurvesError
 from visemeflow.animation.bones import BoneError
 from visemeflow.atomic import atomic_write_text
@@ -380,7 +381,7 @@ def animate_one(store_root: str, utterance_id: str, source: str, variant: str, p
     logger.info("%s -> %s: %d frames at %g fps, %s", utterance_id, character_name, report["frames"], report["fps"],
                 ", ".join(report["files"]))
     for warning in report["warnings"]:
-        logger.warning("%s -> %s: %s", utterance_id, character_name, warning)
+        logger.warning("%s -> %s: %s", utterance_id, character_name, warning, extra=SUMMARISED)
     return report
 
 

@@ -15,6 +15,7 @@ from prefect.cache_policies import INPUTS, TASK_SOURCE, CachePolicy
 from prefect.context import TaskRunContext
 from prefect.filesystems import LocalFileSystem, RemoteFileSystem
 
+from visemeflow import logs
 from visemeflow.schemas import C
 from visemeflow.storage import Store
 from visemeflow.storage.store import RESULTS_DIR, cap_message
@@ -241,18 +242,24 @@ class _RejectsInOneLine(logging.Filter):
             self.expected.add(type(error).__name__)
             record.exc_info, record.exc_text, record.stack_info = None, None, None
             record.levelno, record.levelname = logging.WARNING, "WARNING"
+            logs.mark(record)   # the stage's rejects, which a command prints itself (`visemeflow.logs`)
         elif error is None and record.levelno >= logging.ERROR:
             match = self._FINISHED.search(record.getMessage())
             if match and match[1] in self.expected:
                 record.levelno, record.levelname = logging.WARNING, "WARNING"
+                logs.mark(record)
         return True
 
 
 def quiet_rejects(logger_name: str = "prefect.task_runs") -> None:
-    """Put `_RejectsInOneLine` on Prefect's task-run logger, once (again after Prefect reconfigured logging)."""
+    """Put `_RejectsInOneLine` on Prefect's task-run logger, once (again after Prefect reconfigured logging), and
+    `logs.SummarisedOffConsole` on Prefect's console handler."""
+    from prefect.logging.handlers import PrefectConsoleHandler
+
     logger = logging.getLogger(logger_name)
     if not any(isinstance(f, _RejectsInOneLine) for f in logger.filters):
         logger.addFilter(_RejectsInOneLine())
+    logs.keep_summarised_off([h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)])
 
 
 quiet_rejects()
