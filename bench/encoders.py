@@ -324,14 +324,15 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
 
 
 def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0,
-                  layers: str | None = None, preset: str = "whisper-base-blstm") -> TrainConfig:
+                  layers: str | None = None, preset: str = "whisper-base-blstm",
+                  dropout: float = 0.0) -> TrainConfig:
     """`+cls` adds the auxiliary viseme loss at weight 0.5, `+clsW` at weight W."""
     epochs = -(-steps // n_train)
     cls = [p for p in recipe.split("+") if p.startswith("cls")]
     weight = (float(cls[0][3:]) if cls[0][3:] else AUX_WEIGHT) if cls else 0.0
     return TrainConfig(preset=preset, d_model=d_model, epochs=epochs, seed=seed, lr=LR,
                        max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight,
-                       whisper_layers=layers)
+                       whisper_layers=layers, dropout=dropout or None)
 
 
 class CachedPredictor:
@@ -415,6 +416,8 @@ def main() -> int:
     parser.add_argument("--presets", default="whisper-base-blstm",
                         help="whisper presets, comma-separated: the decoder under the frozen encoder (the paper's "
                              "Table 2: whisper-base-blstm, -lstm, -tcn, -transformer): one row each")
+    parser.add_argument("--dropout", type=float, default=0.0,
+                        help="dropout on the decoder's output in training (TrainConfig.dropout; 0: the preset's)")
     args = parser.parse_args()
     presets = [p for p in args.presets.split(",") if p]
     unknown = [p for p in presets if p not in PRESETS or PRESETS[p].feature != "whisper"]
@@ -461,7 +464,7 @@ def main() -> int:
     for recipe, loss, seed, layers, preset in runs:
         train = recipe_data(sets, recipe)
         started = time.perf_counter()
-        config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers, preset)
+        config = recipe_config(recipe, len(train), args.steps, args.d_model, seed, layers, preset, args.dropout)
         model = train_model(train, [], config, encoder_cache=CACHE, loss=make_loss(loss)).model
         window_s, power = (float(x) for x in args.mbp_peaks.split(","))
         model.closure_peaks = ClosurePeaks(window_s, power, others_power=args.mbp_others) if window_s > 0 else None
@@ -471,7 +474,8 @@ def main() -> int:
             args.save.mkdir(parents=True, exist_ok=True)
             peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
                      "mbp_others_power": args.mbp_others} if window_s > 0 else {}
-            decoder = "" if preset == "whisper-base-blstm" else f"{preset.removeprefix('whisper-base-')}_"
+            decoder = ("" if preset == "whisper-base-blstm" else f"{preset.removeprefix('whisper-base-')}_") + (
+                f"drop{args.dropout:g}_" if args.dropout else "")
             saved = save_model(model, config.model_copy(update=peaks),
                                args.save / re.sub(r"[^\w.+-]", "_", f"{decoder}{recipe}_{loss}_s{seed}_{layers}.pt"),
                                {"script": "bench/encoders.py", "preset": preset, "recipe": recipe, "loss": loss, "seed": seed,
@@ -480,7 +484,7 @@ def main() -> int:
                                 "extra": str(args.extra) if args.extra else None,
                                 "mbp_peaks": [window_s, power]})
             print(f"saved {saved}", flush=True)
-        rows.append(row(f"{preset}, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
+        rows.append(row(f"{preset}{f' dropout {args.dropout:g}' if args.dropout else ''}, {recipe}, {loss}, seed {seed}, {layers} layer(s) ({len(train)} ex, "
                         f"{args.steps} steps, "
                         f"d {args.d_model})", judge(sets, lambda a, n, m=model: predict(m, a, n)), secs))
         print(rows[-1], flush=True)

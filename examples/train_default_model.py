@@ -67,6 +67,7 @@ FBANK_RECIPE = "mixed"
 LR = 1e-3
 MBP_LEAD_S = 0.0   # s: off; 0.008 helped on pocketsphinx-aligned English and lost b/p/m elsewhere (data README)
 MBP_OTHERS_POWER = 6.0   # where MBP leads a frame, the other visemes capped at (1 - MBP) ** 6 (issue 25)
+DROPOUT = 0.0
 
 
 def fbank(args) -> tuple:
@@ -93,7 +94,8 @@ def whisper(args) -> tuple:
     """The whisper-base-blstm default (bench/encoders.py's recipes)."""
     sets = encoders.load_sets(closure_ramp_s=args.closure_ramps or None)
     train = encoders.recipe_data(sets, args.recipe)
-    config = encoders.recipe_config(args.recipe, len(train), args.steps, args.d_model, layers=args.layers)
+    config = encoders.recipe_config(args.recipe, len(train), args.steps, args.d_model, layers=args.layers,
+                                    dropout=args.dropout)
     if args.lr != LR:
         config = config.model_copy(update={"lr": args.lr})
     if args.from_model is not None:   # the weights of an earlier run, judged again under this run's inference settings
@@ -146,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--d-model", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--lr", type=float, default=LR)
+    parser.add_argument("--dropout", type=float, default=DROPOUT,
+                        help="whisper: dropout on the decoder's output in training (TrainConfig.dropout; 0: none)")
     parser.add_argument("--closure-ramps", type=float, default=0.05, metavar="SECONDS",
                         help="whisper: onset and decay of the MBP/FFF ramps in the LJ targets "
                              "(ProceduralConfig.closure_onset_s/closure_decay_s; 0: the procedural default's 0.12 s)")
@@ -174,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout
     lineage = {"script": "examples/train_default_model.py", "preset": args.preset, "recipe": args.recipe,
                "loss": args.loss if is_whisper else "l1", **({"layers": args.layers} if is_whisper else {}),
-               "steps": args.steps, "lr": args.lr, "commit": commit.strip(), "data": data, "held_out": held_out,
+               "steps": args.steps, "lr": args.lr, **({"dropout": args.dropout} if args.dropout else {}),
+               "commit": commit.strip(), "data": data, "held_out": held_out,
                "figures": figures,
                **({"mbp_peaks": list(args.mbp_peaks), "mbp_lead_s": args.mbp_lead, "mbp_others_power": args.mbp_others,
                   "closure_ramps_s": args.closure_ramps} if is_whisper else {}),

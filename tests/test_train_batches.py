@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from factories import TRAIN_FPS as FPS
+from factories import TRAIN_SR
 from factories import envelope_examples as make_examples
 
 from visemeflow.learning import train as T
@@ -194,3 +195,31 @@ def test_batches_never_mix_frame_rates_in_training(monkeypatch):
     monkeypatch.setattr(head_class, "forward", spy)
     res = train_model(a + b, [], cfg)
     assert res.history[0].steps == 2 and sorted(seen) == [(25.0, 2), (30.0, 2)]
+
+
+def test_dropout_trains_differently_saves_as_before_and_predicts_as_it_trained(tmp_path):
+    """TrainConfig.dropout (issue 25): dropout on the decoder's output in training only. A config without it
+    serialises as before; with it the training takes other steps, and the saved file loads to the same network,
+    whose predictions are deterministic (eval mode: no dropout at inference)."""
+    from visemeflow.learning.train import load_model, predict_curves, save_model
+
+    assert "dropout" not in TrainConfig().model_dump(mode="json")
+    assert TrainConfig(dropout=None).model_dump_json() == OLD_DEFAULT_JSON
+    assert TrainConfig(dropout=0.4).resolved_preset().decoder.dropout == 0.4
+    assert TrainConfig().resolved_preset().decoder.dropout == 0.0
+    with pytest.raises(ValueError):
+        TrainConfig(dropout=1.0)
+    train = make_examples(4, seed=2)
+    plain = TrainConfig(preset="fbank-blstm", epochs=3, d_model=16, lr=3e-3, seed=0)
+    dropped = plain.model_copy(update={"dropout": 0.4})
+    a, b = train_model(train, [], plain).model, train_model(train, [], dropped).model
+    assert a.head.drop.p == 0.0 and b.head.drop.p == 0.4
+    assert not _same(_state(a), _state(b))   # the dropout masks changed the steps
+    path = save_model(b, dropped, tmp_path / "m.pt", {})
+    loaded, config, _ = load_model(path)
+    assert config.dropout == 0.4 and _same(_state(loaded), _state(b))
+    audio = train[0].audio
+    once = predict_curves(loaded, audio, TRAIN_SR, FPS)
+    assert np.array_equal(once, predict_curves(loaded, audio, TRAIN_SR, FPS))
+    b.eval()
+    assert np.allclose(once, predict_curves(b, audio, TRAIN_SR, FPS), atol=1e-6)

@@ -654,8 +654,8 @@ def serve(
 
 @stage_command(app, TrainParams, [
     STORE, Opt("config.preset"), Opt("config.epochs"), Opt("source"), Opt("variant"), Opt("model_name", "--name"),
-    Opt("config.d_model"), Opt("config.seed"), Opt("config.wav2vec2_model", "--wav2vec2"), TRAIN_AUGMENT,
-    Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
+    Opt("config.d_model"), Opt("config.dropout"), Opt("config.seed"), Opt("config.wav2vec2_model", "--wav2vec2"),
+    TRAIN_AUGMENT, Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
     Opt("config.whisper_tune_layers", "--tune-layers"), Opt("config.whisper_tune_lr", "--tune-lr"),
 ])
 def train(params: TrainParams) -> None:

@@ -32,6 +32,9 @@ class TrainConfig(BaseModel):
     seed: int = Field(0, description="Seed of initialisation, order and augmentation.")
     d_model: int | None = Field(None, ge=2, description="Model width; default: the preset's.")
     lr: float | None = Field(None, gt=0, description="Learning rate; default: the preset's.")
+    dropout: float | None = Field(None, ge=0, lt=1, description=(
+        "Dropout on the decoder's output (and between its layers) in training; default: the preset's (0). The "
+        "network at inference is the same, so the model file does not change."))
     max_steps_per_epoch: int | None = Field(None, ge=1)
     wav2vec2_model: str | None = Field(None, description="wav2vec2 model path or hub id (wav2vec2 presets).")
     # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
@@ -81,10 +84,12 @@ class TrainConfig(BaseModel):
         from visemeflow.learning.presets import get_preset
 
         p = get_preset(self.preset)
+        if self.dropout is not None:
+            p = p.model_copy(update={"decoder": p.decoder.model_copy(update={"dropout": self.dropout})})
         return p.model_copy(update={"lr": self.lr}) if self.lr is not None else p
 
 
-_ADDED_DEFAULTS: dict[str, Any] = {"batch_size": 1, "bucket_batches": 8, "whisper_source": None,
+_ADDED_DEFAULTS: dict[str, Any] = {"dropout": None, "batch_size": 1, "bucket_batches": 8, "whisper_source": None,
                                    "viseme_loss_weight": 0.0, "whisper_layers": None,
                                    "whisper_tune_layers": 0, "whisper_tune_lr": 1e-5,
                                    "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0,
