@@ -129,6 +129,56 @@ def test_the_schedule_runs_with_the_settings_the_stages_last_ran_with(tmp_path):
     assert "rig" not in pipeline.parameters and "characters" not in pipeline.parameters   # paths are never recorded defaults
 
 
+def test_a_served_run_takes_the_settings_the_store_records_when_it_starts_not_when_serve_started(tmp_path,
+                                                                                                 monkeypatch):
+    """`serve` at 30 fps, then `pipeline --fps 25` by hand: the nightly run used the defaults serve was started with
+    (30 fps) and mixed the store's frame rates again. A field the run leaves as serve gave it now takes what the store
+    records at the run's start; a value chosen in the run's form stays. The defaults reach the runs' processes in
+    GIVEN_ENV."""
+    from prefect import flow
+
+    from visemeflow.flows.params import IngestSettings, PipelineParams
+    from visemeflow.ingest import IngestConfig
+    from visemeflow.storage import Store
+
+    store = tmp_path / "store"
+    make_corpus(tmp_path / "corpus", {"spk/a": [("AA1", 0.0, 0.5)]})
+
+    def record(fps: float) -> None:
+        Store(store).write_run_config("ingest", IngestSettings(
+            corpus=str(tmp_path / "corpus"), n_shards=4, config=IngestConfig(fps=fps)).model_dump(mode="json"))
+
+    record(30.0)
+    monkeypatch.setattr(serve_module, "_SERVE_START", {})
+    monkeypatch.delenv(serve_module.GIVEN_ENV, raising=False)
+    pipeline = next(d for d in build_deployments(store, None) if d.flow_name == "pipeline")
+    assert pipeline.parameters["ingest"]["fps"] == 30.0
+    seen = []
+
+    @flow(name="pipeline")
+    def recording(params: PipelineParams) -> dict:
+        seen.append(params)
+        return {}
+
+    served = serve_module.flat_flow(recording, __name__, lambda: None)
+    with serve_module.using_given_defaults():
+        given = os.environ[serve_module.GIVEN_ENV]
+    monkeypatch.setattr(serve_module, "_SERVE_START", {})   # a run's own process: only the environment knows them
+    monkeypatch.setenv(serve_module.GIVEN_ENV, given)
+    record(25.0)   # `visemeflow pipeline --fps 25`, by hand, after serve started
+    served.fn(**served.validate_parameters(pipeline.parameters))
+    assert seen[-1].ingest.fps == 25.0 and seen[-1].n_shards == 4
+    chosen = {**pipeline.parameters, "ingest": {**pipeline.parameters["ingest"], "fps": 50.0}}
+    served.fn(**served.validate_parameters(chosen))   # a value someone chose in the form: theirs
+    assert seen[-1].ingest.fps == 50.0
+    other = {**pipeline.parameters, "store": str(tmp_path / "other")}   # a run on another store: as given
+    served.fn(**served.validate_parameters(other))
+    assert seen[-1].ingest.fps == 30.0
+    monkeypatch.setenv(serve_module.GIVEN_ENV, "not json")   # not ours: the run's fields as they are
+    served.fn(**served.validate_parameters(pipeline.parameters))
+    assert seen[-1].ingest.fps == 30.0
+
+
 def test_the_rerun_form_asks_for_utterance_stage_and_force():
     from prefect.utilities.callables import parameter_schema
 

@@ -21,6 +21,7 @@ import fcntl
 import functools
 import importlib
 import inspect
+import json
 import logging
 import os
 import secrets
@@ -44,7 +45,7 @@ from prefect import Flow
 from prefect.deployments.runner import EntrypointType, RunnerDeployment
 from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
 from prefect.utilities.callables import parameter_schema
-from pydantic import BaseModel
+from pydantic import BaseModel, TypeAdapter
 
 from visemeflow.location import is_url, parse_root
 from visemeflow.ops.prefect_db import seed_home
@@ -139,6 +140,60 @@ def recorded_defaults(recorded: dict[str, dict], stage: str) -> dict:
     settings = read(stage) or {}
     keys = ("config", "n_shards", "variant") if stage == "procedural" else ("config", "n_shards")
     return {k: settings[k] for k in keys if settings.get(k) is not None}
+
+
+# The recorded defaults each served deployment was given when `serve` started (`build_deployments`): stage ->
+# (its store, those defaults); `serve` hands them to the processes that run its flows in GIVEN_ENV (JSON). A run that
+# leaves such a field as serve gave it takes what the store records at the run's start instead (`settings_now`).
+_SERVE_START: dict[str, tuple[str, dict]] = {}
+GIVEN_ENV = "VISEMEFLOW_SERVE_GIVEN"
+
+
+@contextmanager
+def using_given_defaults() -> Iterator[None]:
+    """Flow runs of this process's deployments (processes it starts) know the defaults `build_deployments` gave."""
+    with _environment({GIVEN_ENV: json.dumps({k: list(v) for k, v in _SERVE_START.items()})}):
+        yield
+
+
+def _serve_start() -> dict[str, tuple[str, dict]]:
+    raw = os.environ.get(GIVEN_ENV)
+    if not raw:
+        return _SERVE_START
+    try:
+        return {k: (str(v[0]), dict(v[1])) for k, v in json.loads(raw).items()}
+    except (ValueError, TypeError, IndexError, AttributeError):   # not ours: as if none were given
+        return {}
+
+
+def settings_now(stage: str, fields: dict, model: type[BaseModel]) -> dict:
+    """`fields` of a served run of `stage`, with each field of `recorded_defaults` that the run leaves as `serve` set
+    it at its start (the recorded value then, or `code_defaults`' where nothing was recorded) replaced by what the
+    store records now. The nightly pipeline after `pipeline --fps 25` by hand runs at 25 fps, even when serve started
+    at 30; a value someone chose in the run's form (or in the deployment's defaults) stays. Fields of another store,
+    or a stage serve gave no defaults: as they are."""
+    start = _serve_start().get(stage)
+    if start is None or str(fields.get("store")) != str(start[0]):
+        return fields
+    store, given = start
+    now = recorded_defaults(recorded_settings(store), stage)
+    out = dict(fields)
+    for key, value in now.items():
+        field = model.model_fields.get(key)
+        if key not in out or field is None:
+            continue
+        adapter = TypeAdapter(field.annotation)
+
+        def same(a: object, b: object) -> bool:   # as the field reads them: 25 and 25.0, a dict and its model
+            try:
+                return adapter.dump_json(adapter.validate_python(a)) == adapter.dump_json(adapter.validate_python(b))
+            except ValueError:
+                return False
+
+        was = given[key] if key in given else field.get_default(call_default_factory=True)
+        if same(out[key], was) and not same(value, was):
+            out[key] = value
+    return out
 
 
 def serve_roots(store: Root, corpus: Root | None, extra: Sequence[Path] = ()) -> list[Root]:
@@ -317,7 +372,7 @@ def flat_flow(flow: Flow, module: str, roots: Callable[[], Sequence[Root] | None
 
     @functools.wraps(fn)
     def checked(**fields):
-        params = model.model_validate(fields)
+        params = model.model_validate(settings_now(flow.name, fields, model))
         allowed = roots()
         if allowed is None:
             return fn(params)
@@ -397,7 +452,10 @@ def build_deployments(
 
     def deployment(stage: Stage) -> RunnerDeployment:
         scheduled = stage.scheduled and corpus and cron
-        parameters = {**(on_corpus if stage.on_corpus else on_store), **recorded_defaults(recorded, stage.name)}
+        given = recorded_defaults(recorded, stage.name)
+        if stage.name in RECORDED_DEFAULTS or stage.name == "pipeline":
+            _SERVE_START[stage.name] = (str(store), given)
+        parameters = {**(on_corpus if stage.on_corpus else on_store), **given}
         return served_flow(stage.flow_attr).to_deployment(
             DEPLOYMENT, parameters=parameters, tags=TAGS,
             entrypoint_type=EntrypointType.MODULE_PATH, description=stage.description or None,
@@ -755,7 +813,7 @@ def serve_stages(store: Root, corpus: Root | None, cron: str | None = DEFAULT_CR
         # awaiting it: "RuntimeWarning: coroutine 'Runner.astop' was never awaited" and a tracemalloc hint, on a
         # shutdown that otherwise goes well (the deployments are paused, the process exits 0)
         warnings.filterwarnings("ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning)
-        with _sigterm_until_gone():
+        with _sigterm_until_gone(), using_given_defaults():   # its runs take the store's settings of their day
             serve(*deployments, print_starting_message=True)
 
 
