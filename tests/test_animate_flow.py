@@ -158,7 +158,7 @@ def test_rerun_animate_makes_one_utterance_again_with_the_last_settings(tmp_path
     target = next(r for r in first["packages_written"] if r["utterance_id"] == "spk/u1")["files"]["json"]
     (store.root / target).unlink()
     report = rerun_flow(RerunParams(utterance_id="spk/u1", stage="animate", store=store.root))
-    assert report == {"packages": 1, "files": 2}
+    assert report == {"packages": 1, "files": 2, "warnings": []}
     assert (store.root / target).is_file()
 
 
@@ -193,7 +193,7 @@ def test_a_store_of_guided_and_unguided_tracked_curves_is_animated_whole_each_ut
     u0 = next(r for r in named["packages_written"] if r["utterance_id"] == "spk/u0")
     assert np.loadtxt(store.root / u0["files"]["curves-csv"], delimiter=",", skiprows=1)[:, 2:].max() == 0
     report = rerun_flow(RerunParams(utterance_id="spk/u3", stage="animate", store=store.root))
-    assert report == {"packages": 1, "files": 2}
+    assert report == {"packages": 1, "files": 2, "warnings": []}
 
 
 def test_the_pipeline_animates_its_curves_when_characters_are_given(tmp_path, characters):

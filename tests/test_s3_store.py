@@ -775,6 +775,16 @@ def test_animate_and_speak_on_s3_upload_the_packages_a_folder_store_gets(bucket,
     fs.rm(got["packages_written"][0]["files"]["glb"].removeprefix("s3://"))
     third = animate(url)
     assert third["written"] == 1 and third["cached"] == 1
+    # another file named arkit.glb, animated later into the same S3 store: a folder of its own (the first's folder
+    # says whose it is in `.character`), not the first avatar's packages replaced
+    assert fs.cat_file(f"{bucket}/anim/animations/arkit/.character").decode().strip() == str(glb.resolve())
+    (tmp_path / "other").mkdir()
+    other = tmp_path / "other" / "arkit.glb"
+    write_glb(other, tiny_character(list(ARKIT_52), name="arkit"), np.zeros((1, len(ARKIT_52)), np.float32), 30.0)
+    fourth = animate_flow(AnimateParams(store=url, characters=[other], source="ground_truth", config=config))
+    folders = {r["folder"].split("/animations/")[1].split("/")[0] for r in fourth["packages_written"]}
+    assert len(folders) == 1 and folders != {"arkit"} and folders.pop().startswith("arkit-"), fourth
+    assert animate(url)["cached"] == 2   # the first file still finds its own packages
 
     model = tmp_path / "tiny"
     tiny_model_store = Store(model)

@@ -144,7 +144,7 @@ def animate_flow(params: AnimateParams):
             logger.warning("animate: %s", exc, extra=SUMMARISED)
             continue
         if root is not None:   # this character's folder now: a later run of another file of its name gets another
-            claim_character_folder(root, key, path)
+            claim_character_folder(root, key, path, store)
         for uid in ids:
             audio, audio_hash, provenance = per_utterance[uid]
             variant = variant_of[uid]
@@ -259,7 +259,7 @@ def preview_flow(params: PreviewParams) -> dict:
     root = package_root(store, None)
     (key,) = character_keys([path], root)
     if root is not None and not params.out:
-        claim_character_folder(root, key, path)
+        claim_character_folder(root, key, path, store)
     folder = package_dir(store, None, key, uid)
     out = params.out or folder / f"{folder.name}.preview.mp4"
     recorded = not (store.remote and not params.out)   # a local MP4 gets a record of what it was made from
@@ -365,12 +365,13 @@ def rerun_variant(store: Store, uid: str, last: AnimateSettings | None) -> str:
     return variant
 
 
-def package_root(store: Store, out: str | None) -> Path | None:
-    """The local folder holding the character folders of packages (`--out`, else the store's `animations`), where
-    each records the file it holds (`tasks.animate.claim_character_folder`); None on object storage."""
+def package_root(store: Store, out: str | None):
+    """The folder holding the character folders of packages (`--out`, else the store's `animations`, a `UPath` on
+    object storage), where each records the file it holds (`tasks.animate.claim_character_folder`); None for an
+    `--out` URL."""
     if out:
         return None if is_url(out) else Path(out)
-    return None if store.remote else store.root / "animations"
+    return store.root / "animations"
 
 
 def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool) -> dict:

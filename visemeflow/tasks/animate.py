@@ -18,7 +18,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import os
 import re
 import shutil
 from collections import defaultdict
@@ -150,11 +149,11 @@ def character_key(path: str | Path) -> str:
 CHARACTER_OWNER = ".character"   # in a character's package folder: the resolved path of the file it holds
 
 
-def character_keys(paths: list[str], root: str | os.PathLike | None = None) -> list[str]:
+def character_keys(paths: list[str], root: Any = None) -> list[str]:
     """The package folder name of each character of one run: its `character_key`, unless different files (by
-    resolved path) share one, as `a/good.glb` and `b/good.glb`, or (`root`: the local folder of the character
-    folders, `--out` or the store's `animations`) its folder there holds another file's packages, as its
-    `.character` says (`claim_character_folder`): then it gets `-<8 hex digits>` of its resolved path, so no run
+    resolved path) share one, as `a/good.glb` and `b/good.glb`, or (`root`: the folder of the character folders,
+    `--out` or the store's `animations`, on object storage too) its folder there holds another file's packages, as
+    its `.character` says (`claim_character_folder`): then it gets `-<8 hex digits>` of its resolved path, so no run
     overwrites another character's packages and the same file gets the same folder again."""
     keys = [character_key(p) for p in paths]
     resolved = [str(Path(p).resolve()) for p in paths]
@@ -163,27 +162,37 @@ def character_keys(paths: list[str], root: str | os.PathLike | None = None) -> l
         owners[key].add(where)
     out = []
     for key, where in zip(keys, resolved):
-        owner = _folder_owner(Path(root) / key) if root is not None else None
+        owner = _folder_owner(_base(root) / key) if root is not None else None
         out.append(f"{key}-{stable_hash(where, size=4)}" if len(owners[key]) > 1 or owner not in (None, where)
                    else key)
     return out
 
 
-def _folder_owner(folder: Path) -> str | None:
+def _base(root: Any) -> Any:
+    """A local folder as a Path; a store's folder on object storage (a `UPath`) as it is."""
+    return Path(root) if isinstance(root, str) else root
+
+
+def _folder_owner(folder: Any) -> str | None:
     try:
         return (folder / CHARACTER_OWNER).read_text(encoding="utf-8").strip() or None
-    except (OSError, UnicodeDecodeError):   # none yet (a folder of an earlier version, or a new one)
+    except (OSError, UnicodeDecodeError, ValueError):   # none yet (a folder of an earlier version, or a new one)
         return None
 
 
-def claim_character_folder(root: str | os.PathLike, key: str, path: str) -> None:
+def claim_character_folder(root: Any, key: str, path: str, store: Store | None = None) -> None:
     """Record in `root/<key>/.character` that the folder holds the packages of the character file `path` (resolved),
-    unless it says so already (see `character_keys`)."""
-    folder = Path(root) / key
+    unless it says so already (see `character_keys`). `root`: a local folder, or the store's `animations` on object
+    storage (written through `store`)."""
+    folder = _base(root) / key
     where = str(Path(path).resolve())
-    if _folder_owner(folder) != where:
-        folder.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(folder / CHARACTER_OWNER, where + "\n")
+    if _folder_owner(folder) == where:
+        return
+    if store is not None and store.remote:
+        store.write_file(folder / CHARACTER_OWNER, lambda tmp: Path(tmp).write_text(where + "\n", encoding="utf-8"))
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(folder / CHARACTER_OWNER, where + "\n")
 
 
 def package_inputs(utterance_id: str, source: str, variant: str, provenance: str, character_hash: str,
