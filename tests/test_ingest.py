@@ -399,6 +399,7 @@ def test_invalid_utterance_id(tmp_path):
     bad = tmp_path / "bad\\speaker"  # a backslash: a path separator on Windows
     bad.mkdir()
     write_wav(bad / "a.wav", 1.0)
+    write_wav(bad / "a.flac", 1.0)   # outranked by the wav, and left out with it all the same
     (bad / "a.TextGrid").write_text(textgrid_long([(0.0, 1.0, "AA1")], 1.0))
     found = discover_corpus(tmp_path)
     assert [e.utterance_id for e in found.entries] == ["good/a"]
@@ -408,6 +409,7 @@ def test_invalid_utterance_id(tmp_path):
     assert reject.path.startswith(str(bad)) and reject.path in reject.message
     # both of its files are named: the wav is left out with the TextGrid, not silently
     assert str(bad / "a.wav") in reject.message and str(bad / "a.TextGrid") in reject.message
+    assert str(bad / "a.flac") in reject.message
     assert "left out with it" in reject.message
     # in a manifest too
     manifest = write_manifest(tmp_path / "m.csv", [{"utterance_id": "a/b/c", "audio": "good/a.wav",

@@ -51,6 +51,39 @@ def test_a_summarised_record_leaves_only_the_console_and_only_while_a_command_pr
                             "kept on the console", "predict: rejected c.wav"]   # the UI's handler gets every line
 
 
+def test_a_command_that_fails_before_its_summary_gets_the_held_lines_on_the_console_after_all():
+    """A stage that ends Failed (or a bug) never prints its rejects list: what was held back is shown as the command
+    leaves, at most HELD lines and a count of the rest. An exit after the summary (typer.Exit, SystemExit) shows
+    nothing more."""
+    import click
+    import pytest
+    import typer
+
+    stream = io.StringIO()
+    console = PrefectConsoleHandler(stream=stream)
+    logs.keep_summarised_off([console])
+    logger = logging.getLogger("visemeflow.test_logs.failed")
+    logger.propagate = False
+    logger.addHandler(console)
+    try:
+        with pytest.raises(typer.Exit), summary_prints_them((SystemExit, typer.Exit, click.exceptions.Exit)):
+            logger.warning("rejected a.wav", extra=SUMMARISED)
+            raise typer.Exit(1)   # speak's exit 1 after it printed its rejects
+        assert "a.wav" not in stream.getvalue()
+        with pytest.raises(RuntimeError), summary_prints_them():
+            logger.warning("rejected b.wav", extra=SUMMARISED)
+            for i in range(logs.HELD + 5):
+                logger.warning("rejected c%d.wav", i, extra=SUMMARISED)
+            assert "b.wav" not in stream.getvalue()   # held while the command runs
+            raise RuntimeError("the stage failed")
+    finally:
+        logger.removeHandler(console)
+    shown = stream.getvalue()
+    assert "rejected b.wav" in shown and f"rejected c{logs.HELD - 2}.wav" in shown
+    assert f"rejected c{logs.HELD - 1}.wav" not in shown and "and 6 more such lines" in shown
+    assert not logs._held and logs._depth == 0
+
+
 def test_prefects_lines_for_a_task_that_failed_on_bad_input_are_marked_and_a_bug_is_not():
     class AudioError(Exception):
         error_type = "AudioError"

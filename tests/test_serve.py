@@ -129,12 +129,15 @@ def test_the_schedule_runs_with_the_settings_the_stages_last_ran_with(tmp_path):
     assert "rig" not in pipeline.parameters and "characters" not in pipeline.parameters   # paths are never recorded defaults
 
 
-def test_a_served_run_takes_the_settings_the_store_records_when_it_starts_not_when_serve_started(tmp_path,
-                                                                                                 monkeypatch):
+def test_a_scheduled_run_takes_the_settings_the_store_records_when_it_starts_not_when_serve_started(tmp_path,
+                                                                                                    monkeypatch):
     """`serve` at 30 fps, then `pipeline --fps 25` by hand: the nightly run used the defaults serve was started with
-    (30 fps) and mixed the store's frame rates again. A field the run leaves as serve gave it now takes what the store
-    records at the run's start; a value chosen in the run's form stays. The defaults reach the runs' processes in
-    GIVEN_ENV."""
+    (30 fps) and mixed the store's frame rates again. A scheduled run whose recorded-default fields are all as serve
+    gave them now takes what the store records at the run's start, as one set; a run started by hand, a schedule
+    whose defaults were edited, and settings that do not validate keep the fields as given. The defaults reach the
+    runs' processes in GIVEN_ENV."""
+    import json
+
     from prefect import flow
 
     from visemeflow.flows.params import IngestSettings, PipelineParams
@@ -161,22 +164,29 @@ def test_a_served_run_takes_the_settings_the_store_records_when_it_starts_not_wh
         return {}
 
     served = serve_module.flat_flow(recording, __name__, lambda: None)
+
+    def run(fields: dict, scheduled: bool = True) -> PipelineParams:
+        monkeypatch.setattr(serve_module, "_auto_scheduled", lambda: scheduled)
+        served.fn(**served.validate_parameters(fields))
+        return seen[-1]
+
     with serve_module.using_given_defaults():
         given = os.environ[serve_module.GIVEN_ENV]
     monkeypatch.setattr(serve_module, "_SERVE_START", {})   # a run's own process: only the environment knows them
     monkeypatch.setenv(serve_module.GIVEN_ENV, given)
     record(25.0)   # `visemeflow pipeline --fps 25`, by hand, after serve started
-    served.fn(**served.validate_parameters(pipeline.parameters))
-    assert seen[-1].ingest.fps == 25.0 and seen[-1].n_shards == 4
-    chosen = {**pipeline.parameters, "ingest": {**pipeline.parameters["ingest"], "fps": 50.0}}
-    served.fn(**served.validate_parameters(chosen))   # a value someone chose in the form: theirs
-    assert seen[-1].ingest.fps == 50.0
-    other = {**pipeline.parameters, "store": str(tmp_path / "other")}   # a run on another store: as given
-    served.fn(**served.validate_parameters(other))
-    assert seen[-1].ingest.fps == 30.0
+    assert run(pipeline.parameters).ingest.fps == 25.0 and seen[-1].n_shards == 4
+    assert run(pipeline.parameters, scheduled=False).ingest.fps == 30.0   # by hand: what the form says
+    edited = {**pipeline.parameters, "n_shards": 8}   # the schedule's defaults edited in the UI: all kept
+    assert (run(edited).ingest.fps, seen[-1].n_shards) == (30.0, 8)
+    assert run({**pipeline.parameters, "store": str(tmp_path / "other")}).ingest.fps == 30.0   # another store
+    config = store / "configs" / "ingest.json"
+    for bad in ([1], {"config": {"fps": "fast"}}, {"config": {"fps": 25.0}, "n_shards": 10 ** 9}):
+        config.write_text(json.dumps(bad))   # edited by hand: the run as serve started it
+        assert run(pipeline.parameters).ingest.fps == 30.0 and seen[-1].n_shards == 4
     monkeypatch.setenv(serve_module.GIVEN_ENV, "not json")   # not ours: the run's fields as they are
-    served.fn(**served.validate_parameters(pipeline.parameters))
-    assert seen[-1].ingest.fps == 30.0
+    record(25.0)
+    assert run(pipeline.parameters).ingest.fps == 30.0
 
 
 def test_the_rerun_form_asks_for_utterance_stage_and_force():

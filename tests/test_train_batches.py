@@ -206,6 +206,9 @@ def test_dropout_trains_differently_saves_as_before_and_predicts_as_it_trained(t
     assert "dropout" not in TrainConfig().model_dump(mode="json")
     assert TrainConfig(dropout=None).model_dump_json() == OLD_DEFAULT_JSON
     assert TrainConfig(dropout=0.4).resolved_preset().decoder.dropout == 0.4
+    assert TrainConfig(dropout=0.0) == TrainConfig() and TrainConfig(dropout=0).model_dump_json() == OLD_DEFAULT_JSON
+    with pytest.raises(ValueError, match="no decoder"):
+        TrainConfig(preset="mean-curve", dropout=0.2)
     assert TrainConfig().resolved_preset().decoder.dropout == 0.0
     with pytest.raises(ValueError):
         TrainConfig(dropout=1.0)

@@ -599,7 +599,7 @@ def _output_location(ctx: typer.Context, value):
     Opt("corpus", argument=True, callback=_corpus), Opt("out", type=str, callback=_output_location), STORE,
     Opt("rig", callback=_path),
     Opt("config.width"), Opt("config.height"), Opt("config.fps"), Opt("config.truth.seed"),
-])
+], prints_rejects=False)
 def synth(params: SynthParams) -> None:
     """Render talking-face videos with known true viseme curves from a corpus of audio + alignments."""
     from visemeflow.flows.synth import synth_flow
@@ -657,7 +657,7 @@ def serve(
     Opt("config.d_model"), Opt("config.dropout"), Opt("config.seed"), Opt("config.wav2vec2_model", "--wav2vec2"),
     TRAIN_AUGMENT, Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
     Opt("config.whisper_tune_layers", "--tune-layers"), Opt("config.whisper_tune_lr", "--tune-lr"),
-])
+], prints_rejects=False)
 def train(params: TrainParams) -> None:
     """Train an audio-to-curves model on the store's curves; a killed run resumes from its last epoch."""
     _device(params.device, params.precision)
@@ -682,7 +682,7 @@ def train(params: TrainParams) -> None:
 @stage_command(app, SweepParams, [
     STORE, Opt("config.preset"), Opt("sizes"), Opt("steps"), Opt("source"), Opt("variant"), Opt("config.d_model"),
     *RUNNER, Opt("config.batch_size"), Opt("device"), Opt("precision"), Opt("encoder_cache_dir", "--encoder-cache"),
-])
+], prints_rejects=False)
 def sweep(params: SweepParams) -> None:
     """Train one preset on nested subsets of the training set and plot validation L1 x 100 by size (paper Fig. 5)."""
     _device(params.device, params.precision)
@@ -944,7 +944,7 @@ def speak(params: SpeakParams) -> None:
     Opt("utterance_id", argument=True), Opt("character", callback=_character), Opt("sources"), STORE,
     Opt("mapping", callback=_file), Opt("size"), Opt("out"), Opt("mode"), Opt("bones"), Opt("closure_rule"),
     Opt("meshes", "--mesh", repeat=True), Opt("force"),
-], name="preview")
+], name="preview", prints_rejects=False)
 def preview_command(params: PreviewParams) -> None:
     """Render an MP4 of the character's face driven by each source, side by side, with the audio and the phones."""
     from visemeflow.flows.animate import preview_flow

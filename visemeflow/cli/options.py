@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import PurePath
 from typing import Annotated, Any, Literal, Optional
 
+import click
 import typer
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
@@ -307,9 +308,12 @@ def build_params(model: type[BaseModel], options: Sequence[Opt], values: dict[st
 
 
 def stage_command(app: typer.Typer, model: type[BaseModel], options: Sequence[Opt], name: str | None = None,
+                  prints_rejects: bool = True,
                   **command_settings: Any) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Register the decorated function as the command `name` (default: its own name, dashed) whose options are
-    `options` of `model`; it is called with the params model and, by name, the options that are not fields."""
+    `options` of `model`; it is called with the params model and, by name, the options that are not fields.
+    `prints_rejects`: the command ends by printing its rejects and its packages' warnings, so Prefect's console
+    leaves those lines to it (`visemeflow.logs`; a command that fails first gets them on the console after all)."""
     resolved = [_resolve(model, opt) for opt in options]
     names = [r.opt.param_name for r in resolved]
     if len(set(names)) != len(names):
@@ -320,7 +324,9 @@ def stage_command(app: typer.Typer, model: type[BaseModel], options: Sequence[Op
 
         def command(**values: Any) -> Any:
             params = build_params(model, options, values)
-            with summary_prints_them():   # each stage command prints its rejects and warnings itself, once
+            if not prints_rejects:
+                return body(params, **{k: values[k] for k in own})
+            with summary_prints_them((SystemExit, typer.Exit, click.exceptions.Exit)):   # it prints them, once
                 return body(params, **{k: values[k] for k in own})
 
         command.__signature__ = inspect.Signature([_typer_param(r) for r in resolved])  # type: ignore[attr-defined]

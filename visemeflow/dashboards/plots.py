@@ -1,7 +1,8 @@
 """PNG charts of the static HTML report, drawn with matplotlib's object API on the Agg canvas.
 
 Figures are made with `matplotlib.figure.Figure` directly, never through pyplot: no global figure registry, no
-interactive backend, nothing to close, safe in worker threads. Every function returns PNG bytes.
+interactive backend, nothing to close, safe in worker threads (they take turns: `_fonts`). Every function returns
+PNG bytes.
 
 Text is set in matplotlib's DejaVu Sans, and each glyph it lacks (Chinese, Japanese, Korean: an utterance id such as
 `普通话/0001`) is taken from the first CJK font the machine has (`font_families`; `make` installs Debian's
@@ -10,6 +11,7 @@ Text is set in matplotlib's DejaVu Sans, and each glyph it lacks (Chinese, Japan
 
 import functools
 import io
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,11 +66,15 @@ def font_families() -> tuple[str, ...]:
     return ("DejaVu Sans",) + tuple(name for name in CJK_FAMILIES if name in known)
 
 
+_RC_LOCK = threading.Lock()   # rc_context saves and restores matplotlib's global rcParams: one figure at a time
+
+
 def _fonts(draw: _F) -> _F:
-    """Draw with `font_families()` (matplotlib's text takes its font when made, so the whole figure is inside)."""
+    """Draw with `font_families()` (matplotlib's text takes its font when made, so the whole figure is inside);
+    figures drawn in several threads take turns, since the font setting is global while it lasts."""
     @functools.wraps(draw)
     def drawn(*args: Any, **kwargs: Any) -> Any:
-        with matplotlib.rc_context({"font.family": list(font_families())}):
+        with _RC_LOCK, matplotlib.rc_context({"font.family": list(font_families())}):
             return draw(*args, **kwargs)
     return drawn  # type: ignore[return-value]
 

@@ -485,7 +485,8 @@ def _discover_speaker(speaker: str, folder: str, files: dict[str, Path], mlfs: l
             utterance_id = make_utterance_id(speaker, stem)
         except InvalidIdError as exc:
             if only is None:   # every file of the name is left out: say so, not only of the first
-                others = sorted(str(p) for p in set(kinds.values()) if str(p) != any_path)
+                named = {*kinds.values(), *(p for (s, _), ps in passed_over.items() if s == stem for p in ps)}
+                others = sorted(str(p) for p in named if str(p) != any_path)
                 also = f"; left out with it: {', '.join(others)}" if others else ""
                 rejects.append(DiscoveryReject(None, "InvalidId", f"{any_path}: {exc}{also}", any_path))
             continue

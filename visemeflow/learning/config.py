@@ -34,7 +34,8 @@ class TrainConfig(BaseModel):
     lr: float | None = Field(None, gt=0, description="Learning rate; default: the preset's.")
     dropout: float | None = Field(None, ge=0, lt=1, description=(
         "Dropout on the decoder's output (and between its layers) in training; default: the preset's (0). The "
-        "network at inference is the same, so the model file does not change."))
+        "network at inference is the same; the model file records the value (so an earlier version of visemeflow "
+        "refuses it)."))
     max_steps_per_epoch: int | None = Field(None, ge=1)
     wav2vec2_model: str | None = Field(None, description="wav2vec2 model path or hub id (wav2vec2 presets).")
     # whisper presets: "package", a CTranslate2 / Hugging Face folder or a hub id, instead of the preset's own
@@ -72,6 +73,21 @@ class TrainConfig(BaseModel):
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
         return without_added_defaults(handler(self), _ADDED_DEFAULTS)
+
+    @field_validator("dropout")
+    @classmethod
+    def _no_dropout_is_none(cls, value: float | None) -> float | None:
+        return None if value == 0 else value   # 0 is every preset's own: the same config, the same hash
+
+    @model_validator(mode="after")
+    def _dropout_needs_a_decoder(self) -> TrainConfig:
+        if self.dropout is not None:
+            from visemeflow.learning.presets import get_preset
+
+            if get_preset(self.preset).architecture in ("karras", "mean"):
+                raise ValueError(f"--dropout: the preset {self.preset} has no decoder whose output it would drop "
+                                 "(curve and faceformer presets have one)")
+        return self
 
     @model_validator(mode="after")
     def _tune_lr_needs_tuned_layers(self) -> TrainConfig:

@@ -166,34 +166,47 @@ def _serve_start() -> dict[str, tuple[str, dict]]:
         return {}
 
 
+def _auto_scheduled() -> bool:
+    """Whether the flow run this code runs in was made by its deployment's schedule (not by hand)."""
+    from prefect.context import FlowRunContext
+
+    context = FlowRunContext.get()
+    return bool(context and context.flow_run and context.flow_run.auto_scheduled)
+
+
 def settings_now(stage: str, fields: dict, model: type[BaseModel]) -> dict:
-    """`fields` of a served run of `stage`, with each field of `recorded_defaults` that the run leaves as `serve` set
-    it at its start (the recorded value then, or `code_defaults`' where nothing was recorded) replaced by what the
-    store records now. The nightly pipeline after `pipeline --fps 25` by hand runs at 25 fps, even when serve started
-    at 30; a value someone chose in the run's form (or in the deployment's defaults) stays. Fields of another store,
-    or a stage serve gave no defaults: as they are."""
+    """`fields` of a scheduled run of `stage` served by `serve`, with the fields of `recorded_defaults` replaced by
+    what the store records now, where the run leaves all of them as `serve` set them at its start (the recorded
+    values then, or the code's defaults where nothing was recorded). The nightly pipeline after `pipeline --fps 25`
+    by hand runs at 25 fps, even when serve started at 30. A run started by hand runs what its form says; a schedule
+    whose defaults someone edited in the UI keeps them all (the settings are taken as one set, never mixed: a
+    procedural config with another config's variant name). Settings the store records that do not validate, a store
+    that cannot be read now, fields of another store, a stage serve gave no defaults: the fields as they are."""
     start = _serve_start().get(stage)
-    if start is None or str(fields.get("store")) != str(start[0]):
+    if start is None or str(fields.get("store")) != str(start[0]) or not _auto_scheduled():
         return fields
     store, given = start
-    now = recorded_defaults(recorded_settings(store), stage)
-    out = dict(fields)
-    for key, value in now.items():
-        field = model.model_fields.get(key)
-        if key not in out or field is None:
-            continue
-        adapter = TypeAdapter(field.annotation)
-
-        def same(a: object, b: object) -> bool:   # as the field reads them: 25 and 25.0, a dict and its model
-            try:
-                return adapter.dump_json(adapter.validate_python(a)) == adapter.dump_json(adapter.validate_python(b))
-            except ValueError:
-                return False
-
-        was = given[key] if key in given else field.get_default(call_default_factory=True)
-        if same(out[key], was) and not same(value, was):
-            out[key] = value
-    return out
+    try:
+        now = recorded_defaults(recorded_settings(store), stage)
+        changed = {}
+        for key in sorted(set(now) | set(given)):
+            field = model.model_fields.get(key)
+            if key not in fields or field is None:
+                continue
+            adapter = TypeAdapter(Annotated[field.annotation, *field.metadata] if field.metadata   # its bounds
+                                  else field.annotation)
+            was = given[key] if key in given else field.get_default(call_default_factory=True)
+            value = now[key] if key in now else field.get_default(call_default_factory=True)
+            if adapter.dump_json(adapter.validate_python(fields[key])) != adapter.dump_json(
+                    adapter.validate_python(was)):
+                return fields   # someone chose this run's settings: as they are
+            if adapter.dump_json(adapter.validate_python(value)) != adapter.dump_json(adapter.validate_python(was)):
+                changed[key] = value
+    except Exception as exc:  # noqa: BLE001 - a store config edited by hand, an unreadable store: the run as given
+        logging.getLogger(__name__).warning("%s: the settings %s records now are not used (%s: %s); the run has the "
+                                            "settings serve started with", stage, store, type(exc).__name__, exc)
+        return fields
+    return {**fields, **changed}
 
 
 def serve_roots(store: Root, corpus: Root | None, extra: Sequence[Path] = ()) -> list[Root]:
