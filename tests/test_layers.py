@@ -10,7 +10,7 @@ from collections import defaultdict
 from factories import REPO
 
 PACKAGE = REPO / "visemeflow"
-BASE = {"visemes", "articulation", "hashing", "hashmemo", "lazy", "timebase", "atomic", "location"}
+BASE = {"visemes", "articulation", "hashing", "hashmemo", "lazy", "timebase", "atomic", "location", "logs"}
 DOMAIN = {"phonetics", "procedural", "render", "rig", "shapes", "tracking", "learning", "animation", "authoring", "synth",
           "ingest"}
 # part -> the parts of ours it may import (besides itself and BASE): DESIGN.md's table, with the exceptions named
