@@ -380,6 +380,17 @@ def test_a_full_disk_while_writing_an_export_names_the_output_file(tmp_path, ava
     assert not failed.exists() and not [p for p in failed.parent.iterdir() if p.name.startswith(".")]
 
 
+def _gltf_without_its_texture(source: Path, folder: Path) -> Path:
+    """The avatar as `folder/avatar.gltf` whose image 0 is `skin.png`, a file not copied beside it."""
+    g = gl.GLTF2().load(str(source))
+    g.convert_buffers(gl.BufferFormat.DATAURI)
+    g.images[0].bufferView, g.images[0].uri = None, "skin.png"
+    folder.mkdir()
+    path = folder / "avatar.gltf"
+    path.write_text(json.dumps(json.loads(g.to_json())))
+    return path
+
+
 def test_a_gltf_whose_texture_file_is_missing_still_speaks_and_says_what_it_left_out(tmp_path, avatar):
     """The avatar as a .gltf whose skin.png was not copied beside it (a user's usual slip): the package is written,
     the GLB holds a grey stand-in for the skin (the Khronos validator accepts it), the USDZ leaves the skin out, and
@@ -388,14 +399,7 @@ def test_a_gltf_whose_texture_file_is_missing_still_speaks_and_says_what_it_left
 
     from visemeflow.tasks.animate import animate, content_hash
 
-    source, _ = avatar
-    g = gl.GLTF2().load(str(source))
-    g.convert_buffers(gl.BufferFormat.DATAURI)
-    g.images[0].bufferView, g.images[0].uri = None, "skin.png"
-    folder = tmp_path / "model"
-    folder.mkdir()
-    (folder / "avatar.gltf").write_text(json.dumps(json.loads(g.to_json())))
-    path = folder / "avatar.gltf"
+    path = _gltf_without_its_texture(avatar[0], tmp_path / "model")
     store = make_curve_store(tmp_path / "store", n=1)
     config = AnimateConfig(formats=("glb", "usdz"), fps=30.0)
     audio = store.read_table("utterances").column("audio_path")[0].as_py()
@@ -418,14 +422,7 @@ def test_animate_and_its_rerun_print_what_the_package_left_out(tmp_path, avatar)
 
     from visemeflow.cli import app
 
-    source, _ = avatar
-    g = gl.GLTF2().load(str(source))
-    g.convert_buffers(gl.BufferFormat.DATAURI)
-    g.images[0].bufferView, g.images[0].uri = None, "skin.png"
-    folder = tmp_path / "model"
-    folder.mkdir()
-    path = folder / "avatar.gltf"
-    path.write_text(json.dumps(json.loads(g.to_json())))
+    path = _gltf_without_its_texture(avatar[0], tmp_path / "model")
     store = make_curve_store(tmp_path / "store", n=1)
     runner = CliRunner()
     done = runner.invoke(app, ["animate", "spk/u0", "--character", str(path), "--store", str(store.root),
