@@ -120,6 +120,35 @@ def test_bad_characters_and_curves_are_rejects_naming_the_file_and_the_rest_goes
     assert store.read_table("rejects", "animate").num_rows == 0
 
 
+def test_speak_counts_the_lips_closed_at_the_bilabials_of_an_alignment_beside_the_audio(tmp_path):
+    """`speak take.wav` with `take.TextGrid` beside it (a corpus's layout) reports how many of its b/p/m the mesh
+    closed, as `animate` does for ingested utterances; without one, or with one that cannot be read, the package is
+    made all the same, without that count."""
+    import shutil
+
+    from visemeflow.animation.lips import is_bilabial
+    from visemeflow.flows.animate import phones_beside
+
+    phones = phones_beside(AUDIO)
+    bilabials = sum(is_bilabial(label) for _, _, label in phones)
+    assert bilabials >= 1 and ("zh", 0.28, 0.36) == (phones[1][2], phones[1][0], phones[1][1])
+    store = Store(tmp_path / "store")
+    tiny_model(store)
+    config = AnimateConfig(formats=("json",))
+    (report,) = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[AUDIO],   # the demo head: its lips
+                                       out=tmp_path / "out", config=config))["packages_written"]
+    assert report["lips"].get("bilabials") == bilabials and 0 <= report["lips"]["closed"] <= bilabials, report["lips"]
+    alone = tmp_path / "alone" / "take.wav"
+    alone.parent.mkdir()
+    shutil.copy(AUDIO, alone)
+    assert phones_beside(alone) is None
+    (alone.parent / "take.TextGrid").write_text("not a TextGrid")
+    assert phones_beside(alone) is None
+    (report,) = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[alone], out=tmp_path / "out",
+                                       config=config))["packages_written"]
+    assert "bilabials" not in report["lips"] and "mbp_shape_gap_mm" in report["lips"]
+
+
 def test_speak_turns_audio_into_a_talking_character_in_one_flow(tmp_path, characters):
     store = Store(tmp_path / "store")
     tiny_model(store)

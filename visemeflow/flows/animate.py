@@ -92,6 +92,27 @@ def _phones(store: Store, utterance_ids: list[str]) -> dict[str, list[tuple[floa
     return out
 
 
+def phones_beside(audio: str | Path) -> list[tuple[float, float, str]] | None:
+    """(start, end, label) of the phones of the alignment file lying beside a local `audio` file (`take.TextGrid`
+    beside `take.wav`, as a corpus has them), for the lips count of what `speak` made of it; None where there is
+    none, it is a transcript (no forced alignment here), or it cannot be read (the count is only left out)."""
+    from visemeflow.ingest import IngestConfig, IngestError
+    from visemeflow.ingest.corpus import TRANSCRIPT_FORMAT, discover_corpus
+    from visemeflow.ingest.utterance import read_alignment
+
+    if is_url(str(audio)) or not Path(audio).is_file():
+        return None
+    try:
+        entries = discover_corpus(Path(audio)).entries
+        entry = entries[0] if entries else None
+        if entry is None or not entry.alignment_path or entry.alignment_format in (None, TRANSCRIPT_FORMAT, "none"):
+            return None
+        alignment = read_alignment(entry, IngestConfig())
+    except (IngestError, OSError, ValueError):
+        return None
+    return [(float(p.start_s), float(p.end_s), p.label) for p in alignment.phones] or None
+
+
 def _markdown(rows: list[dict]) -> str:
     lines = ["### Animations", "", "| utterance | character | convention | frames | fps | cached | files |",
              "|---|---|---|---|---|---|---|"]
@@ -120,6 +141,9 @@ def animate_flow(params: AnimateParams):
     utterances = {r[C.UTTERANCE_ID]: r for r in store.read_table("utterances", utterance_ids=ids)
                   .select([C.UTTERANCE_ID, C.AUDIO_PATH]).to_pylist()} if ids else {}
     phones = _phones(store, ids)   # the lips report counts the b/p/m closed on the mesh (and the preview shows them)
+    for uid, audio in params.audio.items():   # `speak`: an alignment beside the audio file counts them too
+        if uid in variant_of and uid not in phones and (beside := phones_beside(audio)):
+            phones[uid] = beside
     per_utterance = {}  # uid -> (audio path, its content hash, the curves' provenance): once, for every character
     for uid in ids:
         audio = params.audio.get(uid) or (utterances.get(uid) or {}).get(C.AUDIO_PATH)
