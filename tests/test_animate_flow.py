@@ -340,6 +340,16 @@ def test_the_lips_report_counts_the_closures_without_a_preview(tmp_path):
     (report,) = animate_flow(AnimateParams(store=store.root, source="ground_truth",
                                            config=AnimateConfig(formats=("glb",))))["packages_written"]
     assert report["lips"]["bilabials"] == 1 and 0 <= report["lips"]["closed"] <= 1, report["lips"]
+    # `rerun --stage animate` makes the package from the same phones: the next `animate` finds it as its own
+    # (before, the rerun left the phones out: a package without the count, which `animate` then made again)
+    from visemeflow.flows.params import RerunParams
+    from visemeflow.flows.rerun import rerun_flow
+
+    rerun_flow(RerunParams(utterance_id="spk/u0", stage="animate", store=store.root))
+    inputs = json.loads((Path(report["folder"]) / ".inputs.json").read_text())
+    assert inputs["phones"] is not None
+    again = animate_flow(AnimateParams(store=store.root, source="ground_truth", config=AnimateConfig(formats=("glb",))))
+    assert again["cached"] == 1 and again["written"] == 0, again
 
 
 @pytest.fixture

@@ -406,11 +406,12 @@ def rerun_one(store: Store, uid: str, last: AnimateSettings | None, force: bool)
     rows = store.read_table("utterances", utterance_ids=[uid]).select([C.AUDIO_PATH]).to_pylist()
     audio = rows[0][C.AUDIO_PATH] if rows and input_exists(rows[0][C.AUDIO_PATH]) else None
     mapping = last.mapping
+    phones = _phones(store, [uid]).get(uid)   # as `animate` gives them: the lips count, the same package inputs
     task = animate_one.with_options(result_storage=result_storage(store.root), refresh_cache=force)
     packages = [task(str(store.root), uid, last.source, variant,
                      store.curves_provenance(last.source, variant, uid) or "", path, content_hash(path),
                      key, mapping, file_hash(mapping) if mapping else None, last.config, audio,
-                     input_digest(audio) if audio else None, last.out)
+                     input_digest(audio) if audio else None, last.out, phones)
                 for path, key in zip(last.characters, character_keys(last.characters, package_root(store, last.out)))
                 if Path(path).exists()]
     # what the viewer will miss, as `animate` lists it (the command prints these; Prefect's console leaves them out)
