@@ -325,14 +325,14 @@ def recipe_data(sets: Sets, recipe: str) -> list[Example]:
 
 def recipe_config(recipe: str, n_train: int, steps: int, d_model: int, seed: int = 0,
                   layers: str | None = None, preset: str = "whisper-base-blstm",
-                  dropout: float = 0.0) -> TrainConfig:
+                  dropout: float | None = None) -> TrainConfig:
     """`+cls` adds the auxiliary viseme loss at weight 0.5, `+clsW` at weight W."""
     epochs = -(-steps // n_train)
     cls = [p for p in recipe.split("+") if p.startswith("cls")]
     weight = (float(cls[0][3:]) if cls[0][3:] else AUX_WEIGHT) if cls else 0.0
     return TrainConfig(preset=preset, d_model=d_model, epochs=epochs, seed=seed, lr=LR,
                        max_steps_per_epoch=min(n_train, -(-steps // epochs)), viseme_loss_weight=weight,
-                       whisper_layers=layers, dropout=dropout or None)
+                       whisper_layers=layers, dropout=dropout)
 
 
 class CachedPredictor:
