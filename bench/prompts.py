@@ -26,7 +26,10 @@ Alignment (made here, each run, into a temporary corpus folder read by bench/rea
   ~50-150 ms, phones inside a word off by the order of a phone, so the strict per-phone closure figures understate a
   model there; `MBP within +-T s` is the tolerant reading.
 The audio is 8 kHz telephone speech (nothing above 4 kHz), resampled to 16 kHz: a channel none of the models
-trained on, on top of the voices and languages.
+trained on, on top of the voices and languages. `--hear wide` gives the models the same prompts in wide band instead
+(`asterisk-core-sounds-<lang>-g722`: G.722 at 16 kHz, 50-7000 Hz, decoded by PyAV; the same recordings, 2 ms apart),
+and `--align wide` gives them to the aligner (default: what the models hear), so the 8-kHz channel's share of a
+figure can be told from the voice's and the aligner's.
 
 Rows and columns as bench/thirdlang.py's: per language, each model of `--models` (its curves at 30 fps,
 `predict_curves`, the Whisper encoder's outputs cached in bench/out/prompts/cache), and `procedural (alignment)`, the
@@ -84,8 +87,26 @@ NORMALISE = {"ɡ": "g", "ː": "", "ɾ": "r", "ʲ": ""}
 palatalised Russian consonant looks like its plain one); the tap as r."""
 
 
-def packages(lang: str) -> str:
-    return f"asterisk-core-sounds-{lang} asterisk-core-sounds-{lang}-wav"
+def packages(lang: str, bands: set[str] = frozenset({"narrow"})) -> str:
+    return " ".join([f"asterisk-core-sounds-{lang}"] + [f"asterisk-core-sounds-{lang}-{BANDS[b]}" for b in sorted(bands)])
+
+
+BANDS = {"narrow": "wav", "wide": "g722"}
+"""The package suffix, and the file suffix, of each band: 8-kHz WAV and wide-band G.722."""
+
+
+def read_band(wav: Path, band: str) -> np.ndarray:
+    """A prompt at 16 kHz, from its 8-kHz WAV or the G.722 file beside it (same name)."""
+    if band == "narrow":
+        samples, rate = read_audio(wav)
+        return resample_audio(samples, rate, SAMPLE_RATE)
+    import av
+
+    with av.open(str(wav.with_suffix(".g722")), format="g722") as container:
+        frames = [f.to_ndarray() for f in container.decode(audio=0)]
+        rate = container.streams.audio[0].rate
+    samples = np.concatenate(frames, axis=1)[0].astype(np.float32) / 32768.0
+    return resample_audio(samples, rate, SAMPLE_RATE)
 
 
 def prompts(root: Path, lang: str) -> dict[str, str]:
@@ -163,19 +184,21 @@ def align(audio: np.ndarray, text: str, lang: str, source: str):
     return words, espeak_phones(words, lang)
 
 
-def build_corpus(root: Path, tmp: Path, languages: list[str], count: int, seed: int) -> dict[str, Path]:
-    """`<tmp>/<lang>/<lang>/<name>.wav` + `.TextGrid` for the prompts of each language."""
+def build_corpus(root: Path, tmp: Path, languages: list[str], count: int, seed: int, hear: str = "narrow",
+                 align_band: str = "narrow") -> dict[str, Path]:
+    """`<tmp>/<lang>/<lang>/<name>.wav` (the band heard) + `.TextGrid` (aligned on `align_band`) for the prompts of
+    each language."""
     roots = {}
     for lang in languages:
         folder = tmp / lang / lang
         folder.mkdir(parents=True)
         roots[lang] = folder.parent
         for name, wav, text in pick(root, lang, count, seed):
-            samples, rate = read_audio(wav)
-            audio = resample_audio(samples, rate, SAMPLE_RATE)
+            audio = read_band(wav, hear)
             end = len(audio) / SAMPLE_RATE
             try:
-                words, phones = align(audio, text, lang, f"{VOICES[lang]}/{name}.wav")
+                words, phones = align(audio if align_band == hear else read_band(wav, align_band), text, lang,
+                                      f"{VOICES[lang]}/{name}.{BANDS[align_band]}")
             except ValueError as exc:     # a word neither dictionary nor espeak-ng can spell: that prompt is left out
                 print(f"  {lang} {name}: not aligned ({exc}); left out")
                 continue
@@ -217,7 +240,13 @@ def main() -> None:
     ap.add_argument("--utterances", type=int, default=20, help="prompts per language")
     ap.add_argument("--seed", type=int, default=0, help="which prompts (a seeded random pick)")
     ap.add_argument("--tolerance", type=float, default=0.1, help="seconds either side of a b/p/m phone")
+    ap.add_argument("--hear", choices=sorted(BANDS), default="narrow",
+                    help="what the models hear: the 8-kHz WAV (narrow) or the G.722 wide band (wide)")
+    ap.add_argument("--align", choices=sorted(BANDS), default=None,
+                    help="what the aligner hears (default: what the models hear)")
     args = ap.parse_args()
+    align_band = args.align or args.hear
+    bands = {args.hear, align_band}
     torch.set_num_threads(1)
 
     languages = [x.strip() for x in args.languages.split(",") if x.strip()]
@@ -225,10 +254,11 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown language(s) {unknown}: use some of {','.join(VOICES)}")
     lacking = [x for x in languages if not (args.root / SOUNDS / VOICES[x]).is_dir()
-               or not (args.root / DOCS / f"asterisk-core-sounds-{x}" / f"core-sounds-{x}.txt.gz").is_file()]
+               or not (args.root / DOCS / f"asterisk-core-sounds-{x}" / f"core-sounds-{x}.txt.gz").is_file()
+               or any(not any((args.root / SOUNDS / VOICES[x]).glob(f"*.{BANDS[b]}")) for b in bands)]
     if lacking:
         print(f"the Asterisk prompts are not under {args.root} for {','.join(lacking)}; install them with\n"
-              f"    sudo apt-get install {' '.join(packages(x) for x in lacking)}\nor extract the .debs with "
+              f"    sudo apt-get install {' '.join(packages(x, bands) for x in lacking)}\nor extract the .debs with "
               f"`dpkg -x PKG.deb DIR` and pass --root DIR. Nothing measured.")
         return
     if shutil.which("espeak-ng") is None:
@@ -243,7 +273,7 @@ def main() -> None:
     started = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix="prompts-"))
     try:
-        roots = build_corpus(args.root, tmp, languages, args.utterances, args.seed)
+        roots = build_corpus(args.root, tmp, languages, args.utterances, args.seed, args.hear, align_band)
         corpora = {lang: read_corpus(root) for lang, root in roots.items()}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -256,7 +286,8 @@ def main() -> None:
     for lang, utts in corpora.items():
         seconds = sum(len(u.audio) for u in utts) / SAMPLE_RATE
         rows.append(f"{NAMES[lang]}: {len(utts)} prompt{'s' * (len(utts) != 1)}, {seconds:.1f} s of speech, "
-                    f"{'pocketsphinx' if lang == 'en' else 'espeak-ng + DTW'} alignment")
+                    f"{'pocketsphinx' if lang == 'en' else 'espeak-ng + DTW'} alignment on the {align_band} band; the models "
+                    f"hear the {args.hear} band")
         sources = {name: [predict(model, u.audio, u.n) for u in utts] for name, model in models.items()}
         sources["procedural (alignment)"] = [u.procedural for u in utts]
         for name, curves in sources.items():
@@ -270,7 +301,7 @@ def main() -> None:
 
     print_grid(columns, rows)
     print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "
-          f"asterisk-core-sounds-{{{','.join(languages)}}}{{,-wav}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read from "
+          f"asterisk-core-sounds-{{{','.join(languages)}}}{{,{','.join('-' + BANDS[b] for b in sorted(bands))}}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read from "
           f"{args.root / SOUNDS}.")
 
 
