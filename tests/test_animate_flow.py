@@ -147,6 +147,16 @@ def test_speak_counts_the_lips_closed_at_the_bilabials_of_an_alignment_beside_th
     (report,) = speak_flow(SpeakParams(store=store.root, model="tiny", audio=[alone], out=tmp_path / "out",
                                        config=config))["packages_written"]
     assert "bilabials" not in report["lips"] and "mbp_shape_gap_mm" in report["lips"]
+    # a transcript beside the audio (take.txt) is forced-aligned in English for the count, as `ingest` aligns one
+    spoken = tmp_path / "spoken" / "take.wav"
+    spoken.parent.mkdir()
+    shutil.copy(AUDIO.parents[1] / "LJ" / "LJ001-0002.wav", spoken)
+    (spoken.parent / "take.txt").write_text("in being comparatively modern.\n")
+    phones = phones_beside(spoken)
+    assert [label for _, _, label in phones if is_bilabial(label)] == ["B", "M", "P", "M"], phones
+    assert all(0.0 <= a < b <= 1.9 for a, b, _ in phones)
+    (spoken.parent / "take.txt").write_text("dans une maison très moderne\n")   # not English: no count
+    assert phones_beside(spoken) is None
 
 
 def test_speak_turns_audio_into_a_talking_character_in_one_flow(tmp_path, characters):

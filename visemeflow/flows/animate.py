@@ -94,10 +94,12 @@ def _phones(store: Store, utterance_ids: list[str]) -> dict[str, list[tuple[floa
 
 def phones_beside(audio: str | Path) -> list[tuple[float, float, str]] | None:
     """(start, end, label) of the phones of the alignment file lying beside a local `audio` file (`take.TextGrid`
-    beside `take.wav`, as a corpus has them), for the lips count of what `speak` made of it; None where there is
-    none, it is a transcript (no forced alignment here), or it cannot be read (the count is only left out)."""
+    beside `take.wav`, as a corpus has them), or of its transcript (`take.txt`, `take.lab` without times)
+    forced-aligned in English as `ingest` aligns one, for the lips count of what `speak` made of it; None where
+    there is none or it cannot be read or aligned (another language, a word the dictionary lacks): the count is
+    only left out."""
     from visemeflow.ingest import IngestConfig, IngestError
-    from visemeflow.ingest.corpus import TRANSCRIPT_FORMAT, discover_corpus
+    from visemeflow.ingest.corpus import discover_corpus
     from visemeflow.ingest.utterance import read_alignment
 
     if is_url(str(audio)) or not Path(audio).is_file():
@@ -105,7 +107,7 @@ def phones_beside(audio: str | Path) -> list[tuple[float, float, str]] | None:
     try:
         entries = discover_corpus(Path(audio)).entries
         entry = entries[0] if entries else None
-        if entry is None or not entry.alignment_path or entry.alignment_format in (None, TRANSCRIPT_FORMAT, "none"):
+        if entry is None or not entry.alignment_path or entry.alignment_format in (None, "none"):
             return None
         alignment = read_alignment(entry, IngestConfig())
     except (IngestError, OSError, ValueError):
