@@ -284,7 +284,16 @@ def test_speak_names_the_file_of_each_take_whose_id_has_a_hash(capsys):
              "audio_of": {"predict/take-1afb83b6": "a/take.wav", "predict/take-8f514164": "b/take.wav",
                           "predict/hello": "c/hello.wav"}}
     _print_packages(speak, "speak")
-    lines = [x for x in capsys.readouterr().out.splitlines() if " -> " in x]
+    printed = capsys.readouterr().out
+    assert "not counted" not in printed   # no lips report: nothing said about the count
+    lines = [x for x in printed.splitlines() if " -> " in x]
     assert lines == ["predict/take-1afb83b6 (a/take.wav) -> head [arkit52], 30 frames at 30 fps:",
                      "predict/take-8f514164 (b/take.wav) -> head [arkit52], 30 frames at 30 fps:",
                      "predict/hello -> head [arkit52], 30 frames at 30 fps:"]   # its own name: said by the id
+    speak["packages_written"] = [{**package("predict/hello"), "lips": {"mbp_shape_gap_mm": 0.9}},
+                                 {**package("predict/take"), "lips": {"bilabials": 4, "closed": 4, "median_gap_mm": 1.1}}]
+    _print_packages(speak, "speak")
+    out = capsys.readouterr().out
+    assert "lips on the mesh: 4 of 4 b/p/m closed below 1.5 mm (median gap 1.1 mm)" in out
+    assert "b/p/m closures not counted for 1 package (no phones known): put an alignment (NAME.TextGrid) or an " \
+           "English transcript (NAME.txt) beside the audio" in out

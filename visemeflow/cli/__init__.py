@@ -840,6 +840,11 @@ def _print_packages(result: dict, title: str = "animate") -> None:
             typer.echo(f"  warning: {lips['warning']}", err=True)
         for warning in report.get("warnings") or ():   # e.g. a preview without its unreadable source video
             typer.echo(f"  warning: {warning}", err=True)
+    uncounted = [r for r in packages if (r.get("lips") or {}) and "bilabials" not in r["lips"]]
+    if title == "speak" and uncounted:   # no phones known for these takes: how to get the count
+        typer.echo(f"lips on the mesh: b/p/m closures not counted for {_plural(len(uncounted), 'package')} (no "
+                   "phones known): put an alignment (NAME.TextGrid) or an English transcript (NAME.txt) beside "
+                   "the audio to count them")
 
 
 @stage_command(app, ImportCurvesParams, [
