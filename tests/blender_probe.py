@@ -89,6 +89,7 @@ print("probe: " + json.dumps({
     "fps": scene.render.fps / scene.render.fps_base, "frame_start": scene.frame_start, "frame_end": scene.frame_end,
     "sync_mode": scene.sync_mode,
     "objects": [[o.name, o.type, o.parent.name if o.parent else None] for o in scene.objects],
+    "bones": {o.name: [b.name for b in o.data.bones] for o in scene.objects if o.type == "ARMATURE"},
     "shape_keys": {o.name: [k.name for k in o.data.shape_keys.key_blocks] for o in meshes if o.data.shape_keys},
     "materials": {o.name: [[m.name, images(m)] for m in o.data.materials if m is not None] for o in meshes},
     "base_colour": {o.name: [base_colour_source(m) for m in o.data.materials if m is not None] for o in meshes},

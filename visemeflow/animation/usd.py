@@ -24,7 +24,8 @@ A character of several meshes (a glTF avatar's head, teeth, eyes: `Character.par
 targets as BlendShapes and its own `skel:blendShapes` order, all bound to the one Skeleton: the SkelAnimation's
 `blendShapes` (the union of the names) drives every part by name. A character read from a glTF scene (one mesh
 or several) also gets the scene's texture coordinates, materials and undriven meshes (`usd_scene`); `write_usdz`
-packs the stage with the materials' images into one `.usdz`. A character with vertex colours (the demo head, a glTF's
+packs the stage with the materials' images into one `.usdz`. A glTF avatar with skins gets its own skeleton in
+place of the one-joint one, its skinned meshes skinned as the file skins them (`usd_joints`). A character with vertex colours (the demo head, a glTF's
 COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes without a material of their own a
 `Materials/VertexColours` UsdPreviewSurface whose diffuse colour reads them (Blender wires it to Base Color).
 
@@ -173,17 +174,28 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     identity = Gf.Matrix4d(1.0)
     shape_tokens = Vt.TokenArray(list(character.shape_names))
 
-    skeleton = UsdSkel.Skeleton.Define(stage, root_path.AppendChild(SKELETON))
-    skeleton.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
-    skeleton.CreateJointNamesAttr(Vt.TokenArray([ROOT_JOINT]))
-    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([identity]))
-    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([identity]))
+    avatar, avatar_note, scale = None, None, 1000.0 / float(character.mm_per_unit)
+    if character.parts:          # a glTF scene: its own skeleton, where it has one (`usd_joints`)
+        from visemeflow.animation.usd_joints import avatar_skeleton
+        from visemeflow.rig.gltf import GltfScene
 
+        scene = GltfScene(character.source)
+        avatar, avatar_note = avatar_skeleton(scene, {i.skin for i in scene.meshes if i.skin is not None}, scale,
+                                              prim_name)
+
+    skeleton = UsdSkel.Skeleton.Define(stage, root_path.AppendChild(SKELETON))
     anim = UsdSkel.Animation.Define(stage, skeleton.GetPath().AppendChild(ANIMATION))
-    anim.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
-    anim.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0, 0)]))
-    anim.CreateRotationsAttr(Vt.QuatfArray([Gf.Quatf(1, 0, 0, 0)]))
-    anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)]))
+    if avatar is not None:
+        avatar.define(skeleton, anim)
+    else:
+        skeleton.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
+        skeleton.CreateJointNamesAttr(Vt.TokenArray([ROOT_JOINT]))
+        skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([identity]))
+        skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([identity]))
+        anim.CreateJointsAttr(Vt.TokenArray([ROOT_JOINT]))
+        anim.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0, 0)]))
+        anim.CreateRotationsAttr(Vt.QuatfArray([Gf.Quatf(1, 0, 0, 0)]))
+        anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)]))
     anim.CreateBlendShapesAttr(shape_tokens)
     weights_attr = anim.CreateBlendShapeWeightsAttr()
     with Sdf.ChangeBlock():
@@ -195,16 +207,35 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
 
     # vertex colours (sRGB display values) as USD's displayColor, which is linear
     colors = None if character.vertex_colors is None else srgb_to_linear(character.vertex_colors)
+    def part_mesh(path: Sdf.Path, part, points: np.ndarray, faces: np.ndarray, names, deltas: np.ndarray,
+                  part_colors: np.ndarray | None) -> None:
+        """A driven mesh: on the avatar's skeleton, as stored and skinned by its skin, or rigidly on the joint above
+        it; without one, rigidly on the root joint."""
+        skinned = avatar.skinned_source(part.mesh, points) if avatar is not None else None
+        if skinned is not None:
+            points, deltas = avatar.stored(skinned[1])
+            names = part.target_names
+        mesh = _define_mesh(stage, path, skeleton, points, faces, names, deltas, part_colors,
+                            rigid_root=avatar is None)
+        if skinned is not None:
+            avatar.bind_skinned(mesh, skeleton, *skinned)
+        elif avatar is not None:
+            avatar.bind_rigid(mesh, skeleton, part.nodes[0] if part.nodes else None)
+
     part_prims = []
     if len(character.parts) > 1:
         for prim, part in zip(_unique_prim_names(p.name for p in character.parts), character.parts):
             columns = part.columns(character.shape_names)
             inside = (character.faces >= part.start).all(axis=1) & (character.faces < part.stop).all(axis=1)
             part_prims.append(root_path.AppendChild(prim))
-            _define_mesh(stage, part_prims[-1], skeleton, character.neutral[part.start:part.stop],
-                         character.faces[inside] - part.start, part.target_names,
-                         character.deltas[columns, part.start:part.stop],
-                         None if colors is None else colors[part.start:part.stop])
+            part_mesh(part_prims[-1], part, character.neutral[part.start:part.stop],
+                      character.faces[inside] - part.start, part.target_names,
+                      character.deltas[columns, part.start:part.stop],
+                      None if colors is None else colors[part.start:part.stop])
+    elif character.parts:
+        part_prims.append(root_path.AppendChild(MESH))
+        part_mesh(part_prims[-1], character.parts[0], character.neutral, character.faces, character.shape_names,
+                  character.deltas, colors)
     else:
         part_prims.append(root_path.AppendChild(MESH))
         _define_mesh(stage, part_prims[-1], skeleton, character.neutral, character.faces,
@@ -212,11 +243,31 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     if character.parts:          # read from a glTF scene: its materials and other meshes too (`usd_scene`)
         from visemeflow.animation.usd_scene import dress_gltf_scene
 
-        def driven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas: np.ndarray) -> UsdGeom.Mesh:
-            return _define_mesh(stage, path, skeleton, points, faces, names, deltas)
+        static = _static_mesh(stage)
 
-        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, _static_mesh(stage),
-                                 driven)
+        def driven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas: np.ndarray,
+                   node: int | None = None) -> UsdGeom.Mesh:
+            mesh = _define_mesh(stage, path, skeleton, points, faces, names, deltas, rigid_root=avatar is None)
+            if avatar is not None:
+                avatar.bind_rigid(mesh, skeleton, node)
+            return mesh
+
+        def undriven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
+                     source=None) -> UsdGeom.Mesh:
+            """A mesh no target moves: skinned by the avatar's skeleton, on the joint above it, or static."""
+            if avatar is not None and skin in avatar.skin_joints and source is not None and \
+                    source.joints is not None and len(source.neutral) == len(points):
+                mesh = static(path, source.neutral * np.float32(scale), faces)
+                avatar.bind_skinned(mesh, skeleton, skin, source)
+                return mesh
+            mesh = static(path, points, faces)
+            if avatar is not None and avatar.joint_above(node) is not None:
+                avatar.bind_rigid(mesh, skeleton, node)
+            return mesh
+
+        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, undriven, driven)
+        if avatar_note:
+            notes.append(avatar_note)
         if notes:
             stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if colors is not None:
@@ -251,7 +302,7 @@ def _bind_vertex_colours(stage: Usd.Stage, root: Sdf.Path, meshes: list[Sdf.Path
 
 def _static_mesh(stage: Usd.Stage):
     """`define(path, points, faces)`: a Mesh prim that no skeleton moves (a glTF scene's undriven meshes)."""
-    def define(path: Sdf.Path, points: np.ndarray, faces: np.ndarray) -> UsdGeom.Mesh:
+    def define(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, **_) -> UsdGeom.Mesh:
         mesh = UsdGeom.Mesh.Define(stage, path)
         points = np.ascontiguousarray(points, dtype=np.float32)
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
@@ -266,9 +317,11 @@ def _static_mesh(stage: Usd.Stage):
 
 
 def _define_mesh(stage: Usd.Stage, path: Sdf.Path, skeleton: UsdSkel.Skeleton, neutral: np.ndarray,
-                 faces: np.ndarray, shape_names, deltas: np.ndarray, colors: np.ndarray | None = None) -> UsdGeom.Mesh:
-    """A Mesh prim bound rigidly to the skeleton's root joint, with one BlendShape child per shape (see the module),
-    and `colors` (linear RGB per vertex) as its displayColor."""
+                 faces: np.ndarray, shape_names, deltas: np.ndarray, colors: np.ndarray | None = None, *,
+                 rigid_root: bool = True) -> UsdGeom.Mesh:
+    """A Mesh prim bound to the skeleton, rigidly to its root joint unless `rigid_root` is false (the caller binds
+    its joints then), with one BlendShape child per shape (see the module), and `colors` (linear RGB per vertex) as
+    its displayColor."""
     identity = Gf.Matrix4d(1.0)
     mesh = UsdGeom.Mesh.Define(stage, path)
     if colors is not None:
@@ -286,9 +339,10 @@ def _define_mesh(stage: Usd.Stage, path: Sdf.Path, skeleton: UsdSkel.Skeleton, n
 
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
-    binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
-    binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
-    binding.CreateGeomBindTransformAttr(identity)
+    if rigid_root:
+        binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+        binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+        binding.CreateGeomBindTransformAttr(identity)
     binding.CreateBlendShapesAttr(Vt.TokenArray(list(shape_names)))
 
     targets = []

@@ -229,10 +229,11 @@ def _dress_mesh(stage: Usd.Stage, mesh: UsdGeom.Mesh, source: GltfMesh, material
 def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, part_prims: list[Sdf.Path],
                      texture_dir: Path | None, prim_name, define_static, define_driven) -> list[str]:
     """Add to `stage` what the glTF scene `character.source` holds beside the driven meshes (see the module doc):
-    `part_prims[k]` is the Mesh prim of `character.parts[k]`; `define_static(path, points, faces)` makes a static
-    Mesh prim, `define_driven(path, points, faces, shape names, deltas)` one the SkelAnimation drives (a driven mesh's
-    other instances: a mesh two nodes show, such as one eye mesh for both eyes). Returns notes on what could not be
-    carried."""
+    `part_prims[k]` is the Mesh prim of `character.parts[k]`; `define_static(path, points, faces, node=, skin=,
+    source=)` makes the Mesh prim of a mesh no target moves (placed at rest; its node, that node's skin or None, and
+    the mesh as stored), `define_driven(path, points, faces, shape names, deltas, node=)` one the SkelAnimation
+    drives (a driven mesh's other instances: a mesh two nodes show, such as one eye mesh for both eyes). Returns
+    notes on what could not be carried."""
     notes: list[str] = []
     scene = GltfScene(character.source)
     materials = _Materials(stage, root, scene, texture_dir, prim_name, notes)
@@ -267,7 +268,7 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
             part, source = sources[info.index]
             _, neutral, deltas, _ = scene.placed_mesh(part.mesh, node)
             mesh = define_driven(free(scene.gltf.nodes[node].name or part.name), neutral * scale, source.faces,
-                                 part.target_names, deltas * scale)
+                                 part.target_names, deltas * scale, node=node)
         else:
             try:
                 source, neutral, _, _ = scene.placed_mesh(info.index, node, morph_targets=False)
@@ -275,6 +276,7 @@ def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, par
                 notes.append(f"{exc}: left out")
                 continue
             # named as the object is in Blender and the engines: its node
-            mesh = define_static(free(scene.gltf.nodes[node].name or info.label), neutral * scale, source.faces)
+            mesh = define_static(free(scene.gltf.nodes[node].name or info.label), neutral * scale, source.faces,
+                                 node=node, skin=info.skin, source=source)
         _dress_mesh(stage, mesh, source, materials)
     return notes

@@ -107,7 +107,8 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
 
         static = _static_mesh(stage)
 
-        def other_instance(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas) -> UsdGeom.Mesh:
+        def other_instance(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas,
+                           **_) -> UsdGeom.Mesh:
             return static(path, points, faces)      # the bones are placed for the mesh's first node
 
         notes = dress_gltf_scene(stage, root_path, character, [path for path, _, _ in spans], None, prim_name,
