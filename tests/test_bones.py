@@ -43,6 +43,12 @@ def bones8(demo) -> BoneRig:
     return solve_bones(demo, 8, iterations=5)
 
 
+@pytest.fixture(scope="module")
+def plain8(demo) -> BoneRig:
+    """bones8's SSDR without the lip refit (`lip_share=0`): read by two tests, solved once."""
+    return solve_bones(demo, 8, iterations=5, lip_share=0.0)
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """(..., 4) w, x, y, z unit quaternions -> (..., 3, 3), written here (not kornia's)."""
     w, x, y, z = np.moveaxis(q, -1, 0)
@@ -279,14 +285,14 @@ def test_bad_input_gives_clear_errors(demo):
         blend_poses(rig, np.zeros((2, 3)))
 
 
-def test_the_lips_weigh_more_in_the_refit_and_close_as_the_blendshapes_do(demo, bones8):
+def test_the_lips_weigh_more_in_the_refit_and_close_as_the_blendshapes_do(demo, bones8, plain8):
     """SSDR weighs every vertex alike; the refit after it (`refine_for_lips`, on by default) puts a quarter of the fit's
     weight on the mouth. Against the same SSDR without it (`lip_share=0`): the inner lips follow the visemes more
     closely, their gap at each viseme nearer the blendshapes', and the whole head no worse."""
     from visemeflow.animation.bones import LIP_SHARE, lip_emphasis
     from visemeflow.animation.lips import inner_lip_pairs, pair_gap_mm
 
-    plain = solve_bones(demo, 8, iterations=5, lip_share=0.0)
+    plain = plain8
     target = viseme_meshes(demo)
     lips = inner_lip_pairs(demo).ravel()
     shown = {name: bone_animation(rig, np.eye(16)) for name, rig in (("plain", plain), ("refit", bones8))}
@@ -342,7 +348,7 @@ def test_a_mesh_split_at_every_triangle_gets_the_bones_of_the_welded_mesh(demo, 
     np.testing.assert_allclose(ours[first_corner[lips]], bone_animation(bones8, mbp)[0, lips], atol=1e-5)
 
 
-def test_a_small_loose_part_rides_the_bones_of_its_nearest_vertex_and_takes_none(demo):
+def test_a_small_loose_part_rides_the_bones_of_its_nearest_vertex_and_takes_none(demo, plain8):
     """A loose piece of a few vertices (an eyelash card, a stray quad) given to SSDR takes bones of its own; it rides
     the bones of its nearest vertex instead: SSDR's fit of the rest is the same as without it, and the piece's
     vertices carry the weights of the lip vertex they sit on."""
@@ -359,7 +365,7 @@ def test_a_small_loose_part_rides_the_bones_of_its_nearest_vertex_and_takes_none
                     faces=np.concatenate([demo.faces, np.array([[n, n + 1, n + 2], [n, n + 2, n + 3]], np.int32)]),
                     deltas=np.concatenate([demo.deltas, moves], axis=1),
                     vertex_colors=np.concatenate([demo.vertex_colors, np.ones((4, 3), np.float32)]))
-    plain = solve_bones(demo, 8, iterations=5, lip_share=0.0)
+    plain = plain8
     rig = solve_bones(loose, 8, iterations=5, lip_share=0.0)
     assert rig.bone_names == plain.bone_names
     np.testing.assert_allclose(rig.rotations, plain.rotations, atol=1e-9)
