@@ -103,11 +103,12 @@ $(BLENDER_STAMP):
 # One pytest-xdist worker per core, each test file whole in one worker (its module fixtures are built once), and
 # one OpenMP thread per worker: torch's and Dem Bones' thread pools in two workers on two cores spin against each
 # other (the suite took 16.5 min with them, 11.2 min without; measured 2026-11-23 on the 2-core machine).
+# --no-loadscope-reorder: files go to the workers in the order tests/conftest.py gives them (the longest first).
 # --durations: the 25 slowest tests are listed at the end of every run, so CI's time can be kept in check.
 LINTED := visemeflow tests bench examples tools
 test: system-deps venv js-deps blender-deps
 	$(BIN)/ruff check $(LINTED)
-	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadfile --durations=25; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder --durations=25; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests collected"; exit 0; fi; exit $$rc
 
 bench: venv
 	$(BIN)/python bench/ingest_procedural.py
