@@ -219,14 +219,16 @@ def test_recognised_curves_close_the_lips_of_a_speaker_no_model_heard_grid_s1(tm
         shutil.copyfile(grid / "video" / f"{align.stem}.mpg", folder / f"{align.stem}.mpg")
     scores, lips = [], []
     probe = LipProbe.from_rig(load_demo_rig())
+    once = _RecognisedOnce()   # each file recognised once for both passes
     for entry in discover_corpus(tmp_path / "grid").entries:
         rows = sorted(ingest_utterance(entry, IngestConfig()).phones, key=lambda p: (p["start_s"], p["index"], p["part"]))
         audio, rate = read_audio(entry.audio_path)
         # top-viseme scores before the lip rules (see the LJ test), the mesh with them
         scores.append(score_utterance(recognised_curves(audio, rate, FPS, source=str(entry.audio_path),
-                                                        config=ProceduralConfig(closure_rule=False)), FPS,
-                                      phones_of(rows)))
-        lips.append(score_lips(*_measures(probe, recognised_curves(audio, rate, FPS, source=str(entry.audio_path))),
+                                                        config=ProceduralConfig(closure_rule=False), recogniser=once),
+                                      FPS, phones_of(rows)))
+        lips.append(score_lips(*_measures(probe, recognised_curves(audio, rate, FPS, source=str(entry.audio_path),
+                                                                   recogniser=once)),
                                FPS, phones_of(rows), probe.single_shape_gap("AHH")))
     pooled = pool(scores)
     on_mesh = pool_lips(lips)
