@@ -439,3 +439,98 @@ def test_more_bones_than_a_small_mesh_supports_are_as_many_as_it_does_and_said_s
     assert bone_count_note(teeth, 32) == (f"{teeth.where()}: 32 bones asked, at most 2 made: its 6 vertices support "
                                           "no more (each bone moves at least 3)")
     assert bone_count_note(teeth, 2) is None
+
+
+def test_the_bone_usd_of_a_skinned_avatar_puts_the_face_bones_in_its_own_skeleton(head, tmp_path):
+    """`.bones.usd` of an avatar whose head is on a skin: the face bones are joints under `Head` in the avatar's own
+    skeleton (as in the bone GLB), so UsdSkel's baked skinning plays our bones on the face at rest, and with the neck
+    turned on that skeleton (a body animation) the face turns with the head and still speaks; the body stays on
+    `Spine`; the validators find no error."""
+    from factories import usd_validation_errors
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+
+    from visemeflow.animation.usd_skel import write_usd_skel
+
+    root, arrays, character, rig, _ = head
+    path = write_usd_skel(tmp_path / "head.bones.usda", rig, talk(), FPS, name="speech", character=character)
+
+    def opened() -> Usd.Stage:           # the file as written, not a layer an earlier bake changed in memory
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        layer.Reload(True)
+        return Usd.Stage.Open(layer)
+
+    def baked(stage: Usd.Stage) -> dict:
+        assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, N - 1))
+        return {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
+
+    def world(mesh, k: int) -> np.ndarray:
+        points = np.asarray(mesh.GetPointsAttr().Get(k), np.float64)
+        m = np.asarray(mesh.ComputeLocalToWorldTransform(Usd.TimeCode(k)), np.float64)   # row vectors
+        return points @ m[:3, :3] + m[3, :3]
+
+    stage = opened()
+    assert usd_validation_errors(stage) == []
+    joints = list(next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+                  .GetJointsAttr().Get())
+    assert joints[:5] == ["Hips", "Hips/Spine", "Hips/Spine/Neck", "Hips/Spine/Neck/Head", "Hips/Spine/Neck/Head/Jaw"]
+    face = joints[5:]                  # the rig's moving bones (`bone_NN`, `rigid_NN` for the lower teeth)
+    assert all(j.startswith("Hips/Spine/Neck/Head/Head_") for j in face) and \
+        sum("_bone_" in j for j in face) >= 4, joints
+    ours = bone_animation(rig, talk())
+    whole = head_only(arrays)
+    meshes = baked(stage)
+    for k in [0, *OPEN, *SHUT]:
+        np.testing.assert_allclose(world(meshes["HeadMesh"], k)[whole], ours[k][whole], atol=1e-6)
+    np.testing.assert_allclose(world(meshes["Body"], 0),
+                               GltfScene(root / "head.glb").placed_mesh(1, morph_targets=False)[1], atol=1e-6)
+    # a body animation on the same skeleton, the neck turned: the head-only vertices are our bones' vertices carried
+    # by the neck's turn, world(Neck) posed times world(Neck) at rest inverted
+    stage = opened()
+    anim = next(UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation))
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    translation, _, scale = UsdSkel.DecomposeTransform(skeleton.GetRestTransformsAttr().Get()[2])
+    x, y, z, w = neck_turn()
+    anim.GetJointsAttr().Set(list(anim.GetJointsAttr().Get()) + ["Hips/Spine/Neck"])
+    for k in range(N):
+        anim.GetTranslationsAttr().Set(list(anim.GetTranslationsAttr().Get(k)) + [Gf.Vec3f(translation)], k)
+        anim.GetRotationsAttr().Set(list(anim.GetRotationsAttr().Get(k)) + [Gf.Quatf(w, x, y, z)], k)
+    anim.GetScalesAttr().Set(list(anim.GetScalesAttr().Get()) + [Gf.Vec3h(scale)])
+    meshes = baked(stage)
+    neck = joint_worlds()["Neck"]
+    carry = neck @ _rotation(neck_turn()) @ np.linalg.inv(neck)
+    for k in [*OPEN, *SHUT]:
+        expected = ours[k][whole] @ carry[:3, :3].T + carry[:3, 3]
+        got = world(meshes["HeadMesh"], k)[whole]
+        np.testing.assert_allclose(got, expected, atol=1e-6)
+        assert np.abs(got - ours[k][whole]).max() > 0.01         # the head turned: centimetres
+
+
+def test_blender_imports_the_bone_usd_as_the_avatars_armature_with_the_face_bones_and_shuts_the_lips(head):
+    """Blender's USD importer makes one armature of the avatar's joints and the face bones under `Head`, and plays
+    the head as our bones do (the head-only vertices, 0.1 mm), the lips shut where the curves shut them."""
+    from visemeflow.animation.usd_skel import write_usd_skel
+
+    root, arrays, character, rig, _ = head
+    if not BPY_PYTHON.is_file():
+        pytest.fail(f"{BPY_PYTHON} missing: `make blender-deps` builds it (Blender as the PyPI bpy module)")
+    out = write_usd_skel(root / "head.bones.usda", rig, talk(), FPS, name="speech", character=character)
+    frames = [0, *OPEN, *SHUT, N - 1]
+    request = {"path": str(out), "frames": frames, "out": str(root / "blender-usd.npz"), "fps": FPS}
+    done = subprocess.run([str(BPY_PYTHON), str(PROBE), json.dumps(request)], capture_output=True, text=True,
+                          timeout=300)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
+    assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
+    report = json.loads(lines[-1].removeprefix("probe: "))
+    (bones,) = report["bones"].values()
+    assert bones[:5] == ["Hips", "Spine", "Neck", "Head", "Jaw"] and len(bones) > 5, bones
+    with np.load(root / "blender-usd.npz") as arrays_:
+        head_mesh = arrays_["HeadMesh"]
+    ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, bone_animation(rig, talk())[frames])
+    whole = head_only(arrays)
+    worst = float(np.abs(head_mesh[:, whole] - ours[:, whole]).max())
+    print(f"\nBlender, bone USD: head worst {worst * 1e3:.4f} mm")
+    assert worst < 1e-4
+    pairs = inner_lip_pairs(character)
+    gaps = pair_gap_mm(head_mesh[:, pairs.ravel()].reshape(len(frames), 3, 2, 3), 1000.0)
+    shut = [k for k, f in enumerate(frames) if f in SHUT]
+    assert (gaps[shut] < CLOSED_MM).all() and (np.delete(gaps, shut) > CLOSED_MM).any(), gaps

@@ -16,6 +16,11 @@ meshes no target moves, placed as the file places them, named by their node; eve
 UsdPreviewSurface; texture coordinates): the user's whole avatar, its face on the SSDR bones. A driven mesh that a
 second node shows (one eye mesh for both eyes) is there at rest: the bones are placed for its first node.
 
+A glTF avatar whose moving meshes are all on skins (a Ready Player Me or Mixamo head) gets its own skeleton instead
+(`usd_joints`), the face bones joints under the joint the bone GLB puts them under (`skinned_asset`'s plan:
+`Hips/Spine/Neck/Head/Head_bone_00`), with rigid bind transforms and local poses under that joint, and each driven
+mesh as stored with the GLB's influences: a body animation on that skeleton carries the face (`_define_joined`).
+
 Each time sample is our blended pose of that frame (`bones.blend_poses`), so UsdSkel's skinning (linear blend, as
 `UsdSkel.BakeSkinning` computes it) reproduces our vertices. Time, units and suffixes as `usd.py`: frame k is time
 code k, timeCodesPerSecond = framesPerSecond = fps, upAxis Y, metersPerUnit the rig's unit by default (0.01 for the
@@ -25,12 +30,13 @@ demo rig's centimetres, 1 for a glTF character's metres); `.usda` text, `.usd`/`
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
-from visemeflow.animation.bones import BoneRig, blend_poses
+from visemeflow.animation.bones import BoneRig, blend_poses, bone_animation
 from visemeflow.animation.usd import _format_args, _unique_prim_names, one_at_a_time, prim_name, timed_stage
 from visemeflow.atomic import atomic_path
 from visemeflow.rig.character import Character
@@ -94,6 +100,10 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
     parts = character.parts if character is not None and character.parts else ()
     if parts and rig.n_vertices != character.n_vertices:
         raise ValueError(f"bones of {rig.name!r}: {rig.n_vertices} vertices, the character {character.n_vertices}")
+    joined, note = _joined(character, rig) if parts else (None, None)
+    if joined is not None:
+        _define_joined(stage, root, skeleton, anim, joined, rig, character, rotations, translations)
+        return stage
     spans = [(root_path.AppendChild(prim), part.start, part.stop)
              for prim, part in zip(_unique_prim_names(p.name for p in parts), parts)] or \
         [(root_path.AppendChild("Mesh"), 0, rig.n_vertices)]
@@ -113,6 +123,8 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
 
         notes = dress_gltf_scene(stage, root_path, character, [path for path, _, _ in spans], None, prim_name,
                                  static, other_instance)
+        if note:
+            notes.append(note)
         if notes:
             stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     return stage
@@ -167,3 +179,178 @@ def write_usd_skel(path: str | os.PathLike, rig: BoneRig, curves, fps: float, *,
         if not stage.GetRootLayer().Export(str(tmp), "", args):
             raise OSError(f"{path}: USD could not write the stage")
     return path
+
+
+# ---- a glTF avatar's own skeleton with the face bones in it -------------------------------------------------------
+@dataclass
+class _Joined:
+    """The avatar's skeleton (`usd_joints`) and the face bones the bone GLB adds to it (`skinned_asset`'s plan)."""
+
+    avatar: object            # usd_joints.AvatarSkeleton
+    plan: object              # skinned_asset._Plan
+    tokens: list[str]         # the face bones' joint tokens, set by set
+    bind: np.ndarray          # (N, 4, 4) their bind transforms in the skeleton's space
+    rest: list                # per set: rest quaternions w, x, y, z (K, 4), translations (K, 3), scale: local
+
+
+def _joined(character: Character, rig: BoneRig) -> tuple[_Joined | None, str | None]:
+    """The face bones on the avatar's own skeleton, as the bone GLB puts them: under the joint the moving vertices
+    follow, rigid local poses, inverse bind matrices that undo that joint's scale; (None, why) where the USD keeps
+    the flat skeleton of SSDR bones: no skin moves the face (a head on a plain node), a skin plan the GLB refuses, a
+    character not in metres, skins that cannot be one Skeleton."""
+    from visemeflow.animation.skinned_asset import _plan
+    from visemeflow.animation.usd_joints import avatar_skeleton
+    from visemeflow.rig.character import CharacterError
+
+    if rig.mm_per_unit != 1000.0 or character.mm_per_unit != 1000.0:
+        return None, None
+    try:
+        scene, plan = _plan(character, rig)
+    except CharacterError as exc:
+        return None, f"{exc}: the face bones are on a skeleton of their own"
+    if not plan.sets or any(bone_set.skin is None for bone_set in plan.sets):
+        return None, None
+    avatar, why = avatar_skeleton(scene, {i.skin for i in scene.meshes if i.skin is not None}, 1.0, prim_name)
+    if avatar is None:
+        return None, why and f"{why}; the face bones are on a skeleton of their own"
+    index = {node: k for k, node in enumerate(avatar.nodes)}
+    tokens, binds, rests, taken = [], [], [], set(avatar.tokens)
+    for bone_set in plan.sets:
+        frame, parent = bone_set.frame, avatar.tokens[index[bone_set.parent]]
+        stem = prim_name(scene.gltf.nodes[bone_set.parent].name or f"node{bone_set.parent}")
+        for b in bone_set.bones:
+            token = base = f"{parent}/{stem}_{prim_name(rig.bone_names[b])}"
+            k = 1
+            while token in taken:
+                token, k = f"{base}_{k}", k + 1
+            taken.add(token)
+            tokens.append(token)
+        # bone b binds at T(c_b) in the avatar's skin space (`base`: skin space -> scene at rest), a rigid matrix
+        # where that is rigid, as Blender's importer needs (it makes bones of the bind transforms and drops a
+        # scale; the GLB's inverse bind matrices carry P's scale instead); its local pose under P then carries
+        # 1 / P's scale, which half floats hold exactly for the usual 0.01 and 1
+        shift = np.tile(np.eye(4), (len(bone_set.bones), 1, 1))
+        shift[:, :3, 3] = rig.bind_translations[bone_set.bones]
+        binds.append(np.einsum("ij,bjk->bik", np.linalg.inv(bone_set.base), shift))
+        rests.append(frame.local(np.tile([1.0, 0.0, 0.0, 0.0], (len(bone_set.bones), 1)),
+                                 rig.bind_translations[bone_set.bones]) + (1.0 / frame.scale,))
+    return _Joined(avatar, plan, tokens, np.concatenate(binds), rests), None
+
+
+def _posed(q: np.ndarray, t: np.ndarray, scale: float) -> np.ndarray:
+    """(K, 4, 4) column-vector transforms T(t) R(q) S(scale) of rotations (K, 4) w, x, y, z and translations (K, 3)."""
+    from visemeflow.rig.gltf import _quaternion_matrix
+
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    for k, (w, x, y, z) in enumerate(q):
+        out[k, :3, :3] = _quaternion_matrix((x, y, z, w)) * scale
+    out[:, :3, 3] = t
+    return out
+
+
+def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skeleton, anim: UsdSkel.Animation,
+                   joined: _Joined, rig: BoneRig, character: Character, rotations: np.ndarray,
+                   translations: np.ndarray) -> None:
+    """The skeleton, animation and meshes of a glTF avatar whose face bones join its own skeleton (see `_joined`):
+    the avatar's joints at rest (`usd_joints`), the face bones under them animated per frame (local rigid poses, as
+    the bone GLB keys them), every driven mesh as stored with the bone GLB's influences, the rest of the scene as the
+    blendshape USD has it."""
+    from visemeflow.animation.skinned_asset import _continuous, _moving_bones
+    from visemeflow.animation.usd import _static_mesh
+    from visemeflow.animation.usd_joints import usd_matrix
+    from visemeflow.animation.usd_scene import dress_gltf_scene
+
+    avatar, plan = joined.avatar, joined.plan
+    root_path = root.GetPath()
+    moving = _moving_bones(rig)
+    tokens = avatar.tokens + joined.tokens
+    skeleton.CreateJointsAttr(Vt.TokenArray(tokens))
+    skeleton.CreateJointNamesAttr(Vt.TokenArray([t.rpartition("/")[2] for t in tokens]))
+    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([usd_matrix(m) for m in
+                                                        np.concatenate([avatar.bind, joined.bind])]))
+    rest_local = [*avatar.rest_local] + [m for q, t, scale in joined.rest for m in _posed(q, t, scale)]
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([usd_matrix(m) for m in rest_local]))
+    # the animation poses the face bones that move (each in its parent joint's frame); the avatar's joints stay at
+    # their rest transforms (`usd_joints`: no half-float scales)
+    animated, keys, scales = [], [], []
+    k = 0
+    for bone_set in plan.sets:
+        for b in bone_set.bones:
+            if moving[b]:
+                q, t = bone_set.frame.local(rotations[:, b], translations[:, b])
+                animated.append(joined.tokens[k])
+                keys.append((_continuous(q), t))
+                scales.append(Gf.Vec3h(*[1.0 / bone_set.frame.scale] * 3))
+            k += 1
+    n_frames = len(rotations)
+    anim.CreateJointsAttr(Vt.TokenArray(animated))
+    anim.CreateScalesAttr(Vt.Vec3hArray(scales))
+    t_attr, r_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr()
+    with Sdf.ChangeBlock():
+        for f in range(n_frames):
+            t_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, t[f])) for _, t in keys]), Usd.TimeCode(f))
+            r_attr.Set(Vt.QuatfArray([Gf.Quatf(*map(float, q[f])) for q, _ in keys]), Usd.TimeCode(f))
+
+    set_tokens, k = [], 0
+    for bone_set in plan.sets:
+        set_tokens.append(joined.tokens[k:k + len(bone_set.bones)])
+        k += len(bone_set.bones)
+    by_skin = {bone_set.skin: tokens_ for bone_set, tokens_ in zip(plan.sets, set_tokens)}
+    prims = {p.mesh: p for p in plan.primitives}
+    extent = bone_animation(rig, np.eye(rig.n_poses))
+    lo, hi = np.minimum(extent.min(axis=(0, 1)), rig.neutral.min(axis=0)), \
+        np.maximum(extent.max(axis=(0, 1)), rig.neutral.max(axis=0))
+    root.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    static = _static_mesh(stage)
+    part_paths = []
+    for prim, part in zip(_unique_prim_names(p.name for p in character.parts), character.parts):
+        path = root_path.AppendChild(prim)
+        part_paths.append(path)
+        span = slice(part.start, part.stop)
+        inside = (character.faces >= part.start).all(axis=1) & (character.faces < part.stop).all(axis=1)
+        faces = character.faces[inside] - part.start
+        skinned = avatar.skinned_source(part.mesh, character.neutral[span])
+        if part.mesh in prims and skinned is not None:       # moved by the face bones: the bone GLB's influences
+            skin, source = skinned
+            mesh = static(path, source.neutral, faces)
+            blocks = prims[part.mesh].blocks
+            joints = np.concatenate([blocks[s][0] for s in sorted(blocks)]).astype(np.int32)
+            weights = np.concatenate([blocks[s][1] for s in sorted(blocks)]).astype(np.float32)
+            binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+            binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+            skin_tokens = [avatar.tokens[j] for j in avatar.skin_joints[skin]]
+            binding.CreateJointsAttr(Vt.TokenArray(skin_tokens + list(by_skin[skin])))
+            binding.CreateJointIndicesPrimvar(False, 4).Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(joints)
+                                                                                    .reshape(-1)))
+            binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray.FromNumpy(weights.reshape(-1)))
+            binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+        elif skinned is not None:                             # a driven mesh no bone moves (an eye): its own skin
+            mesh = static(path, skinned[1].neutral, faces)
+            avatar.bind_skinned(mesh, skeleton, *skinned)
+        else:
+            mesh = static(path, character.neutral[span], faces)
+            avatar.bind_rigid(mesh, skeleton, part.nodes[0] if part.nodes else None)
+
+    def undriven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
+                 source=None) -> UsdGeom.Mesh:
+        if skin in avatar.skin_joints and source is not None and source.joints is not None and \
+                len(source.neutral) == len(points):
+            mesh = static(path, source.neutral, faces)
+            avatar.bind_skinned(mesh, skeleton, skin, source)
+            return mesh
+        mesh = static(path, points, faces)
+        if avatar.joint_above(node) is not None:
+            avatar.bind_rigid(mesh, skeleton, node)
+        return mesh
+
+    def other_instance(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas, node=None,
+                       **_) -> UsdGeom.Mesh:
+        mesh = static(path, points, faces)        # a driven mesh's second node: its own skin's bones are not there
+        avatar.bind_rigid(mesh, skeleton, node)
+        return mesh
+
+    notes = dress_gltf_scene(stage, root_path, character, part_paths, None, prim_name, undriven, other_instance)
+    if notes:
+        stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
+    if plan.notes:
+        stage.GetRootLayer().documentation += "\n" + "; ".join(plan.notes)
