@@ -25,8 +25,8 @@ targets as BlendShapes and its own `skel:blendShapes` order, all bound to the on
 `blendShapes` (the union of the names) drives every part by name. A character read from a glTF scene (one mesh
 or several) also gets the scene's texture coordinates, materials and undriven meshes (`usd_scene`); `write_usdz`
 packs the stage with the materials' images into one `.usdz`. A glTF avatar with skins gets its own skeleton in
-place of the one-joint one, its skinned meshes skinned as the file skins them (`usd_joints`). A character with vertex colours (the demo head, a glTF's
-COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes without a material of their own a
+place of the one-joint one, its skinned meshes skinned as the file skins them (`usd_joints`). A character with
+vertex colours (the demo head, a glTF's COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes without a material of their own a
 `Materials/VertexColours` UsdPreviewSurface whose diffuse colour reads them (Blender wires it to Base Color).
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
@@ -252,19 +252,7 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
                 avatar.bind_rigid(mesh, skeleton, node)
             return mesh
 
-        def undriven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
-                     source=None) -> UsdGeom.Mesh:
-            """A mesh no target moves: skinned by the avatar's skeleton, on the joint above it, or static."""
-            if avatar is not None and skin in avatar.skin_joints and source is not None and \
-                    source.joints is not None and len(source.neutral) == len(points):
-                mesh = static(path, source.neutral * np.float32(scale), faces)
-                avatar.bind_skinned(mesh, skeleton, skin, source)
-                return mesh
-            mesh = static(path, points, faces)
-            if avatar is not None and avatar.joint_above(node) is not None:
-                avatar.bind_rigid(mesh, skeleton, node)
-            return mesh
-
+        undriven = static if avatar is None else avatar.undriven(static, skeleton)
         notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, undriven, driven)
         if avatar_note:
             notes.append(avatar_note)
@@ -301,7 +289,8 @@ def _bind_vertex_colours(stage: Usd.Stage, root: Sdf.Path, meshes: list[Sdf.Path
 
 
 def _static_mesh(stage: Usd.Stage):
-    """`define(path, points, faces)`: a Mesh prim that no skeleton moves (a glTF scene's undriven meshes)."""
+    """`define(path, points, faces)`: a Mesh prim of a glTF scene's undriven meshes, bound to no skeleton (an
+    avatar's skeleton may bind it after: `usd_joints.AvatarSkeleton.undriven`)."""
     def define(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, **_) -> UsdGeom.Mesh:
         mesh = UsdGeom.Mesh.Define(stage, path)
         points = np.ascontiguousarray(points, dtype=np.float32)

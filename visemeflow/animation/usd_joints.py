@@ -132,6 +132,22 @@ class AvatarSkeleton:
         # UsdSkel: skinned point = rest_world[k] @ inv(bind[k]) @ geomBind @ point; at rest that must be the point
         binding.CreateGeomBindTransformAttr(usd_matrix(self.bind[k] @ np.linalg.inv(self.rest_world[k])))
 
+    def undriven(self, static, skeleton: UsdSkel.Skeleton):
+        """`define_static` for `usd_scene.dress_gltf_scene` from `static(path, points, faces)`: a mesh no target moves
+        skinned by its skin (written as stored), bound rigidly to the joint above its node, or left static."""
+        def define(path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
+                   source: GltfMesh | None = None) -> UsdGeom.Mesh:
+            if skin in self.skin_joints and source is not None and source.joints is not None and \
+                    len(source.neutral) == len(points):
+                mesh = static(path, source.neutral * np.float32(self.scale), faces)
+                self.bind_skinned(mesh, skeleton, skin, source)
+                return mesh
+            mesh = static(path, points, faces)
+            if self.joint_above(node) is not None:
+                self.bind_rigid(mesh, skeleton, node)
+            return mesh
+        return define
+
     def stored(self, source: GltfMesh) -> tuple[np.ndarray, np.ndarray]:
         """(positions, target deltas) of a skinned mesh as the file stores them, in the character's unit."""
         return source.neutral * np.float32(self.scale), source.deltas * np.float32(self.scale)

@@ -331,25 +331,14 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
             mesh = static(path, character.neutral[span], faces)
             avatar.bind_rigid(mesh, skeleton, part.nodes[0] if part.nodes else None)
 
-    def undriven(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
-                 source=None) -> UsdGeom.Mesh:
-        if skin in avatar.skin_joints and source is not None and source.joints is not None and \
-                len(source.neutral) == len(points):
-            mesh = static(path, source.neutral, faces)
-            avatar.bind_skinned(mesh, skeleton, skin, source)
-            return mesh
-        mesh = static(path, points, faces)
-        if avatar.joint_above(node) is not None:
-            avatar.bind_rigid(mesh, skeleton, node)
-        return mesh
-
     def other_instance(path: Sdf.Path, points: np.ndarray, faces: np.ndarray, names, deltas, node=None,
                        **_) -> UsdGeom.Mesh:
         mesh = static(path, points, faces)        # a driven mesh's second node: its own skin's bones are not there
         avatar.bind_rigid(mesh, skeleton, node)
         return mesh
 
-    notes = dress_gltf_scene(stage, root_path, character, part_paths, None, prim_name, undriven, other_instance)
+    notes = dress_gltf_scene(stage, root_path, character, part_paths, None, prim_name,
+                             avatar.undriven(static, skeleton), other_instance)
     if notes:
         stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if plan.notes:
