@@ -508,23 +508,17 @@ def test_the_bone_usd_of_a_skinned_avatar_puts_the_face_bones_in_its_own_skeleto
 def test_blender_imports_the_bone_usd_as_the_avatars_armature_with_the_face_bones_and_shuts_the_lips(head):
     """Blender's USD importer makes one armature of the avatar's joints and the face bones under `Head`, and plays
     the head as our bones do (the head-only vertices, 0.1 mm), the lips shut where the curves shut them."""
+    from test_blender import probe
+
     from visemeflow.animation.usd_skel import write_usd_skel
 
     root, arrays, character, rig, _ = head
-    if not BPY_PYTHON.is_file():
-        pytest.fail(f"{BPY_PYTHON} missing: `make blender-deps` builds it (Blender as the PyPI bpy module)")
     out = write_usd_skel(root / "head.bones.usda", rig, talk(), FPS, name="speech", character=character)
     frames = [0, *OPEN, *SHUT, N - 1]
-    request = {"path": str(out), "frames": frames, "out": str(root / "blender-usd.npz"), "fps": FPS}
-    done = subprocess.run([str(BPY_PYTHON), str(PROBE), json.dumps(request)], capture_output=True, text=True,
-                          timeout=300)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("probe: ")]
-    assert done.returncode == 0 and lines, (done.stdout + done.stderr)[-3000:]
-    report = json.loads(lines[-1].removeprefix("probe: "))
+    report, meshes = probe(out, frames, root / "blender-usd.npz", fps=FPS)
     (bones,) = report["bones"].values()
     assert bones[:5] == ["Hips", "Spine", "Neck", "Head", "Jaw"] and len(bones) > 5, bones
-    with np.load(root / "blender-usd.npz") as arrays_:
-        head_mesh = arrays_["HeadMesh"]
+    head_mesh = meshes["HeadMesh"]
     ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, bone_animation(rig, talk())[frames])
     whole = head_only(arrays)
     worst = float(np.abs(head_mesh[:, whole] - ours[:, whole]).max())
