@@ -261,3 +261,40 @@ def test_blender_imports_the_avatars_armature_from_the_usd_and_plays_the_face_in
     assert np.abs(ours[1] - ours[0]).max() > 1e-3      # the face moves between the frames compared
     body = GltfScene(path).placed_mesh(1, morph_targets=False)[1]
     np.testing.assert_allclose(meshes["Body"][0], body @ Y_UP_TO_Z_UP.T, atol=1e-5)
+
+
+def test_a_skeleton_deeper_than_a_usd_takes_keeps_the_meshes_at_rest_and_says_so(tmp_path):
+    """A skin whose joints form a chain of 300 (a crafted file: names are whole paths, so 50,000 would spell
+    gigabytes): the USD is written at once, its meshes posed at rest on the one-joint skeleton, and says why."""
+    from visemeflow.animation.usd_joints import MAX_DEPTH
+
+    path = tmp_path / "avatar.glb"
+    make_avatar(path)
+    g = gl.GLTF2().load(str(path))
+    blob = bytearray(g.binary_blob())
+    first = g.accessors[g.skins[0].inverseBindMatrices]
+    ibm = np.frombuffer(bytes(blob), np.float32, 32, g.bufferViews[first.bufferView].byteOffset).reshape(2, 16)
+    chain = list(range(len(g.nodes), len(g.nodes) + MAX_DEPTH + 44))
+    for k, node in enumerate(chain):
+        g.nodes.append(gl.Node(name=f"link{k}", translation=[0.0, 0.001, 0.0]))
+        parent = g.nodes[chain[k - 1]] if k else g.nodes[2]
+        parent.children = (parent.children or []) + [node]
+    identity = np.tile(np.eye(4, dtype=np.float32).reshape(1, 16), (len(chain), 1))
+    g.skins[0].joints = list(g.skins[0].joints) + chain
+    g.skins[0].inverseBindMatrices = _append(g, blob, np.concatenate([ibm, identity]), gl.MAT4, gl.FLOAT)
+    blob += bytes(-len(blob) % 4)
+    g.buffers[0].byteLength = len(blob)
+    g.set_binary_blob(bytes(blob))
+    g.save_binary(str(path))
+    character = load_character(path)
+    weights = weights_of(character)
+    out = write_usd(tmp_path / "avatar.usda", character, weights, 30.0)
+    stage = opened(out)
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    assert list(skeleton.GetJointsAttr().Get()) == ["root"]
+    assert f"deeper than the {MAX_DEPTH} a USD skeleton is made of" in stage.GetRootLayer().documentation
+    meshes = meshes_of(stage)
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, N - 1))
+    expected = character.neutral + np.einsum("s,svc->vc", weights[3], character.deltas)
+    head = next(p for p in character.parts if p.name == "Wolf3D_Head")
+    np.testing.assert_allclose(world_points(meshes["Wolf3D_Head"], 3), expected[head.start:head.stop], atol=1e-6)

@@ -40,7 +40,13 @@ from pxr import Gf, UsdGeom, UsdSkel, Vt
 from visemeflow.rig.gltf import GltfMesh, GltfScene, _node_order
 from visemeflow.rig.model import RigError
 
-__all__ = ["AvatarSkeleton", "avatar_skeleton"]
+__all__ = ["MAX_DEPTH", "MAX_JOINTS", "AvatarSkeleton", "avatar_skeleton"]
+
+MAX_JOINTS = 4096
+"""The most joints (of the skins written) and the deepest joint chain an avatar's USD skeleton takes: a MetaHuman body
+has about 1,000 joints, a Ready Player Me avatar 67; a file past either keeps its meshes posed at rest on a
+one-joint skeleton (a joint's token is its whole path, so a chain of 50,000 would spell gigabytes of names)."""
+MAX_DEPTH = 256
 
 _BIND_TOLERANCE = 1e-5
 """Largest difference (metres, or unitless in the linear part) between two skins' bind matrices of one joint."""
@@ -198,21 +204,39 @@ def avatar_skeleton(scene: GltfScene, skins: set[int], scale: float, prim_name
             binds.setdefault(j, bind)
         per_skin[s] = joints
 
-    def joint_parent(j: int) -> int | None:
-        p, seen = parent_of.get(j), set()
+    if len(binds) > MAX_JOINTS:
+        return None, (f"the skins have {len(binds):,} joints, more than the {MAX_JOINTS:,} a USD skeleton is made "
+                      "of here: the avatar's skeleton is left out of the USD")
+    joint_parents: dict[int, int | None] = {}
+    for j in binds:              # the nearest joint above each joint (nodes that are not joints skipped)
+        p, seen = parent_of.get(j), {j}
         while p is not None and p not in binds and p not in seen:
             seen.add(p)
             p = parent_of.get(p)
-        return p if p in binds else None
+        joint_parents[j] = p if p in binds and p not in seen else None
+    depths: dict[int, int] = {}
+    for j in binds:              # each joint's depth below its topmost joint; a cycle (glTF forbids one) refused
+        chain, p = [], j
+        while p is not None and p not in depths:
+            if p in chain:
+                return None, (f"the nodes above joint {nodes[j].name or j!r} form a cycle: the avatar's skeleton is "
+                              "left out of the USD")
+            chain.append(p)
+            p = joint_parents[p]
+        d = -1 if p is None else depths[p]
+        for q in reversed(chain):
+            d += 1
+            depths[q] = d
 
-    def depth(j: int) -> int:
-        d, p = 0, joint_parent(j)
-        while p is not None:
-            d, p = d + 1, joint_parent(p)
-        return d
+    if max(depths.values()) >= MAX_DEPTH:
+        return None, (f"a chain of {max(depths.values()) + 1} joints, deeper than the {MAX_DEPTH} a USD skeleton is "
+                      "made of here: the avatar's skeleton is left out of the USD")
+
+    def joint_parent(j: int) -> int | None:
+        return joint_parents[j]
 
     position = {n: k for k, n in enumerate(_node_order(gltf))}
-    order = sorted(binds, key=lambda j: (depth(j), position.get(j, len(position) + j)))
+    order = sorted(binds, key=lambda j: (depths[j], position.get(j, len(position) + j)))
     names: dict[int, str] = {}
     siblings: dict[int | None, set[str]] = {}
     for j in order:
