@@ -298,3 +298,80 @@ def test_a_skeleton_deeper_than_a_usd_takes_keeps_the_meshes_at_rest_and_says_so
     expected = character.neutral + np.einsum("s,svc->vc", weights[3], character.deltas)
     head = next(p for p in character.parts if p.name == "Wolf3D_Head")
     np.testing.assert_allclose(world_points(meshes["Wolf3D_Head"], 3), expected[head.start:head.stop], atol=1e-6)
+
+
+def _edited_avatar(path, edit) -> None:
+    """tests/avatar_glb.py's avatar at `path`, changed by `edit(g, blob)` (pygltflib document, its buffer)."""
+    make_avatar(path)
+    g = gl.GLTF2().load(str(path))
+    blob = bytearray(g.binary_blob())
+    edit(g, blob)
+    blob += bytes(-len(blob) % 4)
+    g.buffers[0].byteLength = len(blob)
+    g.set_binary_blob(bytes(blob))
+    g.save_binary(str(path))
+
+
+def _at_rest_where_the_scene_shows(path, tmp_path) -> Usd.Stage:
+    """Write the avatar's USD and check that, baked, every driven mesh is where the character has it."""
+    character = load_character(path)
+    weights = weights_of(character, 11)
+    out = write_usd(tmp_path / "avatar.usda", character, weights, 30.0)
+    stage = opened(out)
+    assert usd_validation_errors(stage) == []
+    meshes = meshes_of(stage)
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, N - 1))
+    expected = character.neutral + np.einsum("s,svc->vc", weights[4], character.deltas)
+    for part in character.parts:
+        np.testing.assert_allclose(world_points(meshes[part.name], 4), expected[part.start:part.stop], atol=1e-6,
+                                   err_msg=part.name)
+    return opened(out)
+
+
+def test_head_vertices_of_no_weight_stay_where_the_file_puts_them(tmp_path):
+    """WEIGHTS_0 rows of 0 (glTF leaves such a vertex where its node puts it; UsdSkel's skinning would put it at the
+    origin, 1.5 m away): the head is then bound rigidly, as placed, not skinned from its stored arrays."""
+    def edit(g, blob):
+        attributes = g.meshes[0].primitives[0].attributes
+        accessor = g.accessors[attributes.WEIGHTS_0]
+        weights = np.frombuffer(bytes(blob), np.float32, accessor.count * 4,
+                                g.bufferViews[accessor.bufferView].byteOffset).reshape(-1, 4).copy()
+        weights[:2] = 0.0
+        attributes.WEIGHTS_0 = _append(g, blob, weights, gl.VEC4, gl.FLOAT)
+
+    path = tmp_path / "avatar.glb"
+    _edited_avatar(path, edit)
+    stage = _at_rest_where_the_scene_shows(path, tmp_path)
+    head = meshes_of(stage)["Wolf3D_Head"]
+    # rigid, on the topmost joint (its node is under none); the body, on a plain node, stays unbound
+    assert list(UsdSkel.BindingAPI(head.GetPrim()).GetJointsAttr().Get()) == ["Hips"]
+    assert UsdSkel.BindingAPI(head.GetPrim()).GetJointIndicesPrimvar().GetElementSize() == 1
+
+
+def test_a_joint_scaled_to_zero_at_rest_does_not_stop_the_usd(tmp_path):
+    """A hidden hat: a joint scaled 0 at rest with a child joint (glTF allows it; its rest transform cannot be
+    inverted): the USD is written with the whole skeleton, every mesh where the scene shows it."""
+    def edit(g, blob):
+        head_joint = 2
+        hat, tip = len(g.nodes), len(g.nodes) + 1
+        g.nodes.append(gl.Node(name="Hat", translation=[0.0, 0.2, 0.0], scale=[0.0, 0.0, 0.0], children=[tip]))
+        g.nodes.append(gl.Node(name="HatTip", translation=[0.0, 0.05, 0.0]))
+        g.nodes[head_joint].children = (g.nodes[head_joint].children or []) + [hat]
+        first = g.accessors[g.skins[0].inverseBindMatrices]
+        ibm = np.frombuffer(bytes(blob), np.float32, 32, g.bufferViews[first.bufferView].byteOffset).reshape(2, 16)
+        world_head = np.linalg.inv(ibm[1].reshape(4, 4).T)     # the head joint's bind
+        extra = []
+        for offset in (0.2, 0.25):                              # the hat's bind as if it were scaled 1
+            m = world_head.copy()
+            m[:3, 3] += [0.0, offset, 0.0]
+            extra.append(np.linalg.inv(m).T.reshape(16))
+        g.skins[0].joints = list(g.skins[0].joints) + [hat, tip]
+        g.skins[0].inverseBindMatrices = _append(g, blob, np.concatenate([ibm, np.asarray(extra, np.float32)]),
+                                                 gl.MAT4, gl.FLOAT)
+
+    path = tmp_path / "avatar.glb"
+    _edited_avatar(path, edit)
+    stage = _at_rest_where_the_scene_shows(path, tmp_path)
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    assert list(skeleton.GetJointsAttr().Get()) == ["Hips", "Hips/HeadJoint", "Hips/HeadJoint/Hat",
+                                                     "Hips/HeadJoint/Hat/HatTip"]

@@ -25,9 +25,15 @@ after), so at rest it lies where the scene shows it, also when the file's bind p
 a node without a skin is bound rigidly to the nearest joint above its node (else to the first topmost joint), with
 `geomBindTransform` set so that it lies where the scene shows it at rest and follows that joint when it moves.
 
+A skinned mesh whose stored arrays UsdSkel would not skin to where the scene shows it (a vertex whose weights sum
+to 0: glTF leaves it where its node puts it, UsdSkel at the origin) is bound rigidly instead, as placed
+(`AvatarSkeleton.as_placed`); a mesh under a joint scaled to 0 (a hidden hat) is bound to the first joint above it
+that is not.
+
 Left out, with a note (the meshes then lie where the scene shows them, as before, on a skeleton of one joint): skins
-whose shared joints disagree on their bind matrices, a joint whose rest transform has a shear, a joint node used by
-more than one parent. Units: the scene's metres times `scale` (the character's unit), translations included.
+whose shared joints disagree on their bind matrices, a skin that lists a joint twice, a joint whose rest transform
+has a shear, a node with two parents or a cycle of nodes, more than `MAX_JOINTS` joints or a chain deeper than
+`MAX_DEPTH`. Units: the scene's metres times `scale` (the character's unit), translations included.
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pxr import Gf, UsdGeom, UsdSkel, Vt
 
-from visemeflow.rig.gltf import GltfMesh, GltfScene, _node_order
+from visemeflow.rig.gltf import GltfMesh, GltfScene, _local_matrix, _node_order
 from visemeflow.rig.model import RigError
 
 __all__ = ["MAX_DEPTH", "MAX_JOINTS", "AvatarSkeleton", "avatar_skeleton"]
@@ -71,6 +77,13 @@ class AvatarSkeleton:
     """(J, 4, 4) the joints' rest transforms in the same space."""
     rest_local: np.ndarray
     """(J, 4, 4) each joint's rest transform relative to its parent joint (a topmost joint's: `rest_world`)."""
+    inverse_bind: np.ndarray
+    """(J, 4, 4) the inverse of `bind`: the glTF inverse bind matrices, in the character's unit."""
+    parents: list[int | None]
+    """Each joint's parent joint (an index into `nodes`), None for a topmost joint."""
+    names: list[str]
+    """Each joint's glTF node name as the file spells it (`mixamorig:Hips`): the Skeleton's `jointNames`, which
+    retargeting tools match by."""
     scene: GltfScene
     scale: float
     skin_joints: dict[int, list[int]] = field(default_factory=dict)
@@ -78,22 +91,55 @@ class AvatarSkeleton:
     parent_of: dict[int, int] = field(default_factory=dict)
     """glTF node -> its parent node."""
 
+    def __post_init__(self) -> None:
+        self._index = {n: k for k, n in enumerate(self.nodes)}
+
     def joint_above(self, node: int | None) -> int | None:
         """The index of the nearest joint at or above `node`, None when no node above it is a joint."""
-        index = {n: k for k, n in enumerate(self.nodes)}
         seen = set()
         while node is not None and node not in seen:
-            if node in index:
-                return index[node]
+            if node in self._index:
+                return self._index[node]
             seen.add(node)
             node = self.parent_of.get(node)
         return None
+
+    def _rigid_joint(self, node: int | None) -> int | None:
+        """The joint a mesh on `node` is bound to rigidly: the nearest above it whose rest transform can be inverted
+        (a joint scaled to 0, a hidden hat, cannot carry a mesh), else the first such topmost joint; None if none."""
+        k = self.joint_above(node)
+        while k is not None and abs(np.linalg.det(self.rest_world[k][:3, :3])) <= 1e-18:
+            k = self.parents[k]
+        if k is None:
+            k = next((j for j, p in enumerate(self.parents)
+                      if p is None and abs(np.linalg.det(self.rest_world[j][:3, :3])) > 1e-18), None)
+        return k
+
+    def as_placed(self, skin: int, source: GltfMesh, placed: np.ndarray) -> bool:
+        """Whether UsdSkel's skinning of `source` as stored (by `skin`, the skeleton at rest) puts its vertices at
+        `placed`: false for a vertex whose weights sum to 0 (the file leaves it where its node puts it, UsdSkel at
+        the origin) or anything else the stored arrays do not give."""
+        if source.joints is None or source.weights is None or source.neutral.shape != placed.shape:
+            return False
+        joints = np.asarray(self.skin_joints[skin])
+        if source.joints.size and int(source.joints.max()) >= len(joints):
+            return False
+        per_joint = self.rest_world @ self.inverse_bind
+        worst = 0.0
+        for start in range(0, len(placed), 1 << 16):       # (n, 4, 4, 4) at a time: bounded memory
+            end = start + (1 << 16)
+            blend = np.einsum("vk,vkij->vij", source.weights[start:end].astype(np.float64),
+                              per_joint[joints[source.joints[start:end]]])
+            p = source.neutral[start:end].astype(np.float64) * self.scale
+            got = np.einsum("vij,vj->vi", blend[:, :3, :3], p) + blend[:, :3, 3]
+            worst = max(worst, float(np.abs(got - placed[start:end]).max(initial=0.0)))
+        return worst <= 1e-5 * max(1.0, self.scale)
 
     def define(self, skeleton: UsdSkel.Skeleton, animation: UsdSkel.Animation) -> None:
         """The joints, bind and rest transforms on `skeleton`; `animation` animates none of them (see the module)."""
         tokens = Vt.TokenArray(self.tokens)
         skeleton.CreateJointsAttr(tokens)
-        skeleton.CreateJointNamesAttr(Vt.TokenArray([t.rpartition("/")[2] for t in self.tokens]))
+        skeleton.CreateJointNamesAttr(Vt.TokenArray(self.names))
         skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([usd_matrix(m) for m in self.bind]))
         skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([usd_matrix(m) for m in self.rest_local]))
         animation.CreateJointsAttr(Vt.TokenArray([]))
@@ -103,16 +149,13 @@ class AvatarSkeleton:
 
     def skinned_source(self, mesh_index: int, placed: np.ndarray) -> tuple[int, GltfMesh] | None:
         """(its skin, the mesh as stored) for a mesh of the scene that a skin of the skeleton moves and whose rest
-        pose is `placed` (the character's vertices of it); None for a mesh on a node without a skin (or one whose
-        stored arrays do not give `placed`: it is then bound rigidly)."""
+        pose is `placed` (the character's vertices of it); None for a mesh on a node without a skin, or one whose
+        stored arrays UsdSkel would not skin to `placed` (`as_placed`): it is then bound rigidly, as placed."""
         info = next((i for i in self.scene.meshes if i.index == mesh_index), None)
         if info is None or info.skin not in self.skin_joints:
             return None
-        source, neutral, _, _ = self.scene.placed_mesh(mesh_index)
-        if source.joints is None or neutral.shape != placed.shape or \
-                np.abs(neutral * self.scale - placed).max(initial=0.0) > 1e-5 * max(1.0, self.scale):
-            return None
-        return info.skin, source
+        source = self.scene.placed_mesh(mesh_index)[0]
+        return (info.skin, source) if self.as_placed(info.skin, source, placed) else None
 
     def bind_skinned(self, mesh: UsdGeom.Mesh, skeleton: UsdSkel.Skeleton, skin: int, source: GltfMesh) -> None:
         """`mesh` (written from `source`'s stored positions) skinned by `skin` as the file skins it."""
@@ -127,11 +170,13 @@ class AvatarSkeleton:
 
     def bind_rigid(self, mesh: UsdGeom.Mesh, skeleton: UsdSkel.Skeleton, node: int | None) -> None:
         """`mesh` (points where the scene shows it at rest) bound wholly to the nearest joint above `node` (else the
-        first topmost joint): it stays there at rest and follows that joint."""
-        k = self.joint_above(node)
-        k = 0 if k is None else k
+        first topmost joint; `_rigid_joint`): it stays there at rest and follows that joint. Where no joint can
+        carry it, it is bound to the skeleton without joints (its blend shapes still play)."""
+        k = self._rigid_joint(node)
         binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
         binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+        if k is None:
+            return
         binding.CreateJointsAttr(Vt.TokenArray([self.tokens[k]]))
         binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
         binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
@@ -143,8 +188,7 @@ class AvatarSkeleton:
         skinned by its skin (written as stored), bound rigidly to the joint above its node, or left static."""
         def define(path, points: np.ndarray, faces: np.ndarray, node: int | None = None, skin=None,
                    source: GltfMesh | None = None) -> UsdGeom.Mesh:
-            if skin in self.skin_joints and source is not None and source.joints is not None and \
-                    len(source.neutral) == len(points):
+            if skin in self.skin_joints and source is not None and self.as_placed(skin, source, points):
                 mesh = static(path, source.neutral * np.float32(self.scale), faces)
                 self.bind_skinned(mesh, skeleton, skin, source)
                 return mesh
@@ -202,8 +246,12 @@ def avatar_skeleton(scene: GltfScene, skins: set[int], scale: float, prim_name
                 return None, (f"joint {name!r} has different bind matrices in two skins: the avatar's skeleton is "
                               "left out of the USD")
             binds.setdefault(j, bind)
+        if len(set(joints)) != len(joints):        # glTF 2.0 asks for unique joints; UsdSkel would pose one copy
+            return None, f"skin {s} lists a joint twice: the avatar's skeleton is left out of the USD"
         per_skin[s] = joints
 
+    if not binds:                # skins without joints: nothing to make a skeleton of
+        return None, None
     if len(binds) > MAX_JOINTS:
         return None, (f"the skins have {len(binds):,} joints, more than the {MAX_JOINTS:,} a USD skeleton is made "
                       "of here: the avatar's skeleton is left out of the USD")
@@ -253,13 +301,22 @@ def avatar_skeleton(scene: GltfScene, skins: set[int], scale: float, prim_name
     rest_local = np.empty_like(rest_world)
     for k, j in enumerate(order):
         parent = joint_parent(j)
-        rest_local[k] = rest_world[k] if parent is None else np.linalg.inv(rest_world[index[parent]]) @ rest_world[k]
+        if parent is None:
+            rest_local[k] = rest_world[k]
+        else:            # the nodes' own local transforms from the parent joint down: nothing inverted (a joint
+            local, node = np.eye(4), j          # scaled to 0, a hidden hat, has children all the same)
+            while node != parent:
+                local = _local_matrix(nodes[node]) @ local
+                node = parent_of[node]
+            rest_local[k] = unit @ local @ inverse_unit
         linear = rest_local[k][:3, :3]
         gram = linear.T @ linear
         if np.abs(gram - np.diag(np.diag(gram))).max() > 1e-6 * max(1.0, float(np.abs(gram).max())):
             return None, (f"joint {nodes[j].name or j!r} is sheared at rest (a parent scaled unevenly): the avatar's "
                           "skeleton is left out of the USD")
-    return AvatarSkeleton(order, [names[j] for j in order], np.stack([binds[j] for j in order]), rest_world,
-                          rest_local, scene, float(scale),
+    bind = np.stack([binds[j] for j in order])
+    return AvatarSkeleton(order, [names[j] for j in order], bind, rest_world, rest_local, np.linalg.inv(bind),
+                          [None if joint_parent(j) is None else index[joint_parent(j)] for j in order],
+                          [nodes[j].name or names[j].rpartition("/")[2] for j in order], scene, float(scale),
                           {s: [index[j] for j in js] for s, js in per_skin.items()}, parent_of), None
 

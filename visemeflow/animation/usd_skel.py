@@ -32,6 +32,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
@@ -40,6 +41,10 @@ from visemeflow.animation.bones import BoneRig, blend_poses, bone_animation
 from visemeflow.animation.usd import _format_args, _unique_prim_names, one_at_a_time, prim_name, timed_stage
 from visemeflow.atomic import atomic_path
 from visemeflow.rig.character import Character
+
+if TYPE_CHECKING:
+    from visemeflow.animation.skinned_asset import _Plan
+    from visemeflow.animation.usd_joints import AvatarSkeleton
 
 __all__ = ["build_skel_stage", "joint_paths", "write_usd_skel"]
 
@@ -75,6 +80,17 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
     root = UsdSkel.Root.Define(stage, root_path)
     stage.SetDefaultPrim(root.GetPrim())
 
+    parts = character.parts if character is not None and character.parts else ()
+    if parts and rig.n_vertices != character.n_vertices:
+        raise ValueError(f"bones of {rig.name!r}: {rig.n_vertices} vertices, the character {character.n_vertices}")
+    joined, note = _joined(character, rig) if parts else (None, None)
+    if joined is not None:           # the face bones in the avatar's own skeleton
+        skeleton = UsdSkel.Skeleton.Define(stage, root_path.AppendChild("Skeleton"))
+        anim = UsdSkel.Animation.Define(stage, skeleton.GetPath().AppendChild("Animation"))
+        UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+        _define_joined(stage, root, skeleton, anim, joined, rig, character, rotations, translations)
+        return stage
+
     joints = Vt.TokenArray(joint_paths(rig))
     bind = Vt.Matrix4dArray([Gf.Matrix4d(1.0)] + [_translate(c) for c in rig.bind_translations])
     skeleton = UsdSkel.Skeleton.Define(stage, root_path.AppendChild("Skeleton"))
@@ -97,13 +113,6 @@ def build_skel_stage(rig: BoneRig, curves, fps: float, *, name: str | None = Non
                        Usd.TimeCode(k))
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
 
-    parts = character.parts if character is not None and character.parts else ()
-    if parts and rig.n_vertices != character.n_vertices:
-        raise ValueError(f"bones of {rig.name!r}: {rig.n_vertices} vertices, the character {character.n_vertices}")
-    joined, note = _joined(character, rig) if parts else (None, None)
-    if joined is not None:
-        _define_joined(stage, root, skeleton, anim, joined, rig, character, rotations, translations)
-        return stage
     spans = [(root_path.AppendChild(prim), part.start, part.stop)
              for prim, part in zip(_unique_prim_names(p.name for p in parts), parts)] or \
         [(root_path.AppendChild("Mesh"), 0, rig.n_vertices)]
@@ -186,8 +195,8 @@ def write_usd_skel(path: str | os.PathLike, rig: BoneRig, curves, fps: float, *,
 class _Joined:
     """The avatar's skeleton (`usd_joints`) and the face bones the bone GLB adds to it (`skinned_asset`'s plan)."""
 
-    avatar: object            # usd_joints.AvatarSkeleton
-    plan: object              # skinned_asset._Plan
+    avatar: AvatarSkeleton
+    plan: _Plan
     tokens: list[str]         # the face bones' joint tokens, set by set
     bind: np.ndarray          # (N, 4, 4) their bind transforms in the skeleton's space
     rest: list                # per set: rest quaternions w, x, y, z (K, 4), translations (K, 3), scale: local
@@ -195,9 +204,10 @@ class _Joined:
 
 def _joined(character: Character, rig: BoneRig) -> tuple[_Joined | None, str | None]:
     """The face bones on the avatar's own skeleton, as the bone GLB puts them: under the joint the moving vertices
-    follow, rigid local poses, inverse bind matrices that undo that joint's scale; (None, why) where the USD keeps
-    the flat skeleton of SSDR bones: no skin moves the face (a head on a plain node), a skin plan the GLB refuses, a
-    character not in metres, skins that cannot be one Skeleton."""
+    follow, rigid bind transforms, local poses under that joint; (None, why) where the USD keeps the flat skeleton of
+    SSDR bones: a driven mesh the bones move on a node without a skin (teeth on a node), a skin plan the GLB
+    refuses, skins that cannot be one Skeleton, a moving mesh whose stored arrays UsdSkel would not skin to where
+    the scene shows it (a vertex of no weight); (None, None) for a character not in metres (not a glTF's)."""
     from visemeflow.animation.skinned_asset import _plan
     from visemeflow.animation.usd_joints import avatar_skeleton
     from visemeflow.rig.character import CharacterError
@@ -208,11 +218,20 @@ def _joined(character: Character, rig: BoneRig) -> tuple[_Joined | None, str | N
         scene, plan = _plan(character, rig)
     except CharacterError as exc:
         return None, f"{exc}: the face bones are on a skeleton of their own"
-    if not plan.sets or any(bone_set.skin is None for bone_set in plan.sets):
+    if not plan.sets:
         return None, None
+    own = "the face bones are on a skeleton of their own"
+    plain = [character.parts[k].name for k, part in enumerate(character.parts)
+             if any(bone_set.skin is None and bone_set.mesh_node in part.nodes for bone_set in plan.sets)]
+    if plain:
+        return None, f"{', '.join(dict.fromkeys(plain))} on a node without a skin: {own}"
     avatar, why = avatar_skeleton(scene, {i.skin for i in scene.meshes if i.skin is not None}, 1.0, prim_name)
     if avatar is None:
-        return None, why and f"{why}; the face bones are on a skeleton of their own"
+        return None, why and f"{why}; {own}"
+    moved = {p.mesh for p in plan.primitives}
+    for part in character.parts:
+        if part.mesh in moved and avatar.skinned_source(part.mesh, character.neutral[part.start:part.stop]) is None:
+            return None, f"{part.name}: its skin does not place every vertex (one without weight): {own}"
     index = {node: k for k, node in enumerate(avatar.nodes)}
     tokens, binds, rests, taken = [], [], [], set(avatar.tokens)
     for bone_set in plan.sets:
