@@ -375,3 +375,19 @@ def test_a_joint_scaled_to_zero_at_rest_does_not_stop_the_usd(tmp_path):
     skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
     assert list(skeleton.GetJointsAttr().Get()) == ["Hips", "Hips/HeadJoint", "Hips/HeadJoint/Hat",
                                                      "Hips/HeadJoint/Hat/HatTip"]
+
+
+def test_a_skin_without_joints_does_not_stop_the_usd(tmp_path):
+    """The body's node names a skin with no joints (and the body has no JOINTS_0): the USD is written, the body
+    static where the scene shows it, the head on the avatar's skeleton."""
+    def edit(g, blob):
+        g.skins.append(gl.Skin(name="empty", joints=[]))
+        next(n for n in g.nodes if n.name == "BodyNode").skin = len(g.skins) - 1
+
+    path = tmp_path / "avatar.glb"
+    _edited_avatar(path, edit)
+    stage = _at_rest_where_the_scene_shows(path, tmp_path)
+    body = meshes_of(stage)["BodyNode"]
+    assert not UsdSkel.BindingAPI(body.GetPrim()).GetSkeletonRel().GetTargets()
+    np.testing.assert_allclose(world_points(body, 0), GltfScene(path).placed_mesh(4, morph_targets=False)[1],
+                               atol=1e-6)
