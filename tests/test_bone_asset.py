@@ -16,8 +16,9 @@ import numpy as np
 import pygltflib as gl
 import pytest
 from avatar_glb import make_avatar
+from blender_check import BPY_PYTHON, PROBE, Y_UP_TO_Z_UP, probe
 from browser import serve_folder
-from factories import NODE_MODULES, REPO, node_or_fail, validate
+from factories import NODE_MODULES, node_or_fail, validate
 from skinned_head_glb import JOINTS, joint_worlds, make_skinned_head, neck_turn
 
 from visemeflow.animation.bones import bone_animation, solve_bones
@@ -343,9 +344,6 @@ def test_the_bone_usd_of_an_avatar_is_its_whole_scene_that_usdskel_skins_as_we_d
 
 
 # ---- Blender ----------------------------------------------------------------------------------------------------
-BPY_PYTHON = REPO / ".venv-blender" / "bin" / "python"
-PROBE = Path(__file__).with_name("blender_probe.py")
-Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
 def test_blender_imports_the_avatar_with_its_face_on_bones_and_shuts_the_lips(head):
@@ -508,8 +506,6 @@ def test_the_bone_usd_of_a_skinned_avatar_puts_the_face_bones_in_its_own_skeleto
 def test_blender_imports_the_bone_usd_as_the_avatars_armature_with_the_face_bones_and_shuts_the_lips(head):
     """Blender's USD importer makes one armature of the avatar's joints and the face bones under `Head`, and plays
     the head as our bones do (the head-only vertices, 0.1 mm), the lips shut where the curves shut them."""
-    from test_blender import probe
-
     from visemeflow.animation.usd_skel import write_usd_skel
 
     root, arrays, character, rig, _ = head

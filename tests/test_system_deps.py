@@ -185,7 +185,7 @@ def test_make_test_passes_on_no_tests_collected_and_fails_on_any_other_error(tmp
     os.utime(venv / ".installed", (2**31, 2**31))
     done = make("test", f"VENV={venv}", f"BLENDER_VENV={venv}", f"SYSTEM_DEPS=echo system-deps >> {log}")
     assert log.read_text().splitlines() == ["system-deps", "ruff check visemeflow tests bench examples tools",
-                                            "pytest -m pytest -q -n auto --dist loadfile --durations=25"]
+                                            "pytest -m pytest -q -n auto --dist loadfile --no-loadscope-reorder --durations=25"]
     assert (done.returncode == 0) is ok, done.stdout + done.stderr
     if pytest_rc == 5:
         assert "pytest: no tests collected" in done.stdout

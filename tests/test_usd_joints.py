@@ -11,6 +11,7 @@ import numpy as np
 import pygltflib as gl
 import pytest
 from avatar_glb import make_avatar
+from blender_check import Y_UP_TO_Z_UP, probe
 from factories import usd_validation_errors
 from skinned_head_glb import make_skinned_head
 
@@ -247,8 +248,6 @@ def test_blender_imports_the_avatars_armature_from_the_usd_and_plays_the_face_in
     """Blender's USD importer (the PyPI bpy module) makes the skeleton an armature of the avatar's joints, and the
     head it skins from the stored positions plays our weights where the scene shows it (armature turned and scaled
     0.01), the body along."""
-    from test_blender import Y_UP_TO_Z_UP, probe
-
     path, character, weights, out = mixamo
     frames = [0, 3, N - 1]
     report, meshes = probe(out, frames, tmp_path / "blender.npz", fps=30.0)
