@@ -284,7 +284,7 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
     moving = _moving_bones(rig)
     tokens = avatar.tokens + joined.tokens
     skeleton.CreateJointsAttr(Vt.TokenArray(tokens))
-    skeleton.CreateJointNamesAttr(Vt.TokenArray([t.rpartition("/")[2] for t in tokens]))
+    skeleton.CreateJointNamesAttr(Vt.TokenArray(avatar.names + [t.rpartition("/")[2] for t in joined.tokens]))
     skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([usd_matrix(m) for m in
                                                         np.concatenate([avatar.bind, joined.bind])]))
     rest_local = [*avatar.rest_local] + [m for q, t, scale in joined.rest for m in _posed(q, t, scale)]
