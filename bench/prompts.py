@@ -88,7 +88,8 @@ palatalised Russian consonant looks like its plain one); the tap as r."""
 
 
 def packages(lang: str, bands: set[str] = frozenset({"narrow"})) -> str:
-    return " ".join([f"asterisk-core-sounds-{lang}"] + [f"asterisk-core-sounds-{lang}-{BANDS[b]}" for b in sorted(bands)])
+    return " ".join([f"asterisk-core-sounds-{lang}"] +
+                    [f"asterisk-core-sounds-{lang}-{BANDS[b]}" for b in sorted(bands)])
 
 
 BANDS = {"narrow": "wav", "wide": "g722"}
@@ -286,8 +287,8 @@ def main() -> None:
     for lang, utts in corpora.items():
         seconds = sum(len(u.audio) for u in utts) / SAMPLE_RATE
         rows.append(f"{NAMES[lang]}: {len(utts)} prompt{'s' * (len(utts) != 1)}, {seconds:.1f} s of speech, "
-                    f"{'pocketsphinx' if lang == 'en' else 'espeak-ng + DTW'} alignment on the {align_band} band; the models "
-                    f"hear the {args.hear} band")
+                    f"{'pocketsphinx' if lang == 'en' else 'espeak-ng + DTW'} alignment on the {align_band} band; "
+                    f"the models hear the {args.hear} band")
         sources = {name: [predict(model, u.audio, u.n) for u in utts] for name, model in models.items()}
         sources["procedural (alignment)"] = [u.procedural for u in utts]
         for name, curves in sources.items():
@@ -300,9 +301,10 @@ def main() -> None:
                  for name, (curves, utts) in pooled.items()]
 
     print_grid(columns, rows)
+    suffixes = ",".join("-" + BANDS[b] for b in sorted(bands))
     print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "
-          f"asterisk-core-sounds-{{{','.join(languages)}}}{{,{','.join('-' + BANDS[b] for b in sorted(bands))}}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read from "
-          f"{args.root / SOUNDS}.")
+          f"asterisk-core-sounds-{{{','.join(languages)}}}{{,{suffixes}}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read "
+          f"from {args.root / SOUNDS}.")
 
 
 if __name__ == "__main__":

@@ -26,8 +26,9 @@ targets as BlendShapes and its own `skel:blendShapes` order, all bound to the on
 or several) also gets the scene's texture coordinates, materials and undriven meshes (`usd_scene`); `write_usdz`
 packs the stage with the materials' images into one `.usdz`. A glTF avatar with skins gets its own skeleton in
 place of the one-joint one, its skinned meshes skinned as the file skins them (`usd_joints`). A character with
-vertex colours (the demo head, a glTF's COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes without a material of their own a
-`Materials/VertexColours` UsdPreviewSurface whose diffuse colour reads them (Blender wires it to Base Color).
+vertex colours (the demo head, a glTF's COLOR_0) gets them as `primvars:displayColor` (linear), and its meshes
+without a material of their own a `Materials/VertexColours` UsdPreviewSurface whose diffuse colour reads them
+(Blender wires it to Base Color).
 
 Time: frame k is time code k; `timeCodesPerSecond` = `framesPerSecond` = fps; start/end time codes 0 .. T-1.
 Stage: upAxis Y, `metersPerUnit` the character's own unit (`Character.mm_per_unit` / 1000: 0.01 for the demo rig's
