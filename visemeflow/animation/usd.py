@@ -175,7 +175,7 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
     identity = Gf.Matrix4d(1.0)
     shape_tokens = Vt.TokenArray(list(character.shape_names))
 
-    avatar, avatar_note, scale = None, None, 1000.0 / float(character.mm_per_unit)
+    avatar, avatar_note, scene, scale = None, None, None, 1000.0 / float(character.mm_per_unit)
     if character.parts:          # a glTF scene: its own skeleton, where it has one (`usd_joints`)
         from visemeflow.animation.usd_joints import avatar_skeleton
         from visemeflow.rig.gltf import GltfScene
@@ -254,7 +254,8 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
             return mesh
 
         undriven = static if avatar is None else avatar.undriven(static, skeleton)
-        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, undriven, driven)
+        notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, undriven, driven,
+                                 scene)
         if avatar_note:
             notes.append(avatar_note)
         if notes:

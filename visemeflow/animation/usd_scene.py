@@ -227,15 +227,17 @@ def _dress_mesh(stage: Usd.Stage, mesh: UsdGeom.Mesh, source: GltfMesh, material
 
 
 def dress_gltf_scene(stage: Usd.Stage, root: Sdf.Path, character: Character, part_prims: list[Sdf.Path],
-                     texture_dir: Path | None, prim_name, define_static, define_driven) -> list[str]:
+                     texture_dir: Path | None, prim_name, define_static, define_driven,
+                     scene: GltfScene | None = None) -> list[str]:
     """Add to `stage` what the glTF scene `character.source` holds beside the driven meshes (see the module doc):
     `part_prims[k]` is the Mesh prim of `character.parts[k]`; `define_static(path, points, faces, node=, skin=,
     source=)` makes the Mesh prim of a mesh no target moves (placed at rest; its node, that node's skin or None, and
     the mesh as stored), `define_driven(path, points, faces, shape names, deltas, node=)` one the SkelAnimation
     drives (a driven mesh's other instances: a mesh two nodes show, such as one eye mesh for both eyes). Returns
-    notes on what could not be carried."""
+    notes on what could not be carried. `scene`: the file already read (`GltfScene(character.source)`), else it is
+    read here."""
     notes: list[str] = []
-    scene = GltfScene(character.source)
+    scene = scene if scene is not None else GltfScene(character.source)
     materials = _Materials(stage, root, scene, texture_dir, prim_name, notes)
     scale = np.float32(1000.0 / float(character.mm_per_unit))    # the scene's metres in the character's unit
     driven = {part.mesh for part in character.parts}

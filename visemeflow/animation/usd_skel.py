@@ -357,7 +357,7 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
         return mesh
 
     notes = dress_gltf_scene(stage, root_path, character, part_paths, None, prim_name,
-                             avatar.undriven(static, skeleton), other_instance)
+                             avatar.undriven(static, skeleton), other_instance, avatar.scene)
     if notes:
         stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if plan.notes:
