@@ -2,7 +2,7 @@
 prompts (English, Spanish, French, Italian, Russian; four professional voices). Printed, never asserted.
 
 Run: .venv/bin/python bench/prompts.py [--root /] [--models default[,default-fbank,PATH.pt]] [--utterances 20]
-     [--languages en,es,fr,it,ru] [--seed 0] [--tolerance 0.1]
+     [--languages en,es,fr,it,ru] [--seed 0] [--tolerance 0.1] [--hear wide] [--retime 24,25]
 
 Data: the Debian packages `asterisk-core-sounds-<lang>-wav` (the prompts, 8 kHz 16-bit WAV, about 25 min per
 language) and `asterisk-core-sounds-<lang>` (their transcripts, `/usr/share/doc/asterisk-core-sounds-<lang>/
@@ -36,7 +36,9 @@ Rows and columns as bench/thirdlang.py's: per language, each model of `--models`
 alignment's own procedural curves (the ceiling of the definitions); b/p/m phones whose top viseme is MBP, false MBP
 closures (other phones whose top is MBP), other phones with MBP the top viseme at their middle frame (what a viewer
 sees mid-phone), the false closures next to a b/p/m phone, f/v phones whose top is FFF, top-2 agreement, and b/p/m
-phones with MBP the top viseme of a frame within `--tolerance` s. Then all languages pooled.
+phones with MBP the top viseme of a frame within `--tolerance` s. Then all languages pooled. `--retime 24,25`: the
+mesh columns of each model's pooled curves retimed from 30 fps to those rates, by linear interpolation and by
+`animation.apply.resample_visemes` (the exports' retiming: each closure's key pose kept whole), side by side.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ from realspeech import FPS, SAMPLE_RATE, fraction, read_corpus  # noqa: E402
 from report import print_grid  # noqa: E402
 from thirdlang import align_words, header, row, with_gaps, word_phones, words_of  # noqa: E402
 
+from visemeflow.animation.apply import resample, resample_visemes  # noqa: E402
 from visemeflow.articulation import CLOSED_MM, close_lips  # noqa: E402
 from visemeflow.ingest.audio import read_audio  # noqa: E402
 from visemeflow.learning.default_model import SHIPPED_MODELS, shipped_model_path  # noqa: E402
@@ -213,18 +216,18 @@ def build_corpus(root: Path, tmp: Path, languages: list[str], count: int, seed: 
 MESH_COLUMNS = ["mesh: b/p/m closed (< 1.5 mm)", "mesh: other phones closed mid-phone"]
 
 
-def mesh_cells(curves: list[np.ndarray], utterances) -> list[str]:
+def mesh_cells(curves: list[np.ndarray], utterances, fps: float = FPS) -> list[str]:
     """The lips on the demo character after the closure rule (`articulation.close_lips`, as the animation stage
     applies it; `animation.lips.LipProbe`): b/p/m phones whose smallest lip gap is below 1.5 mm, and other phones
-    whose lips are closed at their middle frame (what a viewer sees mid-phone)."""
+    whose lips are closed at their middle frame (what a viewer sees mid-phone); `curves` at `fps`."""
     p = probe()
     widest = p.single_shape_gap("AHH")
     lips, closed, others = [], 0, 0
     for c, u in zip(curves, utterances, strict=True):
         gap = p.measure(close_lips(c)).gap_mm
-        lips.append(score_lips(gap, None, FPS, u.phones, widest))
+        lips.append(score_lips(gap, None, fps, u.phones, widest))
         for ph in u.phones:
-            frames = None if ph.viseme in (None, "MBP") else phone_frames(ph.start_s, ph.end_s, FPS, len(gap))
+            frames = None if ph.viseme in (None, "MBP") else phone_frames(ph.start_s, ph.end_s, fps, len(gap))
             if frames is not None:
                 others += 1
                 closed += bool(gap[frames[len(frames) // 2]] < CLOSED_MM)
@@ -245,6 +248,8 @@ def main() -> None:
                     help="what the models hear: the 8-kHz WAV (narrow) or the G.722 wide band (wide)")
     ap.add_argument("--align", choices=sorted(BANDS), default=None,
                     help="what the aligner hears (default: what the models hear)")
+    ap.add_argument("--retime", default="", help="comma-separated frame rates (e.g. 24,25): the mesh columns again "
+                    "with each model's 30-fps curves retimed to them, by linear interpolation and by resample_visemes")
     args = ap.parse_args()
     align_band = args.align or args.hear
     bands = {args.hear, align_band}
@@ -301,6 +306,15 @@ def main() -> None:
                  for name, (curves, utts) in pooled.items()]
 
     print_grid(columns, rows)
+    rates = [float(x) for x in args.retime.split(",") if x.strip()]
+    if rates:
+        retimed = []
+        for name, (curves, utts) in pooled.items():
+            retimed.append(mesh_cells(curves, utts) + [name, "30 (as made)"])
+            for fps in rates:
+                for how, fn in (("linear", resample), ("keys kept", resample_visemes)):
+                    retimed.append(mesh_cells([fn(c, FPS, fps) for c in curves], utts, fps) + [name, f"{fps:g}, {how}"])
+        print_grid(["model", "fps, retiming"] + MESH_COLUMNS, [r[-2:] + r[:-2] for r in retimed])
     suffixes = ",".join("-" + BANDS[b] for b in sorted(bands))
     print(f"alignment and ingestion {aligned:.1f} s; all {time.perf_counter() - started:.1f} s. Data: Debian "
           f"asterisk-core-sounds-{{{','.join(languages)}}}{{,{suffixes}}} 1.6.1 (CC-BY-SA-3.0 / CC-BY-3.0), read "

