@@ -47,9 +47,14 @@ def neck_turn() -> list[float]:
     return [0.0, 0.0, float(np.sin(NECK_TURN / 2)), float(np.cos(NECK_TURN / 2))]
 
 
-def make_skinned_head(path: Path) -> dict:
+TEETH_AT = np.array([0.0, -0.035, 0.07])    # metres, scene: behind the demo head's lips
+TEETH_DROP = 0.008                           # metres the lower teeth drop at AHH = 1
+
+
+def make_skinned_head(path: Path, teeth: bool = False) -> dict:
     """Write the avatar (see the module); returns {"head": neutral (V, 3) m, "weights": per joint name (V,) skin
-    weights of the head}."""
+    weights of the head}. `teeth`: also a teeth mesh on a node without a skin, a child of the `Head` joint (as
+    many exports place teeth), whose lower row drops with the open visemes; "teeth" is then its scene positions."""
     demo = character_from_rig(load_demo_rig())
     head = (demo.neutral * 0.01).astype(np.float32)
     deltas = (demo.deltas * 0.01).astype(np.float32)
@@ -91,6 +96,24 @@ def make_skinned_head(path: Path) -> dict:
         indices=b.accessor(box_faces.ravel(), gl.SCALAR, gl.ELEMENT_ARRAY_BUFFER), material=0)]))
 
     worlds = joint_worlds()
+    if teeth:
+        # a 6 x 2 strip: the upper row stays, the lower drops with the open visemes; stored in the Head joint's frame
+        u, v = np.meshgrid(np.linspace(-0.02, 0.02, 6), [0.004, -0.004])
+        placed = (np.c_[u.ravel(), v.ravel(), np.zeros(u.size)] + TEETH_AT).astype(np.float32)
+        strip = np.array([[i, i + 1, i + 6] for i in range(5)] + [[i + 1, i + 7, i + 6] for i in range(5)], np.uint16)
+        to_head = np.linalg.inv(worlds["Head"])
+        stored = (placed @ to_head[:3, :3].T + to_head[:3, 3]).astype(np.float32)
+        lower = np.arange(12) >= 6
+        openness = {"AHH": 1.0, "AAA": 0.8, "OHH": 0.7, "EH": 0.5}
+        teeth_deltas = np.zeros((len(names), 12, 3), np.float32)
+        for name, amount in openness.items():
+            teeth_deltas[names.index(name), lower, 1] = -TEETH_DROP * amount
+        teeth_deltas = (teeth_deltas @ to_head[:3, :3].T).astype(np.float32)
+        g.meshes.append(gl.Mesh(name="TeethMesh", primitives=[gl.Primitive(
+            attributes=gl.Attributes(POSITION=b.accessor(stored, gl.VEC3, gl.ARRAY_BUFFER, bounds=True)),
+            indices=b.accessor(strip.ravel(), gl.SCALAR, gl.ELEMENT_ARRAY_BUFFER), material=0,
+            targets=[{"POSITION": b.accessor(d, gl.VEC3, gl.ARRAY_BUFFER, bounds=True)} for d in teeth_deltas])],
+            weights=[0.0] * len(names), extras={"targetNames": names}))
     g.nodes = [gl.Node(name="Armature", rotation=ARMATURE_TURN, scale=[ARMATURE_SCALE] * 3, children=[1])]
     for name in order:                                              # nodes 1 .. 5
         g.nodes.append(gl.Node(name=name, translation=JOINTS[name][1]))
@@ -100,6 +123,10 @@ def make_skinned_head(path: Path) -> dict:
             p.children = (p.children or []) + [1 + order.index(name)]
     g.nodes.append(gl.Node(name="Head", mesh=0, skin=0))            # 6: the object Blender shows as the head
     g.nodes.append(gl.Node(name="Body", mesh=1, skin=0))            # 7
+    if teeth:                                                       # 8: a plain node under the Head joint
+        g.nodes.append(gl.Node(name="Teeth", mesh=2))
+        head_joint = g.nodes[1 + order.index("Head")]
+        head_joint.children = (head_joint.children or []) + [8]
     ibm = np.stack([np.linalg.inv(worlds[n]) for n in order]).transpose(0, 2, 1).reshape(-1, 16)
     g.skins.append(gl.Skin(name="Armature", joints=[1 + k for k in range(len(order))], skeleton=1,
                            inverseBindMatrices=b.accessor(ibm.astype(np.float32), gl.MAT4)))
@@ -115,4 +142,4 @@ def make_skinned_head(path: Path) -> dict:
     g.buffers = [gl.Buffer(byteLength=len(b.data))]
     g.set_binary_blob(bytes(b.data))
     g.save_binary(str(path))
-    return {"head": head, "weights": weights}
+    return {"head": head, "weights": weights, **({"teeth": placed} if teeth else {})}

@@ -326,6 +326,9 @@ def test_the_bone_usd_of_an_avatar_is_its_whole_scene_that_usdskel_skins_as_we_d
               if e.GetType() == UsdValidation.ValidationErrorType.Error]
     assert errors == []
     root = stage.GetDefaultPrim()
+    # its head's skin blends every vertex from Hips to HeadJoint: on the avatar's skeleton the face bones would move
+    # it by one joint's share only, so the flat skeleton plays our bones, and the layer says why
+    assert "would move the face up to 20.0 mm less than ours" in stage.GetRootLayer().documentation
     meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)}
     assert {"Wolf3D_Head", "Wolf3D_Teeth", "EyeLeft", "EyeRight", "BodyNode"} <= set(meshes), sorted(meshes)
     body = GltfScene(tmp_path / "avatar.glb").placed_mesh(4, morph_targets=False)[1]
@@ -524,3 +527,85 @@ def test_blender_imports_the_bone_usd_as_the_avatars_armature_with_the_face_bone
     gaps = pair_gap_mm(head_mesh[:, pairs.ravel()].reshape(len(frames), 3, 2, 3), 1000.0)
     shut = [k for k, f in enumerate(frames) if f in SHUT]
     assert (gaps[shut] < CLOSED_MM).all() and (np.delete(gaps, shut) > CLOSED_MM).any(), gaps
+
+
+@pytest.fixture(scope="module")
+def toothed(tmp_path_factory):
+    """The skinned head with teeth on a node without a skin under the `Head` joint, its character and bones."""
+    root = tmp_path_factory.mktemp("bone-teeth")
+    arrays = make_skinned_head(root / "head.glb", teeth=True)
+    character, binding = load_bound_character(root / "head.glb")
+    rig = solve_bones(character, 8, binding=binding, iterations=5)
+    return root, arrays, character, rig
+
+
+def test_the_bone_usd_puts_the_bones_of_teeth_on_a_plain_node_under_the_joint_above_them(toothed):
+    """Teeth on a node without a skin, a child of the `Head` joint: their face bones are joints under `Head` in the
+    avatar's own skeleton (they kept the flat SSDR skeleton for the whole file before), the teeth bound where the
+    scene shows them; UsdSkel plays them as our bones do, and with the neck turned they follow the head."""
+    from factories import usd_validation_errors
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+
+    from visemeflow.animation.usd_skel import write_usd_skel
+
+    root, arrays, character, rig = toothed
+    path = write_usd_skel(root / "teeth.bones.usda", rig, talk(), FPS, name="speech", character=character)
+    stage = Usd.Stage.Open(str(path))
+    assert usd_validation_errors(stage) == []
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    joints = list(skeleton.GetJointsAttr().Get())
+    assert joints[:4] == ["Hips", "Hips/Spine", "Hips/Spine/Neck", "Hips/Spine/Neck/Head"]
+    assert any(j.startswith("Hips/Spine/Neck/Head/Teeth_") for j in joints), joints
+    assert "on a node without a skin" not in stage.GetRootLayer().documentation
+    teeth = next(p for p in character.parts if p.name == "TeethMesh")
+    np.testing.assert_allclose(character.neutral[teeth.start:teeth.stop], arrays["teeth"], atol=1e-6)
+    ours = bone_animation(rig, talk())[:, teeth.start:teeth.stop]
+    assert np.abs(ours[OPEN] - arrays["teeth"]).max() > 5e-3        # the lower teeth drop at AHH
+
+    def world(mesh, k: int) -> np.ndarray:
+        points = np.asarray(mesh.GetPointsAttr().Get(k), np.float64)
+        m = np.asarray(mesh.ComputeLocalToWorldTransform(Usd.TimeCode(k)), np.float64)
+        return points @ m[:3, :3] + m[3, :3]
+
+    def baked_teeth(stage: Usd.Stage):
+        assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, N - 1))
+        return next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.GetName() == "TeethMesh")
+
+    mesh = baked_teeth(stage)
+    for k in [0, *OPEN, *SHUT]:
+        np.testing.assert_allclose(world(mesh, k), ours[k], atol=1e-6)
+    # the neck turned on the USD's skeleton (a body animation): the teeth turn with the head and still move
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.Reload(True)
+    stage = Usd.Stage.Open(layer)
+    anim = next(UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation))
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    translation, _, scale = UsdSkel.DecomposeTransform(skeleton.GetRestTransformsAttr().Get()[2])
+    x, y, z, w = neck_turn()
+    anim.GetJointsAttr().Set(list(anim.GetJointsAttr().Get()) + ["Hips/Spine/Neck"])
+    for k in range(N):
+        anim.GetTranslationsAttr().Set(list(anim.GetTranslationsAttr().Get(k)) + [Gf.Vec3f(translation)], k)
+        anim.GetRotationsAttr().Set(list(anim.GetRotationsAttr().Get(k)) + [Gf.Quatf(w, x, y, z)], k)
+    anim.GetScalesAttr().Set(list(anim.GetScalesAttr().Get()) + [Gf.Vec3h(scale)])
+    mesh = baked_teeth(stage)
+    neck = joint_worlds()["Neck"]
+    carry = neck @ _rotation(neck_turn()) @ np.linalg.inv(neck)
+    for k in [*OPEN, *SHUT]:
+        np.testing.assert_allclose(world(mesh, k), ours[k] @ carry[:3, :3].T + carry[:3, 3], atol=1e-6)
+
+
+def test_blender_imports_the_bone_usd_with_the_teeth_on_the_heads_bones(toothed):
+    """Blender's USD importer: one armature with the teeth's face bones under `Head`, the teeth where ours are."""
+    from visemeflow.animation.usd_skel import write_usd_skel
+
+    root, arrays, character, rig = toothed
+    out = write_usd_skel(root / "teeth.bones.usda", rig, talk(), FPS, name="speech", character=character)
+    frames = [0, *OPEN, *SHUT]
+    report, meshes = probe(out, frames, root / "blender-teeth.npz", fps=FPS)
+    (bones,) = report["bones"].values()
+    assert bones[:4] == ["Hips", "Spine", "Neck", "Head"] and any(b.startswith("Teeth_") for b in bones), bones
+    teeth = next(p for p in character.parts if p.name == "TeethMesh")
+    ours = np.einsum("ij,fvj->fvi", Y_UP_TO_Z_UP, bone_animation(rig, talk())[frames][:, teeth.start:teeth.stop])
+    worst = float(np.abs(meshes["TeethMesh"] - ours).max())
+    print(f"\nBlender, bone USD: teeth worst {worst * 1e3:.4f} mm")
+    assert worst < 1e-4

@@ -176,6 +176,9 @@ class _Plan:
     sets: list[_BoneSet]
     primitives: list[_Primitives]
     notes: list[str]
+    lost: np.ndarray | None = None
+    """(V,) the viseme motion (rig units) each vertex loses to the plan: a moving vertex shared by joints above the
+    face bones' parent moves by that parent's share of it; one that follows no joint under it, by none."""
 
 
 def _moving_bones(rig: BoneRig) -> np.ndarray:
@@ -254,6 +257,7 @@ def _plan(character: Character, rig: BoneRig) -> tuple[GltfScene, _Plan]:
     primitives: list[_Primitives] = []
     notes: list[str] = []
     by_skin: dict[int, list] = {}
+    lost = np.zeros(rig.n_vertices)
     for part in character.parts:
         span = slice(part.start, part.stop)
         if not moved[span].any():
@@ -284,11 +288,11 @@ def _plan(character: Character, rig: BoneRig) -> tuple[GltfScene, _Plan]:
             sets.append(_BoneSet(frame, node, bones, scene.world_matrix(part.nodes[0]), mesh_node=node))
         primitives.append(_Primitives(part.mesh, mesh.primitive_starts, _blocks(mesh, joints, weights)))
     for skin_index, members in by_skin.items():
-        sets_and_prims, skin_notes = _skin_plan(scene, rig, skin_index, members, moved, motion, parents, mm)
+        sets_and_prims, skin_notes = _skin_plan(scene, rig, skin_index, members, moved, motion, parents, mm, lost)
         sets.append(sets_and_prims[0])
         primitives += sets_and_prims[1]
         notes += skin_notes
-    return scene, _Plan(sets, primitives, notes)
+    return scene, _Plan(sets, primitives, notes, lost)
 
 
 def _blocks(mesh, joints: np.ndarray, weights: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -299,7 +303,7 @@ def _blocks(mesh, joints: np.ndarray, weights: np.ndarray) -> dict[int, tuple[np
 
 
 def _skin_plan(scene: GltfScene, rig: BoneRig, skin_index: int, members: list, moved: np.ndarray, motion: np.ndarray,
-               parents: dict[int, int], mm: float):
+               parents: dict[int, int], mm: float, lost: np.ndarray):
     source = scene.path
     skin = scene.gltf.skins[skin_index]
     joint_nodes = list(skin.joints or [])
@@ -351,10 +355,12 @@ def _skin_plan(scene: GltfScene, rig: BoneRig, skin_index: int, members: list, m
             g = part.start + v
             if share <= 0:
                 orphans += 1
+                lost[g] = motion[g]
                 continue
             if share < 1 - 1e-6:
                 shared_count += 1
                 shared_miss = max(shared_miss, (1 - share) * float(motion[g]))
+                lost[g] = (1 - share) * motion[g]
             rows[v] = [(column[int(rig.joints[g, k])], share * float(rig.weights[g, k]))
                        for k in range(rig.joints.shape[1]) if rig.weights[g, k] > 0] + \
                 [(j, w) for j, w in rows[v] if not in_group[j]]

@@ -104,7 +104,7 @@ class AvatarSkeleton:
             node = self.parent_of.get(node)
         return None
 
-    def _rigid_joint(self, node: int | None) -> int | None:
+    def rigid_joint(self, node: int | None) -> int | None:
         """The joint a mesh on `node` is bound to rigidly: the nearest above it whose rest transform can be inverted
         (a joint scaled to 0, a hidden hat, cannot carry a mesh), else the first such topmost joint; None if none."""
         k = self.joint_above(node)
@@ -170,9 +170,9 @@ class AvatarSkeleton:
 
     def bind_rigid(self, mesh: UsdGeom.Mesh, skeleton: UsdSkel.Skeleton, node: int | None) -> None:
         """`mesh` (points where the scene shows it at rest) bound wholly to the nearest joint above `node` (else the
-        first topmost joint; `_rigid_joint`): it stays there at rest and follows that joint. Where no joint can
+        first topmost joint; `rigid_joint`): it stays there at rest and follows that joint. Where no joint can
         carry it, it is bound to the skeleton without joints (its blend shapes still play)."""
-        k = self._rigid_joint(node)
+        k = self.rigid_joint(node)
         binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
         binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
         if k is None:

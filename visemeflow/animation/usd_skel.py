@@ -20,6 +20,8 @@ A glTF avatar whose moving meshes are all on skins (a Ready Player Me or Mixamo 
 (`usd_joints`), the face bones joints under the joint the bone GLB puts them under (`skinned_asset`'s plan:
 `Hips/Spine/Neck/Head/Head_bone_00`), with rigid bind transforms and local poses under that joint, and each driven
 mesh as stored with the GLB's influences: a body animation on that skeleton carries the face (`_define_joined`).
+A driven mesh on a node without a skin (teeth on a node) gets its bones under the joint above its node, bound where
+the scene shows it. Where joining would leave the lips part of their motion (`LIP_LOSS_MM`), the flat skeleton stays.
 
 Each time sample is our blended pose of that frame (`bones.blend_poses`), so UsdSkel's skinning (linear blend, as
 `UsdSkel.BakeSkinning` computes it) reproduces our vertices. Time, units and suffixes as `usd.py`: frame k is time
@@ -46,7 +48,12 @@ if TYPE_CHECKING:
     from visemeflow.animation.skinned_asset import _Plan
     from visemeflow.animation.usd_joints import AvatarSkeleton
 
-__all__ = ["build_skel_stage", "joint_paths", "write_usd_skel"]
+__all__ = ["LIP_LOSS_MM", "build_skel_stage", "joint_paths", "write_usd_skel"]
+
+LIP_LOSS_MM = 0.1
+"""The most viseme motion (mm) the inner-lip vertices may lose when the face bones join the avatar's skeleton (the
+bone GLB's plan moves a vertex shared with joints above the head by the head's share only); beyond it the bone USD
+keeps the flat skeleton of SSDR bones, which plays the lips exactly."""
 
 
 def joint_paths(rig: BoneRig) -> list[str]:
@@ -204,11 +211,14 @@ class _Joined:
 
 def _joined(character: Character, rig: BoneRig) -> tuple[_Joined | None, str | None]:
     """The face bones on the avatar's own skeleton, as the bone GLB puts them: under the joint the moving vertices
-    follow, rigid bind transforms, local poses under that joint; (None, why) where the USD keeps the flat skeleton of
-    SSDR bones: a driven mesh the bones move on a node without a skin (teeth on a node), a skin plan the GLB
+    follow (for a driven mesh on a node without a skin, the joint above that node), rigid bind transforms, local
+    poses under that joint; (None, why) where the USD keeps the flat skeleton of SSDR bones: lips that joining would
+    leave part of their motion (`LIP_LOSS_MM`), such a node under no joint that can carry it, a skin plan the GLB
     refuses, skins that cannot be one Skeleton, a moving mesh whose stored arrays UsdSkel would not skin to where
     the scene shows it (a vertex of no weight); (None, None) for a character not in metres (not a glTF's)."""
-    from visemeflow.animation.skinned_asset import _plan
+    from dataclasses import replace
+
+    from visemeflow.animation.skinned_asset import _Frame, _plan
     from visemeflow.animation.usd_joints import avatar_skeleton
     from visemeflow.rig.character import CharacterError
 
@@ -221,22 +231,53 @@ def _joined(character: Character, rig: BoneRig) -> tuple[_Joined | None, str | N
     if not plan.sets:
         return None, None
     own = "the face bones are on a skeleton of their own"
-    plain = [character.parts[k].name for k, part in enumerate(character.parts)
-             if any(bone_set.skin is None and bone_set.mesh_node in part.nodes for bone_set in plan.sets)]
-    if plain:
-        return None, f"{', '.join(dict.fromkeys(plain))} on a node without a skin: {own}"
     avatar, why = avatar_skeleton(scene, {i.skin for i in scene.meshes if i.skin is not None}, 1.0, prim_name)
     if avatar is None:
         return None, why and f"{why}; {own}"
+    sets = []
+    for bone_set in plan.sets:
+        if bone_set.skin is not None:
+            sets.append(bone_set)
+            continue
+        # a driven mesh on a node without a skin (teeth on a node): its bones go under the joint the mesh would be
+        # bound to rigidly (the nearest above its node, else the topmost), bound where the mesh lies at rest; a
+        # second node showing the mesh keeps its instance at rest, as the blendshape USD places it
+        part = next(p for p in character.parts if bone_set.mesh_node in p.nodes)
+        if bone_set.mesh_node != part.nodes[0]:
+            continue
+        joint = avatar.rigid_joint(bone_set.mesh_node)
+        if joint is None:
+            return None, f"{part.name} is on a node without a skin and no joint can carry it: {own}"
+        try:
+            frame = _Frame.of(scene, avatar.nodes[joint])
+        except CharacterError as exc:
+            return None, f"{exc}: {own}"
+        sets.append(replace(bone_set, frame=frame, parent=avatar.nodes[joint], base=np.eye(4)))
+    plan = replace(plan, sets=sets)
+    if plan.lost is not None:
+        # the lips must meet where ours meet: a plan that leaves them part of their motion (lip vertices shared with
+        # joints above the face bones' parent) keeps the flat skeleton, which plays our bones exactly
+        from visemeflow.animation.lips import inner_lip_pairs
+
+        pairs = inner_lip_pairs(character)
+        at_lips = plan.lost[pairs.ravel()] if pairs is not None else plan.lost
+        worst = float(at_lips.max(initial=0.0)) * rig.mm_per_unit
+        if worst > LIP_LOSS_MM:
+            where = "lips" if pairs is not None else "face"
+            return None, (f"on the avatar's skeleton the face bones would move the {where} up to {worst:.1f} mm less "
+                          f"than ours (vertices weighted to joints above the head too): {own}")
     moved = {p.mesh for p in plan.primitives}
     for part in character.parts:
-        if part.mesh in moved and avatar.skinned_source(part.mesh, character.neutral[part.start:part.stop]) is None:
+        on_skin = any(i.index == part.mesh and i.skin is not None for i in scene.meshes)
+        if part.mesh in moved and on_skin and \
+                avatar.skinned_source(part.mesh, character.neutral[part.start:part.stop]) is None:
             return None, f"{part.name}: its skin does not place every vertex (one without weight): {own}"
     index = {node: k for k, node in enumerate(avatar.nodes)}
     tokens, binds, rests, taken = [], [], [], set(avatar.tokens)
     for bone_set in plan.sets:
         frame, parent = bone_set.frame, avatar.tokens[index[bone_set.parent]]
-        stem = prim_name(scene.gltf.nodes[bone_set.parent].name or f"node{bone_set.parent}")
+        named = bone_set.parent if bone_set.skin is not None else bone_set.mesh_node
+        stem = prim_name(scene.gltf.nodes[named].name or f"node{named}")
         for b in bone_set.bones:
             token = base = f"{parent}/{stem}_{prim_name(rig.bone_names[b])}"
             k = 1
@@ -314,7 +355,8 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
     for bone_set in plan.sets:
         set_tokens.append(joined.tokens[k:k + len(bone_set.bones)])
         k += len(bone_set.bones)
-    by_skin = {bone_set.skin: tokens_ for bone_set, tokens_ in zip(plan.sets, set_tokens)}
+    by_skin = {bone_set.skin: tokens_ for bone_set, tokens_ in zip(plan.sets, set_tokens) if bone_set.skin is not None}
+    by_node = {bone_set.mesh_node: tokens_ for bone_set, tokens_ in zip(plan.sets, set_tokens) if bone_set.skin is None}
     prims = {p.mesh: p for p in plan.primitives}
     extent = bone_animation(rig, np.eye(rig.n_poses))
     lo, hi = np.minimum(extent.min(axis=(0, 1)), rig.neutral.min(axis=0)), \
@@ -332,17 +374,11 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
         if part.mesh in prims and skinned is not None:       # moved by the face bones: the bone GLB's influences
             skin, source = skinned
             mesh = static(path, source.neutral, faces)
-            blocks = prims[part.mesh].blocks
-            joints = np.concatenate([blocks[s][0] for s in sorted(blocks)]).astype(np.int32)
-            weights = np.concatenate([blocks[s][1] for s in sorted(blocks)]).astype(np.float32)
-            binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
-            binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
-            skin_tokens = [avatar.tokens[j] for j in avatar.skin_joints[skin]]
-            binding.CreateJointsAttr(Vt.TokenArray(skin_tokens + list(by_skin[skin])))
-            binding.CreateJointIndicesPrimvar(False, 4).Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(joints)
-                                                                                    .reshape(-1)))
-            binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray.FromNumpy(weights.reshape(-1)))
-            binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+            _bind(mesh, skeleton, [avatar.tokens[j] for j in avatar.skin_joints[skin]] + list(by_skin[skin]),
+                  prims[part.mesh].blocks)
+        elif part.mesh in prims and part.nodes and part.nodes[0] in by_node:   # on a node without a skin
+            mesh = static(path, character.neutral[span], faces)          # where the scene shows it at rest
+            _bind(mesh, skeleton, by_node[part.nodes[0]], prims[part.mesh].blocks)
         elif skinned is not None:                             # a driven mesh no bone moves (an eye): its own skin
             mesh = static(path, skinned[1].neutral, faces)
             avatar.bind_skinned(mesh, skeleton, *skinned)
@@ -362,3 +398,16 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
         stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if plan.notes:
         stage.GetRootLayer().documentation += "\n" + "; ".join(plan.notes)
+
+
+def _bind(mesh: UsdGeom.Mesh, skeleton: UsdSkel.Skeleton, tokens: list[str], blocks: dict) -> None:
+    """`mesh` skinned by the bone GLB's influences of it (`blocks`, per primitive block: joints (n, 4) indexing
+    `tokens`, weights (n, 4)), its points in the skeleton's space (geomBindTransform identity)."""
+    joints = np.concatenate([blocks[s][0] for s in sorted(blocks)]).astype(np.int32)
+    weights = np.concatenate([blocks[s][1] for s in sorted(blocks)]).astype(np.float32)
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointsAttr(Vt.TokenArray(tokens))
+    binding.CreateJointIndicesPrimvar(False, 4).Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(joints).reshape(-1)))
+    binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray.FromNumpy(weights.reshape(-1)))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
