@@ -256,6 +256,10 @@ def build_stage(character: Character, weights, fps: float, *, name: str | None =
         undriven = static if avatar is None else avatar.undriven(static, skeleton)
         notes = dress_gltf_scene(stage, root_path, character, part_prims, textures, prim_name, undriven, driven,
                                  scene)
+        if avatar is not None:   # its own clips, each a SkelAnimation beside ours (`usd_clips`)
+            from visemeflow.animation.usd_clips import define_clips
+
+            notes += define_clips(stage, root_path, avatar, fps)
         if avatar_note:
             notes.append(avatar_note)
         if notes:

@@ -317,6 +317,7 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
     blendshape USD has it."""
     from visemeflow.animation.skinned_asset import _continuous, _moving_bones
     from visemeflow.animation.usd import _static_mesh
+    from visemeflow.animation.usd_clips import define_clips
     from visemeflow.animation.usd_joints import usd_matrix
     from visemeflow.animation.usd_scene import dress_gltf_scene
 
@@ -394,6 +395,7 @@ def _define_joined(stage: Usd.Stage, root: UsdSkel.Root, skeleton: UsdSkel.Skele
 
     notes = dress_gltf_scene(stage, root_path, character, part_paths, None, prim_name,
                              avatar.undriven(static, skeleton), other_instance, avatar.scene)
+    notes += define_clips(stage, root_path, avatar, stage.GetTimeCodesPerSecond())
     if notes:
         stage.GetRootLayer().documentation += "\nNot carried from the glTF file: " + "; ".join(notes)
     if plan.notes:
