@@ -183,3 +183,18 @@ def test_clips_the_skeleton_cannot_carry_are_named_and_broken_keys_leave_only_th
     assert [p.GetName() for p in stage.GetPrimAtPath("/speech/Clips").GetChildren()] == ["idle"]
     assert "clip 'broken': the keys of its rotation channel of node 4 are broken" in \
         stage.GetRootLayer().documentation
+
+
+def test_a_clip_whose_last_key_lies_a_year_away_is_left_out_without_sampling_it(tmp_path):
+    from pxr import Usd
+
+    make_skinned_head(tmp_path / "head.glb")
+    _add_clip(tmp_path / "head.glb", "year", [
+        (4, "rotation", np.array([0.0, 3.2e7]), np.array([_about(0, 0.0), _about(0, 0.1)]), "LINEAR")])
+    character, _ = load_bound_character(tmp_path / "head.glb")
+    usd = write_usd(tmp_path / "head.usda", character, np.zeros((4, character.n_shapes), np.float32), FPS,
+                    name="speech")
+    stage = Usd.Stage.Open(str(usd))
+    assert [p.GetName() for p in stage.GetPrimAtPath("/speech/Clips").GetChildren()] == ["idle"]
+    assert "clip 'year': 960,000,001 frames of 1 joint, more than the USD takes here: left out" in \
+        stage.GetRootLayer().documentation

@@ -31,9 +31,10 @@ from visemeflow.rig.model import RigError
 __all__ = ["CLIPS", "MAX_CLIP_VALUES", "Clip", "avatar_clips", "define_clips", "sample_channel"]
 
 CLIPS = "Clips"
-MAX_CLIP_VALUES = 20_000_000
-"""The most joint samples (frames x joints) the clips of one avatar may hold in its USD: 10 minutes at 30 fps of a
-1,000-joint MetaHuman is 18 million; beyond it a clip is left out with a note."""
+MAX_CLIP_VALUES = 4_000_000
+"""The most joint samples (frames x joints) the clips of one avatar may hold in its USD (80 bytes each while they are
+made): a 2-minute clip at 30 fps of a 70-joint Ready Player Me skeleton is 252,000, a minute of a 1,000-joint
+MetaHuman 1.8 million; beyond it a clip is left out with a note (a file whose last key lies a year away included)."""
 
 _WIDTH = {"translation": 3, "rotation": 4, "scale": 3}
 
@@ -157,13 +158,15 @@ def avatar_clips(avatar: AvatarSkeleton, fps: float) -> tuple[list[Clip], list[s
         joints = sorted({k for node, _ in tracks for k in moves[node]})
         if not joints:
             continue
-        end = max(float(t[-1]) for t, _, _ in tracks.values())
-        at = np.arange(int(np.floor(end * fps + 1e-9)) + 1) / fps
-        if len(at) * len(joints) > budget:
-            notes.append(f"{label}: {len(at):,} frames of {len(joints)} joints, more than the USD takes here: "
-                         "left out")
+        end = max(0.0, max(float(t[-1]) for t, _, _ in tracks.values()))
+        n_frames = int(np.floor(end * fps + 1e-9)) + 1      # counted before anything of that size is made
+        if n_frames * len(joints) > budget:
+            plural = "s" * (len(joints) != 1)
+            notes.append(f"{label}: {n_frames:,} frames of {len(joints)} joint{plural}, more than the USD takes "
+                         "here: left out")
             continue
-        budget -= len(at) * len(joints)
+        budget -= n_frames * len(joints)
+        at = np.arange(n_frames) / fps
         sampled = {key: sample_channel(t, v, i, at, rotation=key[1] == "rotation")
                    for key, (t, v, i) in tracks.items()}
         translations = np.empty((len(at), len(joints), 3))
