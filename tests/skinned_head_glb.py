@@ -51,10 +51,12 @@ TEETH_AT = np.array([0.0, -0.035, 0.07])    # metres, scene: behind the demo hea
 TEETH_DROP = 0.008                           # metres the lower teeth drop at AHH = 1
 
 
-def make_skinned_head(path: Path, teeth: bool = False) -> dict:
+def make_skinned_head(path: Path, teeth: bool = False, lips_on_neck: float = 0.0) -> dict:
     """Write the avatar (see the module); returns {"head": neutral (V, 3) m, "weights": per joint name (V,) skin
     weights of the head}. `teeth`: also a teeth mesh on a node without a skin, a child of the `Head` joint (as
-    many exports place teeth), whose lower row drops with the open visemes; "teeth" is then its scene positions."""
+    many exports place teeth), whose lower row drops with the open visemes; "teeth" is then its scene positions.
+    `lips_on_neck`: that share of the skin weight of the mouth (within 2 cm of its centre) on `Neck` instead of
+    `Head`, as a careless weight paint leaves it."""
     demo = character_from_rig(load_demo_rig())
     head = (demo.neutral * 0.01).astype(np.float32)
     deltas = (demo.deltas * 0.01).astype(np.float32)
@@ -67,6 +69,14 @@ def make_skinned_head(path: Path, teeth: bool = False) -> dict:
     weights["Neck"] = (1 - on_head).astype(np.float32)
     weights["Head"] = np.where(chin, 0.5, on_head).astype(np.float32)
     weights["Jaw"] = np.where(chin, 0.5, 0.0).astype(np.float32)
+    if lips_on_neck:
+        from visemeflow.animation.lips import inner_lip_pairs
+
+        centre = head[inner_lip_pairs(demo).ravel()].mean(axis=0)
+        mouth = np.linalg.norm(head - centre, axis=1) < 0.02
+        for name in order:
+            weights[name][mouth] *= 1 - lips_on_neck
+        weights["Neck"][mouth] += lips_on_neck
     stacked = np.stack([weights[n] for n in order], axis=1)
     top = np.argsort(-stacked, axis=1)[:, :4]
     joints = top.astype(np.uint8)

@@ -192,3 +192,16 @@ def test_contact_keys_are_the_peaks_where_mbp_or_fff_leads_strongest_first():
     assert contact_keys(np.zeros((4, N_VISEMES))).size == 0   # rest: nothing leads
     with pytest.raises(ValueError, match="16"):
         contact_keys(np.zeros((3, 5)))
+
+
+@pytest.mark.parametrize("n_frames", [8, 9, 10, 11, 12, 13])
+def test_a_closure_on_the_last_frame_survives_retiming(probe, n_frames):
+    """An utterance that ends on a one-frame closure: its key lands on the last new frame, whatever the length."""
+    from visemeflow.animation.apply import resample_visemes
+
+    curves = np.zeros((n_frames, N_VISEMES), np.float32)
+    curves[:, viseme_index("AHH")] = 0.8
+    curves[-2:, viseme_index("MBP")] = (0.4, 0.95)
+    curves[-1, viseme_index("AHH")] = 0.8 * 0.05 ** 6
+    retimed = resample_visemes(curves, 30.0, 24.0)
+    assert probe.measure(close_lips(retimed[-1:])).gap_mm[0] < CLOSED_MM

@@ -554,3 +554,27 @@ def test_blender_imports_the_bone_usd_with_the_teeth_on_the_heads_bones(toothed)
     worst = float(np.abs(meshes["TeethMesh"] - ours).max())
     print(f"\nBlender, bone USD: teeth worst {worst * 1e3:.4f} mm")
     assert worst < 1e-4
+
+
+def test_lips_that_the_avatars_skeleton_would_leave_behind_keep_the_flat_skeleton_in_the_bone_usd(tmp_path):
+    """A head whose mouth is weighted 30% to `Neck`: on the avatar's skeleton the face bones under `Head` would move
+    the lips by 70% of their motion, so the bone USD keeps the flat SSDR skeleton (our bones exactly) and says why."""
+    from pxr import Gf, Usd, UsdGeom, UsdSkel
+
+    from visemeflow.animation.usd_skel import LIP_LOSS_MM, write_usd_skel
+
+    make_skinned_head(tmp_path / "head.glb", lips_on_neck=0.3)
+    character, binding = load_bound_character(tmp_path / "head.glb")
+    rig = solve_bones(character, 8, binding=binding, iterations=5)
+    path = write_usd_skel(tmp_path / "head.bones.usda", rig, talk(), FPS, name="speech", character=character)
+    stage = Usd.Stage.Open(str(path))
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    assert skeleton.GetJointsAttr().Get()[0] == "root"
+    doc = stage.GetRootLayer().documentation
+    lost = float(doc.split("would move the lips up to ")[1].split(" mm")[0])
+    assert lost > LIP_LOSS_MM
+    assert UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetDefaultPrim()), Gf.Interval(0, N - 1))
+    mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetName() == "HeadMesh")
+    ours = bone_animation(rig, talk())
+    for k in [*OPEN, *SHUT]:
+        np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get(k)), ours[k], atol=1e-6)

@@ -37,6 +37,15 @@ def test_samplers_interpolate_as_gltf_says():
     cubic = np.array([[0.0], [0.0], [0.0], [3.0], [1.0], [0.0]])
     np.testing.assert_allclose(sample_channel(np.array([0.0, 1.0]), cubic, "CUBICSPLINE", np.array([0.5]))[:, 0],
                                [0.125])
+    # keys 2 s apart: glTF scales the tangents by the gap (Appendix C): 0 -> 1 with an out-tangent of 1 at the first
+    # key is 0.75 half-way (0.625 without the scaling)
+    cubic = np.array([[0.0], [0.0], [1.0], [0.0], [1.0], [0.0]])
+    np.testing.assert_allclose(sample_channel(np.array([0.0, 2.0]), cubic, "CUBICSPLINE", np.array([1.0]))[:, 0],
+                               [0.75])
+    # times as glTF stores them (float32: 0.1 is 0.100000001): a frame at a key's time takes that key
+    step = sample_channel(np.array([0.0, 0.1, 0.2], np.float32), np.array([[0.0], [0.3], [0.6]]), "STEP",
+                          np.arange(7) / 30.0)
+    np.testing.assert_allclose(step[:, 0], [0, 0, 0, 0.3, 0.3, 0.3, 0.6])
 
 
 def _add_clip(path: Path, name: str, channels: list[tuple[int, str, np.ndarray, np.ndarray, str]]) -> None:
@@ -87,7 +96,8 @@ def nodding(tmp_path_factory):
         (4, "rotation", np.array([0.0, 0.5, 1.0]), np.array([_about(0, 0.0), _about(0, 0.35), _about(0, -0.1)]),
          "LINEAR"),
         (2, "translation", np.array([0.0, 1.0]), spine, "CUBICSPLINE"),
-        (3, "rotation", np.array([0.0, 0.4]), np.array([_about(2, 0.0), _about(2, 0.2)]), "STEP"),
+        (3, "rotation", np.array([0.0, 0.45]), np.array([_about(2, 0.0), _about(2, 0.2)]), "STEP"),   # between frames:
+        # at a key's own time three.js still holds the key before (0.4 in float32 is 0.40000001), we take the key
         (6, "weights", np.array([0.0, 1.0]), np.zeros((2 * n_targets, 1)), "LINEAR"),
     ])
     character, _ = load_bound_character(path)
@@ -197,4 +207,32 @@ def test_a_clip_whose_last_key_lies_a_year_away_is_left_out_without_sampling_it(
     stage = Usd.Stage.Open(str(usd))
     assert [p.GetName() for p in stage.GetPrimAtPath("/speech/Clips").GetChildren()] == ["idle"]
     assert "clip 'year': 960,000,001 frames of 1 joint, more than the USD takes here: left out" in \
+        stage.GetRootLayer().documentation
+
+
+def test_a_clip_that_hides_a_joint_and_one_that_ends_on_a_float32_key_are_carried_whole(tmp_path):
+    from pxr import Usd, UsdSkel
+
+    make_skinned_head(tmp_path / "head.glb")
+    _add_clip(tmp_path / "head.glb", "hide", [          # the Jaw scaled to 0 from 0.5 s (a part hidden), 0.7 s long
+        (5, "scale", np.array([0.0, 0.5, 0.7]), np.array([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+         "STEP")])
+    _add_clip(tmp_path / "head.glb", "flat", [          # the Jaw squashed along one axis only
+        (5, "scale", np.array([0.0, 0.5]), np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 1.0]]), "LINEAR")])
+    _add_clip(tmp_path / "head.glb", "lost", [(5, "scale", np.array([0.0]), np.array([[1.0, 1.0, 1.0]]), "STEP")])
+    g = gl.GLTF2.load(str(tmp_path / "head.glb"))
+    g.animations[-1].channels[0].sampler = 7           # a channel naming a sampler the clip does not have
+    g.save_binary(str(tmp_path / "head.glb"))
+    character, _ = load_bound_character(tmp_path / "head.glb")
+    usd = write_usd(tmp_path / "head.usda", character, np.zeros((4, character.n_shapes), np.float32), FPS,
+                    name="speech")
+    stage = Usd.Stage.Open(str(usd))
+    assert usd_validation_errors(stage) == []
+    clips = {p.GetName(): UsdSkel.Animation(p) for p in stage.GetPrimAtPath("/speech/Clips").GetChildren()}
+    assert sorted(clips) == ["flat", "hide", "idle"]
+    hide = clips["hide"]
+    assert len(hide.GetScalesAttr().GetTimeSamples()) == 22            # 0.7 s (float32) at 30 fps: 0 .. 21
+    assert [tuple(hide.GetScalesAttr().Get(k)[0]) for k in (14, 15, 21)] == [(1, 1, 1), (0, 0, 0), (0, 0, 0)]
+    assert tuple(clips["flat"].GetScalesAttr().Get(15)[0]) == (1, 0, 1)
+    assert "clip 'lost': a channel names sampler 7, which does not exist: left out" in \
         stage.GetRootLayer().documentation

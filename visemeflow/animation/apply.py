@@ -66,8 +66,8 @@ def resample(curves: np.ndarray, fps_from: float, fps_to: float, keys: np.ndarra
     if keys is not None:
         taken = np.zeros(len(out), bool)
         for k in np.asarray(keys, np.int64):
-            j = int(np.rint(k / fps_from * fps_to))
-            if 0 <= k < len(curves) and 0 <= j < len(out) and not taken[j]:
+            j = min(int(np.rint(k / fps_from * fps_to)), len(out) - 1)   # a key past the last new frame: on it
+            if 0 <= k < len(curves) and 0 <= j and not taken[j]:
                 out[j], taken[j] = curves[k], True
     return out
 
@@ -78,7 +78,7 @@ def resample_visemes(curves: np.ndarray, fps_from: float, fps_to: float) -> np.n
 
     Linear resampling alone loses the short closures a learned model makes: on the 148 English telephone prompts the
     demo head's lips met at 91.0% of the b/p/m at 30 fps and at 82.2% once resampled to 24 fps (80.4% at 25). A key
-    moves by at most half a new frame (21 ms at 24 fps)."""
+    moves by at most half a new frame (21 ms at 24 fps); one on the last frames, by at most one new frame."""
     curves = np.asarray(curves, np.float32)
     if abs(fps_from - fps_to) < 1e-9 or len(curves) < 2:
         return resample(curves, fps_from, fps_to)

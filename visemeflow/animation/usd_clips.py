@@ -13,7 +13,8 @@ whose local transform carries a scale other than 1 (a topmost joint under an `Ar
 
 Not carried, each with a note in the layer's documentation: channels of morph target weights, channels of nodes no
 joint hangs from (a group of eye meshes), a clip whose keys are broken (times not increasing, a NaN, a wrong count)
-or that would hold more than `MAX_CLIP_VALUES` joint samples, a joint whose animated transform is sheared.
+or that would cost more than `MAX_CLIP_VALUES`, a joint whose animated transform is sheared. A joint a clip scales to 0
+(a part hidden) is carried.
 """
 
 from __future__ import annotations
@@ -25,16 +26,17 @@ from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 from visemeflow.animation.skinned_asset import _continuous
 from visemeflow.animation.usd_joints import AvatarSkeleton
-from visemeflow.rig.gltf import _local_matrix, _quaternion_matrix
+from visemeflow.rig.gltf import _local_matrix
 from visemeflow.rig.model import RigError
 
 __all__ = ["CLIPS", "MAX_CLIP_VALUES", "Clip", "avatar_clips", "define_clips", "sample_channel"]
 
 CLIPS = "Clips"
 MAX_CLIP_VALUES = 4_000_000
-"""The most joint samples (frames x joints) the clips of one avatar may hold in its USD (80 bytes each while they are
-made): a 2-minute clip at 30 fps of a 70-joint Ready Player Me skeleton is 252,000, a minute of a 1,000-joint
-MetaHuman 1.8 million; beyond it a clip is left out with a note (a file whose last key lies a year away included)."""
+"""The most the clips of one avatar may cost in its USD, counted per frame as its joints plus its channels plus the
+nodes of those joints' chains (about 100 bytes each while a clip is made, the arrays of one joint at a time on top):
+a 2-minute clip at 30 fps moving the 67 joints of a Ready Player Me skeleton costs about 500,000; beyond the limit a
+clip is left out with a note (a file whose last key lies a year away included)."""
 
 _WIDTH = {"translation": 3, "rotation": 4, "scale": 3}
 
@@ -61,7 +63,9 @@ def sample_channel(times: np.ndarray, values: np.ndarray, interpolation: str, at
     at = np.asarray(at, np.float64)
     cubic = interpolation == "CUBICSPLINE"
     points = values[1::3] if cubic else values
-    k = np.clip(np.searchsorted(times, at, side="right") - 1, 0, len(times) - 1)
+    # glTF stores times as float32 (0.1 s is 0.100000001): a sample within a microsecond of a key is at that key
+    slack = np.minimum(1e-3, 1e-6 * (1.0 + np.abs(at)))
+    k = np.clip(np.searchsorted(times, at + slack, side="right") - 1, 0, len(times) - 1)
     nxt = np.minimum(k + 1, len(times) - 1)
     span = times[nxt] - times[k]
     s = np.where(span > 0, (at - times[k]) / np.where(span > 0, span, 1.0), 0.0)
@@ -87,7 +91,7 @@ def sample_channel(times: np.ndarray, values: np.ndarray, interpolation: str, at
         out = wa * a + wb * b
     else:
         out = (1 - s) * a + s * b
-    before, after = at <= times[0], at >= times[-1]
+    before, after = at <= times[0], at + slack >= times[-1]
     out = np.where(before[:, None], points[0], np.where(after[:, None], points[-1], out))
     if rotation:
         norm = np.linalg.norm(out, axis=1, keepdims=True)
@@ -136,7 +140,10 @@ def avatar_clips(avatar: AvatarSkeleton, fps: float) -> tuple[list[Clip], list[s
                 if node not in moves:
                     skipped.add(f"node {nodes[node].name or node!r}, which no joint hangs from")
                     continue
-                sampler = (animation.samplers or [])[channel.sampler]
+                samplers = animation.samplers or []
+                if not isinstance(channel.sampler, int) or not 0 <= channel.sampler < len(samplers):
+                    raise ValueError(f"{label}: a channel names sampler {channel.sampler!r}, which does not exist")
+                sampler = samplers[channel.sampler]
                 interpolation = sampler.interpolation or "LINEAR"
                 times = reader.accessor(sampler.input, f"{label} input", ("SCALAR",))[:, 0].astype(np.float64)
                 values = reader.accessor(sampler.output, f"{label} output", ("VEC3", "VEC4"))
@@ -151,7 +158,8 @@ def avatar_clips(avatar: AvatarSkeleton, fps: float) -> tuple[list[Clip], list[s
                                      f"({len(times)} times, {values.shape[0]} values, {interpolation})")
                 tracks[(node, path)] = (times, values, interpolation)
         except (RigError, ValueError, IndexError, TypeError) as exc:
-            notes.append(f"{exc}: left out")
+            message = str(exc)
+            notes.append(f"{message if label in message else f'{label}: {message}'}: left out")
             continue
         if skipped:
             notes.append(f"{label}: {', '.join(sorted(skipped))} not carried")
@@ -159,13 +167,16 @@ def avatar_clips(avatar: AvatarSkeleton, fps: float) -> tuple[list[Clip], list[s
         if not joints:
             continue
         end = max(0.0, max(float(t[-1]) for t, _, _ in tracks.values()))
-        n_frames = int(np.floor(end * fps + 1e-9)) + 1      # counted before anything of that size is made
-        if n_frames * len(joints) > budget:
+        n_frames = int(np.floor((end + min(1e-3, 1e-6 * (1 + end))) * fps)) + 1   # its last key too (float32)
+        # what sampling it costs, counted before anything of that size is made: per frame, each joint's transforms,
+        # each channel, each node of the joints' chains
+        cost = n_frames * (len(joints) + len(tracks) + sum(len(chains[k]) for k in joints))
+        if cost > budget:
             plural = "s" * (len(joints) != 1)
             notes.append(f"{label}: {n_frames:,} frames of {len(joints)} joint{plural}, more than the USD takes "
                          "here: left out")
             continue
-        budget -= n_frames * len(joints)
+        budget -= cost
         at = np.arange(n_frames) / fps
         sampled = {key: sample_channel(t, v, i, at, rotation=key[1] == "rotation")
                    for key, (t, v, i) in tracks.items()}
@@ -200,10 +211,14 @@ def _node_locals(node, index: int, sampled: dict, n: int) -> np.ndarray:
     t = sampled.get((index, "translation"), np.broadcast_to(node.translation or (0.0, 0.0, 0.0), (n, 3)))
     r = sampled.get((index, "rotation"), np.broadcast_to(node.rotation or (0.0, 0.0, 0.0, 1.0), (n, 4)))
     s = sampled.get((index, "scale"), np.broadcast_to(node.scale or (1.0, 1.0, 1.0), (n, 3)))
-    out = np.tile(np.eye(4), (n, 1, 1))
-    for f in range(n):
-        out[f, :3, :3] = _quaternion_matrix(r[f]) * np.asarray(s[f])[None, :]
+    x, y, z, w = np.asarray(r, np.float64).T
+    rotation = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    out = np.zeros((n, 4, 4))
+    out[:, :3, :3] = rotation * np.asarray(s, np.float64)[:, None, :]
     out[:, :3, 3] = t
+    out[:, 3, 3] = 1.0
     return out
 
 
@@ -212,15 +227,37 @@ def _decompose(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]
     is sheared (not a rotation times a scale along its own axes)."""
     linear = m[:, :3, :3]
     scale = np.linalg.norm(linear, axis=1)                       # column norms: the scale of each axis
-    if (scale <= 1e-12).any():
-        return m[:, :3, 3], np.tile([1.0, 0, 0, 0], (len(m), 1)), scale, False
-    rotation = linear / scale[:, None, :]
-    if np.linalg.det(rotation).min() < 0:                        # a mirror: one axis negative
-        scale[:, 0] *= np.sign(np.linalg.det(rotation))
-        rotation = linear / scale[:, None, :]
+    zero = scale <= 1e-12
+    rotation = linear / np.where(zero, 1.0, scale)[:, None, :]
+    for f in np.flatnonzero(zero.any(axis=1)):                   # an axis scaled to 0 (a part hidden): its
+        rotation[f] = _completed(rotation[f], zero[f])           # direction is free, the others keep theirs
+    det = np.linalg.det(rotation)
+    if (det < 0).any():                                          # a mirror: one axis negative
+        flip = np.where(det < 0, -1.0, 1.0)
+        scale[:, 0] *= flip
+        rotation[:, :, 0] *= flip[:, None]
     gram = np.einsum("fji,fjk->fik", rotation, rotation)
     ok = bool(np.abs(gram - np.eye(3)).max() <= 1e-5)
     return m[:, :3, 3], _continuous(_quaternions(rotation)), scale, ok
+
+
+def _completed(rotation: np.ndarray, zero: np.ndarray) -> np.ndarray:
+    """A 3x3 whose columns flagged `zero` are filled to make it a rotation with the other (unit) columns kept."""
+    out = rotation.copy()
+    kept = [i for i in range(3) if not zero[i]]
+    if not kept:
+        return np.eye(3)
+    if len(kept) == 1:
+        i = kept[0]
+        c = out[:, i]
+        other = np.eye(3)[int(np.argmin(np.abs(c)))]
+        e = np.cross(c, other)
+        out[:, (i + 1) % 3] = e / np.linalg.norm(e)
+        out[:, (i + 2) % 3] = np.cross(c, out[:, (i + 1) % 3])
+        return out
+    m = next(i for i in range(3) if zero[i])
+    out[:, m] = np.cross(out[:, (m + 1) % 3], out[:, (m + 2) % 3])
+    return out
 
 
 def _quaternions(rotations: np.ndarray) -> np.ndarray:
