@@ -3,7 +3,7 @@
 
 Run: .venv/bin/python bench/encoders.py [--steps 2400] [--d-model 128] [--recipes lj,lj+cls,lj+fg,lj+fg+cls]
      [--espeak 200,100] [--threads 2] [--baseline] [--variants pitch:-3,speed:0.8] [--mbp-peaks 0.067,16]
-     [--grid-phones spread|aligned] [--rooms 4] [--esx nl,cs:200] [--extra DIR] [--mbp-others 6] [--save DIR]
+     [--grid-phones spread|aligned] [--rooms 4] [--esx nl,cs:200] [--extra DIR] [--mbp-others 6] [--release-cut 12] [--save DIR]
 
 Model: whisper-base-blstm (frozen Whisper-base encoder from the `visemeflow[whisper]` weights, last layer; Linear
 512 -> d, one BLSTM of d/2 per direction, linear output, L1), seed 0, one utterance per step, `--steps` steps at
@@ -83,7 +83,7 @@ from judging import HEADER, judge, make_loss, row  # noqa: E402
 from visemeflow.shapes.conventions import ARKIT_52  # noqa: E402
 from visemeflow.ingest.captured import read_channel_table, read_take  # noqa: E402
 from visemeflow.learning.features import EncoderOutputCache, WhisperExtractor  # noqa: E402
-from visemeflow.learning.model import ClosurePeaks  # noqa: E402
+from visemeflow.learning.model import ClosurePeaks, ReleaseCut  # noqa: E402
 from visemeflow.learning.presets import PRESETS  # noqa: E402
 from visemeflow.learning.realspeech import frame_visemes  # noqa: E402
 from visemeflow.procedural import ProceduralConfig  # noqa: E402
@@ -350,9 +350,8 @@ class CachedPredictor:
         with torch.no_grad():
             enc = self.cache.get_or_encode(feats, feats.encoder_fingerprint(), a, _audio_hash(audio), "cpu-fp32")
             f, fl = feats(a, lengths, encoded=enc)
-            pred, _ = model.head(f, fl, torch.tensor([n]), fps=FPS)
-            if model.closure_peaks is not None:   # as the model's own eval-mode forward
-                pred = model.closure_peaks(pred, FPS)
+            pred, mask = model.head(f, fl, torch.tensor([n]), fps=FPS)
+            pred = model.finish(pred, mask, a, lengths, FPS)    # as the model's own eval-mode forward
         return np.clip(pred[0, :n].numpy(), 0.0, 1.0).astype(np.float32)
 
 
@@ -409,6 +408,9 @@ def main() -> int:
     parser.add_argument("--mbp-others", type=float, default=0.0, metavar="K",
                         help="with --mbp-peaks: cap the other visemes at (1 - MBP) ** K where MBP leads (the "
                              "shipped default's 6; `ClosurePeaks.others_power`); 0: no cap")
+    parser.add_argument("--release-cut", type=float, default=0.0, metavar="DB",
+                        help="end each closure at its release, a rise of the 400-3400 Hz band of DB dB within 20 ms "
+                             "(the shipped default's 12; `learning.model.ReleaseCut`); 0: off")
     parser.add_argument("--baseline", action="store_true", help="also judge the shipped fbank default and floors")
     parser.add_argument("--rtf", action="store_true", help="time the first recipe's model on one thread")
     parser.add_argument("--layers", default="last", help="encoder outputs into the decoder, comma-separated: "
@@ -468,12 +470,14 @@ def main() -> int:
         model = train_model(train, [], config, encoder_cache=CACHE, loss=make_loss(loss)).model
         window_s, power = (float(x) for x in args.mbp_peaks.split(","))
         model.closure_peaks = ClosurePeaks(window_s, power, others_power=args.mbp_others) if window_s > 0 else None
+        model.release_cut = ReleaseCut(args.release_cut) if args.release_cut > 0 else None
         model.eval()
         secs = time.perf_counter() - started
         if args.save is not None:
             args.save.mkdir(parents=True, exist_ok=True)
             peaks = {"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
                      "mbp_others_power": args.mbp_others} if window_s > 0 else {}
+            peaks.update({"mbp_release_rise_db": args.release_cut} if args.release_cut > 0 else {})
             decoder = ("" if preset == "whisper-base-blstm" else f"{preset.removeprefix('whisper-base-')}_") + (
                 f"drop{args.dropout:g}_" if args.dropout else "")
             saved = save_model(model, config.model_copy(update=peaks),

@@ -58,7 +58,7 @@ import encoders  # noqa: E402
 from realspeech import FPS, SAMPLE_RATE  # noqa: E402
 
 from visemeflow.learning.default_model import shipped_model_path  # noqa: E402
-from visemeflow.learning.model import ClosurePeaks  # noqa: E402
+from visemeflow.learning.model import ClosurePeaks, ReleaseCut  # noqa: E402
 from visemeflow.learning.train import TrainResult, load_model, predict_curves, save_model, train_model  # noqa: E402
 
 WHISPER_RECIPE = "lj+fg+cls0.1"
@@ -67,6 +67,7 @@ FBANK_RECIPE = "mixed"
 LR = 1e-3
 MBP_LEAD_S = 0.0   # s: off; 0.008 helped on pocketsphinx-aligned English and lost b/p/m elsewhere (data README)
 MBP_OTHERS_POWER = 6.0   # where MBP leads a frame, the other visemes capped at (1 - MBP) ** 6 (issue 25)
+RELEASE_RISE_DB = 12.0   # each closure ended at its release, a 12-dB rise of the 400-3400 Hz band (issue 25)
 DROPOUT = 0.0
 
 
@@ -107,8 +108,10 @@ def whisper(args) -> tuple:
     config = config.model_copy(update={"mbp_peaks_half_window_s": window_s, "mbp_peaks_power": power,
                                        "mbp_lead_s": args.mbp_lead if window_s > 0 else 0.0,
                                        "mbp_others_power": args.mbp_others if window_s > 0 else 0.0})
+    config = config.model_copy(update={"mbp_release_rise_db": args.release_cut})
     result.model.closure_peaks = (ClosurePeaks(window_s, power, config.mbp_lead_s, config.mbp_others_power)
                                   if window_s > 0 else None)
+    result.model.release_cut = ReleaseCut(args.release_cut) if args.release_cut > 0 else None
     result.model.eval()
     predict = encoders.CachedPredictor()
     figures = encoders.judge(sets, lambda audio, n: predict(result.model, audio, n))
@@ -162,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mbp-others", type=float, default=MBP_OTHERS_POWER, metavar="K",
                         help="whisper, with the peaks: where MBP leads a frame, cap the other visemes at "
                              "(1 - MBP) ** K (ClosurePeaks.others_power; 0: off)")
+    parser.add_argument("--release-cut", type=float, default=RELEASE_RISE_DB, metavar="DB",
+                        help="whisper: end each closure at its release, a rise of the 400-3400 Hz band's energy of "
+                             "at least DB within 20 ms (learning.model.ReleaseCut; 0: off)")
     parser.add_argument("--from-model", type=Path, default=None,
                         help="whisper: take the weights of this model file instead of training (same recipe), to "
                              "judge and write them again with other inference settings (--mbp-peaks)")
@@ -182,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                "commit": commit.strip(), "data": data, "held_out": held_out,
                "figures": figures,
                **({"mbp_peaks": list(args.mbp_peaks), "mbp_lead_s": args.mbp_lead, "mbp_others_power": args.mbp_others,
-                  "closure_ramps_s": args.closure_ramps} if is_whisper else {}),
+                  "release_rise_db": args.release_cut, "closure_ramps_s": args.closure_ramps} if is_whisper else {}),
                **({"weights_from": _weights_from(args.from_model)} if args.from_model is not None else {})}
     save_model(result.model, config, out, lineage)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB) in {seconds:.0f} s (training and judging)")

@@ -411,3 +411,69 @@ def test_closure_peaks_apply_at_inference_only_and_configs_without_them_serialis
         raw, _ = model.head(*model.features(audio, lengths), n, fps=30.0)
     assert torch.allclose(inferred, model.closure_peaks(raw, 30.0))
     assert not torch.allclose(inferred, raw)          # the MBP channel changed, at inference
+
+
+def _speech_like(seconds: float, onset_s: float, rate: int = 16000) -> np.ndarray:
+    """Quiet noise, then from `onset_s` a loud vowel-like buzz (harmonics of 120 Hz): one release, at `onset_s`."""
+    rng = np.random.default_rng(0)
+    t = np.arange(int(seconds * rate)) / rate
+    audio = rng.normal(0, 1e-4, len(t))
+    buzz = sum(np.sin(2 * np.pi * 120 * h * t) / h for h in range(1, 30))
+    audio[t >= onset_s] += 0.3 * buzz[t >= onset_s]
+    return audio.astype(np.float32)
+
+
+def test_release_cut_finds_the_release_in_the_audio_and_ends_the_closure_there():
+    from visemeflow.learning.model import ReleaseCut
+    from visemeflow.visemes import VISEME_INDEX
+
+    cut = ReleaseCut(12.0)
+    audio = _speech_like(1.0, 0.5)
+    found = cut.releases(audio)
+    assert len(found) == 1 and abs(found[0] - 0.5) <= 0.02, found
+    assert cut.releases(_speech_like(1.0, 2.0)).size == 0             # no rise: no release
+    assert cut.releases(audio[:100]).size == 0                        # shorter than a frame
+    k, aa = VISEME_INDEX["MBP"], VISEME_INDEX["AHH"]
+    y = np.zeros((30, N_VISEMES), np.float32)
+    y[:, aa] = 0.6
+    y[14:18, k] = (0.5, 0.7, 0.95, 0.6)      # a closure whose peak (frame 16, 0.533 s) comes after the release
+    y[16, aa] = 0.01
+    out = cut.cut(y, audio, 30.0)
+    assert np.array_equal(out[15], y[16])                # its pose moved to frame 15 (0.5 s), the last before it
+    assert (out[16:20].argmax(axis=1) != k).all()         # after the release MBP no longer leads
+    assert np.array_equal(out[:15], y[:15]) and np.array_equal(out[20:], y[20:])
+    late = y.copy()
+    late[14:18, k], late[16, aa] = 0.0, 0.6
+    late[16:20, k] = (0.5, 0.7, 0.95, 0.6)   # a peak 0.1 s after the release: another closure, left alone
+    late[18, aa] = 0.01
+    assert np.array_equal(cut.cut(late, audio, 30.0), late)
+    # a closure with no release near it, or too weak a peak, stays as it was
+    assert np.array_equal(cut.cut(y, _speech_like(1.0, 2.0), 30.0), y)
+    weak = y.copy()
+    weak[15:19, k] = (0.1, 0.2, 0.25, 0.1)
+    assert np.array_equal(cut.cut(weak, audio, 30.0), weak)
+    with pytest.raises(ValueError):
+        ReleaseCut(0.0)
+
+
+def test_release_cut_applies_at_inference_only_between_the_narrowing_and_the_cap():
+    from visemeflow.learning.train import TrainConfig, build_training_model
+
+    plain = TrainConfig(preset="fbank-blstm", d_model=32)
+    assert "mbp_release_rise_db" not in plain.model_dump()                    # older configs serialise as before
+    config = plain.model_copy(update={"mbp_peaks_half_window_s": 0.067, "mbp_others_power": 6.0,
+                                      "mbp_release_rise_db": 12.0})
+    model = build_training_model(config, 30.0)
+    assert model.release_cut is not None and model.release_cut.rise_db == 12.0
+    audio = torch.from_numpy(_speech_like(1.0, 0.5))[None]
+    lengths, n = torch.tensor([16000]), torch.tensor([30])
+    model.eval()
+    with torch.no_grad():
+        inferred, mask = model(audio, lengths, n, fps=30.0)
+        raw, _ = model.head(*model.features(audio, lengths), n, fps=30.0)
+    peaks = model.closure_peaks
+    cut = torch.from_numpy(model.release_cut.cut(peaks.narrow(raw, 30.0)[0].numpy(), audio[0].numpy(), 30.0))[None]
+    assert torch.allclose(inferred, peaks.cap_others(cut) * mask[..., None])
+    model.train()
+    trained, _ = model(audio, lengths, n, fps=30.0)
+    assert trained.requires_grad                                              # training: the head's own output

@@ -69,6 +69,9 @@ class TrainConfig(BaseModel):
     mbp_lead_s: float = Field(0.0, ge=0, le=0.1)
     # inference only, with the peaks: where MBP leads a frame, the other visemes capped at (1 - MBP) ** this (0: off)
     mbp_others_power: float = Field(0.0, ge=0, le=16)
+    # inference only: end each closure at its release, a rise of the 400-3400 Hz band's energy of at least this many dB
+    # within 20 ms near the MBP peak (0: off; visemeflow.learning.model.ReleaseCut)
+    mbp_release_rise_db: float = Field(0.0, ge=0, le=60)
 
     @model_serializer(mode="wrap")
     def _without_unchanged_additions(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -109,7 +112,7 @@ _ADDED_DEFAULTS: dict[str, Any] = {"dropout": None, "batch_size": 1, "bucket_bat
                                    "viseme_loss_weight": 0.0, "whisper_layers": None,
                                    "whisper_tune_layers": 0, "whisper_tune_lr": 1e-5,
                                    "mbp_peaks_half_window_s": 0.0, "mbp_peaks_power": 16.0,
-                                   "mbp_lead_s": 0.0, "mbp_others_power": 0.0}
+                                   "mbp_lead_s": 0.0, "mbp_others_power": 0.0, "mbp_release_rise_db": 0.0}
 
 
 CONDITIONS: tuple[str, ...] = ("volume", "pitch", "speed", "noise")

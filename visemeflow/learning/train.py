@@ -106,7 +106,7 @@ from visemeflow.learning.features import (
     resample_audio,
 )
 from visemeflow.learning.config import AugmentConfig, TrainConfig
-from visemeflow.learning.model import AudioCurveModel, ClosurePeaks, CurveModel, MeanCurveBaseline, l1_loss
+from visemeflow.learning.model import AudioCurveModel, ClosurePeaks, CurveModel, MeanCurveBaseline, ReleaseCut, l1_loss
 from visemeflow.learning.presets import (
     Preset,
     augment,
@@ -228,7 +228,8 @@ def _assemble(config: TrainConfig, feature_module: nn.Module, curve_fps: float) 
     peaks = (ClosurePeaks(config.mbp_peaks_half_window_s, config.mbp_peaks_power, config.mbp_lead_s,
                           config.mbp_others_power)
              if config.mbp_peaks_half_window_s > 0 else None)
-    return AudioCurveModel(feature_module, head, peaks)
+    cut = ReleaseCut(config.mbp_release_rise_db) if config.mbp_release_rise_db > 0 else None
+    return AudioCurveModel(feature_module, head, peaks, cut)
 
 
 def build_training_model(config: TrainConfig, curve_fps: float) -> AudioCurveModel:
