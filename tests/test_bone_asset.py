@@ -166,6 +166,22 @@ def served(tmp_path_factory):
         yield root, address
 
 
+def _turn_neck(stage) -> None:
+    """Add the neck turned (`neck_turn`) to the stage's SkelAnimation at every frame: a body animation on the USD's
+    skeleton."""
+    from pxr import Gf, UsdSkel
+
+    anim = next(UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation))
+    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    translation, _, scale = UsdSkel.DecomposeTransform(skeleton.GetRestTransformsAttr().Get()[2])
+    x, y, z, w = neck_turn()
+    anim.GetJointsAttr().Set(list(anim.GetJointsAttr().Get()) + ["Hips/Spine/Neck"])
+    for k in range(N):
+        anim.GetTranslationsAttr().Set(list(anim.GetTranslationsAttr().Get(k)) + [Gf.Vec3f(translation)], k)
+        anim.GetRotationsAttr().Set(list(anim.GetRotationsAttr().Get(k)) + [Gf.Quatf(w, x, y, z)], k)
+    anim.GetScalesAttr().Set(list(anim.GetScalesAttr().Get()) + [Gf.Vec3h(scale)])
+
+
 def _rotation(q_xyzw) -> np.ndarray:
     x, y, z, w = q_xyzw
     m = np.eye(4)
@@ -432,15 +448,7 @@ def test_the_bone_usd_of_a_skinned_avatar_puts_the_face_bones_in_its_own_skeleto
     # a body animation on the same skeleton, the neck turned: the head-only vertices are our bones' vertices carried
     # by the neck's turn, world(Neck) posed times world(Neck) at rest inverted
     stage = opened()
-    anim = next(UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation))
-    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
-    translation, _, scale = UsdSkel.DecomposeTransform(skeleton.GetRestTransformsAttr().Get()[2])
-    x, y, z, w = neck_turn()
-    anim.GetJointsAttr().Set(list(anim.GetJointsAttr().Get()) + ["Hips/Spine/Neck"])
-    for k in range(N):
-        anim.GetTranslationsAttr().Set(list(anim.GetTranslationsAttr().Get(k)) + [Gf.Vec3f(translation)], k)
-        anim.GetRotationsAttr().Set(list(anim.GetRotationsAttr().Get(k)) + [Gf.Quatf(w, x, y, z)], k)
-    anim.GetScalesAttr().Set(list(anim.GetScalesAttr().Get()) + [Gf.Vec3h(scale)])
+    _turn_neck(stage)
     meshes = baked(stage)
     neck = joint_worlds()["Neck"]
     carry = neck @ _rotation(neck_turn()) @ np.linalg.inv(neck)
@@ -523,15 +531,7 @@ def test_the_bone_usd_puts_the_bones_of_teeth_on_a_plain_node_under_the_joint_ab
     layer = Sdf.Layer.FindOrOpen(str(path))
     layer.Reload(True)
     stage = Usd.Stage.Open(layer)
-    anim = next(UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation))
-    skeleton = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
-    translation, _, scale = UsdSkel.DecomposeTransform(skeleton.GetRestTransformsAttr().Get()[2])
-    x, y, z, w = neck_turn()
-    anim.GetJointsAttr().Set(list(anim.GetJointsAttr().Get()) + ["Hips/Spine/Neck"])
-    for k in range(N):
-        anim.GetTranslationsAttr().Set(list(anim.GetTranslationsAttr().Get(k)) + [Gf.Vec3f(translation)], k)
-        anim.GetRotationsAttr().Set(list(anim.GetRotationsAttr().Get(k)) + [Gf.Quatf(w, x, y, z)], k)
-    anim.GetScalesAttr().Set(list(anim.GetScalesAttr().Get()) + [Gf.Vec3h(scale)])
+    _turn_neck(stage)
     mesh = baked_teeth(stage)
     neck = joint_worlds()["Neck"]
     carry = neck @ _rotation(neck_turn()) @ np.linalg.inv(neck)
