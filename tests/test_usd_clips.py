@@ -219,6 +219,8 @@ def test_a_clip_that_hides_a_joint_and_one_that_ends_on_a_float32_key_are_carrie
          "STEP")])
     _add_clip(tmp_path / "head.glb", "flat", [          # the Jaw squashed along one axis only
         (5, "scale", np.array([0.0, 0.5]), np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 1.0]]), "LINEAR")])
+    _add_clip(tmp_path / "head.glb", "idle", [          # a second clip of the name the file's own has
+        (5, "rotation", np.array([0.0]), np.array([_about(0, 0.1)]), "STEP")])
     _add_clip(tmp_path / "head.glb", "lost", [(5, "scale", np.array([0.0]), np.array([[1.0, 1.0, 1.0]]), "STEP")])
     g = gl.GLTF2.load(str(tmp_path / "head.glb"))
     g.animations[-1].channels[0].sampler = 7           # a channel naming a sampler the clip does not have
@@ -229,7 +231,8 @@ def test_a_clip_that_hides_a_joint_and_one_that_ends_on_a_float32_key_are_carrie
     stage = Usd.Stage.Open(str(usd))
     assert usd_validation_errors(stage) == []
     clips = {p.GetName(): UsdSkel.Animation(p) for p in stage.GetPrimAtPath("/speech/Clips").GetChildren()}
-    assert sorted(clips) == ["flat", "hide", "idle"]
+    assert sorted(clips) == ["flat", "hide", "idle", "idle_1"]
+    assert list(clips["idle_1"].GetJointsAttr().Get()) == ["Hips/Spine/Neck/Head/Jaw"]
     hide = clips["hide"]
     assert len(hide.GetScalesAttr().GetTimeSamples()) == 22            # 0.7 s (float32) at 30 fps: 0 .. 21
     assert [tuple(hide.GetScalesAttr().Get(k)[0]) for k in (14, 15, 21)] == [(1, 1, 1), (0, 0, 0), (0, 0, 0)]

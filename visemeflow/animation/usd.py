@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import functools
 import os
-import re
 import threading
 from pathlib import Path
 
@@ -57,6 +56,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 from visemeflow.animation.usd_scene import MATERIALS
 from visemeflow.rig.character import Character
 from visemeflow.rig.gltf import srgb_to_linear
+from visemeflow.animation.usd_names import prim_name
+from visemeflow.animation.usd_names import unique_prim_names as _unique_prim_names
 from visemeflow.atomic import atomic_path
 
 __all__ = ["USD_SUFFIXES", "build_stage", "prim_name", "read_usd_weights", "write_usd", "write_usdz"]
@@ -86,37 +87,6 @@ def one_at_a_time(function):
 
 # Store sparse offsets (pointIndices) when they are smaller than dense ones: an index costs 4 bytes, an offset 12.
 _SPARSE_BELOW = 0.75
-
-_INVALID = re.compile(r"[^A-Za-z0-9_]")
-
-
-def prim_name(name: str) -> str:
-    """`name` as a valid USD prim name: other characters become "_", a leading digit gets a "_" before it."""
-    text = _INVALID.sub("_", str(name)) or "_"
-    if text[0].isdigit():
-        text = "_" + text
-    return text
-
-
-def _unique_prim_names(names) -> list[str]:
-    """One distinct prim name per shape: names that are valid keep theirs, the others get `prim_name` plus "_1",
-    "_2" ... when that is taken."""
-    names = [str(n) for n in names]
-    used = {n for n in names if prim_name(n) == n}
-    out = []
-    for name in names:
-        if prim_name(name) == name:
-            out.append(name)
-            continue
-        base = candidate = prim_name(name)
-        k = 1
-        while candidate in used:
-            candidate = f"{base}_{k}"
-            k += 1
-        used.add(candidate)
-        out.append(candidate)
-    return out
-
 
 def _check_weights(weights, n_shapes: int, fps: float, where: str) -> np.ndarray:
     w = np.asarray(weights)

@@ -25,6 +25,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 from visemeflow.animation.skinned_asset import _continuous
+from visemeflow.animation.usd_names import unique_prim_names
 from visemeflow.animation.usd_joints import AvatarSkeleton
 from visemeflow.rig.gltf import _local_matrix
 from visemeflow.rig.model import RigError
@@ -272,14 +273,19 @@ def _quaternions(rotations: np.ndarray) -> np.ndarray:
 def define_clips(stage: Usd.Stage, root: Sdf.Path, avatar: AvatarSkeleton, fps: float) -> list[str]:
     """`avatar_clips` written as SkelAnimation prims under `<root>/Clips` (not bound: the speech animation stays the
     skeleton's `animationSource`); returns the notes of what was left out."""
-    from visemeflow.animation.usd import _unique_prim_names
-
     clips, notes = avatar_clips(avatar, fps)
     if not clips:
         return notes
     folder = root.AppendChild(CLIPS)
     stage.DefinePrim(folder, "Scope")
-    for name, clip in zip(_unique_prim_names(c.name for c in clips), clips):
+    names, taken = [], set()
+    for name in unique_prim_names(c.name for c in clips):      # two clips of one name (glTF allows it) get two prims
+        base, k = name, 1
+        while name in taken:
+            name, k = f"{base}_{k}", k + 1
+        taken.add(name)
+        names.append(name)
+    for name, clip in zip(names, clips):
         anim = UsdSkel.Animation.Define(stage, folder.AppendChild(name))
         anim.GetPrim().SetDocumentation(f"the avatar's own clip {clip.name!r}, {len(clip.translations)} frames at "
                                         f"{fps:g} fps from time code 0: bind it as the Skeleton's "
