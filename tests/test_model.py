@@ -434,24 +434,30 @@ def test_release_cut_finds_the_release_in_the_audio_and_ends_the_closure_there()
     assert cut.releases(_speech_like(1.0, 2.0)).size == 0             # no rise: no release
     assert cut.releases(audio[:100]).size == 0                        # shorter than a frame
     k, aa = VISEME_INDEX["MBP"], VISEME_INDEX["AHH"]
-    y = np.zeros((30, N_VISEMES), np.float32)
+    y = np.zeros((60, N_VISEMES), np.float32)                     # 60 fps: frame 31 is 0.517 s
     y[:, aa] = 0.6
-    y[14:18, k] = (0.5, 0.7, 0.95, 0.6)      # a closure whose peak (frame 16, 0.533 s) comes after the release
-    y[16, aa] = 0.01
-    out = cut.cut(y, audio, 30.0)
-    assert np.array_equal(out[15], y[16])                # its pose moved to frame 15 (0.5 s), the last before it
-    assert (out[16:20].argmax(axis=1) != k).all()         # after the release MBP no longer leads
-    assert np.array_equal(out[:15], y[:15]) and np.array_equal(out[20:], y[20:])
+    y[29:33, k] = (0.5, 0.7, 0.95, 0.6)      # a closure whose peak (frame 31) comes just after the release (0.51 s)
+    y[31, aa] = 0.01
+    out = cut.cut(y, audio, 60.0)
+    assert np.array_equal(out[30], y[31])                # its pose moved to frame 30 (0.5 s), the last before it
+    assert (out[31:35].argmax(axis=1) != k).all()         # after the release MBP no longer leads
+    assert np.array_equal(out[:30], y[:30]) and np.array_equal(out[35:], y[35:])
     late = y.copy()
-    late[14:18, k], late[16, aa] = 0.0, 0.6
-    late[16:20, k] = (0.5, 0.7, 0.95, 0.6)   # a peak 0.1 s after the release: another closure, left alone
-    late[18, aa] = 0.01
-    assert np.array_equal(cut.cut(late, audio, 30.0), late)
+    late[29:33, k], late[31, aa] = 0.0, 0.6
+    late[33:37, k] = (0.5, 0.7, 0.95, 0.6)   # a peak 0.08 s after the release: another closure, left alone
+    late[35, aa] = 0.01
+    assert np.array_equal(cut.cut(late, audio, 60.0), late)
+    early = y.copy()
+    early[29:33, k], early[31, aa] = 0.0, 0.6
+    early[25:30, k] = (0.5, 0.7, 0.95, 0.9, 0.8)   # a peak before the release, MBP leading up to it: the closure
+    early[27:30, aa] = 0.01                        # stays, and MBP no longer leads after the release
+    cut_early = cut.cut(early, audio, 60.0)
+    assert np.array_equal(cut_early[:31], early[:31]) and (cut_early[31:].argmax(axis=1) != k).all()
     # a closure with no release near it, or too weak a peak, stays as it was
-    assert np.array_equal(cut.cut(y, _speech_like(1.0, 2.0), 30.0), y)
+    assert np.array_equal(cut.cut(y, _speech_like(1.0, 2.0), 60.0), y)
     weak = y.copy()
-    weak[15:19, k] = (0.1, 0.2, 0.25, 0.1)
-    assert np.array_equal(cut.cut(weak, audio, 30.0), weak)
+    weak[29:33, k] = (0.1, 0.2, 0.25, 0.1)
+    assert np.array_equal(cut.cut(weak, audio, 60.0), weak)
     with pytest.raises(ValueError):
         ReleaseCut(0.0)
 

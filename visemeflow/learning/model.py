@@ -559,7 +559,7 @@ class ReleaseCut(nn.Module):
     Rises are found on 20-ms frames every 10 ms, above a floor 50 dB under the file's loudest frame. No parameters
     to learn; numpy on the CPU, in eval mode only (the ONNX graph does not apply it, see ``learning.onnx_export``)."""
 
-    def __init__(self, rise_db: float, before_s: float = 0.04, after_s: float = 0.07, min_peak: float = 0.3,
+    def __init__(self, rise_db: float, before_s: float = 0.02, after_s: float = 0.07, min_peak: float = 0.3,
                  band_hz: tuple[float, float] = (400.0, 3400.0), floor_db: float = 50.0) -> None:
         super().__init__()
         if not rise_db > 0:
