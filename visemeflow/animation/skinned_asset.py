@@ -80,11 +80,12 @@ def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _quaternion(rotation: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) as unit quaternions (..., 4): w, x, y, z."""
     import torch
     from kornia.geometry.conversions import rotation_matrix_to_quaternion
 
     q = rotation_matrix_to_quaternion(torch.from_numpy(np.ascontiguousarray(rotation, np.float64))).numpy()
-    return q / np.linalg.norm(q)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def _continuous(q: np.ndarray) -> np.ndarray:

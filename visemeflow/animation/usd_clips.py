@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
-from visemeflow.animation.skinned_asset import _continuous
+from visemeflow.animation.skinned_asset import _continuous, _quaternion
 from visemeflow.animation.usd_names import unique_prim_names
 from visemeflow.animation.usd_joints import AvatarSkeleton
-from visemeflow.rig.gltf import _local_matrix
+from visemeflow.rig.gltf import _local_matrix, _quaternion_matrix
 from visemeflow.rig.model import RigError
 
 __all__ = ["CLIPS", "MAX_CLIP_VALUES", "Clip", "avatar_clips", "define_clips", "sample_channel"]
@@ -212,12 +212,8 @@ def _node_locals(node, index: int, sampled: dict, n: int) -> np.ndarray:
     t = sampled.get((index, "translation"), np.broadcast_to(node.translation or (0.0, 0.0, 0.0), (n, 3)))
     r = sampled.get((index, "rotation"), np.broadcast_to(node.rotation or (0.0, 0.0, 0.0, 1.0), (n, 4)))
     s = sampled.get((index, "scale"), np.broadcast_to(node.scale or (1.0, 1.0, 1.0), (n, 3)))
-    x, y, z, w = np.asarray(r, np.float64).T
-    rotation = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
     out = np.zeros((n, 4, 4))
-    out[:, :3, :3] = rotation * np.asarray(s, np.float64)[:, None, :]
+    out[:, :3, :3] = _quaternion_matrix(r) * np.asarray(s, np.float64)[:, None, :]
     out[:, :3, 3] = t
     out[:, 3, 3] = 1.0
     return out
@@ -239,7 +235,7 @@ def _decompose(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]
         rotation[:, :, 0] *= flip[:, None]
     gram = np.einsum("fji,fjk->fik", rotation, rotation)
     ok = bool(np.abs(gram - np.eye(3)).max() <= 1e-5)
-    return m[:, :3, 3], _continuous(_quaternions(rotation)), scale, ok
+    return m[:, :3, 3], _continuous(_quaternion(rotation)), scale, ok
 
 
 def _completed(rotation: np.ndarray, zero: np.ndarray) -> np.ndarray:
@@ -259,15 +255,6 @@ def _completed(rotation: np.ndarray, zero: np.ndarray) -> np.ndarray:
     m = next(i for i in range(3) if zero[i])
     out[:, m] = np.cross(out[:, (m + 1) % 3], out[:, (m + 2) % 3])
     return out
-
-
-def _quaternions(rotations: np.ndarray) -> np.ndarray:
-    """(F, 3, 3) rotation matrices as unit quaternions (F, 4): w, x, y, z."""
-    import torch
-    from kornia.geometry.conversions import rotation_matrix_to_quaternion
-
-    q = rotation_matrix_to_quaternion(torch.from_numpy(np.ascontiguousarray(rotations, np.float64))).numpy()
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def define_clips(stage: Usd.Stage, root: Sdf.Path, avatar: AvatarSkeleton, fps: float) -> list[str]:
